@@ -1,0 +1,32 @@
+"""Batched simulation of the vabench dual-arm robot on MuJoCo MJX (and C MuJoCo as baseline).
+
+Importing this package enables JAX's persistent compilation cache (unless the user configured
+one) so that each model shape compiles once per machine, not once per process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+from pathlib import Path
+
+import jax
+
+# mujoco.mjx prints "Failed to import warp" on stdout when MuJoCo Warp is absent; keep stdout
+# clean for the CLIs that print JSON.
+with contextlib.redirect_stdout(io.StringIO()):
+    from mujoco import mjx  # noqa: F401
+
+
+def _enable_compilation_cache() -> None:
+    if jax.config.jax_compilation_cache_dir:
+        return
+    path = os.environ.get("VABENCH_JAX_CACHE") or str(Path.home() / ".cache" / "vabench" / "jax")
+    if path.lower() in ("", "0", "off", "none"):
+        return
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+_enable_compilation_cache()

@@ -1,0 +1,153 @@
+"""The fixed, model-agnostic executor: plan one metric action per slot, then a joint trajectory.
+
+Every action, whatever its kind, is a per-arm command (`ArmCommand`): a world translation of the
+end effector, a rotation vector about the current gripper-local axes (GC held fixed), and an
+aperture command. A slot's plan is
+  1. the Cartesian target: translate, or rotate about GC (R' = R exp(rotvec), so the rotation is
+     about the current local axis, right-handed); the end-effector target is clipped to the
+     workspace bounds of the reference and the clipping reported;
+  2. N_WAYPOINTS poses along the straight line / the geodesic from the start, each solved in
+     closed form (kinematics.ik) and checked: reachable, within joint limits, no wrist flip
+     between neighbours, and every gripper collision box above the table;
+  3. a joint reference over the action's physics substeps: minimum-jerk timing along the
+     waypoints, held for the settle part; finger references ramp to open or closed.
+If any commanded arm's plan fails, the slot's planner_success is false and the batch leaves the
+slot untouched. The references are open-loop functions of time, so the same `ctrl_at` drives
+MJX (inside a scan) and C MuJoCo (as a precomputed control sequence).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from vabench.sim_mjx import kinematics as kin
+from vabench.sim_mjx import robot_constants as rc
+from vabench.sim_mjx.pytree import pytree_dataclass
+
+GRIP_KEEP, GRIP_CLOSE, GRIP_OPEN = -1, 0, 1
+
+
+@pytree_dataclass
+class ArmCommand:
+    """One action for one slot (batched: a leading slot axis on every field)."""
+
+    active: jax.Array  # () bool: the slot has an action this call
+    delta: jax.Array  # (A, 3) world translation of the end effector, m
+    rotvec: jax.Array  # (A, 3) rotation vector in the current gripper frame, rad
+    grip: jax.Array  # (A,) int32: GRIP_KEEP, GRIP_CLOSE or GRIP_OPEN
+
+
+@pytree_dataclass
+class Plan:
+    waypoints: jax.Array  # (A, W, 6) joint waypoints (all equal to q when the arm stays)
+    hold: jax.Array  # (A, 6) arm reference before the action (the previous control)
+    moves: jax.Array  # (A,) bool: the arm follows its waypoints
+    finger_start: jax.Array  # (A, 2)
+    finger_target: jax.Array  # (A, 2)
+    arm_ok: jax.Array  # (A,) bool
+    ok: jax.Array  # () bool: every arm's plan succeeded
+    clipped: jax.Array  # (A,) bool: the end-effector target was clipped to the bounds
+    executed_m: jax.Array  # (A,) planned GC displacement after clipping, m
+
+
+def idle_command(n_arms: int) -> ArmCommand:
+    return ArmCommand(
+        active=jnp.array(False),
+        delta=jnp.zeros((n_arms, 3)),
+        rotvec=jnp.zeros((n_arms, 3)),
+        grip=jnp.full((n_arms,), GRIP_KEEP, jnp.int32),
+    )
+
+
+def _plan_arm(
+    g: kin.ArmGeometry,
+    q: jax.Array,
+    fingers: jax.Array,
+    delta: jax.Array,
+    rotvec: jax.Array,
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
+    ee, rot, gc = kin.gripper_points(g, q, fingers)
+    gc_local = rot.T @ (gc - ee)  # GC seen from the ee frame: fixed during a rotation
+    rot_end = rot @ kin.axis_angle(rotvec)
+    ee_end = gc + delta - rot_end @ gc_local
+    lo, hi = jnp.asarray(rc.EE_BOUNDS_LO), jnp.asarray(rc.EE_BOUNDS_HI)
+    ee_clipped = jnp.clip(ee_end, lo, hi)
+    shift = ee_clipped - ee_end
+    clipped = jnp.any(jnp.abs(shift) > 1e-9)
+
+    t = jnp.linspace(0.0, 1.0, rc.N_WAYPOINTS)
+
+    def pose(ti: jax.Array) -> tuple[jax.Array, jax.Array]:
+        r = rot @ kin.axis_angle(ti * rotvec)
+        return gc + ti * (delta + shift) - r @ gc_local, r
+
+    def solve(q_prev: jax.Array, ti: jax.Array) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+        p, r = pose(ti)
+        qi, ok = kin.ik(g, p, r, q_prev)
+        low = kin.lowest_gripper_z(g, qi, fingers)
+        step_ok = jnp.max(jnp.abs(qi - q_prev)) <= rc.MAX_JOINT_STEP
+        return qi, (qi, ok & step_ok & (low >= rc.TABLE_Z + rc.TABLE_CLEARANCE))
+
+    _, (wps, oks) = jax.lax.scan(solve, q, t)
+    moves = jnp.any(delta != 0.0) | jnp.any(rotvec != 0.0)
+    ok = jnp.all(oks)
+    wps = jnp.where(moves, wps, jnp.broadcast_to(q, wps.shape))
+    executed = jnp.linalg.norm(delta + shift)
+    return wps, jnp.where(moves, ok, True), moves, clipped & moves, jnp.where(moves, executed, 0.0)
+
+
+def plan_slot(
+    geoms: kin.ArmGeometry,
+    q: jax.Array,
+    fingers: jax.Array,
+    arm_ctrl: jax.Array,
+    finger_ctrl: jax.Array,
+    cmd: ArmCommand,
+) -> Plan:
+    """Plan one slot. geoms is stacked over arms; q (A, 6), fingers (A, 2) measured;
+    arm_ctrl (A, 6) and finger_ctrl (A, 2) the references currently held."""
+    wps, arm_ok, moves, clipped, executed = jax.vmap(_plan_arm)(
+        geoms, q, fingers, cmd.delta, cmd.rotvec
+    )
+    target = jnp.where(
+        cmd.grip[:, None] == GRIP_OPEN,
+        rc.FINGER_OPEN,
+        jnp.where(cmd.grip[:, None] == GRIP_CLOSE, rc.FINGER_CLOSED, finger_ctrl),
+    )
+    return Plan(
+        waypoints=wps,
+        hold=arm_ctrl,
+        moves=moves,
+        finger_start=finger_ctrl,
+        finger_target=target,
+        arm_ok=arm_ok,
+        ok=jnp.all(arm_ok),
+        clipped=clipped,
+        executed_m=executed,
+    )
+
+
+def substeps(timestep: float) -> int:
+    """Physics substeps of one action at the model's timestep."""
+    return int(round(rc.ACTION_SECONDS / timestep))
+
+
+def _min_jerk(s: jax.Array) -> jax.Array:
+    s = jnp.clip(s, 0.0, 1.0)
+    return s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
+
+
+def ctrl_at(plan: Plan, k: jax.Array, n_substeps: int) -> tuple[jax.Array, jax.Array]:
+    """Arm (A, 6) and finger (A, 2) references at substep k (0-based) of the action."""
+    move_steps = rc.MOVE_FRACTION * n_substeps
+    grip_steps = rc.GRIP_FRACTION * n_substeps
+    u = _min_jerk((k + 1.0) / move_steps) * (rc.N_WAYPOINTS - 1)
+    i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, rc.N_WAYPOINTS - 2)
+    frac = u - i
+    wp = plan.waypoints
+    arm = wp[:, i] + frac * (wp[:, i + 1] - wp[:, i])
+    arm = jnp.where(plan.moves[:, None], arm, plan.hold)
+    s = jnp.clip((k + 1.0) / grip_steps, 0.0, 1.0)
+    fingers = plan.finger_start + s * (plan.finger_target - plan.finger_start)
+    return arm, fingers

@@ -1,0 +1,115 @@
+"""The C MuJoCo path: the same model and the same controller, physics on the CPU.
+
+Used for parity tests (MJX against the reference implementation of MuJoCo) and as the baseline
+the MJX batch must beat. The plan and the control sequence come from the same jitted functions
+as the MJX batch (`batch.ctrl_sequence_slot`); only the physics differs. Physics runs either in
+one thread with `mj_step` (threads=0) or through `mujoco.rollout` on a thread pool.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import rollout
+
+from vabench.sim_mjx import robot_constants as rc
+from vabench.sim_mjx.actions import CommandRows
+from vabench.sim_mjx.batch import BatchBase, StepInfo, ctrl_sequence_slot
+from vabench.sim_mjx.scene import home_qpos
+
+_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+
+
+class CpuBatch(BatchBase):
+    """N slots of one scene simulated by C MuJoCo, with the batch's interface."""
+
+    def __init__(self, model: mujoco.MjModel, n_slots: int, threads: int = 0):
+        self._setup(model, n_slots)
+        self.threads = threads
+        self._data = mujoco.MjData(model)
+        self._nstate = mujoco.mj_stateSize(model, _STATE)
+        self._state = np.zeros((n_slots, self._nstate))
+        self._ctrl = np.zeros((n_slots, model.nu))
+        self._grip_open = np.ones((n_slots, len(self.arms)), bool)
+        self._init_qpos = np.zeros((n_slots, model.nq))
+        self._sequence = jax.jit(
+            jax.vmap(
+                functools.partial(ctrl_sequence_slot, self.layout, self.n_substeps),
+                in_axes=(None, 0, 0, 0),
+            )
+        )
+        self._pool = rollout.Rollout(nthread=threads) if threads > 0 else None
+        self._thread_data = [mujoco.MjData(model) for _ in range(threads)]
+        self.reset(range(n_slots), np.broadcast_to(home_qpos(model), (n_slots, model.nq)))
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def reset(self, slots: Sequence[int], qpos: np.ndarray, settle_steps: int = 0) -> None:
+        slots = list(slots)
+        qpos = self._check_reset(slots, qpos)
+        m, d = self.model, self._data
+        for row, slot in enumerate(slots):
+            mujoco.mj_resetData(m, d)
+            d.qpos[:] = qpos[row]
+            d.ctrl[self.layout.arm_act] = qpos[row][self.layout.qpos]
+            d.ctrl[self.layout.finger_act] = rc.FINGER_OPEN
+            mujoco.mj_forward(m, d)
+            mujoco.mj_getState(m, d, self._state[slot], _STATE)
+            self._ctrl[slot] = d.ctrl
+            self._init_qpos[slot] = qpos[row]
+            self._grip_open[slot] = True
+        if settle_steps > 0:
+            self.hold(settle_steps, slots)
+
+    def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
+        slots = list(range(self.n_slots)) if slots is None else list(slots)
+        controls = np.repeat(self._ctrl[slots][:, None, :], n_steps, axis=1)
+        self._run(slots, controls)
+
+    def _run(self, slots: list[int], controls: np.ndarray) -> None:
+        """Advance `slots` through the control sequences (len(slots), n_steps, nu)."""
+        if not slots:
+            return
+        m, d = self.model, self._data
+        if self._pool is None:
+            for row, slot in enumerate(slots):
+                mujoco.mj_setState(m, d, self._state[slot], _STATE)
+                for u in controls[row]:
+                    d.ctrl[:] = u
+                    mujoco.mj_step(m, d)
+                mujoco.mj_getState(m, d, self._state[slot], _STATE)
+        else:
+            states, _ = self._pool.rollout(m, self._thread_data, self._state[slots], controls)
+            self._state[slots] = states[:, -1]
+        self._ctrl[slots] = controls[:, -1]
+
+    def _execute(self, rows: CommandRows) -> StepInfo:
+        cmd = rows.to_device(self._dtype)
+        seq, plan = self._sequence(
+            self.geoms, jnp.asarray(self.qpos(), self._dtype), jnp.asarray(self._ctrl, self._dtype), cmd
+        )
+        seq, plan = jax.device_get((seq, plan))
+        go = rows.active & plan.ok
+        slots = [int(s) for s in np.flatnonzero(go)]
+        self._run(slots, np.asarray(seq[slots], float))
+        opens = rows.grip == 1
+        keep = rows.grip < 0
+        self._grip_open[go] = np.where(keep[go], self._grip_open[go], opens[go])
+        return StepInfo(
+            executed=go, planner_success=plan.ok, clipped=plan.clipped, executed_m=plan.executed_m
+        )
+
+    def qpos(self) -> np.ndarray:
+        # full-physics state layout: time, qpos, qvel, act, ...
+        return self._state[:, 1 : 1 + self.model.nq].copy()
+
+    def grip_open(self) -> np.ndarray:
+        return self._grip_open.copy()

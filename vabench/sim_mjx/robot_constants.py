@@ -1,0 +1,61 @@
+"""Constants of the vabench dual-arm robot and of the VA-Bench world frame.
+
+World frame (spec FACTS.md): z up, x to the robot's right, y away from the robot base; table top
+at z = 0.741 m; the right arm works the x > 0 half. Lengths in metres, angles in radians.
+The link lengths of the kinematic chain are not repeated here: `kinematics.ArmGeometry` reads
+them from the compiled model, so the MJCF stays the single source of truth.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+ASSETS = Path(__file__).resolve().parents[2] / "assets"
+ARM_XML = ASSETS / "robot" / "arm.xml"
+TABLE_XML = ASSETS / "scene" / "table.xml"
+
+TABLE_Z = 0.741
+HEAD_CAMERA_POS = (0.0, -0.58, 1.48)
+
+ARMS = ("left", "right")
+# Arm bases sit on the table's near edge, both facing +y (base yaw +90 deg about world z).
+ARM_BASE_POS = {"left": (-0.28, -0.48, TABLE_Z), "right": (0.28, -0.48, TABLE_Z)}
+ARM_BASE_YAW = math.pi / 2
+
+ARM_JOINTS = ("waist", "shoulder", "elbow", "forearm_roll", "wrist_pitch", "wrist_roll")
+FINGER_JOINTS = ("finger_a", "finger_b")
+
+# Home posture: GC at about (+-0.28, -0.20, 0.95), approach axis 50 deg below the horizontal,
+# pointing forward, fingers closing along world x.
+HOME_Q = (0.0, -0.3874, 0.8114, 0.0, 0.4487, 0.0)
+
+FINGER_OPEN = 0.045  # each finger's travel from the centre line: 90 mm aperture
+FINGER_CLOSED = 0.0
+
+# End-effector target bounds of the reference (FACTS.md); vabench reports clipping.
+EE_BOUNDS_LO = (-0.55, -0.45, 0.74)
+EE_BOUNDS_HI = (0.55, 0.35, 1.35)
+
+# Gripper collision boxes in the gripper frame (origin at the wrist centre, x = approach):
+# (centre, half-size). Fingers are given at zero opening; finger a is displaced by +q along y,
+# finger b by -q. Used by the planner's table check; must match assets/robot/arm.xml
+# (tests/test_kinematics.py checks it against the compiled model).
+PALM_BOX = ((0.06, 0.0, 0.0), (0.03, 0.062, 0.022))
+FINGER_A_BOX = ((0.125, 0.006, 0.0), (0.035, 0.006, 0.012))
+FINGER_B_BOX = ((0.125, -0.006, 0.0), (0.035, 0.006, 0.012))
+EE_SITE_X = 0.09  # control end effector ("ee" site) on the palm face
+PAD_X = 0.145  # finger pads, 15 mm behind the tips: GC lies on this line
+
+# Planner and trajectory (the fixed, model-agnostic executor).
+TABLE_CLEARANCE = 0.002  # the gripper boxes must stay this far above the table top
+N_WAYPOINTS = 25  # Cartesian waypoints per move: <= 4.2 mm and <= 3.75 deg apart
+MAX_JOINT_STEP = 0.35  # rad between waypoints; more means a wrist flip, not a smooth move
+ACTION_SECONDS = 0.8  # simulated time of every action (fixed shape for the batch)
+MOVE_FRACTION = 0.7  # the arm reaches its target at 70 % of the action, then settles
+GRIP_FRACTION = 0.6  # finger targets ramp over the first 60 % of the action
+
+# Action ranges of the model interface.
+MOVE_MM_RANGE = (1.0, 100.0)
+ROTATE_DEG_RANGE = (1.0, 90.0)
+ROTATE_STEP_DEG = 10.0  # the reference splits rotations into steps of at most 10 deg
