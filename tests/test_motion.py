@@ -1,0 +1,206 @@
+"""The Must-holds of the simulator core, on MJX (CPU) with real MuJoCo physics."""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import numpy as np
+import pytest
+
+from tests.conftest import N_SLOTS
+
+AXES = {"x": 0, "y": 1, "z": 2}
+LOCAL = {"rx": 0, "ry": 1, "rz": 2}
+
+
+def _angle_deg(a, b):
+    return np.degrees(np.arccos(np.clip(np.dot(a, b), -1.0, 1.0)))
+
+
+def _rotation_angle_deg(r0, r1):
+    """Angle of the relative rotation r0^T r1."""
+    rel = r0.T @ r1
+    return np.degrees(np.arccos(np.clip((np.trace(rel) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def test_world_translation(home_batch):
+    """GC moves d along the axis within 2 mm, off-axis drift < 2 mm, orientation < 1 deg."""
+    cases = list(itertools.product("xyz", "+-", (1, 37, 100)))
+    assert len(cases) == N_SLOTS
+    before = home_batch.proprio()
+    results = home_batch.step(
+        [{"action": "gripper.move_world", "axis": a, "sign": s, "distance_mm": d} for a, s, d in cases]
+    )
+    after = home_batch.proprio()
+    for slot, (axis, sign, dist) in enumerate(cases):
+        res = results[slot]
+        assert res.valid and res.planner_success and res.executed, (slot, res)
+        assert not res.clipped["right"]
+        move = (after.gc[slot, 0] - before.gc[slot, 0]) * 1000.0
+        along = move[AXES[axis]] * (1 if sign == "+" else -1)
+        off = np.delete(move, AXES[axis])
+        assert abs(along - dist) < 2.0, (axis, sign, dist, move)
+        assert np.all(np.abs(off) < 2.0), (axis, sign, dist, move)
+        assert _rotation_angle_deg(before.rot[slot, 0], after.rot[slot, 0]) < 1.0
+
+
+def test_local_rotation(home_batch):
+    """Rotations about rx|ry|rz by up to 90 deg turn the gripper axes by the commanded angle
+    within 1 deg; GC drifts under 3 mm. Start: a top-down grasp posture, except for +ry, which
+    would point the fingers back at the robot: those start pointing forward and end top-down."""
+    cases = list(itertools.product(("rx", "ry", "rz"), "+-", (10, 45, 90)))
+    tilt = home_batch.step(
+        [
+            {"action": "gripper.rotate_local", "axis": "ry", "sign": "-", "angle_deg": 50}
+            if (a, s) == ("ry", "+")
+            else {"action": "gripper.rotate_local", "axis": "ry", "sign": "+", "angle_deg": 40}
+            for a, s, _ in cases
+        ]
+    )
+    assert all(r.planner_success for r in tilt)
+    start = home_batch.proprio()
+    np.testing.assert_allclose(start.rot[0, 0][:, 0], [0.0, 0.0, -1.0], atol=1e-3)  # top-down
+    np.testing.assert_allclose(start.rot[6, 0][:, 0], [0.0, 1.0, 0.0], atol=1e-3)  # forward
+    results = home_batch.step(
+        [{"action": "gripper.rotate_local", "axis": a, "sign": s, "angle_deg": d} for a, s, d in cases]
+    )
+    end = home_batch.proprio()
+    for slot, (axis, sign, angle) in enumerate(cases):
+        assert results[slot].planner_success, (axis, sign, angle)
+        r0, r1 = start.rot[slot, 0], end.rot[slot, 0]
+        assert abs(_rotation_angle_deg(r0, r1) - angle) < 1.0, (axis, sign, angle)
+        # the rotation is about the commanded local axis, right-handed
+        k = LOCAL[axis]
+        np.testing.assert_allclose(r1[:, k], r0[:, k], atol=np.sin(np.radians(1.0)))
+        other = (k + 1) % 3
+        turned = np.cross(r0[:, other], r1[:, other]) @ r0[:, k]
+        assert np.sign(turned) == (1 if sign == "+" else -1)
+        drift = np.linalg.norm(end.gc[slot, 0] - start.gc[slot, 0]) * 1000.0
+        assert drift < 3.0, (axis, sign, angle, drift)
+
+
+def _home_single(sb, task, model):
+    sb.reset([0], task.initial_qpos(model, 0)[None], settle_steps=25)
+    return sb
+
+
+def test_unreachable_target_leaves_state_unchanged(mjx_single, probe_task, probe_model):
+    """A move into the table and one out of reach both fail to plan; the slot is bit-identical."""
+    sb = _home_single(mjx_single, probe_task, probe_model)
+    down = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 100}
+    assert sb.step([down])[0].planner_success
+    before = jax.device_get(sb.state)
+    result = sb.step([down])[0]
+    assert result.valid and not result.planner_success and not result.executed
+    after = jax.device_get(sb.state)
+    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # out of reach: far along +y, repeated until the planner refuses; the refusal moves nothing
+    far = [{"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 100}]
+    for _ in range(6):
+        snapshot = np.array(sb.qpos())
+        res = sb.step(far)
+        if not res[0].planner_success:
+            np.testing.assert_array_equal(sb.qpos(), snapshot)
+            break
+    else:
+        pytest.fail("600 mm along +y from home never failed to plan")
+
+
+def test_workspace_clipping_is_reported(mjx_single, probe_task, probe_model):
+    """A target beyond the end-effector bounds is clipped to them, and the result says so."""
+    sb = _home_single(mjx_single, probe_task, probe_model)
+    for _ in range(4):
+        res = sb.step([{"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 100}])
+    assert res[0].clipped["right"] and res[0].planner_success
+    assert res[0].executed_mm["right"] < 100.0
+    ee = sb.proprio().ee[0, 0]
+    assert ee[2] == pytest.approx(1.35, abs=2e-3)
+
+
+def test_probe_cube_grasp_lift_hold(mjx_single, probe_task, probe_model):
+    """Top-down approach, close, +100 mm: the cube rises >= 90 mm and slips < 5 mm in 1 s."""
+    sb = mjx_single
+    sb.reset([0], probe_task.initial_qpos(probe_model, 7)[None], settle_steps=probe_task.settle_steps)
+    cube0 = np.array(sb.object_poses(0)["cube"]["pos"])
+    quat = sb.object_poses(0)["cube"]["quat"]
+    yaw = np.degrees(2 * np.arctan2(quat[3], quat[0]))
+
+    def act(**kw):
+        res = sb.step([kw])[0]
+        assert res.valid and res.planner_success, (kw, res)
+
+    act(action="gripper.rotate_local", axis="ry", sign="+", angle_deg=40)  # approach down
+    if abs(yaw) >= 1:  # fingers across the cube's faces
+        act(action="gripper.rotate_local", axis="rx", sign="+" if yaw < 0 else "-", angle_deg=abs(yaw))
+    gc = sb.proprio().gc[0, 0]
+    target = cube0 + [0.0, 0.0, 0.012]  # pads 12 mm above the cube's centre
+    for axis in (0, 1, 2):
+        d = (target[axis] - gc[axis]) * 1000.0
+        while abs(d) >= 1:
+            step = float(np.clip(d, -100.0, 100.0))
+            act(action="gripper.move_world", axis="xyz"[axis], sign="+" if step > 0 else "-", distance_mm=abs(step))
+            d -= step
+    act(action="gripper.close")
+    act(action="gripper.move_world", axis="z", sign="+", distance_mm=100)
+    cube1 = np.array(sb.object_poses(0)["cube"]["pos"])
+    gc1 = sb.proprio().gc[0, 0]
+    assert cube1[2] - cube0[2] >= 0.090
+    sb.hold(int(round(1.0 / probe_model.opt.timestep)))
+    cube2 = np.array(sb.object_poses(0)["cube"]["pos"])
+    gc2 = sb.proprio().gc[0, 0]
+    slip = np.linalg.norm((cube2 - gc2) - (cube1 - gc1))
+    assert slip < 0.005
+    state = jax.device_get(sb.state)
+    flags = probe_task.success(sb.objects, state.init_qpos[0], state.data.qpos[0], state.grip_open[0])
+    assert bool(flags["success"])
+
+
+def test_determinism_across_batch_size_slot_and_neighbours(mjx_single, home_batch, probe_task, probe_model):
+    """The same slot state and action give bit-identical results whatever the batch size, the
+    slot index and the other slots' actions."""
+    action = {"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 42}
+    single = _home_single(mjx_single, probe_task, probe_model)
+    single.step([action])
+    reference = jax.device_get(single.state)
+    neighbours = [
+        {"action": "gripper.rotate_local", "axis": "rz", "sign": "-", "angle_deg": 30},
+        {"action": "gripper.close"},
+        None,
+        {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 80},
+    ]
+    for slot in (0, 11, N_SLOTS - 1):
+        home_batch.reset(
+            range(N_SLOTS), np.broadcast_to(probe_task.initial_qpos(probe_model, 0), (N_SLOTS, probe_model.nq)), 25
+        )
+        actions = [neighbours[(i + slot) % len(neighbours)] for i in range(N_SLOTS)]
+        actions[slot] = action
+        home_batch.step(actions)
+        state = jax.device_get(home_batch.state)
+        for ref, got in zip(jax.tree.leaves(reference), jax.tree.leaves(state), strict=True):
+            np.testing.assert_array_equal(got[slot], ref[0])
+
+
+@pytest.mark.parametrize(
+    "action,field",
+    [
+        ({"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 150}, "distance_mm"),
+        ({"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 0.5}, "distance_mm"),
+        ({"action": "gripper.move_world", "axis": "w", "sign": "+", "distance_mm": 10}, "axis"),
+        ({"action": "gripper.rotate_local", "axis": "x", "sign": "+", "angle_deg": 10}, "axis"),
+        ({"action": "gripper.rotate_local", "axis": "rx", "sign": "+", "angle_deg": 91}, "angle_deg"),
+        ({"action": "gripper.move_world", "axis": "z", "sign": "up", "distance_mm": 10}, "sign"),
+        ({"action": "gripper.fly"}, "action"),
+        ({"action": "dual_gripper.close"}, "action"),  # dual action in a single-arm task
+        ({"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 10, "arm": "left"}, "arm"),
+    ],
+)
+def test_bad_action_rejected_without_touching_state(mjx_single, action, field):
+    before = jax.device_get(mjx_single.state)
+    result = mjx_single.step([action])[0]
+    assert not result.valid and not result.executed
+    assert f"field '{field}'" in result.error
+    after = jax.device_get(mjx_single.state)
+    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after), strict=True):
+        np.testing.assert_array_equal(a, b)
