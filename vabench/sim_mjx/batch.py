@@ -265,6 +265,8 @@ class BatchBase:
         Invalid actions are rejected with a message naming the field and leave the slot as it
         was; so do actions whose plan fails (planner_success false).
         """
+        if len(actions) < self.n_slots and len(actions) == getattr(self, "n_requested", -1):
+            actions = [*actions, *([None] * (self.n_slots - len(actions)))]  # lane padding
         if len(actions) != self.n_slots:
             raise ValueError(f"expected {self.n_slots} actions (None for idle slots), got {len(actions)}")
         rows = CommandRows.idle(self.n_slots, len(self.arms))
@@ -321,8 +323,35 @@ class BatchBase:
         return qpos
 
 
+def in_lanes(fn: Any, n_batched: int, lanes: int) -> Any:
+    """vmap `fn` over `lanes` slots at a time and loop (lax.map) over groups of lanes.
+
+    XLA may sum in a different order when the batch dimension changes size, so a plain vmap over
+    N slots is not bit-reproducible across N. Here every slot is computed by the same compiled
+    lanes-wide body whatever N is, which makes a slot's result independent of the batch size, of
+    its index and of the other slots. The last `n_batched` arguments carry the slot axis.
+    """
+
+    def run(*args: Any) -> Any:
+        shared, batched = args[: len(args) - n_batched], args[len(args) - n_batched :]
+        grouped = jax.tree.map(lambda x: x.reshape(x.shape[0] // lanes, lanes, *x.shape[1:]), batched)
+        out = jax.lax.map(lambda xs: jax.vmap(lambda *b: fn(*shared, *b))(*xs), grouped)
+        return jax.tree.map(lambda x: x.reshape(x.shape[0] * lanes, *x.shape[2:]), out)
+
+    return run
+
+
+DEFAULT_LANES = {"cpu": 1, "gpu": 256, "cuda": 256, "tpu": 256}
+
+
 class SimBatch(BatchBase):
-    """N slots of one scene in one MJX batch; one agent action per slot per `step` call."""
+    """N slots of one scene in one MJX batch; one agent action per slot per `step` call.
+
+    `lanes` is the width of the vectorised physics (see `in_lanes`): results are bit-identical
+    for any batch size, slot and neighbours at a given lanes value. The batch holds n_slots
+    rounded up to a multiple of lanes; the extra slots stay idle. Default: 1 on CPU (XLA gains
+    little from vectorising tiny matrices there), 256 on accelerators.
+    """
 
     def __init__(
         self,
@@ -330,15 +359,25 @@ class SimBatch(BatchBase):
         n_slots: int,
         impl: str = "jax",
         device: jax.Device | None = None,
+        lanes: int | None = None,
     ):
-        self._setup(model, n_slots)
+        platform = (device or jax.devices()[0]).platform
+        self.lanes = lanes or min(DEFAULT_LANES.get(platform, 1), n_slots)
+        if lanes is None and platform != "cpu":
+            # Accelerators: round small batches up to a power of two so lanes stay few shapes.
+            self.lanes = min(DEFAULT_LANES.get(platform, 256), 1 << (n_slots - 1).bit_length())
+        padded = -(-n_slots // self.lanes) * self.lanes
+        self._setup(model, padded)
+        self.n_requested = n_slots
         self.mx = mjx.put_model(model, impl=impl, device=device)
         layout = self.layout
-        self._step = jax.jit(
-            jax.vmap(functools.partial(step_slot, layout, self.n_substeps), in_axes=(None, None, 0, 0))
+        self._step = jax.jit(in_lanes(functools.partial(step_slot, layout, self.n_substeps), 2, self.lanes))
+        self._reset = jax.jit(in_lanes(functools.partial(reset_slot, layout), 3, self.lanes))
+        self._settle = jax.jit(
+            lambda mx, n, state, mask: in_lanes(functools.partial(settle_slot, mx, n), 2, self.lanes)(state, mask),
+            static_argnums=(1,),
         )
-        self._reset = jax.jit(jax.vmap(functools.partial(reset_slot, layout), in_axes=(None, 0, 0, 0)))
-        self._settle = jax.jit(jax.vmap(settle_slot, in_axes=(None, None, 0, 0)), static_argnums=(1,))
+        n_slots = padded
         home = np.broadcast_to(home_qpos(model), (n_slots, model.nq))
         d0 = mjx.make_data(self.mx)
         empty = SimState(
