@@ -67,6 +67,8 @@ def main() -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--c-max-slots", type=int, default=64, help="C single-thread: slots timed (cost is per slot)")
     p.add_argument("--budget-s", type=float, default=480.0, help="stop starting new sizes after this")
+    p.add_argument("--lanes", type=int, default=None,
+                   help="MJX lanes (default: SimBatch's; 0 = the whole batch in one vmap)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     task = get_task("probe_cube")
@@ -74,7 +76,8 @@ def main() -> int:
     q0 = task.initial_qpos(model, 0)
     threads = os.cpu_count() or 1
     device = jax.devices()[0]
-    print(f"device: {device.device_kind} ({device.platform}); C threads: {threads}; jax {jax.__version__}")
+    print(f"device: {device.device_kind} ({device.platform}); C threads: {threads}; jax {jax.__version__}; "
+          f"lanes: {'batch' if args.lanes == 0 else args.lanes or 'default'}")
 
     def reset(b):
         b.reset(range(b.n_slots), np.broadcast_to(q0, (b.n_slots, model.nq)))
@@ -89,7 +92,7 @@ def main() -> int:
             print(f"(budget reached: sizes from {n} not run)")
             break
         try:
-            sb = SimBatch(model, n)
+            sb = SimBatch(model, n, lanes=(n if args.lanes == 0 else args.lanes))
             first, mjx_rate = time_batch(sb, sb.n_slots, args.repeats, reset)
             del sb
         except Exception as err:  # out of device memory, most likely
