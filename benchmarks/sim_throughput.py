@@ -65,10 +65,21 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sizes", default="1,16,256,1024,4096")
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--c-max-slots", type=int, default=64, help="C single-thread: slots timed (cost is per slot)")
-    p.add_argument("--budget-s", type=float, default=480.0, help="stop starting new sizes after this")
-    p.add_argument("--lanes", type=int, default=None,
-                   help="MJX lanes (default: SimBatch's; 0 = the whole batch in one vmap)")
+    p.add_argument(
+        "--c-max-slots",
+        type=int,
+        default=64,
+        help="C single-thread: slots timed (cost is per slot)",
+    )
+    p.add_argument(
+        "--budget-s", type=float, default=480.0, help="stop starting new sizes after this"
+    )
+    p.add_argument(
+        "--lanes",
+        type=int,
+        default=None,
+        help="MJX lanes (default: SimBatch's; 0 = the whole batch in one vmap)",
+    )
     p.add_argument("--json", default=None)
     args = p.parse_args()
     task = get_task("probe_cube")
@@ -76,15 +87,21 @@ def main() -> int:
     q0 = task.initial_qpos(model, 0)
     threads = os.cpu_count() or 1
     device = jax.devices()[0]
-    print(f"device: {device.device_kind} ({device.platform}); C threads: {threads}; jax {jax.__version__}; "
-          f"lanes: {'batch' if args.lanes == 0 else args.lanes or 'default'}")
+    print(
+        f"device: {device.device_kind} ({device.platform}); C threads: {threads}; "
+        f"jax {jax.__version__}; "
+        f"lanes: {'batch' if args.lanes == 0 else args.lanes or 'default'}"
+    )
 
     def reset(b):
         b.reset(range(b.n_slots), np.broadcast_to(q0, (b.n_slots, model.nq)))
 
     rows = []
     start = time.perf_counter()
-    header = "| batch | MJX actions/s | MJX first call s | C 1-thread actions/s | C rollout actions/s | MJX/C-1 | MJX/C-rollout |"
+    header = (
+        "| batch | MJX actions/s | MJX first call s | C 1-thread actions/s "
+        "| C rollout actions/s | MJX/C-1 | MJX/C-rollout |"
+    )
     print(header)
     print("|" + "---|" * 7)
     for n in [int(s) for s in args.sizes.split(",")]:
@@ -103,14 +120,28 @@ def main() -> int:
         cr = CpuBatch(model, n, threads=threads)
         _, cr_rate = time_batch(cr, n, args.repeats, reset)
         cr.close()
-        row = dict(batch=n, mjx=mjx_rate, mjx_first_s=first, c_single=c1_rate, c_rollout=cr_rate,
-                   ratio_single=mjx_rate / c1_rate, ratio_rollout=mjx_rate / cr_rate)
+        row = dict(
+            batch=n,
+            mjx=mjx_rate,
+            mjx_first_s=first,
+            c_single=c1_rate,
+            c_rollout=cr_rate,
+            ratio_single=mjx_rate / c1_rate,
+            ratio_rollout=mjx_rate / cr_rate,
+        )
         rows.append(row)
-        print(f"| {n} | {mjx_rate:,.1f} | {first:.1f} | {c1_rate:,.1f} | {cr_rate:,.1f} | "
-              f"{row['ratio_single']:.2f} | {row['ratio_rollout']:.2f} |", flush=True)
+        print(
+            f"| {n} | {mjx_rate:,.1f} | {first:.1f} | {c1_rate:,.1f} | {cr_rate:,.1f} | "
+            f"{row['ratio_single']:.2f} | {row['ratio_rollout']:.2f} |",
+            flush=True,
+        )
         if args.json:
             with open(args.json, "w") as f:
-                json.dump({"device": str(device.device_kind), "threads": threads, "rows": rows}, f, indent=1)
+                json.dump(
+                    {"device": str(device.device_kind), "threads": threads, "rows": rows},
+                    f,
+                    indent=1,
+                )
     return 0
 
 

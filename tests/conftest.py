@@ -9,11 +9,13 @@ from pathlib import Path
 
 import pytest
 
-os.environ.setdefault("VABENCH_JAX_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "jax"))
+os.environ.setdefault(
+    "VABENCH_JAX_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "jax")
+)
 
-from vabench.sim_mjx.batch import SimBatch  # noqa: E402
-from vabench.sim_mjx.cpu import CpuBatch  # noqa: E402
-from vabench.tasks import get_task  # noqa: E402
+from vabench.sim_mjx.batch import SimBatch
+from vabench.sim_mjx.cpu import CpuBatch
+from vabench.tasks import get_task
 
 N_SLOTS = 18  # 3 axes x 2 signs x 3 magnitudes: one batch runs a whole motion table
 

@@ -45,7 +45,9 @@ def test_fk_matches_mujoco(dual, arm):
         f = rng.uniform(0, rc.FINGER_OPEN, 2)
         d.qpos[adr], d.qpos[fadr] = q, f
         mujoco.mj_kinematics(m, d)
-        ee, rot, gc = kin.gripper_points(g, jnp.asarray(q, jnp.float32), jnp.asarray(f, jnp.float32))
+        ee, rot, gc = kin.gripper_points(
+            g, jnp.asarray(q, jnp.float32), jnp.asarray(f, jnp.float32)
+        )
         np.testing.assert_allclose(ee, d.site(f"{arm}_ee").xpos, atol=FK_TOL)
         np.testing.assert_allclose(rot, d.site(f"{arm}_ee").xmat.reshape(3, 3), atol=FK_TOL)
         pads = 0.5 * (d.site(f"{arm}_pad_a").xpos + d.site(f"{arm}_pad_b").xpos)

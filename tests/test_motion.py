@@ -30,7 +30,10 @@ def test_world_translation(home_batch):
     assert len(cases) == N_SLOTS
     before = home_batch.proprio()
     results = home_batch.step(
-        [{"action": "gripper.move_world", "axis": a, "sign": s, "distance_mm": d} for a, s, d in cases]
+        [
+            {"action": "gripper.move_world", "axis": a, "sign": s, "distance_mm": d}
+            for a, s, d in cases
+        ]
     )
     after = home_batch.proprio()
     for slot, (axis, sign, dist) in enumerate(cases):
@@ -63,7 +66,10 @@ def test_local_rotation(home_batch):
     np.testing.assert_allclose(start.rot[0, 0][:, 0], [0.0, 0.0, -1.0], atol=1e-3)  # top-down
     np.testing.assert_allclose(start.rot[6, 0][:, 0], [0.0, 1.0, 0.0], atol=1e-3)  # forward
     results = home_batch.step(
-        [{"action": "gripper.rotate_local", "axis": a, "sign": s, "angle_deg": d} for a, s, d in cases]
+        [
+            {"action": "gripper.rotate_local", "axis": a, "sign": s, "angle_deg": d}
+            for a, s, d in cases
+        ]
     )
     end = home_batch.proprio()
     for slot, (axis, sign, angle) in enumerate(cases):
@@ -112,7 +118,9 @@ def test_workspace_clipping_is_reported(mjx_single, probe_task, probe_model):
     """A target beyond the end-effector bounds is clipped to them, and the result says so."""
     sb = _home_single(mjx_single, probe_task, probe_model)
     for _ in range(4):
-        res = sb.step([{"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 100}])
+        res = sb.step(
+            [{"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 100}]
+        )
     assert res[0].clipped["right"] and res[0].planner_success
     assert res[0].executed_mm["right"] < 100.0
     ee = sb.proprio().ee[0, 0]
@@ -122,7 +130,9 @@ def test_workspace_clipping_is_reported(mjx_single, probe_task, probe_model):
 def test_probe_cube_grasp_lift_hold(mjx_single, probe_task, probe_model):
     """Top-down approach, close, +100 mm: the cube rises >= 90 mm and slips < 5 mm in 1 s."""
     sb = mjx_single
-    sb.reset([0], probe_task.initial_qpos(probe_model, 7)[None], settle_steps=probe_task.settle_steps)
+    sb.reset(
+        [0], probe_task.initial_qpos(probe_model, 7)[None], settle_steps=probe_task.settle_steps
+    )
     cube0 = np.array(sb.object_poses(0)["cube"]["pos"])
     quat = sb.object_poses(0)["cube"]["quat"]
     yaw = np.degrees(2 * np.arctan2(quat[3], quat[0]))
@@ -133,14 +143,24 @@ def test_probe_cube_grasp_lift_hold(mjx_single, probe_task, probe_model):
 
     act(action="gripper.rotate_local", axis="ry", sign="+", angle_deg=40)  # approach down
     if abs(yaw) >= 1:  # fingers across the cube's faces
-        act(action="gripper.rotate_local", axis="rx", sign="+" if yaw < 0 else "-", angle_deg=abs(yaw))
+        act(
+            action="gripper.rotate_local",
+            axis="rx",
+            sign="+" if yaw < 0 else "-",
+            angle_deg=abs(yaw),
+        )
     gc = sb.proprio().gc[0, 0]
     target = cube0 + [0.0, 0.0, 0.012]  # pads 12 mm above the cube's centre
     for axis in (0, 1, 2):
         d = (target[axis] - gc[axis]) * 1000.0
         while abs(d) >= 1:
             step = float(np.clip(d, -100.0, 100.0))
-            act(action="gripper.move_world", axis="xyz"[axis], sign="+" if step > 0 else "-", distance_mm=abs(step))
+            act(
+                action="gripper.move_world",
+                axis="xyz"[axis],
+                sign="+" if step > 0 else "-",
+                distance_mm=abs(step),
+            )
             d -= step
     act(action="gripper.close")
     act(action="gripper.move_world", axis="z", sign="+", distance_mm=100)
@@ -153,11 +173,15 @@ def test_probe_cube_grasp_lift_hold(mjx_single, probe_task, probe_model):
     slip = np.linalg.norm((cube2 - gc2) - (cube1 - gc1))
     assert slip < 0.005
     state = jax.device_get(sb.state)
-    flags = probe_task.success(sb.objects, state.init_qpos[0], state.data.qpos[0], state.grip_open[0])
+    flags = probe_task.success(
+        sb.objects, state.init_qpos[0], state.data.qpos[0], state.grip_open[0]
+    )
     assert bool(flags["success"])
 
 
-def test_determinism_across_batch_size_slot_and_neighbours(mjx_single, home_batch, probe_task, probe_model):
+def test_determinism_across_batch_size_slot_and_neighbours(
+    mjx_single, home_batch, probe_task, probe_model
+):
     """The same slot state and action give bit-identical results whatever the batch size, the
     slot index and the other slots' actions."""
     action = {"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 42}
@@ -172,7 +196,9 @@ def test_determinism_across_batch_size_slot_and_neighbours(mjx_single, home_batc
     ]
     for slot in (0, 11, N_SLOTS - 1):
         home_batch.reset(
-            range(N_SLOTS), np.broadcast_to(probe_task.initial_qpos(probe_model, 0), (N_SLOTS, probe_model.nq)), 25
+            range(N_SLOTS),
+            np.broadcast_to(probe_task.initial_qpos(probe_model, 0), (N_SLOTS, probe_model.nq)),
+            25,
         )
         actions = [neighbours[(i + slot) % len(neighbours)] for i in range(N_SLOTS)]
         actions[slot] = action
@@ -185,15 +211,33 @@ def test_determinism_across_batch_size_slot_and_neighbours(mjx_single, home_batc
 @pytest.mark.parametrize(
     "action,field",
     [
-        ({"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 150}, "distance_mm"),
-        ({"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 0.5}, "distance_mm"),
+        (
+            {"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 150},
+            "distance_mm",
+        ),
+        (
+            {"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 0.5},
+            "distance_mm",
+        ),
         ({"action": "gripper.move_world", "axis": "w", "sign": "+", "distance_mm": 10}, "axis"),
         ({"action": "gripper.rotate_local", "axis": "x", "sign": "+", "angle_deg": 10}, "axis"),
-        ({"action": "gripper.rotate_local", "axis": "rx", "sign": "+", "angle_deg": 91}, "angle_deg"),
+        (
+            {"action": "gripper.rotate_local", "axis": "rx", "sign": "+", "angle_deg": 91},
+            "angle_deg",
+        ),
         ({"action": "gripper.move_world", "axis": "z", "sign": "up", "distance_mm": 10}, "sign"),
         ({"action": "gripper.fly"}, "action"),
         ({"action": "dual_gripper.close"}, "action"),  # dual action in a single-arm task
-        ({"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 10, "arm": "left"}, "arm"),
+        (
+            {
+                "action": "gripper.move_world",
+                "axis": "z",
+                "sign": "+",
+                "distance_mm": 10,
+                "arm": "left",
+            },
+            "arm",
+        ),
     ],
 )
 def test_bad_action_rejected_without_touching_state(mjx_single, action, field):

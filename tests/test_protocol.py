@@ -10,19 +10,43 @@ DUAL = ("left", "right")
 SINGLE = ("right",)
 
 
-@pytest.mark.parametrize("alias,sign", [("+", "+"), ("pos", "+"), ("positive", "+"), ("+1", "+"), (1, "+"),
-                                        ("-", "-"), ("neg", "-"), ("negative", "-"), ("-1", "-"), (-1, "-")])
+@pytest.mark.parametrize(
+    "alias,sign",
+    [
+        ("+", "+"),
+        ("pos", "+"),
+        ("positive", "+"),
+        ("+1", "+"),
+        (1, "+"),
+        ("-", "-"),
+        ("neg", "-"),
+        ("negative", "-"),
+        ("-1", "-"),
+        (-1, "-"),
+    ],
+)
 def test_sign_aliases(alias, sign):
-    a = P.parse_robot_action({"action": "gripper.move_world", "axis": "x", "sign": alias, "distance_mm": 5}, SINGLE)
+    a = P.parse_robot_action(
+        {"action": "gripper.move_world", "axis": "x", "sign": alias, "distance_mm": 5}, SINGLE
+    )
     assert a.sign == sign
 
 
 def test_arm_required_in_dual_arm_tasks():
     with pytest.raises(P.ActionError) as e:
-        P.parse_robot_action({"action": "gripper.rotate_local", "axis": "rz", "sign": "+", "angle_deg": 5}, DUAL)
+        P.parse_robot_action(
+            {"action": "gripper.rotate_local", "axis": "rz", "sign": "+", "angle_deg": 5}, DUAL
+        )
     assert e.value.field == "arm"
     ok = P.parse_robot_action(
-        {"action": "gripper.rotate_local", "axis": "rz", "sign": "+", "angle_deg": 5, "arm": "left"}, DUAL
+        {
+            "action": "gripper.rotate_local",
+            "axis": "rz",
+            "sign": "+",
+            "angle_deg": 5,
+            "arm": "left",
+        },
+        DUAL,
     )
     assert ok.arm == "left"
 

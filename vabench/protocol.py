@@ -115,7 +115,9 @@ class DualMove(_Decision):
         return f"dual_move_world left {side(self.left)} right {side(self.right)}"
 
 
-RobotAction = Annotated[MoveWorld | RotateLocal | Aperture | DualMove, Field(discriminator="action")]
+RobotAction = Annotated[
+    MoveWorld | RotateLocal | Aperture | DualMove, Field(discriminator="action")
+]
 _ROBOT_ACTION = TypeAdapter(RobotAction)
 
 
@@ -139,7 +141,9 @@ def _first_error(err: ValidationError) -> ActionError:
     return ActionError(".".join(loc) or "action", e["msg"])
 
 
-def parse_robot_action(obj: Any, arms: Sequence[str]) -> MoveWorld | RotateLocal | Aperture | DualMove:
+def parse_robot_action(
+    obj: Any, arms: Sequence[str]
+) -> MoveWorld | RotateLocal | Aperture | DualMove:
     """Validate one robot action (a dict as decoded from the model's JSON) for a scene whose
     controllable arms are `arms` (("right",) for single-arm tasks, ("left", "right") for dual)."""
     if not isinstance(obj, dict):
@@ -151,7 +155,9 @@ def parse_robot_action(obj: Any, arms: Sequence[str]) -> MoveWorld | RotateLocal
     dual = len(arms) > 1
     if isinstance(action, DualMove) or action.action.startswith(("dual_", "left_", "right_")):
         if not dual:
-            raise ActionError("action", f"'{action.action}' needs a dual-arm task; this task uses {list(arms)}")
+            raise ActionError(
+                "action", f"'{action.action}' needs a dual-arm task; this task uses {list(arms)}"
+            )
         if isinstance(action, Aperture) and action.arm is not None:
             raise ActionError("arm", f"'{action.action}' already names its gripper; omit 'arm'")
         return action

@@ -60,12 +60,20 @@ def replay(task_name: str, seed: int, actions: list[Any], backend: str = "mjx") 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m vabench.replay", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m vabench.replay", description=__doc__.split("\n")[0]
+    )
     parser.add_argument("--task", required=True, help=f"one of {sorted(REGISTRY)}")
     parser.add_argument("--seed", type=int, required=True)
-    parser.add_argument("--actions", type=Path, required=True, help="JSON file: a list of action objects")
-    parser.add_argument("--backend", choices=("mjx", "c"), default="mjx", help="MJX (default) or C MuJoCo")
-    parser.add_argument("--json", action="store_true", help="print the JSON document (the only output form now)")
+    parser.add_argument(
+        "--actions", type=Path, required=True, help="JSON file: a list of action objects"
+    )
+    parser.add_argument(
+        "--backend", choices=("mjx", "c"), default="mjx", help="MJX (default) or C MuJoCo"
+    )
+    parser.add_argument(
+        "--json", action="store_true", help="print the JSON document (the only output form now)"
+    )
     args = parser.parse_args(argv)
     if args.task not in REGISTRY:
         parser.error(f"--task: unknown task {args.task!r}; valid tasks: {sorted(REGISTRY)}")

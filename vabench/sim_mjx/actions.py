@@ -58,7 +58,9 @@ def encode(
     rows.active[slot] = True
     if isinstance(action, P.MoveWorld):
         a = index[action.arm or arms[-1]]
-        rows.delta[slot, a, _WORLD_AXIS[action.axis]] = _signed(action.sign, action.distance_mm / 1000.0)
+        rows.delta[slot, a, _WORLD_AXIS[action.axis]] = _signed(
+            action.sign, action.distance_mm / 1000.0
+        )
     elif isinstance(action, P.RotateLocal):
         a = index[action.arm or arms[-1]]
         rows.rotvec[slot, a, _LOCAL_AXIS[action.axis]] = _signed(

@@ -98,7 +98,9 @@ def _where(mask: jax.Array, new: Any, old: Any) -> Any:
     return jax.tree.map(lambda a, b: jnp.where(mask, a, b), new, old)
 
 
-def proprio_slot(layout: ArmLayout, geoms: kin.ArmGeometry, qpos: jax.Array, grip_open: jax.Array) -> Proprio:
+def proprio_slot(
+    layout: ArmLayout, geoms: kin.ArmGeometry, qpos: jax.Array, grip_open: jax.Array
+) -> Proprio:
     q = qpos[layout.qpos]
     fingers = qpos[layout.fingers]
     ee, rot, gc = jax.vmap(kin.gripper_points)(geoms, q, fingers)
@@ -113,7 +115,9 @@ def proprio_slot(layout: ArmLayout, geoms: kin.ArmGeometry, qpos: jax.Array, gri
     )
 
 
-def plan_for(layout: ArmLayout, geoms: kin.ArmGeometry, d: mjx.Data, cmd: ctl.ArmCommand) -> ctl.Plan:
+def plan_for(
+    layout: ArmLayout, geoms: kin.ArmGeometry, d: mjx.Data, cmd: ctl.ArmCommand
+) -> ctl.Plan:
     """The plan of one slot from its current data."""
     return ctl.plan_slot(
         geoms,
@@ -140,7 +144,12 @@ def ctrl_sequence_slot(
     """The whole control sequence (n_substeps, nu) of one slot's action, for simulators that
     take open-loop controls (C MuJoCo, mujoco.rollout). Same plan and references as step_slot."""
     plan = ctl.plan_slot(
-        geoms, qpos[layout.qpos], qpos[layout.fingers], ctrl[layout.arm_act], ctrl[layout.finger_act], cmd
+        geoms,
+        qpos[layout.qpos],
+        qpos[layout.fingers],
+        ctrl[layout.arm_act],
+        ctrl[layout.finger_act],
+        cmd,
     )
 
     def at(k: jax.Array) -> jax.Array:
@@ -195,7 +204,10 @@ def reset_slot(
     """Fresh data at qpos (zero velocity, references at the arm's joints, fingers open)."""
     d = mjx.make_data(mx)
     ctrl = _with_refs(
-        layout, d.ctrl, qpos[layout.qpos], jnp.full(layout.fingers.shape, rc.FINGER_OPEN, qpos.dtype)
+        layout,
+        d.ctrl,
+        qpos[layout.qpos],
+        jnp.full(layout.fingers.shape, rc.FINGER_OPEN, qpos.dtype),
     )
     d = mjx.forward(mx, d.replace(qpos=qpos, ctrl=ctrl))
     fresh = SimState(
@@ -268,7 +280,9 @@ class BatchBase:
         if len(actions) < self.n_slots and len(actions) == getattr(self, "n_requested", -1):
             actions = [*actions, *([None] * (self.n_slots - len(actions)))]  # lane padding
         if len(actions) != self.n_slots:
-            raise ValueError(f"expected {self.n_slots} actions (None for idle slots), got {len(actions)}")
+            raise ValueError(
+                f"expected {self.n_slots} actions (None for idle slots), got {len(actions)}"
+            )
         rows = CommandRows.idle(self.n_slots, len(self.arms))
         results: list[ActionResult | None] = [None] * self.n_slots
         for slot, raw in enumerate(actions):
@@ -292,7 +306,8 @@ class BatchBase:
             res.executed = bool(info.executed[slot])
             res.clipped = {a: bool(info.clipped[slot, i]) for i, a in enumerate(self.arms)}
             res.executed_mm = {
-                a: round(float(info.executed_m[slot, i]) * 1000.0, 3) for i, a in enumerate(self.arms)
+                a: round(float(info.executed_m[slot, i]) * 1000.0, 3)
+                for i, a in enumerate(self.arms)
             }
         return results
 
@@ -317,7 +332,9 @@ class BatchBase:
     def _check_reset(self, slots: Sequence[int], qpos: np.ndarray) -> np.ndarray:
         qpos = np.asarray(qpos, float)
         if qpos.shape != (len(slots), self.model.nq):
-            raise ValueError(f"qpos must have shape ({len(slots)}, {self.model.nq}), got {qpos.shape}")
+            raise ValueError(
+                f"qpos must have shape ({len(slots)}, {self.model.nq}), got {qpos.shape}"
+            )
         for slot in slots:
             self._check_slot(slot)
         return qpos
@@ -334,7 +351,9 @@ def in_lanes(fn: Any, n_batched: int, lanes: int) -> Any:
 
     def run(*args: Any) -> Any:
         shared, batched = args[: len(args) - n_batched], args[len(args) - n_batched :]
-        grouped = jax.tree.map(lambda x: x.reshape(x.shape[0] // lanes, lanes, *x.shape[1:]), batched)
+        grouped = jax.tree.map(
+            lambda x: x.reshape(x.shape[0] // lanes, lanes, *x.shape[1:]), batched
+        )
         out = jax.lax.map(lambda xs: jax.vmap(lambda *b: fn(*shared, *b))(*xs), grouped)
         return jax.tree.map(lambda x: x.reshape(x.shape[0] * lanes, *x.shape[2:]), out)
 
@@ -371,10 +390,14 @@ class SimBatch(BatchBase):
         self.n_requested = n_slots
         self.mx = mjx.put_model(model, impl=impl, device=device)
         layout = self.layout
-        self._step = jax.jit(in_lanes(functools.partial(step_slot, layout, self.n_substeps), 2, self.lanes))
+        self._step = jax.jit(
+            in_lanes(functools.partial(step_slot, layout, self.n_substeps), 2, self.lanes)
+        )
         self._reset = jax.jit(in_lanes(functools.partial(reset_slot, layout), 3, self.lanes))
         self._settle = jax.jit(
-            lambda mx, n, state, mask: in_lanes(functools.partial(settle_slot, mx, n), 2, self.lanes)(state, mask),
+            lambda mx, n, state, mask: in_lanes(
+                functools.partial(settle_slot, mx, n), 2, self.lanes
+            )(state, mask),
             static_argnums=(1,),
         )
         n_slots = padded
@@ -386,7 +409,9 @@ class SimBatch(BatchBase):
             init_qpos=jnp.asarray(home, self._dtype),
             actions=jnp.zeros(n_slots, jnp.int32),
         )
-        self.state = self._reset(self.mx, empty, jnp.ones(n_slots, bool), jnp.asarray(home, self._dtype))
+        self.state = self._reset(
+            self.mx, empty, jnp.ones(n_slots, bool), jnp.asarray(home, self._dtype)
+        )
 
     def reset(self, slots: Sequence[int], qpos: np.ndarray, settle_steps: int = 0) -> None:
         """Reset `slots` to the given qpos rows (len(slots), nq) and settle them."""
@@ -402,7 +427,11 @@ class SimBatch(BatchBase):
 
     def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
         """Advance physics n_steps with the current references held (all slots by default)."""
-        mask = np.ones(self.n_slots, bool) if slots is None else np.isin(np.arange(self.n_slots), slots)
+        mask = (
+            np.ones(self.n_slots, bool)
+            if slots is None
+            else np.isin(np.arange(self.n_slots), slots)
+        )
         self.state = self._settle(self.mx, n_steps, self.state, jnp.asarray(mask))
 
     def _execute(self, rows: CommandRows) -> StepInfo:

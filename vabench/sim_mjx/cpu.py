@@ -94,7 +94,10 @@ class CpuBatch(BatchBase):
     def _execute(self, rows: CommandRows) -> StepInfo:
         cmd = rows.to_device(self._dtype)
         seq, plan = self._sequence(
-            self.geoms, jnp.asarray(self.qpos(), self._dtype), jnp.asarray(self._ctrl, self._dtype), cmd
+            self.geoms,
+            jnp.asarray(self.qpos(), self._dtype),
+            jnp.asarray(self._ctrl, self._dtype),
+            cmd,
         )
         seq, plan = jax.device_get((seq, plan))
         go = rows.active & plan.ok

@@ -52,7 +52,11 @@ class Task:
         return qpos
 
     def success(
-        self, objects: Sequence[tuple[str, int]], init_qpos: jax.Array, qpos: jax.Array, grip_open: jax.Array
+        self,
+        objects: Sequence[tuple[str, int]],
+        init_qpos: jax.Array,
+        qpos: jax.Array,
+        grip_open: jax.Array,
     ) -> dict[str, jax.Array]:
         """Named sub-checks plus 'success' for one slot (jittable)."""
         return {"success": jnp.array(False)}

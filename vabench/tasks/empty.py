@@ -8,4 +8,6 @@ from __future__ import annotations
 
 from vabench.tasks.base import Task
 
-TASK = Task(name="empty", instruction="Move the grippers freely; there is no task.", arms=("left", "right"))
+TASK = Task(
+    name="empty", instruction="Move the grippers freely; there is no task.", arms=("left", "right")
+)

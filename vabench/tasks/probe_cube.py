@@ -12,7 +12,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -38,7 +37,11 @@ class ProbeCube(Task):
         return {"cube": (np.array([x, y, rc.TABLE_Z + CUBE_HALF]), yaw_quat(yaw))}
 
     def success(
-        self, objects: Sequence[tuple[str, int]], init_qpos: jax.Array, qpos: jax.Array, grip_open: jax.Array
+        self,
+        objects: Sequence[tuple[str, int]],
+        init_qpos: jax.Array,
+        qpos: jax.Array,
+        grip_open: jax.Array,
     ) -> dict[str, jax.Array]:
         adr = dict(objects)["cube"]
         lifted = qpos[adr + 2] - init_qpos[adr + 2] > LIFT_M
