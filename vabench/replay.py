@@ -16,8 +16,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import jax
-
 from vabench.sim_mjx.batch import BatchBase, SimBatch, proprio_fields
 from vabench.sim_mjx.cpu import CpuBatch
 from vabench.tasks import REGISTRY, get_task
@@ -26,9 +24,7 @@ from vabench.tasks import REGISTRY, get_task
 def _observe(batch: BatchBase, task: Any) -> dict[str, Any]:
     qpos = batch.qpos()[0]
     grip = batch.grip_open()[0]
-    init = getattr(batch, "state", None)
-    init_qpos = jax.device_get(init.init_qpos[0]) if init is not None else batch._init_qpos[0]  # type: ignore[attr-defined]
-    flags = task.success(batch.objects, init_qpos, qpos, grip)
+    flags = task.success(batch.objects, batch.init_qpos()[0], qpos, grip)
     return {
         "proprio": proprio_fields(batch.proprio(), 0, batch.arms),
         "objects": batch.object_poses(0),

@@ -270,6 +270,10 @@ class BatchBase:
     def grip_open(self) -> np.ndarray:
         raise NotImplementedError
 
+    def init_qpos(self) -> np.ndarray:
+        """qpos of every slot at its last reset (evaluator-only, for predicates)."""
+        raise NotImplementedError
+
     # -- shared -----------------------------------------------------------------------------
     def step(self, actions: Sequence[Any]) -> list[ActionResult | None]:
         """Execute one action per slot: None (idle), a validated action, or a raw dict.
@@ -443,6 +447,9 @@ class SimBatch(BatchBase):
 
     def grip_open(self) -> np.ndarray:
         return np.asarray(self.state.grip_open)
+
+    def init_qpos(self) -> np.ndarray:
+        return np.asarray(self.state.init_qpos)
 
 
 def proprio_fields(p: Proprio, slot: int, arms: Sequence[str]) -> dict[str, dict[str, Any]]:

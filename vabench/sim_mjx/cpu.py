@@ -116,3 +116,6 @@ class CpuBatch(BatchBase):
 
     def grip_open(self) -> np.ndarray:
         return self._grip_open.copy()
+
+    def init_qpos(self) -> np.ndarray:
+        return self._init_qpos.copy()
