@@ -172,11 +172,7 @@ def test_probe_cube_grasp_lift_hold(mjx_single, probe_task, probe_model):
     gc2 = sb.proprio().gc[0, 0]
     slip = np.linalg.norm((cube2 - gc2) - (cube1 - gc1))
     assert slip < 0.005
-    state = jax.device_get(sb.state)
-    flags = probe_task.success(
-        sb.objects, state.init_qpos[0], state.data.qpos[0], state.grip_open[0]
-    )
-    assert bool(flags["success"])
+    assert cube2[2] - cube0[2] > 0.05 and not sb.grip_open()[0, 0]  # grasp_single_cube's terms
 
 
 def test_determinism_across_batch_size_slot_and_neighbours(

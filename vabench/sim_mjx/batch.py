@@ -30,6 +30,7 @@ from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows, encode
 from vabench.sim_mjx.pytree import pytree_dataclass
 from vabench.sim_mjx.scene import free_objects, home_qpos
+from vabench.sim_mjx.variants import ModelVariants
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,7 @@ class SimState:
     grip_open: jax.Array  # (N, A) bool: last aperture command (True = open)
     init_qpos: jax.Array  # (N, nq) qpos at the slot's last reset, for task predicates
     actions: jax.Array  # (N,) int32 actions executed since the reset
+    variant: jax.Array  # (N,) int32 model variant (object model id) of the slot
 
 
 @pytree_dataclass
@@ -162,12 +164,15 @@ def ctrl_sequence_slot(
 def step_slot(
     layout: ArmLayout,
     n_substeps: int,
+    variants: ModelVariants,
     mx: mjx.Model,
+    stacked: tuple[jax.Array, ...],
     geoms: kin.ArmGeometry,
     state: SimState,
     cmd: ctl.ArmCommand,
 ) -> tuple[SimState, StepInfo]:
     """One action for one slot (the batch vmaps this)."""
+    mx = variants.select(mx, stacked, state.variant)
     d0 = state.data
     plan = plan_for(layout, geoms, d0, cmd)
 
@@ -188,8 +193,16 @@ def step_slot(
     return _where(go, new, state), info
 
 
-def settle_slot(mx: mjx.Model, n_steps: int, state: SimState, mask: jax.Array) -> SimState:
+def settle_slot(
+    variants: ModelVariants,
+    mx: mjx.Model,
+    stacked: tuple[jax.Array, ...],
+    n_steps: int,
+    state: SimState,
+    mask: jax.Array,
+) -> SimState:
     """Advance physics n_steps holding the current references (masked slots only)."""
+    mx = variants.select(mx, stacked, state.variant)
 
     def substep(d: mjx.Data, _: Any) -> tuple[mjx.Data, None]:
         return mjx.step(mx, d), None
@@ -199,9 +212,17 @@ def settle_slot(mx: mjx.Model, n_steps: int, state: SimState, mask: jax.Array) -
 
 
 def reset_slot(
-    layout: ArmLayout, mx: mjx.Model, state: SimState, mask: jax.Array, qpos: jax.Array
+    layout: ArmLayout,
+    variants: ModelVariants,
+    mx: mjx.Model,
+    stacked: tuple[jax.Array, ...],
+    state: SimState,
+    mask: jax.Array,
+    qpos: jax.Array,
+    variant: jax.Array,
 ) -> SimState:
     """Fresh data at qpos (zero velocity, references at the arm's joints, fingers open)."""
+    mx = variants.select(mx, stacked, variant)
     d = mjx.make_data(mx)
     ctrl = _with_refs(
         layout,
@@ -215,8 +236,21 @@ def reset_slot(
         grip_open=jnp.ones(len(layout.arms), bool),
         init_qpos=qpos,
         actions=jnp.zeros((), jnp.int32),
+        variant=variant,
     )
     return _where(mask, fresh, state)
+
+
+def pair_contacts(
+    geom: jax.Array, dist: jax.Array, side_a: jax.Array, side_b: jax.Array
+) -> jax.Array:
+    """(P,) bool: for each watched pair p, some contact touches (dist <= 0) a geom of side_a[p]
+    and a geom of side_b[p]. geom (C, 2) and dist (C,) are one slot's contacts; side_a and
+    side_b are (P, ngeom) bool masks."""
+    touching = dist <= 0.0
+    g1, g2 = geom[:, 0], geom[:, 1]
+    hit = (side_a[:, g1] & side_b[:, g2]) | (side_a[:, g2] & side_b[:, g1])  # (P, C)
+    return jnp.any(hit & touching[None, :], axis=1)
 
 
 @dataclass
@@ -244,9 +278,11 @@ class BatchBase:
     n_substeps: int
     objects: list[tuple[str, int]]
 
-    def _setup(self, model: mujoco.MjModel, n_slots: int) -> None:
+    def _setup(self, models: mujoco.MjModel | Sequence[mujoco.MjModel], n_slots: int) -> None:
         if n_slots < 1:
             raise ValueError(f"n_slots must be >= 1, got {n_slots}")
+        self.models = [models] if isinstance(models, mujoco.MjModel) else list(models)
+        model = self.models[0]
         self.model = model
         self.n_slots = n_slots
         self.layout = ArmLayout.from_model(model)
@@ -273,6 +309,24 @@ class BatchBase:
     def init_qpos(self) -> np.ndarray:
         """qpos of every slot at its last reset (evaluator-only, for predicates)."""
         raise NotImplementedError
+
+    def variant(self) -> np.ndarray:
+        """(N,) model variant of every slot."""
+        raise NotImplementedError
+
+    def contact_flags(self, side_a: np.ndarray, side_b: np.ndarray) -> np.ndarray:
+        """(N, P) bool: whether watched pair p touches in each slot (see `pair_contacts`)."""
+        raise NotImplementedError
+
+    def _check_variants(self, slots: Sequence[int], variants: Sequence[int] | None) -> np.ndarray:
+        if variants is None:
+            return np.zeros(len(slots), np.int32)
+        v = np.asarray(variants, np.int32)
+        if v.shape != (len(slots),) or (v < 0).any() or (v >= len(self.models)).any():
+            raise ValueError(
+                f"variants must be {len(slots)} ints in [0, {len(self.models)}), got {variants}"
+            )
+        return v
 
     # -- shared -----------------------------------------------------------------------------
     def step(self, actions: Sequence[Any]) -> list[ActionResult | None]:
@@ -378,7 +432,7 @@ class SimBatch(BatchBase):
 
     def __init__(
         self,
-        model: mujoco.MjModel,
+        model: mujoco.MjModel | Sequence[mujoco.MjModel],
         n_slots: int,
         impl: str = "jax",
         device: jax.Device | None = None,
@@ -391,43 +445,73 @@ class SimBatch(BatchBase):
             self.lanes = min(DEFAULT_LANES.get(platform, 256), 1 << (n_slots - 1).bit_length())
         padded = -(-n_slots // self.lanes) * self.lanes
         self._setup(model, padded)
+        model = self.model
         self.n_requested = n_slots
-        self.mx = mjx.put_model(model, impl=impl, device=device)
-        layout = self.layout
-        self._step = jax.jit(
-            in_lanes(functools.partial(step_slot, layout, self.n_substeps), 2, self.lanes)
-        )
-        self._reset = jax.jit(in_lanes(functools.partial(reset_slot, layout), 3, self.lanes))
+        self.variants = ModelVariants(self.models, impl=impl, device=device)
+        self.mx = self.variants.base
+        layout, variants, lanes = self.layout, self.variants, self.lanes
+        step = functools.partial(step_slot, layout, self.n_substeps, variants)
+        self._step = jax.jit(in_lanes(step, 2, lanes))
+        self._reset = jax.jit(in_lanes(functools.partial(reset_slot, layout, variants), 4, lanes))
         self._settle = jax.jit(
-            lambda mx, n, state, mask: in_lanes(
-                functools.partial(settle_slot, mx, n), 2, self.lanes
+            lambda mx, stacked, n, state, mask: in_lanes(
+                lambda s, m: settle_slot(variants, mx, stacked, n, s, m), 2, lanes
             )(state, mask),
-            static_argnums=(1,),
+            static_argnums=(2,),
+        )
+        self._contacts = jax.jit(
+            lambda geom, dist, a, b: jax.vmap(pair_contacts, in_axes=(0, 0, None, None))(
+                geom, dist, a, b
+            )
         )
         n_slots = padded
         home = np.broadcast_to(home_qpos(model), (n_slots, model.nq))
         d0 = mjx.make_data(self.mx)
+        zeros = jnp.zeros(n_slots, jnp.int32)
         empty = SimState(
             data=jax.tree.map(lambda x: jnp.broadcast_to(x, (n_slots, *x.shape)), d0),
             grip_open=jnp.ones((n_slots, len(self.arms)), bool),
             init_qpos=jnp.asarray(home, self._dtype),
-            actions=jnp.zeros(n_slots, jnp.int32),
+            actions=zeros,
+            variant=zeros,
         )
         self.state = self._reset(
-            self.mx, empty, jnp.ones(n_slots, bool), jnp.asarray(home, self._dtype)
+            self.mx,
+            self.variants.stacked,
+            empty,
+            jnp.ones(n_slots, bool),
+            jnp.asarray(home, self._dtype),
+            zeros,
         )
 
-    def reset(self, slots: Sequence[int], qpos: np.ndarray, settle_steps: int = 0) -> None:
-        """Reset `slots` to the given qpos rows (len(slots), nq) and settle them."""
+    def reset(
+        self,
+        slots: Sequence[int],
+        qpos: np.ndarray,
+        settle_steps: int = 0,
+        variants: Sequence[int] | None = None,
+    ) -> None:
+        """Reset `slots` to the given qpos rows (len(slots), nq), each with its model variant
+        (default 0), and settle them for `settle_steps` physics steps."""
         qpos = self._check_reset(slots, qpos)
+        v = self._check_variants(slots, variants)
         mask = np.zeros(self.n_slots, bool)
         full = np.array(self.state.init_qpos)
+        var = np.array(self.state.variant)
         mask[list(slots)] = True
         full[list(slots)] = qpos
+        var[list(slots)] = v
         mask_j = jnp.asarray(mask)
-        self.state = self._reset(self.mx, self.state, mask_j, jnp.asarray(full, self._dtype))
+        self.state = self._reset(
+            self.mx,
+            self.variants.stacked,
+            self.state,
+            mask_j,
+            jnp.asarray(full, self._dtype),
+            jnp.asarray(var),
+        )
         if settle_steps > 0:
-            self.state = self._settle(self.mx, settle_steps, self.state, mask_j)
+            self.hold(settle_steps, slots)
 
     def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
         """Advance physics n_steps with the current references held (all slots by default)."""
@@ -436,11 +520,24 @@ class SimBatch(BatchBase):
             if slots is None
             else np.isin(np.arange(self.n_slots), slots)
         )
-        self.state = self._settle(self.mx, n_steps, self.state, jnp.asarray(mask))
+        self.state = self._settle(
+            self.mx, self.variants.stacked, n_steps, self.state, jnp.asarray(mask)
+        )
 
     def _execute(self, rows: CommandRows) -> StepInfo:
-        self.state, info = self._step(self.mx, self.geoms, self.state, rows.to_device(self._dtype))
+        self.state, info = self._step(
+            self.mx, self.variants.stacked, self.geoms, self.state, rows.to_device(self._dtype)
+        )
         return jax.device_get(info)
+
+    def variant(self) -> np.ndarray:
+        return np.asarray(self.state.variant)
+
+    def contact_flags(self, side_a: np.ndarray, side_b: np.ndarray) -> np.ndarray:
+        contact = self.state.data._impl.contact
+        return np.asarray(
+            self._contacts(contact.geom, contact.dist, jnp.asarray(side_a), jnp.asarray(side_b))
+        )
 
     def qpos(self) -> np.ndarray:
         return np.asarray(self.state.data.qpos)

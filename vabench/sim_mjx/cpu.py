@@ -21,6 +21,7 @@ from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.batch import BatchBase, StepInfo, ctrl_sequence_slot
 from vabench.sim_mjx.scene import home_qpos
+from vabench.sim_mjx.variants import check_same_structure
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 
@@ -28,15 +29,23 @@ _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 class CpuBatch(BatchBase):
     """N slots of one scene simulated by C MuJoCo, with the batch's interface."""
 
-    def __init__(self, model: mujoco.MjModel, n_slots: int, threads: int = 0):
+    def __init__(
+        self,
+        model: mujoco.MjModel | Sequence[mujoco.MjModel],
+        n_slots: int,
+        threads: int = 0,
+    ):
         self._setup(model, n_slots)
+        check_same_structure(self.models)
+        model = self.model
         self.threads = threads
-        self._data = mujoco.MjData(model)
+        self._datas = [mujoco.MjData(m) for m in self.models]
         self._nstate = mujoco.mj_stateSize(model, _STATE)
         self._state = np.zeros((n_slots, self._nstate))
         self._ctrl = np.zeros((n_slots, model.nu))
         self._grip_open = np.ones((n_slots, len(self.arms)), bool)
         self._init_qpos = np.zeros((n_slots, model.nq))
+        self._variant = np.zeros(n_slots, np.int32)
         self._sequence = jax.jit(
             jax.vmap(
                 functools.partial(ctrl_sequence_slot, self.layout, self.n_substeps),
@@ -52,11 +61,18 @@ class CpuBatch(BatchBase):
             self._pool.close()
             self._pool = None
 
-    def reset(self, slots: Sequence[int], qpos: np.ndarray, settle_steps: int = 0) -> None:
+    def reset(
+        self,
+        slots: Sequence[int],
+        qpos: np.ndarray,
+        settle_steps: int = 0,
+        variants: Sequence[int] | None = None,
+    ) -> None:
         slots = list(slots)
         qpos = self._check_reset(slots, qpos)
-        m, d = self.model, self._data
+        var = self._check_variants(slots, variants)
         for row, slot in enumerate(slots):
+            m, d = self.models[var[row]], self._datas[var[row]]
             mujoco.mj_resetData(m, d)
             d.qpos[:] = qpos[row]
             d.ctrl[self.layout.arm_act] = qpos[row][self.layout.qpos]
@@ -66,6 +82,7 @@ class CpuBatch(BatchBase):
             self._ctrl[slot] = d.ctrl
             self._init_qpos[slot] = qpos[row]
             self._grip_open[slot] = True
+            self._variant[slot] = var[row]
         if settle_steps > 0:
             self.hold(settle_steps, slots)
 
@@ -78,16 +95,17 @@ class CpuBatch(BatchBase):
         """Advance `slots` through the control sequences (len(slots), n_steps, nu)."""
         if not slots:
             return
-        m, d = self.model, self._data
         if self._pool is None:
             for row, slot in enumerate(slots):
+                m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
                 mujoco.mj_setState(m, d, self._state[slot], _STATE)
                 for u in controls[row]:
                     d.ctrl[:] = u
                     mujoco.mj_step(m, d)
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
         else:
-            states, _ = self._pool.rollout(m, self._thread_data, self._state[slots], controls)
+            models = [self.models[self._variant[s]] for s in slots]
+            states, _ = self._pool.rollout(models, self._thread_data, self._state[slots], controls)
             self._state[slots] = states[:, -1]
         self._ctrl[slots] = controls[:, -1]
 
@@ -119,3 +137,22 @@ class CpuBatch(BatchBase):
 
     def init_qpos(self) -> np.ndarray:
         return self._init_qpos.copy()
+
+    def variant(self) -> np.ndarray:
+        return self._variant.copy()
+
+    def contact_flags(self, side_a: np.ndarray, side_b: np.ndarray) -> np.ndarray:
+        """Contacts at each slot's current state (collision detection by mj_forward)."""
+        out = np.zeros((self.n_slots, len(side_a)), bool)
+        for slot in range(self.n_slots):
+            m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
+            mujoco.mj_setState(m, d, self._state[slot], _STATE)
+            mujoco.mj_forward(m, d)
+            n = d.ncon
+            if n == 0:
+                continue
+            g1, g2 = d.contact.geom1[:n], d.contact.geom2[:n]
+            touching = d.contact.dist[:n] <= 0.0
+            hit = (side_a[:, g1] & side_b[:, g2]) | (side_a[:, g2] & side_b[:, g1])
+            out[slot] = np.any(hit & touching[None, :], axis=1)
+        return out

@@ -1,11 +1,51 @@
-"""The task registry: one module per family, each exporting TASK."""
+"""The task registry: one module per family, each exporting TASK.
+
+`BASE_FAMILIES` lists the paper's 14 base families in the paper's order; `REGISTRY` holds every
+task module found in this package (the base families plus development tasks such as `empty` and
+`probe_cube`, whose `suite` is "dev").
+"""
 
 from __future__ import annotations
 
-from vabench.tasks import empty, probe_cube
+import importlib
+import pkgutil
+
 from vabench.tasks.base import Task
 
-REGISTRY: dict[str, Task] = {t.name: t for t in (empty.TASK, probe_cube.TASK)}
+BASE_FAMILIES = (
+    "grasp_single_cube",
+    "grasp_single_pen",
+    "grasp_single_bottle",
+    "grasp_single_bottle_upright",
+    "grasp_pen_leaning_cube",
+    "click_bell_right",
+    "beat_block_hammer_right",
+    "place_cube_in_bowl",
+    "place_cube_on_cube",
+    "place_single_cube",
+    "place_single_bottle_upright",
+    "place_shoe",
+    "handover_horizontal_block",
+    "lift_pot",
+)
+
+_NOT_TASKS = {"base", "common", "expert", "objects", "runner"}
+
+
+def _discover() -> dict[str, Task]:
+    found: dict[str, Task] = {}
+    for info in pkgutil.iter_modules(__path__):
+        if info.name in _NOT_TASKS or info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        task = getattr(module, "TASK", None)
+        if isinstance(task, Task):
+            found[task.name] = task
+    order = {name: i for i, name in enumerate(BASE_FAMILIES)}
+    return dict(sorted(found.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
+
+
+REGISTRY: dict[str, Task] = _discover()
 
 
 def get_task(name: str) -> Task:
@@ -13,3 +53,8 @@ def get_task(name: str) -> Task:
         return REGISTRY[name]
     except KeyError:
         raise KeyError(f"unknown task {name!r}; valid tasks: {sorted(REGISTRY)}") from None
+
+
+def base_tasks() -> list[Task]:
+    """The base families present, in the paper's order."""
+    return [REGISTRY[n] for n in BASE_FAMILIES if n in REGISTRY]

@@ -9,5 +9,8 @@ from __future__ import annotations
 from vabench.tasks.base import Task
 
 TASK = Task(
-    name="empty", instruction="Move the grippers freely; there is no task.", arms=("left", "right")
+    name="empty",
+    instruction="Move the grippers freely; there is no task.",
+    arms=("left", "right"),
+    suite="dev",
 )

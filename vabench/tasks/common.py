@@ -1,0 +1,83 @@
+"""Building blocks shared by families: the grasp and the place-on-target predicates of the
+paper's tables, and the expert skills (top-down grasp, carry and release) built on the
+primitives of `vabench.tasks.expert`."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from vabench.tasks.base import LIFT_M, ObjectIndex, SlotState
+from vabench.tasks.expert import Action, ExpertContext, nearest, yaw_candidates, yaw_of
+
+GRASP_CHECKPOINTS = ("reached", "grasped", "lifted", "completed")
+PLACE_CHECKPOINTS = ("reached", "grasped", "lifted", "transported", "released", "completed")
+REACH_M = 0.03  # "reached": GC within 30 mm of the object's grasp point
+
+
+def near(s: SlotState, arm: int, point: jax.Array, radius: float = REACH_M) -> jax.Array:
+    return jnp.linalg.norm(s.gc[arm] - point) < radius
+
+
+def holding(s: SlotState, arm: int, touching: jax.Array) -> jax.Array:
+    """Closed gripper touching the object (the "grasped" checkpoint)."""
+    return ~s.grip_open[arm] & touching
+
+
+def lifted(ix: ObjectIndex, s: SlotState, obj: str, by: float = LIFT_M) -> jax.Array:
+    return ix.lift(s, obj) > by
+
+
+# -- expert skills ---------------------------------------------------------------------------
+def topdown_grasp(
+    ctx: ExpertContext,
+    arm: str,
+    obj: str,
+    symmetry_deg: float = 90.0,
+    grasp_dz: float = 0.0,
+    hover: float = 0.08,
+    yaw_offset: float = 0.0,
+) -> Iterator[Action]:
+    """Turn the fingers across the object (top-down), hover above it, descend so that GC sits
+    `grasp_dz` above the object's origin, close."""
+    yaw = yaw_of(ctx.view.mat(obj)) + yaw_offset
+    goal = nearest(ctx.view.arms[arm].rot, yaw_candidates(yaw, symmetry_deg))
+    yield from ctx.rotate_to(arm, goal)
+    yield from ctx.move_to(arm, lambda v: v.pos(obj) + [0.0, 0.0, hover], order="zxy")
+    yield from ctx.move_to(arm, lambda v: v.pos(obj) + [0.0, 0.0, hover], order="xyz")
+    yield from ctx.move_to(arm, lambda v: v.pos(obj) + [0.0, 0.0, grasp_dz], order="zxy")
+    yield from ctx.grip(arm, close=True)
+
+
+def lift(ctx: ExpertContext, arm: str, dz: float = 0.10) -> Iterator[Action]:
+    goal = ctx.view.arms[arm].gc + [0.0, 0.0, dz]
+    yield from ctx.move_to(arm, goal, order="z")
+
+
+def carry_and_release(
+    ctx: ExpertContext,
+    arm: str,
+    obj: str,
+    target_xy: np.ndarray,
+    rest_z: float,
+    clearance: float = 0.06,
+    drop: float = 0.004,
+) -> Iterator[Action]:
+    """Carry the held object over target_xy at `clearance` above its resting height, lower it
+    until its origin is `drop` above `rest_z`, open, and back off upwards."""
+
+    def offset() -> np.ndarray:
+        return ctx.view.arms[arm].gc - ctx.view.pos(obj)  # the grasp, as it is now
+
+    yield from ctx.move_to(
+        arm, lambda v: np.r_[v.pos(obj)[:2], rest_z + clearance] + offset(), order="z"
+    )
+    yield from ctx.move_to(
+        arm, lambda v: np.r_[target_xy, rest_z + clearance] + offset(), order="xyz"
+    )
+    yield from ctx.move_to(arm, lambda v: np.r_[target_xy, rest_z + drop] + offset(), order="z")
+    yield from ctx.grip(arm, close=False)
+    yield from lift(ctx, arm, 0.05)

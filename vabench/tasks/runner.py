@@ -1,0 +1,344 @@
+"""Episodes of one task family over one batch: seeded resets, the jitted predicate after every
+action with latched flags and checkpoint progress kept per slot, and expert rollouts.
+
+`TaskBatch` is what the seed screening, the replay CLI and the episode engine drive. The
+predicate state (latched flags, checkpoint progress, success) is batch state: arrays over slots,
+updated by one jitted, vmapped call of the family's `evaluate` after every `step`, and only for
+slots that received an action (idle slots stay exactly as they were).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from vabench.sim_mjx.batch import ActionResult, BatchBase, SimBatch
+from vabench.sim_mjx.cpu import CpuBatch
+from vabench.tasks.base import (
+    Evaluation,
+    ObjectIndex,
+    Sample,
+    SlotState,
+    Task,
+    advance_progress,
+    quat_to_mat,
+)
+from vabench.tasks.expert import ArmView, ExpertContext, ExpertFailed, View
+
+BACKENDS = ("mjx", "c")
+DRIFT_WINDOW = 200  # FACTS: orientation drift measured over the last 200 observed steps
+MAX_DRIFT_DEG = 3.0
+
+
+@dataclass
+class SettleReport:
+    """The reset gate of one seed: finite poses, orientation drift in the last 200 steps."""
+
+    seed: int
+    finite: bool
+    max_drift_deg: float
+
+    @property
+    def ok(self) -> bool:
+        return self.finite and self.max_drift_deg <= MAX_DRIFT_DEG
+
+    @property
+    def reason(self) -> str | None:
+        if not self.finite:
+            return "non-finite pose after settling"
+        if self.max_drift_deg > MAX_DRIFT_DEG:
+            return f"object turned {self.max_drift_deg:.2f} deg in the last {DRIFT_WINDOW} steps"
+        return None
+
+
+@dataclass
+class StepOutcome:
+    """One slot's action and the predicate right after it."""
+
+    result: ActionResult
+    success: bool
+    progress: int  # checkpoints reached so far
+    checks: dict[str, bool] = field(default_factory=dict)
+
+
+def _subtree_geoms(model: mujoco.MjModel, body_name: str) -> np.ndarray:
+    bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body_name)
+    if bid < 0:
+        raise KeyError(f"contact side {body_name!r} is not a body of the scene")
+    inside = np.zeros(model.nbody, bool)
+    inside[bid] = True
+    for b in range(bid + 1, model.nbody):  # bodies are ordered parents first
+        inside[b] |= inside[model.body_parentid[b]]
+    return inside[model.geom_bodyid] & (model.geom_contype | model.geom_conaffinity).astype(bool)
+
+
+def contact_masks(task: Task, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """(P, ngeom) masks of both sides of the task's watched contact pairs. A side is a body
+    name (its whole subtree): an object, "table", or "<arm>_gripper" (palm and fingers)."""
+    p = max(len(task.contact_pairs), 1)
+    a = np.zeros((p, model.ngeom), bool)
+    b = np.zeros((p, model.ngeom), bool)
+    for i, (x, y) in enumerate(task.contact_pairs):
+        a[i], b[i] = _subtree_geoms(model, x), _subtree_geoms(model, y)
+    return a, b
+
+
+def _evaluate_slot(
+    task: Task, ix: ObjectIndex, s: SlotState, latched: jax.Array, progress: jax.Array
+) -> tuple[Evaluation, jax.Array]:
+    ev = task.evaluate(ix, s, latched)
+    return ev, advance_progress(progress, ev.subgoals, ev.success)
+
+
+class TaskBatch:
+    """N episodes of one task family; backend "mjx" (SimBatch) or "c" (C MuJoCo)."""
+
+    def __init__(self, task: Task, n_slots: int, backend: str = "mjx", **batch_kwargs: Any):
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.task = task
+        self.backend = backend
+        self.models = task.build_models()
+        batch_cls = SimBatch if backend == "mjx" else CpuBatch
+        self.batch: BatchBase = batch_cls(self.models, n_slots, **batch_kwargs)
+        self.n_slots = n_slots
+        self.ix = ObjectIndex.from_model(self.models[0])
+        self.side_a, self.side_b = contact_masks(task, self.models[0])
+        n = self.batch.n_slots
+        self.latched = np.zeros((n, len(task.latches)), bool)
+        self.progress = np.zeros(n, np.int32)
+        self.success = np.zeros(n, bool)
+        self.steps = np.zeros(n, np.int32)
+        self.init_qpos = np.array(self.batch.qpos())
+        self.samples: list[Sample | None] = [None] * n
+        self.seeds: list[int | None] = [None] * n
+        self._eval = jax.jit(
+            jax.vmap(functools.partial(_evaluate_slot, task, self.ix)), donate_argnums=()
+        )
+
+    # -- episodes ---------------------------------------------------------------------------
+    def reset(self, slots: Sequence[int], seeds: Sequence[int]) -> list[SettleReport]:
+        """Start episodes: place each seed's objects, settle, and gate on drift (FACTS)."""
+        slots, seeds = list(slots), list(seeds)
+        if len(slots) != len(seeds):
+            raise ValueError(f"{len(slots)} slots but {len(seeds)} seeds")
+        samples = [self.task.sample(s) for s in seeds]
+        qpos = np.stack([self.task.initial_qpos(self.models[sm.variant], sm) for sm in samples])
+        task = self.task
+        self.batch.reset(
+            slots,
+            qpos,
+            settle_steps=task.settle_steps + task.observe_steps - DRIFT_WINDOW,
+            variants=[sm.variant for sm in samples],
+        )
+        before = self.batch.qpos()[slots]
+        self.batch.hold(DRIFT_WINDOW, slots)
+        after = self.batch.qpos()[slots]
+        reports = []
+        for row, (slot, seed, sample) in enumerate(zip(slots, seeds, samples, strict=True)):
+            drift = max(
+                (
+                    _angle_deg(before[row, a + 3 : a + 7], after[row, a + 3 : a + 7])
+                    for a in self.ix.adr.values()
+                ),
+                default=0.0,
+            )
+            finite = bool(np.isfinite(after[row]).all())
+            reports.append(SettleReport(seed, finite, float(drift)))
+            self.samples[slot], self.seeds[slot] = sample, seed
+            self.init_qpos[slot] = after[row]
+            self.latched[slot] = False
+            self.progress[slot] = 0
+            self.success[slot] = False
+            self.steps[slot] = 0
+        return reports
+
+    def step(self, actions: Sequence[Any]) -> list[StepOutcome | None]:
+        """One action per slot (None = idle); evaluates the predicate of every acting slot."""
+        actions = list(actions) + [None] * (self.batch.n_slots - len(actions))
+        results = self.batch.step(actions)
+        acted = np.array([r is not None for r in results])
+        if not acted.any():
+            return [None] * self.n_slots
+        ev, progress = self.evaluate()
+        self.latched[acted] = ev.latched[acted]
+        self.progress[acted] = progress[acted]
+        self.success[acted] = ev.success[acted]
+        self.steps[acted] += 1
+        out: list[StepOutcome | None] = []
+        for slot in range(self.n_slots):
+            res = results[slot]
+            if res is None:
+                out.append(None)
+                continue
+            checks = {k: bool(v[slot]) for k, v in ev.checks.items()}
+            out.append(StepOutcome(res, bool(ev.success[slot]), int(self.progress[slot]), checks))
+        return out
+
+    def slot_states(self) -> SlotState:
+        p = self.batch.proprio()
+        return SlotState(
+            qpos=jnp.asarray(self.batch.qpos()),
+            init_qpos=jnp.asarray(self.init_qpos),
+            grip_open=jnp.asarray(self.batch.grip_open()),
+            contacts=jnp.asarray(self.batch.contact_flags(self.side_a, self.side_b)),
+            gc=jnp.asarray(p.gc),
+            rot=jnp.asarray(p.rot),
+            fingers=jnp.asarray(p.fingers),
+        )
+
+    def evaluate(self) -> tuple[Evaluation, np.ndarray]:
+        """The predicate of every slot at its current state (host arrays), with the latches
+        and progress it would produce; does not commit them."""
+        ev, progress = self._eval(
+            self.slot_states(), jnp.asarray(self.latched), jnp.asarray(self.progress)
+        )
+        return jax.device_get(ev), np.asarray(progress)
+
+    def checkpoint(self, slot: int) -> str | None:
+        """Name of the last checkpoint the slot reached (None before the first)."""
+        p = int(self.progress[slot])
+        return self.task.checkpoints[p - 1] if p > 0 else None
+
+    # -- evaluator-only views ---------------------------------------------------------------
+    def views(self, slots: Sequence[int]) -> dict[int, View]:
+        """Evaluator-only views of `slots` (for experts and debugging; never for a model)."""
+        qpos_all = self.batch.qpos()
+        p = self.batch.proprio()
+        out = {}
+        for slot in slots:
+            qpos = qpos_all[slot]
+            objects = {
+                name: (qpos[a : a + 3].copy(), np.asarray(quat_to_mat(qpos[a + 3 : a + 7])))
+                for name, a in self.ix.adr.items()
+            }
+            arms = {
+                arm: ArmView(
+                    gc=np.asarray(p.gc[slot, i]),
+                    rot=np.asarray(p.rot[slot, i]),
+                    is_open=bool(p.is_open[slot, i]),
+                    fingers=np.asarray(p.fingers[slot, i]),
+                )
+                for i, arm in enumerate(self.batch.arms)
+            }
+            out[slot] = View(
+                objects=objects,
+                init={n: self.init_qpos[slot, a : a + 3].copy() for n, a in self.ix.adr.items()},
+                arms=arms,
+                last=None,
+                step=int(self.steps[slot]),
+            )
+        return out
+
+
+@dataclass
+class ExpertEpisode:
+    """The record of one expert run: every action with its outcome, and how it ended."""
+
+    seed: int
+    settle: SettleReport
+    success: bool = False
+    steps: int = 0
+    end: str = "not run"  # success | budget | expert gave up: ... | rejected at reset: ...
+    actions: list[dict[str, Any]] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "seed": self.seed,
+            "success": self.success,
+            "steps": self.steps,
+            "end": self.end,
+            "max_drift_deg": round(self.settle.max_drift_deg, 4),
+            "actions": self.actions,
+        }
+
+
+def run_experts(
+    tb: TaskBatch, seeds: Sequence[int], slots: Sequence[int] | None = None
+) -> list[ExpertEpisode]:
+    """Reset `slots` (default: the first len(seeds)) to `seeds` and run the family's expert in
+    every slot in lockstep, one batched step per round, until each succeeds, gives up, or
+    exhausts the step budget. Seeds failing the reset gate are not run."""
+    slots = list(range(len(seeds))) if slots is None else list(slots)
+    if len(seeds) > tb.n_slots or len(slots) != len(seeds):
+        raise ValueError(f"{len(seeds)} seeds for {len(slots)} slots of {tb.n_slots}")
+    reports = tb.reset(slots, seeds)
+    episodes = {
+        slot: ExpertEpisode(seed, rep)
+        for slot, seed, rep in zip(slots, seeds, reports, strict=True)
+    }
+    views = tb.views(slots)
+    scripts: dict[int, Any] = {}
+    contexts: dict[int, ExpertContext] = {}
+    pending: dict[int, dict[str, Any]] = {}
+
+    def advance(slot: int) -> None:
+        ep = episodes[slot]
+        try:
+            pending[slot] = next(scripts[slot])
+        except StopIteration:
+            ep.end = "expert finished without success"
+        except ExpertFailed as err:
+            ep.end = f"expert gave up: {err}"
+        else:
+            return
+        scripts.pop(slot)
+
+    for slot in slots:
+        ep = episodes[slot]
+        if not ep.settle.ok:
+            ep.end = f"rejected at reset: {ep.settle.reason}"
+            continue
+        sample = tb.samples[slot]
+        assert sample is not None
+        contexts[slot] = ExpertContext(tb.task.arms, views[slot])
+        scripts[slot] = iter(tb.task.expert(sample, contexts[slot]))
+        advance(slot)
+
+    while scripts:
+        actions: list[Any] = [None] * tb.n_slots
+        for slot in scripts:
+            actions[slot] = pending[slot]
+        outcomes = tb.step(actions)
+        views = tb.views(list(scripts))
+        for slot in list(scripts):
+            out = outcomes[slot]
+            assert out is not None
+            ep = episodes[slot]
+            ep.steps += 1
+            ep.actions.append(
+                {
+                    "action": pending[slot],
+                    "valid": out.result.valid,
+                    "planner_success": out.result.planner_success,
+                    "progress": out.progress,
+                    "success": out.success,
+                }
+            )
+            if out.success:
+                ep.success, ep.end = True, "success"
+                scripts.pop(slot)
+                continue
+            if ep.steps >= tb.task.step_budget:
+                ep.end = "budget"
+                scripts.pop(slot)
+                continue
+            view = views[slot]
+            view.last = out.result
+            contexts[slot].view = view
+            advance(slot)
+    return [episodes[slot] for slot in slots]
+
+
+def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
+    q1 = q1 / np.linalg.norm(q1)
+    q2 = q2 / np.linalg.norm(q2)
+    d = min(1.0, abs(float(np.dot(q1, q2))))
+    return float(np.degrees(2.0 * np.arccos(d)))
