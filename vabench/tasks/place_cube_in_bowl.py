@@ -1,0 +1,130 @@
+"""place_cube_in_bowl: put the small red cube into the blue bowl, right arm.
+
+Scene (paper Table tab:seed-spec-place): a red 0.04 m cube (FACTS) resting on the table at
+x in [0.22, 0.27], y in [-0.17, -0.10], yaw in [-45, 45] deg; a blue bowl (`bowl_blue.xml`: a
+16-gon floor 8 mm thick and walls tilted 35 deg outwards, inner radius 40 mm at the floor, rim
+about 72 mm in radius and 52 mm high, 0.6 kg) at x in [0.10, 0.14], y in [0, 0.04], upright,
+yaw 0 (the paper draws no bowl yaw). The bowl's origin is the centre of its bottom, on the table.
+Success (all now, plus one latch), as the paper's row:
+- was_lifted: the cube was lifted >= 50 mm above its settled height at some point (latched);
+- centred: horizontal distance between the cube centre and the bowl origin < 55 mm;
+- height: cube centre height minus bowl origin height in [15, 95] mm (a cube resting on the
+  bowl's floor sits at 28 mm);
+- bowl_still: the bowl displaced < 5 mm from its settled position;
+- contact: cube-bowl contact;
+- gripper_open: the right gripper open.
+Budget 50 steps.
+Checkpoints: reached (GC within 30 mm of the cube), grasped (closed and touching), lifted
+(latched), transported (centred and height), released (gripper open while centred), completed.
+Expert: top-down grasp across the cube's faces, lift, carry over the bowl above its rim, lower
+until the cube's bottom is 25 mm above the bowl floor (the fingers then open clear of the
+walls), open, back off upwards.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from vabench.sim_mjx import robot_constants as rc
+from vabench.tasks import common
+from vabench.tasks.base import (
+    LIFT_M,
+    Evaluation,
+    ObjectIndex,
+    Sample,
+    Script,
+    SlotState,
+    Task,
+    yaw_quat,
+)
+from vabench.tasks.expert import ExpertContext
+from vabench.tasks.objects import attach_object
+
+CUBE_HALF = 0.02
+BOWL_FLOOR = 0.008  # floor slab thickness: a cube on the floor sits at BOWL_FLOOR + CUBE_HALF
+CUBE_X, CUBE_Y, CUBE_YAW_DEG = (0.22, 0.27), (-0.17, -0.10), (-45.0, 45.0)
+BOWL_X, BOWL_Y = (0.10, 0.14), (0.0, 0.04)
+
+CENTER_TOL = 0.055  # centre distance < 55 mm
+REL_HEIGHT = (0.015, 0.095)  # cube - bowl height, 15-95 mm
+BOWL_MOVE_TOL = 0.005  # bowl displacement < 5 mm
+
+RIM_CLEARANCE = 0.075  # carry height of the cube centre above its resting height in the bowl
+RELEASE_DROP = 0.025  # cube bottom above the floor when the fingers open
+
+
+@dataclass(frozen=True)
+class PlaceCubeInBowl(Task):
+    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
+        attach_object(spec, "cube_red_40.xml", "cube")
+        attach_object(spec, "bowl_blue.xml", "bowl")
+
+    def sample(self, seed: int) -> Sample:
+        rng = self.rng(seed)
+        cube = np.array([rng.uniform(*CUBE_X), rng.uniform(*CUBE_Y), rc.TABLE_Z + CUBE_HALF])
+        cube_yaw = np.radians(rng.uniform(*CUBE_YAW_DEG))
+        bowl = np.array([rng.uniform(*BOWL_X), rng.uniform(*BOWL_Y), rc.TABLE_Z])
+        return Sample({"cube": (cube, yaw_quat(cube_yaw)), "bowl": (bowl, yaw_quat(0.0))})
+
+    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
+        r = self.arm("right")
+        was_lifted = self.latch(latched, "was_lifted") | (ix.lift(s, "cube") >= LIFT_M)
+        p, b = ix.pos(s.qpos, "cube"), ix.pos(s.qpos, "bowl")
+        centred = jnp.linalg.norm(p[:2] - b[:2]) < CENTER_TOL
+        rel = p[2] - b[2]
+        height_ok = (rel >= REL_HEIGHT[0]) & (rel <= REL_HEIGHT[1])
+        bowl_still = ix.displacement(s, "bowl") < BOWL_MOVE_TOL
+        touching = self.contact(s, "cube", "bowl")
+        opened = s.grip_open[r]
+        checks = {
+            "was_lifted": was_lifted,
+            "centred": centred,
+            "height": height_ok,
+            "bowl_still": bowl_still,
+            "contact": touching,
+            "gripper_open": opened,
+        }
+        subgoals = jnp.array(
+            [
+                common.near(s, r, p),
+                common.holding(s, r, self.contact(s, "cube", "right_gripper")),
+                was_lifted,
+                centred & height_ok,
+                opened & centred,
+            ]
+        )
+        success = was_lifted & centred & height_ok & bowl_still & touching & opened
+        return Evaluation(
+            checks=checks, latched=jnp.array([was_lifted]), subgoals=subgoals, success=success
+        )
+
+    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
+        yield from common.topdown_grasp(ctx, "right", "cube")
+        yield from common.lift(ctx, "right", 0.07)
+        bowl = ctx.view.pos("bowl")
+        rest_z = bowl[2] + BOWL_FLOOR + CUBE_HALF
+        yield from common.carry_and_release(
+            ctx,
+            "right",
+            "cube",
+            bowl[:2],
+            rest_z,
+            clearance=RIM_CLEARANCE,
+            drop=RELEASE_DROP,
+        )
+
+
+TASK = PlaceCubeInBowl(
+    name="place_cube_in_bowl",
+    instruction="Pick up the red cube and put it into the blue bowl.",
+    arms=("right",),
+    step_budget=50,
+    checkpoints=common.PLACE_CHECKPOINTS,
+    latches=("was_lifted",),
+    contact_pairs=(("cube", "right_gripper"), ("cube", "bowl")),
+)
