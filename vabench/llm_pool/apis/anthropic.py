@@ -1,0 +1,324 @@
+"""Anthropic Messages (`POST {host}/v1/messages`).
+
+Request: headers `x-api-key` and `anthropic-version`; the system prompt is the top-level
+`system` field; user content is a list of `{"type":"text"}` and
+`{"type":"image","source":{"type":"base64","media_type":"image/jpeg","data":"..."}}` blocks;
+`max_tokens` is required; extended thinking is `thinking: {"type":"enabled","budget_tokens":N}`
+(N >= 1024 and below max_tokens, and no temperature other than 1 alongside it).
+
+Prompt caching is opt-in through `cache_control: {"type":"ephemeral"}` markers. vabench puts
+one on the system prompt (the prefix that never changes within a task) and one on the last
+block of the last user turn, so the next call of the same episode reads the whole earlier
+conversation from the cache (Anthropic looks back from a marker for the longest cached
+prefix). Markers on prefixes shorter than the model's minimum (1,024 or 2,048 tokens) are
+ignored by the API at no cost.
+
+Response: `content` blocks (`thinking`, `text`), `stop_reason` (`end_turn`, `max_tokens`,
+`stop_sequence`, `refusal`, ...). Usage: `input_tokens` *excludes* cache reads
+(`cache_read_input_tokens`) and cache writes (`cache_creation_input_tokens`);
+`output_tokens` includes thinking, which is not reported separately.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from vabench.llm_pool.apis.base import (
+    ApiAdapter,
+    IncomingRequest,
+    LimitState,
+    RequestShapeError,
+    ServerReply,
+    base64_image,
+    rfc3339_in,
+    validate_request_json,
+    validate_response_json,
+)
+from vabench.llm_pool.config import GenerationOptions, ModelEndpoint
+from vabench.llm_pool.messages import (
+    ChatRequest,
+    FinishReason,
+    ParsedResponse,
+    Part,
+    Turn,
+    Usage,
+)
+from vabench.llm_pool.tokens import anthropic_image_tokens
+
+ANTHROPIC_VERSION = "2023-06-01"
+_EPHEMERAL = {"type": "ephemeral"}
+
+# -- request shape ----------------------------------------------------------------------------
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class _CacheControl(_Strict):
+    type: Literal["ephemeral"]
+    ttl: Literal["5m", "1h"] | None = None
+
+
+class _TextBlock(_Strict):
+    type: Literal["text"]
+    text: str
+    cache_control: _CacheControl | None = None
+
+
+class _Base64Source(_Strict):
+    type: Literal["base64"]
+    media_type: Literal["image/jpeg", "image/png", "image/gif", "image/webp"]
+    data: str
+
+
+class _ImageBlock(_Strict):
+    type: Literal["image"]
+    source: _Base64Source
+    cache_control: _CacheControl | None = None
+
+
+_Block = Annotated[_TextBlock | _ImageBlock, Field(discriminator="type")]
+
+
+class _Message(_Strict):
+    role: Literal["user", "assistant"]
+    content: str | list[_Block] = Field(min_length=1)
+
+
+class _Thinking(_Strict):
+    type: Literal["enabled"]
+    budget_tokens: int = Field(ge=1024)
+
+
+class MessagesRequest(_Strict):
+    model: str = Field(min_length=1)
+    max_tokens: int = Field(ge=1)
+    messages: list[_Message] = Field(min_length=1)
+    system: str | list[_TextBlock] | None = None
+    temperature: float | None = Field(None, ge=0, le=1)
+    thinking: _Thinking | None = None
+    stream: Literal[False] = False
+    metadata: dict[str, Any] | None = None
+
+
+# -- response shape ---------------------------------------------------------------------------
+
+
+class _Loose(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+class _ContentBlock(_Loose):
+    type: str
+    text: str | None = None
+    thinking: str | None = None
+
+
+class _Usage(_Loose):
+    input_tokens: int
+    output_tokens: int
+    cache_creation_input_tokens: int | None = None
+    cache_read_input_tokens: int | None = None
+
+
+class MessagesResponse(_Loose):
+    id: str | None = None
+    model: str | None = None
+    content: list[_ContentBlock]
+    stop_reason: str | None = None
+    usage: _Usage
+
+
+_FINISH: dict[str, FinishReason] = {
+    "end_turn": "stop",
+    "stop_sequence": "stop",
+    "max_tokens": "length",
+    "model_context_window_exceeded": "length",
+    "refusal": "refusal",
+}
+_STOP_REASON: dict[FinishReason, str] = {
+    "stop": "end_turn",
+    "length": "max_tokens",
+    "refusal": "refusal",
+    "content_filter": "refusal",
+    "other": "end_turn",
+}
+_ERROR_TYPES = {
+    400: "invalid_request_error",
+    401: "authentication_error",
+    403: "permission_error",
+    404: "not_found_error",
+    413: "request_too_large",
+    429: "rate_limit_error",
+    529: "overloaded_error",
+}
+
+
+def _block(part: Part) -> dict[str, Any]:
+    if isinstance(part, str):
+        return {"type": "text", "text": part}
+    source = {"type": "base64", "media_type": part.media_type, "data": part.b64}
+    return {"type": "image", "source": source}
+
+
+class Anthropic(ApiAdapter):
+    name = "anthropic"
+    route = "/v1/messages"
+    image_tokens = staticmethod(anthropic_image_tokens)
+
+    def url(self, base_url: str) -> str:
+        return f"{base_url}/messages" if base_url.endswith("/v1") else f"{base_url}/v1/messages"
+
+    def headers(self, api_key: str | None) -> dict[str, str]:
+        headers = {"anthropic-version": ANTHROPIC_VERSION}
+        if api_key:
+            headers["x-api-key"] = api_key
+        return headers
+
+    def build_body(
+        self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
+    ) -> dict[str, Any]:
+        cache = options.cache_prompt is not False
+        messages: list[dict[str, Any]] = []
+        for turn in request.turns:
+            if turn.role == "assistant":
+                messages.append({"role": "assistant", "content": turn.text})
+            else:
+                messages.append({"role": "user", "content": [_block(p) for p in turn.content]})
+        if cache:
+            messages[-1]["content"][-1]["cache_control"] = _EPHEMERAL
+        body: dict[str, Any] = {
+            "model": endpoint.provider_model,
+            "max_tokens": options.resolved_max_output_tokens,
+            "messages": messages,
+        }
+        if request.system:
+            body["system"] = (
+                [{"type": "text", "text": request.system, "cache_control": _EPHEMERAL}]
+                if cache
+                else request.system
+            )
+        if options.temperature is not None:
+            body["temperature"] = options.temperature
+        if options.thinking_budget is not None:
+            body["thinking"] = {"type": "enabled", "budget_tokens": options.thinking_budget}
+        return body
+
+    def parse_response(self, raw: bytes) -> ParsedResponse:
+        body = validate_response_json(MessagesResponse, raw, "messages")
+        texts = [b.text for b in body.content if b.type == "text" and b.text is not None]
+        thoughts = [b.thinking for b in body.content if b.type == "thinking" and b.thinking]
+        u = body.usage
+        usage = Usage(
+            input_tokens=u.input_tokens,
+            cached_input_tokens=u.cache_read_input_tokens or 0,
+            cache_write_tokens=u.cache_creation_input_tokens or 0,
+            output_tokens=u.output_tokens,
+        )
+        return ParsedResponse(
+            text="".join(texts),
+            finish_reason=_FINISH.get(body.stop_reason or "", "other"),
+            raw_finish_reason=body.stop_reason,
+            usage=usage,
+            model=body.model,
+            response_id=body.id,
+            reasoning="\n".join(thoughts) or None,
+        )
+
+    def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
+        if not headers.get("anthropic-version"):
+            raise RequestShapeError("anthropic-version", "header is required")
+        body = validate_request_json(MessagesRequest, raw)
+        if body.thinking is not None:
+            if body.thinking.budget_tokens >= body.max_tokens:
+                raise RequestShapeError("thinking.budget_tokens", "must be less than max_tokens")
+            if body.temperature not in (None, 1.0):
+                raise RequestShapeError(
+                    "temperature", "may only be set to 1 when thinking is enabled"
+                )
+        breakpoints: list[int] = []
+        system: str | None = None
+        if isinstance(body.system, str):
+            system = body.system or None
+        elif body.system:
+            system = "\n".join(b.text for b in body.system) or None
+            if system and any(b.cache_control for b in body.system):
+                breakpoints.append(0)
+        index = 1 if system else 0  # position in chat.blocks
+        turns: list[Turn] = []
+        for i, m in enumerate(body.messages):
+            if isinstance(m.content, str):
+                blocks: list[_TextBlock | _ImageBlock] = [_TextBlock(type="text", text=m.content)]
+            else:
+                blocks = list(m.content)
+            parts: list[Part] = []
+            for j, b in enumerate(blocks):
+                if isinstance(b, _TextBlock):
+                    parts.append(b.text)
+                elif m.role == "assistant":
+                    raise RequestShapeError(f"messages.{i}.content.{j}", "images in assistant turn")
+                else:
+                    field = f"messages.{i}.content.{j}.source.data"
+                    parts.append(base64_image(b.source.data, b.source.media_type, field))
+                if b.cache_control is not None:
+                    breakpoints.append(index)
+                index += 1
+            turns.append(Turn(m.role, tuple(parts)))
+        if len(breakpoints) > 4:
+            raise RequestShapeError("cache_control", "at most 4 blocks may have cache_control")
+        if turns[-1].role != "user":
+            raise RequestShapeError("messages", "the last message must be a user message")
+        options = GenerationOptions(
+            max_output_tokens=body.max_tokens,
+            temperature=body.temperature,
+            thinking_budget=body.thinking.budget_tokens if body.thinking else None,
+        )
+        chat = ChatRequest(tuple(turns), system, options)
+        return IncomingRequest(
+            api=self.name, model=body.model, chat=chat, cache_breakpoints=tuple(breakpoints)
+        )
+
+    def build_response(self, reply: ServerReply) -> dict[str, Any]:
+        content: list[dict[str, Any]] = []
+        if reply.reasoning:
+            signature = uuid.uuid4().hex
+            content.append(
+                {"type": "thinking", "thinking": reply.reasoning, "signature": signature}
+            )
+        content.append({"type": "text", "text": reply.text})
+        u = reply.usage
+        return {
+            "id": f"msg_{uuid.uuid4().hex[:24]}",
+            "type": "message",
+            "role": "assistant",
+            "model": reply.model,
+            "content": content,
+            "stop_reason": _STOP_REASON[reply.finish_reason],
+            "stop_sequence": None,
+            "usage": {
+                "input_tokens": u.input_tokens,
+                "cache_creation_input_tokens": u.cache_write_tokens,
+                "cache_read_input_tokens": u.cached_input_tokens,
+                "output_tokens": u.output_tokens,
+            },
+        }
+
+    def error_body(self, status: int, message: str) -> dict[str, Any]:
+        error_type = _ERROR_TYPES.get(status, "api_error")
+        return {"type": "error", "error": {"type": error_type, "message": message}}
+
+    def rate_limit_headers(self, states: Mapping[str, LimitState]) -> dict[str, str]:
+        headers: dict[str, str] = {}
+        for name, s in states.items():
+            headers[f"anthropic-ratelimit-{name}-limit"] = str(s.limit)
+            headers[f"anthropic-ratelimit-{name}-remaining"] = str(max(0, s.remaining))
+            headers[f"anthropic-ratelimit-{name}-reset"] = rfc3339_in(s.reset_s)
+        return headers
+
+    def server_key(self, headers: Mapping[str, str]) -> str | None:
+        return headers.get("x-api-key")

@@ -1,0 +1,65 @@
+"""The ways a call can fail, typed by what the caller should do about them.
+
+- `InfrastructureError`: the endpoint stayed unhealthy (rate limits, 5xx, timeouts, dropped
+  connections, malformed bodies) through every attempt the retry policy allows. The engine
+  re-runs the episode later; it is never scored.
+- `RequestRejected`: the endpoint refused the request itself (a 4xx other than 408/409/429).
+  Retrying cannot help: authentication and missing models stop a sweep; a context overflow
+  ends the episode with that reason.
+- `ResponseFormatError`: a body that is not what the API documents. Raised by the parsers,
+  retried by the pool, and named in the final `InfrastructureError` if it persists.
+
+Model behaviour (a refusal, hitting max tokens, an empty answer) is not an error: it is a
+`CompletionResult` with its finish reason.
+"""
+
+from __future__ import annotations
+
+
+class LLMError(Exception):
+    """Base of every error a pool call raises."""
+
+    def __init__(self, endpoint: str, message: str, *, attempts: int, elapsed_s: float):
+        super().__init__(f"{endpoint}: {message}")
+        self.endpoint = endpoint
+        self.message = message
+        self.attempts = attempts
+        self.elapsed_s = elapsed_s
+
+
+class InfrastructureError(LLMError):
+    """Transient failures outlasted the retry policy; re-run the episode, do not score it."""
+
+    def __init__(
+        self,
+        endpoint: str,
+        message: str,
+        *,
+        attempts: int,
+        elapsed_s: float,
+        failures: tuple[str, ...] = (),
+    ):
+        super().__init__(endpoint, message, attempts=attempts, elapsed_s=elapsed_s)
+        self.failures = failures
+        """One line per failed attempt, oldest first."""
+
+
+class RequestRejected(LLMError):
+    """A non-retryable 4xx: the request itself is wrong (or the key, or the model name)."""
+
+    def __init__(
+        self, endpoint: str, message: str, *, status: int, attempts: int, elapsed_s: float
+    ):
+        super().__init__(endpoint, message, attempts=attempts, elapsed_s=elapsed_s)
+        self.status = status
+
+    @property
+    def kind(self) -> str:
+        """auth (401/403), not_found (404), too_large (413) or bad_request (other 4xx)."""
+        return {401: "auth", 403: "auth", 404: "not_found", 413: "too_large"}.get(
+            self.status, "bad_request"
+        )
+
+
+class ResponseFormatError(ValueError):
+    """A response body that does not match the API's documented shape; names the problem."""

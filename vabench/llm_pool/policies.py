@@ -1,0 +1,205 @@
+"""Response policies of the embedded server, registered by name.
+
+A policy receives the full parsed request (system prompt, turns with text and images, the
+generation options, which API it came through) and returns the reply text. Policies are what
+make the embedded server a stand-in for a model: a random-but-valid actor for throughput runs,
+a scripted one for tests that need exact replies, an echo for correlating calls. Later policies
+(a non-LLM reference servo) register themselves the same way:
+
+    @register_policy("reference_servo")
+    class ReferenceServo: ...
+
+`make_policy(name, **options)` builds one; an unknown name raises with the list of valid names.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol, get_args
+
+from pydantic import BaseModel
+
+from vabench import protocol
+from vabench.llm_pool.apis.base import IncomingRequest
+from vabench.llm_pool.messages import FinishReason
+
+
+@dataclass(frozen=True)
+class PolicyReply:
+    """A reply with more than text: a finish reason other than "stop", or reasoning text."""
+
+    text: str
+    finish_reason: FinishReason = "stop"
+    reasoning: str | None = None
+
+
+class PolicyError(Exception):
+    """A policy that cannot answer; the server replies with `status` and the message."""
+
+    def __init__(self, message: str, status: int = 500):
+        super().__init__(message)
+        self.status = status
+
+
+class Policy(Protocol):
+    async def respond(self, request: IncomingRequest) -> str | PolicyReply: ...
+
+
+PolicyFactory = Callable[..., Policy]
+POLICIES: dict[str, PolicyFactory] = {}
+
+
+def register_policy(name: str) -> Callable[[PolicyFactory], PolicyFactory]:
+    def register(factory: PolicyFactory) -> PolicyFactory:
+        if name in POLICIES:
+            raise ValueError(f"policy {name!r} is already registered")
+        POLICIES[name] = factory
+        return factory
+
+    return register
+
+
+def make_policy(name: str, **options: Any) -> Policy:
+    try:
+        factory = POLICIES[name]
+    except KeyError:
+        raise KeyError(f"unknown policy {name!r}; valid policies: {sorted(POLICIES)}") from None
+    try:
+        return factory(**options)
+    except TypeError as err:
+        raise ValueError(f"policy {name!r}: bad options {sorted(options)}: {err}") from None
+
+
+def fenced_json(obj: dict[str, Any]) -> str:
+    """The reply shape the agent harness parses: one fenced json block."""
+    return f"```json\n{json.dumps(obj)}\n```"
+
+
+# -- random but valid robot actions ---------------------------------------------------------
+
+
+def _choices(model: type[BaseModel], name: str) -> tuple[str, ...]:
+    return get_args(model.model_fields[name].annotation)
+
+
+def _bounds(model: type[BaseModel], name: str) -> tuple[int, int]:
+    """The integer range of a numeric field, read from its Ge/Le constraints."""
+    metadata = model.model_fields[name].metadata
+    low = next((m.ge for m in metadata if hasattr(m, "ge")), None)
+    high = next((m.le for m in metadata if hasattr(m, "le")), None)
+    if low is None or high is None:
+        raise TypeError(f"{model.__name__}.{name} has no ge/le bounds")
+    return int(low), int(high)
+
+
+# Read from vabench.protocol so that the policy follows the protocol when it changes.
+_AXES = _choices(protocol.MoveWorld, "axis")
+_ROT_AXES = _choices(protocol.RotateLocal, "axis")
+_SIGNS = _choices(protocol.MoveWorld, "sign")
+_DISTANCE = _bounds(protocol.MoveWorld, "distance_mm")
+_ANGLE = _bounds(protocol.RotateLocal, "angle_deg")
+_APERTURES = get_args(protocol.GripperName)
+_SINGLE_APERTURES = tuple(a for a in _APERTURES if a.startswith("gripper."))
+_DUAL_APERTURES = tuple(a for a in _APERTURES if not a.startswith("gripper."))
+
+
+@register_policy("random_action")
+class RandomActionPolicy:
+    """A uniformly random robot action that `vabench.protocol.parse_robot_action` accepts.
+
+    `arms`: "right" (single-arm tasks), "both" (dual-arm tasks), or "auto": both when the
+    request offers dual-arm actions (the observation's list of available actions mentions
+    `dual_gripper`), else right.
+    """
+
+    def __init__(self, seed: int | None = None, arms: Literal["auto", "right", "both"] = "auto"):
+        if arms not in ("auto", "right", "both"):
+            raise ValueError(f"arms must be 'auto', 'right' or 'both', got {arms!r}")
+        self.arms = arms
+        self._rng = random.Random(seed)
+
+    def _dual(self, request: IncomingRequest) -> bool:
+        if self.arms != "auto":
+            return self.arms == "both"
+        chat = request.chat
+        return "dual_gripper" in chat.last_user_text or "dual_gripper" in (chat.system or "")
+
+    def _side(self) -> dict[str, Any]:
+        rng = self._rng
+        return {
+            "axis": rng.choice(_AXES),
+            "sign": rng.choice(_SIGNS),
+            "distance_mm": rng.randint(*_DISTANCE),
+        }
+
+    def action(self, dual: bool) -> dict[str, Any]:
+        rng = self._rng
+        kinds = ["move", "rotate", "aperture"] + (["dual_move"] if dual else [])
+        kind = rng.choice(kinds)
+        arm = {"arm": rng.choice(("left", "right"))} if dual else {}
+        if kind == "move":
+            action = {"action": "gripper.move_world", **self._side(), **arm}
+        elif kind == "rotate":
+            angle = rng.randint(*_ANGLE)
+            action = {
+                "action": "gripper.rotate_local",
+                "axis": rng.choice(_ROT_AXES),
+                "sign": rng.choice(_SIGNS),
+                "angle_deg": angle,
+                **arm,
+            }
+        elif kind == "aperture":
+            names = _SINGLE_APERTURES if not dual else _DUAL_APERTURES
+            action = {"action": rng.choice(names)}
+            if dual and action["action"].startswith("gripper."):
+                action.update(arm)
+        else:
+            action = {
+                "action": "dual_gripper.move_world",
+                "left": self._side(),
+                "right": self._side(),
+            }
+        action["reason"] = "random policy"
+        return action
+
+    async def respond(self, request: IncomingRequest) -> str:
+        return fenced_json(self.action(self._dual(request)))
+
+
+@register_policy("scripted")
+class ScriptedPolicy:
+    """Replays `replies` in order, one per request, whatever the request says.
+
+    A reply is a string or a mapping with `text` and optional `finish_reason` and `reasoning`.
+    Once the script is exhausted: start again if `cycle`, else answer 400 naming the problem
+    (a test that runs past its script fails at once instead of retrying).
+    """
+
+    def __init__(self, replies: Sequence[str | dict[str, Any]], cycle: bool = False):
+        if not replies:
+            raise ValueError("scripted policy needs at least one reply")
+        self.replies = [r if isinstance(r, str) else PolicyReply(**r) for r in replies]
+        self.cycle = cycle
+        self.served = 0
+
+    async def respond(self, request: IncomingRequest) -> str | PolicyReply:
+        if self.served >= len(self.replies) and not self.cycle:
+            raise PolicyError(
+                f"scripted policy exhausted after {len(self.replies)} replies", status=400
+            )
+        reply = self.replies[self.served % len(self.replies)]
+        self.served += 1
+        return reply
+
+
+@register_policy("echo")
+class EchoPolicy:
+    """Replies with the text of the last user turn (and the number of images it carried), so
+    a test can tell which call a reply belongs to."""
+
+    async def respond(self, request: IncomingRequest) -> str:
+        last = request.chat.turns[-1]
+        return f"{last.text} [images: {len(last.images)}]"

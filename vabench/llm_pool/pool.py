@@ -1,0 +1,402 @@
+"""The client pool: `await pool.complete(endpoint_name, request)` from any number of episodes.
+
+Each endpoint has one aiohttp session (its own connection pool, sized to its concurrency),
+one `ConcurrencyLimiter` and one `RateLimiter`, shared by every episode that calls it. One
+call goes through these steps, each attempt holding one concurrency slot:
+
+    estimate tokens -> slot -> wait out any server-requested pause -> rate admission
+    -> POST -> parse -> settle tokens to the reported usage -> CompletionResult
+
+and on a retryable failure releases the slot, backs off (the server's hint, else exponential
+with jitter) and queues again ahead of new calls. The total deadline runs from the call's
+first admission (time spent queueing behind other calls of a saturated endpoint is not the
+endpoint's fault); the attempt ceiling counts HTTP attempts.
+
+Every call ends exactly once: a `CompletionResult`, an `InfrastructureError` (retries ran
+out), a `RequestRejected` (a non-retryable 4xx), or the caller's cancellation. Usage and cost
+are counted once, from the successful attempt.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import random
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import aiohttp
+import pydantic_core
+from pydantic import SecretStr
+
+from vabench.llm_pool.apis import get_adapter
+from vabench.llm_pool.apis.base import error_message
+from vabench.llm_pool.config import (
+    ConfigError,
+    ModelEndpoint,
+    check_options_for_api,
+    load_endpoints,
+)
+from vabench.llm_pool.errors import InfrastructureError, RequestRejected, ResponseFormatError
+from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
+from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
+from vabench.llm_pool.retry import RetryDecision, backoff_delay, decide
+from vabench.llm_pool.tokens import estimate_input_tokens
+
+log = logging.getLogger("vabench.llm_pool")
+
+
+@dataclass(frozen=True)
+class EndpointStats:
+    """A snapshot of one endpoint's counters (for progress displays and reports)."""
+
+    name: str
+    in_flight: int
+    queued: int
+    concurrency_limit: int
+    started: int
+    succeeded: int
+    failed: int
+    rejected: int
+    cancelled: int
+    attempts: int
+    rate_limited: int
+    usage: Usage
+    cost_usd: float
+
+
+@dataclass
+class _Counters:
+    started: int = 0
+    succeeded: int = 0
+    failed: int = 0
+    rejected: int = 0
+    cancelled: int = 0
+    attempts: int = 0
+    rate_limited: int = 0
+    usage: Usage = field(default_factory=Usage)
+    cost_usd: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Failure:
+    line: str
+    decision: RetryDecision
+    status: int | None = None
+
+
+class EndpointClient:
+    """Calls to one endpoint; created by `LLMPool`, shared by every episode using it."""
+
+    def __init__(self, config: ModelEndpoint, api_key: SecretStr | None, rng: random.Random):
+        self.config = config
+        self.adapter = get_adapter(config.api)
+        self.url = self.adapter.url(config.resolved_base_url)
+        self._api_key = api_key
+        self._rng = rng
+        limits = config.limits
+        self.concurrency = ConcurrencyLimiter(
+            limits.max_concurrency, adaptive=limits.adaptive, floor=limits.min_concurrency
+        )
+        self.rate = RateLimiter(
+            limits.rpm, limits.tpm, period_s=limits.period_s, burst_s=limits.burst_s
+        )
+        self._counters = _Counters()
+        self._session: aiohttp.ClientSession | None = None
+        self._paused_until = 0.0
+        self._closed = False
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    def __repr__(self) -> str:
+        return f"EndpointClient({self.name!r}, {self.config.api}, {self.url})"
+
+    def _headers(self) -> dict[str, str]:
+        key = self._api_key.get_secret_value() if self._api_key is not None else None
+        return {
+            "Content-Type": "application/json",
+            **self.config.headers,
+            **self.adapter.headers(key),
+        }
+
+    def _redact(self, text: str) -> str:
+        """Providers sometimes echo (part of) a key in errors; never let it reach a record."""
+        if self._api_key is not None:
+            key = self._api_key.get_secret_value()
+            if key:
+                text = text.replace(key, "[redacted]")
+        return text
+
+    def _get_session(self) -> aiohttp.ClientSession:
+        if self._session is None:
+            connector = aiohttp.TCPConnector(
+                limit=self.config.limits.max_concurrency, limit_per_host=0
+            )
+            self._session = aiohttp.ClientSession(
+                connector=connector, timeout=aiohttp.ClientTimeout(total=None)
+            )
+        return self._session
+
+    def stats(self) -> EndpointStats:
+        c = self._counters
+        return EndpointStats(
+            name=self.name,
+            in_flight=self.concurrency.in_flight,
+            queued=self.concurrency.queued,
+            concurrency_limit=self.concurrency._bound(),
+            started=c.started,
+            succeeded=c.succeeded,
+            failed=c.failed,
+            rejected=c.rejected,
+            cancelled=c.cancelled,
+            attempts=c.attempts,
+            rate_limited=c.rate_limited,
+            usage=c.usage,
+            cost_usd=c.cost_usd,
+        )
+
+    async def complete(self, request: ChatRequest) -> CompletionResult:
+        """One call with retries; see the module docstring for the outcomes."""
+        if self._closed:
+            raise RuntimeError(f"{self.name}: the pool is closed")
+        options = self.config.generation.merge(request.options)
+        check_options_for_api(self.config.api, options)
+        estimate = estimate_input_tokens(request, self.adapter.image_tokens)
+        estimate += options.resolved_max_output_tokens
+        loop = asyncio.get_running_loop()
+        started = loop.time()
+        try:
+            self.rate.check_fits(estimate)
+        except ValueError as err:
+            self._counters.rejected += 1
+            raise RequestRejected(
+                self.name, str(err), status=413, attempts=0, elapsed_s=0.0
+            ) from None
+        self._counters.started += 1
+        outcome = "cancelled"
+        try:
+            result = await self._call(request, options, estimate, started)
+            outcome = "succeeded"
+            return result
+        except InfrastructureError:
+            outcome = "failed"
+            raise
+        except RequestRejected:
+            outcome = "rejected"
+            raise
+        finally:
+            setattr(self._counters, outcome, getattr(self._counters, outcome) + 1)
+
+    async def _call(
+        self, request: ChatRequest, options: Any, estimate: int, started: float
+    ) -> CompletionResult:
+        loop = asyncio.get_running_loop()
+        retry = self.config.retry
+        body: bytes | None = None
+        failures: list[str] = []
+        deadline: float | None = None
+        attempt = 0
+        while True:
+            attempt += 1
+            async with self.concurrency.slot(priority=attempt > 1):
+                if deadline is None:
+                    deadline = loop.time() + retry.total_timeout_s
+                if self._closed:
+                    raise self._infra("the pool was closed", attempt - 1, started, failures)
+                try:
+                    admission = await asyncio.wait_for(
+                        self._admit(estimate), deadline - loop.time()
+                    )
+                except asyncio.TimeoutError:
+                    raise self._infra(
+                        f"total deadline of {retry.total_timeout_s:g} s passed while waiting for "
+                        "the endpoint's rate limits",
+                        attempt - 1,
+                        started,
+                        failures,
+                    ) from None
+                if body is None:  # built once admitted: queued calls hold no encoded bodies
+                    payload = self.adapter.build_body(self.config, request, options)
+                    body = pydantic_core.to_json(payload)
+                timeout = min(retry.request_timeout_s, max(0.001, deadline - loop.time()))
+                self._counters.attempts += 1
+                sent = loop.time()
+                outcome = await self._attempt(body, timeout)
+                if isinstance(outcome, ParsedResponse):
+                    self.rate.settle(admission, outcome.usage.total_tokens)
+                    self.concurrency.on_success()
+                    return self._result(outcome, loop.time() - sent, started, attempt, failures)
+                # No usage came back; the provider may still have counted the estimate.
+                failures.append(self._redact(outcome.line))
+                decision = outcome.decision
+                if not decision.retry:
+                    raise RequestRejected(
+                        self.name,
+                        failures[-1],
+                        status=outcome.status or 0,
+                        attempts=attempt,
+                        elapsed_s=loop.time() - started,
+                    )
+                if decision.kind == "rate_limit":
+                    self._counters.rate_limited += 1
+                    self.concurrency.on_overload(loop.time())
+                    if decision.retry_after is not None:
+                        self._paused_until = max(
+                            self._paused_until, loop.time() + decision.retry_after
+                        )
+            if attempt >= retry.max_attempts:
+                raise self._infra(
+                    f"gave up after {attempt} attempts; last: {failures[-1]}",
+                    attempt,
+                    started,
+                    failures,
+                )
+            delay = backoff_delay(attempt, retry, decision.retry_after, self._rng)
+            if loop.time() + delay > deadline:
+                raise self._infra(
+                    f"a {delay:.1f} s backoff would pass the total deadline of "
+                    f"{retry.total_timeout_s:g} s; last: {failures[-1]}",
+                    attempt,
+                    started,
+                    failures,
+                )
+            log.info(
+                "%s: attempt %d failed (%s); retrying in %.2f s",
+                self.name,
+                attempt,
+                failures[-1],
+                delay,
+            )
+            await asyncio.sleep(delay)
+
+    async def _admit(self, estimate: int):
+        loop = asyncio.get_running_loop()
+        while (pause := self._paused_until - loop.time()) > 0:
+            await asyncio.sleep(pause)
+        return await self.rate.acquire(estimate)
+
+    async def _attempt(self, body: bytes, timeout: float) -> ParsedResponse | _Failure:
+        """One HTTP exchange; transport problems become `_Failure`s, cancellation propagates."""
+        try:
+            async with self._get_session().post(
+                self.url,
+                data=body,
+                headers=self._headers(),
+                timeout=aiohttp.ClientTimeout(total=timeout),
+            ) as resp:
+                raw = await resp.read()
+                status, headers = resp.status, resp.headers
+        except asyncio.TimeoutError:
+            return _Failure(f"timeout after {timeout:.1f} s", RetryDecision("transient", "timeout"))
+        except aiohttp.ClientError as err:
+            line = f"{type(err).__name__}: {err}"
+            return _Failure(line, RetryDecision("transient", "connection"))
+        if 200 <= status < 300:
+            try:
+                return self.adapter.parse_response(raw)
+            except ResponseFormatError as err:
+                return _Failure(str(err), RetryDecision("transient", "malformed"), status)
+        line = f"HTTP {status}: {error_message(raw)}"
+        return _Failure(line, decide(status, headers), status)
+
+    def _result(
+        self,
+        parsed: ParsedResponse,
+        latency: float,
+        started: float,
+        attempts: int,
+        failures: list[str],
+    ) -> CompletionResult:
+        cost = parsed.usage.cost(self.config.prices)
+        self._counters.usage += parsed.usage
+        self._counters.cost_usd += cost
+        return CompletionResult(
+            endpoint=self.name,
+            text=parsed.text,
+            finish_reason=parsed.finish_reason,
+            raw_finish_reason=parsed.raw_finish_reason,
+            usage=parsed.usage,
+            cost_usd=cost,
+            latency_s=latency,
+            elapsed_s=asyncio.get_running_loop().time() - started,
+            attempts=attempts,
+            model=parsed.model,
+            response_id=parsed.response_id,
+            reasoning=parsed.reasoning,
+            failures=tuple(failures),
+        )
+
+    def _infra(
+        self, message: str, attempts: int, started: float, failures: list[str]
+    ) -> InfrastructureError:
+        elapsed = asyncio.get_running_loop().time() - started
+        return InfrastructureError(
+            self.name, message, attempts=attempts, elapsed_s=elapsed, failures=tuple(failures)
+        )
+
+    async def close(self) -> None:
+        self._closed = True
+        if self._session is not None:
+            await self._session.close()
+            self._session = None
+
+
+class LLMPool:
+    """All endpoints of a sweep. Create it inside the event loop that will use it (or use
+    `async with LLMPool(...) as pool`), call `complete` from any number of tasks, `close` at
+    the end. Keys are read from the environment once, here, so that a missing key stops a
+    sweep before its first episode."""
+
+    def __init__(
+        self,
+        endpoints: Iterable[ModelEndpoint | Mapping[str, Any]],
+        *,
+        environ: Mapping[str, str] | None = None,
+        seed: int | None = None,
+    ):
+        environ = os.environ if environ is None else environ
+        rng = random.Random(seed)
+        self._clients: dict[str, EndpointClient] = {}
+        for i, ep in enumerate(load_endpoints(endpoints)):
+            key = None
+            if ep.api_key_env is not None:
+                value = environ.get(ep.api_key_env)
+                if not value:
+                    raise ConfigError(
+                        f"models[{i}].api_key_env",
+                        f"environment variable {ep.api_key_env} is not set (endpoint {ep.name!r})",
+                    )
+                key = SecretStr(value)
+            self._clients[ep.name] = EndpointClient(ep, key, random.Random(rng.random()))
+
+    @property
+    def names(self) -> list[str]:
+        return list(self._clients)
+
+    def endpoint(self, name: str) -> EndpointClient:
+        try:
+            return self._clients[name]
+        except KeyError:
+            raise KeyError(f"unknown endpoint {name!r}; configured: {self.names}") from None
+
+    async def complete(self, endpoint: str, request: ChatRequest) -> CompletionResult:
+        """Send `request` to the named endpoint; see `EndpointClient.complete`."""
+        return await self.endpoint(endpoint).complete(request)
+
+    def stats(self) -> dict[str, EndpointStats]:
+        return {name: client.stats() for name, client in self._clients.items()}
+
+    async def close(self) -> None:
+        """Close every connection. Calls still running fail as infrastructure errors; cancel
+        or finish them first."""
+        await asyncio.gather(*(c.close() for c in self._clients.values()))
+
+    async def __aenter__(self) -> LLMPool:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()

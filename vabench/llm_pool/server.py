@@ -1,0 +1,360 @@
+"""The embedded server: the three provider APIs on a local port, answered by a policy.
+
+Tests, benchmarks and network-free sweeps talk to it exactly as they would to a provider:
+
+    async with LocalServer(ServerConfig(policy="random_action")) as server:
+        pool = LLMPool([server.endpoint_config("random", "anthropic")])
+        ...
+
+Routes: `POST /v1/chat/completions`, `POST /v1/responses`, `POST /v1/messages` (each request
+validated against the documented shape; a mismatch is a 400 naming the field, in the API's
+own error format), `GET /v1/models`, `GET /health`, `GET /stats`.
+
+Around the policy it simulates a provider: latency drawn from a distribution, usage with
+prompt caching (`simulate.py`), injected faults (`faults.py`), optional RPM/TPM enforcement
+(a strict sliding window: the requests and tokens admitted in any window of one period never
+exceed the limits; refusals are 429s with Retry-After and the API's rate-limit headers), an
+optional API key check, and a request log (in memory, and as JSONL if asked) that never holds
+a header or a key. Which policy answers is chosen per model name (`model_policies`), falling
+back to `policy`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import random
+import socket
+from collections import Counter, deque
+from typing import IO, Any
+
+from aiohttp import web
+from pydantic import BaseModel, ConfigDict, Field, SecretStr
+
+from vabench.llm_pool.apis import ADAPTERS, ApiAdapter, IncomingRequest, LimitState, ServerReply
+from vabench.llm_pool.apis.base import RequestShapeError
+from vabench.llm_pool.faults import (
+    IMMEDIATE_FAULTS,
+    FaultConfig,
+    FaultPlan,
+    drop_connection,
+    error_response,
+    malformed_response,
+    retry_after_headers,
+    status_of,
+    truncated_response,
+)
+from vabench.llm_pool.limits import RateBudget
+from vabench.llm_pool.policies import Policy, PolicyError, PolicyReply, make_policy
+from vabench.llm_pool.simulate import LatencyModel, PromptCache, simulate_usage
+from vabench.llm_pool.tokens import CHARS_PER_TOKEN, estimate_input_tokens, text_tokens
+
+
+class PolicySpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    policy: str
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class ServerConfig(BaseModel):
+    """Everything the embedded server simulates; every field has a harmless default."""
+
+    model_config = ConfigDict(extra="forbid")
+    policy: str = "random_action"
+    policy_options: dict[str, Any] = Field(default_factory=dict)
+    model_policies: dict[str, PolicySpec] = Field(default_factory=dict)
+    """Policy per requested model name; other names get `policy`."""
+    latency: LatencyModel = Field(default_factory=LatencyModel)
+    faults: FaultConfig = Field(default_factory=FaultConfig)
+    rpm: float | None = Field(None, gt=0)
+    tpm: float | None = Field(None, gt=0)
+    rate_period_s: float = Field(60.0, gt=0)
+    retry_after_header: bool = True
+    """Send Retry-After with enforced 429s; False leaves only the API's reset headers."""
+    api_key: SecretStr | None = None
+    """Require this key (Bearer for OpenAI routes, x-api-key for Anthropic)."""
+    simulate_cache: bool = True
+    log_path: str | None = None
+    """Append one JSON line per request here."""
+    log_size: int = Field(10_000, ge=0)
+    """Requests kept in memory (`LocalServer.log`)."""
+    seed: int | None = None
+
+
+@dataclasses.dataclass
+class RequestRecord:
+    """One request as the server saw it. No headers, no keys, no content."""
+
+    id: int
+    api: str
+    received_s: float
+    body_bytes: int = 0
+    model: str | None = None
+    images: int = 0
+    fault: str | None = None
+    status: int | None = None
+    """HTTP status sent; None while in flight or when the client went away first."""
+    input_tokens: int = 0
+    output_tokens: int = 0
+    finished_s: float | None = None
+    error: str | None = None
+
+
+class LocalServer:
+    """The embedded server; start with `await start()` or `async with`."""
+
+    def __init__(self, config: ServerConfig | None = None, *, policy: Policy | None = None):
+        self.config = config or ServerConfig()
+        rng = random.Random(self.config.seed)
+        self._rng = random.Random(rng.random())
+        self.faults = FaultPlan(self.config.faults, random.Random(rng.random()))
+        self.policy = policy or make_policy(self.config.policy, **self.config.policy_options)
+        self._model_policies = {
+            name: make_policy(spec.policy, **spec.options)
+            for name, spec in self.config.model_policies.items()
+        }
+        self.cache = PromptCache() if self.config.simulate_cache else None
+        period = self.config.rate_period_s
+        # burst = period: the bucket never binds before the window, so enforcement is exactly
+        # the sliding window.
+        self._requests = RateBudget(self.config.rpm, period, period) if self.config.rpm else None
+        self._tokens = RateBudget(self.config.tpm, period, period) if self.config.tpm else None
+        self.log: deque[RequestRecord] = deque(maxlen=self.config.log_size or None)
+        self.counts: Counter[str] = Counter()
+        self._next_id = 0
+        self._runner: web.AppRunner | None = None
+        self._log_file: IO[str] | None = None
+        self.host = "127.0.0.1"
+        self.port = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def app(self) -> web.Application:
+        app = web.Application(client_max_size=256 * 1024 * 1024)
+        for adapter in ADAPTERS.values():
+            app.router.add_post(adapter.route, self._handler(adapter))
+        app.router.add_get("/v1/models", self._models)
+        app.router.add_get("/health", self._health)
+        app.router.add_get("/stats", self._stats)
+        return app
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> LocalServer:
+        """Listen on host:port (port 0: a free port, see `.port`)."""
+        if self.config.log_path:
+            self._log_file = open(self.config.log_path, "a", encoding="utf-8")  # noqa: SIM115
+        # handler_cancellation: a client that gives up (timeout) cancels our sleeping handler
+        # instead of leaving it to finish for nobody.
+        self._runner = web.AppRunner(self.app(), handler_cancellation=True, access_log=None)
+        await self._runner.setup()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        site = web.SockSite(self._runner, sock, backlog=4096)
+        await site.start()
+        self.host, self.port = sock.getsockname()[:2]
+        return self
+
+    async def stop(self) -> None:
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+        if self._log_file is not None:
+            self._log_file.close()
+            self._log_file = None
+
+    async def __aenter__(self) -> LocalServer:
+        return await self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def base_url(self, api: str) -> str:
+        """The `base_url` a `ModelEndpoint` of this API uses to reach this server."""
+        return self.url if api == "anthropic" else f"{self.url}/v1"
+
+    def endpoint_config(self, name: str, api: str, **fields: Any) -> dict[str, Any]:
+        """A `models:` entry pointing at this server (extra fields are passed through)."""
+        return {"name": name, "api": api, "base_url": self.base_url(api), **fields}
+
+    @property
+    def open_connections(self) -> int:
+        """Client connections currently open to this server."""
+        if self._runner is None or self._runner.server is None:
+            return 0
+        return len(self._runner.server.connections)
+
+    # -- small routes ------------------------------------------------------------------------
+    async def _models(self, request: web.Request) -> web.Response:
+        names = ["vabench-local", *self.config.model_policies]
+        data = [{"id": n, "object": "model", "owned_by": "vabench"} for n in names]
+        return web.json_response({"object": "list", "data": data})
+
+    async def _health(self, request: web.Request) -> web.Response:
+        return web.json_response({"ok": True})
+
+    async def _stats(self, request: web.Request) -> web.Response:
+        return web.json_response(
+            {
+                "requests": self._next_id,
+                "counts": dict(self.counts),
+                "open_connections": self.open_connections,
+            }
+        )
+
+    # -- the API routes ----------------------------------------------------------------------
+    def _handler(self, adapter: ApiAdapter):
+        async def handle(request: web.Request) -> web.StreamResponse:
+            loop = asyncio.get_running_loop()
+            self._next_id += 1
+            record = RequestRecord(self._next_id, adapter.name, loop.time())
+            self.log.append(record)
+            try:
+                response = await self._respond(request, adapter, record)
+                record.status = response.status if record.fault != "drop" else None
+                return response
+            except asyncio.CancelledError:
+                record.error = "client went away"
+                raise
+            finally:
+                record.finished_s = loop.time()
+                self.counts[f"status:{record.status}"] += 1
+                if record.fault:
+                    self.counts[f"fault:{record.fault}"] += 1
+                if self._log_file is not None:
+                    self._log_file.write(json.dumps(dataclasses.asdict(record)) + "\n")
+
+        return handle
+
+    def _error(
+        self, adapter: ApiAdapter, status: int, message: str, headers: dict[str, str] | None = None
+    ) -> web.Response:
+        return error_response(status, adapter.error_body(status, message), headers)
+
+    async def _respond(
+        self, request: web.Request, adapter: ApiAdapter, record: RequestRecord
+    ) -> web.StreamResponse:
+        raw = await request.read()
+        record.body_bytes = len(raw)
+        key = self.config.api_key
+        if key is not None and adapter.server_key(request.headers) != key.get_secret_value():
+            record.error = "missing or wrong API key"
+            return self._error(adapter, 401, "invalid API key")
+        try:
+            incoming = adapter.parse_request(raw, request.headers)
+        except RequestShapeError as err:
+            record.error = str(err)
+            return self._error(adapter, 400, f"invalid request: {err}")
+        record.model = incoming.model
+        record.images = len(incoming.chat.images)
+
+        estimate = estimate_input_tokens(incoming.chat, adapter.image_tokens)
+        options = incoming.chat.options
+        max_output = options.resolved_max_output_tokens if options else 4096
+        admitted, refusal = self._admit(adapter, estimate + max_output)
+        if refusal is not None:
+            record.fault = "enforced_rate_limit"
+            return refusal
+
+        fault = self.faults.next()
+        record.fault = fault
+        if fault in IMMEDIATE_FAULTS:
+            status = status_of(fault)
+            headers = (
+                retry_after_headers(self.config.faults.retry_after_s) if status == 429 else None
+            )
+            return self._error(adapter, status, f"injected fault: {fault}", headers)
+        delay = (
+            self.config.faults.slow_s if fault == "slow" else self.config.latency.sample(self._rng)
+        )
+        await asyncio.sleep(delay)
+        if fault == "drop":
+            return drop_connection(request)
+        if fault == "server_error":
+            return self._error(adapter, 500, "injected fault: server_error")
+
+        try:
+            reply = await self._reply(incoming, adapter, max_output)
+        except PolicyError as err:
+            record.error = str(err)
+            return self._error(adapter, err.status, str(err))
+        record.input_tokens = reply.usage.prompt_tokens
+        record.output_tokens = reply.usage.output_tokens
+        if admitted is not None and self._tokens is not None:
+            self._tokens.settle(admitted, reply.usage.total_tokens)
+        body = adapter.build_response(reply)
+        if fault == "malformed":
+            return malformed_response(body)
+        if fault == "truncated":
+            return await truncated_response(request, body)
+        return web.json_response(body, headers=self._limit_headers(adapter))
+
+    async def _reply(
+        self, incoming: IncomingRequest, adapter: ApiAdapter, max_output: int
+    ) -> ServerReply:
+        policy = self._model_policies.get(incoming.model, self.policy)
+        answer = await policy.respond(incoming)
+        reply = answer if isinstance(answer, PolicyReply) else PolicyReply(answer)
+        usage, reasoning = simulate_usage(incoming, reply.text, adapter.image_tokens, self.cache)
+        text, finish = reply.text, reply.finish_reason
+        if usage.output_tokens > max_output:  # cut the reply where max tokens would have
+            reasoning_part = usage.output_tokens - text_tokens(text)
+            text = text[: int(max(0, max_output - reasoning_part) * CHARS_PER_TOKEN)]
+            usage = dataclasses.replace(usage, output_tokens=max_output)
+            finish = "length"
+        return ServerReply(
+            text=text,
+            finish_reason=finish,
+            usage=usage,
+            model=incoming.model,
+            reasoning=reply.reasoning or reasoning,
+        )
+
+    # -- rate limits -------------------------------------------------------------------------
+    def _admit(self, adapter: ApiAdapter, tokens: int) -> tuple[Any, web.Response | None]:
+        """Take one request and `tokens` from the windows, or a 429 saying how long to wait."""
+        if self._requests is None and self._tokens is None:
+            return None, None
+        now = asyncio.get_running_loop().time()
+        if self._tokens is not None and tokens > self._tokens.limit:
+            message = f"a request of {tokens} tokens exceeds the limit of the whole period"
+            return None, self._error(adapter, 429, message)
+        waits = {
+            name: budget.wait_time(amount, now)
+            for name, budget, amount in (
+                ("requests", self._requests, 1),
+                ("tokens", self._tokens, tokens),
+            )
+            if budget is not None
+        }
+        wait = max(waits.values())
+        if wait > 0:
+            headers = self._limit_headers(adapter, waits)
+            if self.config.retry_after_header:
+                headers.update(retry_after_headers(wait))
+            return None, self._error(adapter, 429, "rate limit exceeded", headers)
+        if self._requests is not None:
+            self._requests.take(1, now)
+        entry = self._tokens.take(tokens, now) if self._tokens is not None else None
+        return entry, None
+
+    def _limit_headers(
+        self, adapter: ApiAdapter, waits: dict[str, float] | None = None
+    ) -> dict[str, str]:
+        """The API's rate-limit headers; a limit with a pending wait reports 0 remaining and
+        that wait as its reset, so the client can tell which limit ran out."""
+        now = asyncio.get_running_loop().time()
+        states: dict[str, LimitState] = {}
+        for name, budget in (("requests", self._requests), ("tokens", self._tokens)):
+            if budget is None:
+                continue
+            left, reset = budget.remaining(now)
+            wait = (waits or {}).get(name, 0.0)
+            limit = int(budget.limit)
+            states[name] = (
+                LimitState(limit, 0, wait) if wait > 0 else LimitState(limit, int(left), reset)
+            )
+        return adapter.rate_limit_headers(states)
