@@ -1,0 +1,87 @@
+"""grasp_single_pen: pick up a marker pen lying on the table with the right arm.
+
+Scene (paper Table tab:seed-spec-grasp): one marker pen (pen_marker.xml: 14 mm thick, 140 mm
+long, purple barrel, red cap, black tip; a capsule collider) lying on the table, its centre at
+x in [0.18, 0.26], y in [-0.20, -0.10], resting height 7 mm (z = table + 0.007), yaw in
+[-30, 30] deg. Yaw is the heading of the pen's long axis measured from world +x: at yaw 0 the
+pen lies left-right in front of the robot (cap to the right), so a top-down grasp closes the
+fingers across it along world y.
+Success: the pen lifted more than 50 mm above its settled height and the right gripper closed
+(both now, not latched). Budget 50 steps.
+Checkpoints: reached (GC within 30 mm of the pen's centre), grasped (closed and touching),
+lifted (> 50 mm), completed (success).
+Expert: fingers straight down and closing across the pen, GC 12 mm above the pen's axis (the
+lowest the planner allows: the fingertips stay above the table), close, lift 100 mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from vabench.tasks import common
+from vabench.tasks import skills_pens_bottles as sk
+from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
+from vabench.tasks.expert import ExpertContext
+from vabench.tasks.objects import attach_object
+
+X_RANGE, Y_RANGE, YAW_DEG = (0.18, 0.26), (-0.20, -0.10), (-30.0, 30.0)
+GRASP_DZ = 0.011  # GC above the pen's axis (>= sk.TOPDOWN_MIN_GC_Z - pen centre height)
+
+
+def grasp_evaluation(
+    task: Task, ix: ObjectIndex, s: SlotState, latched: jax.Array, obj: str
+) -> Evaluation:
+    """The grasp predicate of tab:seed-spec-grasp: lifted > 50 mm and the right gripper closed."""
+    r = task.arm("right")
+    lifted = common.lifted(ix, s, obj)
+    closed = ~s.grip_open[r]
+    subgoals = jnp.array(
+        [
+            common.near(s, r, ix.pos(s.qpos, obj)),
+            common.holding(s, r, task.contact(s, obj, "right_gripper")),
+            lifted,
+        ]
+    )
+    return Evaluation(
+        checks={"lifted": lifted, "gripper_closed": closed},
+        latched=latched,
+        subgoals=subgoals,
+        success=lifted & closed,
+    )
+
+
+@dataclass(frozen=True)
+class GraspSinglePen(Task):
+    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
+        attach_object(spec, "pen_marker.xml", "pen")
+
+    def sample(self, seed: int) -> Sample:
+        rng = self.rng(seed)
+        x, y = rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE)
+        yaw = np.radians(rng.uniform(*YAW_DEG))
+        return Sample({"pen": sk.lying_pen_pose(x, y, yaw)})
+
+    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
+        return grasp_evaluation(self, ix, s, latched, "pen")
+
+    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
+        across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2
+        yield from sk.topdown_grasp_at(
+            ctx, "right", lambda v: v.pos("pen") + [0.0, 0.0, GRASP_DZ], across
+        )
+        yield from common.lift(ctx, "right", 0.10)
+
+
+TASK = GraspSinglePen(
+    name="grasp_single_pen",
+    instruction="Pick up the pen lying on the table and lift it off the table.",
+    arms=("right",),
+    step_budget=50,
+    checkpoints=common.GRASP_CHECKPOINTS,
+    contact_pairs=(("pen", "right_gripper"),),
+)
