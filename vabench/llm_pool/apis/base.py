@@ -72,10 +72,25 @@ class LimitState:
     reset_s: float
 
 
+_TYPE_LABELS = frozenset({"str", "int", "float", "bool", "list", "dict", "none"})
+
+
 def _loc(loc: Sequence[Any]) -> str:
-    # Discriminated unions add the tag to the location ("content.1.image_url.url"); keep it,
-    # it tells which kind of part was wrong.
-    return ".".join(str(p) for p in loc)
+    """A field path without the labels pydantic adds for union branches (`str`, `list[...]`,
+    `_UserMessage`); discriminator tags ("image_url") stay, they say which kind of part."""
+    return ".".join(
+        str(p)
+        for p in loc
+        if not (
+            isinstance(p, str)
+            and ("[" in p or p.startswith("_") or p[:1].isupper() or p in _TYPE_LABELS)
+        )
+    )
+
+
+def _most_specific(err: ValidationError) -> Any:
+    """Of a union's failed branches, the error that got deepest into the value."""
+    return max(err.errors(include_url=False), key=lambda e: len(e["loc"]))
 
 
 def validate_request_json(model: type[M], raw: bytes | str) -> M:
@@ -83,7 +98,7 @@ def validate_request_json(model: type[M], raw: bytes | str) -> M:
     try:
         return model.model_validate_json(raw)
     except ValidationError as err:
-        e = err.errors(include_url=False)[0]
+        e = _most_specific(err)
         if e["type"] == "json_invalid":
             raise RequestShapeError("", f"body is not valid JSON: {e['msg']}") from None
         raise RequestShapeError(_loc(e["loc"]), e["msg"]) from None
@@ -97,7 +112,7 @@ def validate_response_json(model: type[M], raw: bytes, api: str) -> M:
     try:
         return model.model_validate_json(raw)
     except ValidationError as err:
-        e = err.errors(include_url=False)[0]
+        e = _most_specific(err)
         if e["type"] == "json_invalid":
             raise ResponseFormatError(f"{api} response: invalid JSON: {e['msg']}") from None
         raise ResponseFormatError(f"{api} response: field '{_loc(e['loc'])}': {e['msg']}") from None

@@ -1,0 +1,27 @@
+"""Helpers for tests and benchmarks of the pool: images that look like JPEGs to every header
+reader (start-of-image and start-of-frame markers with the given size) without being decoded,
+so their size and byte count can be chosen freely and generated in microseconds."""
+
+from __future__ import annotations
+
+import random
+
+from vabench.llm_pool.messages import Image
+
+
+def synthetic_jpeg(width: int = 1280, height: int = 960, size: int = 4096, seed: int = 0) -> bytes:
+    """`size` bytes starting with a JPEG header that declares width x height."""
+    app0 = b"\xff\xe0\x00\x10JFIF\x00\x01\x01\x00\x00\x01\x00\x01\x00\x00"
+    sof0 = (
+        b"\xff\xc0\x00\x11\x08"
+        + height.to_bytes(2, "big")
+        + width.to_bytes(2, "big")
+        + b"\x03\x01\x22\x00\x02\x11\x01\x03\x11\x01"
+    )
+    head = b"\xff\xd8" + app0 + sof0
+    filler = random.Random(seed).randbytes(max(0, size - len(head) - 2))
+    return head + filler + b"\xff\xd9"
+
+
+def synthetic_image(width: int = 1280, height: int = 960, size: int = 4096, seed: int = 0) -> Image:
+    return Image(synthetic_jpeg(width, height, size, seed))
