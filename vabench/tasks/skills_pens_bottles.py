@@ -86,18 +86,15 @@ def side_grasp(
     ctx: ExpertContext,
     arm: str,
     point: Callable[[View], np.ndarray],
-    standoff: float = 0.075,
+    standoff: float = 0.02,
 ) -> Iterator[Action]:
-    """Horizontal approach along +y with the fingers closing along world x: turn, back off to
-    `standoff` in front of the point, line up in height and x, slide in, close."""
+    """Horizontal approach along +y with the fingers closing along world x: turn, line up in x
+    above the object (the open fingers then straddle it, the palm stays behind it), come to
+    `standoff` in front of the point, descend to its height, slide in, close. Descending close
+    to the object keeps the arm out of the poses near its base that it cannot reach."""
     turn = [horizontal(np.pi / 2), horizontal(np.pi / 2) @ np.diag([1.0, -1.0, -1.0])]
     yield from ctx.rotate_to(arm, nearest(ctx.view.arms[arm].rot, turn))
-
-    def front(v: View) -> np.ndarray:
-        p = point(v)
-        return np.array([p[0], min(v.arms[arm].gc[1], p[1] - standoff), p[2]])
-
-    yield from ctx.move_to(arm, front, order="yzx")
-    yield from ctx.move_to(arm, point, order="y")
-    yield from ctx.move_to(arm, point, order="xzy")
+    yield from ctx.move_to(arm, lambda v: np.r_[point(v)[0], v.arms[arm].gc[1:]], order="x")
+    yield from ctx.move_to(arm, lambda v: point(v) - [0.0, standoff, 0.0], order="yz")
+    yield from ctx.move_to(arm, point, order="yxz")
     yield from ctx.grip(arm, close=True)
