@@ -29,7 +29,7 @@ BASE_FAMILIES = (
     "lift_pot",
 )
 
-_NOT_TASKS = {"base", "common", "expert", "objects", "runner"}
+_NOT_TASKS = {"base", "common", "expert", "objects", "runner", "__main__"}
 
 
 def _discover() -> dict[str, Task]:

@@ -64,10 +64,11 @@ def carry_and_release(
     target_xy: np.ndarray,
     rest_z: float,
     clearance: float = 0.06,
-    drop: float = 0.004,
+    drop: float = 0.0,
 ) -> Iterator[Action]:
     """Carry the held object over target_xy at `clearance` above its resting height, lower it
-    until its origin is `drop` above `rest_z`, open, and back off upwards."""
+    until its origin is `drop` above `rest_z` (0: resting on the target while still held, so
+    nothing falls or bounces when the fingers open), open, and back off upwards."""
 
     def offset() -> np.ndarray:
         return ctx.view.arms[arm].gc - ctx.view.pos(obj)  # the grasp, as it is now
