@@ -314,8 +314,11 @@ class BatchBase:
         """(N,) model variant of every slot."""
         raise NotImplementedError
 
-    def contact_flags(self, side_a: np.ndarray, side_b: np.ndarray) -> np.ndarray:
-        """(N, P) bool: whether watched pair p touches in each slot (see `pair_contacts`)."""
+    def contact_flags(
+        self, side_a: np.ndarray, side_b: np.ndarray, slots: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(N, P) bool: whether watched pair p touches in each slot (see `pair_contacts`).
+        `slots` (bool mask) lets a backend skip slots whose rows the caller ignores."""
         raise NotImplementedError
 
     def _check_variants(self, slots: Sequence[int], variants: Sequence[int] | None) -> np.ndarray:
@@ -533,7 +536,9 @@ class SimBatch(BatchBase):
     def variant(self) -> np.ndarray:
         return np.asarray(self.state.variant)
 
-    def contact_flags(self, side_a: np.ndarray, side_b: np.ndarray) -> np.ndarray:
+    def contact_flags(
+        self, side_a: np.ndarray, side_b: np.ndarray, slots: np.ndarray | None = None
+    ) -> np.ndarray:
         contact = self.state.data._impl.contact
         return np.asarray(
             self._contacts(contact.geom, contact.dist, jnp.asarray(side_a), jnp.asarray(side_b))

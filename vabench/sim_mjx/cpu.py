@@ -141,10 +141,13 @@ class CpuBatch(BatchBase):
     def variant(self) -> np.ndarray:
         return self._variant.copy()
 
-    def contact_flags(self, side_a: np.ndarray, side_b: np.ndarray) -> np.ndarray:
-        """Contacts at each slot's current state (collision detection by mj_forward)."""
+    def contact_flags(
+        self, side_a: np.ndarray, side_b: np.ndarray, slots: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Contacts at each slot's current state (collision detection by mj_forward); only for
+        `slots` (bool mask) when given, the other rows stay False."""
         out = np.zeros((self.n_slots, len(side_a)), bool)
-        for slot in range(self.n_slots):
+        for slot in range(self.n_slots) if slots is None else np.flatnonzero(slots):
             m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
             mujoco.mj_setState(m, d, self._state[slot], _STATE)
             mujoco.mj_forward(m, d)

@@ -167,7 +167,7 @@ class TaskBatch:
         acted = np.array([r is not None for r in results])
         if not acted.any():
             return [None] * self.n_slots
-        ev, progress = self.evaluate()
+        ev, progress = self.evaluate(acted)
         self.latched[acted] = ev.latched[acted]
         self.progress[acted] = progress[acted]
         self.success[acted] = ev.success[acted]
@@ -182,23 +182,25 @@ class TaskBatch:
             out.append(StepOutcome(res, bool(ev.success[slot]), int(self.progress[slot]), checks))
         return out
 
-    def slot_states(self) -> SlotState:
+    def slot_states(self, slots: np.ndarray | None = None) -> SlotState:
+        """Predicate inputs of every slot; contacts only for `slots` (bool mask) when given."""
         p = self.batch.proprio()
         return SlotState(
             qpos=jnp.asarray(self.batch.qpos()),
             init_qpos=jnp.asarray(self.init_qpos),
             grip_open=jnp.asarray(self.batch.grip_open()),
-            contacts=jnp.asarray(self.batch.contact_flags(self.side_a, self.side_b)),
+            contacts=jnp.asarray(self.batch.contact_flags(self.side_a, self.side_b, slots)),
             gc=jnp.asarray(p.gc),
             rot=jnp.asarray(p.rot),
             fingers=jnp.asarray(p.fingers),
         )
 
-    def evaluate(self) -> tuple[Evaluation, np.ndarray]:
+    def evaluate(self, slots: np.ndarray | None = None) -> tuple[Evaluation, np.ndarray]:
         """The predicate of every slot at its current state (host arrays), with the latches
-        and progress it would produce; does not commit them."""
+        and progress it would produce; does not commit them. With `slots` (bool mask) only
+        those rows are meaningful."""
         ev, progress = self._eval(
-            self.slot_states(), jnp.asarray(self.latched), jnp.asarray(self.progress)
+            self.slot_states(slots), jnp.asarray(self.latched), jnp.asarray(self.progress)
         )
         return jax.device_get(ev), np.asarray(progress)
 
