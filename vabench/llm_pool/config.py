@@ -43,21 +43,21 @@ class _Strict(BaseModel):
 class Limits(_Strict):
     """How hard vabench may drive one endpoint; shared by every episode using it."""
 
-    max_concurrency: int = Field(64, ge=1)
+    max_concurrency: int = Field(default=64, ge=1)
     """Most requests in flight at once (also the size of the connection pool)."""
-    rpm: float | None = Field(None, gt=0)
+    rpm: float | None = Field(default=None, gt=0)
     """Requests per `period_s` (a minute by default); unset means unlimited."""
-    tpm: float | None = Field(None, gt=0)
+    tpm: float | None = Field(default=None, gt=0)
     """Tokens per `period_s`, counted as estimated input + max output tokens at admission and
     corrected to the reported usage afterwards (the way OpenAI and Anthropic count)."""
     adaptive: bool = False
     """Shrink the concurrency on 429/529 responses and grow it back on successes."""
-    min_concurrency: int = Field(1, ge=1)
+    min_concurrency: int = Field(default=1, ge=1)
     """Floor for adaptive concurrency."""
-    burst_s: float = Field(1.0, gt=0)
+    burst_s: float = Field(default=1.0, gt=0)
     """The rate limiters admit at most this many seconds' worth of rate at once, so traffic
     stays smooth for endpoints that enforce per-second slices of a per-minute limit."""
-    period_s: float = Field(60.0, gt=0)
+    period_s: float = Field(default=60.0, gt=0)
     """Length of the rate window. Providers use a minute; tests and the simulated server use
     shorter windows to exercise the same code quickly."""
 
@@ -71,10 +71,10 @@ class Limits(_Strict):
 class Prices(_Strict):
     """US dollars per million tokens. Unset cached/cache-write prices fall back to `input`."""
 
-    input: float = Field(0.0, ge=0)
-    cached_input: float | None = Field(None, ge=0)
-    cache_write: float | None = Field(None, ge=0)
-    output: float = Field(0.0, ge=0)
+    input: float = Field(default=0.0, ge=0)
+    cached_input: float | None = Field(default=None, ge=0)
+    cache_write: float | None = Field(default=None, ge=0)
+    output: float = Field(default=0.0, ge=0)
     """Output price; reasoning tokens are billed as output by every provider."""
 
 
@@ -82,11 +82,11 @@ class GenerationOptions(_Strict):
     """Generation settings. Every field is optional: unset means "inherit" (a request's options
     override its endpoint's, which override the defaults of `resolved`)."""
 
-    max_output_tokens: int | None = Field(None, ge=1)
-    temperature: float | None = Field(None, ge=0, le=2)
+    max_output_tokens: int | None = Field(default=None, ge=1)
+    temperature: float | None = Field(default=None, ge=0, le=2)
     reasoning_effort: ReasoningEffort | None = None
     """OpenAI reasoning models only (Chat Completions and Responses)."""
-    thinking_budget: int | None = Field(None, ge=1024)
+    thinking_budget: int | None = Field(default=None, ge=1024)
     """Anthropic extended thinking; must be below max_output_tokens."""
     cache_prompt: bool | None = None
     """Anthropic: put cache_control markers on the stable prefix (default on). OpenAI caches
@@ -132,15 +132,15 @@ def check_options_for_api(api: ApiName, options: GenerationOptions) -> None:
 class RetryPolicy(_Strict):
     """When and how long to retry one call."""
 
-    max_attempts: int = Field(6, ge=1)
+    max_attempts: int = Field(default=6, ge=1)
     """Attempts per call, the first included (the reference harness used 6)."""
-    total_timeout_s: float = Field(900.0, gt=0)
+    total_timeout_s: float = Field(default=900.0, gt=0)
     """Ceiling on one call from its first admission to its outcome, retries included."""
-    request_timeout_s: float = Field(180.0, gt=0)
+    request_timeout_s: float = Field(default=180.0, gt=0)
     """Ceiling on one attempt (connect, send, wait, read)."""
-    backoff_base_s: float = Field(1.0, gt=0)
+    backoff_base_s: float = Field(default=1.0, gt=0)
     """First backoff when the server gives no hint; doubles per attempt, with jitter."""
-    backoff_max_s: float = Field(60.0, gt=0)
+    backoff_max_s: float = Field(default=60.0, gt=0)
 
 
 class ModelEndpoint(_Strict):

@@ -45,9 +45,9 @@ class FaultConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     rates: dict[FaultKind, float] = Field(default_factory=dict)
     """Probability of each fault per request; they must add up to at most 1."""
-    retry_after_s: float = Field(1.0, ge=0)
+    retry_after_s: float = Field(default=1.0, ge=0)
     """The wait announced with injected 429s."""
-    slow_s: float = Field(30.0, ge=0)
+    slow_s: float = Field(default=30.0, ge=0)
     """How long a "slow" reply takes."""
 
     @model_validator(mode="after")

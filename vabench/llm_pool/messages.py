@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -126,6 +127,8 @@ class ChatRequest:
     turns: tuple[Turn, ...]
     system: str | None = None
     options: GenerationOptions | None = None
+    """Overrides of the endpoint's generation options (a plain mapping is validated into
+    `GenerationOptions`)."""
 
     def __post_init__(self) -> None:
         turns = tuple(self.turns)
@@ -134,6 +137,8 @@ class ChatRequest:
         if turns[-1].role != "user":
             raise ValueError("the last turn of a ChatRequest must be a user turn")
         object.__setattr__(self, "turns", turns)
+        if isinstance(self.options, Mapping):  # a plain mapping is validated here, once
+            object.__setattr__(self, "options", GenerationOptions.model_validate(self.options))
 
     @property
     def images(self) -> list[Image]:

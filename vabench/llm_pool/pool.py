@@ -35,6 +35,7 @@ from vabench.llm_pool.apis import get_adapter
 from vabench.llm_pool.apis.base import error_message
 from vabench.llm_pool.config import (
     ConfigError,
+    GenerationOptions,
     ModelEndpoint,
     check_options_for_api,
     load_endpoints,
@@ -192,7 +193,7 @@ class EndpointClient:
             setattr(self._counters, outcome, getattr(self._counters, outcome) + 1)
 
     async def _call(
-        self, request: ChatRequest, options: Any, estimate: int, started: float
+        self, request: ChatRequest, options: GenerationOptions, estimate: int, started: float
     ) -> CompletionResult:
         loop = asyncio.get_running_loop()
         retry = self.config.retry

@@ -96,10 +96,10 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
         if value is not None:
             data[key] = value
     if args.api_key_env:
-        key = os.environ.get(args.api_key_env)
-        if not key:
+        api_key = os.environ.get(args.api_key_env)
+        if not api_key:
             raise SystemExit(f"--api-key-env: environment variable {args.api_key_env} is not set")
-        data["api_key"] = key
+        data["api_key"] = api_key
     return ServerConfig.model_validate(data)
 
 

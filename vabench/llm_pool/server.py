@@ -67,9 +67,9 @@ class ServerConfig(BaseModel):
     """Policy per requested model name; other names get `policy`."""
     latency: LatencyModel = Field(default_factory=LatencyModel)
     faults: FaultConfig = Field(default_factory=FaultConfig)
-    rpm: float | None = Field(None, gt=0)
-    tpm: float | None = Field(None, gt=0)
-    rate_period_s: float = Field(60.0, gt=0)
+    rpm: float | None = Field(default=None, gt=0)
+    tpm: float | None = Field(default=None, gt=0)
+    rate_period_s: float = Field(default=60.0, gt=0)
     retry_after_header: bool = True
     """Send Retry-After with enforced 429s; False leaves only the API's reset headers."""
     api_key: SecretStr | None = None
@@ -77,7 +77,7 @@ class ServerConfig(BaseModel):
     simulate_cache: bool = True
     log_path: str | None = None
     """Append one JSON line per request here."""
-    log_size: int = Field(10_000, ge=0)
+    log_size: int = Field(default=10_000, ge=0)
     """Requests kept in memory (`LocalServer.log`)."""
     seed: int | None = None
 

@@ -35,9 +35,9 @@ class LatencyModel(BaseModel):
     """Seconds from a request's arrival to its reply (before any injected fault)."""
 
     model_config = ConfigDict(extra="forbid")
-    mean_s: float = Field(0.0, ge=0)
+    mean_s: float = Field(default=0.0, ge=0)
     dist: Literal["fixed", "uniform", "exponential", "lognormal"] = "fixed"
-    spread: float = Field(0.0, ge=0)
+    spread: float = Field(default=0.0, ge=0)
     """uniform: +- spread * mean; lognormal: sigma of the log; ignored otherwise."""
 
     def sample(self, rng: random.Random) -> float:

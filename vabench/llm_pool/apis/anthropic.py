@@ -100,7 +100,7 @@ class MessagesRequest(_Strict):
     max_tokens: int = Field(ge=1)
     messages: list[_Message] = Field(min_length=1)
     system: str | list[_TextBlock] | None = None
-    temperature: float | None = Field(None, ge=0, le=1)
+    temperature: float | None = Field(default=None, ge=0, le=1)
     thinking: _Thinking | None = None
     stream: Literal[False] = False
     metadata: dict[str, Any] | None = None
@@ -169,7 +169,9 @@ def _block(part: Part) -> dict[str, Any]:
 class Anthropic(ApiAdapter):
     name = "anthropic"
     route = "/v1/messages"
-    image_tokens = staticmethod(anthropic_image_tokens)
+
+    def image_tokens(self, width: int, height: int) -> int:
+        return anthropic_image_tokens(width, height)
 
     def url(self, base_url: str) -> str:
         return f"{base_url}/messages" if base_url.endswith("/v1") else f"{base_url}/v1/messages"

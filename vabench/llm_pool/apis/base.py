@@ -22,7 +22,6 @@ from pydantic import BaseModel, ValidationError
 from vabench.llm_pool.config import ApiName, GenerationOptions, ModelEndpoint
 from vabench.llm_pool.errors import ResponseFormatError
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Image, ParsedResponse, Usage
-from vabench.llm_pool.tokens import ImageTokenRule
 
 M = TypeVar("M", bound=BaseModel)
 DATA_URL_MEDIA_TYPES = ("image/jpeg", "image/png", "image/gif", "image/webp")
@@ -177,7 +176,10 @@ class ApiAdapter(ABC):
     name: ClassVar[ApiName]
     route: ClassVar[str]
     """The path the embedded server serves, e.g. `/v1/chat/completions`."""
-    image_tokens: ClassVar[ImageTokenRule]
+
+    @abstractmethod
+    def image_tokens(self, width: int, height: int) -> int:
+        """Estimated tokens of one image of this size under this API's rule."""
 
     # -- client half -------------------------------------------------------------------------
     @abstractmethod

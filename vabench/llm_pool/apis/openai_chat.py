@@ -73,9 +73,9 @@ class _Message(_Strict):
 class ChatCompletionsRequest(_Strict):
     model: str = Field(min_length=1)
     messages: list[_Message] = Field(min_length=1)
-    max_completion_tokens: int | None = Field(None, ge=1)
-    max_tokens: int | None = Field(None, ge=1)
-    temperature: float | None = Field(None, ge=0, le=2)
+    max_completion_tokens: int | None = Field(default=None, ge=1)
+    max_tokens: int | None = Field(default=None, ge=1)
+    temperature: float | None = Field(default=None, ge=0, le=2)
     reasoning_effort: ReasoningEffort | None = None
     stream: Literal[False] = False
     n: Literal[1] = 1
@@ -155,7 +155,9 @@ def _text_of(content: str | list[_ContentPart], field: str) -> str:
 class OpenAIChat(ApiAdapter):
     name = "openai_chat"
     route = "/v1/chat/completions"
-    image_tokens = staticmethod(openai_image_tokens)
+
+    def image_tokens(self, width: int, height: int) -> int:
+        return openai_image_tokens(width, height)
 
     def url(self, base_url: str) -> str:
         return f"{base_url}/chat/completions"

@@ -89,8 +89,8 @@ class ResponsesRequest(_Strict):
     model: str = Field(min_length=1)
     input: str | list[_UserMessage | _AssistantMessage]
     instructions: str | None = None
-    max_output_tokens: int | None = Field(None, ge=1)
-    temperature: float | None = Field(None, ge=0, le=2)
+    max_output_tokens: int | None = Field(default=None, ge=1)
+    temperature: float | None = Field(default=None, ge=0, le=2)
     reasoning: _Reasoning | None = None
     store: bool = True
     stream: Literal[False] = False
@@ -180,7 +180,9 @@ def _finish_of(body: ResponsesResponse, refused: bool) -> tuple[FinishReason, st
 class OpenAIResponses(ApiAdapter):
     name = "openai_responses"
     route = "/v1/responses"
-    image_tokens = staticmethod(openai_image_tokens)
+
+    def image_tokens(self, width: int, height: int) -> int:
+        return openai_image_tokens(width, height)
 
     def url(self, base_url: str) -> str:
         return f"{base_url}/responses"
