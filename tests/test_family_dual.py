@@ -1,0 +1,102 @@
+"""The dual-arm families: place_shoe, handover_horizontal_block, lift_pot.
+
+Ranges are transcribed from the paper's Table tab:seed-spec-dual (and FACTS.md) independently of
+the modules' constants; predicates are checked on constructed states just inside and just
+outside each threshold; one short expert run per family goes through the C MuJoCo batch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.task_states import StateBuilder
+from vabench.sim_mjx import robot_constants as rc
+from vabench.tasks import get_task
+from vabench.tasks.base import quat_to_mat, yaw_quat
+from vabench.tasks.runner import TaskBatch, run_experts
+
+SEEDS = range(1000, 1200)
+TABLE_Z = 0.741
+
+
+def _yaw(quat: np.ndarray) -> float:
+    r = np.asarray(quat_to_mat(np.asarray(quat)))
+    return float(np.degrees(np.arctan2(r[1, 0], r[0, 0])))
+
+
+def _run_expert(name: str, seeds: list[int]):
+    task = get_task(name)
+    tb = TaskBatch(task, len(seeds), backend="c")
+    episodes = run_experts(tb, seeds)
+    for ep in episodes:
+        assert ep.success, (ep.seed, ep.end)
+        progress = [a["progress"] for a in ep.actions]
+        assert progress == sorted(progress), progress
+        assert progress[-1] == len(task.checkpoints)
+        assert ep.steps <= task.step_budget
+    return tb, episodes
+
+
+# -- place_shoe -------------------------------------------------------------------------------
+SHOE = "place_shoe"
+
+
+def test_shoe_ranges():
+    task = get_task(SHOE)
+    variants = set()
+    for seed in SEEDS:
+        s = task.sample(seed)
+        (x, y, z), quat = s.poses["shoe"]
+        assert -0.25 <= x <= 0.25 and -0.10 <= y <= 0.05
+        assert np.hypot(x, y) >= 0.15
+        assert z == pytest.approx(TABLE_Z)
+        assert _yaw(quat) == pytest.approx(90.0)  # toe towards +y: a 90 deg reorientation
+        assert 0 <= s.variant < 10
+        assert s.params["arm"] == ("right" if x > 0 else "left")
+        variants.add(s.variant)
+    assert variants == set(range(10))
+    a, b = task.sample(1234), task.sample(1234)
+    assert np.array_equal(a.poses["shoe"][0], b.poses["shoe"][0]) and a.variant == b.variant
+
+
+def _shoe_placed(seed: int = 1000) -> StateBuilder:
+    sb = StateBuilder(get_task(SHOE), seed)
+    sb.set_pos("shoe", [0.0, -0.08, TABLE_Z]).set_quat("shoe", [0.0, 0.0, 0.0, 1.0])
+    return sb
+
+
+def test_shoe_predicate_thresholds():
+    assert _shoe_placed().evaluate().success
+    for dx, ok in ((0.049, True), (-0.049, True), (0.051, False), (-0.051, False)):
+        assert bool(_shoe_placed().move("shoe", [dx, 0, 0]).evaluate().success) is ok, dx
+    for dy, ok in ((0.019, True), (-0.019, True), (0.021, False), (-0.021, False)):
+        assert bool(_shoe_placed().move("shoe", [0, dy, 0]).evaluate().success) is ok, dy
+    # quaternion: yaw error e changes the z and w components by about e / 2
+    for deg, ok in ((7.5, True), (-7.5, True), (8.5, False), (-8.5, False)):
+        quat = yaw_quat(np.pi + np.radians(deg))
+        assert bool(_shoe_placed().set_quat("shoe", quat).evaluate().success) is ok, deg
+    # q and -q are the same orientation
+    assert _shoe_placed().set_quat("shoe", [0.0, 0.0, 0.0, -1.0]).evaluate().success
+    # a tilt shows in the x/y components
+    tilt = np.radians(9.0)
+    tilted = np.array([0.0, np.sin(tilt / 2), 0.0, np.cos(tilt / 2)])
+    assert not _shoe_placed().set_quat("shoe", tilted).evaluate().success
+    # toe towards +x (the wrong way round) fails
+    assert not _shoe_placed().set_quat("shoe", [1.0, 0.0, 0.0, 0.0]).evaluate().success
+    # both grippers must be open
+    for arm in ("left", "right"):
+        ev = _shoe_placed().grip(arm, False).evaluate()
+        assert not ev.success and not ev.checks["grippers_open"]
+
+
+def test_shoe_expert_uses_the_arm_on_the_shoes_side():
+    task = get_task(SHOE)
+    left = next(s for s in range(1000, 1100) if task.sample(s).params["arm"] == "left")
+    right = next(s for s in range(1000, 1100) if task.sample(s).params["arm"] == "right")
+    _, episodes = _run_expert(SHOE, [left, right])
+    for ep, arm in zip(episodes, ("left", "right"), strict=True):
+        used = {a["action"].get("arm") for a in ep.actions} - {None}
+        assert used == {arm}, (ep.seed, used)
+        apertures = {a["action"]["action"] for a in ep.actions if "arm" not in a["action"]}
+        assert apertures <= {f"{arm}_gripper.open", f"{arm}_gripper.close"}
