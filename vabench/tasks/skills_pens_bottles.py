@@ -44,6 +44,38 @@ def lying_pen_pose(x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarr
     return np.array([x, y, rc.TABLE_Z + PEN_RADIUS]), yaw_quat(yaw)
 
 
+def leaning_pen_poses(
+    x: float, y: float, yaw: float, lean: float, gap: float = -0.0002
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """A pen leaning on the 8 cm block: its lower end (the centre of the capsule's lower end
+    cap, 7 mm above its contact with the table) at (x, y); the pen rises at `lean` above the
+    horizontal, heading along (-sin yaw, cos yaw) (yaw 0 = away from the robot, +y); its upper
+    end touches the block's near face (or, for steep leans, its barrel the block's top edge),
+    `gap` short of contact; the block is turned by `yaw`. The default gap is a 0.2 mm overlap:
+    a pen dropped from a gap onto its two contacts bounces off them and falls flat (a light
+    capsule on two point contacts is neutrally stable about the line joining them)."""
+    u = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    axis = np.cos(lean) * u + [0.0, 0.0, np.sin(lean)]
+    lower = np.array([x, y, rc.TABLE_Z + PEN_RADIUS])
+    pen_quat = quat_mul(yaw_quat(yaw + np.pi / 2), axis_angle_quat([0, 1, 0], -lean))
+    h = 2 * BLOCK_HALF - PEN_RADIUS  # the block's top edge above the lower end's centre
+    if 2 * PEN_HALF_SEG * np.sin(lean) < h:  # the upper end touches the near face
+        reach = 2 * PEN_HALF_SEG * np.cos(lean) + PEN_RADIUS + gap + BLOCK_HALF
+    else:  # the barrel rests on the near top edge
+        reach = (h * np.cos(lean) + PEN_RADIUS) / np.sin(lean) + gap + BLOCK_HALF
+    block = np.r_[lower[:2] + reach * u[:2], rc.TABLE_Z + BLOCK_HALF]
+    return {
+        "pen": (lower + PEN_HALF_SEG * axis, pen_quat),
+        "block": (block, yaw_quat(yaw)),
+    }
+
+
+def pen_lower_end(pos: np.ndarray, mat: np.ndarray) -> np.ndarray:
+    """The centre of the pen's lower end cap (the end of its long axis nearer the table)."""
+    ends = [pos + PEN_HALF_SEG * mat[:, 0], pos - PEN_HALF_SEG * mat[:, 0]]
+    return min(ends, key=lambda p: p[2])
+
+
 def lying_bottle_pose(x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
     """A bottle on its side, resting on a flat face of its prism; yaw 0 = axis along world +x
     (cap to the right)."""
