@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from tests.task_states import StateBuilder
-from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import get_task
 from vabench.tasks.base import quat_to_mat, yaw_quat
 from vabench.tasks.runner import TaskBatch, run_experts
@@ -100,3 +99,71 @@ def test_shoe_expert_uses_the_arm_on_the_shoes_side():
         assert used == {arm}, (ep.seed, used)
         apertures = {a["action"]["action"] for a in ep.actions if "arm" not in a["action"]}
         assert apertures <= {f"{arm}_gripper.open", f"{arm}_gripper.close"}
+
+
+# -- lift_pot ---------------------------------------------------------------------------------
+POT = "lift_pot"
+HANDLE_POINT = {"left": np.array([-0.1125, 0.0, 0.085]), "right": np.array([0.1125, 0.0, 0.085])}
+
+
+def test_pot_ranges():
+    task = get_task(POT)
+    variants = set()
+    for seed in SEEDS:
+        s = task.sample(seed)
+        (x, y, z), quat = s.poses["pot"]
+        assert -0.05 <= x <= 0.05 and -0.05 <= y <= 0.05
+        assert z == pytest.approx(TABLE_Z)
+        r = np.asarray(quat_to_mat(np.asarray(quat)))
+        assert r[2, 2] == pytest.approx(1.0)
+        assert -22.5 <= _yaw(quat) <= 22.5
+        variants.add(s.variant)
+    assert variants == {0, 1}
+
+
+def test_pot_handles_are_where_the_predicate_reads_them():
+    """Both model ids put the handle centres at the grasp points the predicate uses."""
+    task = get_task(POT)
+    for variant in range(len(task.variants)):
+        model = task.build_model(variant)
+        for name, side in (("handle_neg_x", "left"), ("handle_pos_x", "right")):
+            geom = model.geom(f"pot_{name}")
+            np.testing.assert_allclose(geom.pos, HANDLE_POINT[side], atol=1e-9)
+
+
+def _pot_lifted(z: float = 0.83, tilt_deg: float = 0.0, seed: int = 1000) -> StateBuilder:
+    """The pot at height z (origin), tilted about its handle axis (x), GCs on the handles."""
+    sb = StateBuilder(get_task(POT), seed)
+    t = np.radians(tilt_deg)
+    quat = np.array([np.cos(t / 2), np.sin(t / 2), 0.0, 0.0])
+    pos = np.array([0.01, -0.02, z])
+    sb.set_pos("pot", pos).set_quat("pot", quat)
+    r = np.asarray(quat_to_mat(quat))
+    for i, arm in enumerate(("left", "right")):
+        sb.gc[i] = pos + r @ HANDLE_POINT[arm]
+        sb.grip(arm, False)
+    return sb
+
+
+def test_pot_predicate_thresholds():
+    assert _pot_lifted().evaluate().success
+    assert _pot_lifted(z=0.8205).evaluate().success
+    assert not _pot_lifted(z=0.8195).evaluate().success
+    # upright: z axis . world z > 0.8 (36.87 deg of tilt)
+    assert _pot_lifted(tilt_deg=36.0).evaluate().success
+    assert not _pot_lifted(tilt_deg=37.5).evaluate().success
+    # each GC within 30 mm of its own handle
+    for i in range(2):
+        for d, ok in ((0.029, True), (0.031, False)):
+            sb = _pot_lifted()
+            sb.gc[i] = sb.gc[i] + np.array([0.0, d, 0.0])
+            assert bool(sb.evaluate().success) is ok, (i, d)
+    # arms swapped: the left arm at the +x handle does not count
+    sb = _pot_lifted()
+    sb.gc[[0, 1]] = sb.gc[[1, 0]]
+    ev = sb.evaluate()
+    assert not ev.success and not ev.checks["left_at_handle"] and not ev.checks["right_at_handle"]
+
+
+def test_pot_expert():
+    _run_expert(POT, [1000, 1001])
