@@ -167,3 +167,136 @@ def test_pot_predicate_thresholds():
 
 def test_pot_expert():
     _run_expert(POT, [1000, 1001])
+
+
+# -- handover_horizontal_block ----------------------------------------------------------------
+HANDOVER = "handover_horizontal_block"
+UPRIGHT = np.array([1.0, 0.0, 0.0, 0.0])  # block long axis (body z) vertical
+
+
+def test_handover_ranges():
+    task = get_task(HANDOVER)
+    sides = set()
+    for seed in SEEDS:
+        s = task.sample(seed)
+        (x, y, z), quat = s.poses["block"]
+        assert 0.15 <= abs(x) <= 0.20 and -0.05 <= y <= 0.0
+        assert z == pytest.approx(TABLE_Z + 0.015)
+        axis = np.asarray(quat_to_mat(np.asarray(quat)))[:, 2]
+        assert abs(axis[2]) < 1e-6 and abs(axis[1]) == pytest.approx(1.0, abs=1e-6)  # along y
+        giver = "right" if x > 0 else "left"
+        assert s.params == {"giver": giver, "receiver": "left" if x > 0 else "right"}
+        sides.add(giver)
+    assert sides == {"left", "right"}
+
+
+def _seed_with_giver(giver: str) -> int:
+    task = get_task(HANDOVER)
+    return next(s for s in SEEDS if task.sample(s).params["giver"] == giver)
+
+
+class _Episode:
+    """A constructed handover state whose latched flags carry over from one evaluation to the
+    next, as in the batch."""
+
+    def __init__(self, giver: str):
+        self.giver = giver
+        self.receiver = "left" if giver == "right" else "right"
+        self.sb = StateBuilder(get_task(HANDOVER), _seed_with_giver(giver))
+        self.init = self.sb.pos("block").copy()
+
+    def state(self, giver_holds: bool, receiver_holds: bool, pos=None, quat=None):
+        sb = self.sb
+        sb.grip(self.giver, not giver_holds).grip(self.receiver, not receiver_holds)
+        sb.touch("block", f"{self.giver}_gripper", giver_holds)
+        sb.touch("block", f"{self.receiver}_gripper", receiver_holds)
+        if pos is not None:
+            sb.set_pos("block", pos)
+        if quat is not None:
+            sb.set_quat("block", quat)
+        ev = sb.evaluate()
+        sb.latched = np.asarray(ev.latched).copy()
+        return ev
+
+    def final_pos(self, x_abs: float = 0.08, z: float = 0.95) -> list[float]:
+        sign = -1.0 if self.receiver == "left" else 1.0
+        return [sign * x_abs, -0.05, z]
+
+
+def _tilt(deg: float) -> np.ndarray:
+    t = np.radians(deg)
+    return np.array([np.cos(t / 2), np.sin(t / 2), 0.0, 0.0])
+
+
+@pytest.mark.parametrize("giver", ["left", "right"])
+def test_handover_chain_in_order(giver):
+    ep = _Episode(giver)
+    lifted = ep.init + [0.0, 0.0, 0.06]
+    ev = ep.state(True, False)
+    assert list(ev.latched) == [True, False, False, False]
+    ev = ep.state(True, False, pos=lifted, quat=UPRIGHT)
+    assert list(ev.latched) == [True, True, False, False]
+    ev = ep.state(True, True)
+    assert list(ev.latched) == [True, True, True, False] and not ev.success
+    ev = ep.state(False, True, pos=ep.final_pos())
+    assert list(ev.latched) == [True, True, True, True]
+    assert ev.success
+    # latched links keep counting: the final checks alone decide from here on
+    assert ep.state(False, True).success
+    assert not ep.state(False, False).success  # receiver open
+    assert not ep.state(True, True).success  # giver closed again
+
+
+@pytest.mark.parametrize("giver", ["left", "right"])
+def test_handover_chain_skipping_a_link_does_not_count(giver):
+    # no giver grasp: a lifted upright block held by the receiver latches nothing
+    ep = _Episode(giver)
+    ev = ep.state(False, True, pos=ep.final_pos(), quat=UPRIGHT)
+    assert not ev.latched.any() and not ev.success
+    ev = ep.state(False, True)
+    assert not ev.success and not ev.checks["chain_completed"]
+    # giver grasp, but never presented upright: the receiver grasp does not count
+    ep = _Episode(giver)
+    ep.state(True, False)
+    ep.state(True, False, pos=ep.init + [0.0, 0.0, 0.10])  # lifted but lying
+    ev = ep.state(False, True, pos=ep.final_pos(), quat=UPRIGHT)  # giver let go first
+    assert list(ev.latched) == [True, False, False, False] and not ev.success
+    # presented, but the giver opens before the receiver holds: no handover
+    ep = _Episode(giver)
+    ep.state(True, False)
+    ep.state(True, False, pos=ep.init + [0.0, 0.0, 0.06], quat=UPRIGHT)
+    ep.state(False, False)
+    ev = ep.state(False, True, pos=ep.final_pos())
+    assert list(ev.latched) == [True, True, False, False] and not ev.success
+
+
+def test_handover_presentation_thresholds():
+    for lift, tilt, ok in ((0.051, 19.5, True), (0.049, 0.0, False), (0.06, 20.5, False)):
+        ep = _Episode("right")
+        ep.state(True, False)
+        ev = ep.state(True, False, pos=ep.init + [0.0, 0.0, lift], quat=_tilt(tilt))
+        assert bool(ev.latched[1]) is ok, (lift, tilt)
+    # upside down counts as vertical too (long axis, either end up)
+    ep = _Episode("right")
+    ep.state(True, False)
+    ev = ep.state(True, False, pos=ep.init + [0.0, 0.0, 0.06], quat=_tilt(180.0))
+    assert ev.latched[1]
+
+
+@pytest.mark.parametrize("giver", ["left", "right"])
+def test_handover_final_thresholds(giver):
+    def final(pos, quat=UPRIGHT):
+        ep = _Episode(giver)
+        ep.sb.latched[:] = True
+        return ep.state(False, True, pos=pos(ep), quat=quat)
+
+    assert final(lambda ep: ep.final_pos(z=0.9205)).success
+    assert not final(lambda ep: ep.final_pos(z=0.9195)).success
+    assert final(lambda ep: ep.final_pos(x_abs=0.001)).success
+    assert not final(lambda ep: ep.final_pos(x_abs=-0.001)).success  # giver's side
+    assert final(lambda ep: ep.final_pos(), _tilt(19.5)).success
+    assert not final(lambda ep: ep.final_pos(), _tilt(20.5)).success
+
+
+def test_handover_expert():
+    _run_expert(HANDOVER, [_seed_with_giver("left"), _seed_with_giver("right")])
