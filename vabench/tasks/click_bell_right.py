@@ -43,12 +43,12 @@ from vabench.tasks.expert import ExpertContext, nearest, yaw_candidates
 from vabench.tasks.objects import attach_object
 
 X_RANGE, Y_RANGE = (0.12, 0.26), (-0.18, -0.04)
-PRESS_OFFSET = np.array([0.0, 0.0, 0.068])  # button top in the bell frame (both variants)
+PRESS_OFFSET = np.array([0.0, 0.0, 0.076])  # button top in the bell frame (both variants)
 XY_TOL, Z_TOL = 0.025, 0.030
 VARIANT_FILES = ("bell_a.xml", "bell_b.xml")
 
 HOVER = 0.05
-PUSH = 0.004
+PUSH = 0.006
 
 
 def press_point(ix: ObjectIndex, qpos: jax.Array) -> jax.Array:
