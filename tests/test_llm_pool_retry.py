@@ -274,3 +274,30 @@ def test_a_429_pauses_the_whole_endpoint():
     log = asyncio.run(main())
     assert log[0].status == 429
     assert all(r.received_s - log[0].received_s >= 1.0 for r in log[1:])
+
+
+def test_cancelling_hundreds_of_looping_callers_ends_every_one():
+    """Callers that loop on complete() must all stop on cancel(), whatever step they are in
+    (queued, admitted, sending, reading); a swallowed cancellation would leave one running."""
+
+    async def main():
+        async with LocalServer(ServerConfig(latency={"mean_s": 0.01})) as server:
+            pool = LLMPool([server.endpoint_config("m", "openai_chat")])
+
+            async def caller():
+                while True:
+                    await pool.complete("m", REQUEST)
+
+            tasks = [asyncio.create_task(caller()) for _ in range(300)]
+            await asyncio.sleep(0.5)
+            for task in tasks:
+                task.cancel()
+            _, pending = await asyncio.wait(tasks, timeout=10)
+            stats = pool.stats()["m"]
+            await pool.close()
+            return len(pending), stats
+
+    pending, stats = asyncio.run(main())
+    assert pending == 0
+    assert stats.in_flight == 0 and stats.cancelled == 300
+    assert stats.started == stats.succeeded + stats.cancelled

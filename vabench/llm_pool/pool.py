@@ -23,12 +23,21 @@ import asyncio
 import logging
 import os
 import random
+import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import aiohttp
 import pydantic_core
+
+# asyncio.timeout tells our own deadline from a caller's cancellation; wait_for (3.11 and
+# before) can swallow a cancellation that races with its timeout, leaving a task that ignores
+# cancel(). Python 3.10 gets the same context manager from aiohttp's own dependency.
+if sys.version_info >= (3, 11):
+    from asyncio import timeout
+else:
+    from async_timeout import timeout
 from pydantic import SecretStr
 
 from vabench.llm_pool.apis import get_adapter
@@ -209,9 +218,8 @@ class EndpointClient:
                 if self._closed:
                     raise self._infra("the pool was closed", attempt - 1, started, failures)
                 try:
-                    admission = await asyncio.wait_for(
-                        self._admit(estimate), deadline - loop.time()
-                    )
+                    async with timeout(max(0.0, deadline - loop.time())):
+                        admission = await self._admit(estimate)
                 except asyncio.TimeoutError:
                     raise self._infra(
                         f"total deadline of {retry.total_timeout_s:g} s passed while waiting for "
@@ -223,10 +231,10 @@ class EndpointClient:
                 if body is None:  # built once admitted: queued calls hold no encoded bodies
                     payload = self.adapter.build_body(self.config, request, options)
                     body = pydantic_core.to_json(payload)
-                timeout = min(retry.request_timeout_s, max(0.001, deadline - loop.time()))
+                attempt_timeout = min(retry.request_timeout_s, max(0.001, deadline - loop.time()))
                 self._counters.attempts += 1
                 sent = loop.time()
-                outcome = await self._attempt(body, timeout)
+                outcome = await self._attempt(body, attempt_timeout)
                 if isinstance(outcome, ParsedResponse):
                     self.rate.settle(admission, outcome.usage.total_tokens)
                     self.concurrency.on_success()
