@@ -43,12 +43,20 @@ def measure(name: str, backend: str, n: int, single: int, **kw) -> dict:
     t0 = time.perf_counter()
     eps = run_experts(tb, list(range(FIRST, FIRST + n)))
     batch_s = time.perf_counter() - t0
-    one = TaskBatch(task, 1, backend=backend, **kw)
-    compile_single = _warm(one)
-    t0 = time.perf_counter()
-    singles = [run_experts(one, [FIRST + i])[0] for i in range(single)]
-    single_s = (time.perf_counter() - t0) * n / single
+    compile_single = single_s = 0.0
+    singles = []
+    if single:
+        one = TaskBatch(task, 1, backend=backend, **kw)
+        compile_single = _warm(one)
+        t0 = time.perf_counter()
+        singles = [run_experts(one, [FIRST + i])[0] for i in range(single)]
+        single_s = (time.perf_counter() - t0) * n / single
     agree = all(a.success == b.success for a, b in zip(eps, singles, strict=False))
+    failed = {
+        e.seed: {"end": e.end, "checks": e.last_checks, "last": e.actions[-3:]}
+        for e in eps
+        if not e.success
+    }
     return {
         "task": name,
         "backend": backend,
@@ -58,11 +66,12 @@ def measure(name: str, backend: str, n: int, single: int, **kw) -> dict:
         "compile_single_s": round(compile_single, 2),
         "single_s_for_n": round(single_s, 2),
         "single_measured": single,
-        "speedup": round(single_s / batch_s, 2),
+        "speedup": round(single_s / batch_s, 2) if single else None,
         "succeeded_batch": sum(e.success for e in eps),
         "succeeded_single": f"{sum(e.success for e in singles)}/{single}",
         "same_outcomes": agree,
         "actions": sum(e.steps for e in eps),
+        "failed": failed,
     }
 
 
@@ -81,11 +90,14 @@ def main() -> int:
     print(f"{'task':<30} {'compile':>8} {'batch s':>8} {'1-by-1 s':>9} {'speedup':>8} {'ok':>6}")
     for name in names:
         r = measure(name, args.backend, args.n, min(args.single, args.n), **kw)
+        speedup = f"{r['speedup']:>7.2f}x" if r["speedup"] else f"{'-':>8}"
         print(
             f"{name:<30} {r['compile_batch_s']:>8.1f} {r['batch_s']:>8.1f} "
-            f"{r['single_s_for_n']:>9.1f} {r['speedup']:>7.2f}x {r['succeeded_batch']:>3}/{args.n}",
+            f"{r['single_s_for_n']:>9.1f} {speedup} {r['succeeded_batch']:>3}/{args.n}",
             flush=True,
         )
+        for seed, why in r["failed"].items():
+            print(f"    seed {seed}: {why['end']}; {why['checks']}", flush=True)
         if args.json:
             with open(args.json, "a") as f:
                 f.write(json.dumps({**r, "device": str(jax.devices()[0])}) + "\n")

@@ -1,7 +1,8 @@
 """Batched simulation of the vabench dual-arm robot on MuJoCo MJX (and C MuJoCo as baseline).
 
 Importing this package enables JAX's persistent compilation cache (unless the user configured
-one) so that each model shape compiles once per machine, not once per process.
+one) so that each model shape compiles once per machine, not once per process, and asks for
+full float32 matrix products (see `_full_precision_matmuls`).
 """
 
 from __future__ import annotations
@@ -29,4 +30,15 @@ def _enable_compilation_cache() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+def _full_precision_matmuls() -> None:
+    """JAX computes float32 matmuls in TF32 on recent NVIDIA GPUs by default (10-bit mantissa).
+    Contact dynamics and the planner's IK are not neural networks and need float32 products
+    (measured on an H200: see docs/PERFORMANCE.md, "Seed screening"). VABENCH_MATMUL_PRECISION
+    overrides the choice ("default" restores JAX's)."""
+    value = os.environ.get("VABENCH_MATMUL_PRECISION", "highest")
+    if value != "default":
+        jax.config.update("jax_default_matmul_precision", value)
+
+
 _enable_compilation_cache()
+_full_precision_matmuls()

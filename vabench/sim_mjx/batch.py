@@ -422,6 +422,7 @@ def in_lanes(fn: Any, n_batched: int, lanes: int) -> Any:
 
 
 DEFAULT_LANES = {"cpu": 1, "gpu": 256, "cuda": 256, "tpu": 256}
+HOLD_CHUNK = 100  # physics steps per compiled settle call
 
 
 class SimBatch(BatchBase):
@@ -523,9 +524,14 @@ class SimBatch(BatchBase):
             if slots is None
             else np.isin(np.arange(self.n_slots), slots)
         )
-        self.state = self._settle(
-            self.mx, self.variants.stacked, n_steps, self.state, jnp.asarray(mask)
-        )
+        # Fixed-size chunks: one compiled program serves every settle length (the reset gate
+        # holds 2,300 then 200 steps) instead of one compile per length.
+        mask_j = jnp.asarray(mask)
+        chunks = [HOLD_CHUNK] * (n_steps // HOLD_CHUNK)
+        if n_steps % HOLD_CHUNK:
+            chunks.append(n_steps % HOLD_CHUNK)
+        for n in chunks:
+            self.state = self._settle(self.mx, self.variants.stacked, n, self.state, mask_j)
 
     def _execute(self, rows: CommandRows) -> StepInfo:
         self.state, info = self._step(

@@ -79,6 +79,27 @@ def carry_and_release(
     yield from ctx.move_to(
         arm, lambda v: np.r_[target_xy, rest_z + clearance] + offset(), order="xyz"
     )
-    yield from ctx.move_to(arm, lambda v: np.r_[target_xy, rest_z + drop] + offset(), order="z")
+    yield from lower_until_resting(ctx, arm, obj, rest_z + drop)
     yield from ctx.grip(arm, close=False)
     yield from lift(ctx, arm, 0.05)
+
+
+def lower_until_resting(
+    ctx: ExpertContext, arm: str, obj: str, z: float, tol: float = 0.001, max_steps: int = 6
+) -> Iterator[Action]:
+    """Lower the held object until its origin is at `z`, or until it stops following the
+    gripper (it met its support early: a slightly tilted grasp, a soft contact) or the planner
+    refuses to go lower; then the object rests and the caller can let go."""
+    for _ in range(max_steps):
+        obj0, gc0 = ctx.view.pos(obj)[2], ctx.view.arms[arm].gc[2]
+        err = z - obj0
+        if abs(err) < tol:
+            return
+        yield ctx.move(arm, "z", err * 1000.0)
+        last = ctx.view.last
+        if last is not None and not last.planner_success:
+            return  # the gripper is as low as it may go
+        moved_obj = ctx.view.pos(obj)[2] - obj0
+        moved_gc = ctx.view.arms[arm].gc[2] - gc0
+        if moved_gc < -tol and moved_obj > 0.5 * moved_gc:
+            return  # blocked: resting on the support

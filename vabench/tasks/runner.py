@@ -250,6 +250,7 @@ class ExpertEpisode:
     steps: int = 0
     end: str = "not run"  # success | budget | expert gave up: ... | rejected at reset: ...
     actions: list[dict[str, Any]] = field(default_factory=list)
+    last_checks: dict[str, bool] = field(default_factory=dict)  # the predicate's terms at the end
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -258,6 +259,7 @@ class ExpertEpisode:
             "steps": self.steps,
             "end": self.end,
             "max_drift_deg": round(self.settle.max_drift_deg, 4),
+            "last_checks": self.last_checks,
             "actions": self.actions,
         }
 
@@ -315,6 +317,7 @@ def run_experts(
             assert out is not None
             ep = episodes[slot]
             ep.steps += 1
+            ep.last_checks = out.checks
             ep.actions.append(
                 {
                     "action": pending[slot],
