@@ -300,3 +300,12 @@ def test_handover_final_thresholds(giver):
 
 def test_handover_expert():
     _run_expert(HANDOVER, [_seed_with_giver("left"), _seed_with_giver("right")])
+
+
+@pytest.mark.parametrize("name", [SHOE, POT])
+def test_model_ids_share_one_batch(name):
+    """The model ids of a family differ only in numbers MJX lets vary per slot."""
+    from vabench.sim_mjx.variants import ModelVariants
+
+    task = get_task(name)
+    assert ModelVariants(task.build_models()).n == len(task.variants)
