@@ -22,6 +22,7 @@ from vabench.llm_pool import (
     Usage,
 )
 from vabench.llm_pool.apis import ADAPTERS, IncomingRequest
+from vabench.llm_pool.apis.base import InlineImage, encode_body
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.llm_pool.testing import synthetic_image
 
@@ -96,6 +97,11 @@ def test_two_images_round_trip_with_usage_and_cost(api):
     assert stats.cost_usd == pytest.approx(first.cost_usd + second.cost_usd)
 
 
+def _encoded(body: dict) -> dict:
+    """The body as the server receives it (images are spliced in while encoding)."""
+    return json.loads(encode_body(body))
+
+
 def _b64(request: ChatRequest, turn: int, image: int) -> str:
     return request.turns[turn].images[image].b64
 
@@ -104,7 +110,7 @@ def test_openai_chat_body_shape():
     request = conversation()
     endpoint = ModelEndpoint(name="gpt", api="openai_chat", model="gpt-x")
     options = GenerationOptions(temperature=0.2, reasoning_effort="low")
-    body = ADAPTERS["openai_chat"].build_body(endpoint, request, options)
+    body = _encoded(ADAPTERS["openai_chat"].build_body(endpoint, request, options))
     url = "data:image/jpeg;base64,"
     assert body == {
         "model": "gpt-x",
@@ -134,7 +140,7 @@ def test_openai_chat_body_shape():
         "reasoning_effort": "low",
     }
     compat = endpoint.model_copy(update={"max_tokens_field": "max_tokens"})
-    body = ADAPTERS["openai_chat"].build_body(compat, request, GenerationOptions())
+    body = _encoded(ADAPTERS["openai_chat"].build_body(compat, request, GenerationOptions()))
     assert body["max_tokens"] == 4096 and "max_completion_tokens" not in body
 
 
@@ -142,7 +148,7 @@ def test_openai_responses_body_shape():
     request = conversation()
     endpoint = ModelEndpoint(name="gpt", api="openai_responses")
     options = GenerationOptions(max_output_tokens=1000, reasoning_effort="high")
-    body = ADAPTERS["openai_responses"].build_body(endpoint, request, options)
+    body = _encoded(ADAPTERS["openai_responses"].build_body(endpoint, request, options))
     url = "data:image/jpeg;base64,"
     assert body == {
         "model": "gpt",
@@ -189,7 +195,7 @@ def test_anthropic_body_shape_with_cache_markers_and_thinking():
     request = conversation()
     endpoint = ModelEndpoint(name="claude", api="anthropic")
     options = GenerationOptions(max_output_tokens=4096, thinking_budget=1024)
-    body = ADAPTERS["anthropic"].build_body(endpoint, request, options)
+    body = _encoded(ADAPTERS["anthropic"].build_body(endpoint, request, options))
 
     def image(turn, i):
         data = _b64(request, turn, i)
@@ -224,8 +230,8 @@ def test_anthropic_body_shape_with_cache_markers_and_thinking():
     }
     headers = ADAPTERS["anthropic"].headers("sk-test")
     assert headers == {"anthropic-version": "2023-06-01", "x-api-key": "sk-test"}
-    plain = ADAPTERS["anthropic"].build_body(
-        endpoint, request, GenerationOptions(cache_prompt=False)
+    plain = _encoded(
+        ADAPTERS["anthropic"].build_body(endpoint, request, GenerationOptions(cache_prompt=False))
     )
     assert plain["system"] == request.system and "cache_control" not in json.dumps(plain)
 
@@ -478,3 +484,15 @@ def test_a_400_reaches_the_caller_as_request_rejected_with_the_message():
     first, err = asyncio.run(main())
     assert first.text == "only one"
     assert err.status == 400 and err.kind == "bad_request" and "exhausted" in str(err)
+
+
+def test_encoded_bodies_splice_images_and_survive_the_marker_in_text():
+    image = synthetic_image(size=3000, seed=9)
+    marker_text = "\x1fvabench-inline-image\x1f"  # as if a prompt contained the marker
+    for text in ("plain text", marker_text):
+        body = {
+            "a": [text, InlineImage(image, data_url=True)],
+            "b": InlineImage(image, data_url=False),
+        }
+        decoded = json.loads(encode_body(body))
+        assert decoded == {"a": [text, image.data_url], "b": image.b64}

@@ -25,7 +25,12 @@ MediaType = Literal["image/jpeg", "image/png", "image/gif", "image/webp"]
 
 
 class Image:
-    """An image to send inline (JPEG by default)."""
+    """An image to send inline (JPEG by default).
+
+    The base64 text is kept as ASCII bytes when this side encoded it (the request body is
+    bytes, so it is spliced in without another copy) and as the received string on the
+    server side; `b64` and `b64_ascii` give either form.
+    """
 
     __slots__ = ("_b64", "_data", "media_type")
 
@@ -33,11 +38,11 @@ class Image:
         self,
         data: bytes | None = None,
         *,
-        b64: str | None = None,
+        b64: str | bytes | None = None,
         media_type: MediaType = "image/jpeg",
     ):
         if (data is None) == (b64 is None):
-            raise ValueError("Image needs exactly one of data (bytes) or b64 (str)")
+            raise ValueError("Image needs exactly one of data (bytes) or b64 (base64 text)")
         self._data = data
         self._b64 = b64
         self.media_type = media_type
@@ -46,39 +51,51 @@ class Image:
     def data(self) -> bytes:
         if self._data is None:
             try:
-                self._data = base64.b64decode(self._b64 or "", validate=True)
+                self._data = base64.b64decode(self._b64 or b"", validate=True)
             except binascii.Error as err:
                 raise ValueError(f"image is not valid base64: {err}") from None
         return self._data
 
     @property
-    def b64(self) -> str:
+    def b64_ascii(self) -> bytes:
+        """The base64 encoding as ASCII bytes (computed once)."""
         if self._b64 is None:
-            self._b64 = base64.b64encode(self._data or b"").decode("ascii")
-        return self._b64
+            self._b64 = base64.b64encode(self._data or b"")
+        return self._b64 if isinstance(self._b64, bytes) else self._b64.encode("ascii")
+
+    @property
+    def b64(self) -> str:
+        b64 = self._b64 if self._b64 is not None else self.b64_ascii
+        return b64 if isinstance(b64, str) else b64.decode("ascii")
 
     def head(self, n: int = 4096) -> bytes:
         """The first bytes (for reading the JPEG header) without decoding the whole image."""
         if self._data is not None:
             return self._data[:n]
-        chunk = (self._b64 or "")[: (n + 2) // 3 * 4]
+        chunk = (self._b64 or b"")[: (n + 2) // 3 * 4]
         return base64.b64decode(chunk[: len(chunk) // 4 * 4])
 
     @property
+    def data_url_prefix(self) -> str:
+        return f"data:{self.media_type};base64,"
+
+    @property
     def data_url(self) -> str:
-        return f"data:{self.media_type};base64,{self.b64}"
+        return self.data_url_prefix + self.b64
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Image):
             return NotImplemented
+        if self.media_type != other.media_type:
+            return False
         if self._b64 is not None and other._b64 is not None:
-            return self.media_type == other.media_type and self._b64 == other._b64
-        return self.media_type == other.media_type and self.data == other.data
+            return self.b64_ascii == other.b64_ascii
+        return self.data == other.data
 
     __hash__ = None  # type: ignore[assignment]  # mutable cache; compare by content only
 
     def __repr__(self) -> str:
-        size = len(self._data) if self._data is not None else len(self._b64 or "") * 3 // 4
+        size = len(self._data) if self._data is not None else len(self._b64 or b"") * 3 // 4
         return f"Image({self.media_type}, ~{size} bytes)"
 
 

@@ -29,7 +29,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import aiohttp
-import pydantic_core
 
 # asyncio.timeout tells our own deadline from a caller's cancellation; wait_for (3.11 and
 # before) can swallow a cancellation that races with its timeout, leaving a task that ignores
@@ -41,7 +40,7 @@ else:
 from pydantic import SecretStr
 
 from vabench.llm_pool.apis import get_adapter
-from vabench.llm_pool.apis.base import error_message
+from vabench.llm_pool.apis.base import encode_body, error_message
 from vabench.llm_pool.config import (
     ConfigError,
     GenerationOptions,
@@ -230,7 +229,7 @@ class EndpointClient:
                     ) from None
                 if body is None:  # built once admitted: queued calls hold no encoded bodies
                     payload = self.adapter.build_body(self.config, request, options)
-                    body = pydantic_core.to_json(payload)
+                    body = encode_body(payload)
                 attempt_timeout = min(retry.request_timeout_s, max(0.001, deadline - loop.time()))
                 self._counters.attempts += 1
                 sent = loop.time()

@@ -34,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr
 
 from vabench.llm_pool.apis import ADAPTERS, ApiAdapter, IncomingRequest, LimitState, ServerReply
 from vabench.llm_pool.apis.base import RequestShapeError
+from vabench.llm_pool.config import DEFAULT_MAX_OUTPUT_TOKENS
 from vabench.llm_pool.faults import (
     IMMEDIATE_FAULTS,
     FaultConfig,
@@ -48,7 +49,7 @@ from vabench.llm_pool.faults import (
 from vabench.llm_pool.limits import RateBudget
 from vabench.llm_pool.policies import Policy, PolicyError, PolicyReply, make_policy
 from vabench.llm_pool.simulate import LatencyModel, PromptCache, simulate_usage
-from vabench.llm_pool.tokens import CHARS_PER_TOKEN, estimate_input_tokens, text_tokens
+from vabench.llm_pool.tokens import CHARS_PER_TOKEN, block_tokens, text_tokens
 
 
 class PolicySpec(BaseModel):
@@ -251,10 +252,10 @@ class LocalServer:
         record.model = incoming.model
         record.images = len(incoming.chat.images)
 
-        estimate = estimate_input_tokens(incoming.chat, adapter.image_tokens)
+        counts = block_tokens(incoming.chat, adapter.image_tokens)
         options = incoming.chat.options
-        max_output = options.resolved_max_output_tokens if options else 4096
-        admitted, refusal = self._admit(adapter, estimate + max_output)
+        max_output = options.resolved_max_output_tokens if options else DEFAULT_MAX_OUTPUT_TOKENS
+        admitted, refusal = self._admit(adapter, sum(counts) + max_output)
         if refusal is not None:
             record.fault = "enforced_rate_limit"
             return refusal
@@ -277,7 +278,7 @@ class LocalServer:
             return self._error(adapter, 500, "injected fault: server_error")
 
         try:
-            reply = await self._reply(incoming, adapter, max_output)
+            reply = await self._reply(incoming, counts, max_output)
         except PolicyError as err:
             record.error = str(err)
             return self._error(adapter, err.status, str(err))
@@ -293,12 +294,12 @@ class LocalServer:
         return web.json_response(body, headers=self._limit_headers(adapter))
 
     async def _reply(
-        self, incoming: IncomingRequest, adapter: ApiAdapter, max_output: int
+        self, incoming: IncomingRequest, counts: list[int], max_output: int
     ) -> ServerReply:
         policy = self._model_policies.get(incoming.model, self.policy)
         answer = await policy.respond(incoming)
         reply = answer if isinstance(answer, PolicyReply) else PolicyReply(answer)
-        usage, reasoning = simulate_usage(incoming, reply.text, adapter.image_tokens, self.cache)
+        usage, reasoning = simulate_usage(incoming, reply.text, counts, self.cache)
         text, finish = reply.text, reply.finish_reason
         if usage.output_tokens > max_output:  # cut the reply where max tokens would have
             reasoning_part = usage.output_tokens - text_tokens(text)

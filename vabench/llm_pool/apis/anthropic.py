@@ -30,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from vabench.llm_pool.apis.base import (
     ApiAdapter,
     IncomingRequest,
+    InlineImage,
     LimitState,
     RequestShapeError,
     ServerReply,
@@ -162,7 +163,11 @@ _ERROR_TYPES = {
 def _block(part: Part) -> dict[str, Any]:
     if isinstance(part, str):
         return {"type": "text", "text": part}
-    source = {"type": "base64", "media_type": part.media_type, "data": part.b64}
+    source = {
+        "type": "base64",
+        "media_type": part.media_type,
+        "data": InlineImage(part, data_url=False),
+    }
     return {"type": "image", "source": source}
 
 

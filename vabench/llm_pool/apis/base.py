@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from typing import Any, ClassVar, TypeVar
 
+import pydantic_core
 from pydantic import BaseModel, ValidationError
 
 from vabench.llm_pool.config import ApiName, GenerationOptions, ModelEndpoint
@@ -141,6 +142,51 @@ def base64_image(data: str, media_type: str, field: str) -> Image:
     except ValueError as err:
         raise RequestShapeError(field, f"image data is not valid base64: {err}") from None
     return image
+
+
+class InlineImage:
+    """An image's base64 inside a request body, spliced into the encoded JSON by
+    `encode_body` instead of going through the JSON encoder (which would scan and copy the
+    half-megabyte of base64 a call carries: ~1 ms per call, the client's largest cost)."""
+
+    __slots__ = ("image", "prefix")
+
+    def __init__(self, image: Image, *, data_url: bool):
+        self.image = image
+        self.prefix = image.data_url_prefix.encode("ascii") if data_url else b""
+
+    def text(self) -> str:
+        return self.prefix.decode("ascii") + self.image.b64
+
+
+_MARK = "\x1fvabench-inline-image\x1f"
+_MARK_JSON = b"\\u001fvabench-inline-image\\u001f"  # how the JSON encoder writes _MARK
+
+
+def _unsupported(obj: Any) -> Any:
+    raise TypeError(f"cannot encode {type(obj).__name__} in a request body")
+
+
+def encode_body(payload: Any) -> bytes:
+    """A request body as JSON bytes, with every `InlineImage` spliced in place."""
+    images: list[InlineImage] = []
+
+    def mark(obj: Any) -> Any:
+        if isinstance(obj, InlineImage):
+            images.append(obj)
+            return _MARK
+        return _unsupported(obj)
+
+    raw = pydantic_core.to_json(payload, fallback=mark)
+    pieces = raw.split(_MARK_JSON)
+    if len(pieces) != len(images) + 1:  # the marker occurs in the text itself: encode plainly
+        return pydantic_core.to_json(
+            payload, fallback=lambda o: o.text() if isinstance(o, InlineImage) else _unsupported(o)
+        )
+    out = [pieces[0]]
+    for image, piece in zip(images, pieces[1:], strict=True):
+        out += [image.prefix, image.image.b64_ascii, piece]
+    return b"".join(out)
 
 
 def error_message(raw: bytes, limit: int = 500) -> str:

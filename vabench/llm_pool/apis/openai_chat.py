@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from vabench.llm_pool.apis.base import (
     ApiAdapter,
     IncomingRequest,
+    InlineImage,
     LimitState,
     RequestShapeError,
     ServerReply,
@@ -138,7 +139,7 @@ def _openai_finish(finish: FinishReason) -> str:
 def _part(part: Part) -> dict[str, Any]:
     if isinstance(part, str):
         return {"type": "text", "text": part}
-    return {"type": "image_url", "image_url": {"url": part.data_url}}
+    return {"type": "image_url", "image_url": {"url": InlineImage(part, data_url=True)}}
 
 
 def _text_of(content: str | list[_ContentPart], field: str) -> str:

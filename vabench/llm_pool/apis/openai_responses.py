@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from vabench.llm_pool.apis.base import (
     ApiAdapter,
     IncomingRequest,
+    InlineImage,
     LimitState,
     RequestShapeError,
     ServerReply,
@@ -163,7 +164,7 @@ _INCOMPLETE: dict[str, FinishReason] = {
 def _part(part: Part) -> dict[str, Any]:
     if isinstance(part, str):
         return {"type": "input_text", "text": part}
-    return {"type": "input_image", "image_url": part.data_url, "detail": "auto"}
+    return {"type": "input_image", "image_url": InlineImage(part, data_url=True), "detail": "auto"}
 
 
 def _finish_of(body: ResponsesResponse, refused: bool) -> tuple[FinishReason, str | None]:
