@@ -2,8 +2,9 @@
 
 Scene (paper Table tab:seed-spec-functional): one desk bell resting on the table at
 x in [0.12, 0.26], y in [-0.18, -0.04], upright, yaw 0 (the paper draws no yaw; the bell is
-round). Two bell model ids (`bell_a.xml`: brass dome on a black base; `bell_b.xml`: smaller
-silver dome on a thicker red base), same structure: a base, a dome, and a push button whose flat
+round). Two bell model ids (`bell_a.xml`: brass dome on a thin black base; `bell_b.xml`: the
+same dome in silver on a taller, narrower red base), same structure (MJX shares mesh data between
+slots, so the dome mesh is common): a base, a dome, and a push button whose flat
 cap sits on a spring-loaded plunger (16 mm travel; it absorbs an overshooting press, which would
 otherwise squeeze the rigid bell between a stiff arm and the table and launch it).
 The bell's functional point (press point) is the top centre of the cap at rest, 76 mm above the
