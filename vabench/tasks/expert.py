@@ -121,7 +121,7 @@ class ExpertContext:
                 "action": "gripper.move_world",
                 "axis": axis,
                 "sign": "+" if mm > 0 else "-",
-                "distance_mm": round(min(abs(mm), MOVE_MAX_MM), 1),
+                "distance_mm": round(min(abs(float(mm)), MOVE_MAX_MM), 1),
             },
             arm,
         )
@@ -132,7 +132,7 @@ class ExpertContext:
                 "action": "gripper.rotate_local",
                 "axis": axis,
                 "sign": "+" if deg > 0 else "-",
-                "angle_deg": round(min(abs(deg), ROTATE_MAX_DEG), 1),
+                "angle_deg": round(min(abs(float(deg)), ROTATE_MAX_DEG), 1),
             },
             arm,
         )
