@@ -30,7 +30,6 @@ from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.grasp_single_pen import grasp_evaluation
 from vabench.tasks.objects import attach_object
 
 X_RANGE, Y_RANGE, YAW_DEG = (0.16, 0.22), (-0.24, -0.20), (-15.0, 15.0)
@@ -50,7 +49,7 @@ class GraspPenLeaningCube(Task):
         return Sample(sk.leaning_pen_poses(x, y, yaw, np.radians(LEAN_DEG)))
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return grasp_evaluation(self, ix, s, latched, "pen")
+        return sk.grasp_evaluation(self, ix, s, latched, "pen")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2

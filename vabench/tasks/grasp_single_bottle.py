@@ -26,7 +26,6 @@ from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.grasp_single_pen import grasp_evaluation
 from vabench.tasks.objects import attach_object
 
 X_RANGE, Y_RANGE, YAW_DEG = (0.20, 0.28), (-0.16, -0.04), (-22.5, 22.5)
@@ -44,7 +43,7 @@ class GraspSingleBottle(Task):
         return Sample({"bottle": sk.lying_bottle_pose(x, y, yaw)})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return grasp_evaluation(self, ix, s, latched, "bottle")
+        return sk.grasp_evaluation(self, ix, s, latched, "bottle")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         across = sk.axis_heading(ctx.view.mat("bottle"), 2) + np.pi / 2

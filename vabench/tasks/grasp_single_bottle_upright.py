@@ -25,7 +25,6 @@ from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.grasp_single_pen import grasp_evaluation
 from vabench.tasks.objects import attach_object
 
 X_RANGE, Y_RANGE = (0.20, 0.28), (-0.16, -0.04)
@@ -45,7 +44,7 @@ class GraspSingleBottleUpright(Task):
         return Sample({"bottle": sample_upright_bottle(self.rng(seed))})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return grasp_evaluation(self, ix, s, latched, "bottle")
+        return sk.grasp_evaluation(self, ix, s, latched, "bottle")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         yield from sk.side_grasp(ctx, "right", lambda v: v.pos("bottle"))

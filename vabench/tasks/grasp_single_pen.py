@@ -10,8 +10,9 @@ Success: the pen lifted more than 50 mm above its settled height and the right g
 (both now, not latched). Budget 50 steps.
 Checkpoints: reached (GC within 30 mm of the pen's centre), grasped (closed and touching),
 lifted (> 50 mm), completed (success).
-Expert: fingers straight down and closing across the pen, GC 12 mm above the pen's axis (the
-lowest the planner allows: the fingertips stay above the table), close, lift 100 mm.
+Expert: fingers straight down and closing across the pen, GC 11 mm above the pen's axis (1 mm
+above the lowest GC the planner allows: the fingertips stay 2 mm above the table), close, lift
+100 mm.
 """
 
 from __future__ import annotations
@@ -19,10 +20,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
@@ -30,29 +31,9 @@ from vabench.tasks.expert import ExpertContext
 from vabench.tasks.objects import attach_object
 
 X_RANGE, Y_RANGE, YAW_DEG = (0.18, 0.26), (-0.20, -0.10), (-30.0, 30.0)
-GRASP_DZ = 0.011  # GC above the pen's axis (>= sk.TOPDOWN_MIN_GC_Z - pen centre height)
-
-
-def grasp_evaluation(
-    task: Task, ix: ObjectIndex, s: SlotState, latched: jax.Array, obj: str
-) -> Evaluation:
-    """The grasp predicate of tab:seed-spec-grasp: lifted > 50 mm and the right gripper closed."""
-    r = task.arm("right")
-    lifted = common.lifted(ix, s, obj)
-    closed = ~s.grip_open[r]
-    subgoals = jnp.array(
-        [
-            common.near(s, r, ix.pos(s.qpos, obj)),
-            common.holding(s, r, task.contact(s, obj, "right_gripper")),
-            lifted,
-        ]
-    )
-    return Evaluation(
-        checks={"lifted": lifted, "gripper_closed": closed},
-        latched=latched,
-        subgoals=subgoals,
-        success=lifted & closed,
-    )
+# GC above the pen's axis: 1 mm above the lowest GC the planner allows (11 mm; the fingertips
+# then reach 4 mm below the axis)
+GRASP_DZ = sk.TOPDOWN_MIN_GC_Z + 0.001 - (rc.TABLE_Z + sk.PEN_RADIUS)
 
 
 @dataclass(frozen=True)
@@ -67,7 +48,7 @@ class GraspSinglePen(Task):
         return Sample({"pen": sk.lying_pen_pose(x, y, yaw)})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return grasp_evaluation(self, ix, s, latched, "pen")
+        return sk.grasp_evaluation(self, ix, s, latched, "pen")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2

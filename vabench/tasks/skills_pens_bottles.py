@@ -1,5 +1,5 @@
-"""Objects, poses and expert skills shared by the pen and bottle families (grasp_single_pen,
-grasp_single_bottle, grasp_single_bottle_upright, grasp_pen_leaning_cube,
+"""Objects, poses, the grasp predicate and expert skills shared by the pen and bottle families
+(grasp_single_pen, grasp_single_bottle, grasp_single_bottle_upright, grasp_pen_leaning_cube,
 place_single_bottle_upright). No TASK here: the registry skips this module.
 
 Objects (assets/objects/):
@@ -15,10 +15,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
-from vabench.tasks.base import quat_mul, yaw_quat
+from vabench.tasks import common
+from vabench.tasks.base import Evaluation, ObjectIndex, SlotState, Task, quat_mul, yaw_quat
 from vabench.tasks.expert import Action, ExpertContext, View, horizontal, nearest, topdown
 
 PEN_RADIUS = 0.007
@@ -70,12 +73,6 @@ def leaning_pen_poses(
     }
 
 
-def pen_lower_end(pos: np.ndarray, mat: np.ndarray) -> np.ndarray:
-    """The centre of the pen's lower end cap (the end of its long axis nearer the table)."""
-    ends = [pos + PEN_HALF_SEG * mat[:, 0], pos - PEN_HALF_SEG * mat[:, 0]]
-    return min(ends, key=lambda p: p[2])
-
-
 def lying_bottle_pose(x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
     """A bottle on its side, resting on a flat face of its prism; yaw 0 = axis along world +x
     (cap to the right)."""
@@ -94,6 +91,29 @@ def upright_bottle_pose(x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
 def axis_heading(r: np.ndarray, column: int) -> float:
     """Heading in the world xy plane of an object's local axis (0 = x, 1 = y, 2 = z)."""
     return float(np.arctan2(r[1, column], r[0, column]))
+
+
+# -- predicate -------------------------------------------------------------------------------
+def grasp_evaluation(
+    task: Task, ix: ObjectIndex, s: SlotState, latched: jax.Array, obj: str
+) -> Evaluation:
+    """The grasp predicate of tab:seed-spec-grasp: lifted > 50 mm and the right gripper closed."""
+    r = task.arm("right")
+    lifted = common.lifted(ix, s, obj)
+    closed = ~s.grip_open[r]
+    subgoals = jnp.array(
+        [
+            common.near(s, r, ix.pos(s.qpos, obj)),
+            common.holding(s, r, task.contact(s, obj, "right_gripper")),
+            lifted,
+        ]
+    )
+    return Evaluation(
+        checks={"lifted": lifted, "gripper_closed": closed},
+        latched=latched,
+        subgoals=subgoals,
+        success=lifted & closed,
+    )
 
 
 # -- expert skills ---------------------------------------------------------------------------
