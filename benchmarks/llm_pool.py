@@ -271,6 +271,7 @@ def run_rate_limits(args, images: list[bytes]) -> list[dict]:
             "ratio": achieved / allowed,
             "max_window_over_limit": worst,
             "server_429s": refused,
+            "429_at_s": [round(r["received_s"] - start, 2) for r in records if r["status"] == 429],
             "client_saw_429s": rate_limited,
             "requests": len(in_window),
         }

@@ -162,18 +162,18 @@ def test_retries_jump_the_queue_and_cancelled_waiters_leak_nothing():
 def test_adaptive_concurrency_halves_on_overload_and_grows_back():
     limiter = ConcurrencyLimiter(16, adaptive=True, floor=2)
     limiter.on_overload(now=0.0)
-    assert limiter._bound() == 8
+    assert limiter.bound == 8
     limiter.on_overload(now=0.5)  # same overload episode: no second cut
-    assert limiter._bound() == 8
+    assert limiter.bound == 8
     for now in (3.0, 6.0, 9.0, 12.0):
         limiter.on_overload(now)
-    assert limiter._bound() == 2  # the floor
+    assert limiter.bound == 2  # the floor
     for _ in range(1000):
         limiter.on_success()
-    assert limiter._bound() == 16  # back to the ceiling, not beyond
+    assert limiter.bound == 16  # back to the ceiling, not beyond
     fixed = ConcurrencyLimiter(16)
     fixed.on_overload(now=0.0)
-    assert fixed._bound() == 16
+    assert fixed.bound == 16
 
 
 def test_adaptive_endpoint_shrinks_after_a_429():
@@ -188,3 +188,23 @@ def test_adaptive_endpoint_shrinks_after_a_429():
 
     stats = asyncio.run(main())
     assert stats.rate_limited == 1 and stats.concurrency_limit == 4
+
+
+def test_a_waiter_cancelled_just_before_a_release_leaks_nothing():
+    """cancel() and release() in the same loop turn: the release skips the cancelled waiter,
+    which must then leave quietly (no error, no slot lost)."""
+
+    async def main():
+        limiter = ConcurrencyLimiter(1)
+        await limiter.acquire()
+        waiter = asyncio.create_task(limiter.acquire())
+        await asyncio.sleep(0)  # queued
+        waiter.cancel()
+        limiter.release()  # before the waiter task runs again
+        results = await asyncio.gather(waiter, return_exceptions=True)
+        await asyncio.wait_for(limiter.acquire(), 1)  # the slot is free again
+        return results, limiter.in_flight, limiter.queued
+
+    results, in_flight, queued = asyncio.run(main())
+    assert isinstance(results[0], asyncio.CancelledError)
+    assert in_flight == 1 and queued == 0

@@ -42,14 +42,17 @@ class _Entry:
 
 
 class RateBudget:
-    """One limit: at most `limit` units per `period_s`, smoothed over `burst_s`."""
+    """One limit: at most `limit` units per `period_s`, smoothed over `burst_s`. `margin`
+    lengthens the window (clients keep the default; an enforcing server uses 0)."""
 
-    def __init__(self, limit: float, period_s: float, burst_s: float = 1.0):
-        if limit <= 0 or period_s <= 0 or burst_s <= 0:
-            raise ValueError("limit, period_s and burst_s must be positive")
+    def __init__(
+        self, limit: float, period_s: float, burst_s: float = 1.0, margin: float = WINDOW_MARGIN
+    ):
+        if limit <= 0 or period_s <= 0 or burst_s <= 0 or margin < 0:
+            raise ValueError("limit, period_s and burst_s must be positive, margin not negative")
         self.limit = float(limit)
         self.period_s = float(period_s)
-        self.window_s = self.period_s * (1 + WINDOW_MARGIN)
+        self.window_s = self.period_s * (1 + margin)
         self.rate = self.limit / self.period_s
         self.capacity = min(self.limit, max(1.0, self.rate * burst_s))
         self._level = self.capacity
@@ -113,9 +116,6 @@ class Admission:
     at: float
     tokens: float
     _token_entry: _Entry | None
-
-    def __hash__(self) -> int:
-        return id(self)
 
 
 class RateLimiter:
@@ -193,11 +193,13 @@ class ConcurrencyLimiter:
     def queued(self) -> int:
         return len(self._waiters)
 
-    def _bound(self) -> int:
+    @property
+    def bound(self) -> int:
+        """Slots currently allowed (the adaptive limit, rounded down, at least the floor)."""
         return max(self.floor, int(self.limit))
 
     async def acquire(self, *, priority: bool = False) -> None:
-        if not self._waiters and self.in_flight < self._bound():
+        if not self._waiters and self.in_flight < self.bound:
             self.in_flight += 1
             return
         waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
@@ -210,7 +212,7 @@ class ConcurrencyLimiter:
         except asyncio.CancelledError:
             if waiter.done() and not waiter.cancelled():
                 self.release()  # the slot was handed over just as we were cancelled
-            else:
+            elif waiter in self._waiters:  # (_wake may already have dropped it)
                 self._waiters.remove(waiter)
             raise
 
@@ -219,7 +221,7 @@ class ConcurrencyLimiter:
         self._wake()
 
     def _wake(self) -> None:
-        while self._waiters and self.in_flight < self._bound():
+        while self._waiters and self.in_flight < self.bound:
             waiter = self._waiters.popleft()
             if not waiter.done():
                 self.in_flight += 1

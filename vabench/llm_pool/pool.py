@@ -89,6 +89,20 @@ class _Counters:
     cost_usd: float = 0.0
 
 
+@dataclass
+class _Call:
+    """The state of one call across its attempts."""
+
+    request: ChatRequest
+    options: GenerationOptions
+    estimate: int
+    started: float
+    deadline: float | None = None
+    attempt: int = 0
+    failures: list[str] = field(default_factory=list)
+    body: bytes | None = None
+
+
 @dataclass(frozen=True)
 class _Failure:
     line: str
@@ -156,7 +170,7 @@ class EndpointClient:
             name=self.name,
             in_flight=self.concurrency.in_flight,
             queued=self.concurrency.queued,
-            concurrency_limit=self.concurrency._bound(),
+            concurrency_limit=self.concurrency.bound,
             started=c.started,
             succeeded=c.succeeded,
             failed=c.failed,
@@ -176,8 +190,6 @@ class EndpointClient:
         check_options_for_api(self.config.api, options)
         estimate = estimate_input_tokens(request, self.adapter.image_tokens)
         estimate += options.resolved_max_output_tokens
-        loop = asyncio.get_running_loop()
-        started = loop.time()
         try:
             self.rate.check_fits(estimate)
         except ValueError as err:
@@ -186,100 +198,107 @@ class EndpointClient:
                 self.name, str(err), status=413, attempts=0, elapsed_s=0.0
             ) from None
         self._counters.started += 1
-        outcome = "cancelled"
+        call = _Call(request, options, estimate, asyncio.get_running_loop().time())
         try:
-            result = await self._call(request, options, estimate, started)
-            outcome = "succeeded"
-            return result
+            result = await self._call(call)
         except InfrastructureError:
-            outcome = "failed"
+            self._counters.failed += 1
             raise
         except RequestRejected:
-            outcome = "rejected"
+            self._counters.rejected += 1
             raise
-        finally:
-            setattr(self._counters, outcome, getattr(self._counters, outcome) + 1)
+        except asyncio.CancelledError:
+            self._counters.cancelled += 1
+            raise
+        self._counters.succeeded += 1
+        return result
 
-    async def _call(
-        self, request: ChatRequest, options: GenerationOptions, estimate: int, started: float
-    ) -> CompletionResult:
+    async def _call(self, call: _Call) -> CompletionResult:
+        while True:
+            call.attempt += 1
+            async with self.concurrency.slot(priority=call.attempt > 1):
+                outcome = await self._attempt_in_slot(call)
+                if isinstance(outcome, CompletionResult):
+                    return outcome
+                decision = self._note_failure(call, outcome)
+            await self._back_off(call, decision)  # outside the slot: others may use it
+
+    async def _attempt_in_slot(self, call: _Call) -> CompletionResult | _Failure:
+        """Admission, then one HTTP attempt, while holding a concurrency slot."""
         loop = asyncio.get_running_loop()
         retry = self.config.retry
-        body: bytes | None = None
-        failures: list[str] = []
-        deadline: float | None = None
-        attempt = 0
-        while True:
-            attempt += 1
-            async with self.concurrency.slot(priority=attempt > 1):
-                if deadline is None:
-                    deadline = loop.time() + retry.total_timeout_s
-                if self._closed:
-                    raise self._infra("the pool was closed", attempt - 1, started, failures)
-                try:
-                    async with timeout(max(0.0, deadline - loop.time())):
-                        admission = await self._admit(estimate)
-                except asyncio.TimeoutError:
-                    raise self._infra(
-                        f"total deadline of {retry.total_timeout_s:g} s passed while waiting for "
-                        "the endpoint's rate limits",
-                        attempt - 1,
-                        started,
-                        failures,
-                    ) from None
-                if body is None:  # built once admitted: queued calls hold no encoded bodies
-                    payload = self.adapter.build_body(self.config, request, options)
-                    body = encode_body(payload)
-                attempt_timeout = min(retry.request_timeout_s, max(0.001, deadline - loop.time()))
-                self._counters.attempts += 1
-                sent = loop.time()
-                outcome = await self._attempt(body, attempt_timeout)
-                if isinstance(outcome, ParsedResponse):
-                    self.rate.settle(admission, outcome.usage.total_tokens)
-                    self.concurrency.on_success()
-                    return self._result(outcome, loop.time() - sent, started, attempt, failures)
-                # No usage came back; the provider may still have counted the estimate.
-                failures.append(self._redact(outcome.line))
-                decision = outcome.decision
-                if not decision.retry:
-                    raise RequestRejected(
-                        self.name,
-                        failures[-1],
-                        status=outcome.status or 0,
-                        attempts=attempt,
-                        elapsed_s=loop.time() - started,
-                    )
-                if decision.kind == "rate_limit":
-                    self._counters.rate_limited += 1
-                    self.concurrency.on_overload(loop.time())
-                    if decision.retry_after is not None:
-                        self._paused_until = max(
-                            self._paused_until, loop.time() + decision.retry_after
-                        )
-            if attempt >= retry.max_attempts:
-                raise self._infra(
-                    f"gave up after {attempt} attempts; last: {failures[-1]}",
-                    attempt,
-                    started,
-                    failures,
-                )
-            delay = backoff_delay(attempt, retry, decision.retry_after, self._rng)
-            if loop.time() + delay > deadline:
-                raise self._infra(
-                    f"a {delay:.1f} s backoff would pass the total deadline of "
-                    f"{retry.total_timeout_s:g} s; last: {failures[-1]}",
-                    attempt,
-                    started,
-                    failures,
-                )
-            log.info(
-                "%s: attempt %d failed (%s); retrying in %.2f s",
-                self.name,
-                attempt,
-                failures[-1],
-                delay,
+        if call.deadline is None:  # the total deadline runs from the first admission
+            call.deadline = loop.time() + retry.total_timeout_s
+        if self._closed:
+            raise self._infra(call, "the pool was closed", attempts=call.attempt - 1)
+        try:
+            async with timeout(max(0.0, call.deadline - loop.time())):
+                admission = await self._admit(call.estimate)
+        except asyncio.TimeoutError:
+            raise self._infra(
+                call,
+                f"total deadline of {retry.total_timeout_s:g} s passed while waiting for the "
+                "endpoint's rate limits",
+                attempts=call.attempt - 1,
+            ) from None
+        if call.body is None:  # built once admitted: queued calls hold no encoded bodies
+            call.body = encode_body(
+                self.adapter.build_body(self.config, call.request, call.options)
             )
-            await asyncio.sleep(delay)
+        attempt_timeout = min(retry.request_timeout_s, max(0.001, call.deadline - loop.time()))
+        self._counters.attempts += 1
+        sent = loop.time()
+        outcome = await self._attempt(call.body, attempt_timeout)
+        if isinstance(outcome, _Failure):
+            # No usage came back; the provider may have counted the estimate: keep it.
+            return outcome
+        self.rate.settle(admission, outcome.usage.total_tokens)
+        self.concurrency.on_success()
+        return self._result(call, outcome, loop.time() - sent)
+
+    def _note_failure(self, call: _Call, failure: _Failure) -> RetryDecision:
+        """Record a failed attempt; raise at once if it must not be retried."""
+        loop = asyncio.get_running_loop()
+        call.failures.append(self._redact(failure.line))
+        decision = failure.decision
+        if not decision.retry:
+            raise RequestRejected(
+                self.name,
+                call.failures[-1],
+                status=failure.status or 0,
+                attempts=call.attempt,
+                elapsed_s=loop.time() - call.started,
+            )
+        if decision.kind == "rate_limit":
+            self._counters.rate_limited += 1
+            self.concurrency.on_overload(loop.time())
+            if decision.retry_after is not None:  # the endpoint, not just this call, waits
+                self._paused_until = max(self._paused_until, loop.time() + decision.retry_after)
+        return decision
+
+    async def _back_off(self, call: _Call, decision: RetryDecision) -> None:
+        """Wait before the next attempt, or raise if the attempts or the time are spent."""
+        retry = self.config.retry
+        if call.attempt >= retry.max_attempts:
+            raise self._infra(
+                call, f"gave up after {call.attempt} attempts; last: {call.failures[-1]}"
+            )
+        delay = backoff_delay(call.attempt, retry, decision.retry_after, self._rng)
+        assert call.deadline is not None
+        if asyncio.get_running_loop().time() + delay > call.deadline:
+            raise self._infra(
+                call,
+                f"a {delay:.1f} s backoff would pass the total deadline of "
+                f"{retry.total_timeout_s:g} s; last: {call.failures[-1]}",
+            )
+        log.info(
+            "%s: attempt %d failed (%s); retrying in %.2f s",
+            self.name,
+            call.attempt,
+            call.failures[-1],
+            delay,
+        )
+        await asyncio.sleep(delay)
 
     async def _admit(self, estimate: int):
         loop = asyncio.get_running_loop()
@@ -311,14 +330,7 @@ class EndpointClient:
         line = f"HTTP {status}: {error_message(raw)}"
         return _Failure(line, decide(status, headers), status)
 
-    def _result(
-        self,
-        parsed: ParsedResponse,
-        latency: float,
-        started: float,
-        attempts: int,
-        failures: list[str],
-    ) -> CompletionResult:
+    def _result(self, call: _Call, parsed: ParsedResponse, latency: float) -> CompletionResult:
         cost = parsed.usage.cost(self.config.prices)
         self._counters.usage += parsed.usage
         self._counters.cost_usd += cost
@@ -330,20 +342,21 @@ class EndpointClient:
             usage=parsed.usage,
             cost_usd=cost,
             latency_s=latency,
-            elapsed_s=asyncio.get_running_loop().time() - started,
-            attempts=attempts,
+            elapsed_s=asyncio.get_running_loop().time() - call.started,
+            attempts=call.attempt,
             model=parsed.model,
             response_id=parsed.response_id,
             reasoning=parsed.reasoning,
-            failures=tuple(failures),
+            failures=tuple(call.failures),
         )
 
-    def _infra(
-        self, message: str, attempts: int, started: float, failures: list[str]
-    ) -> InfrastructureError:
-        elapsed = asyncio.get_running_loop().time() - started
+    def _infra(self, call: _Call, message: str, attempts: int | None = None) -> InfrastructureError:
         return InfrastructureError(
-            self.name, message, attempts=attempts, elapsed_s=elapsed, failures=tuple(failures)
+            self.name,
+            message,
+            attempts=call.attempt if attempts is None else attempts,
+            elapsed_s=asyncio.get_running_loop().time() - call.started,
+            failures=tuple(call.failures),
         )
 
     async def close(self) -> None:

@@ -116,18 +116,21 @@ class LocalServer:
             for name, spec in self.config.model_policies.items()
         }
         self.cache = PromptCache() if self.config.simulate_cache else None
-        period = self.config.rate_period_s
-        # burst = period: the bucket never binds before the window, so enforcement is exactly
-        # the sliding window.
-        self._requests = RateBudget(self.config.rpm, period, period) if self.config.rpm else None
-        self._tokens = RateBudget(self.config.tpm, period, period) if self.config.tpm else None
-        self.log: deque[RequestRecord] = deque(maxlen=self.config.log_size or None)
+        self._requests = self._budget(self.config.rpm)
+        self._tokens = self._budget(self.config.tpm)
+        self.log: deque[RequestRecord] = deque(maxlen=self.config.log_size)
         self.counts: Counter[str] = Counter()
         self._next_id = 0
         self._runner: web.AppRunner | None = None
         self._log_file: IO[str] | None = None
         self.host = "127.0.0.1"
         self.port = 0
+
+    def _budget(self, limit: float | None) -> RateBudget | None:
+        """Burst = period: the bucket never binds before the window; margin 0: the window is
+        exactly one period. Enforcement is the strict sliding window, nothing more."""
+        period = self.config.rate_period_s
+        return RateBudget(limit, period, burst_s=period, margin=0.0) if limit else None
 
     # -- lifecycle ---------------------------------------------------------------------------
     def app(self) -> web.Application:
