@@ -19,7 +19,8 @@ Checkpoints: reached (GC within 30 mm of the cube), grasped (closed and touching
 Expert: top-down grasp across the cube's faces, lift, carry (open-loop, with the grasp offset
 measured after the lift, so a cube that turns in the fingers is not chased) over the bowl above
 its rim, lower until the cube's bottom is 25 mm above the bowl floor (the fingers then open
-clear of the walls), open, back off upwards.
+clear of the walls), open, back off upwards; a cube that slipped out on the way is not pressed
+on: the gripper just opens.
 """
 
 from __future__ import annotations
@@ -116,7 +117,9 @@ class PlaceCubeInBowl(Task):
         low = np.r_[bowl[:2], rest_z + RELEASE_DROP] + offset
         yield from ctx.move_to("right", np.r_[ctx.view.arms["right"].gc[:2], high[2]], order="z")
         yield from ctx.move_to("right", high, order="xyz")
-        yield from ctx.move_to("right", low, order="z")
+        held = np.linalg.norm(ctx.view.arms["right"].gc - offset - ctx.view.pos("cube")) < 0.015
+        if held:  # else it has slipped out on the way: lowering would press on it; just open
+            yield from ctx.move_to("right", low, order="z")
         yield from ctx.grip("right", close=False)
         yield from common.lift(ctx, "right", 0.05)
 
