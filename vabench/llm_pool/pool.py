@@ -29,14 +29,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import aiohttp
-
-# asyncio.timeout tells our own deadline from a caller's cancellation; wait_for (3.11 and
-# before) can swallow a cancellation that races with its timeout, leaving a task that ignores
-# cancel(). Python 3.10 gets the same context manager from aiohttp's own dependency.
-if sys.version_info >= (3, 11):
-    from asyncio import timeout
-else:
-    from async_timeout import timeout
 from pydantic import SecretStr
 
 from vabench.llm_pool.apis import get_adapter
@@ -53,6 +45,14 @@ from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
 from vabench.llm_pool.retry import RetryDecision, backoff_delay, decide
 from vabench.llm_pool.tokens import estimate_input_tokens
+
+# asyncio.timeout tells our own deadline from a caller's cancellation; wait_for (3.11 and
+# before) can swallow a cancellation that races with its timeout, leaving a task that ignores
+# cancel(). Python 3.10 gets the same context manager from aiohttp's own dependency.
+if sys.version_info >= (3, 11):
+    from asyncio import timeout
+else:
+    from async_timeout import timeout
 
 log = logging.getLogger("vabench.llm_pool")
 
@@ -118,6 +118,12 @@ class EndpointClient:
         self.adapter = get_adapter(config.api)
         self.url = self.adapter.url(config.resolved_base_url)
         self._api_key = api_key
+        key = api_key.get_secret_value() if api_key is not None else None
+        self._headers = {
+            "Content-Type": "application/json",
+            **config.headers,
+            **self.adapter.headers(key),
+        }
         self._rng = rng
         limits = config.limits
         self.concurrency = ConcurrencyLimiter(
@@ -137,14 +143,6 @@ class EndpointClient:
 
     def __repr__(self) -> str:
         return f"EndpointClient({self.name!r}, {self.config.api}, {self.url})"
-
-    def _headers(self) -> dict[str, str]:
-        key = self._api_key.get_secret_value() if self._api_key is not None else None
-        return {
-            "Content-Type": "application/json",
-            **self.config.headers,
-            **self.adapter.headers(key),
-        }
 
     def _redact(self, text: str) -> str:
         """Providers sometimes echo (part of) a key in errors; never let it reach a record."""
@@ -312,7 +310,7 @@ class EndpointClient:
             async with self._get_session().post(
                 self.url,
                 data=body,
-                headers=self._headers(),
+                headers=self._headers,
                 timeout=aiohttp.ClientTimeout(total=timeout),
             ) as resp:
                 raw = await resp.read()
