@@ -16,11 +16,11 @@ Success (all now, plus one latch), as the paper's row:
 Budget 50 steps.
 Checkpoints: reached (GC within 30 mm of the cube), grasped (closed and touching), lifted
 (latched), transported (centred and height), released (gripper open while centred), completed.
-Expert: top-down grasp across the cube's faces, lift, carry (open-loop, with the grasp offset
-measured after the lift, so a cube that turns in the fingers is not chased) over the bowl above
-its rim, lower until the cube's bottom is 25 mm above the bowl floor (the fingers then open
-clear of the walls), open, back off upwards; a cube that slipped out on the way is not pressed
-on: the gripper just opens.
+Expert: top-down grasp across the cube's faces with GC 5 mm above its centre (on MJX a grasp at
+the centre let the cube turn in the fingers), lift, carry open-loop with the grasp offset
+measured after the lift over the bowl above its rim, lower until the cube's bottom is 25 mm above
+the bowl floor (the fingers then open clear of the walls), open, back off upwards; a cube that
+slipped out on the way is not pressed on: the gripper just opens.
 """
 
 from __future__ import annotations
@@ -58,6 +58,7 @@ BOWL_MOVE_TOL = 0.005  # bowl displacement < 5 mm
 
 RIM_CLEARANCE = 0.075  # carry height of the cube centre above its resting height in the bowl
 RELEASE_DROP = 0.025  # cube bottom above the floor when the fingers open
+GRASP_DZ = 0.005  # GC above the cube's centre when grasping
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,9 @@ class PlaceCubeInBowl(Task):
         )
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        yield from common.topdown_grasp(ctx, "right", "cube")
+        # GC 5 mm above the cube's centre: on MJX a grasp at the centre (fingertips 5 mm above
+        # the cube's bottom) let the cube turn 75 deg in the fingers when lifted
+        yield from common.topdown_grasp(ctx, "right", "cube", grasp_dz=GRASP_DZ)
         yield from common.lift(ctx, "right", 0.07)
         # Carry open-loop with the grasp offset measured once: a cube that turns or slips in
         # the fingers still ends over the bowl and is dropped in, instead of being chased.
