@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 from vabench.llm_pool import ChatRequest, Image, InfrastructureError, LLMPool, Turn
-from vabench.llm_pool.testing import synthetic_jpeg
+from vabench.llm_pool.testing import max_in_window, synthetic_jpeg
 
 IMAGES_PER_CALL = 4
 TEXT = "Step 12/50. Task: pick up the red cube. Gripper state: ... " * 8
@@ -164,18 +164,6 @@ def run_concurrency(args, images: list[bytes]) -> list[dict]:
     finally:
         server.stop()
     return rows
-
-
-def max_in_window(events: list[tuple[float, float]], width: float) -> float:
-    events = sorted(events)
-    best, total, start = 0.0, 0.0, 0
-    for at, amount in events:
-        total += amount
-        while events[start][0] <= at - width:
-            total -= events[start][1]
-            start += 1
-        best = max(best, total)
-    return best
 
 
 async def drive_rate_limited(

@@ -12,22 +12,9 @@ import pytest
 from vabench.llm_pool import ChatRequest, LLMPool, RequestRejected, Turn
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateBudget, RateLimiter
 from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.llm_pool.testing import max_in_window
 
 REQUEST = ChatRequest([Turn.user("ping")])
-
-
-def _max_in_window(events: list[tuple[float, float]], width: float) -> float:
-    """The largest sum of amounts over half-open windows (t - width, t] of admission times t
-    (a window's sum can only grow at an admission, so these are all the windows there are)."""
-    events = sorted(events)
-    best, total, start = 0.0, 0.0, 0
-    for at, amount in events:
-        total += amount
-        while events[start][0] <= at - width:
-            total -= events[start][1]
-            start += 1
-        best = max(best, total)
-    return best
 
 
 def test_rate_limiter_never_exceeds_its_rates_over_any_window():
@@ -55,12 +42,12 @@ def test_rate_limiter_never_exceeds_its_rates_over_any_window():
     requests = [(at, 1.0) for at, _ in admitted]
     assert len(admitted) >= rpm  # it admits (2 s of demand far above the limits)
     # A whole period, whichever period you pick.
-    assert _max_in_window(requests, period) <= rpm
-    assert _max_in_window([(at, float(t)) for at, t in admitted], period) <= tpm
+    assert max_in_window(requests, period) <= rpm
+    assert max_in_window([(at, float(t)) for at, t in admitted], period) <= tpm
     # Shorter windows: never more than the bucket plus the refill, i.e. smooth traffic.
     capacity = max(1.0, rpm / period * burst_s)
     for width in (0.05, 0.1, 0.3, 0.6):
-        assert _max_in_window(requests, width) <= capacity + rpm / period * width + 1e-9
+        assert max_in_window(requests, width) <= capacity + rpm / period * width + 1e-9
 
 
 def test_settling_corrects_the_token_window_both_ways():
@@ -112,7 +99,7 @@ def test_client_pacing_meets_a_server_enforcing_the_same_kind_of_limits():
     results, log = asyncio.run(main())
     assert all(r.attempts == 1 for r in results)
     assert all(r.status == 200 for r in log)
-    assert _max_in_window([(r.received_s, 1.0) for r in log], 1.0) <= 20
+    assert max_in_window([(r.received_s, 1.0) for r in log], 1.0) <= 20
 
 
 def test_pool_never_has_more_than_max_concurrency_in_flight():

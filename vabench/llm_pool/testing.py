@@ -1,6 +1,7 @@
 """Helpers for tests and benchmarks of the pool: images that look like JPEGs to every header
 reader (start-of-image and start-of-frame markers with the given size) without being decoded,
-so their size and byte count can be chosen freely and generated in microseconds."""
+so their size and byte count can be chosen freely and generated in microseconds; and the
+busiest-window measure that rate-limit checks use."""
 
 from __future__ import annotations
 
@@ -25,3 +26,17 @@ def synthetic_jpeg(width: int = 1280, height: int = 960, size: int = 4096, seed:
 
 def synthetic_image(width: int = 1280, height: int = 960, size: int = 4096, seed: int = 0) -> Image:
     return Image(synthetic_jpeg(width, height, size, seed))
+
+
+def max_in_window(events: list[tuple[float, float]], width: float) -> float:
+    """The largest sum of amounts over half-open windows (t - width, t] of event times t
+    (a window's sum only grows at an event, so these are all the windows there are)."""
+    events = sorted(events)
+    best, total, start = 0.0, 0.0, 0
+    for at, amount in events:
+        total += amount
+        while events[start][0] <= at - width:
+            total -= events[start][1]
+            start += 1
+        best = max(best, total)
+    return best
