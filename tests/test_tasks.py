@@ -227,3 +227,22 @@ def test_seeds_cli_writes_a_manifest_and_the_yield_table(tmp_path):
     doc = json.loads((tmp_path / "grasp_single_cube.json").read_text())
     assert doc["retained"] == [1000, 1001] and doc["probed"] == 2
     assert "Yield (%)" in out.stdout and "grasp_single_cube" in out.stdout
+
+
+def _mesh_model(box_half: float, mesh_radius: float):
+    import mujoco
+
+    return mujoco.MjModel.from_xml_string(f"""
+<mujoco><asset>
+<mesh name="c" builtin="cone" params="12 1" scale="{mesh_radius} {mesh_radius} 0.05"/></asset><worldbody><geom type="plane" size="1 1 0.1"/><body name="obj"><freejoint/>
+<geom type="mesh" mesh="c" mass="0.1"/><geom type="box" size="{box_half} 0.035 0.02" pos="0 0 0.1"
+mass="0.1"/></body></worldbody></mujoco>""")
+
+
+def test_variants_accept_a_shared_mesh_and_refuse_a_different_one():
+    from vabench.sim_mjx.variants import ModelVariants
+
+    same = ModelVariants([_mesh_model(0.02, 0.03), _mesh_model(0.021, 0.03)])
+    assert same.n == 2 and same.varying  # the box size differs per slot
+    with pytest.raises(ValueError, match="differs"):
+        ModelVariants([_mesh_model(0.02, 0.03), _mesh_model(0.02, 0.04)])

@@ -46,6 +46,12 @@ def _static_differences(a: Any, b: Any, path: str = "") -> list[str]:
         return out
     if isinstance(a, jax.Array):
         return out
+    if isinstance(a, tuple | list) and isinstance(b, tuple | list):
+        if len(a) != len(b):
+            return [path]
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            out += _static_differences(x, y, f"{path}[{i}]")
+        return out
     if isinstance(a, np.ndarray):
         same = a.shape == np.shape(b) and np.array_equal(a, b)
     else:
@@ -53,7 +59,7 @@ def _static_differences(a: Any, b: Any, path: str = "") -> list[str]:
             same = bool(a == b)
         except ValueError:
             same = False
-    if not same and path.rsplit(".", 1)[-1] not in _STATIC_MAY_DIFFER:
+    if not same and path.rsplit(".", 1)[-1].split("[")[0] not in _STATIC_MAY_DIFFER:
         out.append(path)
     return out
 
