@@ -234,7 +234,8 @@ def _mesh_model(box_half: float, mesh_radius: float):
 
     return mujoco.MjModel.from_xml_string(f"""
 <mujoco><asset>
-<mesh name="c" builtin="cone" params="12 1" scale="{mesh_radius} {mesh_radius} 0.05"/></asset><worldbody><geom type="plane" size="1 1 0.1"/><body name="obj"><freejoint/>
+<mesh name="c" builtin="cone" params="12 1" scale="{mesh_radius} {mesh_radius} 0.05"/></asset>
+<worldbody><geom type="plane" size="1 1 0.1"/><body name="obj"><freejoint/>
 <geom type="mesh" mesh="c" mass="0.1"/><geom type="box" size="{box_half} 0.035 0.02" pos="0 0 0.1"
 mass="0.1"/></body></worldbody></mujoco>""")
 
