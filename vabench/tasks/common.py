@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vabench.tasks.base import LIFT_M, ObjectIndex, SlotState
+from vabench.tasks.base import LIFT_M, Evaluation, ObjectIndex, SlotState, Task
 from vabench.tasks.expert import Action, ExpertContext, nearest, yaw_candidates, yaw_of
 
 GRASP_CHECKPOINTS = ("reached", "grasped", "lifted", "completed")
@@ -29,6 +29,50 @@ def holding(s: SlotState, arm: int, touching: jax.Array) -> jax.Array:
 
 def lifted(ix: ObjectIndex, s: SlotState, obj: str, by: float = LIFT_M) -> jax.Array:
     return ix.lift(s, obj) > by
+
+
+def place_evaluation(
+    task: Task,
+    ix: ObjectIndex,
+    s: SlotState,
+    latched: jax.Array,
+    obj: str,
+    target: str,
+    placement: dict[str, jax.Array],
+    target_still: tuple[str, jax.Array],
+) -> Evaluation:
+    """The predicate every right-arm place family shares: `obj` was lifted >= 50 mm at some
+    point (the task's "was_lifted" latch), every family-specific `placement` check holds, the
+    target did not move (`target_still`: check name, flag), `obj` touches `target`, and the
+    right gripper is open. Checkpoints reached, grasped, lifted, transported (all placement
+    checks), released (open with the first, horizontal, placement check), completed."""
+    r = task.arm("right")
+    was_lifted = task.latch(latched, "was_lifted") | (ix.lift(s, obj) >= LIFT_M)
+    placed = jnp.all(jnp.array(list(placement.values())))
+    horizontal = next(iter(placement.values()))
+    still_name, still = target_still
+    touching = task.contact(s, obj, target)
+    opened = s.grip_open[r]
+    checks = {
+        "was_lifted": was_lifted,
+        **placement,
+        still_name: still,
+        "contact": touching,
+        "gripper_open": opened,
+    }
+    subgoals = jnp.array(
+        [
+            near(s, r, ix.pos(s.qpos, obj)),
+            holding(s, r, task.contact(s, obj, "right_gripper")),
+            was_lifted,
+            placed,
+            opened & horizontal,
+        ]
+    )
+    success = was_lifted & placed & still & touching & opened
+    return Evaluation(
+        checks=checks, latched=jnp.array([was_lifted]), subgoals=subgoals, success=success
+    )
 
 
 # -- expert skills ---------------------------------------------------------------------------

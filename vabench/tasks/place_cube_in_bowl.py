@@ -35,7 +35,6 @@ import numpy as np
 from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
 from vabench.tasks.base import (
-    LIFT_M,
     Evaluation,
     ObjectIndex,
     Sample,
@@ -75,35 +74,15 @@ class PlaceCubeInBowl(Task):
         return Sample({"cube": (cube, yaw_quat(cube_yaw)), "bowl": (bowl, yaw_quat(0.0))})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        r = self.arm("right")
-        was_lifted = self.latch(latched, "was_lifted") | (ix.lift(s, "cube") >= LIFT_M)
         p, b = ix.pos(s.qpos, "cube"), ix.pos(s.qpos, "bowl")
-        centred = jnp.linalg.norm(p[:2] - b[:2]) < CENTER_TOL
         rel = p[2] - b[2]
-        height_ok = (rel >= REL_HEIGHT[0]) & (rel <= REL_HEIGHT[1])
-        bowl_still = ix.displacement(s, "bowl") < BOWL_MOVE_TOL
-        touching = self.contact(s, "cube", "bowl")
-        opened = s.grip_open[r]
-        checks = {
-            "was_lifted": was_lifted,
-            "centred": centred,
-            "height": height_ok,
-            "bowl_still": bowl_still,
-            "contact": touching,
-            "gripper_open": opened,
+        placement = {
+            "centred": jnp.linalg.norm(p[:2] - b[:2]) < CENTER_TOL,
+            "height": (rel >= REL_HEIGHT[0]) & (rel <= REL_HEIGHT[1]),
         }
-        subgoals = jnp.array(
-            [
-                common.near(s, r, p),
-                common.holding(s, r, self.contact(s, "cube", "right_gripper")),
-                was_lifted,
-                centred & height_ok,
-                opened & centred,
-            ]
-        )
-        success = was_lifted & centred & height_ok & bowl_still & touching & opened
-        return Evaluation(
-            checks=checks, latched=jnp.array([was_lifted]), subgoals=subgoals, success=success
+        still = ix.displacement(s, "bowl") < BOWL_MOVE_TOL
+        return common.place_evaluation(
+            self, ix, s, latched, "cube", "bowl", placement, ("bowl_still", still)
         )
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:

@@ -36,7 +36,6 @@ import numpy as np
 from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
 from vabench.tasks.base import (
-    LIFT_M,
     Evaluation,
     ObjectIndex,
     Sample,
@@ -82,35 +81,15 @@ class PlaceCubeOnCube(Task):
         return Sample({"red": (red, yaw_quat(red_yaw)), "base": (base, yaw_quat(base_yaw))})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        r = self.arm("right")
-        was_lifted = self.latch(latched, "was_lifted") | (ix.lift(s, "red") >= LIFT_M)
         p, b = ix.pos(s.qpos, "red"), ix.pos(s.qpos, "base")
         overlap = top_overlap(p, ix.mat(s.qpos, "red"), b, ix.mat(s.qpos, "base"))
-        overlap_ok = jnp.all(overlap >= OVERLAP_MIN)
-        height_ok = jnp.abs(p[2] - (b[2] + 2 * HALF)) <= HEIGHT_TOL
-        base_still = ix.displacement(s, "base") <= BASE_MOVE_TOL
-        touching = self.contact(s, "red", "base")
-        opened = s.grip_open[r]
-        checks = {
-            "was_lifted": was_lifted,
-            "overlap": overlap_ok,
-            "height": height_ok,
-            "base_still": base_still,
-            "contact": touching,
-            "gripper_open": opened,
+        placement = {
+            "overlap": jnp.all(overlap >= OVERLAP_MIN),
+            "height": jnp.abs(p[2] - (b[2] + 2 * HALF)) <= HEIGHT_TOL,
         }
-        subgoals = jnp.array(
-            [
-                common.near(s, r, p),
-                common.holding(s, r, self.contact(s, "red", "right_gripper")),
-                was_lifted,
-                overlap_ok & height_ok,
-                opened & overlap_ok,
-            ]
-        )
-        success = was_lifted & overlap_ok & height_ok & base_still & touching & opened
-        return Evaluation(
-            checks=checks, latched=jnp.array([was_lifted]), subgoals=subgoals, success=success
+        still = ix.displacement(s, "base") <= BASE_MOVE_TOL
+        return common.place_evaluation(
+            self, ix, s, latched, "red", "base", placement, ("base_still", still)
         )
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:

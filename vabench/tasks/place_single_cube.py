@@ -23,7 +23,6 @@ import numpy as np
 from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
 from vabench.tasks.base import (
-    LIFT_M,
     Evaluation,
     ObjectIndex,
     Sample,
@@ -55,35 +54,17 @@ def place_checks(
     height_tol: float,
     target_move_tol: float,
 ) -> Evaluation:
-    """The shared place-on-target predicate (paper: _single_right_arm_place_target_task)."""
-    r = task.arm("right")
-    was_lifted = latched[0] | (ix.lift(s, obj) >= LIFT_M)
+    """The pad-placement predicate (paper: _single_right_arm_place_target_task): x and y
+    errors each within xy_tol, height error within height_tol of the resting height, target
+    displaced at most target_move_tol; the rest is `common.place_evaluation`."""
     p, t = ix.pos(s.qpos, obj), ix.pos(s.qpos, target)
-    xy_ok = jnp.all(jnp.abs(p[:2] - t[:2]) <= xy_tol)
-    height_ok = jnp.abs(p[2] - (t[2] + rest_height)) <= height_tol
-    target_still = ix.displacement(s, target) <= target_move_tol
-    touching = task.contact(s, obj, target)
-    opened = s.grip_open[r]
-    checks = {
-        "was_lifted": was_lifted,
-        "xy_within_tolerance": xy_ok,
-        "height_within_tolerance": height_ok,
-        "target_not_displaced": target_still,
-        "contact": touching,
-        "gripper_open": opened,
+    placement = {
+        "xy_within_tolerance": jnp.all(jnp.abs(p[:2] - t[:2]) <= xy_tol),
+        "height_within_tolerance": jnp.abs(p[2] - (t[2] + rest_height)) <= height_tol,
     }
-    subgoals = jnp.array(
-        [
-            common.near(s, r, p),
-            common.holding(s, r, task.contact(s, obj, "right_gripper")),
-            was_lifted,
-            xy_ok & height_ok,
-            opened & xy_ok,
-        ]
-    )
-    success = was_lifted & xy_ok & height_ok & target_still & touching & opened
-    return Evaluation(
-        checks=checks, latched=jnp.array([was_lifted]), subgoals=subgoals, success=success
+    still = ix.displacement(s, target) <= target_move_tol
+    return common.place_evaluation(
+        task, ix, s, latched, obj, target, placement, ("target_not_displaced", still)
     )
 
 
