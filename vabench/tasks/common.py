@@ -31,6 +31,28 @@ def lifted(ix: ObjectIndex, s: SlotState, obj: str, by: float = LIFT_M) -> jax.A
     return ix.lift(s, obj) > by
 
 
+def grasp_evaluation(
+    task: Task, ix: ObjectIndex, s: SlotState, latched: jax.Array, obj: str
+) -> Evaluation:
+    """The grasp predicate of tab:seed-spec-grasp: lifted > 50 mm and the right gripper closed."""
+    r = task.arm("right")
+    up = lifted(ix, s, obj)
+    closed = ~s.grip_open[r]
+    subgoals = jnp.array(
+        [
+            near(s, r, ix.pos(s.qpos, obj)),
+            holding(s, r, task.contact(s, obj, "right_gripper")),
+            up,
+        ]
+    )
+    return Evaluation(
+        checks={"lifted": up, "gripper_closed": closed},
+        latched=latched,
+        subgoals=subgoals,
+        success=up & closed,
+    )
+
+
 def place_evaluation(
     task: Task,
     ix: ObjectIndex,

@@ -49,7 +49,7 @@ class GraspPenLeaningCube(Task):
         return Sample(sk.leaning_pen_poses(x, y, yaw, np.radians(LEAN_DEG)))
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return sk.grasp_evaluation(self, ix, s, latched, "pen")
+        return common.grasp_evaluation(self, ix, s, latched, "pen")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2

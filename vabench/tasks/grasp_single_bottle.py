@@ -43,7 +43,7 @@ class GraspSingleBottle(Task):
         return Sample({"bottle": sk.lying_bottle_pose(x, y, yaw)})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return sk.grasp_evaluation(self, ix, s, latched, "bottle")
+        return common.grasp_evaluation(self, ix, s, latched, "bottle")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         across = sk.axis_heading(ctx.view.mat("bottle"), 2) + np.pi / 2

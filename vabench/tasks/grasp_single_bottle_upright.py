@@ -44,7 +44,7 @@ class GraspSingleBottleUpright(Task):
         return Sample({"bottle": sample_upright_bottle(self.rng(seed))})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return sk.grasp_evaluation(self, ix, s, latched, "bottle")
+        return common.grasp_evaluation(self, ix, s, latched, "bottle")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         yield from sk.side_grasp(ctx, "right", lambda v: v.pos("bottle"))

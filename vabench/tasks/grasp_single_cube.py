@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -45,22 +44,7 @@ class GraspSingleCube(Task):
         return Sample({"cube": sample_cube(self.rng(seed))})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        r = self.arm("right")
-        lifted = common.lifted(ix, s, "cube")
-        closed = ~s.grip_open[r]
-        subgoals = jnp.array(
-            [
-                common.near(s, r, ix.pos(s.qpos, "cube")),
-                common.holding(s, r, self.contact(s, "cube", "right_gripper")),
-                lifted,
-            ]
-        )
-        return Evaluation(
-            checks={"lifted": lifted, "gripper_closed": closed},
-            latched=latched,
-            subgoals=subgoals,
-            success=lifted & closed,
-        )
+        return common.grasp_evaluation(self, ix, s, latched, "cube")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         yield from common.topdown_grasp(ctx, "right", "cube")

@@ -48,7 +48,7 @@ class GraspSinglePen(Task):
         return Sample({"pen": sk.lying_pen_pose(x, y, yaw)})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return sk.grasp_evaluation(self, ix, s, latched, "pen")
+        return common.grasp_evaluation(self, ix, s, latched, "pen")
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2

@@ -15,13 +15,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
-from vabench.tasks import common
-from vabench.tasks.base import Evaluation, ObjectIndex, SlotState, Task, quat_mul, yaw_quat
+from vabench.tasks.base import quat_mul, yaw_quat
 from vabench.tasks.expert import Action, ExpertContext, View, horizontal, nearest, topdown
 
 PEN_RADIUS = 0.007
@@ -94,28 +91,6 @@ def axis_heading(r: np.ndarray, column: int) -> float:
 
 
 # -- predicate -------------------------------------------------------------------------------
-def grasp_evaluation(
-    task: Task, ix: ObjectIndex, s: SlotState, latched: jax.Array, obj: str
-) -> Evaluation:
-    """The grasp predicate of tab:seed-spec-grasp: lifted > 50 mm and the right gripper closed."""
-    r = task.arm("right")
-    lifted = common.lifted(ix, s, obj)
-    closed = ~s.grip_open[r]
-    subgoals = jnp.array(
-        [
-            common.near(s, r, ix.pos(s.qpos, obj)),
-            common.holding(s, r, task.contact(s, obj, "right_gripper")),
-            lifted,
-        ]
-    )
-    return Evaluation(
-        checks={"lifted": lifted, "gripper_closed": closed},
-        latched=latched,
-        subgoals=subgoals,
-        success=lifted & closed,
-    )
-
-
 # -- expert skills ---------------------------------------------------------------------------
 def topdown_grasp_at(
     ctx: ExpertContext,
