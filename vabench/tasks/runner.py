@@ -117,6 +117,7 @@ class TaskBatch:
         self.success = np.zeros(n, bool)
         self.steps = np.zeros(n, np.int32)
         self.init_qpos = np.array(self.batch.qpos())
+        self._observed: tuple[np.ndarray, Any] | None = None  # (qpos, proprio) until it moves
         self.samples: list[Sample | None] = [None] * n
         self.seeds: list[int | None] = [None] * n
         self._eval = jax.jit(
@@ -140,6 +141,7 @@ class TaskBatch:
         )
         before = self.batch.qpos()[slots]
         self.batch.hold(DRIFT_WINDOW, slots)
+        self._observed = None
         after = self.batch.qpos()[slots]
         reports = []
         for row, (slot, seed, sample) in enumerate(zip(slots, seeds, samples, strict=True)):
@@ -164,6 +166,7 @@ class TaskBatch:
         """One action per slot (None = idle); evaluates the predicate of every acting slot."""
         actions = list(actions) + [None] * (self.batch.n_slots - len(actions))
         results = self.batch.step(actions)
+        self._observed = None
         acted = np.array([r is not None for r in results])
         if not acted.any():
             return [None] * self.n_slots
@@ -184,9 +187,9 @@ class TaskBatch:
 
     def slot_states(self, slots: np.ndarray | None = None) -> SlotState:
         """Predicate inputs of every slot; contacts only for `slots` (bool mask) when given."""
-        p = self.batch.proprio()
+        qpos, p = self._observe()
         return SlotState(
-            qpos=jnp.asarray(self.batch.qpos()),
+            qpos=jnp.asarray(qpos),
             init_qpos=jnp.asarray(self.init_qpos),
             grip_open=jnp.asarray(self.batch.grip_open()),
             contacts=jnp.asarray(self.batch.contact_flags(self.side_a, self.side_b, slots)),
@@ -204,6 +207,13 @@ class TaskBatch:
         )
         return jax.device_get(ev), np.asarray(progress)
 
+    def _observe(self) -> tuple[np.ndarray, Any]:
+        """qpos and proprioception of every slot, fetched once per state change: the predicate
+        and the experts' views read the same state after each step."""
+        if self._observed is None:
+            self._observed = (self.batch.qpos(), self.batch.proprio())
+        return self._observed
+
     def checkpoint(self, slot: int) -> str | None:
         """Name of the last checkpoint the slot reached (None before the first)."""
         p = int(self.progress[slot])
@@ -212,8 +222,7 @@ class TaskBatch:
     # -- evaluator-only views ---------------------------------------------------------------
     def views(self, slots: Sequence[int]) -> dict[int, View]:
         """Evaluator-only views of `slots` (for experts and debugging; never for a model)."""
-        qpos_all = self.batch.qpos()
-        p = self.batch.proprio()
+        qpos_all, p = self._observe()
         out = {}
         for slot in slots:
             qpos = qpos_all[slot]
