@@ -1,6 +1,9 @@
-"""Validation of robot actions: aliases, ranges, arm rules, error messages naming the field."""
+"""The decision layer: robot actions (aliases, ranges, arm rules), camera actions, tools, stop,
+reply extraction, rejections naming the field, the camera-chain rule, labels, vocabulary."""
 
 from __future__ import annotations
+
+import json
 
 import pytest
 
@@ -74,3 +77,507 @@ def test_not_an_object():
     with pytest.raises(P.ActionError) as e:
         P.parse_robot_action(["gripper.open"], SINGLE)
     assert e.value.field == "action"
+
+
+# -- the decision layer: parse_decision and friends -------------------------------------------
+
+ACTIVE_SINGLE = P.DecisionContext(SINGLE, "active", P.available_tools(demonstration=True))
+ACTIVE_DUAL = P.DecisionContext(DUAL, "active", P.available_tools(demonstration=True))
+PASSIVE_SINGLE = P.DecisionContext(SINGLE, "passive", P.available_tools(demonstration=False))
+PASSIVE_DUAL = P.DecisionContext(DUAL, "passive", P.available_tools(demonstration=False))
+
+# Written out from FACTS.md rather than read from the module, so a dropped name fails here.
+VIEWS = ["topdown", "side", "front_side_45", "side_top_45", "oblique_45"]
+INCREMENTS = [
+    "move_left", "move_right", "move_up", "move_down", "zoom_in", "zoom_out",
+    "yaw_left", "yaw_right", "pitch_up", "pitch_down",
+]  # fmt: skip
+SINGLE_CAMERA = [f"camera.view_{v}" for v in VIEWS] + [f"camera.{i}" for i in INCREMENTS]
+DUAL_ONLY_CAMERA = [f"camera.view_{t}_{v}" for t in ("left", "right", "both") for v in VIEWS]
+
+
+def decide(obj, ctx=ACTIVE_SINGLE):
+    return P.parse_decision(json.dumps(obj), ctx)
+
+
+def rejected(obj_or_text, ctx=ACTIVE_SINGLE) -> P.DecisionError:
+    text = obj_or_text if isinstance(obj_or_text, str) else json.dumps(obj_or_text)
+    with pytest.raises(P.DecisionError) as e:
+        P.parse_decision(text, ctx)
+    return e.value
+
+
+def move(axis="z", sign="+", mm=30, **extra):
+    return {"action": "gripper.move_world", "axis": axis, "sign": sign, "distance_mm": mm, **extra}
+
+
+def rotate(axis="rz", sign="+", deg=15, **extra):
+    return {"action": "gripper.rotate_local", "axis": axis, "sign": sign, "angle_deg": deg, **extra}
+
+
+def tool(name, **args):
+    return {"tool": name, "args": args}
+
+
+# -- every form of FACTS parses ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("axis", ["x", "y", "z"])
+@pytest.mark.parametrize("mm", [1, 55.5, 100])
+def test_move_world_single(axis, mm):
+    d = decide(move(axis, "-", mm))
+    assert isinstance(d, P.MoveWorld)
+    assert (d.axis, d.sign, d.distance_mm, d.arm) == (axis, "-", mm, None)
+
+
+@pytest.mark.parametrize("axis", ["rx", "ry", "rz"])
+@pytest.mark.parametrize("deg", [1, 90])
+def test_rotate_local_single(axis, deg):
+    d = decide(rotate(axis, "+", deg))
+    assert isinstance(d, P.RotateLocal)
+    assert (d.axis, d.sign, d.angle_deg) == (axis, "+", deg)
+
+
+@pytest.mark.parametrize(
+    "alias,sign",
+    [("+", "+"), ("pos", "+"), ("positive", "+"), ("+1", "+"), ("1", "+"), (1, "+"),
+     (" POS ", "+"), ("-", "-"), ("neg", "-"), ("negative", "-"), ("-1", "-"), (-1, "-")],
+)  # fmt: skip
+def test_sign_aliases_in_rotations_and_dual_moves(alias, sign):
+    assert decide(rotate(sign=alias)).sign == sign
+    dual = {
+        "action": "dual_gripper.move_world",
+        "left": {"axis": "x", "sign": alias, "distance_mm": 10},
+        "right": {"axis": "y", "sign": "+", "distance_mm": 20},
+    }
+    assert decide(dual, ACTIVE_DUAL).left.sign == sign
+
+
+@pytest.mark.parametrize("name", ["gripper.open", "gripper.close"])
+def test_aperture_single(name):
+    d = decide({"action": name})
+    assert isinstance(d, P.Aperture) and d.opens == name.endswith("open")
+
+
+@pytest.mark.parametrize("arm", ["left", "right"])
+def test_single_gripper_actions_with_arm_in_dual_tasks(arm):
+    assert decide(move(arm=arm), ACTIVE_DUAL).arm == arm
+    assert decide(rotate(arm=arm), ACTIVE_DUAL).arm == arm
+    assert decide({"action": "gripper.close", "arm": arm}, ACTIVE_DUAL).arm == arm
+
+
+@pytest.mark.parametrize(
+    "name",
+    [f"{side}_gripper.{verb}" for side in ("left", "right", "dual") for verb in ("open", "close")],
+)
+def test_named_grippers_in_dual_tasks(name):
+    d = decide({"action": name}, ACTIVE_DUAL)
+    assert isinstance(d, P.Aperture) and d.action == name and d.arm is None
+
+
+def test_dual_move():
+    d = decide(
+        {
+            "action": "dual_gripper.move_world",
+            "left": {"axis": "x", "sign": "-", "distance_mm": 10},
+            "right": {"axis": "z", "sign": "+", "distance_mm": 100},
+        },
+        PASSIVE_DUAL,  # robot actions are the same in both protocols
+    )
+    assert isinstance(d, P.DualMove)
+    assert (d.left.axis, d.left.sign, d.right.distance_mm) == ("x", "-", 100)
+
+
+@pytest.mark.parametrize("name", SINGLE_CAMERA)
+def test_camera_actions_single(name):
+    d = decide({"action": name})
+    assert isinstance(d, P.CameraAction) and d.action == name and d.kind == "camera"
+
+
+@pytest.mark.parametrize("name", SINGLE_CAMERA + DUAL_ONLY_CAMERA)
+def test_camera_actions_dual(name):
+    assert decide({"action": name}, ACTIVE_DUAL).action == name
+
+
+def test_camera_vocabulary_is_exactly_facts():
+    assert sorted(P.camera_action_names(SINGLE)) == sorted(SINGLE_CAMERA)
+    assert sorted(P.camera_action_names(DUAL)) == sorted(SINGLE_CAMERA + DUAL_ONLY_CAMERA)
+
+
+@pytest.mark.parametrize(
+    "name,view,target,increment",
+    [
+        ("camera.view_topdown", "topdown", None, None),
+        ("camera.view_side_top_45", "side_top_45", None, None),
+        ("camera.view_left_side", "side", "left", None),
+        ("camera.view_both_front_side_45", "front_side_45", "both", None),
+        ("camera.view_right_oblique_45", "oblique_45", "right", None),
+        ("camera.zoom_in", None, None, "zoom_in"),
+        ("camera.pitch_down", None, None, "pitch_down"),
+    ],
+)
+def test_camera_action_parts(name, view, target, increment):
+    d = decide({"action": name}, ACTIVE_DUAL)
+    assert (d.view, d.target, d.increment) == (view, target, increment)
+
+
+@pytest.mark.parametrize(
+    "obj,label",
+    [
+        ({"tool": "geometry.verify", "args": {}}, "tool geometry.verify"),
+        ({"tool": "geometry.verify"}, "tool geometry.verify"),  # no args means {}
+        ({"tool": "camera.history", "args": {"step": 0}}, "tool camera.history step=0"),
+        ({"tool": "expert.retrieve", "args": {}}, "tool expert.retrieve"),
+        ({"tool": "expert.frame", "args": {"step": 4}}, "tool expert.frame steps=4"),
+        (
+            {"tool": "expert.frame", "args": {"steps": [0, 9, 3, 5, 7, 11, 13, 2], "view": "head"}},
+            "tool expert.frame steps=0,9,3,5,7,11,13,2 view=head",
+        ),
+        ({"tool": "expert.learn", "args": {"summary": "grasp the middle"}}, "tool expert.learn"),
+        (
+            {"tool": "expert.learn", "args": {"summary": {"grasp_region": "mid"}}},
+            "tool expert.learn",
+        ),
+    ],
+)
+def test_tools_parse(obj, label):
+    d = decide(obj)
+    assert isinstance(d, P.ToolCall) and d.kind == "tool"
+    assert d.name == obj["tool"]
+    assert P.decision_label(d) == label
+
+
+def test_tool_arguments_are_typed():
+    assert decide({"tool": "camera.history", "args": {"step": 7}}).args.step == 7
+    frames = decide({"tool": "expert.frame", "args": {"steps": [3, 1]}}).args
+    assert frames.frames == (3, 1) and frames.view is None
+    assert decide({"tool": "expert.frame", "args": {"step": 2}}).args.frames == (2,)
+    assert decide({"tool": "expert.learn", "args": {"summary": "s"}}).args.summary == "s"
+
+
+@pytest.mark.parametrize(
+    "obj,ctx",
+    [
+        (move(reason="lower onto the cube"), ACTIVE_SINGLE),
+        (rotate(arm="left", reason="lower onto the cube"), ACTIVE_DUAL),
+        ({"action": "gripper.open", "reason": "lower onto the cube"}, ACTIVE_SINGLE),
+        ({"action": "camera.view_side", "reason": "lower onto the cube"}, ACTIVE_SINGLE),
+        ({"tool": "geometry.verify", "args": {}, "reason": "lower onto the cube"}, ACTIVE_SINGLE),
+        ({"stop": True, "reason": "lower onto the cube"}, ACTIVE_SINGLE),
+    ],
+)
+def test_reason_kept(obj, ctx):
+    assert decide(obj, ctx).reason == "lower onto the cube"
+
+
+def test_stop():
+    d = decide({"stop": True})
+    assert isinstance(d, P.Stop) and d.reason is None and P.decision_label(d) == "stop"
+
+
+def test_dispatch_order_stop_then_tool_then_action():
+    everything = {"stop": True, "tool": "geometry.verify", "args": {}, **move()}
+    assert isinstance(decide(everything), P.Stop)
+    assert isinstance(decide({**everything, "stop": False}), P.ToolCall)
+    no_tool = {k: v for k, v in everything.items() if k not in ("tool", "args")}
+    assert isinstance(decide({**no_tool, "stop": False}), P.MoveWorld)
+
+
+# -- reply extraction -------------------------------------------------------------------------
+
+
+def test_fenced_block_with_prose_around():
+    text = (
+        "The cube is left of the gripper {roughly}.\n```json\n"
+        + json.dumps(move("x", "-", 20))
+        + "\n```\nAfter this I will lower the gripper."
+    )
+    d = P.parse_decision(text, ACTIVE_SINGLE)
+    assert (d.axis, d.sign, d.distance_mm) == ("x", "-", 20)
+
+
+def test_several_fenced_blocks_take_the_last_json_one():
+    text = (
+        'Option A:\n```json\n{"action": "gripper.open"}\n```\n'
+        'Better, option B:\n```JSON\n{"action": "gripper.close"}\n```\n'
+        "```python\nprint({'action': 'camera.zoom_in'})\n```"
+    )
+    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.close"
+
+
+def test_json_fence_beats_untagged_fence_and_bare_text():
+    text = (
+        '{"action": "camera.zoom_out"}\n```json\n{"action": "gripper.open"}\n```\n'
+        '```\n{"action": "gripper.close"}\n```'
+    )
+    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.open"
+
+
+def test_untagged_and_one_line_fences():
+    assert P.parse_decision('```\n{"action": "gripper.open"}\n```', ACTIVE_SINGLE).action == (
+        "gripper.open"
+    )
+    assert P.parse_decision('```json {"stop": true}```', ACTIVE_SINGLE).kind == "stop"
+
+
+def test_outermost_object_with_nested_braces_and_braces_in_strings():
+    obj = {
+        "action": "dual_gripper.move_world",
+        "left": {"axis": "x", "sign": "+", "distance_mm": 10},
+        "right": {"axis": "y", "sign": "-", "distance_mm": 12},
+        "reason": 'close the gap {"between" the grippers} \\ } {{ and a lone " then }',
+    }
+    text = f"Plan: the handles are {{far}} apart. {json.dumps(obj)} That is all."
+    d = P.parse_decision(text, ACTIVE_DUAL)
+    assert isinstance(d, P.DualMove)
+    assert d.reason == obj["reason"] and d.right.distance_mm == 12
+
+
+def test_unclosed_prose_brace_does_not_swallow_the_object():
+    text = "Coordinates use { x, y, z. " + json.dumps(move()) + " done"
+    assert isinstance(P.parse_decision(text, ACTIVE_SINGLE), P.MoveWorld)
+
+
+def test_several_bare_objects_take_the_last_decision():
+    text = (
+        '{"action": "gripper.open"} was my first idea; the state was {"is_open": true}; '
+        'final: {"action": "gripper.close"} and the gripper state {"is_open": false}'
+    )
+    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.close"
+
+
+# -- rejections name the field ----------------------------------------------------------------
+
+DUAL_MOVE = {
+    "action": "dual_gripper.move_world",
+    "left": {"axis": "x", "sign": "+", "distance_mm": 10},
+    "right": {"axis": "x", "sign": "+", "distance_mm": 10},
+}
+
+
+@pytest.mark.parametrize(
+    "reply,ctx,field,says",
+    [
+        (move(axis="w"), ACTIVE_SINGLE, "axis", "must be 'x', 'y' or 'z', got \"w\""),
+        (rotate(axis="x"), ACTIVE_SINGLE, "axis", "'rx', 'ry' or 'rz'"),
+        (move(sign="up"), ACTIVE_SINGLE, "sign", "got \"up\""),
+        (move(sign=True), ACTIVE_SINGLE, "sign", "got true"),
+        (move(mm=0), ACTIVE_SINGLE, "distance_mm", "must be between 1 and 100, got 0"),
+        (move(mm=101), ACTIVE_SINGLE, "distance_mm", "must be between 1 and 100, got 101"),
+        (move(mm="30mm"), ACTIVE_SINGLE, "distance_mm", "must be a number"),
+        (move(mm=True), ACTIVE_SINGLE, "distance_mm", "must be a number, got true"),
+        (rotate(deg=91), ACTIVE_SINGLE, "angle_deg", "must be between 1 and 90, got 91"),
+        (rotate(deg=0.5), ACTIVE_SINGLE, "angle_deg", "got 0.5"),
+        ({"action": "gripper.move_world", "axis": "x"}, ACTIVE_SINGLE, "sign", "required"),
+        (move(), ACTIVE_DUAL, "arm", "required in dual-arm tasks"),
+        (rotate(arm="up"), ACTIVE_DUAL, "arm", "'left' or 'right'"),
+        (move(arm="left"), ACTIVE_SINGLE, "arm", "not an arm of this task"),
+        ({"action": "left_gripper.open"}, ACTIVE_SINGLE, "action", "needs a dual-arm task"),
+        (DUAL_MOVE, ACTIVE_SINGLE, "action", "needs a dual-arm task"),
+        ({"action": "dual_gripper.open", "arm": "left"}, ACTIVE_DUAL, "arm", "omit 'arm'"),
+        (
+            {**DUAL_MOVE, "right": {"axis": "x", "sign": "+", "distance_mm": 101}},
+            ACTIVE_DUAL,
+            "right.distance_mm",
+            "between 1 and 100",
+        ),
+        ({**DUAL_MOVE, "left": "x+10"}, ACTIVE_DUAL, "left", "must be a JSON object"),
+        ({"action": "gripper.fly"}, ACTIVE_SINGLE, "action", "unknown action \"gripper.fly\""),
+        ({"action": 3}, ACTIVE_SINGLE, "action", "must be a string"),
+        ({"action": "stop"}, ACTIVE_SINGLE, "action", '{"stop": true}'),
+        ({"action": "geometry.verify"}, ACTIVE_SINGLE, "action", "is a tool"),
+        ({"reason": "thinking"}, ACTIVE_SINGLE, "action", "required"),
+        ({"action": "camera.view_topdown"}, PASSIVE_SINGLE, "action", "passive protocol"),
+        ({"action": "camera.zoom_in"}, PASSIVE_DUAL, "action", "passive protocol"),
+        ({"action": "camera.view_left_topdown"}, ACTIVE_SINGLE, "action", "dual-arm task"),
+        ({"action": "camera.view_both_side"}, ACTIVE_SINGLE, "action", "dual-arm task"),
+        ({"action": "camera.view_top"}, ACTIVE_SINGLE, "action", "unknown action"),
+        ({"action": "camera.view_topdown", "arm": "left"}, ACTIVE_DUAL, "arm", "view_left_"),
+        ({"action": "camera.zoom_in", "reason": 5}, ACTIVE_SINGLE, "reason", "must be a string"),
+        ({"stop": "yes"}, ACTIVE_SINGLE, "stop", "must be true or false"),
+        ({"tool": "geometry.fly"}, ACTIVE_SINGLE, "tool", "unknown tool"),
+        ({"tool": ["geometry.verify"]}, ACTIVE_SINGLE, "tool", "must be a string"),
+        ({"tool": "camera.zoom_in"}, ACTIVE_SINGLE, "tool", "is an action"),
+        ({"tool": "expert.retrieve"}, PASSIVE_SINGLE, "tool", "not available in this episode"),
+        ({"tool": "geometry.verify", "args": []}, ACTIVE_SINGLE, "args", "must be a JSON object"),
+        ({"tool": "camera.history", "args": {}}, ACTIVE_SINGLE, "args.step", "required"),
+        ({"tool": "camera.history", "args": {"step": -1}}, ACTIVE_SINGLE, "args.step", ">= 0"),
+        ({"tool": "camera.history", "args": {"step": 1.5}}, ACTIVE_SINGLE, "args.step", "integer"),
+        ({"tool": "camera.history", "args": {"step": True}}, ACTIVE_SINGLE, "args.step", "true"),
+        ({"tool": "expert.frame", "args": {}}, ACTIVE_SINGLE, "args.steps", "required"),
+        (
+            {"tool": "expert.frame", "args": {"steps": list(range(9))}},
+            ACTIVE_SINGLE,
+            "args.steps",
+            "at most 8 items, got 9",
+        ),
+        ({"tool": "expert.frame", "args": {"steps": []}}, ACTIVE_SINGLE, "args.steps", "least 1"),
+        (tool("expert.frame", steps=[1, -2]), ACTIVE_SINGLE, "args.steps[1]", ">= 0"),
+        (tool("expert.frame", step=1, steps=[2]), ACTIVE_SINGLE, "args", "not both"),
+        (tool("expert.frame", step=1, view=""), ACTIVE_SINGLE, "args.view", "must not be empty"),
+        ({"tool": "expert.learn", "args": {}}, ACTIVE_SINGLE, "args.summary", "required"),
+        (tool("expert.learn", summary="  "), ACTIVE_SINGLE, "args.summary", "non-empty"),
+        (tool("expert.learn", summary={}), ACTIVE_SINGLE, "args.summary", "non-empty"),
+        ('["gripper.open"]', ACTIVE_SINGLE, "reply", "must be one JSON object, got a list"),
+        ('```json\n"gripper.open"\n```', ACTIVE_SINGLE, "reply", "got a string"),
+        ('```json\n{"action": "gripper.open",}\n```', ACTIVE_SINGLE, "reply", "not valid JSON"),
+        ('I will open: {"action": gripper.open}', ACTIVE_SINGLE, "reply", "not valid JSON"),
+        ("I will open the gripper now.", ACTIVE_SINGLE, "reply", "no JSON object found"),
+        ('{"action": "gripper.open"', ACTIVE_SINGLE, "reply", "without a matching '}'"),
+        ("   ", ACTIVE_SINGLE, "reply", "empty"),
+    ],
+)  # fmt: skip
+def test_rejections_name_the_field(reply, ctx, field, says):
+    err = rejected(reply, ctx)
+    assert err.field == field
+    assert says in err.message
+    assert says in str(err)
+    if field != P.REPLY:
+        assert str(err).startswith(f"field '{field}': ")
+
+
+def test_unknown_names_list_the_valid_ones():
+    err = rejected({"action": "gripper.fly"}, PASSIVE_DUAL)
+    assert "dual_gripper.move_world" in err.message and "left_gripper.open" in err.message
+    assert "camera." not in err.message  # passive: no camera action is valid
+    err = rejected({"action": "gripper.fly"}, ACTIVE_SINGLE)
+    assert "camera.view_topdown" in err.message and "dual_gripper" not in err.message
+    err = rejected({"tool": "expert.fly"}, ACTIVE_SINGLE)
+    assert err.message.endswith(
+        "available tools: geometry.verify, camera.history, expert.retrieve, expert.frame, "
+        "expert.learn"
+    )
+
+
+def test_every_wrong_field_reported_at_once():
+    err = rejected(move(axis="w", sign="up", mm=500))
+    assert err.field == "axis"
+    assert [f for f, _ in err.others] == ["sign", "distance_mm"]
+    assert "field 'distance_mm': must be between 1 and 100, got 500" in str(err)
+
+
+def test_action_error_is_decision_error():
+    with pytest.raises(P.DecisionError):
+        P.parse_robot_action(move(mm=0), SINGLE)
+    assert P.ActionError is P.DecisionError
+
+
+# -- camera chain -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kinds,length",
+    [
+        ([], 0),
+        (["camera"] * 3, 3),
+        (["camera", "robot", "camera", "camera"], 2),
+        (["camera", "tool", "camera", "rejected", "tool", "camera"], 3),
+        (["camera"] * 5 + ["robot"], 0),
+        (["camera"] * 7, 7),
+    ],
+)
+def test_camera_chain_length(kinds, length):
+    assert P.camera_chain_length(kinds) == length
+
+
+def test_sixth_camera_action_in_a_row_rejected_and_robot_action_resets():
+    """Drive the rule as the engine will: record each executed decision's kind."""
+    kinds: list[str] = []
+
+    def step(obj, ctx=ACTIVE_SINGLE):
+        ctx = P.DecisionContext(
+            ctx.arms, ctx.protocol, ctx.tools, camera_chain=P.camera_chain_length(kinds)
+        )
+        decision = P.parse_decision(json.dumps(obj), ctx)
+        kinds.append(decision.kind)
+        return decision
+
+    for name in SINGLE_CAMERA[:4]:
+        step({"action": name})
+    step({"tool": "geometry.verify"})  # a tool neither breaks nor extends the chain
+    step({"action": "camera.zoom_in"})  # the fifth camera action
+    with pytest.raises(P.DecisionError) as e:
+        step({"action": "camera.zoom_out"})
+    assert e.value.field == "action" and "at most 5 camera actions in a row" in e.value.message
+    kinds.append("rejected")  # a rejected decision does not break the chain either
+    with pytest.raises(P.DecisionError):
+        step({"action": "camera.view_side"})
+    step({"tool": "camera.history", "args": {"step": 2}})  # tools stay allowed
+    step(move())  # a robot action resets the chain
+    for _ in range(5):
+        step({"action": "camera.yaw_left"})
+    with pytest.raises(P.DecisionError):
+        step({"action": "camera.yaw_right"})
+
+
+def test_chain_rule_only_applies_to_camera_actions():
+    ctx = P.DecisionContext(SINGLE, "active", camera_chain=9)
+    assert isinstance(P.parse_decision(json.dumps(move()), ctx), P.MoveWorld)
+    assert isinstance(P.parse_decision('{"stop": true}', ctx), P.Stop)
+
+
+# -- labels and vocabulary --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "obj,ctx,label",
+    [
+        (move("z", "pos", 30), ACTIVE_SINGLE, "move_world z+30mm"),
+        (move("z", "+", 30, arm="right"), ACTIVE_DUAL, "move_world right z+30mm"),
+        (move("x", "-", 12.5), ACTIVE_SINGLE, "move_world x-12.5mm"),
+        (rotate("ry", "-1", 45, arm="left"), ACTIVE_DUAL, "rotate_local left ry-45deg"),
+        ({"action": "gripper.close"}, ACTIVE_SINGLE, "gripper.close"),
+        ({"action": "gripper.open", "arm": "left"}, ACTIVE_DUAL, "gripper.open left"),
+        ({"action": "dual_gripper.close"}, ACTIVE_DUAL, "dual_gripper.close"),
+        (DUAL_MOVE, ACTIVE_DUAL, "dual_move_world left x+10mm right x+10mm"),
+        ({"action": "camera.view_topdown"}, ACTIVE_SINGLE, "camera.view_topdown"),
+        ({"action": "camera.view_both_side", "reason": "r"}, ACTIVE_DUAL, "camera.view_both_side"),
+        ({"tool": "geometry.verify", "reason": "r"}, ACTIVE_SINGLE, "tool geometry.verify"),
+        ({"stop": True, "reason": "done"}, ACTIVE_SINGLE, "stop"),
+    ],
+)
+def test_labels_are_stable(obj, ctx, label):
+    assert P.decision_label(decide(obj, ctx)) == label
+
+
+def test_available_actions_single_active():
+    lines = P.available_actions(SINGLE, "active", P.available_tools(demonstration=False))
+    text = "\n".join(lines)
+    assert '"distance_mm": 1..100' in text and '"angle_deg": 1..90' in text
+    assert "arm" not in text and "dual_gripper" not in text and "left_gripper" not in text
+    assert all(f'"{n}"' in text for n in SINGLE_CAMERA)
+    assert not any(f'"{n}"' in text for n in DUAL_ONLY_CAMERA)
+    assert "geometry.verify" in text and "camera.history" in text and "expert." not in text
+    assert lines[-1] == '{"stop": true}'
+
+
+def test_available_actions_dual_passive_with_demonstration():
+    lines = P.available_actions(DUAL, "passive", P.available_tools(demonstration=True))
+    text = "\n".join(lines)
+    assert '"arm": "left|right"' in text and "dual_gripper.move_world" in text
+    assert all(
+        f"{s}_gripper.{v}" in text for s in ("left", "right", "dual") for v in ("open", "close")
+    )
+    assert "camera." not in text.replace("camera.history", "")
+    assert all(t in text for t in ("expert.retrieve", "expert.frame", "expert.learn"))
+
+
+@pytest.mark.parametrize("ctx", [ACTIVE_SINGLE, ACTIVE_DUAL, PASSIVE_SINGLE, PASSIVE_DUAL])
+def test_every_parameterless_listed_action_parses(ctx):
+    """The vocabulary shown to the model and the parser agree."""
+    for line in P.available_actions(ctx.arms, ctx.protocol, ctx.tools):
+        if line.startswith('{"action"') and line.count('"') == 4:
+            assert decide(json.loads(line), ctx).action == json.loads(line)["action"]
+
+
+def test_context_validation():
+    with pytest.raises(ValueError, match="arms"):
+        P.DecisionContext(("up",))
+    with pytest.raises(ValueError, match="protocol"):
+        P.DecisionContext(SINGLE, "both")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="tools"):
+        P.DecisionContext(SINGLE, tools=("expert.fly",))
+
+
+def test_budget_constants():
+    assert (P.MAX_REPAIRS_PER_DECISION, P.MAX_TOOL_ROUND_TRIPS, P.MAX_CAMERA_CHAIN) == (2, 20, 5)

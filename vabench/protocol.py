@@ -279,15 +279,18 @@ def _error_message(e: ErrorDetails) -> str:
         return f"must be a number, got {_show(got)}"
     if kind in ("int_type", "int_parsing", "int_from_float"):
         return f"must be an integer, got {_show(got)}"
+    if kind == "string_too_short":
+        return "must not be empty"
     if kind == "string_type":
         return f"must be a string, got {_show(got)}"
     if kind in ("model_type", "model_attributes_type", "dict_type"):
         return f"must be a JSON object, got {_show(got)}"
     if kind == "list_type":
         return f"must be a list, got {_show(got)}"
-    if kind in ("too_long", "too_short"):
-        low, high = ctx.get("min_length", 1), ctx.get("max_length")
-        return f"must hold {low} to {high} items, got {ctx.get('actual_length')}"
+    if kind == "too_long":
+        return f"must hold at most {ctx.get('max_length')} items, got {ctx.get('actual_length')}"
+    if kind == "too_short":
+        return f"must hold at least {ctx.get('min_length')} item(s), got {ctx.get('actual_length')}"
     if kind == "value_error":
         return str(ctx.get("error", e["msg"]))
     return e["msg"]
