@@ -338,6 +338,19 @@ def test_unclosed_prose_brace_does_not_swallow_the_object():
     assert isinstance(P.parse_decision(text, ACTIVE_SINGLE), P.MoveWorld)
 
 
+def test_reply_cut_off_after_the_object_but_before_the_closing_fence():
+    text = "Lowering now.\n```json\n" + json.dumps(move("z", "-", 40))
+    assert P.parse_decision(text, ACTIVE_SINGLE).distance_mm == 40
+
+
+def test_decoded_objects_validate_without_text():
+    d = P.decision_from_object({"action": "camera.view_side"}, ACTIVE_SINGLE)
+    assert isinstance(d, P.CameraAction)
+    with pytest.raises(P.DecisionError) as e:
+        P.decision_from_object(["gripper.open"], ACTIVE_SINGLE)
+    assert e.value.field == P.REPLY
+
+
 def test_several_bare_objects_take_the_last_decision():
     text = (
         '{"action": "gripper.open"} was my first idea; the state was {"is_open": true}; '

@@ -60,7 +60,7 @@ MAX_EXPERT_FRAMES = 8
 """Frames one `expert.frame` call may request."""
 
 DecisionKind = Literal["robot", "camera", "tool", "stop"]
-Protocol = Literal["active", "passive"]
+ObservationProtocol = Literal["active", "passive"]
 
 
 class DecisionError(ValueError):
@@ -406,13 +406,13 @@ class CameraAction(_Decision):
 
     @property
     def target(self) -> str | None:
-        """ "left", "right" or "both" for the explicit dual-arm views; None otherwise (the
-        generic views follow the only arm in single-arm tasks, the midpoint in dual-arm)."""
+        """The explicit target of a dual-arm view ("left", "right" or "both"); None otherwise
+        (the generic views follow the only arm in single-arm tasks, the midpoint in dual-arm)."""
         return self._target_and_view()[0]
 
     @property
     def increment(self) -> str | None:
-        """ "move_left", "zoom_in", ... for an incremental action, None for a view."""
+        """The increment ("move_left", "zoom_in", ...); None for a view."""
         name = self.action.removeprefix("camera.")
         return name if name in CAMERA_INCREMENTS else None
 
@@ -449,7 +449,7 @@ def _parse_camera_action(obj: dict[str, Any], ctx: DecisionContext) -> CameraAct
         raise _validation_error(err) from None
 
 
-def action_names(arms: Sequence[str], protocol: Protocol) -> tuple[str, ...]:
+def action_names(arms: Sequence[str], protocol: ObservationProtocol) -> tuple[str, ...]:
     """Robot and (active protocol only) camera action names valid in an episode."""
     cameras = camera_action_names(arms) if protocol == "active" else ()
     return (*robot_action_names(arms), *cameras)
@@ -611,11 +611,11 @@ class DecisionContext:
     `tools`: the tool names offered, `available_tools(demonstration)`.
     `camera_chain`: camera actions executed since the last robot action,
     `camera_chain_length(kinds)`; a camera action is rejected once it reaches
-    `MAX_CAMERA_CHAIN`.
+    `MAX_CAMERA_CHAIN`. Per decision: `dataclasses.replace(ctx, camera_chain=...)`.
     """
 
     arms: tuple[str, ...]
-    protocol: Protocol = "active"
+    protocol: ObservationProtocol = "active"
     tools: tuple[str, ...] = BASE_TOOLS
     camera_chain: int = 0
 
@@ -843,7 +843,9 @@ def _robot_forms(arms: Sequence[str]) -> list[str]:
     return forms
 
 
-def available_actions(arms: Sequence[str], protocol: Protocol, tools: Sequence[str]) -> list[str]:
+def available_actions(
+    arms: Sequence[str], protocol: ObservationProtocol, tools: Sequence[str]
+) -> list[str]:
     """The decision vocabulary listed in each observation, one template per line: robot
     actions with their ranges (and "arm" in dual-arm tasks), camera actions in the active
     protocol only (dual-arm view targets only in dual-arm tasks), the offered tools, stop."""
