@@ -435,6 +435,7 @@ DUAL_MOVE = {
         ('```json\n"gripper.open"\n```', ACTIVE_SINGLE, "reply", "got a string"),
         ('```json\n{"action": "gripper.open",}\n```', ACTIVE_SINGLE, "reply", "not valid JSON"),
         ('I will open: {"action": gripper.open}', ACTIVE_SINGLE, "reply", "not valid JSON"),
+        ('{"action": "gripper.open",} near {the cube}', ACTIVE_SINGLE, "reply", "column 27"),
         ("I will open the gripper now.", ACTIVE_SINGLE, "reply", "no JSON object found"),
         ('{"action": "gripper.open"', ACTIVE_SINGLE, "reply", "without a matching '}'"),
         ("   ", ACTIVE_SINGLE, "reply", "empty"),

@@ -737,8 +737,10 @@ def extract_json_object(text: str) -> dict[str, Any]:
     decisions = [o for o in objects if any(k in o for k in _DECISION_KEYS)]
     if decisions or objects:
         return (decisions or objects)[-1]
-    if spans:
-        _decode(text[slice(*spans[-1])], "the JSON object in the reply")
+    if spans:  # none decodes: report on the last one that looks like a decision
+        bodies = [text[start:end] for start, end in spans]
+        meant = [b for b in bodies if any(f'"{k}"' in b for k in _DECISION_KEYS)]
+        _decode((meant or bodies)[-1], "the JSON object in the reply")
     if unclosed:
         raise DecisionError(
             REPLY,
