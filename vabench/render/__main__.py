@@ -1,0 +1,151 @@
+"""Look at what a model sees.
+
+    python -m vabench.render snapshot --task T --seed S [--view V | --passive] --out DIR
+    python -m vabench.render sheet --out FILE.png [--tasks a,b] [--size 320x240]
+
+`snapshot` resets the seed (C MuJoCo by default, as the seeds were screened) and writes the
+JPEGs a model would receive at reset: the head view "center_high", one semantic view, or the
+five-view passive bundle in its fixed order (files numbered in that order). `sheet` writes one
+contact sheet for people: every base task at its first retained seed, in the head view and the
+five semantic views, with labels on the sheet (never on model images).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from vabench.render import camera as cam
+from vabench.render.worker import ImageSettings, RenderItem, RenderPool
+
+
+def reset_state(task_name: str, seed: int, backend: str) -> tuple[np.ndarray, int, dict]:
+    """qpos, object model id and per-arm GC of one seed right after its reset."""
+    from vabench.tasks import REGISTRY
+    from vabench.tasks.runner import TaskBatch
+
+    task = REGISTRY[task_name]
+    tb = TaskBatch(task, 1, backend=backend)
+    report = tb.reset([0], [seed])[0]
+    if not report.ok:
+        raise SystemExit(f"{task_name} seed {seed} fails its reset: {report.reason}")
+    view = tb.views([0])[0]
+    gcs = {arm: view.arms[arm].gc for arm in task.arms}
+    return np.asarray(tb.batch.qpos()[0]), int(tb.batch.variant()[0]), gcs
+
+
+def _views(arms: Sequence[str], gcs: dict, view: str | None, passive: bool) -> list[cam.CameraPose]:
+    if passive:
+        return cam.passive_bundle(gcs, arms)
+    if view is None or view == cam.HEAD_VIEW:
+        return [cam.head_view(gcs, arms)]
+    return [cam.apply_camera_action(cam.head_view(gcs, arms), f"view_{view}", gcs, arms)]
+
+
+def snapshot(args: argparse.Namespace) -> None:
+    from vabench.tasks import REGISTRY
+
+    if args.task not in REGISTRY:
+        raise SystemExit(f"unknown task {args.task!r}; tasks: {sorted(REGISTRY)}")
+    arms = REGISTRY[args.task].arms
+    qpos, variant, gcs = reset_state(args.task, args.seed, args.backend)
+    poses = _views(arms, gcs, args.view, args.passive)
+    settings = ImageSettings(args.width, args.height, args.quality)
+    with RenderPool(workers=1, platform=args.platform) as pool:
+        print(f"renderer: {pool.gl_info}", file=sys.stderr)
+        jpegs = pool.render(args.task, [RenderItem(qpos, variant, p) for p in poses], settings)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for i, (pose, jpeg) in enumerate(zip(poses, jpegs, strict=True)):
+        name = (
+            f"{args.task}_seed{args.seed}_{i}_{pose.label}.jpg"
+            if args.passive
+            else (f"{args.task}_seed{args.seed}_{pose.label}.jpg")
+        )
+        (out / name).write_bytes(jpeg)
+        print(out / name)
+
+
+def sheet(args: argparse.Namespace) -> None:
+    from vabench.seeds import verified_seeds
+    from vabench.tasks import BASE_FAMILIES, REGISTRY
+
+    tasks = args.tasks.split(",") if args.tasks else list(BASE_FAMILIES)
+    unknown = sorted(set(tasks) - set(REGISTRY))
+    if unknown:
+        raise SystemExit(f"unknown tasks {unknown}; tasks: {sorted(REGISTRY)}")
+    tw, th = (int(v) for v in args.size.split("x"))
+    label_w, header_h = 190, 24
+    columns = [cam.HEAD_VIEW, *cam.VIEWS]
+    sheet_img = Image.new("RGB", (label_w + tw * len(columns), header_h + th * len(tasks)), "white")
+    draw = ImageDraw.Draw(sheet_img)
+    for c, name in enumerate(columns):
+        draw.text((label_w + c * tw + 6, 6), name, fill=(0, 0, 0))
+    settings = ImageSettings(args.width, args.height, args.quality)
+    with RenderPool(workers=args.workers, platform=args.platform) as pool:
+        print(f"renderer: {pool.gl_info}", file=sys.stderr)
+        for r, task_name in enumerate(tasks):
+            arms = REGISTRY[task_name].arms
+            seed = verified_seeds(task_name)[0]
+            qpos, variant, gcs = reset_state(task_name, seed, args.backend)
+            poses = [cam.head_view(gcs, arms), *cam.passive_bundle(gcs, arms)]
+            jpegs = pool.render(task_name, [RenderItem(qpos, variant, p) for p in poses], settings)
+            y = header_h + r * th
+            draw.text((6, y + 6), f"{task_name}\nseed {seed}", fill=(0, 0, 0))
+            for c, jpeg in enumerate(jpegs):
+                thumb = Image.open(io.BytesIO(jpeg)).convert("RGB").resize((tw, th))
+                sheet_img.paste(thumb, (label_w + c * tw, y))
+            print(f"{task_name}: seed {seed}", file=sys.stderr)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sheet_img.save(out)
+    print(out)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m vabench.render",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--backend", choices=("c", "mjx"), default="c")
+        p.add_argument("--platform", choices=("auto", "egl", "osmesa"), default="auto")
+        p.add_argument("--width", type=int, default=1280)
+        p.add_argument("--height", type=int, default=960)
+        p.add_argument("--quality", type=int, default=95)
+
+    snap = sub.add_parser("snapshot", help="the images a model gets at reset")
+    snap.add_argument("--task", required=True)
+    snap.add_argument("--seed", type=int, required=True)
+    group = snap.add_mutually_exclusive_group()
+    group.add_argument("--view", choices=[cam.HEAD_VIEW, *cam.VIEWS])
+    group.add_argument("--passive", action="store_true", help="the five-view bundle")
+    snap.add_argument("--out", required=True)
+    common(snap)
+    snap.set_defaults(run=snapshot)
+
+    sh = sub.add_parser("sheet", help="every task in the head view and the five views")
+    sh.add_argument("--out", required=True)
+    sh.add_argument("--tasks", help="comma-separated task names (default: the 14 base tasks)")
+    sh.add_argument("--size", default="320x240", help="thumbnail size WxH")
+    sh.add_argument("--workers", type=int, default=2)
+    common(sh)
+    sh.set_defaults(run=sheet)
+
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    args.run(args)
+
+
+if __name__ == "__main__":
+    main()
