@@ -112,9 +112,9 @@ def render_observation(observation: Mapping[str, Any]) -> str:
     executed = observation["executed_actions"]
     summary = observation["demonstration_summary"]
     if summary is None:
-        summary_text = "none"
+        summary_text = " none"
     elif isinstance(summary, str):
-        summary_text = summary
+        summary_text = f" {summary}"
     else:
         summary_text = "\n```json\n" + json.dumps(summary, indent=1) + "\n```"
     lines = [
@@ -127,7 +127,7 @@ def render_observation(observation: Mapping[str, Any]) -> str:
         "```",
         f"Executed actions ({len(executed)}):" if executed else "Executed actions: none",
         *(f"{i}. {label}" for i, label in enumerate(executed, 1)),
-        f"Demonstration summary: {summary_text}",
+        f"Demonstration summary:{summary_text}",
         "Available actions:",
         *observation["available_actions"],
     ]

@@ -1,0 +1,355 @@
+"""The model-facing texts: system prompt per arms and protocol, the observation's exact fields,
+the passive bundle's order, the privilege-boundary checker, and the two inspection tools."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from vabench.agent.observation import (
+    INITIAL_VIEW,
+    PASSIVE_VIEWS,
+    ActionFeedback,
+    build_observation,
+    observation_turn,
+    render_observation,
+)
+from vabench.agent.prompts import TOOL_DOCS, system_prompt
+from vabench.agent.tools import camera_history, geometry_result, geometry_verify
+from vabench.agent.visibility import (
+    ARM_FIELDS,
+    OBSERVATION_FIELDS,
+    PROPRIO_FIELDS,
+    PrivilegeLeak,
+    VisibilityError,
+    assert_model_visible,
+    episode_secrets,
+    filter_proprio,
+    find_leaks,
+)
+from vabench.llm_pool import ChatRequest, GenerationOptions, Image, ModelEndpoint, Turn
+from vabench.llm_pool.apis import ADAPTERS
+from vabench.llm_pool.apis.base import encode_body
+from vabench.llm_pool.testing import synthetic_image
+from vabench.sim_mjx.batch import Proprio, proprio_fields
+
+SINGLE, DUAL = ("right",), ("left", "right")
+ALL_TOOLS = list(TOOL_DOCS)
+ACTIVE_TOOLS = ["geometry.verify", "camera.history"]
+CAMERA_NAMES = [f"camera.view_{v}" for v in PASSIVE_VIEWS] + [
+    f"camera.{n}"
+    for n in (
+        "move_left",
+        "move_right",
+        "move_up",
+        "move_down",
+        "zoom_in",
+        "zoom_out",
+        "yaw_left",
+        "yaw_right",
+        "pitch_up",
+        "pitch_down",
+    )
+]
+CUBE_POS = (0.1234, 0.0567, 0.766)
+
+
+# -- system prompt ---------------------------------------------------------------------------
+
+
+def test_active_single_arm_prompt_states_the_metric_and_camera_interface():
+    text = system_prompt(SINGLE, "active", ACTIVE_TOOLS)
+    for required in (
+        "x points to the robot's right",
+        "y points away from the robot",
+        "z points up",
+        "N from 1 to 100",
+        "A from 1 to 90",
+        "rx = approach",
+        "ry = finger-closing",
+        "rz = palm-side",
+        "right-hand rotation",
+        "GC stays fixed",
+        "5 cm",
+        "8 cm",
+        "10 deg",
+        "At most 5 camera actions",
+        "costs one step",
+        INITIAL_VIEW,
+        '"reason"',
+        '{"stop": true',
+        '"tool"',
+        "exactly one JSON object",
+        *CAMERA_NAMES,
+        *(TOOL_DOCS[t] for t in ACTIVE_TOOLS),
+    ):
+        assert required in text, required
+    assert '"arm"' not in text and "dual_gripper" not in text and "view_left_" not in text
+    assert "expert." not in text  # only the offered tools
+
+
+def test_dual_arm_prompt_requires_the_arm_and_adds_dual_actions_and_view_targets():
+    text = system_prompt(DUAL, "active", ACTIVE_TOOLS)
+    for required in (
+        '"arm": "left"|"right"',
+        'require\n  "arm": "left" or "right"',
+        "dual_gripper.move_world",
+        "dual_gripper.open",
+        "left_gripper.close",
+        "camera.view_left_<view>",
+        "camera.view_both_<view>",
+    ):
+        assert required in text, required
+    single = system_prompt(SINGLE, "active", ACTIVE_TOOLS)
+    assert len(text) > len(single)
+
+
+@pytest.mark.parametrize("arms", [SINGLE, DUAL])
+def test_passive_prompt_has_the_five_views_in_order_and_no_camera_interface(arms):
+    text = system_prompt(arms, "passive", ["geometry.verify"])
+    assert "camera." not in text
+    for word in ("zoom", "yaw_", "pitch_", "5 cm", "8 cm", INITIAL_VIEW, "At most 5 camera"):
+        assert word not in text, word
+    positions = [text.index(f"{i}. {v}:") for i, v in enumerate(PASSIVE_VIEWS, 1)]
+    assert positions == sorted(positions)
+    assert "no labels" in text and "no camera actions" in text
+
+
+def test_prompt_arguments_are_checked_by_name():
+    with pytest.raises(ValueError, match=r"tools: camera\.history"):
+        system_prompt(SINGLE, "passive", ["camera.history"])
+    with pytest.raises(ValueError, match=r"tools: unknown tool 'camera\.peek'"):
+        system_prompt(SINGLE, "active", ["camera.peek"])
+    with pytest.raises(ValueError, match="protocol"):
+        system_prompt(SINGLE, "semi", [])
+    with pytest.raises(ValueError, match="arms"):
+        system_prompt(("middle",), "active", [])
+
+
+@pytest.mark.parametrize("arms", [SINGLE, DUAL])
+@pytest.mark.parametrize("protocol", ["active", "passive"])
+def test_system_prompt_passes_the_leak_checker(arms, protocol):
+    tools = [t for t in ALL_TOOLS if protocol == "active" or t != "camera.history"]
+    text = system_prompt(arms, protocol, tools)
+    assert find_leaks(text) == []
+    assert "table top" not in text.lower() and "0.741" not in text  # no scene coordinates
+
+
+# -- observation ------------------------------------------------------------------------------
+
+
+def sim_proprio(arms, gc=(0.28, -0.2, 0.95)):
+    """Proprioception made by the simulator's own formatter (`proprio_fields`)."""
+    a = len(arms)
+    rot = np.tile(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]), (1, a, 1, 1))
+    p = Proprio(
+        gc=np.tile(np.array(gc), (1, a, 1)),
+        ee=np.tile(np.array([0.28, -0.25, 0.95]), (1, a, 1)),
+        rot=rot,
+        quat=np.tile(np.array([0.0, 0.7071, 0.7071, 0.0]), (1, a, 1)),
+        rpy=np.tile(np.array([np.pi, 0.0, np.pi / 2]), (1, a, 1)),
+        fingers=np.full((1, a, 2), 0.045),
+        is_open=np.ones((1, a), bool),
+    )
+    return proprio_fields(p, 0, arms)
+
+
+def observation(arms=SINGLE, **overrides):
+    fields = dict(
+        step=3,
+        step_budget=50,
+        instruction="Pick up the red cube and lift it off the table.",
+        view="topdown",
+        proprio=sim_proprio(arms),
+        arms=arms,
+        feedback=ActionFeedback(valid=True, planner_success=False),
+        executed_actions=["move_world z-30mm", "camera.view_topdown"],
+        demonstration_summary={"grasp_region": "middle", "pre_close_checks": ["centred"]},
+        available_actions=['{"action": "gripper.close"}', '{"stop": true}'],
+    )
+    fields.update(overrides)
+    return build_observation(**fields)
+
+
+@pytest.mark.parametrize("arms", [SINGLE, DUAL])
+def test_observation_has_exactly_the_visible_fields(arms):
+    obs = observation(arms)
+    assert tuple(obs) == OBSERVATION_FIELDS
+    assert tuple(obs["robot"]) == arms
+    for fields in obs["robot"].values():
+        assert tuple(fields) == ARM_FIELDS
+        assert fields["last_action_valid"] is True and fields["last_planner_success"] is False
+    assert set(sim_proprio(arms)[arms[0]]) == set(PROPRIO_FIELDS)  # simulator and list agree
+
+
+def test_filter_rejects_any_field_outside_the_visible_set_naming_it():
+    proprio = sim_proprio(SINGLE)
+    proprio["right"]["object_pos"] = list(CUBE_POS)
+    with pytest.raises(VisibilityError, match=r"'robot\.right\.object_pos': not a model-visible"):
+        filter_proprio(proprio, SINGLE)
+    proprio = sim_proprio(SINGLE)
+    proprio["right"]["local_axes_world"]["cube_axis"] = [1.0, 0.0, 0.0]
+    with pytest.raises(VisibilityError, match=r"local_axes_world\.cube_axis"):
+        filter_proprio(proprio, SINGLE)
+    proprio = sim_proprio(SINGLE)
+    del proprio["right"]["control_eepose_quat"]
+    with pytest.raises(VisibilityError, match=r"control_eepose_quat': missing"):
+        filter_proprio(proprio, SINGLE)
+    with pytest.raises(VisibilityError, match=r"'robot\.left'"):
+        filter_proprio(sim_proprio(DUAL), SINGLE)
+    proprio = sim_proprio(SINGLE)
+    proprio["right"]["finger_center_xyz"] = [0.1, 0.2]
+    with pytest.raises(VisibilityError, match="finger_center_xyz': expected 3 numbers"):
+        filter_proprio(proprio, SINGLE)
+
+
+def test_rendered_observation_holds_the_fields_and_nothing_else():
+    obs = observation()
+    text = render_observation(obs)
+    block = re.search(r"```json\n(.*?)\n```", text, re.S)
+    assert block is not None
+    assert json.loads(block.group(1)) == obs["robot"]
+    outside = (text[: block.start()] + text[block.end() :]).splitlines()
+    assert outside == [
+        "Step 3 of 50 (48 left, this one included).",
+        "Instruction: Pick up the red cube and lift it off the table.",
+        "Current view: topdown",
+        "Robot state (world frame: positions in metres, angles in degrees, quaternion w x y z):",
+        "",
+        "Executed actions (2):",
+        "1. move_world z-30mm",
+        "2. camera.view_topdown",
+        "Demonstration summary:",
+        "```json",
+        *json.dumps(obs["demonstration_summary"], indent=1).splitlines(),
+        "```",
+        "Available actions:",
+        '{"action": "gripper.close"}',
+        '{"stop": true}',
+    ]
+    first = render_observation(observation(step=1, executed_actions=[], demonstration_summary=None))
+    assert "Executed actions: none" in first and "Demonstration summary: none" in first
+    assert '"last_action_valid": null' not in first  # feedback given above
+    assert render_observation(obs) == text  # stable
+
+
+def test_step_outside_the_budget_is_rejected():
+    with pytest.raises(VisibilityError, match="'step'"):
+        observation(step=51)
+
+
+def test_observation_turn_puts_text_first_and_the_bundle_in_fixed_order_without_labels():
+    images = {v: synthetic_image(seed=i) for i, v in enumerate(PASSIVE_VIEWS)}
+    shuffled = {v: images[v] for v in reversed(PASSIVE_VIEWS)}
+    turn = observation_turn("obs", shuffled)
+    assert turn.content == ("obs", *(images[v] for v in PASSIVE_VIEWS))
+    single = synthetic_image(seed=9)
+    assert observation_turn("obs", single).content == ("obs", single)
+    del shuffled["side"]
+    with pytest.raises(VisibilityError, match=r"images\.side"):
+        observation_turn("obs", shuffled)
+
+
+# -- leak checker -----------------------------------------------------------------------------
+
+
+def clean_request(gc=CUBE_POS) -> ChatRequest:
+    """A real first request whose gripper sits exactly at the cube (a legitimate grasp)."""
+    text = render_observation(observation(proprio=sim_proprio(SINGLE, gc)))
+    return ChatRequest(
+        (Turn.user(text, Image(b64="seedfovAseedfovA")),),  # base64 that spells privileged words
+        system_prompt(SINGLE, "active", ACTIVE_TOOLS),
+    )
+
+
+SECRETS = episode_secrets(
+    {"cube": CUBE_POS}, seed=1003, camera_positions={"head": (0, -0.58, 1.48)}
+)
+
+
+@pytest.mark.parametrize("api", ["openai_chat", "openai_responses", "anthropic"])
+def test_clean_request_passes_in_every_provider_body(api):
+    request = clean_request()
+    endpoint = ModelEndpoint(name="m", api=api, model="m")
+    body = encode_body(ADAPTERS[api].build_body(endpoint, request, GenerationOptions()))
+    assert find_leaks(body, SECRETS) == []
+    assert find_leaks(json.loads(body), SECRETS) == []
+    assert_model_visible(request, SECRETS)
+
+
+@pytest.mark.parametrize(
+    ("leak", "what"),
+    [
+        (f"The cube is at {list(CUBE_POS)}.", "object cube position"),
+        ("cube centre (123.4, 56.7, 766) mm", "object cube position"),
+        ("Scene 1003.", "seed"),
+        ('{"seed": 7}', "seed"),
+        ("head camera fovy 37", "fovy"),
+        ("vertical field of view: 55 deg", "field of view"),
+        ("camera at (0.0, -0.58, 1.48)", "camera head position"),
+        ('{"success": false}', '"success":'),
+        ("latched lift flag", "latched"),
+    ],
+)
+def test_leaks_are_caught_in_user_text_and_provider_bodies(leak, what):
+    request = clean_request()
+    leaky = ChatRequest(
+        (*request.turns[:-1], Turn.user(leak, *request.turns[-1].content)), request.system
+    )
+    found = find_leaks(leaky, SECRETS)
+    assert [f.what for f in found] == [what], found
+    endpoint = ModelEndpoint(name="m", api="anthropic", model="m")
+    body = encode_body(ADAPTERS["anthropic"].build_body(endpoint, leaky, GenerationOptions()))
+    assert [f.what for f in find_leaks(body, SECRETS)] == [what]
+    with pytest.raises(PrivilegeLeak, match=re.escape(what)):
+        assert_model_visible(body, SECRETS)
+
+
+def test_assistant_turns_and_small_numbers_are_not_leaks():
+    request = clean_request()
+    reply = Turn.assistant("I must not guess the seed; 37 and 1003 are just numbers to me.")
+    convo = ChatRequest((*request.turns, reply, Turn.user("Step 12 of 50. z-37mm")), request.system)
+    assert find_leaks(convo, SECRETS) == []
+    assert episode_secrets(seed=12) == []  # too short to tell from a step number
+
+
+# -- tools ------------------------------------------------------------------------------------
+
+
+def test_geometry_verify_gives_robot_geometry_and_nothing_about_the_scene():
+    geo = geometry_verify(DUAL)
+    g = geo["gripper"]
+    assert g["max_aperture_mm"] == 90.0
+    assert g["fingertip_beyond_gc_mm"] == 15.0
+    assert g["finger_length_mm"] > g["fingertip_beyond_gc_mm"]
+    assert set(g["axes"]) == {"rx", "ry", "rz"}
+    assert geo["end_effector_bounds_m"] == {
+        "x": [-0.55, 0.55],
+        "y": [-0.45, 0.35],
+        "z": [0.74, 1.35],
+    }
+    assert set(geo["arm_base_xyz_m"]) == {"left", "right"}
+    assert set(geometry_verify(SINGLE)["arm_base_xyz_m"]) == {"right"}
+    result = geometry_result(SINGLE)
+    assert json.loads(result.text)["tool"] == "geometry.verify" and result.images == ()
+    assert find_leaks(result.text, SECRETS) == []
+    assert "object" not in result.text.lower() and "camera" not in result.text.lower()
+    with pytest.raises(ValueError, match="arms"):
+        geometry_verify(("middle",))
+
+
+def test_camera_history_reattaches_the_image_or_names_the_valid_steps():
+    frames = {s: synthetic_image(seed=s) for s in (1, 2, 3, 5)}
+    result = camera_history(frames, 2)
+    assert result.ok and result.images == (frames[2],) and result.step == 2
+    assert json.loads(result.text)["step"] == 2
+    missing = camera_history(frames, 4)
+    assert not missing.ok and missing.images == ()
+    assert json.loads(missing.text)["error"] == (
+        "args.step: no image for step 4; valid steps: 1-3, 5"
+    )
+    assert "expected an integer" in camera_history(frames, True).text
+    assert "none yet" in camera_history({}, 1).text
