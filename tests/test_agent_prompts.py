@@ -266,7 +266,10 @@ def clean_request(gc=CUBE_POS) -> ChatRequest:
 
 
 SECRETS = episode_secrets(
-    {"cube": CUBE_POS}, seed=1003, camera_positions={"head": (0, -0.58, 1.48)}
+    {"cube": CUBE_POS},
+    seed=1003,
+    camera_positions={"head": (0.0, -0.58, 1.48)},
+    identifiers=["default", "shoe_3", "giver_grasped", "grasped"],
 )
 
 
@@ -292,6 +295,8 @@ def test_clean_request_passes_in_every_provider_body(api):
         ("camera at (0.0, -0.58, 1.48)", "camera head position"),
         ('{"success": false}', '"success":'),
         ("latched lift flag", "latched"),
+        ("the model is Shoe_3", "identifier shoe_3"),
+        ("giver_grasped: true", "identifier giver_grasped"),
     ],
 )
 def test_leaks_are_caught_in_user_text_and_provider_bodies(leak, what):
@@ -314,6 +319,8 @@ def test_assistant_turns_and_small_numbers_are_not_leaks():
     convo = ChatRequest((*request.turns, reply, Turn.user("Step 12 of 50. z-37mm")), request.system)
     assert find_leaks(convo, SECRETS) == []
     assert episode_secrets(seed=12) == []  # too short to tell from a step number
+    # Plain words are no identifiers to match: "grasped" is prose, and in the instruction.
+    assert [s.word for s in SECRETS if s.word] == ["shoe_3", "giver_grasped"]
 
 
 # -- tools ------------------------------------------------------------------------------------
@@ -353,3 +360,12 @@ def test_camera_history_reattaches_the_image_or_names_the_valid_steps():
     )
     assert "expected an integer" in camera_history(frames, True).text
     assert "none yet" in camera_history({}, 1).text
+
+
+def test_task_instructions_pass_the_leak_checker():
+    from vabench.tasks import base_tasks
+
+    tasks = base_tasks()
+    assert len(tasks) == 14
+    for task in tasks:
+        assert find_leaks(task.instruction) == [], task.name

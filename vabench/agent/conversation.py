@@ -255,7 +255,7 @@ class Conversation:
 
         users = [i for i, e in enumerate(entries) if e.turn.role == "user"]
         bundles = [i for i, e in enumerate(entries) if e.bundle]
-        always = {i for i in (users[-1:] + bundles[-1:])}
+        always = set(users[-1:] + bundles[-1:])
         for i in sorted(always, reverse=True):
             for j, part in enumerate(entries[i].turn.content):
                 if isinstance(part, Image) and id(part) not in kept_ids:

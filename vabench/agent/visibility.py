@@ -259,13 +259,16 @@ class Secret:
     A vector matches a run of consecutive numbers in the text (whatever separates them) within
     `tolerance` of `values`, in the given units or scaled by each of `scales` (a position in
     metres also matches when written in millimetres). A single integer matches an integer
-    token equal to it (used for seeds).
+    token equal to it (used for seeds). A `word` matches that identifier.
     """
 
     name: str
-    values: tuple[float, ...]
+    values: tuple[float, ...] = ()
     tolerance: float = 0.0
     scales: tuple[float, ...] = (1.0,)
+    word: str | None = None
+    """Instead of numbers: an identifier (an object model id such as "shoe_3", a latch name
+    such as "giver_grasped") matched as a whole word, case-insensitively."""
 
 
 POSITION_TOLERANCE_M = 0.0005
@@ -281,10 +284,22 @@ def episode_secrets(
     object_positions: Mapping[str, Sequence[float]] | None = None,
     seed: int | None = None,
     camera_positions: Mapping[str, Sequence[float]] | None = None,
+    identifiers: Sequence[str] = (),
 ) -> list[Secret]:
     """The secrets of one episode: each object's position and each camera's position (metres,
-    matched in m and mm), and the seed if it has at least `MIN_SEED_DIGITS` digits."""
-    secrets = []
+    matched in m and mm), the seed if it has at least `MIN_SEED_DIGITS` digits, and the
+    `identifiers` that contain an underscore or a digit (plain words such as "cube" or
+    "grasped" also belong to the instruction and to prose, so they cannot tell a leak).
+
+    For a task and a seed:
+    `episode_secrets({n: pos for n, (pos, _) in task.sample(seed).poses.items()}, seed,
+    {"head": HEAD_CAMERA_POS}, [*task.variants, *task.latches, *task.checkpoints])`.
+    """
+    secrets = [
+        Secret(f"identifier {word}", word=word)
+        for word in dict.fromkeys(identifiers)
+        if "_" in word or any(c.isdigit() for c in word)
+    ]
     for kind, positions in (("object", object_positions), ("camera", camera_positions)):
         for name, pos in (positions or {}).items():
             values = tuple(float(v) for v in pos)
@@ -303,7 +318,7 @@ def episode_secrets(
 
 @dataclass(frozen=True)
 class Leak:
-    kind: str  # "term", "key" or "value"
+    kind: str  # "term", "key", "value" or "identifier"
     what: str  # the matched identifier, or the secret's name
     where: str  # which message of the request
     excerpt: str
@@ -402,6 +417,8 @@ def _value_leaks(text: str, where: str, secrets: Sequence[Secret]) -> Iterator[L
     tokens = list(_NUMBER.finditer(text))
     numbers = [(t.group(), float(t.group())) for t in tokens]
     for secret in secrets:
+        if secret.word is not None:
+            continue
         i = _secret_match(secret, numbers)
         if i is not None:
             last = tokens[i + len(secret.values) - 1]
@@ -417,6 +434,12 @@ def find_leaks(body: Any, secrets: Sequence[Secret] = ()) -> list[Leak]:
             for m in pattern.finditer(text):
                 leaks.append(Leak(kind, m.group(), where, _excerpt(text, m.start(), m.end())))
         leaks.extend(_value_leaks(text, where, secrets))
+        for secret in secrets:
+            if secret.word is not None:
+                m = _term_pattern([secret.word]).search(text)
+                if m:
+                    excerpt = _excerpt(text, m.start(), m.end())
+                    leaks.append(Leak("identifier", secret.name, where, excerpt))
     return leaks
 
 
