@@ -175,8 +175,12 @@ Adjustments of the current view:
 - camera.move_left, camera.move_right, camera.move_up, camera.move_down: 5 cm along the
   image's left, right, up or down direction.
 - camera.zoom_in, camera.zoom_out: 8 cm forward or backward along the viewing direction.
-- camera.yaw_left, camera.yaw_right: turn 10 deg about the vertical (world z) axis.
-- camera.pitch_up, camera.pitch_down: tilt 10 deg about the camera's left axis.
+- camera.yaw_left, camera.yaw_right: turn the view 10 deg to the left or right about the
+  vertical (world z) axis.
+- camera.pitch_up, camera.pitch_down: tilt the view 10 deg up or down about the camera's left
+  axis.
+Turns keep the point the camera looks at in the middle of the image (the camera orbits it).
+After adjustments the view name reads e.g. "topdown (adjusted)".
 The camera stays inside a bounded region; a view never changes the world-frame meaning of
 robot actions."""
 
