@@ -105,8 +105,17 @@ class RequestRecord:
 class LocalServer:
     """The embedded server; start with `await start()` or `async with`."""
 
-    def __init__(self, config: ServerConfig | None = None, *, policy: Policy | None = None):
+    def __init__(
+        self,
+        config: ServerConfig | None = None,
+        *,
+        policy: Policy | None = None,
+        capture_bodies: bool = False,
+    ):
         self.config = config or ServerConfig()
+        self.bodies: list[tuple[str, bytes]] | None = [] if capture_bodies else None
+        """With `capture_bodies`: (api, raw body) of every request, for tests that inspect
+        exactly what a model would receive (the privilege-boundary test)."""
         rng = random.Random(self.config.seed)
         self._rng = random.Random(rng.random())
         self.faults = FaultPlan(self.config.faults, random.Random(rng.random()))
@@ -243,6 +252,8 @@ class LocalServer:
     ) -> web.StreamResponse:
         raw = await request.read()
         record.body_bytes = len(raw)
+        if self.bodies is not None:
+            self.bodies.append((adapter.name, raw))
         key = self.config.api_key
         if key is not None and adapter.server_key(request.headers) != key.get_secret_value():
             record.error = "missing or wrong API key"

@@ -214,6 +214,10 @@ class TaskBatch:
             self._observed = (self.batch.qpos(), self.batch.proprio())
         return self._observed
 
+    def observe(self) -> tuple[np.ndarray, Any]:
+        """qpos (host array) and `Proprio` of every slot, as of the last change."""
+        return self._observe()
+
     def checkpoint(self, slot: int) -> str | None:
         """Name of the last checkpoint the slot reached (None before the first)."""
         p = int(self.progress[slot])

@@ -1,0 +1,131 @@
+"""Micro-batching: requests from many episode coroutines, executed together off the event loop.
+
+Each episode awaits `submit(item)`. The first item of a batch opens a short window
+(`window_s`); when it closes, or as soon as `max_batch` items are waiting, everything waiting
+goes to `run(items)` in one call on a worker thread, and each episode gets its own result.
+Only one call runs at a time (the simulator batch and the render pool are single resources);
+items that arrive meanwhile form the next batch, so under load the window costs nothing: the
+next batch is already waiting when the previous call returns.
+
+A call that raises fails every item of its batch with the same exception: each episode
+decides what that means for it (the engine records an infrastructure error).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+@dataclass
+class BatchStats:
+    calls: int = 0
+    items: int = 0
+    busy_s: float = 0.0  # inside `run`
+    max_batch: int = 0
+    sizes: list[int] = field(default_factory=list)
+
+    @property
+    def mean_batch(self) -> float:
+        return self.items / self.calls if self.calls else 0.0
+
+
+class MicroBatcher(Generic[T, R]):
+    """Collects items for `run`, which returns one result per item, in order."""
+
+    def __init__(
+        self,
+        run: Callable[[Sequence[T]], Sequence[R]],
+        *,
+        window_s: float = 0.01,
+        max_batch: int | None = None,
+        name: str = "batch",
+    ):
+        if window_s < 0:
+            raise ValueError(f"window_s must be >= 0, got {window_s}")
+        if max_batch is not None and max_batch < 1:
+            raise ValueError(f"max_batch must be >= 1, got {max_batch}")
+        self._run = run
+        self.window_s = window_s
+        self.max_batch = max_batch
+        self.name = name
+        self.stats = BatchStats()
+        self._pending: list[tuple[T, asyncio.Future[R]]] = []
+        self._wake: asyncio.Event | None = None
+        self._full: asyncio.Event | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def submit(self, item: T) -> R:
+        loop = asyncio.get_running_loop()
+        if self._task is None or self._task.done():
+            self._wake, self._full = asyncio.Event(), asyncio.Event()
+            self._task = loop.create_task(self._dispatch(), name=f"{self.name}-dispatch")
+        assert self._wake is not None and self._full is not None
+        future: asyncio.Future[R] = loop.create_future()
+        self._pending.append((item, future))
+        self._wake.set()
+        if self.max_batch is not None and len(self._pending) >= self.max_batch:
+            self._full.set()
+        return await future
+
+    async def _dispatch(self) -> None:
+        assert self._wake is not None and self._full is not None
+        while True:
+            await self._wake.wait()
+            if self.window_s > 0 and not self._full.is_set():
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._full.wait(), self.window_s)
+            take = len(self._pending) if self.max_batch is None else self.max_batch
+            batch, self._pending = self._pending[:take], self._pending[take:]
+            if not self._pending:
+                self._wake.clear()
+            self._full.clear()
+            if self.max_batch is not None and len(self._pending) >= self.max_batch:
+                self._full.set()
+            live = [(item, fut) for item, fut in batch if not fut.cancelled()]
+            if not live:
+                continue
+            await self._execute(live)
+
+    async def _execute(self, batch: list[tuple[T, asyncio.Future[R]]]) -> None:
+        items = [item for item, _ in batch]
+        t0 = time.perf_counter()
+        try:
+            results = await asyncio.to_thread(self._run, items)
+            if len(results) != len(items):
+                raise RuntimeError(
+                    f"{self.name}: run returned {len(results)} results for {len(items)} items"
+                )
+        except Exception as err:  # every waiting episode learns of the failure
+            for _, fut in batch:
+                if not fut.done():
+                    fut.set_exception(err)
+            return
+        finally:
+            dt = time.perf_counter() - t0
+            self.stats.calls += 1
+            self.stats.items += len(items)
+            self.stats.busy_s += dt
+            self.stats.max_batch = max(self.stats.max_batch, len(items))
+            self.stats.sizes.append(len(items))
+        for (_, fut), result in zip(batch, results, strict=True):
+            if not fut.done():
+                fut.set_result(result)
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        for _, fut in self._pending:
+            if not fut.done():
+                fut.cancel()
+        self._pending = []

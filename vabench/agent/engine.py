@@ -1,0 +1,466 @@
+"""The episode engine: the observe-decide-act loop of one episode, many at once.
+
+Spec: FACTS.md ("Model-facing protocol", "Observation sent each decision") and the paper's
+harness appendix. One episode:
+
+1. takes a slot of the task's `SimService`, resets its seed there (batched with other resets),
+   and puts the camera at the head view "center_high" (active) or renders the five fixed
+   views (passive);
+2. per environment step: sends the observation (text + the clean image(s), rendered through
+   the `RenderService`) and asks the model for one decision, then
+   - a malformed or invalid reply gets a repair turn (the error naming the field, plus the
+     current observation), at most `MAX_REPAIRS_PER_DECISION` per decision;
+   - a tool call (`geometry.verify`, `camera.history`) is answered in the thread and the
+     model is asked again; at most `MAX_TOOL_ROUND_TRIPS` model calls per decision;
+   - a camera action moves only the camera (new image, one step of the budget);
+   - a robot action goes to the simulator (batched with the other episodes' actions, one
+     step of the budget); the success predicate and checkpoints come back with it;
+   - stop ends the episode;
+3. ends on success, stop, budget exhausted, too many invalid replies or round trips, or an
+   infrastructure error (recorded as such: never a success or a failure).
+
+Only what `vabench.agent.visibility` lists reaches the model: the robot state goes through
+`filter_proprio`; object poses, seeds, contacts, checker state and camera numbers stay on this
+side (the snapshot's evaluator fields feed only the renderer and the camera model).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import functools
+import time
+from collections.abc import AsyncIterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from vabench import protocol as P
+from vabench.agent.conversation import ContextLimits, Conversation
+from vabench.agent.observation import PASSIVE_VIEW_NAME, ActionFeedback, observation_text
+from vabench.agent.prompts import system_prompt
+from vabench.agent.records import EpisodeRecorder, EpisodeResult, TokenTotals
+from vabench.agent.simulation import RenderService, SimService, SlotSnapshot
+from vabench.agent.tools import camera_history, geometry_result
+from vabench.llm_pool.config import GenerationOptions
+from vabench.llm_pool.errors import InfrastructureError, RequestRejected
+from vabench.llm_pool.messages import ChatRequest, Image, Usage
+from vabench.llm_pool.pool import LLMPool
+from vabench.render import camera as cam
+from vabench.render.worker import ImageSettings, RenderError, RenderItem, RenderPool
+from vabench.tasks.base import Task
+
+Protocol = Literal["active", "passive"]
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """What to run: one seed of one task against one model."""
+
+    task: str
+    seed: int
+    model: str
+    protocol: Protocol = "active"
+    run: int = 0
+    out_dir: Path | None = None
+    demonstration_summary: str | dict[str, Any] | None = None
+    step_budget: int | None = None
+    """Override of the task's step budget for smoke runs and benchmarks (None: the task's;
+    the record states the budget used)."""
+
+
+@dataclass(frozen=True)
+class EngineSettings:
+    limits: ContextLimits = field(default_factory=ContextLimits)
+    generation: GenerationOptions | None = None
+
+
+@dataclass
+class TaskServices:
+    """The shared services episodes of one task run on."""
+
+    sim: SimService
+    render: RenderService
+    llm: LLMPool
+    settings: EngineSettings = field(default_factory=EngineSettings)
+
+
+class _EpisodeEnd(Exception):
+    def __init__(self, status: str, stop_reason: str, error: str | None = None):
+        super().__init__(stop_reason)
+        self.status, self.stop_reason, self.error = status, stop_reason, error
+
+
+@dataclass
+class _Counts:
+    steps: int = 0
+    robot: int = 0
+    camera: int = 0
+    invalid_outputs: int = 0
+    invalid_actions: int = 0
+    tools: int = 0
+    calls: int = 0
+    usage: Usage = field(default_factory=Usage)
+    cost: float = 0.0
+
+
+class Episode:
+    """One episode's state and loop; `await Episode(spec, services).run()`."""
+
+    def __init__(self, spec: EpisodeSpec, services: TaskServices):
+        if spec.protocol not in ("active", "passive"):
+            raise ValueError(f"protocol must be 'active' or 'passive', got {spec.protocol!r}")
+        self.spec = spec
+        self.svc = services
+        self.task = services.sim.task
+        if spec.task != self.task.name:
+            raise ValueError(f"episode of {spec.task!r} on the services of {self.task.name!r}")
+        self.arms = tuple(self.task.arms)
+        self.budget = self.task.step_budget if spec.step_budget is None else spec.step_budget
+        if self.budget < 1:
+            raise ValueError(f"step_budget must be >= 1, got {spec.step_budget}")
+        tools = P.available_tools(demonstration=False)
+        if spec.protocol == "passive":  # passive requests carry only the current bundle
+            tools = tuple(t for t in tools if t != "camera.history")
+        self.ctx = P.DecisionContext(self.arms, spec.protocol, tools)
+        self.available = P.available_actions(self.arms, spec.protocol, tools)
+        self.conv = Conversation(
+            system_prompt(self.arms, spec.protocol, list(tools)),
+            protocol=spec.protocol,
+            limits=services.settings.limits,
+        )
+        self.rec = EpisodeRecorder(spec.out_dir)
+        self.counts = _Counts()
+        self.kinds: list[str] = []  # decision kinds executed, for the camera-chain rule
+        self.executed: list[str] = []  # labels shown to the model
+        self.frames: dict[int, Image] = {}  # observation step -> the image the model saw
+        self.feedback = ActionFeedback()
+        self.camera: cam.CameraPose | None = None
+        self.snapshot: SlotSnapshot | None = None
+        self.success = False
+        self.t0 = time.time()
+
+    # -- the loop ---------------------------------------------------------------------------
+    async def run(self) -> EpisodeResult:
+        spec = self.spec
+        self.rec.event(
+            "episode_start",
+            task=spec.task,
+            seed=spec.seed,
+            model=spec.model,
+            protocol=spec.protocol,
+            run=spec.run,
+            step_budget=self.budget,
+            arms=list(self.arms),
+            tools=list(self.ctx.tools),
+        )
+        slot = self.svc.sim.acquire()
+        try:
+            await self._reset(slot)
+            while self.counts.steps < self.budget:
+                await self._decide_and_act(slot)
+            raise _EpisodeEnd("failure", "budget_exhausted")
+        except _EpisodeEnd as end:
+            return self._finish(end.status, end.stop_reason, end.error)
+        except (InfrastructureError, RenderError) as err:
+            return self._finish("infrastructure_error", "infrastructure_error", str(err))
+        except RequestRejected as err:
+            return self._finish("error", "request_rejected", f"{err.kind}: {err}")
+        except Exception as err:  # a harness bug: recorded, never scored
+            self.rec.event("harness_error", error=f"{type(err).__name__}: {err}")
+            return self._finish("error", "harness_error", f"{type(err).__name__}: {err}")
+        finally:
+            self.svc.sim.release(slot)
+            self.rec.close()
+
+    async def _reset(self, slot: int) -> None:
+        reply = await self.svc.sim.reset(slot, self.spec.seed)
+        assert reply.report is not None
+        self.rec.event(
+            "reset",
+            ok=reply.report.ok,
+            reason=reply.report.reason,
+            drift_deg=round(reply.report.max_drift_deg, 4),
+        )
+        if not reply.report.ok:
+            raise _EpisodeEnd("error", "reset_failed", reply.report.reason)
+        self.snapshot = reply.snapshot
+        if self.spec.protocol == "active":
+            self.camera = cam.head_view(reply.snapshot.gcs, self.arms)
+
+    async def _decide_and_act(self, slot: int) -> None:
+        step = self.counts.steps + 1
+        text, images = await self._observe(step)
+        self.conv.add_observation(text, images, step)
+        decision = await self._decide(step, text, images)
+        label = P.decision_label(decision)
+        self.rec.event(
+            "decision",
+            step=step,
+            kind=decision.kind,
+            label=label,
+            reason=decision.reason,
+            decision=decision.model_dump(exclude_none=True),
+        )
+        if isinstance(decision, P.Stop):
+            raise _EpisodeEnd("failure", "model_stop")
+        self.counts.steps += 1
+        self.kinds.append(decision.kind)
+        self.executed.append(label)
+        if isinstance(decision, P.CameraAction):
+            self._camera_action(step, decision)
+        else:
+            await self._robot_action(slot, step, decision)
+
+    # -- observing ----------------------------------------------------------------------------
+    async def _observe(self, step: int) -> tuple[str, Image | dict[str, Image]]:
+        snap = self.snapshot
+        assert snap is not None
+        if self.spec.protocol == "active":
+            assert self.camera is not None
+            poses, view = [self.camera], self.camera.label
+        else:
+            poses, view = cam.passive_bundle(snap.gcs, self.arms), PASSIVE_VIEW_NAME
+        jpegs = await self.svc.render.render(
+            [RenderItem(snap.qpos, snap.variant, p) for p in poses]
+        )
+        text = observation_text(
+            step=step,
+            step_budget=self.budget,
+            instruction=self.task.instruction,
+            view=view,
+            proprio=snap.proprio,
+            arms=self.arms,
+            feedback=self.feedback,
+            executed_actions=self.executed,
+            demonstration_summary=self.spec.demonstration_summary,
+            available_actions=self.available,
+        )
+        if self.spec.protocol == "active":
+            image = Image(jpegs[0])
+            self.frames[step] = image
+            frame = self.rec.frame(step, jpegs[0])
+            self.rec.event("observation", step=step, view=view, frames=[frame])
+            return text, image
+        bundle = {p.view: Image(j) for p, j in zip(poses, jpegs, strict=True)}
+        files = [
+            self.rec.frame(step, j, p.view, i)
+            for i, (p, j) in enumerate(zip(poses, jpegs, strict=True))
+        ]
+        self.rec.event("observation", step=step, view="passive_bundle", frames=files)
+        return text, bundle
+
+    # -- deciding -----------------------------------------------------------------------------
+    async def _call_model(self, step: int) -> str:
+        event = await self.conv.compact_if_needed(self._summarize)
+        if event is not None:
+            self.rec.event("compaction", step=step, **event.record())
+        request = self.conv.request(self.svc.settings.generation)
+        self.rec.event(
+            "request",
+            step=step,
+            turns=len(request.turns),
+            images=len(request.images),
+            est_tokens=self.conv.estimate_tokens(),
+        )
+        result = await self.svc.llm.complete(self.spec.model, request)
+        self._account(result.usage, result.cost_usd)
+        self.conv.add_reply(result.text)
+        self.rec.event(
+            "reply",
+            step=step,
+            text=result.text,
+            finish_reason=result.finish_reason,
+            latency_s=round(result.latency_s, 4),
+            attempts=result.attempts,
+            usage=dataclasses.asdict(result.usage),
+            cost_usd=result.cost_usd,
+            reasoning=result.reasoning,
+            failures=list(result.failures),
+        )
+        return result.text
+
+    async def _summarize(self, request: ChatRequest) -> str:
+        result = await self.svc.llm.complete(self.spec.model, request)
+        self._account(result.usage, result.cost_usd)
+        return result.text
+
+    def _account(self, usage: Usage, cost: float) -> None:
+        self.counts.calls += 1
+        self.counts.usage = self.counts.usage + usage
+        self.counts.cost += cost
+
+    async def _decide(
+        self, step: int, text: str, images: Image | Mapping[str, Image]
+    ) -> P.Decision:
+        repairs = 0
+        for _ in range(P.MAX_TOOL_ROUND_TRIPS):
+            reply = await self._call_model(step)
+            ctx = dataclasses.replace(self.ctx, camera_chain=P.camera_chain_length(self.kinds))
+            try:
+                decision = P.parse_decision(reply, ctx)
+            except P.DecisionError as err:
+                self.counts.invalid_outputs += 1
+                self.rec.event(
+                    "rejection", step=step, field=err.field, message=str(err), repair=repairs + 1
+                )
+                if repairs >= P.MAX_REPAIRS_PER_DECISION:
+                    raise _EpisodeEnd("failure", "invalid_output", str(err)) from None
+                repairs += 1
+                self.conv.add_repair(str(err), text, images, step)
+                continue
+            if isinstance(decision, P.ToolCall):
+                self._tool(step, decision)
+                continue
+            return decision
+        raise _EpisodeEnd(
+            "failure",
+            "round_trip_limit",
+            f"{P.MAX_TOOL_ROUND_TRIPS} model calls without an environment decision",
+        )
+
+    def _tool(self, step: int, call: P.ToolCall) -> None:
+        self.counts.tools += 1
+        if call.name == "geometry.verify":
+            result = geometry_result(self.arms)
+        elif call.name == "camera.history":
+            result = camera_history(self.frames, call.args.step)  # type: ignore[union-attr]
+        else:  # demonstration tools arrive with the demonstrations issue
+            raise _EpisodeEnd("error", "harness_error", f"tool {call.name} is not implemented")
+        self.rec.event(
+            "tool",
+            step=step,
+            label=P.decision_label(call),
+            ok=result.ok,
+            result=result.text,
+            images=len(result.images),
+        )
+        self.conv.add_tool_result(result.text, result.images, step=result.step)
+
+    # -- acting -------------------------------------------------------------------------------
+    def _camera_action(self, step: int, action: P.CameraAction) -> None:
+        assert self.camera is not None and self.snapshot is not None
+        self.camera = cam.apply_camera_action(
+            self.camera, action.action, self.snapshot.gcs, self.arms
+        )
+        self.counts.camera += 1
+        self.feedback = ActionFeedback(valid=True, planner_success=None)
+        self.rec.event(
+            "camera", step=step, label=action.action, reason=action.reason, view=self.camera.label
+        )
+
+    async def _robot_action(self, slot: int, step: int, action: Any) -> None:
+        reply = await self.svc.sim.act(slot, action)
+        out = reply.outcome
+        assert out is not None
+        res = out.result
+        self.snapshot = reply.snapshot
+        self.counts.robot += 1
+        if not (res.valid and res.planner_success):
+            self.counts.invalid_actions += 1
+        self.feedback = ActionFeedback(valid=res.valid, planner_success=res.planner_success)
+        self.rec.event(
+            "action",
+            step=step,
+            label=res.label or P.decision_label(action),
+            reason=action.reason,
+            valid=res.valid,
+            error=res.error,
+            planner_success=res.planner_success,
+            executed=res.executed,
+            clipped=res.clipped,
+            executed_mm=res.executed_mm,
+            proprio=reply.snapshot.proprio,
+            checks=out.checks,
+            progress=out.progress,
+            success=out.success,
+        )
+        if out.success:
+            self.success = True
+            raise _EpisodeEnd("success", "success")
+
+    # -- ending -------------------------------------------------------------------------------
+    def _finish(self, status: str, stop_reason: str, error: str | None) -> EpisodeResult:
+        c, u = self.counts, self.counts.usage
+        progress = self.snapshot.progress if self.snapshot is not None else 0
+        result = EpisodeResult(
+            task=self.spec.task,
+            seed=self.spec.seed,
+            model=self.spec.model,
+            protocol=self.spec.protocol,
+            run=self.spec.run,
+            status=status,  # type: ignore[arg-type]
+            success=status == "success",
+            stop_reason=stop_reason,
+            error=error,
+            steps_used=c.steps,
+            step_budget=self.budget,
+            robot_actions=c.robot,
+            camera_actions=c.camera,
+            invalid_outputs=c.invalid_outputs,
+            invalid_actions=c.invalid_actions,
+            tool_calls=c.tools,
+            model_calls=c.calls,
+            compactions=len(self.conv.compactions),
+            checkpoints_reached=list(self.task.checkpoints[:progress]),
+            progress=progress,
+            n_checkpoints=len(self.task.checkpoints),
+            tokens=TokenTotals(
+                input=u.input_tokens,
+                cached_input=u.cached_input_tokens,
+                cache_write=u.cache_write_tokens,
+                output=u.output_tokens,
+                reasoning=u.reasoning_tokens or 0,
+            ),
+            cost_usd=round(c.cost, 6),
+            wall_s=round(time.time() - self.t0, 3),
+            started_at=round(self.t0, 3),
+        )
+        return self.rec.finish(result)
+
+
+async def run_episode(spec: EpisodeSpec, services: TaskServices) -> EpisodeResult:
+    return await Episode(spec, services).run()
+
+
+@contextlib.asynccontextmanager
+async def task_services(
+    task: Task,
+    n_slots: int,
+    llm: LLMPool,
+    render_pool: RenderPool,
+    *,
+    backend: str = "mjx",
+    image: ImageSettings | None = None,
+    settings: EngineSettings | None = None,
+    sim_window_s: float = 0.01,
+    render_window_s: float = 0.005,
+    **batch_kwargs: Any,
+) -> AsyncIterator[TaskServices]:
+    """The services for up to `n_slots` concurrent episodes of `task` (building the simulator
+    batch, which compiles under MJX, runs off the event loop)."""
+    sim = await asyncio.to_thread(
+        functools.partial(
+            SimService, task, n_slots, backend=backend, window_s=sim_window_s, **batch_kwargs
+        )
+    )
+    render = RenderService(
+        render_pool, task.name, image or ImageSettings(), window_s=render_window_s
+    )
+    try:
+        yield TaskServices(sim, render, llm, settings or EngineSettings())
+    finally:
+        await sim.close()
+        await render.close()
+
+
+async def run_episodes(specs: Sequence[EpisodeSpec], services: TaskServices) -> list[EpisodeResult]:
+    """Run episodes of one task concurrently (at most the batch's slots at once)."""
+    gate = asyncio.Semaphore(services.sim.n_slots)
+
+    async def one(spec: EpisodeSpec) -> EpisodeResult:
+        async with gate:
+            return await run_episode(spec, services)
+
+    return list(await asyncio.gather(*(one(s) for s in specs)))

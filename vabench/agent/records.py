@@ -1,0 +1,192 @@
+"""Episode records: the append-only event log, the frames the model saw, and the result.
+
+Layout (docs/DESIGN.md, "Run directory"), under the episode's directory:
+
+    events.jsonl          one JSON object per line, appended and flushed as it happens
+    frames/step_NNN.jpg   the clean image the model saw with the observation of step NNN
+                          ("Step NNN of B"; step_001 right after reset), the numbering the
+                          model uses in camera.history; passive: step_NNN_K_<view>.jpg,
+                          K = 0..4 in the bundle's fixed order
+    result.json           written once, atomically, when the episode ends
+
+Every line and the result carry `"v": RECORD_VERSION`. Events are versioned dicts rather
+than one pydantic model per type: the engine adds fields as it learns more, and readers
+(the sweep's resume logic, the report) key on `type` and ignore what they do not know.
+
+Status vocabulary (`EpisodeResult.status`): "success" and "failure" are scored; an
+"infrastructure_error" (provider or renderer outlasted its retries) is re-run by the sweep and
+never scored; "error" is a harness or configuration problem (a seed that fails its reset, a
+request the provider rejects as malformed) that re-running will not fix, also never scored.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+RECORD_VERSION = 1
+
+Status = Literal["success", "failure", "infrastructure_error", "error"]
+SCORED: tuple[Status, ...] = ("success", "failure")
+
+
+class TokenTotals(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    input: int = 0
+    cached_input: int = 0
+    cache_write: int = 0
+    output: int = 0
+    reasoning: int = 0
+
+
+class EpisodeResult(BaseModel):
+    """result.json: how one episode ended."""
+
+    model_config = ConfigDict(extra="forbid")
+    v: int = RECORD_VERSION
+    task: str
+    seed: int
+    model: str
+    protocol: Literal["active", "passive"]
+    run: int
+    status: Status
+    success: bool
+    stop_reason: str
+    """success | model_stop | budget_exhausted | invalid_output | round_trip_limit |
+    infrastructure_error | request_rejected | reset_failed | harness_error"""
+    error: str | None = None
+    steps_used: int = 0
+    step_budget: int
+    robot_actions: int = 0
+    camera_actions: int = 0
+    invalid_outputs: int = 0
+    """Replies rejected by the protocol (each got a repair turn, or ended the episode)."""
+    invalid_actions: int = 0
+    """Executed robot actions the simulator refused (invalid for the scene) or could not plan."""
+    tool_calls: int = 0
+    model_calls: int = 0
+    compactions: int = 0
+    checkpoints_reached: list[str] = Field(default_factory=list)
+    progress: int = 0
+    n_checkpoints: int
+    tokens: TokenTotals = Field(default_factory=TokenTotals)
+    cost_usd: float = 0.0
+    wall_s: float = 0.0
+    started_at: float = 0.0
+
+    @property
+    def scored(self) -> bool:
+        return self.status in SCORED
+
+
+class EpisodeRecorder:
+    """Writes one episode's records; with `directory=None` it keeps events in memory only."""
+
+    def __init__(self, directory: Path | str | None):
+        self.directory = Path(directory) if directory is not None else None
+        self.events: list[dict[str, Any]] = []
+        self._file = None
+        self._seq = 0
+        if self.directory is not None:
+            if (self.directory / "result.json").exists():
+                raise FileExistsError(
+                    f"{self.directory} already holds a finished episode; refusing to overwrite"
+                )
+            self._set_aside_partial()
+            (self.directory / "frames").mkdir(parents=True, exist_ok=True)
+            self._file = open(self.directory / "events.jsonl", "a", encoding="utf-8")  # noqa: SIM115
+
+    def _set_aside_partial(self) -> None:
+        """An interrupted earlier attempt (events but no result) is kept, renamed, never
+        appended to: a re-run starts a clean log."""
+        assert self.directory is not None
+        events = self.directory / "events.jsonl"
+        if not events.exists():
+            return
+        n = 1
+        while (self.directory / f"partial_{n}").exists():
+            n += 1
+        aside = self.directory / f"partial_{n}"
+        aside.mkdir()
+        events.rename(aside / "events.jsonl")
+        if (self.directory / "frames").exists():
+            (self.directory / "frames").rename(aside / "frames")
+
+    def event(self, type_: str, **fields: Any) -> dict[str, Any]:
+        record = {
+            "v": RECORD_VERSION,
+            "seq": self._seq,
+            "t": round(time.time(), 4),
+            "type": type_,
+            **fields,
+        }
+        self._seq += 1
+        self.events.append(record)
+        if self._file is not None:
+            self._file.write(json.dumps(record, default=_json_default) + "\n")
+            self._file.flush()
+        return record
+
+    def frame(
+        self, step: int, jpeg: bytes, view: str | None = None, index: int | None = None
+    ) -> str:
+        """Store one model image; returns its path relative to the episode directory."""
+        name = f"step_{step:03d}.jpg" if index is None else f"step_{step:03d}_{index}_{view}.jpg"
+        rel = f"frames/{name}"
+        if self.directory is not None:
+            (self.directory / rel).write_bytes(jpeg)
+        return rel
+
+    def finish(self, result: EpisodeResult) -> EpisodeResult:
+        self.event(
+            "end",
+            status=result.status,
+            stop_reason=result.stop_reason,
+            success=result.success,
+            error=result.error,
+        )
+        if self.directory is not None:
+            tmp = self.directory / "result.json.tmp"
+            tmp.write_text(result.model_dump_json(indent=1), encoding="utf-8")
+            os.replace(tmp, self.directory / "result.json")
+        self.close()
+        return result
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, BaseModel):
+        return value.model_dump(exclude_none=True)
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def read_events(directory: Path | str) -> list[dict[str, Any]]:
+    """The events of one episode (a truncated last line, from a crash mid-write, is dropped)."""
+    events = []
+    with open(Path(directory) / "events.jsonl", encoding="utf-8") as f:
+        for line in f:
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:
+                break
+    return events
+
+
+def read_result(directory: Path | str) -> EpisodeResult | None:
+    path = Path(directory) / "result.json"
+    if not path.exists():
+        return None
+    return EpisodeResult.model_validate_json(path.read_text(encoding="utf-8"))

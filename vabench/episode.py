@@ -1,0 +1,164 @@
+"""Run one episode against a configured model and print its trajectory.
+
+    python -m vabench.episode --task place_single_cube --seed 1000 --model local \
+        [--config models.yaml] [--protocol active|passive] [--out DIR] [--backend mjx|c]
+
+Without `--config`, the model is the embedded server (started here, policy `--policy`,
+default a random valid actor), reached over real HTTP on loopback. With `--config`, the
+model comes from the file's `models:` list (the sweep's schema; keys from the environment
+variables the entries name). Records go to `--out` (default
+`runs/episodes/<model>/<protocol>/<task>/seed_<S>/run_<R>`): events.jsonl, frames/,
+result.json. The exit code is 0 for a finished episode (success or failure), 1 for an error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.records import EpisodeResult
+from vabench.llm_pool.config import ConfigError, load_endpoints
+from vabench.llm_pool.policies import POLICIES
+from vabench.llm_pool.pool import LLMPool
+from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.render.worker import ImageSettings, RenderPool
+
+
+def load_models(path: Path) -> list[Any]:
+    """The `models:` list of a YAML file (a sweep config or a file of endpoints)."""
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(str(path), f"cannot read: {err}") from None
+    if not isinstance(data, dict) or "models" not in data:
+        raise ConfigError("models", f"{path} has no top-level 'models:' list")
+    return load_endpoints(data["models"])
+
+
+def print_trajectory(events: Sequence[dict[str, Any]], result: EpisodeResult) -> None:
+    for e in events:
+        kind = e["type"]
+        if kind == "reset":
+            print(f"reset: {'ok' if e['ok'] else 'FAILED ' + str(e['reason'])}")
+        elif kind == "rejection":
+            print(f"  step {e['step']:>3}  rejected (repair {e['repair']}): {e['message']}")
+        elif kind == "tool":
+            print(f"  step {e['step']:>3}  {e['label']}" + ("" if e["ok"] else "  (error)"))
+        elif kind == "camera":
+            print(f"  step {e['step']:>3}  {e['label']:<38} -> view {e['view']}")
+        elif kind == "action":
+            status = (
+                "ok"
+                if e["valid"] and e["planner_success"]
+                else ("invalid: " + str(e["error"]) if not e["valid"] else "planner failed")
+            )
+            flags = f"progress {e['progress']}" + ("  SUCCESS" if e["success"] else "")
+            print(f"  step {e['step']:>3}  {e['label']:<38} {status:<16} {flags}")
+            if e.get("reason"):
+                print(f"            reason: {e['reason']}")
+    print(
+        f"{result.status}: {result.stop_reason}; {result.steps_used}/{result.step_budget} steps "
+        f"({result.robot_actions} robot, {result.camera_actions} camera), "
+        f"{result.invalid_outputs} invalid replies, checkpoints {result.checkpoints_reached}, "
+        f"{result.model_calls} model calls, {result.tokens.input + result.tokens.cached_input} "
+        f"input / {result.tokens.output} output tokens, ${result.cost_usd:.4f}, "
+        f"{result.wall_s:.1f} s"
+    )
+    if result.error:
+        print(f"error: {result.error}")
+
+
+async def run(args: argparse.Namespace) -> EpisodeResult:
+    from vabench.tasks import get_task
+
+    task = get_task(args.task)
+    server: LocalServer | None = None
+    if args.config:
+        endpoints = load_models(Path(args.config))
+        names = [e.name for e in endpoints]
+        if args.model not in names:
+            raise ConfigError("--model", f"{args.model!r} is not in {args.config}; models: {names}")
+    else:
+        config = ServerConfig(policy=args.policy, seed=args.seed)
+        server = await LocalServer(config).start()
+        endpoints = load_endpoints([server.endpoint_config(args.model, "openai_chat")])
+    out = (
+        Path(args.out)
+        if args.out
+        else Path("runs/episodes")
+        / args.model
+        / args.protocol
+        / (f"{args.task}/seed_{args.seed}/run_{args.run}")
+    )
+    spec = EpisodeSpec(
+        args.task, args.seed, args.model, args.protocol, args.run, out, step_budget=args.max_steps
+    )
+    image = ImageSettings(args.width, args.height, args.quality)
+    try:
+        with RenderPool(
+            workers=1, platform=args.platform, max_size=(args.width, args.height)
+        ) as rp:
+            print(f"renderer: {rp.gl_info}", file=sys.stderr)
+            async with (
+                LLMPool(endpoints) as llm,
+                task_services(task, 1, llm, rp, backend=args.backend, image=image) as services,
+            ):
+                episode = Episode(spec, services)
+                result = await episode.run()
+    finally:
+        if server is not None:
+            await server.stop()
+    print_trajectory(episode.rec.events, result)
+    print(f"records: {out}", file=sys.stderr)
+    return result
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m vabench.episode",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--task", required=True)
+    p.add_argument("--seed", type=int, required=True)
+    p.add_argument("--model", default="local", help="endpoint name (default: local)")
+    p.add_argument("--config", help="YAML with a models: list (default: embedded server)")
+    p.add_argument(
+        "--policy",
+        default="random_action",
+        choices=sorted(POLICIES),
+        help="embedded server policy (without --config)",
+    )
+    p.add_argument("--protocol", choices=("active", "passive"), default="active")
+    p.add_argument("--run", type=int, default=0)
+    p.add_argument("--out")
+    p.add_argument("--backend", choices=("mjx", "c"), default="mjx")
+    p.add_argument("--platform", choices=("auto", "egl", "osmesa"), default="auto")
+    p.add_argument("--width", type=int, default=1280)
+    p.add_argument("--height", type=int, default=960)
+    p.add_argument("--quality", type=int, default=95)
+    p.add_argument("--max-steps", type=int, help="cap the step budget (smoke runs)")
+    p.add_argument("--json", action="store_true", help="print result.json instead of the text")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    try:
+        result = asyncio.run(run(args))
+    except (ConfigError, KeyError, FileExistsError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(result.model_dump(), indent=1))
+    return 0 if result.scored else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
