@@ -179,6 +179,7 @@ class Episode:
         assert reply.report is not None
         self.rec.event(
             "reset",
+            slot=slot,
             ok=reply.report.ok,
             reason=reply.report.reason,
             drift_deg=round(reply.report.max_drift_deg, 4),
