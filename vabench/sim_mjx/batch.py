@@ -278,7 +278,11 @@ class BatchBase:
     n_substeps: int
     objects: list[tuple[str, int]]
 
-    def _setup(self, models: mujoco.MjModel | Sequence[mujoco.MjModel], n_slots: int) -> None:
+    def _setup(
+        self, models: mujoco.MjModel | Sequence[mujoco.MjModel], n_slots: int, lanes: int
+    ) -> None:
+        """`lanes`: see `in_lanes`; every per-slot computation of the batch uses it, so a slot's
+        results never depend on the batch size (n_slots must be a multiple of lanes)."""
         if n_slots < 1:
             raise ValueError(f"n_slots must be >= 1, got {n_slots}")
         self.models = [models] if isinstance(models, mujoco.MjModel) else list(models)
@@ -291,9 +295,8 @@ class BatchBase:
         self.n_substeps = ctl.substeps(model.opt.timestep)
         self.objects = free_objects(model)
         self._dtype = np.dtype(jnp.zeros(()).dtype)
-        self._proprio = jax.jit(
-            jax.vmap(functools.partial(proprio_slot, self.layout), in_axes=(None, 0, 0))
-        )
+        self.lanes = lanes
+        self._proprio = jax.jit(in_lanes(functools.partial(proprio_slot, self.layout), 2, lanes))
 
     # -- to implement -----------------------------------------------------------------------
     def _execute(self, rows: CommandRows) -> StepInfo:
@@ -448,7 +451,7 @@ class SimBatch(BatchBase):
             # Accelerators: round small batches up to a power of two so lanes stay few shapes.
             self.lanes = min(DEFAULT_LANES.get(platform, 256), 1 << (n_slots - 1).bit_length())
         padded = -(-n_slots // self.lanes) * self.lanes
-        self._setup(model, padded)
+        self._setup(model, padded, self.lanes)
         model = self.model
         self.n_requested = n_slots
         self.variants = ModelVariants(self.models, impl=impl, device=device)

@@ -19,7 +19,7 @@ from mujoco import rollout
 
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
-from vabench.sim_mjx.batch import BatchBase, StepInfo, ctrl_sequence_slot
+from vabench.sim_mjx.batch import BatchBase, StepInfo, ctrl_sequence_slot, in_lanes
 from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import check_same_structure
 
@@ -35,22 +35,25 @@ class CpuBatch(BatchBase):
         n_slots: int,
         threads: int = 0,
     ):
-        self._setup(model, n_slots)
+        self._setup(model, n_slots, lanes=1)
         check_same_structure(self.models)
         model = self.model
         self.threads = threads
         self._datas = [mujoco.MjData(m) for m in self.models]
         self._nstate = mujoco.mj_stateSize(model, _STATE)
         self._state = np.zeros((n_slots, self._nstate))
+        # The solver's warm start is per slot too: left in a shared MjData it would carry one
+        # slot's last accelerations into the next slot simulated, so results would depend on
+        # which episodes share the batch.
+        self._warm = np.zeros((n_slots, model.nv))
         self._ctrl = np.zeros((n_slots, model.nu))
         self._grip_open = np.ones((n_slots, len(self.arms)), bool)
         self._init_qpos = np.zeros((n_slots, model.nq))
         self._variant = np.zeros(n_slots, np.int32)
+        # Slot by slot (in_lanes, 1 lane): a plain vmap's float32 results depend on the batch
+        # size on XLA CPU, and an episode must not move differently because others share it.
         self._sequence = jax.jit(
-            jax.vmap(
-                functools.partial(ctrl_sequence_slot, self.layout, self.n_substeps),
-                in_axes=(None, 0, 0, 0),
-            )
+            in_lanes(functools.partial(ctrl_sequence_slot, self.layout, self.n_substeps), 3, 1)
         )
         self._pool = rollout.Rollout(nthread=threads) if threads > 0 else None
         self._thread_data = [mujoco.MjData(model) for _ in range(threads)]
@@ -79,6 +82,7 @@ class CpuBatch(BatchBase):
             d.ctrl[self.layout.finger_act] = rc.FINGER_OPEN
             mujoco.mj_forward(m, d)
             mujoco.mj_getState(m, d, self._state[slot], _STATE)
+            self._warm[slot] = 0.0
             self._ctrl[slot] = d.ctrl
             self._init_qpos[slot] = qpos[row]
             self._grip_open[slot] = True
@@ -99,13 +103,23 @@ class CpuBatch(BatchBase):
             for row, slot in enumerate(slots):
                 m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
                 mujoco.mj_setState(m, d, self._state[slot], _STATE)
+                d.qacc_warmstart[:] = self._warm[slot]
                 for u in controls[row]:
                     d.ctrl[:] = u
                     mujoco.mj_step(m, d)
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
+                self._warm[slot] = d.qacc_warmstart
         else:
+            # Threads (benchmarks): rollout does not return the final warm start, so each
+            # action starts cold; reproducible across batching, not equal to the serial path.
             models = [self.models[self._variant[s]] for s in slots]
-            states, _ = self._pool.rollout(models, self._thread_data, self._state[slots], controls)
+            states, _ = self._pool.rollout(
+                models,
+                self._thread_data,
+                self._state[slots],
+                controls,
+                initial_warmstart=np.zeros((len(slots), self.model.nv)),
+            )
             self._state[slots] = states[:, -1]
         self._ctrl[slots] = controls[:, -1]
 

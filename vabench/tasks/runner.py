@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from vabench.sim_mjx.batch import ActionResult, BatchBase, SimBatch
+from vabench.sim_mjx.batch import ActionResult, BatchBase, SimBatch, in_lanes
 from vabench.sim_mjx.cpu import CpuBatch
 from vabench.tasks.base import (
     Evaluation,
@@ -120,8 +120,10 @@ class TaskBatch:
         self._observed: tuple[np.ndarray, Any] | None = None  # (qpos, proprio) until it moves
         self.samples: list[Sample | None] = [None] * n
         self.seeds: list[int | None] = [None] * n
+        # The predicate in the batch's lanes (see sim_mjx.batch.in_lanes): a slot's success
+        # and checkpoints never depend on how many episodes share the batch.
         self._eval = jax.jit(
-            jax.vmap(functools.partial(_evaluate_slot, task, self.ix)), donate_argnums=()
+            in_lanes(functools.partial(_evaluate_slot, task, self.ix), 3, self.batch.lanes)
         )
 
     # -- episodes ---------------------------------------------------------------------------
