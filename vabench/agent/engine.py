@@ -38,7 +38,12 @@ from typing import Any, Literal
 
 from vabench import protocol as P
 from vabench.agent.conversation import ContextLimits, Conversation
-from vabench.agent.observation import PASSIVE_VIEW_NAME, ActionFeedback, observation_text
+from vabench.agent.observation import (
+    PASSIVE_VIEW_NAME,
+    PASSIVE_VIEWS,
+    ActionFeedback,
+    observation_text,
+)
 from vabench.agent.prompts import system_prompt
 from vabench.agent.records import EpisodeRecorder, EpisodeResult, TokenTotals
 from vabench.agent.simulation import RenderService, SimService, SlotSnapshot
@@ -244,10 +249,12 @@ class Episode:
             frame = self.rec.frame(step, jpegs[0])
             self.rec.event("observation", step=step, view=view, frames=[frame])
             return text, image
-        bundle = {p.view: Image(j) for p, j in zip(poses, jpegs, strict=True)}
+        # Keyed by the plain view name: in dual-arm tasks the camera names its poses after
+        # their target ("both_topdown"), which is not a passive view name.
+        views = [_passive_view(p.view) for p in poses]
+        bundle = {v: Image(j) for v, j in zip(views, jpegs, strict=True)}
         files = [
-            self.rec.frame(step, j, p.view, i)
-            for i, (p, j) in enumerate(zip(poses, jpegs, strict=True))
+            self.rec.frame(step, j, v, i) for i, (v, j) in enumerate(zip(views, jpegs, strict=True))
         ]
         self.rec.event("observation", step=step, view="passive_bundle", frames=files)
         return text, bundle
@@ -419,6 +426,14 @@ class Episode:
             started_at=round(self.t0, 3),
         )
         return self.rec.finish(result)
+
+
+def _passive_view(camera_view: str) -> str:
+    """The passive view name ("topdown") of a bundle pose named "topdown" or "<target>_topdown"."""
+    for view in PASSIVE_VIEWS:
+        if camera_view == view or camera_view.endswith(f"_{view}"):
+            return view
+    raise ValueError(f"camera view {camera_view!r} is not one of the passive views {PASSIVE_VIEWS}")
 
 
 async def run_episode(spec: EpisodeSpec, services: TaskServices) -> EpisodeResult:

@@ -1,0 +1,216 @@
+"""The privilege boundary through the whole engine: every byte a model would receive, for one
+episode of every base task (single- and dual-arm) and one passive episode of a single-arm and
+a dual-arm task, holds no evaluator-only information.
+
+Each episode runs against the embedded server with its request bodies captured, under a
+scripted policy that exercises everything model-visible: a camera view, an increment, both
+tools, an invalid reply (repair turn), a robot move, stop. The secrets are built from what the
+evaluator knew during that episode (object positions sampled and after settling, at every
+request; the seed; every camera position a view action could produce; task identifiers and
+object body names) and every captured body is checked with `find_leaks`. The three provider
+APIs take turns, so each body format is inspected.
+
+The last test injects leaks into a real captured body and shows the same check catches them.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from engine_util import (
+    STOP,
+    EpisodeRun,
+    body_json,
+    camera,
+    camera_positions,
+    count_images,
+    move,
+    robot_state,
+    run_scripted,
+    tool,
+    user_texts,
+)
+
+from vabench.agent.conversation import ContextLimits
+from vabench.agent.visibility import (
+    ARM_FIELDS,
+    LOCAL_AXES,
+    Secret,
+    episode_secrets,
+    find_leaks,
+)
+from vabench.render.worker import RenderPool
+from vabench.tasks import base_tasks
+
+TASKS = [t.name for t in base_tasks()]
+APIS = ("openai_chat", "openai_responses", "anthropic")
+PASSIVE_TASKS = ("grasp_single_cube", "handover_horizontal_block")
+ACTIVE_IMAGE_CAP = ContextLimits().max_images  # 4: FACTS image retention
+PASSIVE_IMAGES = 5  # the current five-view bundle, nothing else
+
+
+def test_every_base_family_is_covered():
+    assert len(TASKS) == 14
+    arms = {tuple(t.arms) for t in base_tasks()}
+    assert arms == {("right",), ("left", "right")}
+
+
+def _arm(run_arms: tuple[str, ...]) -> str | None:
+    return "right" if len(run_arms) > 1 else None
+
+
+def active_script(arms: tuple[str, ...]) -> list[str]:
+    return [
+        camera("view_topdown"),
+        camera("zoom_in"),
+        tool("geometry.verify"),
+        tool("camera.history", step=1),
+        "I would like to move the gripper up a little.",  # no JSON: a repair turn
+        move("z", "+", 10, arm=_arm(arms)),
+        STOP,
+    ]
+
+
+def passive_script(arms: tuple[str, ...]) -> list[str]:
+    return [
+        tool("geometry.verify"),
+        "{not json",  # a repair turn
+        move("z", "+", 10, arm=_arm(arms)),
+        camera("view_topdown"),  # not available in the passive protocol: a repair turn
+        STOP,
+    ]
+
+
+@pytest.fixture(scope="module")
+def pool():
+    with RenderPool(workers=1, timeout_s=60) as p:
+        yield p
+
+
+@pytest.fixture(scope="module")
+def episodes(pool) -> Callable[[str, str], EpisodeRun]:
+    """One episode per (task, protocol), run on first use and shared by the tests."""
+    cache: dict[tuple[str, str], EpisodeRun] = {}
+
+    def get(task: str, protocol: str) -> EpisodeRun:
+        if (task, protocol) not in cache:
+            arms = tuple(next(t for t in base_tasks() if t.name == task).arms)
+            script = active_script(arms) if protocol == "active" else passive_script(arms)
+            api = APIS[(TASKS.index(task) + (protocol == "passive")) % len(APIS)]
+            cache[task, protocol] = run_scripted(
+                task, script, pool, protocol=protocol, budget=5, api=api
+            )
+        return cache[task, protocol]
+
+    return get
+
+
+def secrets_of(run: EpisodeRun) -> list[Secret]:
+    """Everything evaluator-only this episode knew, as `find_leaks` secrets."""
+    task = run.task
+    objects: dict[str, Any] = {
+        f"{name} sampled": pos for name, (pos, _) in task.sample(run.seed).poses.items()
+    }
+    cameras: dict[str, Any] = {}
+    for i, probe in enumerate(run.probes):
+        objects.update({f"{name} at request {i}": pos for name, pos in probe.objects.items()})
+        views = camera_positions(probe.gcs, task.arms)
+        cameras.update({f"{view} at request {i}": pos for view, pos in views.items()})
+        if probe.camera_pos is not None:
+            cameras[f"active camera at request {i}"] = probe.camera_pos
+    identifiers = [*task.variants, *task.latches, *task.checkpoints, *run.object_names]
+    return episode_secrets(objects, run.seed, cameras, identifiers)
+
+
+def _check_episode(run: EpisodeRun, protocol: str) -> None:
+    r = run.result
+    # The script ran to its end: every model-visible feature was exercised before stop.
+    assert (r.status, r.stop_reason) == ("failure", "model_stop"), r.error
+    assert len(run.bodies) == r.model_calls == len(run.probes)
+    if protocol == "active":
+        assert (r.camera_actions, r.robot_actions, r.tool_calls, r.invalid_outputs) == (2, 1, 2, 1)
+    else:
+        assert (r.camera_actions, r.robot_actions, r.tool_calls, r.invalid_outputs) == (0, 1, 1, 2)
+    assert [e["ok"] for e in run.of_type("tool")] == [True] * r.tool_calls
+
+    secrets = secrets_of(run)
+    assert any(s.name == "seed" for s in secrets)
+    assert any(s.name.startswith("object") for s in secrets)
+    assert any(s.name.startswith("camera head") for s in secrets)
+    for i, (api, raw) in enumerate(run.bodies):
+        leaks = find_leaks(raw, secrets)
+        assert not leaks, f"request {i} ({api}):\n" + "\n".join(map(str, leaks))
+        images = count_images(body_json(raw))
+        if protocol == "active":
+            assert 1 <= images <= ACTIVE_IMAGE_CAP, f"request {i}: {images} images"
+        else:
+            assert images == PASSIVE_IMAGES, f"request {i}: {images} images"
+
+    last = user_texts(body_json(run.bodies[-1][1]))[-1]
+    robot = robot_state(last)
+    assert list(robot) == list(run.task.arms)
+    for arm, fields in robot.items():
+        assert list(fields) == list(ARM_FIELDS), arm
+        assert list(fields["local_axes_world"]) == list(LOCAL_AXES), arm
+        # after the move: the feedback of an executed action, not the None of step 1
+        assert fields["last_action_valid"] is not None
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_active_episode_leaks_nothing(episodes, task):
+    _check_episode(episodes(task, "active"), "active")
+
+
+@pytest.mark.parametrize("task", PASSIVE_TASKS)
+def test_passive_episode_leaks_nothing(episodes, task):
+    _check_episode(episodes(task, "passive"), "passive")
+
+
+def _inject(raw: bytes, extra: str) -> bytes:
+    """The body with `extra` appended to the text of its last user message."""
+    body = json.loads(raw)
+    messages = body.get("messages", body.get("input"))
+    last = next(m for m in reversed(messages) if m.get("role") == "user")
+    if isinstance(last["content"], str):
+        last["content"] += extra
+    else:
+        part = next(p for p in last["content"] if isinstance(p.get("text"), str))
+        part["text"] += extra
+    return json.dumps(body).encode()
+
+
+@pytest.mark.parametrize(
+    "task",
+    ["grasp_single_cube", "grasp_single_pen", "grasp_single_bottle", "handover_horizontal_block"],
+)
+def test_an_injected_leak_is_caught(episodes, task):
+    """The check above can fail: the same bodies, each with one evaluator-only fact added."""
+    run = episodes(task, "active")
+    secrets = secrets_of(run)
+    raw = run.bodies[-1][1]
+    assert find_leaks(raw, secrets) == []
+    name, pos = next(iter(run.probes[-1].objects.items()))
+    x, y, z = (float(v) for v in pos)
+    injected = {
+        "position in m": f"\nThe {name} is at [{x:.4f}, {y:.4f}, {z:.4f}].",
+        "position in mm": f"\nTarget: {x * 1000:.1f} {y * 1000:.1f} {z * 1000:.1f} mm",
+        "seed record": f'\n{{"seed": {run.seed}}}',
+        "bare seed": f"\nEpisode {run.seed}.",
+        "head camera": "\nThe camera sits at (0.0, -0.58, 1.48).",
+    }
+    for label, extra in injected.items():
+        leaks = find_leaks(_inject(raw, extra), secrets)
+        assert leaks, f"{label} not caught"
+        assert all(leak.where.startswith(("messages", "input")) for leak in leaks), label
+    position_leaks = find_leaks(_inject(raw, injected["position in m"]), secrets)
+    assert any(
+        leak.kind == "value" and leak.what.startswith(f"object {name}") for leak in position_leaks
+    )
+    # identifiers: a latch or checkpoint name that is not plain prose
+    words = [w for w in (*run.task.latches, *run.task.checkpoints) if "_" in w]
+    for word in words:
+        leaks = find_leaks(_inject(raw, f"\nstate: {word}"), secrets)
+        assert any(leak.kind == "identifier" for leak in leaks), word
