@@ -127,7 +127,7 @@ async def run_scripted_async(
     *,
     seed: int | None = None,
     protocol: str = "active",
-    budget: int = 6,
+    budget: int | None = 6,
     api: str = "openai_chat",
     out_dir: Path | None = None,
     server_config: ServerConfig | None = None,
@@ -200,13 +200,16 @@ def count_images(body: dict[str, Any]) -> int:
     return sum(1 for node in _walk(body) if node.get("type") in _IMAGE_PART_TYPES)
 
 
+def user_messages(body: dict[str, Any]) -> list[dict[str, Any]]:
+    """The user messages of a request body, oldest first (any of the three APIs)."""
+    messages = body.get("messages", body.get("input", []))
+    return [m for m in messages if m.get("role") == "user"]
+
+
 def user_texts(body: dict[str, Any]) -> list[str]:
     """The text of each user message, oldest first (any of the three APIs)."""
-    messages = body.get("messages", body.get("input", []))
     out = []
-    for msg in messages:
-        if msg.get("role") != "user":
-            continue
+    for msg in user_messages(body):
         content = msg.get("content")
         if isinstance(content, str):
             out.append(content)
