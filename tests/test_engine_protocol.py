@@ -116,6 +116,7 @@ def test_three_invalid_replies_end_the_episode_after_two_repairs(pool):
         assert rejections[i - 1]["message"] in last
         assert "Step 1 of 5" in last and robot_state(last)["right"]["is_open"] in (True, False)
         assert last.index(rejections[i - 1]["message"]) < last.index("Step 1 of 5")
+        assert count_images(user_messages(body)[-1]) == 1
     assert len(run.bodies) == 3
 
 
@@ -182,3 +183,41 @@ def test_the_experts_actions_replayed_through_the_engine_succeed(pool):
     assert r.progress == r.n_checkpoints == len(task.checkpoints)
     # the engine's per-step progress is the expert's, step for step
     assert [e["progress"] for e in run.of_type("action")] == [a["progress"] for a in expert.actions]
+
+
+def test_dual_arm_forms_reach_their_arm_and_camera_target(pool):
+    side = {"axis": "z", "sign": "+", "distance_mm": 10}
+    script = [
+        camera("view_left_side"),
+        camera("view_both_topdown"),
+        reply({"action": "camera.view_topdown", "arm": "left"}),  # rejected: "arm" on a camera
+        reply({"action": "dual_gripper.move_world", "left": side, "right": side}),
+        reply(
+            {
+                "action": "gripper.rotate_local",
+                "axis": "rz",
+                "sign": "-",
+                "angle_deg": 10,
+                "arm": "left",
+            }
+        ),
+        reply({"action": "right_gripper.close"}),
+        STOP,
+    ]
+    run = run_scripted("handover_horizontal_block", script, pool, budget=8)
+    r = run.result
+    assert (r.status, r.stop_reason) == ("failure", "model_stop"), r.error
+    assert (r.camera_actions, r.robot_actions, r.invalid_outputs) == (2, 3, 1)
+    assert [e["view"] for e in run.of_type("camera")] == ["left_side", "both_topdown"]
+    assert run.of_type("rejection")[0]["field"] == "arm"
+    labels = [e["label"] for e in run.of_type("decision")]
+    assert labels[2:5] == [
+        "dual_move_world left z+10mm right z+10mm",
+        "rotate_local left rz-10deg",
+        "right_gripper.close",
+    ]
+    assert run.counters.step_calls == 3
+    # the dual move (requests 3 -> 4) lifted both grasp centres by its 10 mm
+    p = run.probes
+    for arm in ("left", "right"):
+        assert p[4].gcs[arm][2] - p[3].gcs[arm][2] == pytest.approx(0.010, abs=0.002), arm
