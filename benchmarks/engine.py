@@ -1,0 +1,180 @@
+"""Episode engine throughput against the ideal set by model latency alone.
+
+    python benchmarks/engine.py [--backend c|mjx] [--concurrency 1,10,100,1000] [--latency 2]
+        [--steps 5] [--size 640x480] [--render-workers 2] [--task grasp_single_cube]
+        [--shared-batch] [--json FILE]
+
+For each concurrency C, C episodes of one task run at once against the embedded server (random
+valid robot actions, every reply after exactly `--latency` seconds), each for `--steps`
+decisions. With no simulator and no renderer an episode would take steps * latency, so C
+episodes would finish in that time: the ideal. Printed per C: measured wall time and episodes
+per hour, their ratio to the ideal, the harness overhead per decision (wall / steps - latency),
+and where the time went: simulator busy seconds per decision (resets + batched actions), render
+busy seconds per observation, mean simulator and render batch sizes.
+
+`--shared-batch` runs every C on one batch of max(C) slots (one MJX compile; idle slots
+frozen), as a sweep does; otherwise each C gets a batch of exactly C slots. Compilation and
+renderer start-up are excluded: each batch runs one untimed warm-up round first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+async def run_level(task, n_episodes, steps, latency, svc_factory, seeds):
+    from vabench.agent.engine import EpisodeSpec, run_episodes
+
+    async with svc_factory() as svc:
+        warm = [EpisodeSpec(task.name, seeds[0], "local", step_budget=1)]
+        await run_episodes(warm, svc)  # compile and warm the workers, untimed
+        sim0 = (svc.sim.stats.busy_s, svc.sim.stats.calls, svc.sim.stats.items)
+        ren0 = (svc.render.stats.busy_s, svc.render.stats.calls, svc.render.stats.items)
+        specs = [
+            EpisodeSpec(task.name, seeds[i % len(seeds)], "local", step_budget=steps)
+            for i in range(n_episodes)
+        ]
+        t0 = time.perf_counter()
+        results = await run_episodes(specs, svc)
+        wall = time.perf_counter() - t0
+        sim = [
+            a - b
+            for a, b in zip(
+                (svc.sim.stats.busy_s, svc.sim.stats.calls, svc.sim.stats.items), sim0, strict=True
+            )
+        ]
+        ren = [
+            a - b
+            for a, b in zip(
+                (svc.render.stats.busy_s, svc.render.stats.calls, svc.render.stats.items),
+                ren0,
+                strict=True,
+            )
+        ]
+    decisions = sum(r.steps_used for r in results)
+    bad = [r for r in results if not r.scored]
+    return dict(
+        episodes=n_episodes,
+        wall_s=wall,
+        ideal_s=steps * latency,
+        decisions=decisions,
+        episodes_per_hour=n_episodes / wall * 3600,
+        ideal_episodes_per_hour=n_episodes / (steps * latency) * 3600,
+        ratio=steps * latency / wall,
+        overhead_per_decision_s=wall / steps - latency,
+        sim_busy_per_decision_s=sim[0] / max(decisions, 1),
+        sim_calls=sim[1],
+        sim_mean_batch=sim[2] / max(sim[1], 1),
+        render_busy_per_image_s=ren[0] / max(ren[2], 1),
+        render_calls=ren[1],
+        render_mean_batch=ren[2] / max(ren[1], 1),
+        errors=len(bad),
+        error_examples=[r.error for r in bad[:2]],
+    )
+
+
+async def main_async(args) -> list[dict]:
+    import contextlib
+
+    from vabench.agent.engine import task_services
+    from vabench.llm_pool.pool import LLMPool
+    from vabench.llm_pool.server import LocalServer, ServerConfig
+    from vabench.render.worker import ImageSettings, RenderPool
+    from vabench.seeds import verified_seeds
+    from vabench.tasks import get_task
+
+    task = get_task(args.task)
+    seeds = verified_seeds(task.name)
+    levels = [int(c) for c in args.concurrency.split(",")]
+    width, height = (int(v) for v in args.size.split("x"))
+    image = ImageSettings(width, height, 95)
+    config = ServerConfig(
+        policy="random_action",
+        policy_options={"seed": 1},
+        latency={"mean_s": args.latency, "dist": "fixed"},
+    )
+    rows = []
+    with RenderPool(
+        workers=args.render_workers, platform=args.platform, max_size=(width, height), timeout_s=600
+    ) as rp:
+        print(
+            f"renderer: {args.render_workers} x {rp.gl_info}; backend {args.backend}; "
+            f"latency {args.latency} s; {args.steps} decisions per episode; {args.size}"
+        )
+        async with LocalServer(config) as server:
+            endpoint = server.endpoint_config(
+                "local", "openai_chat", limits={"max_concurrency": max(levels) + 8}
+            )
+            async with LLMPool([endpoint]) as llm, contextlib.AsyncExitStack() as stack:
+                shared = None
+                if args.shared_batch:
+                    shared = await stack.enter_async_context(
+                        task_services(task, max(levels), llm, rp, backend=args.backend, image=image)
+                    )
+
+                print(
+                    f"{'C':>5} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} {'ep/h':>9} "
+                    f"{'ovh/dec s':>9} {'sim s/dec':>9} {'sim bat':>7} {'ren s/img':>9} "
+                    f"{'ren bat':>7} {'err':>4}"
+                )
+                for c in levels:
+
+                    def factory(c=c):
+                        if shared is not None:
+
+                            @contextlib.asynccontextmanager
+                            async def reuse():
+                                yield shared
+
+                            return reuse()
+                        return task_services(task, c, llm, rp, backend=args.backend, image=image)
+
+                    row = await run_level(task, c, args.steps, args.latency, factory, seeds)
+                    row.update(
+                        concurrency=c,
+                        backend=args.backend,
+                        size=args.size,
+                        latency_s=args.latency,
+                        renderer=str(rp.gl_info),
+                    )
+                    rows.append(row)
+                    print(
+                        f"{c:>5} {row['wall_s']:>8.1f} {row['ideal_s']:>8.1f} "
+                        f"{row['ratio']:>8.2f} {row['episodes_per_hour']:>9.0f} "
+                        f"{row['overhead_per_decision_s']:>9.3f} "
+                        f"{row['sim_busy_per_decision_s']:>9.4f} {row['sim_mean_batch']:>7.1f} "
+                        f"{row['render_busy_per_image_s']:>9.4f} "
+                        f"{row['render_mean_batch']:>7.1f} {row['errors']:>4}",
+                        flush=True,
+                    )
+    return rows
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--task", default="grasp_single_cube")
+    p.add_argument("--backend", choices=("c", "mjx"), default="c")
+    p.add_argument("--concurrency", default="1,10,100,1000")
+    p.add_argument("--latency", type=float, default=2.0)
+    p.add_argument("--steps", type=int, default=5)
+    p.add_argument("--size", default="640x480")
+    p.add_argument("--render-workers", type=int, default=2)
+    p.add_argument("--platform", default="auto", choices=("auto", "egl", "osmesa"))
+    p.add_argument("--shared-batch", action="store_true")
+    p.add_argument("--json")
+    args = p.parse_args()
+    rows = asyncio.run(main_async(args))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
