@@ -178,7 +178,7 @@ def test_the_command_line_writes_the_records(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    printed = json.loads(proc.stdout[proc.stdout.index("\n{\n") :])
+    printed = json.loads(proc.stdout)  # --json: the result document alone
     result = read_result(out)
     assert result is not None and printed == result.model_dump()
     assert (result.task, result.seed, result.step_budget) == (TASK, SEED, 3)

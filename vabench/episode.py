@@ -117,7 +117,8 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
     finally:
         if server is not None:
             await server.stop()
-    print_trajectory(episode.rec.events, result)
+    if not args.json:  # --json: stdout is the result document alone (pipeable)
+        print_trajectory(episode.rec.events, result)
     print(f"records: {out}", file=sys.stderr)
     return result
 
