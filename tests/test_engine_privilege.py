@@ -15,8 +15,8 @@ The last test injects leaks into a real captured body and shows the same check c
 
 from __future__ import annotations
 
+import asyncio
 import json
-from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -29,7 +29,7 @@ from engine_util import (
     count_images,
     move,
     robot_state,
-    run_scripted,
+    run_scripted_async,
     tool,
     user_texts,
 )
@@ -43,7 +43,7 @@ from vabench.agent.visibility import (
     find_leaks,
 )
 from vabench.render.worker import RenderPool
-from vabench.tasks import base_tasks
+from vabench.tasks import base_tasks, get_task
 
 TASKS = [t.name for t in base_tasks()]
 APIS = ("openai_chat", "openai_responses", "anthropic")
@@ -90,22 +90,29 @@ def pool():
         yield p
 
 
-@pytest.fixture(scope="module")
-def episodes(pool) -> Callable[[str, str], EpisodeRun]:
-    """One episode per (task, protocol), run on first use and shared by the tests."""
-    cache: dict[tuple[str, str], EpisodeRun] = {}
+EPISODES = [(t, "active") for t in TASKS] + [(t, "passive") for t in PASSIVE_TASKS]
+CONCURRENT = 3  # episodes at once: one renders while another simulates (2 cores here)
 
-    def get(task: str, protocol: str) -> EpisodeRun:
-        if (task, protocol) not in cache:
-            arms = tuple(next(t for t in base_tasks() if t.name == task).arms)
-            script = active_script(arms) if protocol == "active" else passive_script(arms)
-            api = APIS[(TASKS.index(task) + (protocol == "passive")) % len(APIS)]
-            cache[task, protocol] = run_scripted(
+
+@pytest.fixture(scope="module")
+def episodes(pool) -> dict[tuple[str, str], EpisodeRun]:
+    """One episode per (task, protocol), all run once for the module, a few at a time (each
+    on its own server, batch and slot; they share only the render pool)."""
+
+    async def one(gate: asyncio.Semaphore, task: str, protocol: str) -> EpisodeRun:
+        arms = tuple(get_task(task).arms)
+        script = active_script(arms) if protocol == "active" else passive_script(arms)
+        api = APIS[(TASKS.index(task) + (protocol == "passive")) % len(APIS)]
+        async with gate:
+            return await run_scripted_async(
                 task, script, pool, protocol=protocol, budget=5, api=api
             )
-        return cache[task, protocol]
 
-    return get
+    async def run_all() -> list[EpisodeRun]:
+        gate = asyncio.Semaphore(CONCURRENT)
+        return list(await asyncio.gather(*(one(gate, t, p) for t, p in EPISODES)))
+
+    return dict(zip(EPISODES, asyncio.run(run_all()), strict=True))
 
 
 def secrets_of(run: EpisodeRun) -> list[Secret]:
@@ -161,12 +168,12 @@ def _check_episode(run: EpisodeRun, protocol: str) -> None:
 
 @pytest.mark.parametrize("task", TASKS)
 def test_active_episode_leaks_nothing(episodes, task):
-    _check_episode(episodes(task, "active"), "active")
+    _check_episode(episodes[task, "active"], "active")
 
 
 @pytest.mark.parametrize("task", PASSIVE_TASKS)
 def test_passive_episode_leaks_nothing(episodes, task):
-    _check_episode(episodes(task, "passive"), "passive")
+    _check_episode(episodes[task, "passive"], "passive")
 
 
 def _inject(raw: bytes, extra: str) -> bytes:
@@ -188,7 +195,7 @@ def _inject(raw: bytes, extra: str) -> bytes:
 )
 def test_an_injected_leak_is_caught(episodes, task):
     """The check above can fail: the same bodies, each with one evaluator-only fact added."""
-    run = episodes(task, "active")
+    run = episodes[task, "active"]
     secrets = secrets_of(run)
     raw = run.bodies[-1][1]
     assert find_leaks(raw, secrets) == []
