@@ -42,6 +42,7 @@ from vabench.agent.visibility import (
     episode_secrets,
     find_leaks,
 )
+from vabench.render import camera as cam
 from vabench.render.worker import RenderPool
 from vabench.tasks import base_tasks, get_task
 
@@ -201,21 +202,18 @@ def test_an_injected_leak_is_caught(episodes, task):
     assert find_leaks(raw, secrets) == []
     name, pos = next(iter(run.probes[-1].objects.items()))
     x, y, z = (float(v) for v in pos)
-    injected = {
-        "position in m": f"\nThe {name} is at [{x:.4f}, {y:.4f}, {z:.4f}].",
-        "position in mm": f"\nTarget: {x * 1000:.1f} {y * 1000:.1f} {z * 1000:.1f} mm",
-        "seed record": f'\n{{"seed": {run.seed}}}',
-        "bare seed": f"\nEpisode {run.seed}.",
-        "head camera": "\nThe camera sits at (0.0, -0.58, 1.48).",
+    hx, hy, hz = cam.HEAD_POS
+    injected = {  # the text added -> the secret the leak must name
+        f"\nThe {name} is at [{x:.4f}, {y:.4f}, {z:.4f}].": f"object {name}",
+        f"\nTarget: {x * 1000:.1f} {y * 1000:.1f} {z * 1000:.1f} mm": f"object {name}",
+        f'\n{{"seed": {run.seed}}}': "seed",
+        f"\nEpisode {run.seed}.": "seed",
+        f"\nThe camera sits at ({hx}, {hy}, {hz}).": "camera head",
     }
-    for label, extra in injected.items():
+    for extra, secret in injected.items():
         leaks = find_leaks(_inject(raw, extra), secrets)
-        assert leaks, f"{label} not caught"
-        assert all(leak.where.startswith(("messages", "input")) for leak in leaks), label
-    position_leaks = find_leaks(_inject(raw, injected["position in m"]), secrets)
-    assert any(
-        leak.kind == "value" and leak.what.startswith(f"object {name}") for leak in position_leaks
-    )
+        assert any(leak.what.startswith(secret) for leak in leaks), extra
+        assert all(leak.where.startswith(("messages", "input")) for leak in leaks), extra
     # identifiers: a latch or checkpoint name that is not plain prose
     words = [w for w in (*run.task.latches, *run.task.checkpoints) if "_" in w]
     for word in words:
