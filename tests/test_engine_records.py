@@ -187,3 +187,15 @@ def test_the_command_line_writes_the_records(tmp_path):
     assert [e["seq"] for e in events] == list(range(len(events)))
     assert (out / "frames" / "step_001.jpg").exists()
     assert result.model_calls == sum(e["type"] == "reply" for e in events)
+
+
+def test_a_rejected_request_is_an_unscored_error(pool, tmp_path):
+    """A 4xx the provider will not change its mind about (here: the script has run out) ends
+    the episode at once as an "error", with the step already taken recorded."""
+    run = run_scripted(TASK, [camera("view_topdown")], pool, seed=SEED, out_dir=tmp_path)
+    r = run.result
+    assert (r.status, r.stop_reason, r.scored) == ("error", "request_rejected", False)
+    assert r.error is not None and "scripted policy exhausted" in r.error
+    assert len(run.bodies) == 2  # not retried
+    assert (r.steps_used, r.camera_actions, r.model_calls) == (1, 1, 1)
+    assert read_result(tmp_path) == r
