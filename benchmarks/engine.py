@@ -100,6 +100,7 @@ async def main_async(args) -> list[dict]:
         policy_options={"seed": 1},
         latency={"mean_s": args.latency, "dist": "fixed"},
     )
+    batch_kwargs = {"lanes": args.lanes} if args.lanes else {}
     rows = []
     with RenderPool(
         workers=args.render_workers, platform=args.platform, max_size=(width, height), timeout_s=600
@@ -116,7 +117,15 @@ async def main_async(args) -> list[dict]:
                 shared = None
                 if args.shared_batch:
                     shared = await stack.enter_async_context(
-                        task_services(task, max(levels), llm, rp, backend=args.backend, image=image)
+                        task_services(
+                            task,
+                            max(levels),
+                            llm,
+                            rp,
+                            backend=args.backend,
+                            image=image,
+                            **batch_kwargs,
+                        )
                     )
 
                 print(
@@ -134,12 +143,16 @@ async def main_async(args) -> list[dict]:
                                 yield shared
 
                             return reuse()
-                        return task_services(task, c, llm, rp, backend=args.backend, image=image)
+                        return task_services(
+                            task, c, llm, rp, backend=args.backend, image=image, **batch_kwargs
+                        )
 
                     row = await run_level(task, c, args.steps, args.latency, factory, seeds)
                     row.update(
                         concurrency=c,
                         backend=args.backend,
+                        lanes=args.lanes,
+                        shared_batch=args.shared_batch,
                         size=args.size,
                         latency_s=args.latency,
                         renderer=str(rp.gl_info),
@@ -168,6 +181,7 @@ def main() -> None:
     p.add_argument("--render-workers", type=int, default=2)
     p.add_argument("--platform", default="auto", choices=("auto", "egl", "osmesa"))
     p.add_argument("--shared-batch", action="store_true")
+    p.add_argument("--lanes", type=int, help="MJX: physics lanes (default: the batch's)")
     p.add_argument("--json")
     args = p.parse_args()
     rows = asyncio.run(main_async(args))
