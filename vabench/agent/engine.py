@@ -168,7 +168,16 @@ class Episode:
             raise _EpisodeEnd("failure", "budget_exhausted")
         except _EpisodeEnd as end:
             return self._finish(end.status, end.stop_reason, end.error)
-        except (InfrastructureError, RenderError) as err:
+        except InfrastructureError as err:
+            self.rec.event(
+                "llm_failure",
+                step=self.counts.steps + 1,
+                attempts=err.attempts,
+                elapsed_s=round(err.elapsed_s, 3),
+                failures=list(err.failures),
+            )
+            return self._finish("infrastructure_error", "infrastructure_error", str(err))
+        except RenderError as err:
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:
             return self._finish("error", "request_rejected", f"{err.kind}: {err}")
