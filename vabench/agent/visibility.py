@@ -436,9 +436,9 @@ def find_leaks(body: Any, secrets: Sequence[Secret] = ()) -> list[Leak]:
         leaks.extend(_value_leaks(text, where, secrets))
         for secret in secrets:
             if secret.word is not None:
-                m = _term_pattern([secret.word]).search(text)
-                if m:
-                    excerpt = _excerpt(text, m.start(), m.end())
+                found = _term_pattern([secret.word]).search(text)
+                if found:
+                    excerpt = _excerpt(text, found.start(), found.end())
                     leaks.append(Leak("identifier", secret.name, where, excerpt))
     return leaks
 
