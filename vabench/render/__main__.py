@@ -5,9 +5,10 @@
 
 `snapshot` resets the seed (C MuJoCo by default, as the seeds were screened) and writes the
 JPEGs a model would receive at reset: the head view "center_high", one semantic view, or the
-five-view passive bundle in its fixed order (files numbered in that order). `sheet` writes one
-contact sheet for people: every base task at its first retained seed, in the head view and the
-five semantic views, with labels on the sheet (never on model images).
+five-view passive bundle in its fixed order (files numbered in that order); `--debug` adds
+debug_*.jpg beside them for people (contact points, GC markers, site frames, a label).
+`sheet` writes one contact sheet for people: every base task at its first retained seed, in
+the head view and the five semantic views, with labels on the sheet (never on model images).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from vabench.render import camera as cam
+from vabench.render.debug import DebugOverlays
 from vabench.render.worker import ImageSettings, RenderItem, RenderPool
 
 
@@ -58,9 +60,26 @@ def snapshot(args: argparse.Namespace) -> None:
     qpos, variant, gcs = reset_state(args.task, args.seed, args.backend)
     poses = _views(arms, gcs, args.view, args.passive)
     settings = ImageSettings(args.width, args.height, args.quality)
+    items = [RenderItem(qpos, variant, p) for p in poses]
     with RenderPool(workers=1, platform=args.platform) as pool:
         print(f"renderer: {pool.gl_info}", file=sys.stderr)
-        jpegs = pool.render(args.task, [RenderItem(qpos, variant, p) for p in poses], settings)
+        jpegs = pool.render(args.task, items, settings)
+        debug = []
+        if args.debug:  # for people: same views with contacts, GC markers, frames and a label
+            debug = [
+                pool.render_debug(
+                    args.task,
+                    [item],
+                    DebugOverlays(
+                        contacts=True,
+                        gc_markers=True,
+                        frames=True,
+                        label=f"{args.task} seed {args.seed} {item.camera.label}",
+                    ),
+                    settings,
+                )[0]
+                for item in items
+            ]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for i, (pose, jpeg) in enumerate(zip(poses, jpegs, strict=True)):
@@ -71,6 +90,9 @@ def snapshot(args: argparse.Namespace) -> None:
         )
         (out / name).write_bytes(jpeg)
         print(out / name)
+        if debug:
+            (out / f"debug_{name}").write_bytes(debug[i])
+            print(out / f"debug_{name}")
 
 
 def sheet(args: argparse.Namespace) -> None:
@@ -131,6 +153,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     group.add_argument("--view", choices=[cam.HEAD_VIEW, *cam.VIEWS])
     group.add_argument("--passive", action="store_true", help="the five-view bundle")
     snap.add_argument("--out", required=True)
+    snap.add_argument(
+        "--debug",
+        action="store_true",
+        help="also write debug_*.jpg with overlays (never what a model sees)",
+    )
     common(snap)
     snap.set_defaults(run=snapshot)
 

@@ -65,6 +65,10 @@ class _VariantScene:
         m = self.model
         m.vis.map.znear = NEAR / m.stat.extent  # MuJoCo scales the clip planes by the extent
         m.vis.map.zfar = FAR / m.stat.extent
+        # Decor sizes (frames, contact points, force arrows) scale with meansize; the scene's
+        # automatic value (about the table's size) makes debug overlays hide the gripper. Only
+        # debug views draw decor, so model images are unaffected.
+        m.stat.meansize = 0.02
         self.data = mujoco.MjData(m)
         self.cam_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, VIEW_CAMERA)
         self.scene = mujoco.MjvScene(m, maxgeom=MAX_GEOMS)
