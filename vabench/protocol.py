@@ -50,6 +50,8 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 from pydantic_core import ErrorDetails
 
+from vabench.render import camera as _camera
+
 MAX_REPAIRS_PER_DECISION = 2
 """Repair attempts per decision for malformed JSON or an invalid decision."""
 MAX_TOOL_ROUND_TRIPS = 20
@@ -357,22 +359,12 @@ def parse_robot_action(
 
 # -- camera actions ----------------------------------------------------------------------------
 
-CAMERA_VIEWS = ("topdown", "side", "front_side_45", "side_top_45", "oblique_45")
+# The names come from the camera model, which implements them (one list, no copies).
+CAMERA_VIEWS = _camera.VIEWS
 """The five semantic views, in the fixed order of the passive bundle."""
-CAMERA_TARGETS = ("left", "right", "both")
+CAMERA_TARGETS = _camera.TARGETS
 """Explicit view targets of dual-arm tasks (`camera.view_<target>_<view>`)."""
-CAMERA_INCREMENTS = (
-    "move_left",
-    "move_right",
-    "move_up",
-    "move_down",
-    "zoom_in",
-    "zoom_out",
-    "yaw_left",
-    "yaw_right",
-    "pitch_up",
-    "pitch_down",
-)
+CAMERA_INCREMENTS = _camera.INCREMENTS
 
 
 def camera_action_names(arms: Sequence[str]) -> tuple[str, ...]:

@@ -32,8 +32,9 @@ from typing import Any
 
 from vabench.agent.visibility import OBSERVATION_FIELDS, VisibilityError, filter_proprio
 from vabench.llm_pool.messages import Image, Turn
+from vabench.render.camera import VIEWS
 
-PASSIVE_VIEWS: tuple[str, ...] = ("topdown", "side", "front_side_45", "side_top_45", "oblique_45")
+PASSIVE_VIEWS: tuple[str, ...] = VIEWS
 """The passive protocol's views, in the order their images follow the text."""
 PASSIVE_VIEW_NAME = "the five fixed views, images in the order " + ", ".join(PASSIVE_VIEWS)
 """What the "Current view" line says in the passive protocol (text above the images, never a
