@@ -1,0 +1,267 @@
+"""Sweep configs: valid files load and resolve; every kind of mistake is reported, all of them at
+once, each naming the file and the field."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vabench.config import EMBEDDED_PLACEHOLDER_URL, SweepConfigError, load_config
+from vabench.seeds import verified_seeds
+from vabench.tasks import BASE_FAMILIES, get_task
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+KEY = "sk-test-secret-0123456789"
+MODEL = {"name": "m", "api": "openai_chat", "base_url": "http://127.0.0.1:9/v1"}
+
+
+def write(tmp_path: Path, doc: dict | str, name: str = "sweep.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(doc if isinstance(doc, str) else yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def minimal(**fields) -> dict:
+    return {"models": [MODEL], "tracks": ["active"], **fields}
+
+
+def problems_of(path: Path, environ=None, **kwargs) -> list[str]:
+    with pytest.raises(SweepConfigError) as info:
+        load_config(path, environ={} if environ is None else environ, **kwargs)
+    lines = str(info.value).splitlines()
+    assert len(lines) == len(info.value.problems)
+    assert all(line.startswith(f"{path}: ") for line in lines)
+    return lines
+
+
+# -- valid configs ------------------------------------------------------------------------------
+
+
+def test_minimal_config_gets_the_documented_defaults(tmp_path):
+    config = load_config(write(tmp_path, minimal(), "my-sweep.yaml"), environ={})
+    assert config.name == "my-sweep"
+    assert config.out == "runs/my-sweep"
+    assert config.tasks == BASE_FAMILIES  # every base family is registered
+    assert config.seeds == {t: tuple(verified_seeds(t)) for t in BASE_FAMILIES}
+    assert config.runs == 3 and config.step_budget is None
+    assert config.simulator.backend == "mjx" and config.simulator.window_s == 0.01
+    assert (config.render.width, config.render.height, config.render.quality) == (1280, 960, 95)
+    assert config.render.workers == 2 and config.render.platform == "auto"
+    assert config.executor.kind == "local" and config.executor.max_tasks == 4
+    assert config.executor.max_episodes == 256 and config.executor.slots_per_task is None
+    assert config.retries.infrastructure_rounds == 3
+    assert config.embedded_models == ()
+
+
+def test_seed_spellings_resolve(tmp_path):
+    tasks = ["grasp_single_cube", "lift_pot"]
+    first = load_config(write(tmp_path, minimal(tasks=tasks, seeds={"verified": 3})), environ={})
+    assert first.seeds == {t: tuple(verified_seeds(t)[:3]) for t in tasks}
+    listed = load_config(write(tmp_path, minimal(tasks=tasks, seeds=[7, 3])), environ={})
+    assert listed.seeds == {"grasp_single_cube": (7, 3), "lift_pot": (7, 3)}
+    per_task = {"lift_pot": [5], "grasp_single_cube": [1, 2]}
+    mapped = load_config(write(tmp_path, minimal(tasks=tasks, seeds=per_task)), environ={})
+    assert mapped.seeds == {"grasp_single_cube": (1, 2), "lift_pot": (5,)}
+    assert mapped.tasks == tuple(tasks)  # the order written, not the mapping's
+
+
+def test_key_variable_set_in_the_environment(tmp_path):
+    path = write(tmp_path, minimal(models=[{**MODEL, "api_key_env": "VABENCH_TEST_KEY"}]))
+    config = load_config(path, environ={"VABENCH_TEST_KEY": KEY})
+    assert config.models[0].api_key_env == "VABENCH_TEST_KEY"
+
+
+def test_embedded_models_and_their_endpoints(tmp_path):
+    models = [
+        {"name": "local", "api": "anthropic", "base_url": "embedded"},
+        {"name": "chat", "api": "openai_chat", "base_url": "embedded"},
+        MODEL,
+    ]
+    doc = minimal(models=models, embedded_server={"policy": "scripted", "latency": {"mean_s": 1}})
+    config = load_config(write(tmp_path, doc), environ={})
+    assert config.embedded_models == ("local", "chat")
+    assert config.embedded_server.policy == "scripted"
+    assert config.embedded_server.latency.mean_s == 1
+    assert config.models[0].base_url == EMBEDDED_PLACEHOLDER_URL
+    urls = [e.base_url for e in config.endpoints(lambda api: f"http://live/{api}")]
+    assert urls == ["http://live/anthropic", "http://live/openai_chat", MODEL["base_url"]]
+
+
+def test_shipped_configs_load_without_keys():
+    full = load_config(CONFIGS / "all.yaml", environ={})
+    assert full.tracks == ("active", "passive") and full.runs == 3
+    assert full.tasks == BASE_FAMILIES
+    assert all(len(s) == 20 for s in full.seeds.values())
+    assert [m.name for m in full.models] == ["local"] and full.embedded_models == ("local",)
+    assert full.models[0].api == "openai_chat"
+
+    smoke = load_config(CONFIGS / "smoke.yaml", environ={})
+    assert sorted(len(get_task(t).arms) for t in smoke.tasks) == [1, 2]
+    assert smoke.tracks == ("active", "passive") and smoke.runs == 1
+    assert all(len(s) == 2 for s in smoke.seeds.values())
+    assert smoke.step_budget == 5 and all(smoke.budget(t) == 5 for t in smoke.tasks)
+    assert smoke.simulator.backend == "c"
+    assert (smoke.render.width, smoke.render.height, smoke.render.workers) == (320, 240, 1)
+    assert smoke.embedded_models == ("local",)
+
+
+def test_step_budget_caps_but_never_raises_a_task_budget(tmp_path):
+    tasks = ["grasp_single_cube", "place_cube_on_cube"]  # budgets 50 and 200
+    config = load_config(write(tmp_path, minimal(tasks=tasks, step_budget=100)), environ={})
+    assert [config.budget(t) for t in tasks] == [50, 100]
+
+
+def test_document_reads_back_to_the_same_config(tmp_path):
+    models = [{"name": "local", "api": "openai_chat", "base_url": "embedded"}, MODEL]
+    doc = minimal(models=models, tasks=["lift_pot"], seeds={"verified": 2}, step_budget=4)
+    config = load_config(write(tmp_path, doc), environ={})
+    again = load_config(write(tmp_path, config.document(), "resolved.yaml"), environ={})
+    assert again == config
+
+
+def test_overrides_replace_values_before_checking(tmp_path):
+    path = write(tmp_path, minimal(out="runs/a"))
+    config = load_config(path, environ={}, overrides={"out": "elsewhere", "executor.kind": "ray"})
+    assert config.out == "elsewhere" and config.executor.kind == "ray"
+    lines = problems_of(path, overrides={"runs": 0})
+    assert len(lines) == 1 and lines[0].startswith(f"{path}: runs: ")
+
+
+# -- one problem each ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "doc,field,words",
+    [
+        (minimal(trakcs=["active"]), "trakcs", "did you mean 'tracks'"),
+        (
+            minimal(models=[{**MODEL, "limits": {"rmp": 5}}]),
+            "models[0].limits.rmp",
+            "did you mean 'rpm'",
+        ),
+        (minimal(render={"widht": 640}), "render.widht", "did you mean 'width'"),
+        (minimal(runs="three"), "runs", "valid integer, unable to parse string"),
+        (minimal(runs=0), "runs", "greater than or equal to 1"),
+        (minimal(models=[{**MODEL, "limits": {"rpm": 0}}]), "models[0].limits.rpm", "greater"),
+        (minimal(tracks=["active", "pasive"]), "tracks[1]", "'active' or 'passive'"),
+        (minimal(tracks=["active", "active"]), "tracks[1]", "duplicate"),
+        (minimal(tracks=[]), "tracks", "at least 1"),
+        (minimal(models=[]), "models", "at least 1"),
+        (minimal(simulator={"backend": "gpu"}), "simulator.backend", "'mjx' or 'c'"),
+        (minimal(render={"width": 4000}), "render.width", "less than or equal to 1280"),
+        (minimal(executor={"kind": "k8s"}), "executor.kind", "'local' or 'ray'"),
+        (minimal(executor={"address": "ray://h:1"}), "executor.address", "kind: ray"),
+        (
+            minimal(models=[MODEL, {**MODEL, "base_url": "http://x/v1"}]),
+            "models[1].name",
+            "duplicate of models[0]",
+        ),
+        (minimal(models=[{**MODEL, "name": "org/model"}]), "models[0].name", "directory"),
+        (
+            minimal(models=[{**MODEL, "generation": {"thinking_budget": 2048}}]),
+            "models[0].generation.thinking_budget",
+            "anthropic only",
+        ),
+        (
+            minimal(embedded_server={"policy": "random_acton"}),
+            "embedded_server.policy",
+            "did you mean 'random_action'",
+        ),
+        (minimal(embedded_server={"latncy": {}}), "embedded_server.latncy", "'latency'"),
+        (minimal(tasks=["grasp_cubee"]), "tasks[0]", "did you mean 'grasp_single_cube'"),
+        (minimal(tasks=["lift_pot", "lift_pot"]), "tasks[1]", "duplicate"),
+        (minimal(tasks="all"), "tasks", "'base' or a non-empty list"),
+        (minimal(seeds="all"), "seeds", "expected 'verified', {verified: N}"),
+        (minimal(seeds={"verified": 0}), "seeds.verified", ">= 1"),
+        (
+            minimal(tasks=["lift_pot"], seeds={"verified": 21}),
+            "seeds.verified",
+            "only 20 verified seeds",
+        ),
+        (minimal(seeds=[1000, -1]), "seeds[1]", "integer >= 0"),
+        (minimal(seeds=[1000, "x"]), "seeds[1]", "integer >= 0"),
+        (minimal(seeds=[1000, 1000]), "seeds[1]", "duplicate seed 1000"),
+        (
+            minimal(tasks=["lift_pot"], seeds={"lift_pot": [1], "lift_pott": [2]}),
+            "seeds.lift_pott",
+            "did you mean 'lift_pot'",
+        ),
+        (
+            minimal(tasks=["lift_pot", "place_shoe"], seeds={"lift_pot": [1]}),
+            "seeds",
+            "no seeds for task 'place_shoe'",
+        ),
+    ],
+)
+def test_one_problem_names_file_and_field(tmp_path, doc, field, words):
+    path = write(tmp_path, doc)
+    lines = problems_of(path)
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"{path}: {field}: "), lines[0]
+    assert words in lines[0]
+
+
+def test_missing_key_variable_fails_at_load_without_leaking(tmp_path):
+    path = write(tmp_path, minimal(models=[{**MODEL, "api_key_env": "OPENAI_API_KEY"}]))
+    (line,) = problems_of(path, environ={"OTHER": KEY})
+    assert line == f"{path}: models[0].api_key_env: environment variable OPENAI_API_KEY is not set"
+    (line,) = problems_of(path, environ={"OPENAI_API_KEY": ""})  # set but empty is not a key
+    assert "OPENAI_API_KEY is not set" in line
+
+
+def test_yaml_syntax_error_names_the_line(tmp_path):
+    path = write(tmp_path, "tracks: [active\nruns: 3\nmodels: []\n")
+    (line,) = problems_of(path)
+    assert line.startswith(f"{path}: line 2, column ")
+    assert "YAML syntax error" in line
+
+
+def test_a_key_written_twice_is_an_error(tmp_path):
+    path = write(tmp_path, "runs: 1\ntracks: [active]\nruns: 3\n")
+    (line,) = problems_of(path)
+    assert line.startswith(f"{path}: line 3, column 1: ") and "duplicate key 'runs'" in line
+
+
+def test_not_a_mapping_and_unreadable_file(tmp_path):
+    (line,) = problems_of(write(tmp_path, "- a\n- b\n"))
+    assert "expected a mapping" in line
+    (line,) = problems_of(tmp_path / "absent.yaml")
+    assert "cannot read" in line
+
+
+def test_every_problem_of_a_file_is_reported_at_once(tmp_path):
+    doc = {
+        "models": [
+            {**MODEL, "api_key_env": "VABENCH_UNSET_KEY"},
+            {**MODEL, "name": "b", "limits": {"rpm": -1}},
+        ],
+        "tracks": ["active", "pasive"],
+        "tasks": ["grasp_single_cube", "grasp_cubee", "lift_pott"],
+        "runs": "three",
+        "render": {"qualty": 90},
+    }
+    lines = problems_of(write(tmp_path, doc))
+    fields = [line.split(": ")[1] for line in lines]
+    assert sorted(fields) == sorted(
+        [
+            "models[0].api_key_env",
+            "models[1].limits.rpm",
+            "tracks[1]",
+            "tasks[1]",
+            "tasks[2]",
+            "runs",
+            "render.qualty",
+        ]
+    )
+    # reported in the order the file reads, section by section
+    assert [f.split(".")[0].split("[")[0] for f in fields] == [
+        "models",
+        "models",
+        "tracks",
+        "tasks",
+        "tasks",
+        "runs",
+        "render",
+    ]
