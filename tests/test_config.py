@@ -113,6 +113,13 @@ def test_step_budget_caps_but_never_raises_a_task_budget(tmp_path):
     assert [config.budget(t) for t in tasks] == [50, 100]
 
 
+def test_slots_per_task_default_is_the_planned_episodes_capped(tmp_path):
+    config = load_config(write(tmp_path, minimal(executor={"max_episodes": 40})), environ={})
+    assert [config.executor.slots(n) for n in (1, 40, 120)] == [1, 40, 40]
+    fixed = load_config(write(tmp_path, minimal(executor={"slots_per_task": 8})), environ={})
+    assert [fixed.executor.slots(n) for n in (1, 120)] == [8, 8]
+
+
 def test_document_reads_back_to_the_same_config(tmp_path):
     models = [{"name": "local", "api": "openai_chat", "base_url": "embedded"}, MODEL]
     doc = minimal(models=models, tasks=["lift_pot"], seeds={"verified": 2}, step_budget=4)

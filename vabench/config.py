@@ -98,6 +98,12 @@ class ExecutorOptions(_Strict):
     """Simulator slots of one task batch; default: the task's planned episodes, at most
     `max_episodes`."""
 
+    def slots(self, planned: int) -> int:
+        """Simulator slots for a task batch that will run `planned` episodes."""
+        if self.slots_per_task is not None:
+            return self.slots_per_task
+        return max(1, min(planned, self.max_episodes))
+
 
 class RetryOptions(_Strict):
     infrastructure_rounds: int = Field(default=3, ge=0)
