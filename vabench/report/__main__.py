@@ -1,0 +1,32 @@
+"""`python -m vabench.report RUN_DIR`: write RUN_DIR/report/ and print a short summary."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from vabench.report.build import generate
+from vabench.report.load import ReportError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m vabench.report",
+        description="Tables, figures and report.html from a sweep's results.jsonl.",
+    )
+    parser.add_argument("run_dir", type=Path, help="the sweep's run directory")
+    args = parser.parse_args(argv)
+    try:
+        out = generate(args.run_dir)
+    except ReportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {len(out.files)} files to {out.directory} (open report.html)")
+    for line in out.summary:
+        print(f"  {line}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

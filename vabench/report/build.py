@@ -1,0 +1,181 @@
+"""Assembling and writing RUN_DIR/report/ from RUN_DIR/results.jsonl.
+
+Files written (each atomically: a temporary sibling, then `os.replace`):
+    report.md            every table, with the notes and the figures linked
+    <section>.md         one file per topic (success_per_task, macro_average, active_passive,
+                         checkpoints, usage)
+    <table>.csv          raw numbers in long format
+    figures/*.png        macro-average bars, per-task bars per model/track, active vs passive
+    report.html          everything above in one self-contained page (figures as base64)
+figures/ is wholly generated: PNGs of an earlier report that this one does not produce are
+removed, so the folder never shows a model that is no longer in the results.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from vabench.report import figures, html, stats, tables
+from vabench.report.load import Results, load_results
+
+REPORT_DIR = "report"
+
+
+@dataclass
+class ReportOutput:
+    directory: Path
+    files: list[Path]
+    summary: list[str]
+
+
+def task_arms() -> tuple[dict[str, int], list[str], tuple[str, ...]]:
+    """Arms per registered task, the registry's task order, and the base families."""
+    from vabench.tasks import BASE_FAMILIES, REGISTRY  # imports the task modules (jax): lazy
+
+    return {n: len(t.arms) for n, t in REGISTRY.items()}, list(REGISTRY), BASE_FAMILIES
+
+
+def generate(run_dir: Path | str) -> ReportOutput:
+    """Read RUN_DIR/results.jsonl, compute every statistic, write RUN_DIR/report/."""
+    run_dir = Path(run_dir)
+    results = load_results(run_dir)
+    arms, order, base = task_arms()
+    return write_report(run_dir / REPORT_DIR, results, arms, order, base)
+
+
+def make_report(run_dir: Path) -> Path:
+    """The sweep's last step: write RUN_DIR/report/ and return that directory."""
+    return generate(run_dir).directory
+
+
+def write_report(
+    out_dir: Path,
+    results: Results,
+    arms: Mapping[str, int],
+    order: Sequence[str],
+    base: Sequence[str],
+) -> ReportOutput:
+    cells = stats.task_cells(results.scored)
+    task_spreads = stats.task_spread(cells)
+    macros = stats.macro_averages(cells, arms)
+    macro_spreads = stats.macro_spread(macros)
+    comparisons = stats.track_comparisons(cells)
+    unscored = stats.unscored_counts(results.unscored)
+    unresolved = stats.unresolved(results.scored, results.unscored)
+
+    n_single = sum(1 for t in base if t in arms and arms[t] == 1)
+    n_dual = sum(1 for t in base if t in arms and arms[t] > 1)
+    macro_notes = [
+        f"base families (vabench.tasks): {n_single} single-arm, {n_dual} dual-arm "
+        "(dual-arm = the task uses more than one arm)",
+        *stats.coverage_notes(cells, base),
+    ]
+    if results.truncated_tail:
+        macro_notes.append(
+            f"{results.path.name}: a truncated last line (a crash mid-write) was ignored"
+        )
+    sections = [
+        tables.macro_section(macros, macro_spreads, macro_notes),
+        tables.per_task_section(cells, task_spreads, arms, order),
+        tables.active_passive_section(comparisons, order),
+        tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
+        tables.usage_section(stats.usage(results.scored), unscored, len(unresolved)),
+    ]
+
+    pngs: list[tuple[str, str, str, bytes]] = [
+        (
+            "macro_average",
+            "macro_average.png",
+            "Macro-average success",
+            figures.macro_figure(macro_spreads),
+        ),
+    ]
+    for model, track in sorted({(c.model, c.track) for c in cells}):
+        pngs.append(
+            (
+                "success_per_task",
+                f"success_{_slug(model)}_{_slug(track)}.png",
+                f"{model} — {track}: per-task success",
+                figures.task_success_figure(cells, task_spreads, model, track, order),
+            )
+        )
+    shown: dict[str, stats.TrackComparison] = {}
+    for cmp in comparisons:  # the pooled comparison, when there is one, comes last per model
+        shown[cmp.model] = cmp
+    for model, cmp in shown.items():
+        pngs.append(
+            (
+                "active_passive",
+                f"active_passive_{_slug(model)}.png",
+                f"{model}: active vs passive ({tables.runs_label(cmp.runs)})",
+                figures.active_passive_figure(cmp, order),
+            )
+        )
+
+    summary = _summary(results, macro_spreads, comparisons, len(unresolved))
+    written: list[Path] = []
+    fig_dir = out_dir / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    for _, name, _, png in pngs:
+        written.append(_write(fig_dir / name, png))
+    keep = {name for _, name, _, _ in pngs}
+    for stale in fig_dir.glob("*.png"):
+        if stale.name not in keep:
+            stale.unlink()
+    md_parts = ["# VA-Bench report\n", "".join(f"- {s}\n" for s in summary)]
+    for section in sections:
+        text = tables.section_markdown(section)
+        written.append(_write(out_dir / f"{section.name}.md", text.encode()))
+        links = [f"![{t}](figures/{n})\n" for s, n, t, _ in pngs if s == section.name]
+        md_parts += [text, *links]
+        for table in section.csvs:
+            written.append(_write(out_dir / f"{table.name}.csv", tables.to_csv(table).encode()))
+    written.append(_write(out_dir / "report.md", "\n".join(md_parts).encode()))
+    page = html.render("VA-Bench report", summary, sections, [(s, t, png) for s, _, t, png in pngs])
+    written.append(_write(out_dir / "report.html", page.encode()))
+    return ReportOutput(out_dir, written, summary)
+
+
+def _summary(
+    results: Results,
+    spreads: Mapping[tuple[str, str, str], stats.Spread],
+    comparisons: Sequence[stats.TrackComparison],
+    n_unresolved: int,
+) -> list[str]:
+    lines = [
+        f"{len(results.scored)} scored episodes, {len(results.unscored)} unscored records "
+        f"({n_unresolved} episodes never scored) in {results.path}"
+    ]
+    for (model, track, subset), s in spreads.items():
+        if subset == "all":
+            lines.append(
+                f"{model} / {track}: macro-average success {tables.mean_sd_text(s)} % "
+                f"over {s.n} run(s)"
+            )
+    for cmp in comparisons:
+        lines.append(
+            f"{cmp.model} active vs passive ({tables.runs_label(cmp.runs)}): passive worse on "
+            f"{cmp.passive_worse} of {cmp.non_tied} non-tied families, sign test "
+            f"p = {float(cmp.p_value):.4g}"
+        )
+    return lines
+
+
+def _slug(name: str) -> str:
+    """A file-name-safe form; a hash keeps names apart that differ only in unsafe characters."""
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "_", name)
+    if slug != name:
+        slug += "-" + hashlib.sha1(name.encode()).hexdigest()[:6]
+    return slug
+
+
+def _write(path: Path, data: bytes) -> Path:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    return path
