@@ -387,6 +387,15 @@ def test_cli_writes_every_file(tmp_path, capsys):
     assert "11 single-arm, 3 dual-arm" in md and "lacks 11 of 14 base families" in md
 
 
+def test_infrastructure_retries_are_counted_not_scored(tmp_path):
+    run_dir = write(tmp_path, pattern("m", "active", 1, {CUBE: 1}, seeds=2))
+    retry = line("m", "active", CUBE, 0, 1, False, status="infrastructure_error")
+    (run_dir / "infrastructure.jsonl").write_text(json.dumps(retry) + "\n" + '{"mod')
+    results = load_results(run_dir)
+    assert results.retried == {("m", "active"): 1}
+    assert (len(results.scored), len(results.unscored)) == (2, 0)
+
+
 def test_make_report_returns_directory_and_replaces_stale_figures(tmp_path):
     run_dir = write(tmp_path / "run", full_sweep())
     stale = run_dir / "report" / "figures" / "success_gone_active.png"

@@ -84,7 +84,9 @@ def write_report(
         tables.per_task_section(cells, task_spreads, arms, order),
         tables.active_passive_section(comparisons, order),
         tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
-        tables.usage_section(stats.usage(results.scored), unscored, len(unresolved)),
+        tables.usage_section(
+            stats.usage(results.scored), unscored, len(unresolved), results.retried
+        ),
     ]
 
     pngs: list[tuple[str, str, str, bytes]] = [

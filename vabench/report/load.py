@@ -25,6 +25,8 @@ from pydantic import ValidationError
 from vabench.agent.records import RECORD_VERSION, EpisodeResult
 
 RESULTS_FILE = "results.jsonl"
+INFRA_FILE = "infrastructure.jsonl"
+"""The sweep's log of infrastructure failures that were run again (one line per attempt)."""
 
 Key = tuple[str, str, str, int, int]
 """(model, track, task, seed, run): one planned episode."""
@@ -56,6 +58,8 @@ class Results:
     unscored: list[Record] = field(default_factory=list)
     truncated_tail: bool = False
     """True when a crash-truncated final line was dropped."""
+    retried: dict[tuple[str, str], int] = field(default_factory=dict)
+    """(model, track) -> infrastructure failures that were run again (from INFRA_FILE)."""
 
 
 _ENVELOPE = ("track", "episode_dir")
@@ -130,6 +134,7 @@ def load_results(run_dir: Path | str) -> Results:
             )
         first_scored[record.key] = i + 1
         out.scored.append(record)
+    out.retried = count_retried(Path(run_dir) / INFRA_FILE)
     if not out.scored and not out.unscored:
         raise ReportError(f"{path}: no records (empty file)")
     if not out.scored:
@@ -139,3 +144,22 @@ def load_results(run_dir: Path | str) -> Results:
             f"unscored ({', '.join(statuses)})"
         )
     return out
+
+
+def count_retried(path: Path) -> dict[tuple[str, str], int]:
+    """(model, track) -> lines of the sweep's infrastructure log; {} when it does not exist.
+
+    Only counted, never scored; a line without a model and track (a crash-truncated tail) is
+    skipped rather than failing the report over a file that does not feed any statistic.
+    """
+    counts: dict[tuple[str, str], int] = {}
+    if not path.is_file():
+        return counts
+    for raw in path.read_text(encoding="utf-8").splitlines():
+        try:
+            obj = json.loads(raw)
+            key = (str(obj["model"]), str(obj["track"]))
+        except (json.JSONDecodeError, KeyError, TypeError):
+            continue
+        counts[key] = counts.get(key, 0) + 1
+    return dict(sorted(counts.items()))

@@ -327,6 +327,7 @@ def usage_section(
     usages: Sequence[Usage],
     unscored: Mapping[tuple[str, str, str], tuple[int, float]],
     unresolved_count: int,
+    retried: Mapping[tuple[str, str], int],
 ) -> Section:
     def share(x: float | None) -> str:
         return "—" if x is None else f"{100 * x:.1f}%"
@@ -415,6 +416,9 @@ def usage_section(
             f"{unresolved_count} planned episode(s) have only unscored records "
             "(never scored; not in any statistic)"
         )
+    if retried:
+        runs_again = "; ".join(f"{m} / {t}: {n}" for (m, t), n in retried.items())
+        notes.append(f"infrastructure failures run again (infrastructure.jsonl): {runs_again}")
     return Section(
         "usage",
         "Steps, actions, tokens and cost",
