@@ -258,9 +258,16 @@ def load_config(
     config, problems = _check(doc, path.stem, environ)
     if problems or config is None:
         order = {key: i for i, key in enumerate(doc)}  # report in the order the file reads
-        problems.sort(key=lambda p: order.get(re.split(r"[.\[]", p.path)[0], len(order)))
+        problems.sort(key=lambda p: _position(p.path, order))
         raise SweepConfigError(file, problems)
     return config
+
+
+def _position(path: str, order: Mapping[str, int]) -> tuple[int, int]:
+    """Where a problem's field is in the file: its section, then its list entry."""
+    match = re.match(r"([^.\[]*)(?:\[(\d+)\])?", path)
+    head, index = (match.group(1), match.group(2)) if match else (path, None)
+    return order.get(head, len(order)), -1 if index is None else int(index)
 
 
 def _check(
