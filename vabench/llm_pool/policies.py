@@ -14,6 +14,7 @@ a scripted one for tests that need exact replies, an echo for correlating calls.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import random
 from collections.abc import Callable, Sequence
@@ -203,3 +204,27 @@ class EchoPolicy:
     async def respond(self, request: IncomingRequest) -> str:
         last = request.chat.turns[-1]
         return f"{last.text} [images: {len(last.images)}]"
+
+
+@register_policy("conversation_hash")
+class ConversationHashPolicy:
+    """A random valid robot action drawn from a generator seeded by the conversation's text
+    (system prompt and every turn's text, images excluded).
+
+    Unlike `random_action`, whose draws follow the order in which requests arrive, each
+    episode's replies here are a function of that episode's own conversation alone: concurrent
+    episodes, interleavings and resumed sweeps get the same decisions. For reproducibility
+    tests (a sweep killed and resumed must end as if it had run straight through).
+    """
+
+    def __init__(self, seed: int = 0, arms: Literal["auto", "right", "both"] = "auto"):
+        self.seed = seed
+        self.arms = arms
+
+    async def respond(self, request: IncomingRequest) -> str:
+        chat = request.chat
+        h = hashlib.sha256(f"{self.seed}\n{chat.system or ''}".encode())
+        for turn in chat.turns:
+            h.update(b"\x00" + turn.role.encode() + b"\x00" + turn.text.encode())
+        actor = RandomActionPolicy(seed=int.from_bytes(h.digest()[:8], "big"), arms=self.arms)
+        return fenced_json(actor.action(actor._dual(request)))

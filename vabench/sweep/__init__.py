@@ -1,0 +1,9 @@
+"""The main job: plan, run, resume and report a multi-model sweep.
+
+    python -m vabench.sweep configs/all.yaml [--dry-run] [--out DIR]
+
+`vabench.config` validates the YAML; `plan` lists every episode (models x tracks x tasks x
+seeds x runs) deterministically and estimates calls, tokens and cost; `runner` runs them in
+one process with every task batch concurrent, resumable from `results.jsonl`; `display`
+shows progress; at the end `vabench.report` writes the paper's tables.
+"""

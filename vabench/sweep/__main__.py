@@ -1,0 +1,113 @@
+"""`python -m vabench.sweep CONFIG [--dry-run] [--out DIR] [--no-report]` (see vabench.sweep).
+
+Running the same command again resumes: finished episodes are never re-run, interrupted ones
+start again, infrastructure failures get their retry rounds. Exit code 0 when every planned
+episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import yaml
+
+from vabench.config import SweepConfigError, load_config
+from vabench.sweep.display import Display
+from vabench.sweep.plan import estimate, format_estimate, plan
+from vabench.sweep.results import Ledger, LedgerError
+from vabench.sweep.runner import LocalSweep
+
+log = logging.getLogger("vabench.sweep")
+
+# What decides the plan: a run directory belongs to one such set (resuming with another
+# would mix episodes of two sweeps in one table).
+PLAN_FIELDS = ("models", "tracks", "tasks", "seeds", "runs", "step_budget")
+
+
+def _plan_identity(keys: Sequence) -> list[str]:
+    return [k.as_id() for k in keys]
+
+
+def _check_run_dir(run_dir: Path, config_dump: dict, keys: Sequence) -> None:
+    """Refuse to resume a run directory made by a different plan."""
+    plan_file = run_dir / "plan.json"
+    ids = _plan_identity(keys)
+    if plan_file.exists():
+        before = json.loads(plan_file.read_text(encoding="utf-8"))
+        if before != ids:
+            raise SystemExit(
+                f"{run_dir} holds a sweep with a different plan ({len(before)} episodes, now "
+                f"{len(ids)}); use another --out, or restore the config that made it"
+            )
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        plan_file.write_text(json.dumps(ids), encoding="utf-8")
+    (run_dir / "sweep.yaml").write_text(
+        yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8"
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m vabench.sweep",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("config", type=Path)
+    p.add_argument(
+        "--dry-run", action="store_true", help="print the plan and its cost; run nothing"
+    )
+    p.add_argument("--out", help="run directory (default: the config's out)")
+    p.add_argument("--no-report", action="store_true")
+    p.add_argument("--plain", action="store_true", help="log lines instead of a live table")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    try:
+        config = load_config(args.config, overrides={"out": args.out} if args.out else None)
+    except SweepConfigError as err:
+        print(err, file=sys.stderr)
+        return 2
+    keys = plan(config)
+    run_dir = Path(config.out)
+    if args.dry_run:
+        print(format_estimate(estimate(config, keys)))
+        if (run_dir / "results.jsonl").exists():
+            done = len(Ledger.open(run_dir).records)
+            print(f"{run_dir}: {done} of {len(keys)} episodes already finished")
+        return 0
+    _check_run_dir(run_dir, config.model_dump(mode="json"), keys)
+    try:
+        sweep = LocalSweep(config, keys, run_dir)
+    except LedgerError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    display = Display(len(keys), live=False if args.plain else None)
+    sweep.on_change = display.update
+    progress = asyncio.run(sweep.run())
+    display.close(progress)
+    records = sweep.ledger.records
+    missing = [
+        k.as_id()
+        for k in keys
+        if (k.model, k.track, k.task, int(k.seed), int(k.run)) not in records
+    ]
+    unscored = [r for r in records.values() if r["status"] not in ("success", "failure")]
+    for r in unscored:
+        print(f"unscored: {r['episode_dir']}: {r['status']} ({r['stop_reason']}): {r['error']}")
+    if missing:
+        print(f"{len(missing)} planned episodes have no record: {missing[:5]} ...")
+    if not args.no_report:
+        from vabench.report import make_report
+
+        print(f"report: {make_report(run_dir)}")
+    return 0 if not unscored and not missing else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""The sweep's ledger: RUN_DIR/results.jsonl, one line per finished planned episode.
+
+A line is `{"v": 1, "track": ..., "episode_dir": ..., **EpisodeResult}`. "Finished" means
+scored (success or failure), an `error` that re-running cannot fix, or an
+`infrastructure_error` after its last retry round. Infrastructure failures before that go to
+RUN_DIR/infrastructure.jsonl (append-only, for the record and for counting rounds across
+resumes) and the episode is run again.
+
+Crash safety, in the order the sweep writes:
+1. the episode writes its result.json atomically (vabench.agent.records);
+2. the ledger appends one line and fsyncs.
+A kill between 1 and 2 leaves a result.json that the ledger does not know: `recover()` adopts
+it on resume instead of running the episode again. A kill during 2 leaves a truncated last
+line: `open()` cuts it off (and the result.json adopts it again). So every planned episode ends
+with exactly one line, never zero, never two.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from vabench.agent.records import RECORD_VERSION, EpisodeResult, read_result
+
+LEDGER = "results.jsonl"
+INFRA_LOG = "infrastructure.jsonl"
+
+
+def key_of(record: dict[str, Any]) -> tuple[str, str, str, int, int]:
+    return (
+        record["model"],
+        record["track"],
+        record["task"],
+        int(record["seed"]),
+        int(record["run"]),
+    )
+
+
+class LedgerError(ValueError):
+    pass
+
+
+@dataclass
+class Ledger:
+    """What has finished (loaded at start, appended as episodes end)."""
+
+    run_dir: Path
+    records: dict[tuple[str, str, str, int, int], dict[str, Any]] = field(default_factory=dict)
+    infra_attempts: Counter = field(default_factory=Counter)
+
+    @classmethod
+    def open(cls, run_dir: Path) -> Ledger:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        ledger = cls(run_dir)
+        path = run_dir / LEDGER
+        if path.exists():
+            _cut_truncated_tail(path)
+            for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+                if not line.strip():
+                    continue
+                try:
+                    record = json.loads(line)
+                    key = key_of(record)
+                except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+                    raise LedgerError(f"{path}:{n}: not a result record ({err})") from None
+                if key in ledger.records:
+                    raise LedgerError(f"{path}:{n}: a second record for {key}")
+                ledger.records[key] = record
+        infra = run_dir / INFRA_LOG
+        if infra.exists():
+            _cut_truncated_tail(infra)
+            for line in infra.read_text(encoding="utf-8").splitlines():
+                if line.strip():
+                    ledger.infra_attempts[key_of(json.loads(line))] += 1
+        return ledger
+
+    def finished(self, key: tuple[str, str, str, int, int]) -> bool:
+        return key in self.records
+
+    def _append(self, name: str, record: dict[str, Any]) -> None:
+        with open(self.run_dir / name, "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def add(self, track: str, episode_dir: str, result: EpisodeResult) -> dict[str, Any]:
+        record = {
+            "v": RECORD_VERSION,
+            "track": track,
+            "episode_dir": episode_dir,
+            **result.model_dump(),
+        }
+        key = key_of(record)
+        if key in self.records:
+            raise LedgerError(f"refusing a second record for {key}")
+        self._append(LEDGER, record)
+        self.records[key] = record
+        return record
+
+    def add_infrastructure_failure(
+        self, track: str, episode_dir: str, result: EpisodeResult
+    ) -> None:
+        record = {
+            "v": RECORD_VERSION,
+            "track": track,
+            "episode_dir": episode_dir,
+            **result.model_dump(),
+        }
+        self._append(INFRA_LOG, record)
+        self.infra_attempts[key_of(record)] += 1
+
+
+def _cut_truncated_tail(path: Path) -> None:
+    """Drop a last line without its newline (a write cut short by a kill)."""
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        with open(path, "r+b") as f:
+            f.truncate(data.rfind(b"\n") + 1)
+
+
+def set_aside(episode_dir: Path) -> None:
+    """Move a finished-but-unusable attempt (an infrastructure error adopted on resume) out of
+    the way, keeping it, so the episode can run again in the same directory."""
+    n = 1
+    while (episode_dir / f"attempt_{n}").exists():
+        n += 1
+    aside = episode_dir / f"attempt_{n}"
+    aside.mkdir()
+    for name in ("result.json", "events.jsonl", "frames"):
+        if (episode_dir / name).exists():
+            (episode_dir / name).rename(aside / name)
+
+
+def recover(run_dir: Path, episode_dir: str) -> EpisodeResult | None:
+    """The result.json of an episode that finished but never reached the ledger, if any."""
+    return read_result(run_dir / episode_dir)

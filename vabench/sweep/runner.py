@@ -1,0 +1,244 @@
+"""Running a planned sweep in one process: every task batch of the plan concurrently, resumable.
+
+One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
+it, one render pool, and up to `executor.max_tasks` task batches at once; each batch serves
+every model and track of its task (the simulator does not care who decides). Episodes in
+flight are bounded per batch by its slots and overall by `executor.max_episodes`.
+
+Resume (see `results.Ledger`): episodes already in results.jsonl are never run again; an
+episode whose result.json exists but never reached the ledger (killed in between) is adopted;
+an interrupted one (events, no result) restarts in a clean log (its partial log is kept).
+Infrastructure failures are retried in later rounds, up to `retries.infrastructure_rounds`
+re-runs each, logged in infrastructure.jsonl, and after the last round recorded as
+`infrastructure_error`: listed, never scored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from vabench.agent.engine import EpisodeSpec, run_episode, task_services
+from vabench.agent.records import EpisodeResult
+from vabench.llm_pool.pool import LLMPool
+from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.render.worker import ImageSettings, RenderPool
+from vabench.sweep.results import Ledger, recover, set_aside
+from vabench.tasks import get_task
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CellCounts:
+    planned: int = 0
+    done: int = 0
+    success: int = 0
+    running: int = 0
+    unscored: int = 0
+    retried: int = 0
+
+
+@dataclass
+class SweepProgress:
+    """Live counters for the display, per (model, track, task)."""
+
+    cells: dict[tuple[str, str, str], CellCounts] = field(
+        default_factory=lambda: defaultdict(CellCounts)
+    )
+    pool: LLMPool | None = None
+
+    def total(self) -> CellCounts:
+        out = CellCounts()
+        for c in self.cells.values():
+            for name in ("planned", "done", "success", "running", "unscored", "retried"):
+                setattr(out, name, getattr(out, name) + getattr(c, name))
+        return out
+
+
+def _key(k: Any) -> tuple[str, str, str, int, int]:
+    return (k.model, k.track, k.task, int(k.seed), int(k.run))
+
+
+class LocalSweep:
+    """Runs `keys` of `config` into `run_dir` (see the module docstring)."""
+
+    def __init__(
+        self,
+        config: Any,
+        keys: Sequence[Any],
+        run_dir: Path,
+        on_change: Callable[[SweepProgress], None] | None = None,
+    ):
+        self.config = config
+        self.keys = list(keys)
+        self.run_dir = run_dir
+        self.ledger = Ledger.open(run_dir)
+        self.progress = SweepProgress()
+        self.on_change = on_change or (lambda p: None)
+        for k in self.keys:
+            self.progress.cells[(k.model, k.track, k.task)].planned += 1
+        for key in self.ledger.records:
+            cell = self.progress.cells[key[:3]]
+            record = self.ledger.records[key]
+            cell.done += 1
+            cell.success += bool(record["success"])
+            cell.unscored += record["status"] not in ("success", "failure")
+
+    # -- bookkeeping ---------------------------------------------------------------------------
+    def _adopt_orphans(self) -> None:
+        """Episodes whose result.json was written but not recorded (a kill in between)."""
+        for k in self.keys:
+            if self.ledger.finished(_key(k)):
+                continue
+            result = recover(self.run_dir, k.rel_dir)
+            if result is None:
+                continue
+            if result.status == "infrastructure_error":
+                self.ledger.add_infrastructure_failure(k.track, k.rel_dir, result)
+                set_aside(self.run_dir / k.rel_dir)
+            else:
+                self._record(k, result)
+
+    def _record(self, k: Any, result: EpisodeResult) -> None:
+        self.ledger.add(k.track, k.rel_dir, result)
+        cell = self.progress.cells[(k.model, k.track, k.task)]
+        cell.done += 1
+        cell.success += result.success
+        cell.unscored += not result.scored
+        self.on_change(self.progress)
+
+    def _pending(self) -> list[Any]:
+        rounds = self.config.retries.infrastructure_rounds
+        return [
+            k
+            for k in self.keys
+            if not self.ledger.finished(_key(k)) and self.ledger.infra_attempts[_key(k)] <= rounds
+        ]
+
+    # -- running -------------------------------------------------------------------------------
+    async def run(self) -> SweepProgress:
+        self._adopt_orphans()
+        cfg = self.config
+        async with contextlib.AsyncExitStack() as stack:
+            endpoints = list(cfg.models)
+            if cfg.embedded_models:
+                server_config = cfg.embedded_server
+                if not isinstance(server_config, ServerConfig):
+                    server_config = ServerConfig.model_validate(server_config or {})
+                server = await stack.enter_async_context(LocalServer(server_config))
+                endpoints = [
+                    ep.model_copy(update={"base_url": server.base_url(ep.api)})
+                    if ep.name in cfg.embedded_models
+                    else ep
+                    for ep in endpoints
+                ]
+            llm = await stack.enter_async_context(LLMPool(endpoints))
+            self.progress.pool = llm
+            render = cfg.render
+            pool = RenderPool(
+                workers=render.workers,
+                platform=render.platform,
+                max_size=(render.width, render.height),
+            )
+            await asyncio.to_thread(pool.start)
+            stack.callback(pool.close)
+            log.info("renderer: %s x %s", render.workers, pool.gl_info)
+            image = ImageSettings(render.width, render.height, render.quality)
+            round_no = 0
+            while pending := self._pending():
+                if round_no:
+                    log.warning(
+                        "retry round %d: %d episodes after infrastructure errors",
+                        round_no,
+                        len(pending),
+                    )
+                await self._run_round(pending, llm, pool, image)
+                round_no += 1
+        return self.progress
+
+    async def _run_round(
+        self, keys: list[Any], llm: LLMPool, pool: RenderPool, image: ImageSettings
+    ) -> None:
+        by_task: dict[str, list[Any]] = defaultdict(list)
+        for k in keys:
+            by_task[k.task].append(k)
+        ex = self.config.executor
+        task_gate = asyncio.Semaphore(ex.max_tasks)
+        episode_gate = asyncio.Semaphore(ex.max_episodes)
+
+        async def one_task(name: str, task_keys: list[Any]) -> None:
+            async with task_gate:
+                await self._run_task(name, task_keys, llm, pool, image, episode_gate)
+
+        await asyncio.gather(*(one_task(n, ks) for n, ks in by_task.items()))
+
+    async def _run_task(
+        self,
+        name: str,
+        keys: list[Any],
+        llm: LLMPool,
+        pool: RenderPool,
+        image: ImageSettings,
+        episode_gate: asyncio.Semaphore,
+    ) -> None:
+        cfg, ex, sim = self.config, self.config.executor, self.config.simulator
+        task = get_task(name)
+        n_slots = min(len(keys), ex.slots_per_task or ex.max_episodes)
+        batch_kwargs: dict[str, Any] = {}
+        if sim.backend == "mjx":
+            batch_kwargs["impl"] = sim.impl
+            if sim.lanes:
+                batch_kwargs["lanes"] = sim.lanes
+        async with task_services(
+            task,
+            n_slots,
+            llm,
+            pool,
+            backend=sim.backend,
+            image=image,
+            sim_window_s=sim.window_s,
+            **batch_kwargs,
+        ) as svc:
+            slots = asyncio.Semaphore(n_slots)
+
+            async def one(k: Any) -> None:
+                async with slots, episode_gate:
+                    cell = self.progress.cells[(k.model, k.track, k.task)]
+                    cell.running += 1
+                    self.on_change(self.progress)
+                    spec = EpisodeSpec(
+                        name,
+                        int(k.seed),
+                        k.model,
+                        protocol=k.track,
+                        run=int(k.run),
+                        out_dir=self.run_dir / k.rel_dir,
+                        step_budget=cfg.step_budget,
+                    )
+                    try:
+                        result = await run_episode(spec, svc)
+                    finally:
+                        cell.running -= 1
+                    self._finish(k, result)
+
+            await asyncio.gather(*(one(k) for k in keys))
+
+    def _finish(self, k: Any, result: EpisodeResult) -> None:
+        if result.status != "infrastructure_error":
+            self._record(k, result)
+            return
+        rounds = self.config.retries.infrastructure_rounds
+        if self.ledger.infra_attempts[_key(k)] >= rounds:  # the last allowed attempt failed
+            self._record(k, result)
+            return
+        self.ledger.add_infrastructure_failure(k.track, k.rel_dir, result)
+        set_aside(self.run_dir / k.rel_dir)
+        self.progress.cells[(k.model, k.track, k.task)].retried += 1
+        self.on_change(self.progress)
