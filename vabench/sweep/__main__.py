@@ -81,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             done = len(Ledger.open(run_dir).records)
             print(f"{run_dir}: {done} of {len(keys)} episodes already finished")
         return 0
-    _check_run_dir(run_dir, config.model_dump(mode="json"), keys)
+    _check_run_dir(run_dir, config.document(), keys)
     try:
         sweep = LocalSweep(config, keys, run_dir)
     except LedgerError as err:
@@ -103,9 +103,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if missing:
         print(f"{len(missing)} planned episodes have no record: {missing[:5]} ...")
     if not args.no_report:
-        from vabench.report import make_report
+        from vabench.report import ReportError, make_report
 
-        print(f"report: {make_report(run_dir)}")
+        try:
+            print(f"report: {make_report(run_dir)}")
+        except ReportError as err:  # e.g. every episode unscored: nothing to tabulate
+            print(f"no report: {err}", file=sys.stderr)
     return 0 if not unscored and not missing else 1
 
 

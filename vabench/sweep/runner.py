@@ -27,7 +27,7 @@ from typing import Any
 from vabench.agent.engine import EpisodeSpec, run_episode, task_services
 from vabench.agent.records import EpisodeResult
 from vabench.llm_pool.pool import LLMPool
-from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.llm_pool.server import LocalServer
 from vabench.render.worker import ImageSettings, RenderPool
 from vabench.sweep.results import Ledger, recover, set_aside
 from vabench.tasks import get_task
@@ -129,16 +129,8 @@ class LocalSweep:
         async with contextlib.AsyncExitStack() as stack:
             endpoints = list(cfg.models)
             if cfg.embedded_models:
-                server_config = cfg.embedded_server
-                if not isinstance(server_config, ServerConfig):
-                    server_config = ServerConfig.model_validate(server_config or {})
-                server = await stack.enter_async_context(LocalServer(server_config))
-                endpoints = [
-                    ep.model_copy(update={"base_url": server.base_url(ep.api)})
-                    if ep.name in cfg.embedded_models
-                    else ep
-                    for ep in endpoints
-                ]
+                server = await stack.enter_async_context(LocalServer(cfg.embedded_server))
+                endpoints = cfg.endpoints(server.base_url)
             llm = await stack.enter_async_context(LLMPool(endpoints))
             self.progress.pool = llm
             render = cfg.render

@@ -1,0 +1,107 @@
+"""The sweep runner in process: infrastructure failures get their retry rounds and end listed,
+never scored; a result.json that never reached the ledger is adopted, not run again; a cut
+ledger line is dropped; a bad config stops the command before any call."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import pytest
+
+from vabench.config import load_config
+from vabench.sweep.__main__ import main
+from vabench.sweep.plan import plan
+from vabench.sweep.results import INFRA_LOG, LEDGER, Ledger, LedgerError
+from vabench.sweep.runner import LocalSweep
+
+BASE = """\
+name: t
+models:
+  - name: local
+    api: openai_chat
+    base_url: embedded
+    retry: {{max_attempts: 1}}
+embedded_server: {server}
+tracks: [active]
+tasks: [grasp_single_cube]
+seeds: {{verified: 2}}
+runs: 1
+step_budget: 2
+simulator: {{backend: c}}
+render: {{width: 64, height: 48, workers: 1}}
+retries: {{infrastructure_rounds: 2}}
+"""
+
+
+def write_config(tmp_path: Path, server: str) -> Path:
+    path = tmp_path / "sweep.yaml"
+    path.write_text(BASE.format(server=server))
+    return path
+
+
+def run(config_path: Path, out: Path) -> LocalSweep:
+    config = load_config(config_path, overrides={"out": str(out)})
+    sweep = LocalSweep(config, plan(config), out)
+    asyncio.run(sweep.run())
+    return sweep
+
+
+def test_infrastructure_failures_are_retried_then_listed_unscored(tmp_path):
+    cfg = write_config(tmp_path, "{policy: random_action, faults: {rates: {server_error: 1.0}}}")
+    sweep = run(cfg, tmp_path / "out")
+    records = sweep.ledger.records
+    assert len(records) == 2
+    assert all(r["status"] == "infrastructure_error" and not r["success"] for r in records.values())
+    # 1 + 2 rounds = 3 attempts each: 2 logged as retried, the third recorded in the ledger
+    infra = (tmp_path / "out" / INFRA_LOG).read_text().splitlines()
+    assert len(infra) == 2 * 2
+    episode = tmp_path / "out" / next(iter(records.values()))["episode_dir"]
+    assert (episode / "result.json").exists()
+    assert (episode / "attempt_1" / "result.json").exists()
+    assert (episode / "attempt_2" / "result.json").exists()
+    # a rerun changes nothing: every planned episode already has its record
+    again = run(cfg, tmp_path / "out")
+    assert again.ledger.records == records
+
+
+def test_orphaned_result_is_adopted_and_a_cut_line_dropped(tmp_path):
+    cfg = write_config(tmp_path, "{policy: conversation_hash}")
+    out = tmp_path / "out"
+    first = run(cfg, out)
+    ledger = out / LEDGER
+    lines = ledger.read_text().splitlines(keepends=True)
+    assert len(lines) == 2
+    # Lose the second record as a kill would: half of its line written, result.json on disk.
+    ledger.write_text(lines[0] + lines[1][: len(lines[1]) // 2])
+    episode = out / json.loads(lines[1])["episode_dir"]
+    result_before = (episode / "result.json").read_text()
+    second = run(cfg, out)
+    assert second.ledger.records == first.ledger.records
+    assert (episode / "result.json").read_text() == result_before  # adopted, not re-run
+    assert len(ledger.read_text().splitlines()) == 2
+
+
+def test_a_second_record_for_one_episode_is_refused(tmp_path):
+    cfg = write_config(tmp_path, "{policy: conversation_hash}")
+    out = tmp_path / "out"
+    run(cfg, out)
+    line = (out / LEDGER).read_text().splitlines()[0]
+    with open(out / LEDGER, "a") as f:
+        f.write(line + "\n")
+    with pytest.raises(LedgerError, match="a second record"):
+        Ledger.open(out)
+
+
+def test_bad_config_stops_before_any_call(tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text(
+        BASE.format(server="{policy: random_action}")
+        .replace("tasks: [grasp_single_cube]", "tasks: [grasp_single_cub]")
+        .replace("runs: 1", "runz: 1")
+    )
+    assert main([str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "grasp_single_cub" in err and "runz" in err
+    assert not (tmp_path / "out").exists()
