@@ -87,11 +87,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LedgerError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    display = Display(len(keys), live=False if args.plain else None)
-    sweep.on_change = display.update
-    progress = asyncio.run(sweep.run())
-    display.close(progress)
-    records = sweep.ledger.records
+    if config.executor.kind == "ray":
+        from vabench.sweep.ray_executor import run_ray
+
+        records = run_ray(config, keys, run_dir)
+    else:
+        display = Display(len(keys), live=False if args.plain else None)
+        sweep.on_change = display.update
+        progress = asyncio.run(sweep.run())
+        display.close(progress)
+        records = sweep.ledger.records
     missing = [
         k.as_id()
         for k in keys
