@@ -13,13 +13,22 @@ A kill between 1 and 2 leaves a result.json that the ledger does not know: `reco
 it on resume instead of running the episode again. A kill during 2 leaves a truncated last
 line: `open()` cuts it off (and the result.json adopts it again). So every planned episode ends
 with exactly one line, never zero, never two.
+
+Several processes, on several machines (`executor: ray`), append to the same logs: each append
+is one `write()` of the whole line on an `O_APPEND` descriptor, under an exclusive POSIX record
+lock on the file (fcntl, which NFS honours across clients, unlike `O_APPEND` alone), and
+`open()` reads and cuts under the same lock, so a line another process is writing is never
+taken for a cut one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -58,8 +67,7 @@ class Ledger:
         ledger = cls(run_dir)
         path = run_dir / LEDGER
         if path.exists():
-            _cut_truncated_tail(path)
-            for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            for n, line in enumerate(_read_whole_lines(path), 1):
                 if not line.strip():
                     continue
                 try:
@@ -72,8 +80,7 @@ class Ledger:
                 ledger.records[key] = record
         infra = run_dir / INFRA_LOG
         if infra.exists():
-            _cut_truncated_tail(infra)
-            for line in infra.read_text(encoding="utf-8").splitlines():
+            for line in _read_whole_lines(infra):
                 if line.strip():
                     ledger.infra_attempts[key_of(json.loads(line))] += 1
         return ledger
@@ -82,10 +89,11 @@ class Ledger:
         return key in self.records
 
     def _append(self, name: str, record: dict[str, Any]) -> None:
-        with open(self.run_dir / name, "a", encoding="utf-8") as f:
-            f.write(json.dumps(record) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        data = (json.dumps(record) + "\n").encode("utf-8")
+        with _locked(self.run_dir / name, os.O_WRONLY | os.O_APPEND | os.O_CREAT) as fd:
+            while data:  # one write() in practice; a short one is finished under the lock
+                data = data[os.write(fd, data) :]
+            os.fsync(fd)
 
     def add(self, track: str, episode_dir: str, result: EpisodeResult) -> dict[str, Any]:
         record = {
@@ -114,12 +122,34 @@ class Ledger:
         self.infra_attempts[key_of(record)] += 1
 
 
-def _cut_truncated_tail(path: Path) -> None:
-    """Drop a last line without its newline (a write cut short by a kill)."""
-    data = path.read_bytes()
-    if data and not data.endswith(b"\n"):
-        with open(path, "r+b") as f:
-            f.truncate(data.rfind(b"\n") + 1)
+@contextlib.contextmanager
+def _locked(path: Path, flags: int) -> Iterator[int]:
+    """A descriptor of `path` holding an exclusive lock on it until the block ends. Everything
+    done under the lock uses this descriptor: closing any other descriptor of the file would
+    release the process's POSIX lock."""
+    fd = os.open(path, flags, 0o644)
+    try:
+        try:
+            fcntl.lockf(fd, fcntl.LOCK_EX)
+        except OSError as err:
+            raise LedgerError(f"{path}: cannot lock: {err.strerror or err}") from None
+        yield fd
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _read_whole_lines(path: Path) -> list[str]:
+    """The lines of a JSONL log, after dropping a last line without its newline (a write cut
+    short by a kill). Under the log's lock, so another process's append is never cut."""
+    with _locked(path, os.O_RDWR) as fd:
+        chunks = []
+        while chunk := os.read(fd, 1 << 20):
+            chunks.append(chunk)
+        data = b"".join(chunks)
+        if data and not data.endswith(b"\n"):
+            data = data[: data.rfind(b"\n") + 1]
+            os.ftruncate(fd, len(data))
+    return data.decode("utf-8").splitlines()
 
 
 def set_aside(episode_dir: Path) -> None:
