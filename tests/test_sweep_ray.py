@@ -1,0 +1,153 @@
+"""`executor: ray` on a local Ray cluster: the same sweep as the local executor, cell by cell in
+Ray workers, ends with the same records; a rerun runs nothing; a failing cell is reported
+while the other cells finish.
+
+The model is the embedded server's `conversation_hash` policy: each episode's decisions are a
+function of its own conversation, so where and in which order episodes run cannot change them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import ray
+
+from vabench.config import load_config
+from vabench.sweep.__main__ import main
+from vabench.sweep.plan import EpisodeKey, plan
+from vabench.sweep.ray_executor import run_ray
+from vabench.sweep.results import Ledger
+
+CONFIG = """\
+name: ray
+models:
+  - {{name: local, api: openai_chat, base_url: embedded}}
+embedded_server: {{policy: conversation_hash, latency: {{mean_s: 0.02}}, simulate_cache: false}}
+tracks: {tracks}
+tasks: {tasks}
+seeds: {{verified: 2}}
+runs: 1
+step_budget: 3
+simulator: {{backend: c}}
+render: {{width: 64, height: 48, workers: 1}}
+executor: {executor}
+"""
+TASKS = "[grasp_single_cube, handover_horizontal_block]"
+PLANNED = 2 * 1 * 2 * 2  # tasks x models x tracks x seeds (x 1 run)
+# Fields that measure time or host load, not outcome.
+TIMING = {"wall_s", "started_at"}
+
+
+@pytest.fixture(scope="module")
+def cluster() -> str:
+    """A local Ray cluster for this module; its GCS address."""
+    try:
+        context = ray.init(num_cpus=2, include_dashboard=False)
+    except Exception as err:  # say why, never skip: this module is the ray executor's test
+        pytest.fail(f"a local Ray cluster does not start here: {type(err).__name__}: {err}")
+    yield context.address_info["gcs_address"]
+    ray.shutdown()
+
+
+def write(path: Path, executor: str, tracks: str = "[active, passive]") -> Path:
+    path.write_text(CONFIG.format(tracks=tracks, tasks=TASKS, executor=executor))
+    return path
+
+
+def records(run_dir: Path) -> dict[tuple, dict]:
+    out = {}
+    for line in (run_dir / "results.jsonl").read_text().splitlines():
+        r = json.loads(line)
+        key = (r["model"], r["track"], r["task"], r["seed"], r["run"])
+        assert key not in out, f"two records for {key}"
+        out[key] = {k: v for k, v in r.items() if k not in TIMING}
+    return out
+
+
+def ray_sweep(config: Path, out: Path) -> str:
+    proc = subprocess.run(
+        [sys.executable, "-m", "vabench.sweep", str(config), "--out", str(out), "--plain"]
+        + ["--no-report"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        timeout=240,
+    )
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 0, output[-4000:]
+    return output
+
+
+def test_ray_sweep_equals_the_local_one_and_a_rerun_runs_nothing(cluster, tmp_path):
+    local_cfg = write(tmp_path / "local.yaml", "{max_tasks: 2}")
+    assert main([str(local_cfg), "--out", str(tmp_path / "local"), "--plain", "--no-report"]) == 0
+    ray_cfg = write(tmp_path / "ray.yaml", f"{{kind: ray, address: '{cluster}', max_tasks: 2}}")
+    out = tmp_path / "ray"
+
+    log = ray_sweep(ray_cfg, out)
+    assert "ray: cells 4/4 done (0 failed), 0 running | episodes recorded 8/8" in log, log[-4000:]
+    mine, local = records(out), records(tmp_path / "local")
+    assert len(mine) == len(local) == PLANNED
+    assert mine == local
+
+    ledger = (out / "results.jsonl").read_bytes()
+    results = {p: p.stat().st_mtime_ns for p in out.glob("episodes/**/result.json")}
+    assert len(results) == PLANNED
+    log = ray_sweep(ray_cfg, out)
+    assert "nothing to run" in log, log[-4000:]
+    assert (out / "results.jsonl").read_bytes() == ledger
+    assert {p: p.stat().st_mtime_ns for p in out.glob("episodes/**/result.json")} == results
+
+
+def test_a_failing_cell_is_reported_and_the_other_cells_finish(cluster, tmp_path, caplog):
+    config = load_config(
+        write(tmp_path / "ray.yaml", "{kind: ray, max_tasks: 2}", tracks="[active]"),
+        overrides={"tasks": ["grasp_single_cube"], "out": str(tmp_path / "out")},
+    )
+    run_dir = tmp_path / "out"
+    keys = [*plan(config), EpisodeKey("local", "active", "no_such_task", 1, 1)]
+    run_dir.mkdir()
+    (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
+    with caplog.at_level(logging.INFO, logger="vabench.sweep.ray_executor"):
+        got = run_ray(config, keys, run_dir)  # joins the module's cluster (already connected)
+    assert sorted(got) == sorted(
+        (k.model, k.track, k.task, k.seed, k.run) for k in keys if k.task != "no_such_task"
+    )
+    text = caplog.text
+    assert "cell local/active/no_such_task failed" in text and "no_such_task" in text
+    assert "1 of 2 cells failed (1 episodes not run): local/active/no_such_task" in text
+    assert ray.is_initialized()  # a connection the caller made is the caller's to close
+
+
+WRITER = """
+import sys
+from pathlib import Path
+from vabench.sweep.results import LEDGER, Ledger
+run_dir, writer, n = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+ledger = Ledger(run_dir)  # no open(): the test process does the reading
+for seed in range(n):
+    record = {"model": "m", "track": "active", "task": "t", "seed": seed, "run": writer}
+    ledger._append(LEDGER, record | {"pad": "x" * 1_000_000})
+"""
+
+
+def test_appends_from_several_processes_stay_whole_lines_while_others_open(tmp_path):
+    """Cells append to one ledger while other cells open it (reading, cutting a torn tail):
+    an append in progress must never be taken for a torn line and cut."""
+    writers, n = 3, 20
+    procs = [
+        subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path), str(w), str(n)])
+        for w in range(writers)
+    ]
+    while any(p.poll() is None for p in procs):
+        Ledger.open(tmp_path)  # raises on a line that is not a record
+    assert all(p.returncode == 0 for p in procs)
+    got = Ledger.open(tmp_path).records
+    planned = [("m", "active", "t", s, w) for w in range(writers) for s in range(n)]
+    assert sorted(got) == sorted(planned)
