@@ -34,15 +34,18 @@ TASKS = [
 ]
 
 
-def run_sweep(config: Path, out: Path, report: bool) -> float:
+def run_sweep(config: Path, out: Path, report: bool, log: Path | None = None) -> float:
+    """Wall time of one sweep command; its output goes to `log` (default: out/../<name>.log)."""
     cmd = [sys.executable, "-m", "vabench.sweep", str(config), "--out", str(out), "--plain"]
     if not report:
         cmd.append("--no-report")
+    log = log or out.with_suffix(".log")
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    with open(log, "w") as f:
+        code = subprocess.run(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT).returncode
     wall = time.perf_counter() - t0
-    if proc.returncode not in (0, 1):
-        raise SystemExit(f"sweep failed ({proc.returncode}):\n{proc.stdout[-3000:]}")
+    if code not in (0, 1):
+        raise SystemExit(f"sweep failed ({code}):\n{log.read_text()[-3000:]}")
     return wall
 
 
@@ -57,6 +60,7 @@ def main() -> None:
     p.add_argument("--render-workers", type=int, default=2)
     p.add_argument("--skip-smoke", action="store_true")
     p.add_argument("--json")
+    p.add_argument("--log", type=Path, help="write the big sweep's output here")
     args = p.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -100,7 +104,7 @@ def main() -> None:
         path.write_text(json.dumps(config))
         n = per_run * runs
         ideal = math.ceil(n / args.concurrency) * args.steps * args.latency
-        wall = run_sweep(path, tmp_path / "bench", report=False)
+        wall = run_sweep(path, tmp_path / "bench", report=False, log=args.log)
         results = [
             json.loads(x) for x in (tmp_path / "bench/results.jsonl").read_text().splitlines()
         ]
