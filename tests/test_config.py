@@ -116,8 +116,6 @@ def test_step_budget_caps_but_never_raises_a_task_budget(tmp_path):
 def test_slots_per_task_default_is_the_planned_episodes_capped(tmp_path):
     config = load_config(write(tmp_path, minimal(executor={"max_episodes": 40})), environ={})
     assert [config.executor.slots(n) for n in (1, 40, 120)] == [1, 40, 40]
-    # batches running at once share the episode budget (max_tasks defaults to 4)
-    assert [config.executor.slots(120, k) for k in (2, 3, 4, 9)] == [20, 14, 10, 10]
     fixed = load_config(write(tmp_path, minimal(executor={"slots_per_task": 8})), environ={})
     assert [fixed.executor.slots(n) for n in (1, 120)] == [8, 8]
 

@@ -95,17 +95,14 @@ class ExecutorOptions(_Strict):
     max_episodes: int = Field(default=256, ge=1)
     """Episodes in flight at once in one process."""
     slots_per_task: int | None = Field(default=None, ge=1)
-    """Simulator slots of one task batch; default: the task's planned episodes, at most an
-    equal share of `max_episodes` among the task batches that run at once (so every batch
-    makes progress, instead of the first one holding every episode permit)."""
+    """Simulator slots of one task batch; default: the task's planned episodes, at most
+    `max_episodes`."""
 
-    def slots(self, planned: int, tasks_at_once: int = 1) -> int:
-        """Simulator slots for a task batch that will run `planned` episodes while
-        `tasks_at_once` batches (at most `max_tasks`) share the process."""
+    def slots(self, planned: int) -> int:
+        """Simulator slots for a task batch that will run `planned` episodes."""
         if self.slots_per_task is not None:
             return self.slots_per_task
-        share = -(-self.max_episodes // max(1, min(tasks_at_once, self.max_tasks)))
-        return max(1, min(planned, share))
+        return max(1, min(planned, self.max_episodes))
 
 
 class RetryOptions(_Strict):

@@ -167,8 +167,7 @@ class LocalSweep:
 
         async def one_task(name: str, task_keys: list[Any]) -> None:
             async with task_gate:
-                n_slots = ex.slots(len(task_keys), len(by_task))
-                await self._run_task(name, task_keys, n_slots, llm, pool, image, episode_gate)
+                await self._run_task(name, task_keys, llm, pool, image, episode_gate)
 
         await asyncio.gather(*(one_task(n, ks) for n, ks in by_task.items()))
 
@@ -176,14 +175,14 @@ class LocalSweep:
         self,
         name: str,
         keys: list[Any],
-        n_slots: int,
         llm: LLMPool,
         pool: RenderPool,
         image: ImageSettings,
         episode_gate: asyncio.Semaphore,
     ) -> None:
-        cfg, sim = self.config, self.config.simulator
+        cfg, ex, sim = self.config, self.config.executor, self.config.simulator
         task = get_task(name)
+        n_slots = min(len(keys), ex.slots_per_task or ex.max_episodes)
         batch_kwargs: dict[str, Any] = {}
         if sim.backend == "mjx":
             batch_kwargs["impl"] = sim.impl
