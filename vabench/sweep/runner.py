@@ -182,7 +182,7 @@ class LocalSweep:
     ) -> None:
         cfg, ex, sim = self.config, self.config.executor, self.config.simulator
         task = get_task(name)
-        n_slots = min(len(keys), ex.slots_per_task or ex.max_episodes)
+        n_slots = ex.slots(len(keys))
         batch_kwargs: dict[str, Any] = {}
         if sim.backend == "mjx":
             batch_kwargs["impl"] = sim.impl
