@@ -90,7 +90,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if config.executor.kind == "ray":
         from vabench.sweep.ray_executor import run_ray
 
-        records = run_ray(config, keys, run_dir)
+        try:
+            records = run_ray(config, keys, run_dir)
+        except LedgerError as err:  # e.g. a cell retried by Ray wrote a second record
+            print(f"error: {err}", file=sys.stderr)
+            return 2
     else:
         display = Display(len(keys), live=False if args.plain else None)
         sweep.on_change = display.update
