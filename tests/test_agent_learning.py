@@ -26,6 +26,7 @@ from vabench.agent.learning import (
     LearningLimits,
     LearningResult,
     learn_summary,
+    learning_prompt,
     read_result,
 )
 from vabench.agent.records import EpisodeRecorder
@@ -33,6 +34,7 @@ from vabench.agent.summary import (
     MAX_LIST_ITEMS,
     MAX_TEXT_CHARS,
     REQUIRED_FIELDS,
+    DemoSummary,
     parse_summary,
     summary_text,
 )
@@ -284,6 +286,21 @@ def test_records_and_determinism(tmp_path):
     types = [e["type"] for e in a.events]
     assert types[0] == "learning_start" and types[-1] == "learning_end"
     assert {"request", "reply", "tool", "learned"} <= set(types)
+
+
+def test_learning_prompt_states_the_stage_the_tools_the_gate_and_the_fields():
+    prompt = learning_prompt(("left", "right"), 3.0)
+    assert "two robot arms" in prompt and "about 3 frames per second" in prompt
+    for name in (*P.DEMONSTRATION_TOOLS, *DemoSummary.model_fields):
+        assert name in prompt, name
+    assert f"at least {MIN_DISTINCT_FRAMES} distinct frames" in prompt
+    assert "no robot or camera actions" in prompt
+    assert "geometry.verify" not in prompt and "camera.view" not in prompt
+    s = run([tool("expert.frame", step=N_FRAMES), frames(0, 1, 2), learn()])
+    assert s.tool_errors()[0].startswith("args.step: no frame")
+    body = body_json(s.bodies[0])
+    assert "Pick up the red cube" in user_texts(body)[0]
+    assert f"frame 0 to frame {N_FRAMES - 1}" in user_texts(body)[0]
 
 
 def test_demo_frames_validate():

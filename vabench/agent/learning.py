@@ -34,6 +34,9 @@ Expected failures come back as a `LearningResult` with `status="failed"` and a `
 provider failures that outlast the pool's retries become `status="infrastructure_error"`
 (re-run, like evaluation episodes), a request the provider rejects `status="error"`.
 
+No compaction: the call budget bounds the thread (about 30 short turns), and at most
+`LearningLimits.context.max_images` images (8) beyond the newest tool result's are sent.
+
 Records, when a recorder is given (events.jsonl of `EpisodeRecorder`): learning_start,
 request, reply, rejection, tool, learned, learning_end; and `learning.json` (the
 `LearningResult`, summary included) in the recorder's directory. The recorder's `finish` is
@@ -237,8 +240,9 @@ def frame_result(demo: DemoFrames, args: P.FrameArgs) -> ToolResult:
     wanted = args.frames
     outside = [k for k in wanted if not 0 <= k < n]
     if outside:
+        where = "args.step" if args.step is not None else "args.steps"
         error = (
-            f"args.steps: no frame {', '.join(map(str, outside))}; valid frames: 0 to {n - 1}"
+            f"{where}: no frame {', '.join(map(str, outside))}; valid frames: 0 to {n - 1}"
             "; no frame was shown"
         )
         return ToolResult(name, tool_text(name, {"error": error}), ok=False)
