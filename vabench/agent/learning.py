@@ -59,7 +59,13 @@ from pydantic import BaseModel, ConfigDict, Field
 from vabench import protocol as P
 from vabench.agent.conversation import ContextLimits, Conversation
 from vabench.agent.records import RECORD_VERSION, EpisodeRecorder, TokenTotals
-from vabench.agent.summary import DemoSummary, parse_summary, summary_text
+from vabench.agent.summary import (
+    MAX_LIST_ITEMS,
+    MAX_TEXT_CHARS,
+    DemoSummary,
+    parse_summary,
+    summary_text,
+)
 from vabench.agent.tools import ToolResult, tool_text
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
@@ -198,7 +204,11 @@ def learning_prompt(arms: Sequence[str], fps: float) -> str:
             f"{MIN_DISTINCT_FRAMES} distinct frames with expert.frame.",
             "There are no robot or camera actions in this stage.",
             "",
-            "# Summary fields (a JSON object; strings unless said otherwise)",
+            "# Summary fields",
+            "A JSON object; strings unless said otherwise. The optional fields that describe "
+            "several things (stages, constraints, roles, sequences, notes) also take a list of "
+            f"strings. At most {MAX_TEXT_CHARS} characters per string and {MAX_LIST_ITEMS} "
+            "items per list.",
             "Required:",
             *_field_lines(required=True),
             "Optional:",
