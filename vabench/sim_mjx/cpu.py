@@ -57,6 +57,11 @@ class CpuBatch(BatchBase):
         )
         self._pool = rollout.Rollout(nthread=threads) if threads > 0 else None
         self._thread_data = [mujoco.MjData(model) for _ in range(threads)]
+        # Capture (demonstration videos; off by default): with `capture_every` = k > 0, every
+        # k-th physics step of an action appends the slot's qpos to `captured[slot]`. Only
+        # actions are captured, never reset or hold; it reads state and changes no result.
+        self.capture_every = 0
+        self.captured: dict[int, list[np.ndarray]] = {}
         self.reset(range(n_slots), np.broadcast_to(home_qpos(model), (n_slots, model.nq)))
 
     def close(self) -> None:
@@ -95,18 +100,23 @@ class CpuBatch(BatchBase):
         controls = np.repeat(self._ctrl[slots][:, None, :], n_steps, axis=1)
         self._run(slots, controls)
 
-    def _run(self, slots: list[int], controls: np.ndarray) -> None:
-        """Advance `slots` through the control sequences (len(slots), n_steps, nu)."""
+    def _run(self, slots: list[int], controls: np.ndarray, capture: int = 0) -> None:
+        """Advance `slots` through the control sequences (len(slots), n_steps, nu); with
+        `capture` = k > 0, append qpos to `captured[slot]` after every k-th step."""
         if not slots:
             return
+        if capture > 0 and self._pool is not None:
+            raise ValueError("capture_every needs the serial path (threads=0)")
         if self._pool is None:
             for row, slot in enumerate(slots):
                 m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
                 mujoco.mj_setState(m, d, self._state[slot], _STATE)
                 d.qacc_warmstart[:] = self._warm[slot]
-                for u in controls[row]:
+                for k, u in enumerate(controls[row], 1):
                     d.ctrl[:] = u
                     mujoco.mj_step(m, d)
+                    if capture > 0 and k % capture == 0:
+                        self.captured.setdefault(slot, []).append(d.qpos.copy())
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
                 self._warm[slot] = d.qacc_warmstart
         else:
@@ -134,7 +144,7 @@ class CpuBatch(BatchBase):
         seq, plan = jax.device_get((seq, plan))
         go = rows.active & plan.ok
         slots = [int(s) for s in np.flatnonzero(go)]
-        self._run(slots, np.asarray(seq[slots], float))
+        self._run(slots, np.asarray(seq[slots], float), self.capture_every)
         opens = rows.grip == 1
         keep = rows.grip < 0
         self._grip_open[go] = np.where(keep[go], self._grip_open[go], opens[go])
