@@ -12,6 +12,9 @@ from vabench.demos import build, store
 from vabench.render.worker import ImageSettings, RenderPool
 from vabench.tasks import REGISTRY, base_tasks
 
+# Manifest fields that decide the frames' bytes; with all equal, the hash must be equal too.
+_INPUTS = ("demo_seed", "width", "height", "quality", "fps", "renderer")
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m vabench.demos")
@@ -42,9 +45,11 @@ def main(argv: list[str] | None = None) -> int:
             info = build.build_demo(
                 name, args.out, settings=settings, pool=pool, force=args.force, mp4=not args.no_mp4
             )
-            path = store.write_manifest(
-                store.manifest_doc(info, build.CANDIDATES_RULE), args.manifests
-            )
+            old = store.load_manifests(args.manifests).get(name)
+            doc = store.manifest_doc(info, build.CANDIDATES_RULE)
+            if old and all(old[k] == doc[k] for k in _INPUTS) and old["sha256"] != doc["sha256"]:
+                print(f"{name}: frames differ from the committed manifest", file=sys.stderr)
+            path = store.write_manifest(doc, args.manifests)
             print(
                 f"{name}: seed {info.seed}, {info.n_frames} frames at {info.fps:g} fps "
                 f"({info.width}x{info.height}) in {time.perf_counter() - t0:.1f} s -> {path}",

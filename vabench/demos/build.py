@@ -5,14 +5,18 @@ skipping every seed retained by ANY evaluation manifest in `configs/seeds`; the 
 whose reset passes the settle gate and whose expert succeeds (C backend) is the demo seed.
 
 Frames: the reset state, then `FRAMES_PER_ACTION` frames inside every executed action (qpos
-captured by `CpuBatch.capture_every` every n_substeps // 3 physics steps, so the third falls at
-the action's end). An action is 0.8 s of simulated time, so that is 3.75 frames per second of
-simulated time, and the MP4 plays at that rate (real time). Counts are 1 + 3 x expert actions:
-19 (click_bell_right, 6 actions) to 88 (handover, 29). FACTS' 30-110 comes from the reference,
+captured by `CpuBatch.capture_every` every n_substeps // 3 physics steps: at 200 substeps of
+4 ms, after steps 66, 132 and 198, so the third is 8 ms before the action's end). An action is
+0.8 s of simulated time, so that is 3.75 frames per second of simulated time, and the MP4 plays
+at that rate (real time). Counts are 1 + 3 x expert actions: 19 (click_bell_right, 6 actions) to
+88 (handover_horizontal_block, 29). FACTS' 30-110 comes from the reference,
 whose actions last longer; no uniform rate fits that range with our 0.8 s actions, so the rate
-follows the spec's "about 3 per second" and the shortest families have fewer frames. Every frame is drawn from the head
-camera of the reset state (`camera.head_view`; it does not move) by the RenderPool's clean model
-path: RGB JPEG, no overlays, nothing else stored in the image.
+follows the spec's "about 3 per second" and the shortest families have fewer frames.
+
+Every frame is drawn from the head camera of the reset state (`camera.head_view`; it does not
+move) by the RenderPool's clean model path: RGB JPEG, no overlays, nothing else in the image.
+Frames are 640x480 q90 (half the model images' side: enough to see grasps, a quarter of the
+bytes per frame in a conversation that may attach 8 at once).
 
 Cache: `cache_key` hashes everything that decides the frames (format version, task, image
 settings, frame rule, MuJoCo version, the evaluation seeds the scan must avoid, and the source
