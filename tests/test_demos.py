@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -158,3 +159,21 @@ def test_capture_off_by_default_and_changes_no_result():
 
 def test_source_digest_is_stable():
     assert build.source_digest() == build.source_digest()
+
+
+def test_concurrent_builds_of_a_missing_demo_simulate_once(tmp_path, monkeypatch):
+    calls = []
+    real = build.record
+
+    def counted(*args, **kwargs):
+        calls.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(build, "record", counted)
+    task = FAMILIES[0]
+    with ThreadPoolExecutor(2) as ex:
+        infos = list(
+            ex.map(lambda _: build.build_demo(task, tmp_path, settings=SMALL, mp4=False), range(2))
+        )
+    assert calls == [task]
+    assert infos[0] == infos[1]

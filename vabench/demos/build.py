@@ -26,6 +26,7 @@ the cached meta.json and whose frames match their hash does no work.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
@@ -199,17 +200,34 @@ def build_demo(
         raise ValueError(f"task: unknown task {task_name!r}; valid tasks: {sorted(REGISTRY)}")
     excluded = evaluation_seeds(seeds_dir)
     key = cache_key(task_name, settings, excluded)
-    if not force and (info := _current(task_name, cache_dir, key)) is not None:
-        log.info("%s: demo cache current (%d frames)", task_name, info.n_frames)
-        return info
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    # Sweep processes may build the same missing demo at once: one builds, the others wait
+    # and then find the cache current.
+    with open(Path(cache_dir) / f"{task_name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not force and (info := _current(task_name, cache_dir, key)) is not None:
+            log.info("%s: demo cache current (%d frames)", task_name, info.n_frames)
+            return info
+        return _build(task_name, cache_dir, key, excluded, settings, pool, mp4)
+
+
+def _build(
+    task_name: str,
+    cache_dir: Path,
+    key: str,
+    excluded: set[int],
+    settings: ImageSettings,
+    pool: RenderPool | None,
+    mp4: bool,
+) -> store.DemoInfo:
     rollout = record(task_name, excluded)
     if pool is None:
         with RenderPool(workers=1, max_size=(settings.width, settings.height)) as own:
             frames = render_frames(task_name, rollout, settings, own)
-            renderer = own.resolved or "unknown"
+            renderer = str(own.gl_info)
     else:
         frames = render_frames(task_name, rollout, settings, pool)
-        renderer = pool.resolved or "unknown"
+        renderer = str(pool.gl_info)
     info = store.DemoInfo(
         task=task_name,
         seed=rollout.seed,

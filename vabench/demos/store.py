@@ -43,7 +43,7 @@ class DemoInfo:
     quality: int
     sha256: str  # of the frames' bytes, in order (see `frames_digest`)
     key: str  # cache key: inputs that determine the frames (see build.cache_key)
-    renderer: str  # GL platform the frames were drawn with (hashes differ across platforms)
+    renderer: str  # the GL renderer that drew the frames (hashes differ across renderers)
     expert_steps: int
     rejected: dict[int, str] = field(default_factory=dict)  # candidates tried before `seed`
 
