@@ -131,14 +131,11 @@ class SceneRenderer:
                 f"{self.max_size[1]} buffer (or is not positive)"
             )
 
-    def _draw(
-        self, vs: _VariantScene, opt: mujoco.MjvOption, width: int, height: int
-    ) -> np.ndarray:
+    def _update_scene(self, vs: _VariantScene, opt: mujoco.MjvOption) -> None:
         self._gl.make_current()
         mujoco.mjv_updateScene(
             vs.model, vs.data, opt, None, vs.camera, mujoco.mjtCatBit.mjCAT_ALL, vs.scene
         )
-        return self._finish(vs, width, height)
 
     def _finish(self, vs: _VariantScene, width: int, height: int) -> np.ndarray:
         rect = mujoco.MjrRect(0, 0, width, height)
@@ -155,7 +152,8 @@ class SceneRenderer:
         self._check_size(width, height)
         vs = self._scene(variant)
         vs.pose(np.asarray(qpos, float), camera, physics=False)
-        return self._draw(vs, _model_option(), width, height)
+        self._update_scene(vs, _model_option())
+        return self._finish(vs, width, height)
 
     def render_debug(
         self,
@@ -170,16 +168,7 @@ class SceneRenderer:
         self._check_size(width, height)
         vs = self._scene(variant)
         vs.pose(np.asarray(qpos, float), camera, physics=overlays.contacts)
-        self._gl.make_current()
-        mujoco.mjv_updateScene(
-            vs.model,
-            vs.data,
-            _debug_option(overlays),
-            None,
-            vs.camera,
-            mujoco.mjtCatBit.mjCAT_ALL,
-            vs.scene,
-        )
+        self._update_scene(vs, _debug_option(overlays))
         if overlays.gc_markers:
             self._add_gc_markers(vs)
         rgb = self._finish(vs, width, height)

@@ -20,7 +20,7 @@ import yaml
 from vabench.config import SweepConfigError, load_config
 from vabench.sweep.display import Display
 from vabench.sweep.plan import estimate, format_estimate, plan
-from vabench.sweep.results import Ledger, LedgerError
+from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import LocalSweep
 
 log = logging.getLogger("vabench.sweep")
@@ -101,11 +101,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         progress = asyncio.run(sweep.run())
         display.close(progress)
         records = sweep.ledger.records
-    missing = [
-        k.as_id()
-        for k in keys
-        if (k.model, k.track, k.task, int(k.seed), int(k.run)) not in records
-    ]
+    missing = [k.as_id() for k in keys if ledger_key(k) not in records]
     unscored = [r for r in records.values() if r["status"] not in ("success", "failure")]
     for r in unscored:
         print(f"unscored: {r['episode_dir']}: {r['status']} ({r['stop_reason']}): {r['error']}")

@@ -19,16 +19,13 @@ def _usage(progress: SweepProgress) -> tuple[int, int, int, float]:
     """(in flight, calls finished, tokens, cost) over every endpoint of the pool."""
     if progress.pool is None:
         return 0, 0, 0, 0.0
-    in_flight = calls = tokens = 0
-    cost = 0.0
-    for s in progress.pool.stats().values():
-        in_flight += getattr(s, "in_flight", 0)
-        calls += getattr(s, "succeeded", 0)
-        usage = getattr(s, "usage", None)
-        if usage is not None:
-            tokens += usage.total_tokens
-        cost += getattr(s, "cost_usd", 0.0)
-    return in_flight, calls, tokens, cost
+    stats = progress.pool.stats().values()
+    return (
+        sum(s.in_flight for s in stats),
+        sum(s.succeeded for s in stats),
+        sum(s.usage.total_tokens for s in stats),
+        sum(s.cost_usd for s in stats),
+    )
 
 
 class Display:

@@ -48,7 +48,7 @@ import yaml
 
 from vabench.config import SweepConfig, SweepConfigError, load_config
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.results import LEDGER, Ledger
+from vabench.sweep.results import LEDGER, Ledger, ledger_key
 from vabench.sweep.runner import LocalSweep
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,7 @@ def pending_cells(
     done = set(finished)
     cells: dict[Cell, list[EpisodeKey]] = {}
     for k in keys:
-        if (k.model, k.track, k.task, int(k.seed), int(k.run)) not in done:
+        if ledger_key(k) not in done:
             cells.setdefault((k.model, k.track, k.task), []).append(k)
     return cells
 
@@ -185,7 +185,7 @@ def _run_cells(
     while queue or in_flight:
         while queue and len(in_flight) < limit:
             cell = queue.pop(0)
-            keys = [(k.model, k.track, k.task, int(k.seed), int(k.run)) for k in cells[cell]]
+            keys = [ledger_key(k) for k in cells[cell]]
             in_flight[remote.remote(document, str(run_dir), keys)] = cell
         ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=PROGRESS_EVERY_S)
         for ref in ready:

@@ -49,6 +49,11 @@ def key_of(record: dict[str, Any]) -> tuple[str, str, str, int, int]:
     )
 
 
+def ledger_key(k: Any) -> tuple[str, str, str, int, int]:
+    """The ledger key of a planned `EpisodeKey` (the same tuple `key_of` reads from a line)."""
+    return (k.model, k.track, k.task, int(k.seed), int(k.run))
+
+
 class LedgerError(ValueError):
     pass
 

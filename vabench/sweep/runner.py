@@ -29,7 +29,7 @@ from vabench.agent.records import EpisodeResult
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.render.worker import ImageSettings, RenderPool
-from vabench.sweep.results import Ledger, recover, set_aside
+from vabench.sweep.results import Ledger, ledger_key, recover, set_aside
 from vabench.tasks import get_task
 
 log = logging.getLogger(__name__)
@@ -62,10 +62,6 @@ class SweepProgress:
         return out
 
 
-def _key(k: Any) -> tuple[str, str, str, int, int]:
-    return (k.model, k.track, k.task, int(k.seed), int(k.run))
-
-
 class LocalSweep:
     """Runs `keys` of `config` into `run_dir` (see the module docstring)."""
 
@@ -95,7 +91,7 @@ class LocalSweep:
     def _adopt_orphans(self) -> None:
         """Episodes whose result.json was written but not recorded (a kill in between)."""
         for k in self.keys:
-            if self.ledger.finished(_key(k)):
+            if self.ledger.finished(ledger_key(k)):
                 continue
             result = recover(self.run_dir, k.rel_dir)
             if result is None:
@@ -119,7 +115,8 @@ class LocalSweep:
         return [
             k
             for k in self.keys
-            if not self.ledger.finished(_key(k)) and self.ledger.infra_attempts[_key(k)] <= rounds
+            if not self.ledger.finished(ledger_key(k))
+            and self.ledger.infra_attempts[ledger_key(k)] <= rounds
         ]
 
     # -- running -------------------------------------------------------------------------------
@@ -227,7 +224,7 @@ class LocalSweep:
             self._record(k, result)
             return
         rounds = self.config.retries.infrastructure_rounds
-        if self.ledger.infra_attempts[_key(k)] >= rounds:  # the last allowed attempt failed
+        if self.ledger.infra_attempts[ledger_key(k)] >= rounds:  # the last allowed attempt failed
             self._record(k, result)
             return
         self.ledger.add_infrastructure_failure(k.track, k.rel_dir, result)

@@ -189,7 +189,7 @@ class TaskBatch:
 
     def slot_states(self, slots: np.ndarray | None = None) -> SlotState:
         """Predicate inputs of every slot; contacts only for `slots` (bool mask) when given."""
-        qpos, p = self._observe()
+        qpos, p = self.observe()
         return SlotState(
             qpos=jnp.asarray(qpos),
             init_qpos=jnp.asarray(self.init_qpos),
@@ -209,16 +209,12 @@ class TaskBatch:
         )
         return jax.device_get(ev), np.asarray(progress)
 
-    def _observe(self) -> tuple[np.ndarray, Any]:
+    def observe(self) -> tuple[np.ndarray, Any]:
         """qpos and proprioception of every slot, fetched once per state change: the predicate
         and the experts' views read the same state after each step."""
         if self._observed is None:
             self._observed = (self.batch.qpos(), self.batch.proprio())
         return self._observed
-
-    def observe(self) -> tuple[np.ndarray, Any]:
-        """qpos (host array) and `Proprio` of every slot, as of the last change."""
-        return self._observe()
 
     def checkpoint(self, slot: int) -> str | None:
         """Name of the last checkpoint the slot reached (None before the first)."""
@@ -228,7 +224,7 @@ class TaskBatch:
     # -- evaluator-only views ---------------------------------------------------------------
     def views(self, slots: Sequence[int]) -> dict[int, View]:
         """Evaluator-only views of `slots` (for experts and debugging; never for a model)."""
-        qpos_all, p = self._observe()
+        qpos_all, p = self.observe()
         out = {}
         for slot in slots:
             qpos = qpos_all[slot]
