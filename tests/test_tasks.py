@@ -14,7 +14,7 @@ import pytest
 
 from vabench.seeds import load_manifest
 from vabench.sim_mjx import scene
-from vabench.tasks import BASE_FAMILIES, REGISTRY, get_task
+from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, REGISTRY, SUITES, get_task
 from vabench.tasks.runner import TaskBatch, run_experts
 
 # FACTS.md, "Tasks, budgets, evaluation seeds" (transcribed independently of the modules).
@@ -36,7 +36,10 @@ PAPER_BUDGETS = {
 }
 PAPER_MODEL_IDS = {"click_bell_right": 2, "lift_pot": 2, "place_shoe": 10}
 
-PRESENT = [n for n in BASE_FAMILIES if n in REGISTRY]
+PRESENT = [n for n in BENCHMARK_FAMILIES if n in REGISTRY]
+"""Every benchmark family with a module: the 14 base families, and the transfer variants and
+the basket task as they land (their own budgets are checked below)."""
+BASKET_BUDGET = 250  # five placements at place_cube_in_bowl's 50 each (our choice; see module)
 
 
 def test_all_fourteen_families_are_registered():
@@ -48,13 +51,25 @@ def test_all_fourteen_families_are_registered():
 @pytest.mark.parametrize("name", PRESENT)
 def test_arms_budget_checkpoints_model_ids(name):
     task = get_task(name)
-    arms, budget = PAPER_BUDGETS[name]
+    suite = next(s for s, names in SUITES.items() if name in names)
+    assert task.suite == suite and task.instruction
+    if suite == "base":
+        arms, budget = PAPER_BUDGETS[name]
+        assert len(task.variants) == PAPER_MODEL_IDS.get(name, 1)
+        assert task.base_family is None and task.demo_families == (name,)
+    elif suite == "transfer":
+        # a variant keeps its base family's instruction, arms and budget and reads its summary
+        base = name.removesuffix("_heldout")
+        assert task.base_family == base and task.summary_family == base
+        assert task.instruction == get_task(base).instruction
+        arms, budget = PAPER_BUDGETS[base]
+    else:
+        arms, budget = ("right",), BASKET_BUDGET
+        assert len(task.demo_families) == 4 and task.summary_family == name
     assert (task.arms, task.step_budget) == (arms, budget)
-    assert task.suite == "base" and task.instruction
     assert task.checkpoints[-1] == "completed" and len(set(task.checkpoints)) == len(
         task.checkpoints
     )
-    assert len(task.variants) == PAPER_MODEL_IDS.get(name, 1)
 
 
 @pytest.mark.parametrize("name", PRESENT)

@@ -26,7 +26,7 @@ from typing import Any
 import mujoco
 
 from vabench.sim_mjx import robot_constants as rc
-from vabench.tasks import BASE_FAMILIES, REGISTRY, base_tasks, get_task
+from vabench.tasks import BENCHMARK_FAMILIES, REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
 from vabench.tasks.runner import TaskBatch, run_experts
 
@@ -163,11 +163,13 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.command == "table":
         docs = [
-            load_manifest(t, args.dir) for t in BASE_FAMILIES if manifest_path(t, args.dir).exists()
+            load_manifest(t, args.dir)
+            for t in BENCHMARK_FAMILIES
+            if manifest_path(t, args.dir).exists()
         ]
         print(yield_table(docs))
         return 0
-    names = args.task or [t.name for t in base_tasks()]
+    names = args.task or [t.name for t in benchmark_tasks()]
     for name in names:
         if name not in REGISTRY:
             parser.error(f"--task: unknown task {name!r}; valid tasks: {sorted(REGISTRY)}")

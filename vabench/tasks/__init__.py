@@ -29,6 +29,33 @@ BASE_FAMILIES = (
     "lift_pot",
 )
 
+TRANSFER_FAMILIES = (
+    "grasp_single_bottle_heldout",
+    "grasp_single_bottle_upright_heldout",
+    "grasp_single_cube_heldout",
+    "place_single_cube_heldout",
+    "place_cube_in_bowl_heldout",
+    "place_cube_on_cube_heldout",
+    "place_single_bottle_upright_heldout",
+)
+"""The controlled-transfer track: seven held-out variants, each `<base>_heldout` (FACTS)."""
+LONG_HORIZON_FAMILIES = ("put_everything_in_basket",)
+"""The long-horizon track: the five-object basket task."""
+BASKET_DEMONSTRATIONS = (
+    "place_single_cube",
+    "grasp_single_bottle",
+    "grasp_single_bottle_upright",
+    "grasp_single_pen",
+)
+"""The basket's four atomic videos (FACTS, "Demonstration protocol")."""
+SUITES = {
+    "base": BASE_FAMILIES,
+    "transfer": TRANSFER_FAMILIES,
+    "long_horizon": LONG_HORIZON_FAMILIES,
+}
+"""Benchmark families per suite, in the paper's order."""
+BENCHMARK_FAMILIES = BASE_FAMILIES + TRANSFER_FAMILIES + LONG_HORIZON_FAMILIES
+
 _NOT_TASKS = {"base", "common", "expert", "objects", "runner", "__main__"}
 
 
@@ -41,7 +68,7 @@ def _discover() -> dict[str, Task]:
         task = getattr(module, "TASK", None)
         if isinstance(task, Task):
             found[task.name] = task
-    order = {name: i for i, name in enumerate(BASE_FAMILIES)}
+    order = {name: i for i, name in enumerate(BENCHMARK_FAMILIES)}
     return dict(sorted(found.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
 
 
@@ -58,3 +85,9 @@ def get_task(name: str) -> Task:
 def base_tasks() -> list[Task]:
     """The base families present, in the paper's order."""
     return [REGISTRY[n] for n in BASE_FAMILIES if n in REGISTRY]
+
+
+def benchmark_tasks(suite: str | None = None) -> list[Task]:
+    """The benchmark families present (every suite but "dev", or one suite), in order."""
+    names = BENCHMARK_FAMILIES if suite is None else SUITES[suite]
+    return [REGISTRY[n] for n in names if n in REGISTRY]

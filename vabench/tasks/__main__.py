@@ -16,7 +16,7 @@ import json
 import sys
 from typing import Any
 
-from vabench.tasks import REGISTRY, base_tasks, get_task
+from vabench.tasks import REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
 
 
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.command == "list":
-        tasks = list(REGISTRY.values()) if args.all else base_tasks()
+        tasks = list(REGISTRY.values()) if args.all else benchmark_tasks()
         docs = [describe(t) for t in tasks]
         if args.json:
             json.dump(docs, sys.stdout, indent=1)

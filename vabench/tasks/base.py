@@ -160,7 +160,24 @@ class Task:
     variants: tuple[str, ...] = ("default",)
     settle_steps: int = 2000  # reset: settle, then observe (FACTS: 2,000 + 500 steps)
     observe_steps: int = 500
-    suite: str = "base"  # "base": the 14 families; "dev": tasks for testing the simulator
+    suite: str = "base"  # "base" | "transfer" | "long_horizon" | "dev" (simulator tests only)
+    base_family: str | None = None  # transfer variants: the base family they are held out from
+    demonstrations: tuple[str, ...] = ()
+    """Families whose demonstration videos the summary of this task is learned from; empty
+    means its own (base families) or its base family's summary (transfer variants, which get no
+    video: FACTS "Held-out variants reuse the base task's summary"); the basket names the four
+    atomic families of FACTS."""
+
+    @property
+    def summary_family(self) -> str:
+        """The family whose learned summary this task's episodes read: a transfer variant reads
+        its base family's; everything else reads its own (learned from `demo_families`)."""
+        return self.base_family or self.name
+
+    @property
+    def demo_families(self) -> tuple[str, ...]:
+        """The demonstration videos shown when learning this task's summary."""
+        return self.demonstrations or (self.summary_family,)
 
     # -- scene ------------------------------------------------------------------------------
     def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
