@@ -42,9 +42,12 @@ async def run_concurrent(n: int, steps: int, backend: str, render_pool: RenderPo
     )
     async with LocalServer(config) as server:
         endpoints = [server.endpoint_config("local", "openai_chat")]
-        async with LLMPool(endpoints) as llm, task_services(
-            task, n, llm, render_pool, backend=backend, image=TINY, sim_window_s=0.02
-        ) as svc:
+        async with (
+            LLMPool(endpoints) as llm,
+            task_services(
+                task, n, llm, render_pool, backend=backend, image=TINY, sim_window_s=0.02
+            ) as svc,
+        ):
             episodes = [
                 Episode(EpisodeSpec(TASK, seeds[i % len(seeds)], "local", step_budget=steps), svc)
                 for i in range(n)
@@ -73,7 +76,10 @@ def check_against_replays(task, runs, batch, backend: str) -> None:
         np.testing.assert_array_equal(qpos, batch.batch.qpos()[slot])
         for out, e in zip(outcomes, actions, strict=True):
             assert (out.result.valid, out.result.planner_success, out.progress, out.success) == (
-                e["valid"], e["planner_success"], e["progress"], e["success"]
+                e["valid"],
+                e["planner_success"],
+                e["progress"],
+                e["success"],
             )
 
 
