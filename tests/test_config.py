@@ -91,7 +91,7 @@ def test_embedded_models_and_their_endpoints(tmp_path):
 
 def test_shipped_configs_load_without_keys():
     full = load_config(CONFIGS / "all.yaml", environ={})
-    assert full.tracks == ("active", "passive") and full.runs == 3
+    assert full.track_names == ("active", "passive") and full.runs == 3
     assert full.tasks == BASE_FAMILIES
     assert all(len(s) == 20 for s in full.seeds.values())
     assert [m.name for m in full.models] == ["local"] and full.embedded_models == ("local",)
@@ -99,7 +99,7 @@ def test_shipped_configs_load_without_keys():
 
     smoke = load_config(CONFIGS / "smoke.yaml", environ={})
     assert sorted(len(get_task(t).arms) for t in smoke.tasks) == [1, 2]
-    assert smoke.tracks == ("active", "passive") and smoke.runs == 1
+    assert smoke.track_names == ("active", "passive") and smoke.runs == 1
     assert all(len(s) == 2 for s in smoke.seeds.values())
     assert smoke.step_budget == 5 and all(smoke.budget(t) == 5 for t in smoke.tasks)
     assert smoke.simulator.backend == "c"
@@ -152,7 +152,35 @@ def test_overrides_replace_values_before_checking(tmp_path):
         (minimal(runs="three"), "runs", "valid integer, unable to parse string"),
         (minimal(runs=0), "runs", "greater than or equal to 1"),
         (minimal(models=[{**MODEL, "limits": {"rpm": 0}}]), "models[0].limits.rpm", "greater"),
-        (minimal(tracks=["active", "pasive"]), "tracks[1]", "'active' or 'passive'"),
+        (minimal(tracks=["active", "pasive"]), "tracks[1]", "did you mean 'passive'"),
+        (minimal(tracks=["active", "active"]), "tracks[1]", "duplicate track 'active'"),
+        (
+            minimal(tracks=[{"name": "active", "protocol": "passive"}]),
+            "tracks[0].protocol",
+            "built-in",
+        ),
+        (
+            minimal(tracks=[{"name": "abl", "protocl": "active"}]),
+            "tracks[0].protocl",
+            "did you mean 'protocol'",
+        ),
+        (
+            minimal(tracks=[{"name": "a b", "protocol": "active"}]),
+            "tracks[0].name",
+            "names a directory",
+        ),
+        (minimal(summaries="mine"), "summaries", "own, none, shared:<model>"),
+        (minimal(summaries="shared:gtp"), "summaries", "unknown model 'gtp'"),
+        (
+            minimal(tracks=[{"name": "x", "summaries": "shared:nobody"}]),
+            "tracks[0].summaries",
+            "unknown model 'nobody'",
+        ),
+        (
+            minimal(learning={"max_model_calls": 0}),
+            "learning.max_model_calls",
+            "greater than or equal to 1",
+        ),
         (minimal(tracks=["active", "active"]), "tracks[1]", "duplicate"),
         (minimal(tracks=[]), "tracks", "at least 1"),
         (minimal(models=[]), "models", "at least 1"),
@@ -272,3 +300,37 @@ def test_every_problem_of_a_file_is_reported_at_once(tmp_path):
         "runs",
         "render",
     ]
+
+
+def test_tracks_resolve_protocol_suite_and_summary_mode_and_round_trip(tmp_path):
+    second = {**MODEL, "name": "teacher"}
+    path = write(
+        tmp_path,
+        minimal(
+            models=[MODEL, second],
+            tasks=["grasp_single_cube", "lift_pot"],
+            seeds=[1000],
+            summaries="none",
+            tracks=[
+                "active",
+                {"name": "passive", "summaries": "own"},
+                {"name": "active_shared", "protocol": "active", "summaries": "shared:teacher"},
+            ],
+        ),
+    )
+    config = load_config(path, environ={})
+    active, passive, shared = config.tracks
+    assert (active.protocol, active.suite, active.summaries) == ("active", "base", "none")
+    assert (passive.protocol, passive.summaries) == ("passive", "own")
+    assert (shared.protocol, shared.suite, shared.summaries) == ("active", "base", "shared:teacher")
+    assert [t.summary_source("m") for t in config.tracks] == [None, "m", "teacher"]
+    assert config.track_tasks("active_shared") == ("grasp_single_cube", "lift_pot")
+    again = write(tmp_path, config.document(), "again.yaml")
+    assert load_config(again, environ={}) == config.model_copy(update={"out": config.out})
+
+
+def test_a_transfer_track_needs_a_selected_family_with_a_held_out_variant(tmp_path):
+    path = write(tmp_path, minimal(tasks=["click_bell_right"], seeds=[1000], tracks=["transfer"]))
+    (line,) = problems_of(path)
+    assert "tracks[0]" in line
+    assert "none of the selected tasks has a registered held-out variant" in line

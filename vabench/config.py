@@ -7,7 +7,11 @@
       - {name: gpt, api: openai_chat, model: gpt-5, api_key_env: OPENAI_API_KEY,
          prices: {input: 1.25, output: 10.0}}
     embedded_server: {policy: random_action}   # vabench.llm_pool.server.ServerConfig fields
-    tracks: [active, passive]
+    tracks: [active, passive]      # built-in: active, passive (base suite), transfer (the held-out
+                                   # variants of the selected tasks), long_horizon (the basket);
+                                   # or {name, protocol, suite, summaries} for an ablation track
+    summaries: own                 # every track's default: own | none | shared:<model>
+    learning: {demo_cache: .cache/demos, max_model_calls: 30}
     tasks: base                    # the 14 base families, or a list of registered task names
     seeds: verified                # each task's manifest; {verified: N}: its first N; [1000, 1001]:
                                    # these seeds for every task; {task: [seeds]}: per task
@@ -24,7 +28,15 @@ seed manifests, unset API-key variables, duplicate or path-unsafe model names an
 embedded-server policies. Every problem found becomes one line of a single `SweepConfigError`,
 `<file>: <dotted field>: <problem>`, so one edit round fixes them all.
 
-The result, `SweepConfig`, is resolved: explicit task names and the seeds of each task.
+Tracks: a track is a camera protocol, a task suite and a summary mode. `active` and `passive`
+run the selected `tasks`; `transfer` runs the held-out variants (`<base>_heldout`) of the
+selected base families; `long_horizon` runs the basket task. Every track reads summaries learned
+from demonstrations (vabench.sweep.summaries): `own` (the model's own, learned once per family
+in a learning stage), `shared:<model>` (another model's) or `none`. A custom track such as
+`{name: active_none, protocol: active, summaries: none}` runs a summary-source ablation next to
+`active` in the same sweep.
+
+The result, `SweepConfig`, is resolved: explicit tracks, task names and the seeds of each task.
 `SweepConfig.document()` is a YAML-able mapping of that resolved config (what the sweep writes
 to RUN_DIR/sweep.yaml) which `load_config` reads back to an equal config.
 """
@@ -48,10 +60,20 @@ from vabench.llm_pool.config import ApiName, ConfigError, ModelEndpoint
 from vabench.llm_pool.policies import POLICIES
 from vabench.llm_pool.server import ServerConfig
 from vabench.seeds import verified_seeds
-from vabench.tasks import BASE_FAMILIES, REGISTRY
+from vabench.tasks import BASE_FAMILIES, REGISTRY, SUITES
 
 Track = Literal["active", "passive"]
+"""A camera protocol (also the names of the two built-in base-suite tracks)."""
 TRACKS: tuple[str, ...] = typing.get_args(Track)
+Suite = Literal["base", "transfer", "long_horizon"]
+BUILTIN_TRACKS: dict[str, tuple[Track, Suite]] = {
+    "active": ("active", "base"),
+    "passive": ("passive", "base"),
+    "transfer": ("active", "transfer"),
+    "long_horizon": ("active", "long_horizon"),
+}
+"""Built-in track name -> (camera protocol, task suite)."""
+SUMMARY_MODES = ("own", "none", "shared:<model>")
 
 EMBEDDED = "embedded"
 """The `base_url` that means "the embedded server the sweep starts"."""
@@ -105,6 +127,29 @@ class ExecutorOptions(_Strict):
         return max(1, min(planned, self.max_episodes))
 
 
+class TrackSpec(_Strict):
+    """One track: which tasks, under which camera protocol, reading whose summaries."""
+
+    name: str
+    protocol: Track = "active"
+    suite: Suite = "base"
+    summaries: str = "own"
+    """own | none | shared:<model> (see the module docstring)."""
+
+    def summary_source(self, model: str) -> str | None:
+        """The model whose summaries episodes of `model` read on this track (None: none)."""
+        if self.summaries == "none":
+            return None
+        return model if self.summaries == "own" else self.summaries.removeprefix("shared:")
+
+
+class LearningOptions(_Strict):
+    demo_cache: str = ".cache/demos"
+    """Where demonstration videos are cached (built when missing; `python -m vabench.demos`)."""
+    max_model_calls: int = Field(default=30, ge=1)
+    """Model calls one learning session may use (`agent.learning.LearningLimits`)."""
+
+
 class RetryOptions(_Strict):
     infrastructure_rounds: int = Field(default=3, ge=0)
     """How many times episodes ended by an infrastructure error are re-run (FACTS: 3)."""
@@ -118,7 +163,10 @@ class _SweepFile(_Strict):
     out: str | None = Field(default=None, min_length=1)
     models: list[ModelEndpoint] = Field(min_length=1)
     embedded_server: ServerConfig | None = None
-    tracks: list[Track] = Field(min_length=1)
+    tracks: list[Any] = Field(min_length=1)
+    """Checked by `_resolve_tracks`."""
+    summaries: str = "own"
+    learning: LearningOptions = Field(default_factory=LearningOptions)
     tasks: Any = "base"
     seeds: Any = "verified"
     runs: int = Field(default=3, ge=1)
@@ -139,11 +187,13 @@ class SweepConfig(_Strict):
     embedded_models: tuple[str, ...] = ()
     """Names of the models served by the embedded server."""
     embedded_server: ServerConfig = Field(default_factory=ServerConfig)
-    tracks: tuple[Track, ...]
+    tracks: tuple[TrackSpec, ...]
     tasks: tuple[str, ...]
-    """Registered task names, in the order written (`base`: the paper's order)."""
+    """The selected tasks of base-suite tracks, in the order written (`base`: the paper's
+    order); other suites derive theirs (`track_tasks`)."""
     seeds: dict[str, tuple[int, ...]]
-    """The seeds of each task of `tasks`."""
+    """The seeds of every planned task (`all_tasks`)."""
+    learning: LearningOptions = Field(default_factory=LearningOptions)
     runs: int = 3
     step_budget: int | None = None
     simulator: SimulatorOptions = Field(default_factory=SimulatorOptions)
@@ -156,6 +206,29 @@ class SweepConfig(_Strict):
             if endpoint.name == name:
                 return endpoint
         raise KeyError(f"no model {name!r}; models: {[m.name for m in self.models]}")
+
+    def track(self, name: str) -> TrackSpec:
+        for track in self.tracks:
+            if track.name == name:
+                return track
+        raise KeyError(f"no track {name!r}; tracks: {[t.name for t in self.tracks]}")
+
+    @property
+    def track_names(self) -> tuple[str, ...]:
+        return tuple(t.name for t in self.tracks)
+
+    def track_tasks(self, track: TrackSpec | str) -> tuple[str, ...]:
+        """The tasks a track runs (see the module docstring)."""
+        spec = self.track(track) if isinstance(track, str) else track
+        return suite_tasks(spec.suite, self.tasks)
+
+    @property
+    def all_tasks(self) -> tuple[str, ...]:
+        """Every task some track runs, each once, in track then task order."""
+        out: dict[str, None] = {}
+        for track in self.tracks:
+            out.update(dict.fromkeys(self.track_tasks(track)))
+        return tuple(out)
 
     def budget(self, task: str) -> int:
         """The step budget episodes of `task` run with: the task's, capped by `step_budget`."""
@@ -188,13 +261,13 @@ class SweepConfig(_Strict):
                 mode="json", exclude_defaults=True, exclude={"api_key"}
             )
         doc |= {
-            "tracks": list(self.tracks),
+            "tracks": [t.model_dump(mode="json") for t in self.tracks],
             "tasks": list(self.tasks),
             "seeds": {t: list(s) for t, s in self.seeds.items()},
             "runs": self.runs,
             "step_budget": self.step_budget,
         }
-        for key in ("simulator", "render", "executor", "retries"):
+        for key in ("learning", "simulator", "render", "executor", "retries"):
             doc[key] = getattr(self, key).model_dump(mode="json")
         return doc
 
@@ -283,11 +356,15 @@ def _check(
         problems += _pydantic_problems(err)
     problems += _model_problems(doc.get("models"), environ)
     problems += _server_problems(doc.get("embedded_server"))
-    problems += _list_duplicates(doc.get("tracks"), "tracks")
     tasks, task_problems = _resolve_tasks(doc.get("tasks", "base"))
     problems += task_problems
-    seeds, seed_problems = _resolve_seeds(doc.get("seeds", "verified"), tasks)
-    if not task_problems:  # seeds of unknown tasks would only repeat the tasks' problem
+    tracks, track_problems = _resolve_tracks(doc, tasks)
+    problems += track_problems
+    planned: dict[str, None] = {}
+    for track in tracks:
+        planned.update(dict.fromkeys(suite_tasks(track.suite, tasks)))
+    seeds, seed_problems = _resolve_seeds(doc.get("seeds", "verified"), list(planned))
+    if not task_problems and not track_problems:  # else they would only repeat those
         problems += seed_problems
     executor = doc.get("executor")
     if isinstance(executor, dict) and executor.get("address") and executor.get("kind") != "ray":
@@ -301,8 +378,9 @@ def _check(
         models=tuple(parsed.models),
         embedded_models=tuple(embedded),
         embedded_server=parsed.embedded_server or ServerConfig(),
-        tracks=tuple(parsed.tracks),
+        tracks=tuple(tracks),
         tasks=tuple(tasks),
+        learning=parsed.learning,
         seeds=seeds,
         runs=parsed.runs,
         step_budget=parsed.step_budget,
@@ -409,6 +487,114 @@ def _list_duplicates(values: Any, where: str) -> list[Problem]:
     return problems
 
 
+def suite_tasks(suite: str, selected: Iterable[str]) -> tuple[str, ...]:
+    """The registered tasks of `suite` for the selected base-suite tasks: those tasks
+    themselves ("base"), the held-out variants of the selected ones ("transfer"), every
+    long-horizon family ("long_horizon")."""
+    selected = tuple(selected)
+    if suite == "base":
+        return selected
+    if suite == "transfer":
+        return tuple(
+            n for n in SUITES["transfer"] if n in REGISTRY and REGISTRY[n].base_family in selected
+        )
+    return tuple(n for n in SUITES[suite] if n in REGISTRY)
+
+
+def _resolve_tracks(doc: dict[str, Any], tasks: list[str]) -> tuple[list[TrackSpec], list[Problem]]:
+    """`tracks:` entries (a built-in name or a mapping) with the default summary mode filled in;
+    every track must plan at least one task and name a usable summary mode."""
+    entries, default = doc.get("tracks"), doc.get("summaries", "own")
+    if not isinstance(entries, list):
+        return [], []  # the schema reports it
+    models = [m.get("name") for m in doc.get("models") or [] if isinstance(m, dict)]
+    problems: list[Problem] = []
+    default_ok = isinstance(default, str)  # else the schema reports it
+    if default_ok:
+        default_problems = _mode_problems(default, "summaries", models)
+        problems += default_problems
+        default_ok = not default_problems
+    tracks: list[TrackSpec] = []
+    seen: dict[str, int] = {}
+    for i, entry in enumerate(entries):
+        where = f"tracks[{i}]"
+        if isinstance(entry, str):
+            entry = {"name": entry}
+        if not isinstance(entry, dict):
+            problems.append(Problem(where, f"expected a track name or a mapping, got {entry!r}"))
+            continue
+        name = entry.get("name")
+        if not isinstance(name, str):
+            problems.append(Problem(where, f"a track mapping needs a name, got {name!r}"))
+            continue
+        if len(entry) == 1 and name not in BUILTIN_TRACKS:
+            problems.append(
+                Problem(
+                    where,
+                    _unknown("track", name, BUILTIN_TRACKS)
+                    + " (a custom track is a mapping {name, protocol, suite, summaries})",
+                )
+            )
+            continue
+        if not _SAFE_NAME.match(name):
+            problems.append(
+                Problem(
+                    f"{where}.name",
+                    f"{name!r} names a directory: use letters, digits, '.', '_' and '-'",
+                )
+            )
+            continue
+        if name in seen:
+            problems.append(Problem(where, f"duplicate track {name!r} (tracks[{seen[name]}])"))
+            continue
+        seen[name] = i
+        fields = dict(entry)
+        if name in BUILTIN_TRACKS:
+            protocol, suite = BUILTIN_TRACKS[name]
+            for key, value in (("protocol", protocol), ("suite", suite)):
+                if fields.setdefault(key, value) != value:
+                    problems.append(
+                        Problem(
+                            f"{where}.{key}",
+                            f"the built-in track {name!r} has {key} {value!r}; give another "
+                            "name to a track with a different one",
+                        )
+                    )
+        mode = fields.setdefault("summaries", default if default_ok else "own")
+        if "summaries" in entry and isinstance(mode, str):
+            problems += _mode_problems(mode, f"{where}.summaries", models)
+        try:
+            track = TrackSpec.model_validate(fields)
+        except ValidationError as err:
+            problems += [
+                Problem(f"{where}.{p.path}" if p.path else where, p.message)
+                for p in _pydantic_problems(err, TrackSpec)
+            ]
+            continue
+        if tasks and not suite_tasks(track.suite, tasks):  # no tasks: `tasks` is reported
+            why = (
+                "none of the selected tasks has a registered held-out variant"
+                if track.suite == "transfer"
+                else "no task of the suite is registered"
+            )
+            problems.append(
+                Problem(where, f"track {name!r} (suite {track.suite}) has no task: {why}")
+            )
+        tracks.append(track)
+    return tracks, problems
+
+
+def _mode_problems(mode: str, where: str, models: list[Any]) -> list[Problem]:
+    if mode in ("own", "none"):
+        return []
+    if mode.startswith("shared:"):
+        source = mode.removeprefix("shared:")
+        if source in models:
+            return []
+        return [Problem(where, _unknown("model", source, [str(m) for m in models]))]
+    return [Problem(where, f"expected one of {', '.join(SUMMARY_MODES)}, got {mode!r}")]
+
+
 def _resolve_tasks(spec: Any) -> tuple[list[str], list[Problem]]:
     """`base` (the base families present, in the paper's order) or a list of task names."""
     if spec == "base":
@@ -511,7 +697,9 @@ def _unknown(kind: str, name: str, valid: Iterable[str]) -> str:
 # -- turning pydantic and YAML errors into problems --------------------------------------------
 
 
-def _pydantic_problems(err: ValidationError) -> list[Problem]:
+def _pydantic_problems(
+    err: ValidationError, schema: type[BaseModel] | None = None
+) -> list[Problem]:
     problems = []
     for e in err.errors():
         loc = tuple(e["loc"])
@@ -523,7 +711,7 @@ def _pydantic_problems(err: ValidationError) -> list[Problem]:
             continue
         message = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
-            message = _unknown("field", str(loc[-1]), _field_names(_SweepFile, loc[:-1]))
+            message = _unknown("field", str(loc[-1]), _field_names(schema or _SweepFile, loc[:-1]))
         elif e["type"] not in ("missing", "value_error") and "input" in e:
             message += f", got {_short(e['input'])}"
         problems.append(Problem(_dotted(loc), message))

@@ -59,6 +59,9 @@ MAX_TOOL_ROUND_TRIPS = 20
 MAX_CAMERA_CHAIN = 5
 """Camera actions allowed in a row; the next one must wait for a robot action."""
 MAX_EXPERT_FRAMES = 8
+LEARNING_STAGE_MARK = "There are no robot or camera actions in this stage."
+"""A sentence of the learning stage's system prompt, so stand-in policies can tell that stage
+from an evaluation episode."""
 """Frames one `expert.frame` call may request."""
 
 DecisionKind = Literal["robot", "camera", "tool", "stop"]

@@ -45,7 +45,7 @@ from vabench.agent.observation import (
     observation_text,
 )
 from vabench.agent.prompts import system_prompt
-from vabench.agent.records import EpisodeRecorder, EpisodeResult, TokenTotals
+from vabench.agent.records import EpisodeRecorder, EpisodeResult, SummaryStatus, TokenTotals
 from vabench.agent.simulation import RenderService, SimService, SlotSnapshot
 from vabench.agent.tools import camera_history, geometry_result
 from vabench.llm_pool.config import GenerationOptions
@@ -70,6 +70,10 @@ class EpisodeSpec:
     run: int = 0
     out_dir: Path | None = None
     demonstration_summary: str | dict[str, Any] | None = None
+    summary_mode: str = "none"
+    summary_from: str | None = None
+    """Where `demonstration_summary` came from, for the record (`EpisodeResult.summary_*`)."""
+    summary_status: SummaryStatus = "none"
     step_budget: int | None = None
     """Override of the task's step budget for smoke runs and benchmarks (None: the task's;
     the record states the budget used)."""
@@ -433,6 +437,9 @@ class Episode:
             cost_usd=round(c.cost, 6),
             wall_s=round(time.time() - self.t0, 3),
             started_at=round(self.t0, 3),
+            summary_mode=self.spec.summary_mode,
+            summary_from=self.spec.summary_from,
+            summary_status=self.spec.summary_status,
         )
         return self.rec.finish(result)
 

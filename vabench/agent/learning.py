@@ -107,11 +107,23 @@ class DemoFrames:
     frames: Sequence[bytes]
     fps: float
     label: str = "demonstration"
+    videos: Sequence[tuple[int, str]] = ()
+    """When several videos are shown as one index (the basket task's four atomic videos):
+    each video's first frame and its title (the instruction of the skill it shows); frame
+    times restart at 0 with each video. Empty: one video."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "frames", tuple(self.frames))
+        object.__setattr__(self, "videos", tuple((int(k), str(t)) for k, t in self.videos))
         if not self.frames:
             raise ValueError("frames: a demonstration needs at least one frame")
+        starts = [k for k, _ in self.videos]
+        if self.videos and (
+            starts[0] != 0 or starts != sorted(set(starts)) or starts[-1] >= len(self.frames)
+        ):
+            raise ValueError(
+                f"videos: first frames must start at 0, increase and lie in the video, got {starts}"
+            )
         bad = [i for i, f in enumerate(self.frames) if not isinstance(f, bytes) or not f]
         if bad:
             raise ValueError(f"frames[{bad[0]}]: expected non-empty JPEG bytes")
@@ -120,6 +132,33 @@ class DemoFrames:
 
     def __len__(self) -> int:
         return len(self.frames)
+
+    def locate(self, k: int) -> tuple[int, float]:
+        """Frame `k`'s video (1-based; 1 when there is one) and its time in that video (s)."""
+        start, video = 0, 1
+        for j, (first, _) in enumerate(self.videos, start=1):
+            if first <= k:
+                start, video = first, j
+        return video, round((k - start) / self.fps, 2)
+
+    def index_entry(self, k: int) -> dict[str, Any]:
+        video, t = self.locate(k)
+        return {"frame": k, "video": video, "t_s": t} if self.videos else {"frame": k, "t_s": t}
+
+    @classmethod
+    def concat(cls, parts: Sequence[tuple[str, DemoFrames]], label: str) -> DemoFrames:
+        """Several videos (title, frames) as one index; all must share one frame rate."""
+        if not parts:
+            raise ValueError("parts: at least one video")
+        fps = parts[0][1].fps
+        if any(d.fps != fps for _, d in parts):
+            raise ValueError(f"parts: videos of different frame rates {[d.fps for _, d in parts]}")
+        frames: list[bytes] = []
+        videos = []
+        for title, demo in parts:
+            videos.append((len(frames), title))
+            frames += demo.frames
+        return cls(frames, fps, label, videos)
 
 
 @dataclass(frozen=True)
@@ -179,14 +218,20 @@ def _field_lines(required: bool) -> list[str]:
     ]
 
 
-def learning_prompt(arms: Sequence[str], fps: float) -> str:
-    """The system prompt of the learning stage (the field list comes from `DemoSummary`)."""
+def learning_prompt(arms: Sequence[str], fps: float, n_videos: int = 1) -> str:
+    """The system prompt of the learning stage (the field list comes from `DemoSummary`);
+    `n_videos` > 1: the videos show the skills the task combines (the basket task)."""
     robot = "two robot arms (left and right)" if len(arms) > 1 else "one robot arm"
+    what = (
+        "an RGB video from the robot's head camera of a successful execution of the same task"
+        if n_videos == 1
+        else f"{n_videos} RGB videos from the robot's head camera, each a successful execution "
+        "of one skill that the task combines, shown as one numbered list of frames"
+    )
     return "\n".join(
         [
             f"You will control {robot} with parallel-jaw grippers at a table, in simulation. "
-            "Before that, in this stage, you study a demonstration: an RGB video from the "
-            "robot's head camera of a successful execution of the same task, sampled at about "
+            f"Before that, in this stage, you study a demonstration: {what}, sampled at about "
             f"{fps:g} frames per second. It contains images only: no positions, joint values, "
             "actions, contacts or phases.",
             "",
@@ -202,7 +247,7 @@ def learning_prompt(arms: Sequence[str], fps: float) -> str:
             '- {"tool": "expert.learn", "args": {"summary": {...}}}: stores your summary and '
             "ends this stage. It is accepted only after you have inspected at least "
             f"{MIN_DISTINCT_FRAMES} distinct frames with expert.frame.",
-            "There are no robot or camera actions in this stage.",
+            P.LEARNING_STAGE_MARK,
             "",
             "# Summary fields",
             "A JSON object; strings unless said otherwise. The optional fields that describe "
@@ -221,13 +266,19 @@ def learning_prompt(arms: Sequence[str], fps: float) -> str:
     )
 
 
-def first_turn(instruction: str, n_frames: int) -> str:
-    """The first user turn: the task and the size of the video."""
-    return (
-        f"Task instruction: {instruction}\n"
-        f"The demonstration video has {n_frames} frames (frame 0 to frame {n_frames - 1}). "
-        "Inspect it with the tools, then submit your summary with expert.learn."
-    )
+def first_turn(instruction: str, demo: DemoFrames) -> str:
+    """The first user turn: the task and the size of the video (and its parts, if several)."""
+    n = len(demo)
+    lines = [f"Task instruction: {instruction}"]
+    if not demo.videos:
+        lines.append(f"The demonstration video has {n} frames (frame 0 to frame {n - 1}).")
+    else:
+        lines.append(f"The demonstration has {len(demo.videos)} videos, {n} frames in all:")
+        ends = [k for k, _ in demo.videos[1:]] + [n]
+        for j, ((first, title), end) in enumerate(zip(demo.videos, ends, strict=True), start=1):
+            lines.append(f"- video {j}, frames {first} to {end - 1}: {title}")
+    lines.append("Inspect it with the tools, then submit your summary with expert.learn.")
+    return "\n".join(lines)
 
 
 # -- tools --------------------------------------------------------------------------------------
@@ -235,7 +286,7 @@ def first_turn(instruction: str, n_frames: int) -> str:
 
 def retrieve_result(demo: DemoFrames) -> ToolResult:
     """`expert.retrieve`: the ordered frame index with times (s), nothing else."""
-    index = [{"frame": k, "t_s": round(k / demo.fps, 2)} for k in range(len(demo))]
+    index = [demo.index_entry(k) for k in range(len(demo))]
     name = "expert.retrieve"
     return ToolResult(name, tool_text(name, {"n_frames": len(demo), "frames": index}))
 
@@ -257,7 +308,7 @@ def frame_result(demo: DemoFrames, args: P.FrameArgs) -> ToolResult:
         )
         return ToolResult(name, tool_text(name, {"error": error}), ok=False)
     payload = {
-        "frames": [{"frame": k, "t_s": round(k / demo.fps, 2)} for k in wanted],
+        "frames": [demo.index_entry(k) for k in wanted],
         "result": "the frames follow, in this order",
     }
     images = tuple(Image(demo.frames[k]) for k in wanted)
@@ -305,7 +356,9 @@ class _Session:
     def __post_init__(self) -> None:
         arms = tuple(self.task.arms)
         self.conv = Conversation(
-            learning_prompt(arms, self.demo.fps), "active", limits=self.limits.context
+            learning_prompt(arms, self.demo.fps, max(1, len(self.demo.videos))),
+            "active",
+            limits=self.limits.context,
         )
         self.ctx = P.DecisionContext(arms, "active", P.DEMONSTRATION_TOOLS)
 
@@ -314,7 +367,7 @@ class _Session:
             self.rec.event(type_, **fields)
 
     async def run(self) -> None:
-        self.conv.add_note(first_turn(self.task.instruction, len(self.demo)))
+        self.conv.add_note(first_turn(self.task.instruction, self.demo))
         repairs = 0
         while self.calls < self.limits.max_model_calls:
             reply = await self._call()

@@ -33,6 +33,7 @@ RECORD_VERSION = 1
 
 Status = Literal["success", "failure", "infrastructure_error", "error"]
 SCORED: tuple[Status, ...] = ("success", "failure")
+SummaryStatus = Literal["none", "learned", "failed"]
 
 
 class TokenTotals(BaseModel):
@@ -78,6 +79,13 @@ class EpisodeResult(BaseModel):
     cost_usd: float = 0.0
     wall_s: float = 0.0
     started_at: float = 0.0
+    summary_mode: str = "none"
+    """Whose demonstration summary the track reads: own | none | shared:<model>."""
+    summary_from: str | None = None
+    """The model whose summary every observation carried; None when none was shown."""
+    summary_status: SummaryStatus = "none"
+    """learned (shown), failed (that model's learning ended without a summary: none shown),
+    none (the track reads no summary)."""
 
     @property
     def scored(self) -> bool:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import random
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, get_args
@@ -107,9 +108,43 @@ _SINGLE_APERTURES = tuple(a for a in _APERTURES if a.startswith("gripper."))
 _DUAL_APERTURES = tuple(a for a in _APERTURES if not a.startswith("gripper."))
 
 
+def learning_reply(request: IncomingRequest) -> str | None:
+    """The stand-in models' side of a demonstration learning session (None outside one).
+
+    Deterministic and stateless, from the conversation alone: list the frames, inspect the
+    first, middle and last, then submit a generic summary built from the instruction (a real
+    model writes what it saw). It passes the learning gate, so sweeps of the stand-ins run the
+    whole protocol: learning stage, summaries in observations, records."""
+    chat = request.chat
+    if protocol.LEARNING_STAGE_MARK not in (chat.system or ""):
+        return None
+    first = next((t.text for t in chat.turns if t.role == "user"), "")
+    replied = sum(t.role == "assistant" for t in chat.turns)
+    if replied == 0:
+        return fenced_json({"tool": "expert.retrieve", "args": {}})
+    found = re.search(r"(\d+) frames", first)
+    n = int(found.group(1)) if found else 1
+    if replied == 1:
+        return fenced_json({"tool": "expert.frame", "args": {"steps": sorted({0, n // 2, n - 1})}})
+    instruction = re.search(r"Task instruction: (.*)", first)
+    task = instruction.group(1).strip() if instruction else "the task"
+    summary = {
+        "grasp_object_part": f"the object named in the instruction ({task})",
+        "grasp_region": "the middle of the object, where it is narrowest across the fingers",
+        "grasp_height_or_depth": "fingers reach about half the object's height",
+        "finger_placement": "fingers on opposite sides, closing across the short axis",
+        "approach_strategy": "move above the object, align, then descend vertically",
+        "posture_or_rotation": "gripper pointing down, rotated so the fingers straddle it",
+        "pre_close_checks": ["the object is between the fingers", "the fingers are low enough"],
+        "test_lift_rule": "lift a few centimetres and check the object rises with the gripper",
+    }
+    return fenced_json({"tool": "expert.learn", "args": {"summary": summary}})
+
+
 @register_policy("random_action")
 class RandomActionPolicy:
-    """A uniformly random robot action that `vabench.protocol.parse_robot_action` accepts.
+    """A uniformly random robot action that `vabench.protocol.parse_robot_action` accepts (and,
+    in a demonstration learning session, `learning_reply`).
 
     `arms`: "right" (single-arm tasks), "both" (dual-arm tasks), or "auto": both when the
     request offers dual-arm actions (the observation's list of available actions mentions
@@ -167,6 +202,8 @@ class RandomActionPolicy:
         return action
 
     async def respond(self, request: IncomingRequest) -> str:
+        if (reply := learning_reply(request)) is not None:
+            return reply
         return fenced_json(self.action(self._dual(request)))
 
 
@@ -222,6 +259,8 @@ class ConversationHashPolicy:
         self.arms = arms
 
     async def respond(self, request: IncomingRequest) -> str:
+        if (reply := learning_reply(request)) is not None:
+            return reply
         chat = request.chat
         h = hashlib.sha256(f"{self.seed}\n{chat.system or ''}".encode())
         for turn in chat.turns:

@@ -1,9 +1,9 @@
 """The plan of a sweep: every episode it must run, and what running them may cost.
 
 `plan(config)` lists one `EpisodeKey` per (model, track, task, seed, run): models x tracks x
-tasks x seeds of the task x runs, each exactly once. The order is fixed (the same config always
-gives the same list) and groups by task first, so that the episodes one simulator batch serves
-come together:
+the track's tasks x seeds of the task x runs, each exactly once. The order is fixed (the same
+config always gives the same list) and groups by task first, so that the episodes one simulator
+batch serves come together:
 
     task (config order) > model (config order) > track (config order) > run > seed (config order)
 
@@ -86,10 +86,11 @@ class EpisodeKey:
 def plan(config: SweepConfig) -> list[EpisodeKey]:
     """Every episode of the sweep, once each, in the order of the module docstring."""
     return [
-        EpisodeKey(model.name, track, task, seed, run)
-        for task in config.tasks
+        EpisodeKey(model.name, track.name, task, seed, run)
+        for task in config.all_tasks
         for model in config.models
         for track in config.tracks
+        if task in config.track_tasks(track)
         for run in range(FIRST_RUN, FIRST_RUN + config.runs)
         for seed in config.seeds[task]
     ]
@@ -182,7 +183,8 @@ def estimate(
     per_model: dict[str, Usage] = {}
     for key in keys:
         api = config.model(key.model).api
-        one = episode_usage(key.task, key.track, config.budget(key.task), size, api, a)
+        protocol = config.track(key.track).protocol
+        one = episode_usage(key.task, protocol, config.budget(key.task), size, api, a)
         per_model[key.model] = per_model.get(key.model, Usage()) + one
     by_model = Counter(k.model for k in keys)
     models = [
@@ -195,8 +197,8 @@ def estimate(
     return Estimate(
         episodes=len(keys),
         by_model={m: by_model[m] for m in (x.name for x in config.models) if by_model[m]},
-        by_track=_ordered(Counter(k.track for k in keys), config.tracks),
-        by_task=_ordered(Counter(k.task for k in keys), config.tasks),
+        by_track=_ordered(Counter(k.track for k in keys), config.track_names),
+        by_task=_ordered(Counter(k.task for k in keys), config.all_tasks),
         models=models,
         assumptions=a,
     )
