@@ -142,3 +142,198 @@ def test_grasp_heldout_predicate_reads_the_red_box_only():
 
 def test_grasp_heldout_expert_quick():
     _expert_quick(GSC, [1000, 1001])
+
+
+# == place_single_cube_heldout ==================================================================
+PSC = "place_single_cube_heldout"
+CUBE_HALF = 0.025  # FACTS: 0.05 cube
+PAD_HALF, PAD_HALF_THICK = 0.06, 0.003  # FACTS: pad half-size 0.06, 3 mm half-thick
+WALL = (0.06, 0.015, 0.05)  # half-extents of the obstacle wall (docstring: 120 x 30 x 100 mm)
+
+
+def _corners(centre, half_xy, yaw) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    r = np.array([[c, -s], [s, c]])
+    signs = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]])
+    return centre[:2] + (signs * half_xy) @ r.T
+
+
+def _gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest separation of two convex polygons along any of their edge normals (< 0: they
+    overlap)."""
+    best = -np.inf
+    for poly in (a, b):
+        for i in range(len(poly)):
+            edge = poly[(i + 1) % len(poly)] - poly[i]
+            n = np.array([-edge[1], edge[0]]) / np.linalg.norm(edge)
+            pa, pb = a @ n, b @ n
+            best = max(best, pb.min() - pa.max(), pa.min() - pb.max())
+    return best
+
+
+def test_place_heldout_samples_in_range():
+    task = get_task(PSC)
+    for seed in SEEDS:
+        p = task.sample(seed).poses
+        cube, cq = p["cube"]
+        assert _inside(cube[0], 0.18, 0.26) and _inside(cube[1], -0.25, -0.19), seed
+        assert cube[2] == pytest.approx(TABLE_Z + CUBE_HALF)
+        assert _inside(_yaw_deg(cq), -45.0, 45.0), seed
+        pad, pq = p["pad"]
+        assert _inside(pad[0], 0.10, 0.14) and _inside(pad[1], 0.0, 0.04), seed
+        decoy, dq = p["decoy"]
+        assert _inside(decoy[0], 0.29, 0.35) and _inside(decoy[1], 0.0, 0.04), seed
+        assert pad[2] == pytest.approx(TABLE_Z + PAD_HALF_THICK) == decoy[2]
+        assert _yaw_deg(pq) == 0.0 and _yaw_deg(dq) == 0.0
+        wall, wq = p["obstacle"]
+        assert wall[2] == pytest.approx(TABLE_Z + WALL[2])
+        seg = pad[:2] - cube[:2]
+        u = seg / np.linalg.norm(seg)
+        off = wall[:2] - cube[:2]
+        assert abs(off[0] * u[1] - off[1] * u[0]) < 1e-9  # on the cube-to-pad line
+        along = off @ u
+        assert along >= 0.085 - EPS and np.linalg.norm(seg) - along >= 0.10 - EPS, seed
+        # midway between the two clearance points
+        assert along == pytest.approx(0.085 + 0.5 * (np.linalg.norm(seg) - 0.185))
+        yaw = np.radians(_yaw_deg(wq))
+        assert abs(np.cos(yaw) * u[0] + np.sin(yaw) * u[1]) < 1e-9  # long side across the line
+
+
+def test_place_heldout_layout_differs_from_base():
+    _transfer_fields(PSC, "place_single_cube")
+    model = get_task(PSC).build_model(0)
+    pad_size, pad_rgba, _ = _geom(model, "pad_slab")
+    decoy_size, decoy_rgba, _ = _geom(model, "decoy_slab")
+    np.testing.assert_allclose(pad_size, [PAD_HALF, PAD_HALF, PAD_HALF_THICK])
+    np.testing.assert_allclose(decoy_size, pad_size)  # the goal's twin ...
+    assert np.abs(decoy_rgba[:3] - pad_rgba[:3]).max() > 0.4  # ... in another colour
+    assert decoy_rgba[2] > 0.6 and pad_rgba[1] > 0.5  # blue decoy, green goal
+    wall_size, _, _ = _geom(model, "obstacle_box")
+    np.testing.assert_allclose(wall_size, WALL)
+    wall_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "obstacle")
+    assert model.body_mass[wall_body] >= 2.0  # a static heavy block
+    base_names = {n for n in get_task("place_single_cube").sample(1000).poses}
+    assert base_names == {"cube", "pad"}
+    task = get_task(PSC)
+    for seed in SEEDS:
+        p = task.sample(seed).poses
+        cube, pad, decoy, wall = (p[k][0] for k in ("cube", "pad", "decoy", "obstacle"))
+        # a cube centred on the decoy is outside the goal's 35 mm x/y tolerance
+        assert np.abs(decoy[:2] - pad[:2]).max() > 0.035 + 0.10, seed
+        pad_sq = _corners(pad, [PAD_HALF, PAD_HALF], 0.0)
+        assert _gap(pad_sq, _corners(decoy, [PAD_HALF, PAD_HALF], 0.0)) > 0.02, seed
+        wall_rect = _corners(wall, WALL[:2], np.radians(_yaw_deg(p["obstacle"][1])))
+        # the wall stands clear of the pad, the decoy and the cube (its open fingers: 51 mm)
+        assert _gap(wall_rect, pad_sq) > 0.005, seed
+        assert _gap(wall_rect, _corners(decoy, [PAD_HALF, PAD_HALF], 0.0)) > 0.005, seed
+        assert _gap(wall_rect, _corners(cube, [0.051, 0.051], 0.0)) > 0.0, seed
+        # and blocks the straight carry: taller than the base expert's carry (cube bottom 60 mm
+        # above the pad top), and across the cube-to-pad segment
+        assert 2 * WALL[2] > 2 * PAD_HALF_THICK + 0.06 + 0.02
+        assert _gap(wall_rect, np.array([cube[:2], pad[:2], cube[:2] + 1e-6])) < 0, seed
+    _differs_from_base(PSC, "place_single_cube", ["cube", "pad"])
+
+
+def _placed(name: str, cube_half: float = CUBE_HALF, **edits) -> StateBuilder:
+    """The cube resting on the goal pad's centre, released, touching, lift latched; then
+    `edits`."""
+    b = StateBuilder(get_task(name))
+    pad = b.pos("pad").copy()
+    b.set_pos("cube", pad + [0.0, 0.0, PAD_HALF_THICK + cube_half])
+    b.touch("cube", "pad").latch("was_lifted").grip("right", True)
+    for key, value in edits.items():
+        if key == "dx":
+            b.move("cube", [value, 0.0, 0.0])
+        elif key == "dy":
+            b.move("cube", [0.0, value, 0.0])
+        elif key == "dz":
+            b.move("cube", [0.0, 0.0, value])
+        elif key == "pad_shift":
+            b.move("pad", [value, 0.0, 0.0])
+            b.move("cube", [value, 0.0, 0.0])  # the cube stays centred on the moved pad
+        elif key == "touch":
+            b.touch("cube", "pad", value)
+        elif key == "latched":
+            b.latch("was_lifted", value)
+        elif key == "open":
+            b.grip("right", value)
+    return b
+
+
+@pytest.mark.parametrize(
+    ("edits", "ok", "check"),
+    [
+        ({}, True, None),
+        ({"dx": 0.0345}, True, "xy_within_tolerance"),
+        ({"dx": -0.0355}, False, "xy_within_tolerance"),
+        ({"dy": 0.0345}, True, "xy_within_tolerance"),
+        ({"dy": -0.0355}, False, "xy_within_tolerance"),
+        ({"dz": 0.0345}, True, "height_within_tolerance"),
+        ({"dz": -0.0355}, False, "height_within_tolerance"),
+        ({"pad_shift": 0.0019}, True, "target_not_displaced"),
+        ({"pad_shift": 0.0021}, False, "target_not_displaced"),
+        ({"touch": False}, False, "contact"),
+        ({"open": False}, False, "gripper_open"),
+        ({"latched": False}, False, "was_lifted"),
+    ],
+)
+def test_place_heldout_predicate_thresholds(edits, ok, check):
+    ev = _placed(PSC, **edits).evaluate()
+    assert bool(ev.success) is ok, ev.checks
+    if check:
+        assert bool(ev.checks[check]) is ok
+
+
+def test_place_heldout_cube_on_the_decoy_or_the_wall_fails():
+    b = _placed(PSC)
+    b.set_pos("cube", b.pos("decoy") + [0.0, 0.0, PAD_HALF_THICK + CUBE_HALF])
+    ev = b.evaluate()
+    assert not bool(ev.success) and not bool(ev.checks["xy_within_tolerance"])
+    b = _placed(PSC)
+    b.set_pos("cube", b.pos("obstacle") + [0.0, 0.0, WALL[2] + CUBE_HALF])
+    assert not bool(b.evaluate().success)
+    b = _placed(PSC)
+    b.move("obstacle", [0.0, 0.0, 0.05])  # the wall knocked about: not part of the predicate
+    b.move("decoy", [0.05, 0.0, 0.0])
+    assert bool(b.evaluate().success)
+
+
+def test_place_heldout_lift_latch_sets_from_the_state_and_persists():
+    b = StateBuilder(get_task(PSC))
+    b.move("cube", [0.0, 0.0, 0.0505])
+    ev = b.evaluate()
+    assert bool(ev.latched[0]) and not bool(ev.success)
+    b.move("cube", [0.0, 0.0, -0.0505])
+    b.latched = np.asarray(ev.latched)
+    assert bool(b.evaluate().latched[0])
+    b2 = StateBuilder(get_task(PSC))
+    b2.move("cube", [0.0, 0.0, 0.0495])
+    assert not bool(b2.evaluate().latched[0])
+
+
+def test_place_heldout_expert_quick():
+    _expert_quick(PSC, [1000, 1001])
+
+
+def test_place_heldout_wall_stops_the_base_expert():
+    """The base family's expert (carry with the cube's bottom 60 mm above the pad) runs into
+    the wall on the variant's scenes: the obstacle changes what a solution must do."""
+    import dataclasses
+
+    from vabench.tasks.place_single_cube import PlaceSingleCube
+
+    var = get_task(PSC)
+
+    @dataclasses.dataclass(frozen=True)
+    class WithBaseExpert(type(var)):  # type: ignore[misc]
+        def expert(self, sample, ctx):
+            return PlaceSingleCube.expert(self, sample, ctx)
+
+    task = WithBaseExpert(**{f.name: getattr(var, f.name) for f in dataclasses.fields(var)})
+    tb = TaskBatch(task, 2, backend="c")
+    eps = run_experts(tb, [1000, 1001])
+    views = tb.views([0, 1])
+    for ep, slot in zip(eps, (0, 1), strict=True):
+        v = views[slot]
+        assert not ep.success, ep.seed
+        assert np.linalg.norm(v.pos("obstacle") - v.init["obstacle"]) > 0.01, ep.seed

@@ -1,0 +1,114 @@
+"""place_single_cube_heldout: place_single_cube with a decoy pad and an obstacle in the way.
+
+Controlled-transfer variant of place_single_cube (suite "transfer"; same instruction, arms,
+budget and predicate; it reads the base family's summary). What is held out is the layout:
+- a decoy pad, the goal pad's twin in blue (12 x 12 cm, 6 mm thick, `pad_blue.xml`), to the
+  right of the green goal pad: centres 150-250 mm apart along x, far outside the 35 mm
+  tolerance, so a cube on the decoy fails;
+- an obstacle: a heavy purple wall (120 x 30 x 100 mm, 2.8 kg, `wall_purple.xml`) standing on
+  the straight line from the cube to the goal pad, across it. Carrying the cube at the base
+  expert's height (its bottom 60 mm above the pad) runs into the wall: it must be lifted over.
+
+Scene (world m): the red 0.05 m cube (the base's) at x in [0.18, 0.26], y in [-0.25, -0.19]
+(the base's x range; y moved 90 mm towards the robot to make room for the wall), yaw in
+[-45, 45] deg; the green goal pad at x in [0.10, 0.14], y in [0, 0.04] (the base's), the blue
+decoy at x in [0.29, 0.35], y in [0, 0.04], both axis-aligned. The wall's centre lies on the
+segment from the cube's centre to the goal pad's centre, midway between the point 85 mm from
+the cube (clear of the open fingers around the cube) and the point 100 mm from the pad's
+centre (clear of the pad and of the fingers over it); its long side is across the segment.
+Drawn from the seed salted with `SALT`, so a seed gives another scene than the base's.
+Success (the base's row, unchanged, on the goal pad): the cube was lifted >= 50 mm at some
+point (latched); its x and y errors to the goal pad's centre each <= 35 mm; its height error to
+its resting height on the pad <= 35 mm; the goal pad displaced <= 2 mm; cube-pad contact;
+right gripper open. The decoy and the wall are not part of the predicate. Budget 100 steps.
+Checkpoints: reached, grasped, lifted (latched), transported (x/y within tolerance), released
+(gripper open), completed (as the base).
+Expert: top-down grasp, lift the cube until its bottom clears the wall's top by 30 mm, carry it
+over the goal pad at that height, lower it onto the pad, open, back off upwards.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from vabench.sim_mjx import robot_constants as rc
+from vabench.tasks import common
+from vabench.tasks import place_single_cube as base
+from vabench.tasks.base import Sample, Script, yaw_quat
+from vabench.tasks.expert import ExpertContext
+from vabench.tasks.grasp_single_cube import CUBE_HALF, X_RANGE, YAW_DEG
+from vabench.tasks.grasp_single_cube_heldout import salted_rng
+from vabench.tasks.objects import attach_object
+
+SALT = 0x6C5A2
+
+CUBE_X, CUBE_Y = X_RANGE, (-0.25, -0.19)
+PAD_X, PAD_Y = base.PAD_X, base.PAD_Y
+DECOY_X, DECOY_Y = (0.29, 0.35), (0.0, 0.04)
+WALL_HALF = np.array([0.06, 0.015, 0.05])
+CUBE_CLEAR = 0.085  # wall centre at least this far from the cube centre, along the segment
+PAD_CLEAR = 0.10  # ... and at least this far from the goal pad's centre
+OVER_WALL = 0.03  # the carried cube's bottom above the wall's top
+
+
+def wall_pose(cube: np.ndarray, pad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The wall across the cube-to-pad segment, midway between its two clearance points."""
+    d = pad[:2] - cube[:2]
+    length = np.linalg.norm(d)
+    u = d / length
+    along = CUBE_CLEAR + 0.5 * (length - CUBE_CLEAR - PAD_CLEAR)
+    xy = cube[:2] + along * u
+    yaw = np.arctan2(u[1], u[0]) + np.pi / 2  # body x (the long side) across the segment
+    return np.r_[xy, rc.TABLE_Z + WALL_HALF[2]], yaw_quat(yaw)
+
+
+@dataclass(frozen=True)
+class PlaceSingleCubeHeldout(base.PlaceSingleCube):
+    """The base family's objects and predicate (inherited), plus the decoy and the wall."""
+
+    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
+        super().populate(spec, variant)  # the red cube and the green goal pad
+        attach_object(spec, "pad_blue.xml", "decoy")
+        attach_object(spec, "wall_purple.xml", "obstacle")
+
+    def sample(self, seed: int) -> Sample:
+        rng = salted_rng(seed, SALT)
+        cube = np.array([rng.uniform(*CUBE_X), rng.uniform(*CUBE_Y), rc.TABLE_Z + CUBE_HALF])
+        cube_yaw = np.radians(rng.uniform(*YAW_DEG))
+        z_pad = rc.TABLE_Z + base.PAD_HALF_THICK
+        pad = np.array([rng.uniform(*PAD_X), rng.uniform(*PAD_Y), z_pad])
+        decoy = np.array([rng.uniform(*DECOY_X), rng.uniform(*DECOY_Y), z_pad])
+        return Sample(
+            {
+                "cube": (cube, yaw_quat(cube_yaw)),
+                "pad": (pad, yaw_quat(0.0)),
+                "decoy": (decoy, yaw_quat(0.0)),
+                "obstacle": wall_pose(cube, pad),
+            }
+        )
+
+    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
+        yield from common.topdown_grasp(ctx, "right", "cube")
+        wall_top = ctx.view.pos("obstacle")[2] + WALL_HALF[2]
+        pad = ctx.view.pos("pad")
+        rest_z = pad[2] + base.PAD_HALF_THICK + CUBE_HALF
+        carry_z = wall_top + OVER_WALL + CUBE_HALF  # the cube centre's height over the wall
+        yield from common.carry_and_release(
+            ctx, "right", "cube", pad[:2], rest_z, clearance=carry_z - rest_z
+        )
+
+
+TASK = PlaceSingleCubeHeldout(
+    name="place_single_cube_heldout",
+    instruction=base.TASK.instruction,
+    arms=base.TASK.arms,
+    step_budget=base.TASK.step_budget,
+    checkpoints=base.TASK.checkpoints,
+    latches=base.TASK.latches,
+    contact_pairs=base.TASK.contact_pairs,
+    suite="transfer",
+    base_family=base.TASK.name,
+)
