@@ -267,3 +267,14 @@ class ConversationHashPolicy:
             h.update(b"\x00" + turn.role.encode() + b"\x00" + turn.text.encode())
         actor = RandomActionPolicy(seed=int.from_bytes(h.digest()[:8], "big"), arms=self.arms)
         return fenced_json(actor.action(actor._dual(request)))
+
+
+def _reference_servo(**options: Any) -> Policy:
+    """The non-LLM reference agent, imported on first use: `vabench.reference_agent` loads
+    nothing of the simulator, tasks or renderer, and importing this module does not load it."""
+    from vabench.reference_agent import ReferenceServo
+
+    return ReferenceServo(**options)
+
+
+POLICIES["reference_servo"] = _reference_servo

@@ -1,0 +1,87 @@
+"""What each task family needs to see in the topdown image, as world coordinates.
+
+`locate(family, hsv, cam)` returns a `Scene` (the objects' positions and headings on the
+table) or None when any needed object is not found (the caller looks again or stops; it
+never acts on a guess). Heights are not measured: every object rests on the table, so the
+height of the surface the camera sees (a cube's top, a pen's upper side) is the table height
+plus the object's size named in the task's public description (FACTS.md object facts).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
+from vabench.reference_agent.vision import Blob, find_blob, table_fraction
+
+MIN_TABLE_FRACTION = 0.10
+
+
+@dataclass(frozen=True)
+class Seen:
+    """One located object: centre (x, y) in metres, heading (deg) of its long axis or of a
+    face normal for square objects, and its length along that heading (m)."""
+
+    x: float
+    y: float
+    heading: float = 0.0
+    length: float = 0.0
+
+    @property
+    def xy(self) -> np.ndarray:
+        return np.array([self.x, self.y])
+
+
+Scene = dict[str, Seen]
+
+
+def _square(b: Blob) -> Seen:
+    c = b.centre
+    return Seen(float(c[0]), float(c[1]), b.square_yaw())
+
+
+def _long(b: Blob) -> Seen:
+    c = b.centre
+    h = b.axis_heading()
+    lo, hi = b.extent(h)
+    return Seen(float(c[0]), float(c[1]), h, hi - lo)
+
+
+def _blob(hsv, cam, colours, top_z, radius, min_area) -> Blob | None:  # type: ignore[no-untyped-def]
+    return find_blob(hsv, cam, colours, top_z, radius, min_area)
+
+
+def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
+    """The objects of `family` in a topdown image; None if the image does not show them."""
+    if table_fraction(hsv) < MIN_TABLE_FRACTION:
+        return None
+    t = TABLE_Z
+    found: dict[str, Blob | None] = {}
+    if family in ("cube", "cube_pad", "cube_on_cube"):
+        found["obj"] = _blob(hsv, cam, ("red",), t + 0.05, 0.05, 8e-4)
+    elif family == "cube_bowl":
+        found["obj"] = _blob(hsv, cam, ("red",), t + 0.04, 0.04, 5e-4)
+    elif family in ("pen",):
+        found["obj"] = _blob(hsv, cam, ("purple", "red"), t + 0.014, 0.10, 2.5e-4)
+    elif family == "pen_leaning":
+        found["obj"] = _blob(hsv, cam, ("purple", "red"), t + 0.042, 0.10, 2.5e-4)
+    elif family == "bottle_lying":
+        found["obj"] = _blob(hsv, cam, ("blue", "yellow"), t + 0.063, 0.12, 2e-3)
+    elif family in ("bottle_upright", "bottle_pad"):
+        found["obj"] = _blob(hsv, cam, ("red",), t + 0.165, 0.03, 1.5e-4)
+    if family in ("cube_pad", "bottle_pad"):
+        found["dest"] = _blob(hsv, cam, ("green",), t + 0.006, 0.10, 6e-3)
+    elif family == "cube_on_cube":
+        found["dest"] = _blob(hsv, cam, ("green",), t + 0.05, 0.05, 8e-4)
+    elif family == "cube_bowl":
+        found["dest"] = _blob(hsv, cam, ("blue",), t + 0.03, 0.10, 4e-3)
+    if not found or any(b is None for b in found.values()):
+        return None
+    scene: Scene = {}
+    for name, b in found.items():
+        assert b is not None
+        square = family.startswith("cube") or name == "dest"
+        scene[name] = _square(b) if square else _long(b)
+    return scene

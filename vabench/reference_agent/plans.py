@@ -1,0 +1,260 @@
+"""The agent's plans: a list of steps per task family, executed one decision at a time.
+
+A plan is a JSON list of steps carried in the memo (see `request`), with the index of the
+current step. Each decision runs `decide`: a step that the observation shows done (GC at its
+target, the gripper turned, the aperture set) is skipped; the first that is not yields the next
+action. Moves are closed-loop on the robot state (GC from `finger_center_xyz`), so a clipped or
+partly executed move is simply continued.
+
+Steps:
+  ["down"]                  turn about ry until rx points straight down
+  ["fwd"]                   turn about ry until rx points along world +y (side grasps)
+  ["yaw", heading, period]  turn about rx until ry has `heading` (deg) modulo `period`
+  ["go", x, y, z, order]    move GC there, one world axis at a time in `order` ("xyz", "z")
+  ["open"], ["close"]       the gripper
+  ["look", view]            a camera view (fresh image of the current scene)
+  ["see"]                   locate the family's objects in the topdown image; on success the
+                            rest of the plan is replaced by the family's manipulation plan
+  ["retry"]                 the task did not end: start over (park, look, see), at most
+                            `MAX_TRIES` times
+  ["stop"]
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from vabench.reference_agent import geometry as g
+from vabench.reference_agent.perception import Scene, locate
+from vabench.reference_agent.request import Observation
+from vabench.reference_agent.vision import decode
+
+PARK = (0.38, -0.25, 1.05)  # GC where the arm does not hide the objects from the topdown view
+MOVE_TOL = 0.002  # m
+TURN_TOL = 1.5  # deg
+MAX_MOVE_MM = 100
+MAX_TURN_DEG = 90
+MAX_TRIES = 3
+MAX_LOOKS = 2  # failed looks in a row before giving up
+MAX_PLANNER_FAILS = 2  # failed attempts at one move before skipping it
+T = g.TABLE_Z
+
+Action = dict[str, Any]
+Step = list[Any]
+
+
+def family_of(instruction: str) -> str | None:
+    """The task family an instruction names, or None (dual-arm or unknown tasks)."""
+    s = instruction.lower()
+    if "bell" in s:
+        return "bell"
+    if "hammer" in s:
+        return "hammer"
+    if "bowl" in s:
+        return "cube_bowl"
+    if "stack" in s or "green cube" in s:
+        return "cube_on_cube"
+    if "pad" in s:
+        return "bottle_pad" if "bottle" in s else "cube_pad"
+    if "bottle" in s:
+        return "bottle_upright" if "upright" in s else "bottle_lying"
+    if "pen" in s:
+        return "pen_leaning" if "leaning" in s else "pen"
+    if "cube" in s:
+        return "cube"
+    return None
+
+
+def start_plan() -> list[Step]:
+    return [["down"], ["go", *PARK, "zxy"], ["look", "topdown"], ["see"]]
+
+
+def _r(v: float) -> float:
+    return round(float(v), 4)
+
+
+def topdown_grasp(x: float, y: float, z: float, heading: float, period: float) -> list[Step]:
+    """Fingers straight down closing along `heading`, GC to (x, y, z), close, lift."""
+    x, y = _r(x), _r(y)
+    return [
+        ["down"],
+        ["yaw", round(heading, 1), period],
+        ["go", x, y, _r(z + 0.08), "xyz"],
+        ["go", x, y, _r(z), "z"],
+        ["close"],
+        ["go", x, y, _r(z + 0.12), "z"],
+    ]
+
+
+def place_from_above(x: float, y: float, z: float, carry_z: float) -> list[Step]:
+    """Carry the held object at `carry_z`, lower GC to `z` over (x, y), open, back off up."""
+    x, y = _r(x), _r(y)
+    return [
+        ["go", x, y, _r(carry_z), "zxy"],
+        ["go", x, y, _r(z), "z"],
+        ["open"],
+        ["go", x, y, _r(z + 0.08), "z"],
+    ]
+
+
+def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
+    """The steps from the parked, looking arm to the end of the task (then "retry")."""
+    o = scene["obj"]
+    low = g.MIN_TOPDOWN_GC_Z
+    if family == "cube":
+        steps = topdown_grasp(o.x, o.y, T + 0.025, o.heading, 90.0)
+    elif family == "pen":
+        steps = topdown_grasp(o.x, o.y, max(low, T + 0.018), o.heading + 90, 180.0)
+    elif family == "pen_leaning":
+        steps = topdown_grasp(o.x, o.y, T + 0.042, o.heading + 90, 180.0)
+    elif family == "bottle_lying":
+        steps = topdown_grasp(o.x, o.y, T + 0.0314, o.heading + 90, 180.0)
+    elif family in ("bottle_upright", "bottle_pad"):
+        x, y, z = _r(o.x), _r(o.y), T + 0.06
+        steps = [
+            ["fwd"],
+            ["go", x, _r(y - 0.13), _r(z), "yxz"],
+            ["go", x, _r(y - 0.005), _r(z), "y"],
+            ["close"],
+            ["go", x, _r(y - 0.005), _r(z + (0.06 if family == "bottle_pad" else 0.10)), "z"],
+        ]
+        if family == "bottle_pad":
+            d = scene["dest"]
+            px, py = _r(d.x), _r(d.y - 0.005)
+            steps += [
+                ["go", px, py, _r(z + 0.06), "xy"],
+                ["go", px, py, _r(T + 0.006 + 0.06 + 0.004), "z"],
+                ["open"],
+                ["go", px, _r(py - 0.08), _r(T + 0.07), "y"],
+                ["go", px, _r(py - 0.08), _r(T + 0.16), "z"],
+            ]
+    elif family in ("cube_pad", "cube_on_cube", "cube_bowl"):
+        half = 0.02 if family == "cube_bowl" else 0.025
+        above = 0.005 if family == "cube_bowl" else 0.0
+        steps = topdown_grasp(o.x, o.y, T + half + above, o.heading, 90.0)
+        d = scene["dest"]
+        if family == "cube_pad":
+            steps += place_from_above(d.x, d.y, T + 0.006 + half + 0.004, T + 0.15)
+        elif family == "cube_on_cube":
+            steps += [["yaw", round(d.heading, 1), 90.0]]
+            steps += place_from_above(d.x, d.y, T + 0.05 + half + 0.004, T + 0.16)
+        else:
+            steps += place_from_above(d.x, d.y, T + 0.008 + 0.025 + half + above, T + 0.17)
+    else:
+        return None
+    return [*steps, ["retry"]]
+
+
+# -- executing one step ------------------------------------------------------------------------
+
+
+def _move(axis: str, delta_m: float) -> Action:
+    mm = max(1, min(MAX_MOVE_MM, round(abs(delta_m) * 1000)))
+    return {
+        "action": "gripper.move_world",
+        "axis": axis,
+        "sign": "+" if delta_m > 0 else "-",
+        "distance_mm": mm,
+    }
+
+
+def _turn(axis: str, deg: float) -> Action:
+    a = max(1, min(MAX_TURN_DEG, round(abs(deg))))
+    return {"action": "gripper.rotate_local", "axis": axis, "sign": "+" if deg > 0 else "-", "angle_deg": a}
+
+
+def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str, Any]]:
+    """(action or None for stop, a reason, the memo to carry) for this observation."""
+    memo = dict(obs.memo) if obs.memo.get("f") == family else {"f": family}
+    plan: list[Step] = memo.get("plan") or start_plan()
+    i = int(memo.get("i", 0))
+    arm = obs.arms["right"]
+    last = memo.get("last")
+    for _ in range(len(plan) + 4):
+        if i >= len(plan):
+            return None, "plan finished", {**memo, "plan": plan, "i": i}
+        step = plan[i]
+        kind = step[0]
+        out: Action | None = None
+        if kind == "down" or kind == "fwd":
+            goal = np.array([0.0, 0.0, -1.0]) if kind == "down" else np.array([0.0, 1.0, 0.0])
+            if g.angle_between(arm.rx, goal) > TURN_TOL:
+                out = _turn("ry", g.turn_to_align(arm.rx, arm.ry, goal))
+        elif kind == "yaw":
+            turn = g.yaw_turn(arm.rx, arm.ry, float(step[1]), float(step[2]))
+            if abs(turn) > TURN_TOL:
+                out = _turn("rx", turn)
+        elif kind == "go":
+            target = np.array(step[1:4], float)
+            err = target - arm.gc
+            fails = int(memo.get("fails", 0))
+            if last == ["go", i] and arm.last_planner is False:
+                fails += 1
+            if fails < MAX_PLANNER_FAILS:
+                for axis in step[4]:
+                    k = "xyz".index(axis)
+                    if abs(err[k]) > MOVE_TOL:
+                        out = _move(axis, float(err[k]))
+                        memo["fails"] = fails
+                        break
+        elif kind in ("open", "close"):
+            if arm.is_open != (kind == "open") and last != [kind, i]:
+                out = {"action": f"gripper.{kind}"}
+        elif kind == "look":
+            memo.update(plan=plan, i=i + 1, last=["look", i])
+            return {"action": f"camera.view_{step[1]}"}, f"look: {step[1]}", memo
+        elif kind == "see":
+            return _see(obs, family, plan, i, memo)
+        elif kind == "retry":
+            tries = int(memo.get("try", 0)) + 1
+            if tries >= MAX_TRIES:
+                return None, "the task did not end after every try", memo
+            plan, i, memo = start_plan(), 0, {"f": family, "try": tries}
+            continue
+        elif kind == "stop":
+            return None, "stop step", memo
+        if out is not None:
+            memo.update(plan=plan, i=i, last=[kind, i])
+            return out, f"step {i}: {kind}", memo
+        i += 1
+        memo.pop("fails", None)
+        last = None
+    return None, "no progress", memo
+
+
+def _see(
+    obs: Observation, family: str, plan: list[Step], i: int, memo: dict[str, Any]
+) -> tuple[Action | None, str, dict[str, Any]]:
+    arm = obs.arms["right"]
+    scene = None
+    if obs.image is not None and obs.view == "topdown":
+        hsv = decode(obs.image)
+        cam = g.topdown_camera(tuple(arm.gc), hsv.shape[1], hsv.shape[0])  # type: ignore[arg-type]
+        scene = locate(family, hsv, cam)
+    if scene is None:
+        looks = int(memo.get("looks", 0)) + 1
+        if looks > MAX_LOOKS:
+            return None, "the objects are not visible in the topdown view", memo
+        memo.update(plan=plan, i=i, looks=looks, last=["look", i])
+        return {"action": "camera.view_topdown"}, "objects not found: look again", memo
+    rest = manipulation_plan(family, scene)
+    if rest is None:
+        return None, f"no plan for {family}", memo
+    seen = {k: [_r(v.x), _r(v.y), round(v.heading, 1)] for k, v in scene.items()}
+    memo = {k: v for k, v in memo.items() if k != "looks"}
+    memo.update(plan=rest, i=0, seen=seen, last=None)
+    return decide_from(obs, family, memo)
+
+
+def decide_from(obs: Observation, family: str, memo: dict[str, Any]):  # type: ignore[no-untyped-def]
+    """`decide` on the same observation with a new memo (after a plan was just made)."""
+    from dataclasses import replace
+
+    return decide(replace(obs, memo=memo), family)
+
+
+def heading_text(deg: float) -> str:
+    return f"{deg:.0f} deg" if math.isfinite(deg) else "?"
