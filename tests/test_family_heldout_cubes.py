@@ -337,3 +337,153 @@ def test_place_heldout_wall_stops_the_base_expert():
         v = views[slot]
         assert not ep.success, ep.seed
         assert np.linalg.norm(v.pos("obstacle") - v.init["obstacle"]) > 0.01, ep.seed
+
+
+# == place_cube_in_bowl_heldout =================================================================
+PCB = "place_cube_in_bowl_heldout"
+SMALL_CUBE_HALF = 0.02  # FACTS: the 0.04 cube of place_cube_in_bowl
+BASIN_INTERIOR = (0.09, 0.07)  # half-extents of the interior (docstring: 180 x 140 mm)
+BASIN_OUTER = (0.098, 0.078)
+BASIN_RIM = 0.06
+BASE_BOWL_RIM_RADIUS = 0.072  # the base bowl (place_cube_in_bowl's docstring)
+BASE_CENTRE_TOL = 0.055  # the paper's row
+
+
+def _quat_yaw(yaw: float) -> np.ndarray:
+    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+
+
+def test_basin_samples_in_range():
+    task = get_task(PCB)
+    for seed in SEEDS:
+        p = task.sample(seed).poses
+        cube, cq = p["cube"]
+        assert _inside(cube[0], 0.22, 0.27) and _inside(cube[1], -0.17, -0.10), seed
+        assert cube[2] == pytest.approx(TABLE_Z + SMALL_CUBE_HALF)
+        assert _inside(_yaw_deg(cq), -45.0, 45.0), seed
+        basin, bq = p["bowl"]
+        assert _inside(basin[0], 0.04, 0.08) and _inside(basin[1], 0.08, 0.12), seed
+        assert basin[2] == pytest.approx(TABLE_Z)
+        assert _inside(_yaw_deg(bq), -20.0, 20.0), seed
+
+
+def test_basin_differs_from_the_base_bowl():
+    _transfer_fields(PCB, "place_cube_in_bowl")
+    model = get_task(PCB).build_model(0)
+    base = get_task("place_cube_in_bowl").build_model(0)
+    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "bowl")
+    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] == body]
+    assert all(model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX for g in geoms)
+    assert all(model.geom_contype[g] == 3 for g in geoms) and len(geoms) == 5
+    # interior from the walls' inner faces; height from the walls' tops
+    walls = {n: _geom(model, f"bowl_{n}")[0] for n in ("wall_px", "wall_nx", "wall_py", "wall_ny")}
+    pos = {
+        n: model.geom_pos[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"bowl_{n}")]
+        for n in walls
+    }
+    assert pos["wall_px"][0] - walls["wall_px"][0] == pytest.approx(BASIN_INTERIOR[0])
+    assert -pos["wall_nx"][0] - walls["wall_nx"][0] == pytest.approx(BASIN_INTERIOR[0])
+    assert pos["wall_py"][1] - walls["wall_py"][1] == pytest.approx(BASIN_INTERIOR[1])
+    assert -pos["wall_ny"][1] - walls["wall_ny"][1] == pytest.approx(BASIN_INTERIOR[1])
+    assert pos["wall_px"][2] + walls["wall_px"][2] == pytest.approx(BASIN_RIM)
+    floor = _geom(model, "bowl_floor")[0]
+    np.testing.assert_allclose(floor[:2], BASIN_OUTER)
+    # larger: even the basin's smallest interior half-width beats the bowl's floor radius, and
+    # its interior footprint covers more than the bowl's rim circle
+    assert min(BASIN_INTERIOR) > 0.046
+    assert 4 * BASIN_INTERIOR[0] * BASIN_INTERIOR[1] > np.pi * BASE_BOWL_RIM_RADIUS**2
+    # another shape: the base bowl is a 16-gon mesh floor with walls tilted 35 deg
+    base_body = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_BODY, "bowl")
+    base_types = {
+        int(base.geom_type[g]) for g in range(base.ngeom) if base.geom_bodyid[g] == base_body
+    }
+    assert mujoco.mjtGeom.mjGEOM_MESH in base_types
+    # another colour, still blue (the instruction names "the blue bowl")
+    rgba = _geom(model, "bowl_wall_px")[1]
+    base_rgba = _geom(base, "bowl_wall0")[1]
+    assert np.abs(rgba[:3] - base_rgba[:3]).max() > 0.15
+    assert rgba[2] > 2 * max(rgba[0], rgba[1])
+    # the basin stands clear of the open fingers around the cube (51 mm + 6 mm finger)
+    task = get_task(PCB)
+    for seed in SEEDS:
+        p = task.sample(seed).poses
+        outer = _corners(p["bowl"][0], BASIN_OUTER, np.radians(_yaw_deg(p["bowl"][1])))
+        assert _gap(outer, _corners(p["cube"][0], [0.057, 0.057], 0.0)) > 0.0, seed
+    _differs_from_base(PCB, "place_cube_in_bowl", ["cube", "bowl"])
+
+
+def _in_basin(yaw: float = 0.3, u: float = 0.0, v: float = 0.0, dz: float = 0.0, **edits):
+    """The cube resting on the basin's floor (28 mm above its origin) at offset (u, v) along the
+    basin's axes, the basin turned by `yaw` rad; lift latched, open, touching; then `edits`."""
+    b = StateBuilder(get_task(PCB))
+    b.set_quat("bowl", _quat_yaw(yaw))
+    b.init[b.ix.adr["bowl"] + 3 : b.ix.adr["bowl"] + 7] = b.qpos[
+        b.ix.adr["bowl"] + 3 : b.ix.adr["bowl"] + 7
+    ]
+    axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    xy = b.pos("bowl")[:2] + u * axes[0] + v * axes[1]
+    b.set_pos("cube", np.r_[xy, b.pos("bowl")[2] + 0.028 + dz])
+    b.latch("was_lifted").touch("cube", "bowl").grip("right", True)
+    if "bowl_shift" in edits:
+        b.move("bowl", [edits["bowl_shift"], 0.0, 0.0])
+        b.move("cube", [edits["bowl_shift"], 0.0, 0.0])
+    if "touch" in edits:
+        b.touch("cube", "bowl", edits["touch"])
+    if "open" in edits:
+        b.grip("right", edits["open"])
+    if "latched" in edits:
+        b.latch("was_lifted", edits["latched"])
+    return b
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "ok", "check"),
+    [
+        ({}, True, None),
+        ({"u": 0.0895}, True, "centred"),
+        ({"u": -0.0905}, False, "centred"),
+        ({"v": -0.0695}, True, "centred"),
+        ({"v": 0.0705}, False, "centred"),
+        ({"u": 0.085, "v": 0.065}, True, "centred"),  # a corner: beyond the base's 55 mm
+        ({"dz": 0.015 - 0.028 + 0.0001}, True, "height"),
+        ({"dz": 0.015 - 0.028 - 0.0001}, False, "height"),
+        ({"dz": 0.095 - 0.028 - 0.0001}, True, "height"),
+        ({"dz": 0.095 - 0.028 + 0.0001}, False, "height"),
+        ({"bowl_shift": 0.0049}, True, "bowl_still"),
+        ({"bowl_shift": 0.0051}, False, "bowl_still"),
+        ({"touch": False}, False, "contact"),
+        ({"open": False}, False, "gripper_open"),
+        ({"latched": False}, False, "was_lifted"),
+    ],
+)
+def test_basin_predicate_thresholds(kwargs, ok, check):
+    ev = _in_basin(**kwargs).evaluate()
+    assert bool(ev.success) is ok, ev.checks
+    if check:
+        assert bool(ev.checks[check]) is ok
+
+
+def test_basin_centred_follows_the_basin_yaw():
+    # 80 mm along the basin's long axis is inside; the same 80 mm along world y at yaw 0 is not
+    assert bool(_in_basin(yaw=0.3, u=0.08).evaluate().checks["centred"])
+    assert not bool(_in_basin(yaw=0.0, v=0.08).evaluate().checks["centred"])
+    assert not bool(
+        _in_basin(yaw=np.pi / 2, u=0.0, v=0.0)
+        .move("cube", [0.08, 0, 0])
+        .evaluate()
+        .checks["centred"]
+    )
+
+
+def test_basin_lift_latch():
+    b = StateBuilder(get_task(PCB))
+    b.move("cube", [0.0, 0.0, 0.0505])
+    ev = b.evaluate()
+    assert bool(ev.latched[0]) and not bool(ev.success)
+    b2 = StateBuilder(get_task(PCB))
+    b2.move("cube", [0.0, 0.0, 0.0495])
+    assert not bool(b2.evaluate().latched[0])
+
+
+def test_basin_expert_quick():
+    _expert_quick(PCB, [1000, 1001])
