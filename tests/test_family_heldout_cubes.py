@@ -487,3 +487,123 @@ def test_basin_lift_latch():
 
 def test_basin_expert_quick():
     _expert_quick(PCB, [1000, 1001])
+
+
+# == place_cube_on_cube_heldout =================================================================
+PCC = "place_cube_on_cube_heldout"
+SUPPORT = (0.04, 0.03, 0.03)  # half-extents of the green support (docstring: 80 x 60 x 60 mm)
+
+
+def test_support_samples_in_range():
+    task = get_task(PCC)
+    for seed in SEEDS:
+        p = task.sample(seed).poses
+        red, rq = p["red"]
+        assert _inside(red[0], 0.20, 0.26) and _inside(red[1], -0.14, -0.06), seed
+        assert red[2] == pytest.approx(TABLE_Z + CUBE_HALF)
+        assert _inside(_yaw_deg(rq), -45.0, 45.0), seed
+        sup, sq = p["base"]
+        assert _inside(sup[0], 0.08, 0.12) and _inside(sup[1], 0.03, 0.07), seed
+        assert sup[2] == pytest.approx(TABLE_Z + SUPPORT[2])
+        assert _inside(_yaw_deg(sq), 50.0, 130.0), seed
+
+
+def test_support_is_unequal_and_rotated():
+    _transfer_fields(PCC, "place_cube_on_cube")
+    model = get_task(PCC).build_model(0)
+    base = get_task("place_cube_on_cube").build_model(0)
+    size, rgba, _ = _geom(model, "base_box")
+    base_size, base_rgba, _ = _geom(base, "base_box")
+    red_size = _geom(model, "red_box")[0]
+    np.testing.assert_allclose(size, SUPPORT)
+    np.testing.assert_allclose(base_size, [0.025] * 3)
+    np.testing.assert_allclose(red_size, [0.025] * 3)  # the red cube is the base's
+    assert size[0] != size[1]  # not square on top: symmetric every 180 deg, not 90
+    assert np.all(size > red_size)  # unequal: larger than the cube stacked on it
+    np.testing.assert_allclose(rgba, base_rgba)  # still "the green cube" of the instruction
+    task, ref = get_task(PCC), get_task("place_cube_on_cube")
+    for seed in SEEDS:
+        p = task.sample(seed).poses
+        yaw = _yaw_deg(p["base"][1])
+        assert not _inside(yaw, -45.0, 45.0)  # outside the base's yaw range
+        # modulo the block's 180 deg symmetry, its long side is never within 45 deg of x
+        assert abs(np.cos(np.radians(yaw))) < np.cos(np.radians(45.0)), seed
+        base_yaw = _yaw_deg(ref.sample(seed).poses["base"][1])
+        assert _inside(base_yaw, -45.0, 45.0)
+        # the support stands clear of the open fingers around the red cube (51 + 6 mm)
+        outer = _corners(p["base"][0], SUPPORT[:2], np.radians(yaw))
+        assert _gap(outer, _corners(p["red"][0], [0.057, 0.057], 0.0)) > 0.0, seed
+    _differs_from_base(PCC, "place_cube_on_cube", ["red", "base"])
+
+
+def _stacked(sup_yaw: float = 1.6, red_dyaw: float = 0.0, u: float = 0.0, v: float = 0.0, **edits):
+    """The red cube resting on the support's top centre offset by (u, v) along the support's
+    axes, the support turned by `sup_yaw` rad and the red cube by `red_dyaw` more; lift latched,
+    open, touching; then `edits`."""
+    b = StateBuilder(get_task(PCC))
+    b.set_quat("base", _quat_yaw(sup_yaw))
+    b.set_quat("red", _quat_yaw(sup_yaw + red_dyaw))
+    axes = np.array([[np.cos(sup_yaw), np.sin(sup_yaw)], [-np.sin(sup_yaw), np.cos(sup_yaw)]])
+    xy = b.pos("base")[:2] + u * axes[0] + v * axes[1]
+    b.set_pos("red", np.r_[xy, b.pos("base")[2] + SUPPORT[2] + CUBE_HALF + edits.get("dz", 0.0)])
+    b.latch("was_lifted").touch("red", "base").grip("right", True)
+    if "base_shift" in edits:
+        b.move("base", [0.0, edits["base_shift"], 0.0])
+        b.move("red", [0.0, edits["base_shift"], 0.0])
+    if "touch" in edits:
+        b.touch("red", "base", edits["touch"])
+    if "open" in edits:
+        b.grip("right", edits["open"])
+    if "latched" in edits:
+        b.latch("was_lifted", edits["latched"])
+    return b
+
+
+# overlap along the support's x: min(u + 25, 40) - max(u - 25, -40) >= 2 mm  <=>  |u| <= 63 mm;
+# along y: |v| <= 53 mm (the base cube's would be 48 mm on both); a red cube turned 45 deg
+# reaches 25 sqrt(2) mm: |u| <= 40 - 2 + 35.36 = 73.36 mm
+@pytest.mark.parametrize(
+    ("kwargs", "ok", "check"),
+    [
+        ({}, True, None),
+        ({"u": 0.0629}, True, "overlap"),
+        ({"u": -0.0631}, False, "overlap"),
+        ({"v": -0.0529}, True, "overlap"),
+        ({"v": 0.0531}, False, "overlap"),
+        ({"red_dyaw": np.pi / 4, "u": 0.0733}, True, "overlap"),
+        ({"red_dyaw": np.pi / 4, "u": 0.0735}, False, "overlap"),
+        ({"dz": 0.0119}, True, "height"),
+        ({"dz": -0.0121}, False, "height"),
+        ({"base_shift": 0.0119}, True, "base_still"),
+        ({"base_shift": 0.0121}, False, "base_still"),
+        ({"touch": False}, False, "contact"),
+        ({"open": False}, False, "gripper_open"),
+        # no latch needed here: resting on the 60 mm support is itself a 60 mm lift
+        ({"latched": False}, True, "was_lifted"),
+    ],
+)
+def test_support_predicate_thresholds(kwargs, ok, check):
+    ev = _stacked(**kwargs).evaluate()
+    assert bool(ev.success) is ok, ev.checks
+    if check:
+        assert bool(ev.checks[check]) is ok
+
+
+def test_support_overlap_follows_its_yaw():
+    # 60 mm along the support's long axis overlaps; 60 mm along its short axis does not
+    assert bool(_stacked(sup_yaw=1.2, u=0.06).evaluate().checks["overlap"])
+    assert not bool(_stacked(sup_yaw=1.2, v=0.06).evaluate().checks["overlap"])
+
+
+def test_support_lift_latch():
+    b = StateBuilder(get_task(PCC))
+    b.move("red", [0.0, 0.0, 0.0505])
+    ev = b.evaluate()
+    assert bool(ev.latched[0]) and not bool(ev.success)
+    b2 = StateBuilder(get_task(PCC))
+    b2.move("red", [0.0, 0.0, 0.0495])
+    assert not bool(b2.evaluate().latched[0])
+
+
+def test_support_expert_quick():
+    _expert_quick(PCC, [1000, 1001])
