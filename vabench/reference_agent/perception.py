@@ -17,6 +17,8 @@ from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
 from vabench.reference_agent.vision import Blob, find_blob, table_fraction
 
 MIN_TABLE_FRACTION = 0.10
+REACH_X = (-0.10, 0.50)  # m: where the right arm can pick and place on the table
+REACH_Y = (-0.35, 0.25)
 
 
 @dataclass(frozen=True)
@@ -83,5 +85,8 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
     for name, b in found.items():
         assert b is not None
         square = family.startswith("cube") or name == "dest"
-        scene[name] = _square(b) if square else _long(b)
+        seen = _square(b) if square else _long(b)
+        if not (REACH_X[0] <= seen.x <= REACH_X[1] and REACH_Y[0] <= seen.y <= REACH_Y[1]):
+            return None  # not on the right arm's part of the table: not the object
+        scene[name] = seen
     return scene

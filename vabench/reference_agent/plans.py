@@ -33,6 +33,7 @@ from vabench.reference_agent.request import Observation
 from vabench.reference_agent.vision import decode
 
 PARK = (0.38, -0.25, 1.05)  # GC where the arm does not hide the objects from the topdown view
+START_GC = (0.28, -0.20, 0.95)  # GC at reset (the robot state of the first observation)
 MOVE_TOL = 0.002  # m
 TURN_TOL = 1.5  # deg
 MAX_MOVE_MM = 100
@@ -69,7 +70,7 @@ def family_of(instruction: str) -> str | None:
 
 
 def start_plan() -> list[Step]:
-    return [["down"], ["go", *PARK, "zxy"], ["look", "topdown"], ["see"]]
+    return [["open"], ["go", *PARK, "zxy"], ["down"], ["look", "topdown"], ["see"]]
 
 
 def _r(v: float) -> float:
@@ -115,8 +116,13 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
     elif family in ("bottle_upright", "bottle_pad"):
         x, y, z = _r(o.x), _r(o.y), T + 0.06
         steps = [
+            # turn where the episode starts (the arm reaches the side-grasp poses from there),
+            # line up in x above the bottle, come in front of it, descend: the open fingers
+            # straddle it and the palm stays in front
+            ["go", *START_GC, "zyx"],
             ["fwd"],
-            ["go", x, _r(y - 0.13), _r(z), "yxz"],
+            ["go", x, START_GC[1], START_GC[2], "x"],
+            ["go", x, _r(y - 0.02), _r(z), "yz"],
             ["go", x, _r(y - 0.005), _r(z), "y"],
             ["close"],
             ["go", x, _r(y - 0.005), _r(z + (0.06 if family == "bottle_pad" else 0.10)), "z"],
@@ -166,6 +172,12 @@ def _turn(axis: str, deg: float) -> Action:
     return {"action": "gripper.rotate_local", "axis": axis, "sign": "+" if deg > 0 else "-", "angle_deg": a}
 
 
+def _stuck(kind: str, gc: np.ndarray, memo: dict[str, Any]) -> bool:
+    """A move that left GC where it was (rejected or clipped to the workspace)."""
+    at = memo.get("at")
+    return kind == "go" and at is not None and float(np.abs(gc - np.array(at)).max()) < 5e-4
+
+
 def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str, Any]]:
     """(action or None for stop, a reason, the memo to carry) for this observation."""
     memo = dict(obs.memo) if obs.memo.get("f") == family else {"f": family}
@@ -179,6 +191,15 @@ def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str,
         step = plan[i]
         kind = step[0]
         out: Action | None = None
+        fails = int(memo.get("fails", 0))
+        if last == [kind, i] and (arm.last_planner is False or _stuck(kind, arm.gc, memo)):
+            fails += 1
+        if fails >= MAX_PLANNER_FAILS and kind != "retry":
+            # the planner cannot do this step from here: start over from the parked pose
+            plan, i, last = [["retry"]], 0, None
+            memo.pop("fails", None)
+            continue
+        memo["fails"] = fails
         if kind == "down" or kind == "fwd":
             goal = np.array([0.0, 0.0, -1.0]) if kind == "down" else np.array([0.0, 1.0, 0.0])
             if g.angle_between(arm.rx, goal) > TURN_TOL:
@@ -188,18 +209,12 @@ def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str,
             if abs(turn) > TURN_TOL:
                 out = _turn("rx", turn)
         elif kind == "go":
-            target = np.array(step[1:4], float)
-            err = target - arm.gc
-            fails = int(memo.get("fails", 0))
-            if last == ["go", i] and arm.last_planner is False:
-                fails += 1
-            if fails < MAX_PLANNER_FAILS:
-                for axis in step[4]:
-                    k = "xyz".index(axis)
-                    if abs(err[k]) > MOVE_TOL:
-                        out = _move(axis, float(err[k]))
-                        memo["fails"] = fails
-                        break
+            err = np.array(step[1:4], float) - arm.gc
+            for axis in step[4]:
+                k = "xyz".index(axis)
+                if abs(err[k]) > MOVE_TOL:
+                    out = _move(axis, float(err[k]))
+                    break
         elif kind in ("open", "close"):
             if arm.is_open != (kind == "open") and last != [kind, i]:
                 out = {"action": f"gripper.{kind}"}
@@ -217,7 +232,7 @@ def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str,
         elif kind == "stop":
             return None, "stop step", memo
         if out is not None:
-            memo.update(plan=plan, i=i, last=[kind, i])
+            memo.update(plan=plan, i=i, last=[kind, i], at=[_r(v) for v in arm.gc])
             return out, f"step {i}: {kind}", memo
         i += 1
         memo.pop("fails", None)
