@@ -137,6 +137,7 @@ def learning_reply(request: IncomingRequest) -> str | None:
         "posture_or_rotation": "gripper pointing down, rotated so the fingers straddle it",
         "pre_close_checks": ["the object is between the fingers", "the fingers are low enough"],
         "test_lift_rule": "lift a few centimetres and check the object rises with the gripper",
+        "safety_notes": f"a stand-in summary written by {request.model}",  # tells learners apart
     }
     return fenced_json({"tool": "expert.learn", "args": {"summary": summary}})
 

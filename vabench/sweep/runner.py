@@ -8,6 +8,10 @@ flight are bounded per batch by its slots and overall by `executor.max_episodes`
 Resume (see `results.Ledger`): episodes already in results.jsonl are never run again; an
 episode whose result.json exists but never reached the ledger (killed in between) is adopted;
 an interrupted one (events, no result) restarts in a clean log (its partial log is kept).
+Summaries (`summaries.SummaryStage`): the first episode of a (model, family) on a track that
+reads summaries waits for the learning session of the model whose summary the track reads; it
+runs once per sweep directory and every later episode reuses it.
+
 Infrastructure failures are retried in later rounds, up to `retries.infrastructure_rounds`
 re-runs each, logged in infrastructure.jsonl, and after the last round recorded as
 `infrastructure_error`: listed, never scored.
@@ -25,11 +29,13 @@ from pathlib import Path
 from typing import Any
 
 from vabench.agent.engine import EpisodeSpec, run_episode, task_services
-from vabench.agent.records import EpisodeResult
+from vabench.agent.learning import LearningLimits
+from vabench.agent.records import EpisodeRecorder, EpisodeResult
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.render.worker import ImageSettings, RenderPool
 from vabench.sweep.results import Ledger, ledger_key, recover, set_aside
+from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
 
 log = logging.getLogger(__name__)
@@ -130,6 +136,12 @@ class LocalSweep:
                 endpoints = cfg.endpoints(server.base_url)
             llm = await stack.enter_async_context(LLMPool(endpoints))
             self.progress.pool = llm
+            self.summaries = SummaryStage(
+                self.run_dir,
+                llm,
+                demo_cache=Path(cfg.learning.demo_cache),
+                limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
+            )
             render = cfg.render
             pool = RenderPool(
                 workers=render.workers,
@@ -198,19 +210,32 @@ class LocalSweep:
             slots = asyncio.Semaphore(n_slots)
 
             async def one(k: Any) -> None:
+                track = cfg.track(k.track)
+                # Before taking a slot: the first episodes of a family wait here for its
+                # learning session without holding simulator slots.
+                use = await self.summaries.for_episode(
+                    track.summaries, track.summary_source(k.model), name
+                )
+                spec = EpisodeSpec(
+                    name,
+                    int(k.seed),
+                    k.model,
+                    protocol=track.protocol,
+                    run=int(k.run),
+                    out_dir=self.run_dir / k.rel_dir,
+                    demonstration_summary=use.text,
+                    summary_mode=use.mode,
+                    summary_from=use.source,
+                    summary_status=use.status,
+                    step_budget=cfg.step_budget,
+                )
+                if use.unavailable is not None:
+                    self._finish(k, _unavailable(spec, cfg.budget(name), use.unavailable))
+                    return
                 async with slots, episode_gate:
                     cell = self.progress.cells[(k.model, k.track, k.task)]
                     cell.running += 1
                     self.on_change(self.progress)
-                    spec = EpisodeSpec(
-                        name,
-                        int(k.seed),
-                        k.model,
-                        protocol=k.track,
-                        run=int(k.run),
-                        out_dir=self.run_dir / k.rel_dir,
-                        step_budget=cfg.step_budget,
-                    )
                     try:
                         result = await run_episode(spec, svc)
                     finally:
@@ -231,3 +256,27 @@ class LocalSweep:
         set_aside(self.run_dir / k.rel_dir)
         self.progress.cells[(k.model, k.track, k.task)].retried += 1
         self.on_change(self.progress)
+
+
+def _unavailable(spec: EpisodeSpec, budget: int, why: str) -> EpisodeResult:
+    """The record of an episode not run because its summary could not be learned for an
+    infrastructure reason (unscored; re-run in the next round)."""
+    recorder = EpisodeRecorder(spec.out_dir)
+    recorder.event("summary_unavailable", error=why)
+    result = EpisodeResult(
+        task=spec.task,
+        seed=spec.seed,
+        model=spec.model,
+        protocol=spec.protocol,
+        run=spec.run,
+        status="infrastructure_error",
+        success=False,
+        stop_reason="infrastructure_error",
+        error=why,
+        step_budget=budget,
+        n_checkpoints=len(get_task(spec.task).checkpoints),
+        summary_mode=spec.summary_mode,
+        summary_from=spec.summary_from,
+        summary_status=spec.summary_status,
+    )
+    return recorder.finish(result)  # closes the recorder

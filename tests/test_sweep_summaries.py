@@ -1,0 +1,191 @@
+"""The sweep's learning stage over real HTTP: a summary is learned once per (model, family) and
+reused for every seed, run and track; `own`, `shared:<model>` and `none` show whose summary
+each observation carries; a failed session is final and recorded, an infrastructure failure
+is retried; the records and the report say which summary each episode read."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from vabench import protocol as P
+from vabench.agent.learning import read_result
+from vabench.config import load_config
+from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.report import make_report
+from vabench.sweep.plan import plan
+from vabench.sweep.runner import LocalSweep
+from vabench.sweep.summaries import summary_path
+
+TASK = "grasp_single_cube"
+LEARNING_CALLS = 3  # the stand-in learner: retrieve, frame, learn
+
+
+def sweep_doc(server: LocalServer, models: list[str], **fields: Any) -> dict[str, Any]:
+    doc = {
+        "name": "t",
+        "models": [
+            server.endpoint_config(m, "openai_chat", model=m, retry={"max_attempts": 1})
+            for m in models
+        ],
+        "tracks": ["active"],
+        "tasks": [TASK],
+        "seeds": [1000],
+        "runs": 1,
+        "step_budget": 1,
+        "simulator": {"backend": "c"},
+        "render": {"width": 64, "height": 48, "workers": 1},
+        "executor": {"max_episodes": 64},
+        "retries": {"infrastructure_rounds": 1},
+    }
+    return doc | fields
+
+
+async def run_sweep(doc: dict[str, Any], tmp_path: Path, out: Path) -> LocalSweep:
+    path = tmp_path / "sweep.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    config = load_config(path, overrides={"out": str(out)})
+    sweep = LocalSweep(config, plan(config), out)
+    await sweep.run()
+    return sweep
+
+
+def requests(server: LocalServer) -> list[tuple[str, str, str]]:
+    """(model, system text, last user text) of every captured request."""
+    out = []
+    assert server.bodies is not None
+    for _, raw in server.bodies:
+        body = json.loads(raw)
+        system = next(m["content"] for m in body["messages"] if m["role"] == "system")
+        last = [m for m in body["messages"] if m["role"] == "user"][-1]["content"]
+        text = last if isinstance(last, str) else " ".join(p.get("text", "") for p in last)
+        out.append((body["model"], system, text))
+    return out
+
+
+def learning_calls(server: LocalServer) -> Counter[str]:
+    return Counter(m for m, system, _ in requests(server) if P.LEARNING_STAGE_MARK in system)
+
+
+def learning_sessions(run_dir: Path) -> Counter[tuple[str, str]]:
+    """learning_start events in every events.jsonl under summaries/, set-aside logs included."""
+    found: Counter[tuple[str, str]] = Counter()
+    for events in (run_dir / "summaries").rglob("events.jsonl"):
+        for line in events.read_text().splitlines():
+            event = json.loads(line)
+            if event["type"] == "learning_start":
+                found[(event["model"], event["task"])] += 1
+    return found
+
+
+def test_one_learning_per_model_and_family_for_three_runs_of_twenty_seeds(tmp_path):
+    async def main() -> None:
+        config = ServerConfig(
+            model_policies={
+                "m1": {"policy": "conversation_hash"},
+                "m2": {"policy": "random_action"},
+            }
+        )
+        async with LocalServer(config, capture_bodies=True) as server:
+            doc = sweep_doc(server, ["m1", "m2"], seeds="verified", runs=3)
+            out = tmp_path / "out"
+            sweep = await run_sweep(doc, tmp_path, out)
+            assert len(sweep.ledger.records) == 2 * 20 * 3
+            assert learning_sessions(out) == {("m1", TASK): 1, ("m2", TASK): 1}
+            assert learning_calls(server) == {"m1": LEARNING_CALLS, "m2": LEARNING_CALLS}
+            texts = {m: read_result(summary_path(out, m, TASK)).summary_text for m in ("m1", "m2")}
+            assert all(texts.values())
+            # every evaluation request of a model carries that model's own summary
+            evaluation = [(m, t) for m, s, t in requests(server) if P.LEARNING_STAGE_MARK not in s]
+            assert len(evaluation) == 2 * 20 * 3
+            assert all(texts[m] in t for m, t in evaluation)
+            for record in sweep.ledger.records.values():
+                model = record["model"]
+                assert (record["summary_mode"], record["summary_from"]) == ("own", model)
+                assert record["summary_status"] == "learned"
+            # a resumed sweep runs nothing and learns nothing again
+            again = await run_sweep(doc, tmp_path, out)
+            assert again.ledger.records == sweep.ledger.records
+            assert again.summaries.sessions == 0
+            assert learning_calls(server) == {"m1": LEARNING_CALLS, "m2": LEARNING_CALLS}
+
+    asyncio.run(main())
+
+
+def test_own_shared_and_none_tracks_show_whose_summary(tmp_path):
+    async def main() -> None:
+        config = ServerConfig(
+            model_policies={
+                "m1": {"policy": "conversation_hash"},
+                "m2": {"policy": "random_action"},
+            }
+        )
+        async with LocalServer(config, capture_bodies=True) as server:
+            tracks = [
+                "active",
+                {"name": "active_shared", "protocol": "active", "summaries": "shared:m1"},
+                {"name": "active_none", "protocol": "active", "summaries": "none"},
+            ]
+            out = tmp_path / "out"
+            sweep = await run_sweep(sweep_doc(server, ["m1", "m2"], tracks=tracks), tmp_path, out)
+            records = {(r["model"], r["track"]): r for r in sweep.ledger.records.values()}
+            text = {m: read_result(summary_path(out, m, TASK)).summary_text for m in ("m1", "m2")}
+            assert text["m1"] and text["m2"] and text["m1"] != text["m2"]
+            expected = {
+                ("m1", "active"): ("own", "m1", "learned"),
+                ("m2", "active"): ("own", "m2", "learned"),
+                ("m1", "active_shared"): ("shared:m1", "m1", "learned"),
+                ("m2", "active_shared"): ("shared:m1", "m1", "learned"),
+                ("m1", "active_none"): ("none", None, "none"),
+                ("m2", "active_none"): ("none", None, "none"),
+            }
+            got = {
+                k: (r["summary_mode"], r["summary_from"], r["summary_status"])
+                for k, r in records.items()
+            }
+            assert got == expected
+            assert learning_sessions(out) == {("m1", TASK): 1, ("m2", TASK): 1}
+            shown = [(m, t) for m, s, t in requests(server) if P.LEARNING_STAGE_MARK not in s]
+            assert len(shown) == 6
+            # m2: its own summary on `active`, m1's on `active_shared`, none on `active_none`
+            m2 = [t for m, t in shown if m == "m2"]
+            assert sum(text["m2"] in t for t in m2) == 1 and sum(text["m1"] in t for t in m2) == 1
+            assert sum("Demonstration summary: none" in t for _, t in shown) == 2
+            make_report(out)
+            assert "Summary source" in (out / "report" / "report.md").read_text()
+
+    asyncio.run(main())
+
+
+def test_a_failed_session_is_final_and_an_infrastructure_failure_is_retried(tmp_path):
+    async def main() -> None:
+        # m1 answers the learning stage with text that is no decision: the session fails;
+        # m2's server errors on every call: its session never ends in a stored result.
+        config = ServerConfig(
+            model_policies={"m1": {"policy": "echo"}, "m2": {"policy": "random_action"}},
+        )
+        async with LocalServer(config, capture_bodies=True) as server:
+            doc = sweep_doc(server, ["m1", "m2"])
+            doc["models"][1]["base_url"] = "http://127.0.0.1:9/v1"  # nothing listens there
+            out = tmp_path / "out"
+            sweep = await run_sweep(doc, tmp_path, out)
+            failed = read_result(summary_path(out, "m1", TASK))
+            assert failed.status == "failed" and failed.stop_reason == "invalid_output"
+            assert not summary_path(out, "m2", TASK).exists()
+            records = {r["model"]: r for r in sweep.ledger.records.values()}
+            assert (
+                records["m1"]["summary_status"] == "failed"
+                and records["m1"]["summary_from"] is None
+            )
+            assert records["m2"]["status"] == "infrastructure_error"
+            assert "learning stage" in records["m2"]["error"]
+            # both rounds tried to learn m2's summary again
+            assert learning_sessions(out)[("m2", TASK)] == 2
+            assert learning_sessions(out)[("m1", TASK)] == 1
+
+    asyncio.run(main())
