@@ -3,7 +3,8 @@
 Files written (each atomically: a temporary sibling, then `os.replace`):
     report.md            every table, with the notes and the figures linked
     <section>.md         one file per topic (success_per_task, macro_average, active_passive,
-                         checkpoints, usage)
+                         checkpoints, usage; and, only when the sweep holds their data,
+                         summary_source, learning_stage, transfer, long_horizon)
     <table>.csv          raw numbers in long format
     figures/*.png        macro-average bars, per-task bars per model/track, active vs passive
     report.html          everything above in one self-contained page (figures as base64)
@@ -20,10 +21,13 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from vabench.report import figures, html, stats, tables
+from vabench.report import figures, html, stats, tables, track_tables, tracks
 from vabench.report.load import Results, load_results
+from vabench.report.tracks import TaskMeta
 
 REPORT_DIR = "report"
+SUMMARIES_DIR = "summaries"
+"""RUN_DIR/summaries/<model>/<family>.json: the sweep's learning stage (`sweep.summaries`)."""
 
 
 @dataclass
@@ -40,12 +44,22 @@ def task_arms() -> tuple[dict[str, int], list[str], tuple[str, ...]]:
     return {n: len(t.arms) for n, t in REGISTRY.items()}, list(REGISTRY), BASE_FAMILIES
 
 
+def task_meta() -> TaskMeta:
+    """Suite of every registered task and the base family of each held-out variant."""
+    from vabench.tasks import REGISTRY  # imports the task modules (jax): lazy
+
+    return TaskMeta(
+        suite={n: t.suite for n, t in REGISTRY.items()},
+        base_family={n: t.base_family for n, t in REGISTRY.items() if t.base_family},
+    )
+
+
 def generate(run_dir: Path | str) -> ReportOutput:
     """Read RUN_DIR/results.jsonl, compute every statistic, write RUN_DIR/report/."""
     run_dir = Path(run_dir)
     results = load_results(run_dir)
     arms, order, base = task_arms()
-    return write_report(run_dir / REPORT_DIR, results, arms, order, base)
+    return write_report(run_dir / REPORT_DIR, results, arms, order, base, task_meta())
 
 
 def make_report(run_dir: Path) -> Path:
@@ -59,7 +73,10 @@ def write_report(
     arms: Mapping[str, int],
     order: Sequence[str],
     base: Sequence[str],
+    meta: TaskMeta | None = None,
 ) -> ReportOutput:
+    """`meta` (suites, base families) enables the transfer and long-horizon sections; the
+    learning-stage section reads RUN_DIR/summaries/ next to the results file."""
     cells = stats.task_cells(results.scored)
     task_spreads = stats.task_spread(cells)
     macros = stats.macro_averages(cells, arms)
@@ -83,6 +100,7 @@ def write_report(
         tables.macro_section(macros, macro_spreads, macro_notes),
         tables.per_task_section(cells, task_spreads, arms, order),
         tables.active_passive_section(comparisons, order),
+        *track_sections(results, arms, meta),
         tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
         tables.usage_section(
             stats.usage(results.scored), unscored, len(unresolved), results.retried
@@ -141,6 +159,26 @@ def write_report(
     page = html.render("VA-Bench report", summary, sections, [(s, t, png) for s, _, t, png in pngs])
     written.append(_write(out_dir / "report.html", page.encode()))
     return ReportOutput(out_dir, written, summary)
+
+
+def track_sections(
+    results: Results, arms: Mapping[str, int], meta: TaskMeta | None
+) -> list[tables.Section]:
+    """Summary source, learning stage, transfer and long horizon: those with data only."""
+    cells, notes = tracks.condition_cells(results.scored)
+    comparisons, more = tracks.summary_comparisons(cells, arms)
+    sections = [
+        track_tables.summary_section(
+            comparisons, tracks.cross_model(comparisons), arms, notes + more
+        ),
+        track_tables.learning_section(tracks.learning_rows(results.path.parent / SUMMARIES_DIR)),
+    ]
+    if meta is not None:
+        sections += [
+            track_tables.transfer_section(tracks.transfer_comparisons(cells, meta)),
+            track_tables.long_horizon_section(tracks.long_horizon(results.scored, meta)),
+        ]
+    return [s for s in sections if s is not None]
 
 
 def _summary(
