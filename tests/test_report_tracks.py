@@ -187,6 +187,23 @@ def test_same_condition_under_two_tracks_counts_once():
     ]
 
 
+def test_summary_modes_are_compared_within_a_suite():
+    # base tasks under own and none; the held-out task under own (transfer track) and
+    # shared:w: two comparisons, neither listing the other suite's tasks as left out
+    lines = pattern("m", "active", 1, {A1: 2}) + pattern("m", "active_none", 1, {A1: 1}, "none")
+    lines += pattern("m", "transfer", 1, {H1: 1}) + pattern("m", "t_w", 1, {H1: 3}, "shared:w")
+    cells, _ = T.condition_cells(records(lines))
+    found, notes = T.summary_comparisons(cells, ARMS, META.suite)
+    got = [(c.suite, c.modes, c.tasks, c.left_out) for c in found]
+    assert got == [
+        ("base", ("own", "none"), (A1,), ()),
+        ("transfer", ("own", "shared:w"), (H1,), ()),
+    ]
+    (cm,) = [c for c in T.cross_model(found)]
+    assert (cm.suite, cm.rows[0].delta("w")) == ("transfer", Fraction(1, 2))
+    assert notes == []
+
+
 def test_modes_without_a_common_task_are_noted():
     lines = pattern("m", "active", 1, {A1: 1}) + pattern("m", "active_none", 1, {A2: 1}, "none")
     cells, _ = T.condition_cells(records(lines))
@@ -473,3 +490,16 @@ def test_base_sweep_report_is_unchanged(tmp_path):
                 "sign_test.csv", "usage.csv", "checkpoints.csv", "unscored.csv"}  # fmt: skip
     assert {p.name for p in out.iterdir() if p.is_file()} == expected
     assert md == BASE_REPORT_MD.replace("{RESULTS}", str(tmp_path / "results.jsonl"))
+
+
+def test_every_track_section_in_markdown_csv_and_html(tmp_path):
+    lines = summary_sweep() + transfer_sweep() + long_sweep()
+    run_dir = write(tmp_path, lines)
+    write_learning(run_dir, "m", B1, status="learned", stop_reason="learned")
+    out = report(run_dir)
+    md, page = (out / "report.md").read_text(), (out / "report.html").read_text()
+    for heading in NEW_HEADINGS:
+        assert md.count(f"\n## {heading}\n") == 1 and page.count(f"<h2>{heading}</h2>") == 1
+    for name in ("summary_source", "summary_cross_model", "summary_per_task", "learning_stage",
+                 "transfer", "transfer_macro", "long_horizon"):  # fmt: skip
+        assert (out / f"{name}.csv").stat().st_size > 0, name

@@ -166,7 +166,8 @@ def track_sections(
 ) -> list[tables.Section]:
     """Summary source, learning stage, transfer and long horizon: those with data only."""
     cells, notes = tracks.condition_cells(results.scored)
-    comparisons, more = tracks.summary_comparisons(cells, arms)
+    suites = None if meta is None else meta.suite
+    comparisons, more = tracks.summary_comparisons(cells, arms, suites)
     sections = [
         track_tables.summary_section(
             comparisons, tracks.cross_model(comparisons), arms, notes + more

@@ -19,6 +19,7 @@ from vabench.report.tracks import (
     LongHorizon,
     SummaryComparison,
     TransferComparison,
+    suite_label,
 )
 
 
@@ -71,7 +72,8 @@ def summary_section(
                 if m != OWN
             ]
         title = (
-            f"{cmp.model} — {cmp.protocol}: summary source over {len(cmp.tasks)} matched tasks "
+            f"{cmp.model} — {cmp.protocol}{suite_label(cmp.suite)}: summary source over "
+            f"{len(cmp.tasks)} matched tasks "
             f"({n_single} single-arm, {len(cmp.tasks) - n_single} dual-arm)"
         )
         tables.append(Table(title, ["summary source", "runs", *subset_cols], rows))
@@ -82,6 +84,7 @@ def summary_section(
                     [
                         cmp.model,
                         cmp.protocol,
+                        cmp.suite,
                         m,
                         s,
                         len(cmp.tasks),
@@ -93,11 +96,15 @@ def summary_section(
                 )
         if cmp.left_out:
             notes.append(
-                f"{cmp.model} / {cmp.protocol}: left out, not run under every summary mode: "
+                f"{cmp.model} / {cmp.protocol}{suite_label(cmp.suite)}: left out, not run under "
+                "every summary mode: "
                 f"{list(cmp.left_out)}"
             )
         if OWN not in cmp.modes:
-            notes.append(f"{cmp.model} / {cmp.protocol}: no own-summary run, so no difference rows")
+            notes.append(
+                f"{cmp.model} / {cmp.protocol}{suite_label(cmp.suite)}: no own-summary run, "
+                "so no difference rows"
+            )
     for cm in cross:
         header = ["evaluated model", "Own %"]
         for src in cm.sources:
@@ -109,7 +116,7 @@ def summary_section(
                 row += [pct(r.shared[src]), signed(r.delta(src))] if src in r.shared else ["—", "—"]
             rows.append(row)
             cross_rows += [
-                [cm.protocol, r.model, src, r.own, r.shared.get(src), r.delta(src)]
+                [cm.protocol, cm.suite, r.model, src, r.own, r.shared.get(src), r.delta(src)]
                 for src in cm.sources
             ]
         avg = ["avg", pct(cm.avg_own)]
@@ -117,13 +124,14 @@ def summary_section(
             avg += [pct(cm.avg_rate(src)), signed(cm.avg_delta(src))]
         rows.append(avg)
         cross_rows += [
-            [cm.protocol, "avg", src, cm.avg_own, cm.avg_rate(src), cm.avg_delta(src)]
+            [cm.protocol, cm.suite, "avg", src, cm.avg_own, cm.avg_rate(src), cm.avg_delta(src)]
             for src in cm.sources
         ]
         tables.append(
             Table(
-                f"Shared summary sources — {cm.protocol} (pooled success over each model's "
-                "matched tasks and runs; Δ = shared − own; avg Δ leaves out the summary author)",
+                f"Shared summary sources — {cm.protocol}{suite_label(cm.suite)} (pooled success "
+                "over each model's matched tasks and runs; Δ = shared − own; avg Δ leaves out "
+                "the summary author)",
                 header,
                 rows,
             )
@@ -136,12 +144,22 @@ def summary_section(
                 s, t = cmp.counts.get((m, task), (0, 0))
                 row.append(f"{pct(Fraction(s, t))} ({s}/{t})" if t else "—")
                 task_rows.append(
-                    [cmp.model, cmp.protocol, task, m, s, t, Fraction(s, t) if t else None]
+                    [
+                        cmp.model,
+                        cmp.protocol,
+                        cmp.suite,
+                        task,
+                        m,
+                        s,
+                        t,
+                        Fraction(s, t) if t else None,
+                    ]
                 )
             rows.append(row)
         tables.append(
             Table(
-                f"{cmp.model} — {cmp.protocol}: per-task success % by summary source "
+                f"{cmp.model} — {cmp.protocol}{suite_label(cmp.suite)}: per-task success % by "
+                "summary source "
                 f"({runs_label(cmp.runs) if cmp.runs else 'no run under every mode'})",
                 ["task", *[mode_label(m) for m in cmp.modes]],
                 rows,
@@ -157,6 +175,7 @@ def summary_section(
                 [
                     "model",
                     "protocol",
+                    "suite",
                     "mode",
                     "subset",
                     "tasks",
@@ -169,12 +188,20 @@ def summary_section(
             ),
             Csv(
                 "summary_cross_model",
-                ["protocol", "evaluated_model", "source", "own_rate", "shared_rate", "delta"],
+                [
+                    "protocol",
+                    "suite",
+                    "evaluated_model",
+                    "source",
+                    "own_rate",
+                    "shared_rate",
+                    "delta",
+                ],
                 cross_rows,
             ),
             Csv(
                 "summary_per_task",
-                ["model", "protocol", "task", "mode", "successes", "total", "rate"],
+                ["model", "protocol", "suite", "task", "mode", "successes", "total", "rate"],
                 task_rows,
             ),
         ],

@@ -6,8 +6,9 @@ while the record itself says its protocol and `summary_mode` ("own" | "none" |
 "shared:<model>"). Which suite a task belongs to and which base family a held-out variant comes
 from are not in the records; they come from a `TaskMeta` (the registry's, or a hand-made one).
 
-- Summary source (paper, tab:summary-source-ablation and tab:summary-cross-eval): for one model
-  and one protocol run under two summary modes or more, the *matched tasks* are those with
+- Summary source (paper, tab:summary-source-ablation and tab:summary-cross-eval): for one model,
+  one protocol and one suite (base, transfer, ...: compared apart, as each suite has its own
+  section) run under two summary modes or more, the *matched tasks* are those with
   scored records under every mode, and the *matched runs* the run numbers present under every
   mode. Per mode: run-level macro-averages (single-arm, dual-arm, all) over the matched tasks,
   mean and sample SD across that mode's runs; "mode − own" is the difference of the means.
@@ -127,6 +128,7 @@ class SummaryComparison:
 
     model: str
     protocol: str
+    suite: str
     modes: tuple[str, ...]
     tasks: tuple[str, ...]
     """Matched tasks: scored under every mode."""
@@ -152,15 +154,16 @@ class SummaryComparison:
 
 
 def summary_comparisons(
-    cells: Sequence[CondCell], arms: Mapping[str, int]
+    cells: Sequence[CondCell], arms: Mapping[str, int], suites: Mapping[str, str] | None = None
 ) -> tuple[list[SummaryComparison], list[str]]:
-    """One comparison per (model, protocol) scored under >= 2 summary modes on >= 1 common task;
-    notes for the ones left out for want of a common task."""
-    groups: dict[tuple[str, str], list[CondCell]] = defaultdict(list)
+    """One comparison per (model, protocol, suite) scored under >= 2 summary modes on >= 1
+    common task; notes for the ones left out for want of a common task. A task missing from
+    `suites` (or every task, without it) counts as "base"."""
+    groups: dict[tuple[str, str, str], list[CondCell]] = defaultdict(list)
     for c in cells:
-        groups[(c.model, c.protocol)].append(c)
+        groups[(c.model, c.protocol, (suites or {}).get(c.task, "base"))].append(c)
     out, notes = [], []
-    for (model, protocol), group in sorted(groups.items()):
+    for (model, protocol, suite), group in sorted(groups.items(), key=_suite_first):
         modes = tuple(sorted({c.mode for c in group}, key=mode_rank))
         if len(modes) < 2:
             continue
@@ -168,7 +171,10 @@ def summary_comparisons(
         runs_of = {m: tuple(sorted({c.run for c in group if c.mode == m})) for m in modes}
         matched = set.intersection(*tasks_of.values())
         if not matched:
-            notes.append(f"{model} / {protocol}: summary modes {list(modes)} share no task")
+            notes.append(
+                f"{model} / {protocol}{suite_label(suite)}: summary modes {list(modes)} "
+                "share no task"
+            )
             continue
         runs = tuple(sorted(set.intersection(*(set(r) for r in runs_of.values()))))
         macros: dict[tuple[str, str], Spread | None] = {}
@@ -196,6 +202,7 @@ def summary_comparisons(
             SummaryComparison(
                 model=model,
                 protocol=protocol,
+                suite=suite,
                 modes=modes,
                 tasks=tuple(sorted(matched)),
                 left_out=tuple(sorted(set.union(*tasks_of.values()) - matched)),
@@ -206,6 +213,16 @@ def summary_comparisons(
             )
         )
     return out, notes
+
+
+def suite_label(suite: str) -> str:
+    """Appended to a model / protocol label: nothing for the base suite."""
+    return "" if suite == "base" else f" ({suite} suite)"
+
+
+def _suite_first(item: tuple[tuple[str, str, str], Any]) -> tuple:
+    model, protocol, suite = item[0]
+    return (suite != "base", suite, model, protocol)
 
 
 @dataclass(frozen=True)
@@ -225,6 +242,7 @@ class CrossModel:
     """Rows = evaluated models of one protocol; columns = own and each shared summary source."""
 
     protocol: str
+    suite: str
     sources: tuple[str, ...]
     rows: tuple[CrossRow, ...]
 
@@ -243,13 +261,15 @@ class CrossModel:
 
 
 def cross_model(comparisons: Sequence[SummaryComparison]) -> list[CrossModel]:
-    """Per protocol, the models compared under own and at least one shared summary."""
-    by_protocol: dict[str, list[SummaryComparison]] = defaultdict(list)
+    """Per protocol and suite, the models compared under own and at least one shared summary."""
+    groups: dict[tuple[str, str], list[SummaryComparison]] = defaultdict(list)
     for cmp in comparisons:
         if OWN in cmp.modes and any(m.startswith("shared:") for m in cmp.modes):
-            by_protocol[cmp.protocol].append(cmp)
+            groups[(cmp.protocol, cmp.suite)].append(cmp)
     out = []
-    for protocol, cmps in sorted(by_protocol.items()):
+    for (protocol, suite), cmps in sorted(
+        groups.items(), key=lambda kv: (kv[0][1] != "base", kv[0])
+    ):
         sources = sorted(
             {m.removeprefix("shared:") for c in cmps for m in c.modes if m.startswith("shared:")}
         )
@@ -261,7 +281,7 @@ def cross_model(comparisons: Sequence[SummaryComparison]) -> list[CrossModel]:
             )
             for c in cmps
         )
-        out.append(CrossModel(protocol, tuple(sources), rows))
+        out.append(CrossModel(protocol, suite, tuple(sources), rows))
     return out
 
 
