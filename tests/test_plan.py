@@ -23,6 +23,7 @@ from vabench.sweep.plan import (
     episode_usage,
     estimate,
     format_estimate,
+    learning_sessions,
     plan,
 )
 
@@ -215,3 +216,24 @@ def test_format_estimate_shows_counts_totals_and_assumptions(tmp_path):
     assert total.split()[1:3] == ["40", f"{math.ceil(est.usage.calls):,}"]
     assert total.split()[-1] == f"{est.cost_usd:,.2f}"
     assert "150 output tokens per call" in text
+
+
+def test_tracks_plan_their_own_tasks_and_learning_sessions_are_counted_once(tmp_path):
+    tracks = [
+        "active",
+        "transfer",
+        {"name": "active_shared", "protocol": "active", "summaries": "shared:cheap"},
+        {"name": "passive_none", "protocol": "passive", "summaries": "none"},
+    ]
+    seeds = {**SEEDS, "grasp_single_cube_heldout": [1000]}
+    config = small_config(tmp_path, tracks=tracks, seeds=seeds, runs=1)
+    keys = plan(config)
+    by_track = {t: {k.task for k in keys if k.track == t} for t in config.track_names}
+    assert by_track["transfer"] == {"grasp_single_cube_heldout"}  # lift_pot has no variant
+    assert by_track["active"] == by_track["passive_none"] == set(TASKS)
+    # own: each model per family; shared: cheap's (already counted); none: nothing; the
+    # held-out variant reads its base family's summary: no session of its own
+    assert set(learning_sessions(config, keys)) == {
+        (m, t) for m in ("cheap", "free") for t in TASKS
+    }
+    assert "Learning stage: 4 sessions" in format_estimate(estimate(config, keys))

@@ -96,6 +96,18 @@ def plan(config: SweepConfig) -> list[EpisodeKey]:
     ]
 
 
+def learning_sessions(config: SweepConfig, keys: list[EpisodeKey]) -> list[tuple[str, str]]:
+    """The (model, summary family) learning sessions `keys` need, each once, in plan order:
+    the model whose summary the episode's track reads (its own, or the shared source) and the
+    family whose summary the task reads (a held-out variant: its base family)."""
+    out: dict[tuple[str, str], None] = {}
+    for key in keys:
+        source = config.track(key.track).summary_source(key.model)
+        if source is not None:
+            out[(source, get_task(key.task).summary_family)] = None
+    return list(out)
+
+
 # -- the dry-run estimate ---------------------------------------------------------------------
 
 
@@ -157,6 +169,9 @@ class Estimate:
     """Episode counts, in the config's order."""
     models: list[ModelEstimate]
     assumptions: Assumptions = field(default_factory=Assumptions)
+    learning: dict[str, int] = field(default_factory=dict)
+    """Learning sessions per model (`learning_sessions`)."""
+    learning_calls_max: int = 30
 
     @property
     def usage(self) -> Usage:
@@ -201,6 +216,8 @@ def estimate(
         by_task=_ordered(Counter(k.task for k in keys), config.all_tasks),
         models=models,
         assumptions=a,
+        learning=dict(Counter(m for m, _ in learning_sessions(config, keys))),
+        learning_calls_max=config.learning.max_model_calls,
     )
 
 
@@ -341,6 +358,14 @@ def format_estimate(est: Estimate) -> str:
         f"{a.output_tokens} output tokens per call; {a.summary_tokens} per compaction summary; "
         f"{a.cached_input_share:.0%} of input billed as cached.",
     ]
+    if est.learning:
+        sessions = ", ".join(f"{m}: {n}" for m, n in est.learning.items())
+        lines += [
+            "",
+            f"Learning stage: {sum(est.learning.values())} sessions, one per (model, family) "
+            f"({sessions}); each at most {est.learning_calls_max} calls (a diligent model needs "
+            "3-8), over 640x480 demonstration frames; not included above.",
+        ]
     return "\n".join(lines)
 
 
