@@ -141,8 +141,8 @@ def summary_section(
         for task in cmp.tasks:
             row = [task]
             for m in cmp.modes:
-                s, t = cmp.counts.get((m, task), (0, 0))
-                row.append(f"{pct(Fraction(s, t))} ({s}/{t})" if t else "—")
+                k, n = cmp.counts.get((m, task), (0, 0))
+                row.append(f"{pct(Fraction(k, n))} ({k}/{n})" if n else "—")
                 task_rows.append(
                     [
                         cmp.model,
@@ -150,9 +150,9 @@ def summary_section(
                         cmp.suite,
                         task,
                         m,
-                        s,
-                        t,
-                        Fraction(s, t) if t else None,
+                        k,
+                        n,
+                        Fraction(k, n) if n else None,
                     ]
                 )
             rows.append(row)

@@ -111,8 +111,13 @@ def _rate(pairs: Iterable[tuple[int, int]]) -> Fraction | None:
     return Fraction(s, t) if t else None
 
 
+def _avg(values: Sequence[Fraction]) -> Fraction:
+    """The mean of at least one value."""
+    return sum(values, Fraction(0)) / len(values)
+
+
 def _mean(values: Sequence[Fraction]) -> Fraction | None:
-    return sum(values, Fraction(0)) / len(values) if values else None
+    return _avg(values) if values else None
 
 
 def _spread(values: Sequence[Fraction]) -> Spread | None:
@@ -191,7 +196,7 @@ def summary_comparisons(
                         and (subset == "all" or subset_of(c.task, arms) == subset)
                     ]
                     if rates:
-                        per_run.append(_mean(rates))
+                        per_run.append(_avg(rates))
                 macros[(mode, subset)] = _spread(per_run)
         counts: dict[tuple[str, str], tuple[int, int]] = {}
         for c in group:
@@ -417,8 +422,8 @@ def transfer_comparisons(cells: Sequence[CondCell], meta: TaskMeta) -> list[Tran
             p[0], p[1] = p[0] + b.successes, p[1] + b.total
             p[2], p[3] = p[2] + h.successes, p[3] + h.total
         runs = tuple(sorted(per_run))
-        base_m = [_mean([b for b, _ in per_run[r]]) for r in runs]
-        held_m = [_mean([h for _, h in per_run[r]]) for r in runs]
+        base_m = [_avg([b for b, _ in per_run[r]]) for r in runs]
+        held_m = [_avg([h for _, h in per_run[r]]) for r in runs]
         matched = {task for task, _, _ in pooled}
         out.append(
             TransferComparison(
