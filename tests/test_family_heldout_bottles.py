@@ -163,7 +163,7 @@ def test_place_success_and_tolerances():
 
 
 def test_place_square_bottle_lying_on_the_pad_fails_the_height_check():
-    # lying on a face its centre is 25 mm above the pad's top: 68 mm below upright resting
+    # lying on a face its centre is 25 mm above the pad's top: 65 mm below upright resting
     sb = _placed(dz=(PAD_HALF_THICK + 0.025) - REST)
     sb.set_quat("bottle", [np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0])
     e = sb.evaluate()

@@ -14,7 +14,7 @@ the pad centre each <= 40 mm; its height error to the upright resting height on 
 half-thickness + 90 mm) <= 35 mm; the pad displaced <= 2 mm; bottle-pad contact; right gripper
 open. Instruction, arm and budget (100 steps) are the base's. Unlike the base (where a bottle
 lying on the pad passes the height check), this container lying on the pad has its centre 25 mm
-above the pad's top, 68 mm below the upright resting height, and fails it.
+above the pad's top, 65 mm below the upright resting height, and fails it.
 Checkpoints: reached, grasped, lifted (latched), transported (x/y and height within
 tolerance), released (gripper open), completed.
 Expert: the base's: side grasp, lift 60 mm, carry over the pad centre, lower until resting,
