@@ -125,6 +125,10 @@ def summary_sweep() -> list[dict]:
     out += pattern("w", "active_shared", 1, {A1: 4, A2: 4, D: 4}, "shared:w")
     out += pattern("q", "active", 1, {A1: 1, A2: 1, D: 1})
     out += pattern("q", "active_shared", 1, {A1: 2, A2: 2, D: 2}, "shared:w")
+    # q's seeds 4-5 of A1 under shared:w ran without w's summary (its learning failed): still
+    # counted under shared:w (run 2, outside the matched runs: no number above changes), noted
+    failed = {"summary_status": "failed", "summary_from": None}
+    out += [line("q", "active_shared", A1, s, 2, False, mode="shared:w", **failed) for s in (4, 5)]
     # one mode only (own, under both protocols): no summary comparison
     out += pattern("solo", "active", 1, {A1: 1})
     out += pattern("solo", "passive", 1, {A1: 2}, protocol="passive")
@@ -225,6 +229,7 @@ def test_summary_source_section_written(tmp_path):
     assert f"| {A1} | 100.00 (4/4) | 50.00 (2/4) | 0.00 (0/4) |" in md
     assert f"left out, not run under every summary mode: ['{X}']" in md
     assert "solo — active: summary source" not in md
+    assert "q / active_shared: 2 episode(s) ran without a summary (w's learning failed)" in md
     rows = read_csv(out / "summary_cross_model.csv")
     avg = next(x for x in rows if x["evaluated_model"] == "avg")
     assert float(avg["delta"]) == pytest.approx(-1 / 24, rel=1e-12)

@@ -170,7 +170,10 @@ def track_sections(
     comparisons, more = tracks.summary_comparisons(cells, arms, suites)
     sections = [
         track_tables.summary_section(
-            comparisons, tracks.cross_model(comparisons), arms, notes + more
+            comparisons,
+            tracks.cross_model(comparisons),
+            arms,
+            notes + more + tracks.failed_summary_notes(results.scored),
         ),
         track_tables.learning_section(tracks.learning_rows(results.path.parent / SUMMARIES_DIR)),
     ]

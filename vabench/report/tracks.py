@@ -104,6 +104,21 @@ def condition_cells(records: Iterable[Record]) -> tuple[list[CondCell], list[str
     return cells, notes
 
 
+def failed_summary_notes(records: Iterable[Record]) -> list[str]:
+    """Scored episodes whose summary could not be learned (they ran without one), per model
+    and track: they stay under their track's mode, as the sweep ran them."""
+    counts: dict[tuple[str, str, str], int] = defaultdict(int)
+    for rec in records:
+        r = rec.result
+        if r.scored and r.summary_status == "failed":
+            source = r.model if r.summary_mode == OWN else r.summary_mode.removeprefix("shared:")
+            counts[(r.model, rec.track, source)] += 1
+    return [
+        f"{model} / {track}: {n} episode(s) ran without a summary ({source}'s learning failed)"
+        for (model, track, source), n in sorted(counts.items())
+    ]
+
+
 def _rate(pairs: Iterable[tuple[int, int]]) -> Fraction | None:
     s = t = 0
     for a, b in pairs:
