@@ -189,3 +189,28 @@ def test_a_failed_session_is_final_and_an_infrastructure_failure_is_retried(tmp_
             assert learning_sessions(out)[("m1", TASK)] == 1
 
     asyncio.run(main())
+
+
+def test_a_task_with_atomic_demonstrations_learns_from_all_of_them_in_one_index():
+    """The basket's form (FACTS): its four atomic videos, titled by their instructions, one
+    frame index; a held-out variant gets its base family's video."""
+    from dataclasses import replace
+
+    from vabench.demos import load_demo
+    from vabench.demos.store import CACHE_DIR
+    from vabench.sweep.summaries import load_demo_frames
+    from vabench.tasks import BASKET_DEMONSTRATIONS, get_task
+
+    composite = replace(get_task(TASK), name="composite", demonstrations=BASKET_DEMONSTRATIONS)
+    demo = load_demo_frames(composite, CACHE_DIR)
+    videos = [load_demo(n) for n in BASKET_DEMONSTRATIONS]
+    assert len(demo) == sum(v.n_frames for v in videos)
+    starts = [0]
+    for v in videos[:-1]:
+        starts.append(starts[-1] + v.n_frames)
+    titles = [get_task(n).instruction for n in BASKET_DEMONSTRATIONS]
+    assert list(demo.videos) == list(zip(starts, titles, strict=True))
+    assert demo.frames[starts[2]] == videos[2].frames[0]
+    assert demo.index_entry(starts[3] + 1)["video"] == 4
+    variant = replace(get_task(TASK), name="variant", base_family=TASK)
+    assert load_demo_frames(variant, CACHE_DIR).frames == tuple(load_demo(TASK).frames)
