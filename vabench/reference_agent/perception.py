@@ -19,6 +19,8 @@ from vabench.reference_agent.vision import Blob, find_blob, table_fraction
 MIN_TABLE_FRACTION = 0.10
 REACH_X = (-0.10, 0.50)  # m: where the right arm can pick and place on the table
 REACH_Y = (-0.35, 0.25)
+BOWL_RIM_Z = 0.052  # m above the table (place_cube_in_bowl: "rim about 72 mm in radius and
+# 52 mm high")
 
 
 @dataclass(frozen=True)
@@ -78,14 +80,20 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
     elif family == "cube_on_cube":
         found["dest"] = _blob(hsv, cam, ("green",), t + 0.05, 0.05, 8e-4)
     elif family == "cube_bowl":
-        found["dest"] = _blob(hsv, cam, ("blue",), t + 0.03, 0.10, 4e-3)
+        found["dest"] = _blob(hsv, cam, ("blue",), t + BOWL_RIM_Z, 0.10, 4e-3)
     if not found or any(b is None for b in found.values()):
         return None
     scene: Scene = {}
     for name, b in found.items():
         assert b is not None
         square = family.startswith("cube") or name == "dest"
-        seen = _square(b) if square else _long(b)
+        if family == "cube_bowl" and name == "dest":
+            # the walls flare outwards, so from above the rim is the outline: its box's
+            # centre is the bowl's axis (the centroid leans to the wall facing the camera)
+            lo, hi = b.points.min(axis=0), b.points.max(axis=0)
+            seen = Seen(float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2)
+        else:
+            seen = _square(b) if square else _long(b)
         if not (REACH_X[0] <= seen.x <= REACH_X[1] and REACH_Y[0] <= seen.y <= REACH_Y[1]):
             return None  # not on the right arm's part of the table: not the object
         scene[name] = seen
