@@ -214,3 +214,21 @@ def test_a_task_with_atomic_demonstrations_learns_from_all_of_them_in_one_index(
     assert demo.index_entry(starts[3] + 1)["video"] == 4
     variant = replace(get_task(TASK), name="variant", base_family=TASK)
     assert load_demo_frames(variant, CACHE_DIR).frames == tuple(load_demo(TASK).frames)
+
+
+def test_a_held_out_variant_reads_its_base_familys_summary(tmp_path):
+    async def main() -> None:
+        config = ServerConfig(model_policies={"m1": {"policy": "conversation_hash"}})
+        async with LocalServer(config, capture_bodies=True) as server:
+            doc = sweep_doc(server, ["m1"], tracks=["active", "transfer"], seeds={"verified": 1})
+            out = tmp_path / "out"
+            sweep = await run_sweep(doc, tmp_path, out)
+            tasks = {r["task"]: r for r in sweep.ledger.records.values()}
+            assert set(tasks) == {TASK, f"{TASK}_heldout"}
+            assert learning_sessions(out) == {("m1", TASK): 1}
+            text = read_result(summary_path(out, "m1", TASK)).summary_text
+            shown = [t for _, s, t in requests(server) if P.LEARNING_STAGE_MARK not in s]
+            assert len(shown) == 2 and all(text in t for t in shown)
+            assert tasks[f"{TASK}_heldout"]["summary_status"] == "learned"
+
+    asyncio.run(main())
