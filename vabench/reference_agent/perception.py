@@ -19,6 +19,7 @@ from vabench.reference_agent.vision import Blob, find_blob, table_fraction
 MIN_TABLE_FRACTION = 0.10
 REACH_X = (-0.10, 0.50)  # m: where the right arm can pick and place on the table
 REACH_Y = (-0.35, 0.25)
+BELL_TOP_Z = 0.05  # m above the table: the dome's widest visible outline, roughly
 BOWL_RIM_Z = 0.052  # m above the table (place_cube_in_bowl: "rim about 72 mm in radius and
 # 52 mm high")
 
@@ -75,6 +76,15 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
         found["obj"] = _blob(hsv, cam, ("blue", "yellow"), t + 0.063, 0.12, 2e-3)
     elif family in ("bottle_upright", "bottle_pad"):
         found["obj"] = _blob(hsv, cam, ("red",), t + 0.165, 0.03, 1.5e-4)
+    elif family == "bell":
+        # a brass (yellow) dome on a black base, or a silver dome on a red base: the coloured
+        # part finds the bell, the dome and base together give its centre (the red base shows
+        # only as a crescent on the side facing the camera)
+        ring = _blob(hsv, cam, ("red", "yellow", "wood"), t + BELL_TOP_Z, 0.06, 1e-4)
+        found["obj"] = ring and find_blob(
+            hsv, cam, ("red", "yellow", "wood", "silver"), t + BELL_TOP_Z, 0.045, 6e-4,
+            start=ring.centre,
+        )
     if family in ("cube_pad", "bottle_pad"):
         found["dest"] = _blob(hsv, cam, ("green",), t + 0.006, 0.10, 6e-3)
     elif family == "cube_on_cube":

@@ -137,6 +137,20 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
                 ["go", px, _r(py - 0.08), _r(T + 0.07), "y"],
                 ["go", px, _r(py - 0.08), _r(T + 0.16), "z"],
             ]
+    elif family == "bell":
+        # the button's top is 76 mm above the table (the bell's press point); fingertips
+        # (15 mm below GC) come down on it with the gripper closed, 6 mm past its top, then
+        # 6 mm further if the first press did not count
+        x, y, press = _r(o.x), _r(o.y), T + 0.076
+        steps = [
+            ["close"],
+            ["down"],
+            ["go", x, y, _r(press + 0.05 + g.FINGERTIP_BEYOND_GC), "zxy"],
+            ["go", x, y, _r(press - 0.006 + g.FINGERTIP_BEYOND_GC), "z"],
+            ["go", x, y, _r(press + 0.03), "z"],
+            ["go", x, y, _r(press - 0.012 + g.FINGERTIP_BEYOND_GC), "z"],
+            ["go", x, y, _r(press + 0.05), "z"],
+        ]
     elif family in ("cube_pad", "cube_on_cube", "cube_bowl"):
         half = 0.02 if family == "cube_bowl" else 0.025
         above = 0.005 if family == "cube_bowl" else 0.0

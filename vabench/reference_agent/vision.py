@@ -25,14 +25,17 @@ from vabench.reference_agent.geometry import TopdownCamera
 
 MAX_WORK_WIDTH = 640  # larger images are decoded at 1/2, 1/4 ... (JPEG DCT scaling: fast)
 
-# (hue ranges, min saturation, min value); hue ranges may wrap (low > high)
-COLOURS: dict[str, tuple[tuple[tuple[int, int], ...], int, int]] = {
-    "red": (((240, 255), (0, 12)), 120, 50),
-    "wood": (((13, 27),), 100, 60),
-    "yellow": (((28, 52),), 110, 80),
-    "green": (((60, 112),), 90, 40),
-    "blue": (((120, 172),), 90, 40),
-    "purple": (((176, 225),), 70, 40),
+# (hue ranges, min saturation, min value, max saturation)
+COLOURS: dict[str, tuple[tuple[tuple[int, int], ...], int, int, int]] = {
+    "red": (((240, 255), (0, 12)), 120, 50, 255),
+    "wood": (((13, 27),), 100, 60, 255),
+    "yellow": (((28, 52),), 110, 80, 255),
+    "green": (((60, 112),), 90, 40, 255),
+    "blue": (((120, 172),), 90, 40, 255),
+    "purple": (((176, 225),), 70, 40, 255),
+    # bright and nearly colourless: polished metal (the table is saturation ~47, the robot
+    # and shadows are darker)
+    "silver": (((0, 255),), 0, 110, 30),
 }
 
 
@@ -46,12 +49,12 @@ def decode(jpeg: bytes) -> np.ndarray:
 
 
 def colour_mask(hsv: np.ndarray, colour: str) -> np.ndarray:
-    ranges, min_s, min_v = COLOURS[colour]
+    ranges, min_s, min_v, max_s = COLOURS[colour]
     h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
     hue = np.zeros(h.shape, bool)
     for lo, hi in ranges:
         hue |= (h >= lo) & (h <= hi)
-    return hue & (s >= min_s) & (v >= min_v)
+    return hue & (s >= min_s) & (s <= max_s) & (v >= min_v)
 
 
 def table_fraction(hsv: np.ndarray) -> float:
@@ -138,10 +141,11 @@ def find_blob(
     plane_z: float,
     radius: float,
     min_area: float,
+    start: np.ndarray | None = None,
 ) -> Blob | None:
     """The object of `colours` on the plane z = `plane_z`: the opened mask's pixels within
-    `radius` (m) of its densest point (a few mean-shift rounds from the median); None when
-    fewer than `min_area` (m^2) remain."""
+    `radius` (m) of its densest point (a few mean-shift rounds from `start`, by default the
+    median); None when fewer than `min_area` (m^2) remain."""
     mask = np.zeros(hsv.shape[:2], bool)
     for c in colours:
         mask |= colour_mask(hsv, c)
@@ -150,7 +154,7 @@ def find_blob(
         return None
     pts = cam.to_world(cols, rows, plane_z)
     pixel_area = cam.metres_per_pixel(plane_z) ** 2
-    centre = np.median(pts, axis=0)
+    centre = np.median(pts, axis=0) if start is None else np.asarray(start, float)
     near = pts
     for _ in range(4):
         near = pts[np.linalg.norm(pts - centre, axis=1) <= radius]
