@@ -85,19 +85,24 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
             hsv, cam, ("red", "yellow", "wood", "silver"), t + BELL_TOP_Z, 0.045, 6e-4,
             start=ring.centre,
         )
+    elif family == "hammer":
+        # the handle: a blue grip and the wooden shaft, mid-handle is the hammer's origin
+        found["obj"] = _blob(hsv, cam, ("blue", "wood"), t + 0.028, 0.15, 1e-3)
     if family in ("cube_pad", "bottle_pad"):
         found["dest"] = _blob(hsv, cam, ("green",), t + 0.006, 0.10, 6e-3)
     elif family == "cube_on_cube":
         found["dest"] = _blob(hsv, cam, ("green",), t + 0.05, 0.05, 8e-4)
     elif family == "cube_bowl":
         found["dest"] = _blob(hsv, cam, ("blue",), t + BOWL_RIM_Z, 0.10, 4e-3)
+    elif family == "hammer":
+        found["dest"] = _blob(hsv, cam, ("red",), t + 0.05, 0.05, 8e-4)
     if not found or any(b is None for b in found.values()):
         return None
     scene: Scene = {}
     for name, b in found.items():
         assert b is not None
         square = family.startswith("cube") or name == "dest"
-        if family == "cube_bowl" and name == "dest":
+        if (family == "cube_bowl" and name == "dest") or (family == "hammer" and name == "obj"):
             # the walls flare outwards, so from above the rim is the outline: its box's
             # centre is the bowl's axis (the centroid leans to the wall facing the camera)
             lo, hi = b.points.min(axis=0), b.points.max(axis=0)

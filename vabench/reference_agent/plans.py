@@ -151,6 +151,22 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
             ["go", x, y, _r(press - 0.012 + g.FINGERTIP_BEYOND_GC), "z"],
             ["go", x, y, _r(press + 0.05), "z"],
         ]
+    elif family == "hammer":
+        # grasp across the handle 70 mm behind the striking face (its centre is 115 mm along
+        # the handle from mid-handle and 50 mm to the -y side), lift, carry the face over the
+        # block's top, lower the head onto it in small steps (a stiff arm pressing far into
+        # an object launches it)
+        d = scene["dest"]
+        gx, gy, gz = o.x + 0.045, o.y, max(low, T + 0.017)
+        cx, cy = d.x - 0.07, d.y + 0.05
+        head = gz - T  # the head's underside is on the table while the hammer lies there
+        steps = topdown_grasp(gx, gy, gz, 90.0, 180.0)[:-1]
+        steps += [["go", _r(gx), _r(gy), _r(gz + 0.10), "z"]]
+        steps += [["go", _r(cx), _r(cy), _r(T + 0.05 + head + 0.03), "zxy"]]
+        steps += [
+            ["go", _r(cx), _r(cy), _r(T + 0.05 + head + dz), "z"]
+            for dz in (0.006, 0.002, -0.001, -0.004, -0.007)
+        ]
     elif family in ("cube_pad", "cube_on_cube", "cube_bowl"):
         half = 0.02 if family == "cube_bowl" else 0.025
         above = 0.005 if family == "cube_bowl" else 0.0
