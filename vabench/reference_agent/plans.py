@@ -22,13 +22,13 @@ Steps:
 
 from __future__ import annotations
 
-import math
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from vabench.reference_agent import geometry as g
-from vabench.reference_agent.perception import Scene, locate
+from vabench.reference_agent.perception import Scene, locate, looks_like_scene
 from vabench.reference_agent.request import Observation
 from vabench.reference_agent.vision import decode
 
@@ -201,7 +201,12 @@ def _move(axis: str, delta_m: float) -> Action:
 
 def _turn(axis: str, deg: float) -> Action:
     a = max(1.0, min(MAX_TURN_DEG, round(abs(deg), 1)))
-    return {"action": "gripper.rotate_local", "axis": axis, "sign": "+" if deg > 0 else "-", "angle_deg": a}
+    return {
+        "action": "gripper.rotate_local",
+        "axis": axis,
+        "sign": "+" if deg > 0 else "-",
+        "angle_deg": a,
+    }
 
 
 def _stuck(kind: str, gc: np.ndarray, memo: dict[str, Any]) -> bool:
@@ -212,9 +217,18 @@ def _stuck(kind: str, gc: np.ndarray, memo: dict[str, Any]) -> bool:
 
 def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str, Any]]:
     """(action or None for stop, a reason, the memo to carry) for this observation."""
-    memo = dict(obs.memo) if obs.memo.get("f") == family else {"f": family}
+    memo: dict[str, Any] = dict(obs.memo) if obs.memo.get("f") == family else {"f": family}
     plan: list[Step] = memo.get("plan") or start_plan()
     i = int(memo.get("i", 0))
+    if obs.image is None or not looks_like_scene(decode(obs.image)):
+        # every view of this scene shows the table; an image that does not (noise, a broken
+        # render) is no ground for any action: look again, then give up
+        blind = int(memo.get("blind", 0)) + 1
+        if blind > MAX_LOOKS:
+            return None, "the images do not show the scene", memo
+        memo.update(plan=plan, i=i, blind=blind, last=None)
+        return {"action": "camera.view_topdown"}, "image unreadable: look again", memo
+    memo.pop("blind", None)
     arm = obs.arms["right"]
     last = memo.get("last")
     for _ in range(len(plan) + 4):
@@ -263,7 +277,7 @@ def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str,
             tries = int(memo.get("try", 0)) + 1
             if tries >= MAX_TRIES:
                 return None, "the task did not end after every try", memo
-            plan, i, memo = start_plan(), 0, {"f": family, "try": tries}
+            plan, i, memo = start_plan(), 0, {"f": family, "try": tries}  # a fresh memo
             continue
         elif kind == "stop":
             return None, "stop step", memo
@@ -297,15 +311,4 @@ def _see(
     seen = {k: [_r(v.x), _r(v.y), round(v.heading, 1)] for k, v in scene.items()}
     memo = {k: v for k, v in memo.items() if k != "looks"}
     memo.update(plan=rest, i=0, seen=seen, last=None)
-    return decide_from(obs, family, memo)
-
-
-def decide_from(obs: Observation, family: str, memo: dict[str, Any]):  # type: ignore[no-untyped-def]
-    """`decide` on the same observation with a new memo (after a plan was just made)."""
-    from dataclasses import replace
-
-    return decide(replace(obs, memo=memo), family)
-
-
-def heading_text(deg: float) -> str:
-    return f"{deg:.0f} deg" if math.isfinite(deg) else "?"
+    return decide(dataclasses.replace(obs, memo=memo), family)

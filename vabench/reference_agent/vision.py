@@ -107,10 +107,12 @@ class Blob:
         """Heading (deg, in (-90, 90]) of the principal (long) axis."""
         d = self.points - self.centre
         cov = d.T @ d / len(d)
-        w, vecs = np.linalg.eigh(cov)
+        _, vecs = np.linalg.eigh(cov)
         major = vecs[:, 1]
-        return math.degrees(math.atan2(major[1], major[0])) if major[0] >= 0 else (
-            math.degrees(math.atan2(-major[1], -major[0]))
+        return (
+            math.degrees(math.atan2(major[1], major[0]))
+            if major[0] >= 0
+            else (math.degrees(math.atan2(-major[1], -major[0])))
         )
 
     def extent(self, heading: float) -> tuple[float, float]:
