@@ -245,7 +245,7 @@ footprints are at least 15 mm apart and 13 mm inside the walls). Long objects li
 basket's y axis, cubes square to it."""
 UPRIGHT_GRASP_DZ = 0.053  # GC above the upright bottle's centre: the palm clears its neck
 PEN_GRASP_DZ = sk.TOPDOWN_MIN_GC_Z + 0.001 - (rc.TABLE_Z + sk.PEN_RADIUS)
-SMALL_CUBE_GRASP_DZ = 0.005
+CUBE_GRASP_DZ = 0.005  # GC above a cube's centre (as place_cube_in_bowl)
 PEN_DROP = 0.003  # the pen's bottom above the floor when it is let go
 TIPS_ABOVE_RIM = 0.008  # the fingertips when the dropped objects are let go
 CARRY_CLEARANCE = 0.03  # the held object's bottom above everything it passes over
@@ -340,8 +340,7 @@ class PutEverythingInBasket(Task):
         elif name == "pen":
             across, dz = sk.axis_heading(mat, 0) + np.pi / 2, PEN_GRASP_DZ
         else:
-            dz = SMALL_CUBE_GRASP_DZ if name == "small_cube" else 0.0
-            yield from common.topdown_grasp(ctx, "right", name, grasp_dz=dz)
+            yield from common.topdown_grasp(ctx, "right", name, grasp_dz=CUBE_GRASP_DZ)
             return
         yield from sk.topdown_grasp_at(ctx, "right", lambda v: v.pos(name) + [0.0, 0.0, dz], across)
 
