@@ -19,6 +19,15 @@ from vabench.reference_agent.vision import Blob, find_blob, table_fraction
 MIN_TABLE_FRACTION = 0.20  # real views: >= 0.35 (measured); JPEG noise: ~0.05
 REACH_X = (-0.10, 0.50)  # m: where the right arm can pick and place on the table
 REACH_Y = (-0.35, 0.25)
+# half-sizes of the cubes (FACTS object facts); the pads are thin: their centroid is fine
+SQUARE_HALF = {
+    ("cube", "obj"): 0.025,
+    ("cube_pad", "obj"): 0.025,
+    ("cube_on_cube", "obj"): 0.025,
+    ("cube_on_cube", "dest"): 0.025,
+    ("cube_bowl", "obj"): 0.02,
+    ("hammer", "dest"): 0.025,
+}
 BELL_TOP_Z = 0.05  # m above the table: the dome's widest visible outline, roughly
 BOWL_RIM_Z = 0.052  # m above the table (place_cube_in_bowl: "rim about 72 mm in radius and
 # 52 mm high")
@@ -42,9 +51,19 @@ class Seen:
 Scene = dict[str, Seen]
 
 
-def _square(b: Blob) -> Seen:
-    c = b.centre
-    return Seen(float(c[0]), float(c[1]), b.square_yaw())
+def _square(b: Blob, half: float | None, cam: TopdownCamera) -> Seen:
+    """A square top face: its yaw, and its centre from the far edges when the size is known
+    (the centroid leans towards the camera by the sides it also sees)."""
+    yaw = b.square_yaw()
+    if half is None:
+        c = b.centre
+        return Seen(float(c[0]), float(c[1]), yaw)
+    below = np.array([cam.x, cam.y])
+    a = b.far_edge_centre(yaw, half, below)
+    o = b.far_edge_centre(yaw + 90, half, below)
+    r = np.radians(yaw)
+    c = a * np.array([np.cos(r), np.sin(r)]) + o * np.array([-np.sin(r), np.cos(r)])
+    return Seen(float(c[0]), float(c[1]), yaw)
 
 
 def _long(b: Blob) -> Seen:
@@ -113,8 +132,10 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
             # centre is the bowl's axis (the centroid leans to the wall facing the camera)
             lo, hi = b.points.min(axis=0), b.points.max(axis=0)
             seen = Seen(float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2)
+        elif square:
+            seen = _square(b, SQUARE_HALF.get((family, name)), cam)
         else:
-            seen = _square(b) if square else _long(b)
+            seen = _long(b)
         if not (REACH_X[0] <= seen.x <= REACH_X[1] and REACH_Y[0] <= seen.y <= REACH_Y[1]):
             return None  # not on the right arm's part of the table: not the object
         scene[name] = seen

@@ -121,6 +121,18 @@ class Blob:
         s = (self.points - self.centre) @ u
         return float(s.min()), float(s.max())
 
+    def far_edge_centre(self, heading: float, half: float, viewpoint: np.ndarray) -> float:
+        """Centre, along the unit vector of `heading`, of a box of half-size `half` whose top
+        face lies on the blob's plane. The camera also sees the sides that face it, and they
+        project between the box and the point below the camera (`viewpoint`), so only the
+        outline on the far side is the top face's edge: the centre is half a size in from it.
+        """
+        u = np.array([math.cos(math.radians(heading)), math.sin(math.radians(heading))])
+        s = self.points @ u
+        if float(np.median(s)) >= float(np.asarray(viewpoint) @ u):
+            return float(np.percentile(s, 99.5)) - half
+        return float(np.percentile(s, 0.5)) + half
+
     def square_yaw(self) -> float:
         """Yaw (deg, in [-45, 45)) of the minimal-area bounding rectangle: the face directions
         of a cube seen from above."""
