@@ -173,7 +173,7 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
         steps = topdown_grasp(o.x, o.y, T + half + above, o.heading, 90.0)
         d = scene["dest"]
         if family == "cube_pad":
-            steps += place_from_above(d.x, d.y, T + 0.006 + half + 0.004, T + 0.15)
+            steps += place_from_above(d.x, d.y, T + 0.006 + half + 0.002, T + 0.15)
         elif family == "cube_on_cube":
             # released 1 mm above resting: a drop of a few mm onto the base cube can make the
             # simulator launch both cubes (measured on the C backend)
