@@ -7,8 +7,8 @@ action. Moves are closed-loop on the robot state (GC from `finger_center_xyz`), 
 partly executed move is simply continued.
 
 Steps:
-  ["down"]                  turn about ry until rx points straight down
-  ["fwd"]                   turn about ry until rx points along world +y (side grasps)
+  ["down"]                  turn about ry or rz until rx points straight down
+  ["fwd"]                   the same until rx points along world +y (side grasps)
   ["yaw", heading, period]  turn about rx until ry has `heading` (deg) modulo `period`
   ["go", x, y, z, order]    move GC there, one world axis at a time in `order` ("xyz", "z")
   ["open"], ["close"]       the gripper
@@ -18,6 +18,8 @@ Steps:
   ["retry"]                 the task did not end: start over (park, look, see), at most
                             `MAX_TRIES` times
   ["stop"]
+A step the planner fails `MAX_PLANNER_FAILS` times (rejected, or GC left where it was) also
+starts over: the arm may reach the same target from the parking pose.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ MAX_MOVE_MM = 100
 MAX_TURN_DEG = 90
 MAX_TRIES = 3
 MAX_LOOKS = 2  # failed looks in a row before giving up
-MAX_PLANNER_FAILS = 2  # failed attempts at one move before skipping it
+MAX_PLANNER_FAILS = 2  # failed attempts at one step before starting over
 T = g.TABLE_Z
 
 Action = dict[str, Any]
@@ -70,6 +72,7 @@ def family_of(instruction: str) -> str | None:
 
 
 def start_plan() -> list[Step]:
+    """Open, park where the arm hides little, point the fingers down, look from above."""
     return [["open"], ["go", *PARK, "zxy"], ["down"], ["look", "topdown"], ["see"]]
 
 

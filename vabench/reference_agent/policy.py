@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 from typing import Any
 
@@ -30,7 +31,11 @@ def reply_text(request: Any) -> str:
 
 
 class ReferenceServo:
-    """Embedded-server policy (`make_policy("reference_servo")`): stateless, deterministic."""
+    """Embedded-server policy (`make_policy("reference_servo")`): stateless, deterministic.
+
+    The work (JPEG decoding, segmentation: tens of ms at 1280x960) runs in a worker thread so
+    the server's event loop keeps answering the other episodes' calls meanwhile.
+    """
 
     async def respond(self, request: Any) -> str:
-        return reply_text(request)
+        return await asyncio.to_thread(reply_text, request)
