@@ -66,7 +66,6 @@ from vabench.tasks.base import (
     Script,
     SlotState,
     Task,
-    quat_to_mat,
     yaw_quat,
 )
 from vabench.tasks.expert import ExpertContext, nearest, topdown
@@ -150,11 +149,20 @@ def gap(a: np.ndarray, b: np.ndarray) -> float:
 def clear(a: np.ndarray, b: np.ndarray, min_gap: float) -> bool:
     """gap(a, b) >= min_gap, with a cheap test on the enclosing circles first."""
     ca, cb = a.mean(0), b.mean(0)
-    ra = np.max(np.linalg.norm(a - ca, axis=1))
-    rb = np.max(np.linalg.norm(b - cb, axis=1))
-    if np.linalg.norm(ca - cb) - ra - rb >= min_gap:
+    d = np.linalg.norm(ca - cb)
+    if d - _radius(a, ca, max) - _radius(b, cb, max) >= min_gap:  # enclosing circles apart
         return True
+    if d - _radius(a, ca, min) - _radius(b, cb, min) < min_gap:  # inscribed circles too close
+        return False
     return gap(a, b) >= min_gap
+
+
+def _radius(rect: np.ndarray, centre: np.ndarray, pick) -> float:
+    """Enclosing (pick=max: the farthest corner) or inscribed (pick=min: half the shorter
+    side) circle of a rectangle."""
+    if pick is max:
+        return float(np.max(np.linalg.norm(rect - centre, axis=1)))
+    return float(min(np.linalg.norm(rect[1] - rect[0]), np.linalg.norm(rect[2] - rect[1])) / 2)
 
 
 def basket_outline(xy: np.ndarray) -> np.ndarray:
@@ -209,7 +217,9 @@ def footprint(name: str, pose: tuple[np.ndarray, np.ndarray], yaw: float) -> np.
     centre is 60 mm from its bottom and 105 mm from the end of its neck)."""
     points, radius = HULL[name]
     pos, quat = pose
-    world = (pos + points @ np.asarray(quat_to_mat(quat)).T)[:, :2]
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, np.asarray(quat, float))
+    world = (pos + points @ rot.reshape(3, 3).T)[:, :2]
     axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
     local = world @ axes.T
     lo, hi = (local - radius[:, None]).min(0), (local + radius[:, None]).max(0)
