@@ -172,16 +172,18 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
         ]
     elif family in ("cube_pad", "cube_on_cube", "cube_bowl"):
         half = 0.02 if family == "cube_bowl" else 0.025
-        above = 0.005 if family == "cube_bowl" else 0.0
+        # held 5 mm above its centre the cube hangs below the finger pads instead of turning
+        # between them (a tilted cube lands on an edge)
+        above = 0.005
         steps = topdown_grasp(o.x, o.y, T + half + above, o.heading, 90.0)
         d = scene["dest"]
         if family == "cube_pad":
-            steps += place_from_above(d.x, d.y, T + 0.006 + half + 0.002, T + 0.15)
+            steps += place_from_above(d.x, d.y, T + 0.006 + half + above + 0.002, T + 0.15)
         elif family == "cube_on_cube":
             # released 1 mm above resting: a drop of a few mm onto the base cube can make the
             # simulator launch both cubes (measured on the C backend)
             steps += [["yaw", round(d.heading, 1), 90.0]]
-            steps += place_from_above(d.x, d.y, T + 0.05 + half + 0.001, T + 0.16)
+            steps += place_from_above(d.x, d.y, T + 0.05 + half + above + 0.001, T + 0.16)
         else:
             steps += place_from_above(d.x, d.y, T + 0.008 + 0.025 + half + above, T + 0.17)
     else:
