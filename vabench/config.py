@@ -109,11 +109,14 @@ class RenderOptions(_Strict):
 
 
 class ExecutorOptions(_Strict):
-    kind: Literal["local", "ray"] = "local"
+    kind: Literal["local", "processes", "ray"] = "local"
+    """local: one process; processes: (model, track, task) cells as worker processes of this
+    host, `max_tasks` at once (many cores: C rollouts, CPU-heavy embedded policies); ray: cells
+    as Ray tasks over a cluster."""
     address: str | None = None
     """`ray.init(address=...)`; unset starts or joins a local Ray instance (ray only)."""
     max_tasks: int = Field(default=4, ge=1)
-    """Task batches run at once in one process."""
+    """Task batches run at once in one process (local), or cells at once (processes, ray)."""
     max_episodes: int = Field(default=256, ge=1)
     """Episodes in flight at once in one process."""
     slots_per_task: int | None = Field(default=None, ge=1)

@@ -87,11 +87,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LedgerError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    if config.executor.kind == "ray":
+    if config.executor.kind in ("ray", "processes"):
+        from vabench.sweep.process_executor import run_processes
         from vabench.sweep.ray_executor import run_ray
 
+        run_cells = run_ray if config.executor.kind == "ray" else run_processes
         try:
-            records = run_ray(config, keys, run_dir)
+            records = run_cells(config, keys, run_dir)
         except LedgerError as err:  # e.g. a cell retried by Ray wrote a second record
             print(f"error: {err}", file=sys.stderr)
             return 2
