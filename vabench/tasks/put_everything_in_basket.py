@@ -5,45 +5,50 @@ track"): five objects drawn from the four atomic skills of its demonstrations (p
 grasp_single_bottle, grasp_single_bottle_upright, grasp_single_pen), each its own colour:
 - cube: the 5 cm red cube (cube_red_50.xml), yaw in [-45, 45] deg;
 - small_cube: a 4 cm yellow cube (cube_yellow_40.xml), yaw in [-45, 45] deg;
-- bottle: the blue water bottle (bottle_water.xml) lying on its side, yaw (of its axis, from
-  world +x) in [-22.5, 22.5] deg;
+- bottle: the blue water bottle (bottle_water.xml: body centre 60 mm from its bottom and 105 mm
+  from the end of its neck) lying on a flat face, yaw (of its axis, from world +x) in
+  [-22.5, 22.5] deg;
 - upright_bottle: a green bottle of the same shape (bottle_green.xml) standing upright;
-- pen: the purple marker (pen_marker.xml) lying flat, yaw in [-30, 30] deg;
-and a brown basket (basket_brown.xml: an open box, interior 260 x 200 mm, walls 60 mm above its
-8 mm floor, rim 68 mm above the table, 4 kg), axis-aligned, its centre at x in [0.10, 0.14],
-y in [0.03, 0.05] (the far half of the right arm's workspace). The composition is fixed; the
-poses vary by seed. The object centres are drawn, in the order above, uniformly from
-x in [0.02, 0.40], y in [-0.28, -0.10] (the near half), with rejection: each object's footprint
-rectangle (its xy bounding box in its own yaw frame: cubes 50 and 40 mm square, the lying bottle
-168 x 64 mm, the pen 140 x 14 mm, the upright bottle 64 mm square) keeps at least MIN_GAP = 40 mm
-from every other footprint and from the basket's outer rectangle, and the open fingers of the
-pen's centre grasp (a 114 x 24 mm rectangle across its axis) keep 5 mm from every other object
-(every grasp of the expert then has room for its fingers). No object starts inside the basket.
+- pen: the purple marker of grasp_single_pen, colliding as a 140 x 14 x 14 mm box
+  (pen_marker_flat.xml: MuJoCo 4.0.0's capsule-box contact throws a capsule dropped onto a box),
+  lying flat, yaw in [-30, 30] deg;
+and a brown basket (basket_brown.xml: an open box, interior 260 x 200 mm, walls 12 mm thick and
+55 mm above its 24 mm floor, rim 79 mm above the table, 4 kg), axis-aligned, its centre at
+x in [0.10, 0.14], y in [0.03, 0.05] (the far half of the right arm's workspace). The
+composition is fixed; the poses vary by seed. The object centres are drawn, in the order
+upright_bottle, bottle, cube, small_cube, pen, uniformly from x in [0.02, 0.40],
+y in [-0.28, -0.10] (the near half), with rejection: each object's footprint (the rectangle
+along its yaw that holds its collision hull: cubes 50 and 40 mm square, the lying bottle
+165 x 63 mm, the pen 140 x 14 mm, the upright bottle 64 mm square) keeps at least 40 mm from
+every other footprint and from the basket's outer rectangle, and the open fingers of a grasp
+across the pen's centre (a 114 x 24 mm rectangle) keep 5 mm from every other footprint and the
+basket (every grasp of the expert has room for its fingers). No object starts inside the basket.
 
 Predicate (all now, no latch). An object is *inside* when its whole footprint lies inside the
-basket's interior in x and y: every point of its collision hull (cube corners; the pen's capsule
-ends, each widened by the 7 mm radius; the 32 vertices of a bottle's 16-gon body and the end of
-its neck, widened by the neck's 11 mm radius), expressed in the basket's frame, is inside the
-260 x 200 mm interior. It is *released* when the right gripper does not hold it (the gripper is
-open, or it does not touch the object). It is *supported* when it touches the basket (the floor
-or the inner side of a wall: with its footprint inside the interior that means below the rim)
-or rests on another object that is itself inside and released (a stack inside the basket
-counts; an object above the basket touching nothing does not). An object is *placed* when it is
-inside, released and supported. Success: all five placed at once. Budget 250 steps (five
-placements at place_cube_in_bowl's 50 each).
+basket's interior in x and y: every point of its collision hull (box corners; the 32 vertices of
+a bottle's 16-gon body and the end of its neck, widened by the neck's 11 mm radius), expressed in
+the basket's frame, lies within the 260 x 200 mm interior up to a 2 mm contact tolerance (an
+object resting against a wall sinks into it a little). It is *released* when the right gripper
+does not hold it (the gripper is open, or it does not touch the object). It is *supported* when
+it touches the basket (the floor or the inner side of a wall: with its footprint inside the
+interior that means below the rim) or another object that is itself inside and released (a
+stack inside the basket counts; an object above the basket touching nothing does not). An
+object is *placed* when it is inside, released and supported. Success: all five placed at once.
+Budget 250 steps (five placements at place_cube_in_bowl's 50 each; the expert needs about 115).
 Checkpoints: placed_1 .. placed_4, completed: subgoal k is "at least k objects placed now"
-(order-independent). Progress only moves forward (`advance_progress`), so the checkpoint
-progress of an episode is the largest number of objects that lay placed in the basket together
-at some step (5 exactly on success): it is the episode's "objects placed out of five" of the
-paper's long-horizon table. `checks` holds `<object>_inside` and `<object>_placed` for each
-object.
-Expert: the objects in turn, tallest first (the upright bottle, then the lying bottle, the red
-cube, the yellow cube, the pen): a top-down grasp as in its atomic family (the upright bottle
-across the top of its body, 53 mm above its centre, so the palm clears its neck), lift, turn the
-gripper so the object lines up with the basket, carry it over its own slot in the basket above
-everything in the way, then: the upright bottle is lowered onto the floor (far left corner) and
-let go; the others are let go with the fingertips 8 mm above the rim and drop in (the fingers
-never reach below the rim, so they cannot catch a wall).
+(order-independent, no per-object latch). Progress only moves forward (`advance_progress`), so
+the checkpoint progress of an episode is the largest number of objects that lay placed in the
+basket together at some step (5 exactly on success): it is the episode's "objects placed out of
+five" of the paper's long-horizon table. `checks` holds `<object>_inside` and `<object>_placed`.
+Expert: the objects in turn (EXPERT_ORDER: upright bottle, pen, lying bottle, red cube, yellow
+cube): rise above everything, travel over the object, a top-down grasp as in its atomic family
+(the upright bottle across two flat faces at the top of its body, GC 53 mm above its centre so
+the palm clears the neck; the red cube with GC 5 mm below its centre, so the pads squeeze
+across its centre of mass and do not tip it up out of the grasp; the small cube 5 mm above, as
+place_cube_in_bowl), lift above the rim and above the standing bottle, turn the gripper so the
+object lines up with the basket (long objects along its y), carry it over its own slot (SLOTS),
+then: the upright bottle is lowered onto the floor (far left corner) and the pen to 3 mm above
+it, and let go; the others are let go with the fingertips 8 mm above the rim and drop in.
 """
 
 from __future__ import annotations
@@ -255,7 +260,7 @@ footprints are at least 15 mm apart and 13 mm inside the walls). Long objects li
 basket's y axis, cubes square to it."""
 UPRIGHT_GRASP_DZ = 0.053  # GC above the upright bottle's centre: the palm clears its neck
 PEN_GRASP_DZ = sk.TOPDOWN_MIN_GC_Z + 0.001 - (rc.TABLE_Z + sk.PEN_RADIUS)
-CUBE_GRASP_DZ = 0.005  # GC above a cube's centre (as place_cube_in_bowl)
+CUBE_GRASP_DZ = {"cube": -0.005, "small_cube": 0.005}  # GC above a cube's centre
 PEN_DROP = 0.003  # the pen's bottom above the floor when it is let go
 TIPS_ABOVE_RIM = 0.008  # the fingertips when the dropped objects are let go
 CARRY_CLEARANCE = 0.03  # the held object's bottom above everything it passes over
@@ -350,7 +355,7 @@ class PutEverythingInBasket(Task):
         elif name == "pen":
             across, dz = sk.axis_heading(mat, 0) + np.pi / 2, PEN_GRASP_DZ
         else:
-            yield from common.topdown_grasp(ctx, "right", name, grasp_dz=CUBE_GRASP_DZ)
+            yield from common.topdown_grasp(ctx, "right", name, grasp_dz=CUBE_GRASP_DZ[name])
             return
         yield from sk.topdown_grasp_at(ctx, "right", lambda v: v.pos(name) + [0.0, 0.0, dz], across)
 
