@@ -9,13 +9,14 @@ budget and predicate; it reads the base family's summary). What is held out is t
   the straight line from the cube to the goal pad, across it. Carrying the cube at the base
   expert's height (its bottom 60 mm above the pad) runs into the wall: it must be lifted over.
 
-Scene (world m): the red 0.05 m cube (the base's) at x in [0.18, 0.26], y in [-0.25, -0.19]
-(the base's x range; y moved 90 mm towards the robot to make room for the wall), yaw in
-[-45, 45] deg; the green goal pad at x in [0.10, 0.14], y in [0, 0.04] (the base's), the blue
-decoy at x in [0.29, 0.35], y in [0, 0.04], both axis-aligned. The wall's centre lies on the
-segment from the cube's centre to the goal pad's centre, midway between the point 85 mm from
-the cube (clear of the open fingers around the cube) and the point 100 mm from the pad's
-centre (clear of the pad and of the fingers over it); its long side is across the segment.
+Scene (world m): the red 0.05 m cube (the base's) at x in [0.18, 0.26], y in [-0.16, -0.10]
+(inside the base's ranges: the far part of its y range), yaw in [-45, 45] deg; the green goal
+pad at x in [0.10, 0.14] (the base's), y in [0.09, 0.13] (90 mm further from the robot than the
+base's [0, 0.04], to make room for the wall), the blue decoy at x in [0.29, 0.35], y in
+[0.09, 0.13], both axis-aligned. The wall's centre lies on the segment from the cube's centre
+to the goal pad's centre, midway between the point 85 mm from the cube (clear of the open
+fingers around the cube) and the point 100 mm from the pad's centre (clear of the pad and of
+the fingers over it); its long side is across the segment.
 Drawn from the seed salted with `SALT`, so a seed gives another scene than the base's.
 Success (the base's row, unchanged, on the goal pad): the cube was lifted >= 50 mm at some
 point (latched); its x and y errors to the goal pad's centre each <= 35 mm; its height error to
@@ -23,8 +24,10 @@ its resting height on the pad <= 35 mm; the goal pad displaced <= 2 mm; cube-pad
 right gripper open. The decoy and the wall are not part of the predicate. Budget 100 steps.
 Checkpoints: reached, grasped, lifted (latched), transported (x/y within tolerance), released
 (gripper open), completed (as the base).
-Expert: top-down grasp, lift the cube until its bottom clears the wall's top by 30 mm, carry it
-over the goal pad at that height, lower it onto the pad, open, back off upwards.
+Expert: top-down grasp with GC 8 mm above the cube's centre (a grasp at the centre let the
+cube slip out on MJX when lifted this high), lift the cube until its bottom clears the wall's top
+by 30 mm, carry it over the goal pad at that height, lower it onto the pad, open, back off
+upwards.
 """
 
 from __future__ import annotations
@@ -45,13 +48,14 @@ from vabench.tasks.objects import attach_object
 
 SALT = 0x6C5A2
 
-CUBE_X, CUBE_Y = X_RANGE, (-0.25, -0.19)
-PAD_X, PAD_Y = base.PAD_X, base.PAD_Y
-DECOY_X, DECOY_Y = (0.29, 0.35), (0.0, 0.04)
+CUBE_X, CUBE_Y = X_RANGE, (-0.16, -0.10)
+PAD_X, PAD_Y = base.PAD_X, (0.09, 0.13)
+DECOY_X, DECOY_Y = (0.29, 0.35), (0.09, 0.13)
 WALL_HALF = np.array([0.06, 0.015, 0.05])
 CUBE_CLEAR = 0.085  # wall centre at least this far from the cube centre, along the segment
 PAD_CLEAR = 0.10  # ... and at least this far from the goal pad's centre
 OVER_WALL = 0.03  # the carried cube's bottom above the wall's top
+GRASP_DZ = 0.008  # GC above the cube's centre when grasping (see the expert)
 
 
 def wall_pose(cube: np.ndarray, pad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -91,7 +95,7 @@ class PlaceSingleCubeHeldout(base.PlaceSingleCube):
         )
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        yield from common.topdown_grasp(ctx, "right", "cube")
+        yield from common.topdown_grasp(ctx, "right", "cube", grasp_dz=GRASP_DZ)
         wall_top = ctx.view.pos("obstacle")[2] + WALL_HALF[2]
         pad = ctx.view.pos("pad")
         rest_z = pad[2] + base.PAD_HALF_THICK + CUBE_HALF
