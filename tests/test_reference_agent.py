@@ -22,6 +22,7 @@ import pytest
 from PIL import Image as PILImage
 
 from vabench import protocol
+from vabench.agent.conversation import SUMMARY_INSTRUCTION
 from vabench.agent.engine import Episode, EpisodeSpec, task_services
 from vabench.agent.records import EpisodeResult
 from vabench.llm_pool.apis.base import IncomingRequest
@@ -31,6 +32,7 @@ from vabench.llm_pool.policies import make_policy
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.reference_agent import ReferenceServo, reply_text
+from vabench.reference_agent.policy import SUMMARY_REPLY
 from vabench.render.worker import ImageSettings, RenderPool
 from vabench.seeds import verified_seeds
 from vabench.tasks import get_task
@@ -228,7 +230,21 @@ def test_same_request_same_reply(run: Run) -> None:
         assert a == b == c
 
 
-def test_unreadable_request_stops() -> None:
-    chat = ChatRequest(turns=(Turn.user("hello"),), system="s")
+def test_unreadable_request_stops(run: Run) -> None:
+    request = run.requests[3]
+    turns = (*request.chat.turns[:-1], Turn.user("hello"))
+    chat = ChatRequest(turns=turns, system="s")
     reply = reply_text(IncomingRequest(api="openai_chat", model="m", chat=chat))
     assert isinstance(_decision(reply), protocol.Stop)
+
+
+def test_compaction_request_gets_text_not_an_action(run: Run) -> None:
+    """History compaction sends the earlier messages as text in one user turn; the agent's
+    summary is its memo, so it answers with a short text (the engine only stores it)."""
+    earlier = "\n\n".join(
+        f"--- {'You' if t.role == 'assistant' else 'Harness'}:\n{t.text}"
+        for t in run.requests[5].chat.turns
+    )
+    chat = ChatRequest((Turn.user(earlier + "\n\n" + SUMMARY_INSTRUCTION),), "system")
+    reply = reply_text(IncomingRequest(api="openai_chat", model="m", chat=chat))
+    assert reply == SUMMARY_REPLY

@@ -14,8 +14,25 @@ def fenced(obj: dict[str, Any]) -> str:
     return f"```json\n{json.dumps(obj)}\n```"
 
 
+SUMMARY_REPLY = (
+    "Reference agent: nothing to summarise. Its plan and what it has seen are carried in the "
+    "memo at the end of the reason of its latest reply."
+)
+
+
+def is_summary_request(request: Any) -> bool:
+    """A history-compaction request: one user turn, text only (the earlier messages as text
+    and an instruction to summarise them), no assistant turn."""
+    turns = list(request.chat.turns)
+    return len(turns) == 1 and all(isinstance(p, str) for p in turns[0].content)
+
+
 def reply_text(request: Any) -> str:
-    """The reply (one fenced JSON decision) to an `IncomingRequest`: a pure function of it."""
+    """The reply to an `IncomingRequest`, a pure function of it: one fenced JSON decision, or
+    for a compaction request a short text (the memo, in the kept turns, is the agent's
+    summary)."""
+    if is_summary_request(request):
+        return SUMMARY_REPLY
     try:
         obs = parse_request(request)
     except RequestError as err:
