@@ -135,7 +135,9 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
             px, py = _r(d.x), _r(d.y - 0.005)
             steps += [
                 ["go", px, py, _r(z + 0.06), "xy"],
-                ["go", px, py, _r(T + 0.006 + 0.06 + 0.004), "z"],
+                # 10 mm above resting: a side-held bottle may have slid a few mm down
+                # between the fingers, and pressing it into the pad launches it on release
+                ["go", px, py, _r(T + 0.006 + 0.06 + 0.010), "z"],
                 ["open"],
                 ["go", px, _r(py - 0.08), _r(T + 0.07), "y"],
                 ["go", px, _r(py - 0.08), _r(T + 0.16), "z"],
