@@ -97,9 +97,10 @@ def main() -> int:
     args = p.parse_args()
     rows = []
     all_times: list[float] = []
-    with tempfile.TemporaryDirectory() as tmp, RenderPool(
-        workers=1, max_size=(WIDTH, HEIGHT), timeout_s=120
-    ) as pool:
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        RenderPool(workers=1, max_size=(WIDTH, HEIGHT), timeout_s=120) as pool,
+    ):
         for name in args.tasks.split(","):
             seed = args.seed if args.seed is not None else verified_seeds(name)[0]
             requests, result, wall, policy_s = asyncio.run(capture(name, seed, pool, Path(tmp)))
