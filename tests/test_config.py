@@ -10,7 +10,7 @@ import yaml
 
 from vabench.config import EMBEDDED_PLACEHOLDER_URL, SweepConfigError, load_config
 from vabench.seeds import verified_seeds
-from vabench.tasks import BASE_FAMILIES, get_task
+from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, get_task
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 KEY = "sk-test-secret-0123456789"
@@ -91,10 +91,13 @@ def test_embedded_models_and_their_endpoints(tmp_path):
 
 def test_shipped_configs_load_without_keys():
     full = load_config(CONFIGS / "all.yaml", environ={})
-    assert full.track_names == ("active", "passive") and full.runs == 3
-    assert full.tasks == BASE_FAMILIES
+    assert full.track_names == ("active", "passive", "transfer", "long_horizon")
+    assert full.runs == 3 and full.tasks == BASE_FAMILIES
+    assert set(full.all_tasks) == set(BENCHMARK_FAMILIES)  # every suite's every family
     assert all(len(s) == 20 for s in full.seeds.values())
-    assert [m.name for m in full.models] == ["local"] and full.embedded_models == ("local",)
+    assert [m.name for m in full.models] == ["reference-servo"]
+    assert full.embedded_models == ("reference-servo",)
+    assert full.embedded_server.policy == "reference_servo"
     assert full.models[0].api == "openai_chat"
 
     smoke = load_config(CONFIGS / "smoke.yaml", environ={})
@@ -186,7 +189,7 @@ def test_overrides_replace_values_before_checking(tmp_path):
         (minimal(models=[]), "models", "at least 1"),
         (minimal(simulator={"backend": "gpu"}), "simulator.backend", "'mjx' or 'c'"),
         (minimal(render={"width": 4000}), "render.width", "less than or equal to 1280"),
-        (minimal(executor={"kind": "k8s"}), "executor.kind", "'local' or 'ray'"),
+        (minimal(executor={"kind": "k8s"}), "executor.kind", "'local', 'processes' or 'ray'"),
         (minimal(executor={"address": "ray://h:1"}), "executor.address", "kind: ray"),
         (
             minimal(models=[MODEL, {**MODEL, "base_url": "http://x/v1"}]),
