@@ -357,12 +357,15 @@ def unresolved(scored: Iterable[Record], unscored: Iterable[Record]) -> list[tup
 
 def coverage_notes(cells: Sequence[Cell], expected: Sequence[str]) -> list[str]:
     """Where a run's families differ from `expected`: one line per distinct difference, listing
-    the (model, track) runs that share it."""
+    the (model, track) runs that share it. Runs with no expected family at all (tracks of
+    another suite, which have their own sections) are not notes."""
     present: dict[tuple[str, str, int], set[str]] = defaultdict(set)
     for c in cells:
         present[(c.model, c.track, c.run)].add(c.task)
     groups: dict[tuple[tuple[str, ...], tuple[str, ...]], dict[tuple[str, str], list[int]]] = {}
     for (model, track, run), tasks in sorted(present.items()):
+        if not tasks & set(expected):
+            continue  # a track of another suite (transfer, long horizon): not a partial base run
         missing = tuple(t for t in expected if t not in tasks)
         extra = tuple(sorted(tasks - set(expected)))
         if missing or extra:
