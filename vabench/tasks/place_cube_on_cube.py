@@ -27,6 +27,7 @@ open, back off upwards.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -57,13 +58,21 @@ HEIGHT_TOL = 0.012
 BASE_MOVE_TOL = 0.012
 
 
-def top_overlap(p_red: jax.Array, r_red: jax.Array, p_base: jax.Array, r_base: jax.Array):
+def top_overlap(
+    p_red: jax.Array,
+    r_red: jax.Array,
+    p_base: jax.Array,
+    r_base: jax.Array,
+    face: Any = HALF,
+    red_half: float = HALF,
+):
     """Overlap depth (m) of the red cube's projection with the base's top face along each of the
-    base's horizontal axes, shape (2,)."""
+    base's horizontal axes, shape (2,). `face`: the top face's half extents along the base's x
+    and y (a scalar for a cube; the held-out variant's block passes its own)."""
     axes = r_base[:, :2].T  # (2, 3): base x and y in world
     centre = axes @ (p_red - p_base)
-    half_extent = HALF * jnp.sum(jnp.abs(axes @ r_red), axis=1)
-    return jnp.minimum(centre + half_extent, HALF) - jnp.maximum(centre - half_extent, -HALF)
+    half_extent = red_half * jnp.sum(jnp.abs(axes @ r_red), axis=1)
+    return jnp.minimum(centre + half_extent, face) - jnp.maximum(centre - half_extent, -face)
 
 
 @dataclass(frozen=True)

@@ -68,12 +68,9 @@ def top_overlap(
     p_red: jax.Array, r_red: jax.Array, p_sup: jax.Array, r_sup: jax.Array
 ) -> jax.Array:
     """Overlap depth (m) of the red cube's projection with the support's top face along each of
-    the support's horizontal axes, shape (2,) (the base's rule with the support's extents)."""
-    axes = r_sup[:, :2].T  # (2, 3): support x and y in world
+    the support's horizontal axes, shape (2,): the base's rule with the support's extents."""
     face = jnp.asarray(SUPPORT_HALF[:2])
-    centre = axes @ (p_red - p_sup)
-    half_extent = RED_HALF * jnp.sum(jnp.abs(axes @ r_red), axis=1)
-    return jnp.minimum(centre + half_extent, face) - jnp.maximum(centre - half_extent, -face)
+    return base.top_overlap(p_red, r_red, p_sup, r_sup, face=face, red_half=RED_HALF)
 
 
 @dataclass(frozen=True)

@@ -42,26 +42,44 @@ REST_HEIGHT = PAD_HALF_THICK + sk.BOTTLE_HALF_H  # bottle origin above the pad c
 
 @dataclass(frozen=True)
 class PlaceSingleBottleUpright(Task):
+    bottle_file: str = "bottle_water.xml"
+    rest_height: float = REST_HEIGHT
+    """The bottle's origin above the pad centre when it stands on the pad (the held-out
+    variant's container is taller)."""
+
     def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "bottle_water.xml", "bottle")
+        attach_object(spec, self.bottle_file, "bottle")
         attach_object(spec, "pad_green_130.xml", "pad")
+
+    def sample_bottle(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        return sample_upright_bottle(rng)
 
     def sample(self, seed: int) -> Sample:
         rng = self.rng(seed)
-        bottle = sample_upright_bottle(rng)
+        bottle = self.sample_bottle(rng)
         pad = np.array([rng.uniform(*PAD_X), rng.uniform(*PAD_Y), rc.TABLE_Z + PAD_HALF_THICK])
         return Sample({"bottle": bottle, "pad": (pad, yaw_quat(0.0))})
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
         return place_checks(
-            self, ix, s, latched, "bottle", "pad", REST_HEIGHT, XY_TOL, HEIGHT_TOL, PAD_MOVE_TOL
+            self,
+            ix,
+            s,
+            latched,
+            "bottle",
+            "pad",
+            self.rest_height,
+            XY_TOL,
+            HEIGHT_TOL,
+            PAD_MOVE_TOL,
         )
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         yield from sk.side_grasp(ctx, "right", lambda v: v.pos("bottle"))
         yield from common.lift(ctx, "right", 0.06)
         pad = ctx.view.pos("pad")
-        yield from common.carry_and_release(ctx, "right", "bottle", pad[:2], pad[2] + REST_HEIGHT)
+        target_z = pad[2] + self.rest_height
+        yield from common.carry_and_release(ctx, "right", "bottle", pad[:2], target_z)
 
 
 TASK = PlaceSingleBottleUpright(

@@ -25,62 +25,36 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
 from vabench.tasks import skills_heldout_bottles as hb
-from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task, yaw_quat
-from vabench.tasks.expert import ExpertContext
 from vabench.tasks.grasp_single_bottle_upright_heldout import sample_upright_square
-from vabench.tasks.objects import attach_object
 from vabench.tasks.place_single_bottle_upright import (
-    HEIGHT_TOL,
     PAD_HALF_THICK,
-    PAD_MOVE_TOL,
-    PAD_X,
-    PAD_Y,
-    XY_TOL,
+    PlaceSingleBottleUpright,
 )
 from vabench.tasks.place_single_bottle_upright import TASK as BASE
-from vabench.tasks.place_single_cube import place_checks
 
 REST_HEIGHT = PAD_HALF_THICK + hb.SQUARE_HALF_H  # bottle origin above the pad centre
 
 
 @dataclass(frozen=True)
-class PlaceSingleBottleUprightHeldout(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "bottle_square.xml", "bottle")
-        attach_object(spec, "pad_green_130.xml", "pad")
+class PlaceSingleBottleUprightHeldout(PlaceSingleBottleUpright):
+    """The base family with the square bottle, drawn from the variant's own seed stream."""
 
     @staticmethod
     def rng(seed: int) -> np.random.Generator:
         return hb.heldout_rng(seed)
 
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        bottle = sample_upright_square(rng)
-        pad = np.array([rng.uniform(*PAD_X), rng.uniform(*PAD_Y), rc.TABLE_Z + PAD_HALF_THICK])
-        return Sample({"bottle": bottle, "pad": (pad, yaw_quat(0.0))})
-
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return place_checks(
-            self, ix, s, latched, "bottle", "pad", REST_HEIGHT, XY_TOL, HEIGHT_TOL, PAD_MOVE_TOL
-        )
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        yield from sk.side_grasp(ctx, "right", lambda v: v.pos("bottle"))
-        yield from common.lift(ctx, "right", 0.06)
-        pad = ctx.view.pos("pad")
-        yield from common.carry_and_release(ctx, "right", "bottle", pad[:2], pad[2] + REST_HEIGHT)
+    def sample_bottle(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        return sample_upright_square(rng)
 
 
 TASK = PlaceSingleBottleUprightHeldout(
     name="place_single_bottle_upright_heldout",
+    bottle_file="bottle_square.xml",
+    rest_height=REST_HEIGHT,
     instruction=BASE.instruction,
     arms=BASE.arms,
     step_budget=BASE.step_budget,
