@@ -155,6 +155,7 @@ class LocalSweep:
             round_no = 0
             while pending := self._pending():
                 if round_no:
+                    self.summaries.forget_failures()
                     log.warning(
                         "retry round %d: %d episodes after infrastructure errors",
                         round_no,

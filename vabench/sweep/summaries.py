@@ -121,20 +121,25 @@ class SummaryStage:
         return SummaryUse(mode, source, "learned", result.summary_text)
 
     async def result(self, model: str, task: Task) -> LearningResult:
-        """The stored learning result of (model, task's summary family), learning it first if
-        no final one is stored. An infrastructure failure is returned but not kept, so a later
-        call tries again."""
+        """The learning result of (model, task's summary family), learning it first if none is
+        known. An infrastructure failure is served to every episode of this retry round (one
+        session per round, not one per waiting episode) and never stored on disk;
+        `forget_failures` lets the next round try again."""
         key = (model, task.summary_family)
         if key in self._results:
             return self._results[key]
         lock = self._locks.setdefault(key, asyncio.Lock())
         async with lock:
-            if key in self._results:
-                return self._results[key]
-            result = await self._learn_once(model, get_task(task.summary_family))
-            if result.status != "infrastructure_error":
-                self._results[key] = result
-            return result
+            if key not in self._results:
+                self._results[key] = await self._learn_once(model, get_task(key[1]))
+            return self._results[key]
+
+    def forget_failures(self) -> None:
+        """Start a retry round: sessions that failed for infrastructure reasons are tried again
+        when next needed."""
+        self._results = {
+            k: r for k, r in self._results.items() if r.status != "infrastructure_error"
+        }
 
     async def _learn_once(self, model: str, task: Task) -> LearningResult:
         path = summary_path(self.run_dir, model, task.name)
