@@ -20,8 +20,8 @@ import time
 import jax
 import numpy as np
 
-from vabench.sim_mjx.batch import SimBatch
 from vabench.sim_mjx.cpu import CpuBatch
+from vabench.sim_mjx.mjx_batch import SimBatch
 from vabench.tasks import get_task
 
 # Each pair returns the arm near where it started, so a long stream stays in the workspace.

@@ -12,9 +12,12 @@ import pytest
 os.environ.setdefault(
     "VABENCH_JAX_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "jax")
 )
+os.environ.setdefault(
+    "VABENCH_STATE_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "settled")
+)
 
-from vabench.sim_mjx.batch import SimBatch
 from vabench.sim_mjx.cpu import CpuBatch
+from vabench.sim_mjx.mjx_batch import SimBatch
 from vabench.tasks import get_task
 
 N_SLOTS = 18  # 3 axes x 2 signs x 3 magnitudes: one batch runs a whole motion table

@@ -34,7 +34,7 @@ from vabench.llm_pool import ChatRequest, GenerationOptions, Image, ModelEndpoin
 from vabench.llm_pool.apis import ADAPTERS
 from vabench.llm_pool.apis.base import encode_body
 from vabench.llm_pool.testing import synthetic_image
-from vabench.sim_mjx.batch import Proprio, proprio_fields
+from vabench.sim_mjx.layout import Proprio, proprio_fields
 
 SINGLE, DUAL = ("right",), ("left", "right")
 ALL_TOOLS = list(TOOL_DOCS)

@@ -177,7 +177,7 @@ def test_model_variants_are_per_slot(backend):
 
         batch = CpuBatch(models, 2)
     else:
-        from vabench.sim_mjx.batch import SimBatch
+        from vabench.sim_mjx.mjx_batch import SimBatch
 
         batch = SimBatch(models, 2)
     q = scene.home_qpos(models[0])

@@ -89,13 +89,37 @@ class _Strict(BaseModel):
 
 class SimulatorOptions(_Strict):
     backend: Literal["mjx", "c"] = "mjx"
-    """"mjx": one jitted batch per task; "c": C MuJoCo slot by slot (small CPU runs)."""
+    """"mjx": every slot of a task in one GPU/TPU batch (impl below); "c": C MuJoCo slot by
+    slot (the fastest path without an NVIDIA GPU). See README, "Choosing a backend"."""
     impl: Literal["jax", "warp"] = "jax"
-    """MJX implementation (mjx only)."""
+    """mjx only: "warp" (MuJoCo Warp, NVIDIA GPUs; the [gpu] extra) or "jax" (MJX on JAX)."""
     lanes: int | None = Field(default=None, ge=1)
-    """Width of the vectorised physics (mjx only; see `sim_mjx.batch.in_lanes`)."""
+    """Width of the vectorised physics (impl jax only; see `sim_mjx.interface.in_lanes`)."""
+    nconmax: int | None = Field(default=None, ge=1)
+    """Contacts per slot the GPU buffers hold (impl warp only; default: sized from the scene).
+    A slot that overflows ends as an infrastructure error naming this field."""
+    njmax: int | None = Field(default=None, ge=1)
+    """Constraint rows per slot (impl warp only; default: sized from the scene)."""
+    deterministic: bool = False
+    """impl warp only: MuJoCo Warp's stable contact and constraint orderings (bit-reproducible
+    runs on a GPU, slower)."""
     window_s: float = Field(default=0.01, ge=0)
     """How long the simulator batch waits to gather actions before stepping."""
+
+    def batch_kwargs(self) -> dict[str, Any]:
+        """The TaskBatch arguments these options ask for."""
+        out: dict[str, Any] = {}
+        if self.backend != "mjx":
+            return out
+        out["impl"] = self.impl
+        if self.impl == "jax" and self.lanes:
+            out["lanes"] = self.lanes
+        if self.impl == "warp":
+            extra = {"nconmax": self.nconmax, "njmax": self.njmax}
+            out.update({k: v for k, v in extra.items() if v is not None})
+            if self.deterministic:
+                out["deterministic"] = True
+        return out
 
 
 class RenderOptions(_Strict):

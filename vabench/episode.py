@@ -2,6 +2,7 @@
 
     python -m vabench.episode --task place_single_cube --seed 1000 --model local \
         [--config models.yaml] [--protocol active|passive] [--out DIR] [--backend mjx|c]
+        [--impl jax|warp]
 
 Without `--config`, the model is the embedded server (started here, policy `--policy`,
 default a random valid actor), reached over real HTTP on loopback. With `--config`, the
@@ -31,6 +32,7 @@ from vabench.llm_pool.policies import POLICIES
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.worker import ImageSettings, RenderPool
+from vabench.sim_mjx.backends import BackendUnavailable
 
 
 def load_models(path: Path) -> list[Any]:
@@ -103,6 +105,7 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
         args.task, args.seed, args.model, args.protocol, args.run, out, step_budget=args.max_steps
     )
     image = ImageSettings(args.width, args.height, args.quality)
+    impl = {"impl": args.impl} if args.backend == "mjx" else {}
     try:
         with RenderPool(
             workers=1, platform=args.platform, max_size=(args.width, args.height)
@@ -110,7 +113,9 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
             print(f"renderer: {rp.gl_info}", file=sys.stderr)
             async with (
                 LLMPool(endpoints) as llm,
-                task_services(task, 1, llm, rp, backend=args.backend, image=image) as services,
+                task_services(
+                    task, 1, llm, rp, backend=args.backend, image=image, **impl
+                ) as services,
             ):
                 episode = Episode(spec, services)
                 result = await episode.run()
@@ -143,6 +148,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--run", type=int, default=0)
     p.add_argument("--out")
     p.add_argument("--backend", choices=("mjx", "c"), default="mjx")
+    p.add_argument(
+        "--impl",
+        choices=("jax", "warp"),
+        default="jax",
+        help="with --backend mjx: MJX on JAX or MuJoCo Warp (NVIDIA GPU, [gpu] extra)",
+    )
     p.add_argument("--platform", choices=("auto", "egl", "osmesa"), default="auto")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=960)
@@ -153,7 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     try:
         result = asyncio.run(run(args))
-    except (ConfigError, KeyError, FileExistsError) as err:
+    except (ConfigError, KeyError, FileExistsError, BackendUnavailable) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     if args.json:

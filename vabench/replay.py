@@ -19,7 +19,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vabench.sim_mjx.batch import proprio_fields
+from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks import REGISTRY, get_task
 from vabench.tasks.expert import ExpertContext, ExpertFailed
 from vabench.tasks.runner import StepOutcome, TaskBatch
@@ -61,11 +62,15 @@ class _ExpertSource:
 
 
 def replay(
-    task_name: str, seed: int, actions: list[Any] | None, backend: str = "mjx"
+    task_name: str,
+    seed: int,
+    actions: list[Any] | None,
+    backend: str = "mjx",
+    impl: str = "jax",
 ) -> dict[str, Any]:
     """Run `actions` (None: the expert) on one seed until success, the budget, or the end."""
     task = get_task(task_name)
-    tb = TaskBatch(task, 1, backend=backend)
+    tb = TaskBatch(task, 1, backend=backend, impl=impl)
     settle = tb.reset([0], [seed])[0]
     steps: list[dict[str, Any]] = [{"index": 0, **_observe(tb)}]
     expert = _ExpertSource(tb) if actions is None else None
@@ -101,6 +106,7 @@ def replay(
         "task": task_name,
         "seed": seed,
         "backend": backend,
+        "impl": tb.impl,
         "source": "expert" if actions is None else "actions",
         "settle": {"finite": settle.finite, "max_drift_deg": round(settle.max_drift_deg, 4)},
         "success": success,
@@ -122,6 +128,12 @@ def main(argv: list[str] | None = None) -> int:
         "--backend", choices=("mjx", "c"), default="mjx", help="MJX (default) or C MuJoCo"
     )
     parser.add_argument(
+        "--impl",
+        choices=("jax", "warp"),
+        default="jax",
+        help="with --backend mjx: MJX on JAX (default) or MuJoCo Warp (NVIDIA GPU, [gpu] extra)",
+    )
+    parser.add_argument(
         "--json", action="store_true", help="print the JSON document (the only output form now)"
     )
     args = parser.parse_args(argv)
@@ -135,7 +147,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--actions: cannot read a JSON list from {args.actions}: {err}")
         if not isinstance(actions, list):
             parser.error(f"--actions: {args.actions} must hold a JSON list of action objects")
-    doc = replay(args.task, args.seed, actions, args.backend)
+    try:
+        doc = replay(args.task, args.seed, actions, args.backend, args.impl)
+    except BackendUnavailable as err:
+        parser.error(f"--impl {args.impl}: {err}")
     json.dump(doc, sys.stdout, indent=1)
     sys.stdout.write("\n")
     return 0

@@ -26,6 +26,7 @@ from typing import Any
 import mujoco
 
 from vabench.sim_mjx import robot_constants as rc
+from vabench.sim_mjx.backends import BackendUnavailable
 from vabench.tasks import BENCHMARK_FAMILIES, REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
 from vabench.tasks.runner import TaskBatch, run_experts
@@ -119,7 +120,8 @@ def screen(
                 rejected[ep.seed] = ep.end
         if log:
             log(f"{task.name}: {len(retained)}/{n} retained after {probed} probed")
-    return Manifest(task.name, retained, probed, rejected, backend, steps, time.perf_counter() - t0)
+    label = backend if backend == "c" else f"{backend}/{tb.impl}"
+    return Manifest(task.name, retained, probed, rejected, label, steps, time.perf_counter() - t0)
 
 
 def yield_table(manifests: list[dict[str, Any]]) -> str:
@@ -153,6 +155,12 @@ def main(argv: list[str] | None = None) -> int:
     verify = sub.add_parser("verify", help="screen candidates and write the manifests")
     verify.add_argument("--task", action="append", help="a family (repeatable); default: all")
     verify.add_argument("--backend", choices=("c", "mjx"), default="c")
+    verify.add_argument(
+        "--impl",
+        choices=("jax", "warp"),
+        default="jax",
+        help="with --backend mjx: MJX on JAX or MuJoCo Warp (NVIDIA GPU, [gpu] extra)",
+    )
     verify.add_argument("--n", type=int, default=N_RETAINED, help="seeds to retain")
     verify.add_argument("--batch", type=int, default=None, help="candidates per batch (default n)")
     verify.add_argument("--max-candidates", type=int, default=200)
@@ -178,14 +186,18 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     docs = []
     for name in names:
-        m = screen(
-            get_task(name),
-            args.n,
-            args.backend,
-            args.batch,
-            args.max_candidates,
-            log=lambda s: print(s, file=sys.stderr, flush=True),
-        )
+        try:
+            m = screen(
+                get_task(name),
+                args.n,
+                args.backend,
+                args.batch,
+                args.max_candidates,
+                log=lambda s: print(s, file=sys.stderr, flush=True),
+                **({"impl": args.impl} if args.backend == "mjx" else {}),
+            )
+        except BackendUnavailable as err:
+            parser.error(f"--impl {args.impl}: {err}")
         doc = m.to_json()
         manifest_path(name, args.out).write_text(json.dumps(doc, indent=1) + "\n")
         print(

@@ -54,6 +54,7 @@ from vabench.llm_pool.messages import ChatRequest, Image, Usage
 from vabench.llm_pool.pool import LLMPool
 from vabench.render import camera as cam
 from vabench.render.worker import ImageSettings, RenderError, RenderItem, RenderPool
+from vabench.sim_mjx.interface import SimulationError
 from vabench.tasks.base import Task
 
 Protocol = Literal["active", "passive"]
@@ -181,7 +182,7 @@ class Episode:
                 failures=list(err.failures),
             )
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
-        except RenderError as err:
+        except (RenderError, SimulationError) as err:
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:
             return self._finish("error", "request_rejected", f"{err.kind}: {err}")
@@ -202,6 +203,8 @@ class Episode:
             reason=reply.report.reason,
             drift_deg=round(reply.report.max_drift_deg, 4),
         )
+        if reply.report.infrastructure_error is not None:
+            raise SimulationError(reply.report.infrastructure_error)
         if not reply.report.ok:
             raise _EpisodeEnd("error", "reset_failed", reply.report.reason)
         self.snapshot = reply.snapshot
@@ -381,6 +384,8 @@ class Episode:
         if not (res.valid and res.planner_success):
             self.counts.invalid_actions += 1
         self.feedback = ActionFeedback(valid=res.valid, planner_success=res.planner_success)
+        if res.infrastructure_error is not None:
+            raise SimulationError(res.infrastructure_error)
         self.rec.event(
             "action",
             step=step,

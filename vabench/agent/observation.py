@@ -67,7 +67,7 @@ def build_observation(
     """The observation as a dict whose keys are exactly `OBSERVATION_FIELDS`.
 
     `step` is the 1-based index of the environment step about to be chosen (so `step - 1`
-    steps are used); `proprio` is `sim_mjx.batch.proprio_fields(...)` of the episode's slot,
+    steps are used); `proprio` is `sim_mjx.layout.proprio_fields(...)` of the episode's slot,
     filtered by `visibility.filter_proprio` (an extra key raises `VisibilityError`); the
     feedback flags are added to every arm (the simulator reports them per episode).
     """

@@ -25,7 +25,7 @@ import numpy as np
 
 from vabench.agent.batching import MicroBatcher
 from vabench.render.worker import ImageSettings, RenderItem, RenderPool
-from vabench.sim_mjx.batch import proprio_fields
+from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks.base import Task
 from vabench.tasks.runner import SettleReport, StepOutcome, TaskBatch
 

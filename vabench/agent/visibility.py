@@ -7,7 +7,7 @@ object model ids) is evaluator-only.
 
 Two halves:
 
-- `filter_proprio(proprio, arms)` takes the per-arm dicts of `sim_mjx.batch.proprio_fields` and
+- `filter_proprio(proprio, arms)` takes the per-arm dicts of `sim_mjx.layout.proprio_fields` and
   returns exactly the visible fields, in a fixed order; any extra or missing key raises
   `VisibilityError` naming it. The observation builder goes through it, so an evaluator field
   added to the simulator's dict fails loudly instead of reaching a prompt.
@@ -42,7 +42,7 @@ PROPRIO_FIELDS: tuple[str, ...] = (
     "control_eepose_quat",
     "local_axes_world",
 )
-"""Per-arm proprioception produced by the simulator (`sim_mjx.batch.proprio_fields`)."""
+"""Per-arm proprioception produced by the simulator (`sim_mjx.layout.proprio_fields`)."""
 
 FEEDBACK_FIELDS: tuple[str, ...] = ("last_action_valid", "last_planner_success")
 """Per-arm outcome of the previous action, added by the harness (None before the first one)."""

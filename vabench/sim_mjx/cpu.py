@@ -2,7 +2,7 @@
 
 Used for parity tests (MJX against the reference implementation of MuJoCo) and as the baseline
 the MJX batch must beat. The plan and the control sequence come from the same jitted functions
-as the MJX batch (`batch.ctrl_sequence_slot`); only the physics differs. Physics runs either in
+as the MJX batch (`layout.ctrl_sequence_slot`); only the physics differs. Physics runs either in
 one thread with `mj_step` (threads=0) or through `mujoco.rollout` on a thread pool.
 """
 
@@ -17,9 +17,9 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
-from vabench.sim_mjx.batch import BatchBase, StepInfo, ctrl_sequence_slot, in_lanes
+from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase, StepInfo, in_lanes
+from vabench.sim_mjx.layout import ctrl_sequence_slot
 from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import check_same_structure
 
@@ -38,6 +38,7 @@ class CpuBatch(BatchBase):
         self._setup(model, n_slots, lanes=1)
         check_same_structure(self.models)
         model = self.model
+        self.backend_id = f"c-mujoco-{mujoco.__version__}"
         self.threads = threads
         self._datas = [mujoco.MjData(m) for m in self.models]
         self._nstate = mujoco.mj_stateSize(model, _STATE)
@@ -78,22 +79,56 @@ class CpuBatch(BatchBase):
     ) -> None:
         slots = list(slots)
         qpos = self._check_reset(slots, qpos)
+        n, m = len(slots), self.model
+        state = {
+            "time": np.zeros(n),
+            "qpos": qpos,
+            "qvel": np.zeros((n, m.nv)),
+            "act": np.zeros((n, m.na)),
+            "ctrl": self.layout.reset_ctrl(np.zeros((n, m.nu)), qpos),
+            "warmstart": np.zeros((n, m.nv)),
+            "grip_open": np.ones((n, len(self.arms)), bool),
+        }
+        self.set_state(slots, state, self._check_variants(slots, variants))
+        if settle_steps > 0:
+            self.hold(settle_steps, slots)
+
+    def set_state(
+        self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
+    ) -> None:
+        slots = list(slots)
+        self._check_state(slots, state)
         var = self._check_variants(slots, variants)
         for row, slot in enumerate(slots):
             m, d = self.models[var[row]], self._datas[var[row]]
             mujoco.mj_resetData(m, d)
-            d.qpos[:] = qpos[row]
-            d.ctrl[self.layout.arm_act] = qpos[row][self.layout.qpos]
-            d.ctrl[self.layout.finger_act] = rc.FINGER_OPEN
+            d.time = state["time"][row]
+            d.qpos[:] = state["qpos"][row]
+            d.qvel[:] = state["qvel"][row]
+            d.act[:] = state["act"][row]
+            d.ctrl[:] = state["ctrl"][row]
             mujoco.mj_forward(m, d)
             mujoco.mj_getState(m, d, self._state[slot], _STATE)
-            self._warm[slot] = 0.0
-            self._ctrl[slot] = d.ctrl
-            self._init_qpos[slot] = qpos[row]
-            self._grip_open[slot] = True
+            self._warm[slot] = state["warmstart"][row]
+            self._ctrl[slot] = state["ctrl"][row]
+            self._init_qpos[slot] = state["qpos"][row]
+            self._grip_open[slot] = state["grip_open"][row]
             self._variant[slot] = var[row]
-        if settle_steps > 0:
-            self.hold(settle_steps, slots)
+
+    def get_state(self, slots: Sequence[int]) -> dict[str, np.ndarray]:
+        slots = list(slots)
+        out: dict[str, list[np.ndarray]] = {k: [] for k in STATE_FIELDS}
+        for slot in slots:
+            m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
+            mujoco.mj_setState(m, d, self._state[slot], _STATE)
+            out["time"].append(np.array(d.time))
+            out["qpos"].append(d.qpos.copy())
+            out["qvel"].append(d.qvel.copy())
+            out["act"].append(d.act.copy())
+        out["ctrl"] = list(self._ctrl[slots])
+        out["warmstart"] = list(self._warm[slots])
+        out["grip_open"] = list(self._grip_open[slots])
+        return {k: np.array(v) for k, v in out.items()}
 
     def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
         slots = list(range(self.n_slots)) if slots is None else list(slots)

@@ -193,11 +193,7 @@ class LocalSweep:
         cfg, ex, sim = self.config, self.config.executor, self.config.simulator
         task = get_task(name)
         n_slots = ex.slots(len(keys))
-        batch_kwargs: dict[str, Any] = {}
-        if sim.backend == "mjx":
-            batch_kwargs["impl"] = sim.impl
-            if sim.lanes:
-                batch_kwargs["lanes"] = sim.lanes
+        batch_kwargs = sim.batch_kwargs()
         async with task_services(
             task,
             n_slots,

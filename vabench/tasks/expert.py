@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from vabench.sim_mjx.batch import ActionResult
+from vabench.sim_mjx.interface import ActionResult
 
 Action = dict[str, Any]
 Target = np.ndarray | Callable[["View"], np.ndarray]

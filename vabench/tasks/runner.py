@@ -19,8 +19,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from vabench.sim_mjx.batch import ActionResult, BatchBase, SimBatch, in_lanes
-from vabench.sim_mjx.cpu import CpuBatch
+from vabench.sim_mjx.backends import make_batch
+from vabench.sim_mjx.interface import ActionResult, BatchBase, in_lanes
+from vabench.sim_mjx.reset_cache import Settled, SettledCache, model_digest, settle_key
 from vabench.tasks.base import (
     Evaluation,
     ObjectIndex,
@@ -33,6 +34,7 @@ from vabench.tasks.base import (
 from vabench.tasks.expert import ArmView, ExpertContext, ExpertFailed, View
 
 BACKENDS = ("mjx", "c")
+IMPLS = ("jax", "warp")
 DRIFT_WINDOW = 200  # FACTS: orientation drift measured over the last 200 observed steps
 MAX_DRIFT_DEG = 3.0
 
@@ -44,13 +46,21 @@ class SettleReport:
     seed: int
     finite: bool
     max_drift_deg: float
+    infrastructure_error: str | None = None  # the simulator failed while settling (re-run)
+    cached: bool = False  # the settled state came from the cache (reset_cache)
 
     @property
     def ok(self) -> bool:
-        return self.finite and self.max_drift_deg <= MAX_DRIFT_DEG
+        return (
+            self.infrastructure_error is None
+            and self.finite
+            and self.max_drift_deg <= MAX_DRIFT_DEG
+        )
 
     @property
     def reason(self) -> str | None:
+        if self.infrastructure_error is not None:
+            return self.infrastructure_error
         if not self.finite:
             return "non-finite pose after settling"
         if self.max_drift_deg > MAX_DRIFT_DEG:
@@ -98,16 +108,33 @@ def _evaluate_slot(
 
 
 class TaskBatch:
-    """N episodes of one task family; backend "mjx" (SimBatch) or "c" (C MuJoCo)."""
+    """N episodes of one task family on a physics backend (`sim_mjx.backends`): "mjx" with
+    impl "jax" (MJX) or "warp" (MuJoCo Warp), or "c" (C MuJoCo).
 
-    def __init__(self, task: Task, n_slots: int, backend: str = "mjx", **batch_kwargs: Any):
+    Resets read and fill the settled-state cache (`sim_mjx.reset_cache`; `cache=None` uses the
+    default one, `SettledCache(None)` keeps it in memory only)."""
+
+    def __init__(
+        self,
+        task: Task,
+        n_slots: int,
+        backend: str = "mjx",
+        impl: str = "jax",
+        cache: SettledCache | None = None,
+        **batch_kwargs: Any,
+    ):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if impl not in IMPLS:
+            raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
         self.task = task
         self.backend = backend
+        self.impl = impl if backend == "mjx" else "-"
         self.models = task.build_models()
-        batch_cls = SimBatch if backend == "mjx" else CpuBatch
-        self.batch: BatchBase = batch_cls(self.models, n_slots, **batch_kwargs)
+        self.batch: BatchBase = make_batch(self.models, n_slots, backend, impl, **batch_kwargs)
+        self.cache = cache if cache is not None else SettledCache.default()
+        self._digests = [model_digest(m) for m in self.models]
+        self._samples: dict[int, Sample] = {}
         self.n_slots = n_slots
         self.ix = ObjectIndex.from_model(self.models[0])
         self.side_a, self.side_b = contact_masks(task, self.models[0])
@@ -120,49 +147,94 @@ class TaskBatch:
         self._observed: tuple[np.ndarray, Any] | None = None  # (qpos, proprio) until it moves
         self.samples: list[Sample | None] = [None] * n
         self.seeds: list[int | None] = [None] * n
-        # The predicate in the batch's lanes (see sim_mjx.batch.in_lanes): a slot's success
+        # The predicate in the batch's lanes (see sim_mjx.interface.in_lanes): a slot's success
         # and checkpoints never depend on how many episodes share the batch.
         self._eval = jax.jit(
             in_lanes(functools.partial(_evaluate_slot, task, self.ix), 3, self.batch.lanes)
         )
 
     # -- episodes ---------------------------------------------------------------------------
+    def sample(self, seed: int) -> Sample:
+        """The seed's initial state (samplers are deterministic; some are slow, so memoised)."""
+        if seed not in self._samples:
+            self._samples[seed] = self.task.sample(seed)
+        return self._samples[seed]
+
     def reset(self, slots: Sequence[int], seeds: Sequence[int]) -> list[SettleReport]:
-        """Start episodes: place each seed's objects, settle, and gate on drift (FACTS)."""
+        """Start episodes: place each seed's objects, settle, and gate on drift (FACTS). Seeds
+        settled before on this backend and scene are copied from the cache instead."""
         slots, seeds = list(slots), list(seeds)
         if len(slots) != len(seeds):
             raise ValueError(f"{len(slots)} slots but {len(seeds)} seeds")
-        samples = [self.task.sample(s) for s in seeds]
-        qpos = np.stack([self.task.initial_qpos(self.models[sm.variant], sm) for sm in samples])
         task = self.task
-        self.batch.reset(
-            slots,
-            qpos,
-            settle_steps=task.settle_steps + task.observe_steps - DRIFT_WINDOW,
-            variants=[sm.variant for sm in samples],
-        )
-        before = self.batch.qpos()[slots]
-        self.batch.hold(DRIFT_WINDOW, slots)
+        samples = [self.sample(s) for s in seeds]
+        qpos = np.stack([task.initial_qpos(self.models[sm.variant], sm) for sm in samples])
+        variants = [sm.variant for sm in samples]
+        schedule = (task.settle_steps + task.observe_steps - DRIFT_WINDOW, DRIFT_WINDOW)
+        keys = [
+            settle_key(task.name, self.batch.backend_id, self._digests[v], q, schedule)
+            for v, q in zip(variants, qpos, strict=True)
+        ]
+        settled = [self.cache.get(k) for k in keys]
+        hit = [row for row, st in enumerate(settled) if st is not None]
+        miss = [row for row, st in enumerate(settled) if st is None]
+        if hit:
+            self.batch.set_state(
+                [slots[r] for r in hit],
+                {f: np.stack([settled[r].state[f] for r in hit]) for f in settled[hit[0]].state},  # type: ignore[union-attr]
+                [variants[r] for r in hit],
+            )
+        if miss:
+            self._settle([slots[r] for r in miss], qpos[miss], [variants[r] for r in miss])
+            failures = self.batch.failures()
+            before, after = self._settle_before, self.batch.qpos()
+            states = self.batch.get_state([slots[r] for r in miss])
+            for i, row in enumerate(miss):
+                slot = slots[row]
+                drift = max(
+                    (
+                        _angle_deg(before[i, a + 3 : a + 7], after[slot, a + 3 : a + 7])
+                        for a in self.ix.adr.values()
+                    ),
+                    default=0.0,
+                )
+                st = Settled(
+                    {f: v[i] for f, v in states.items()},
+                    bool(np.isfinite(after[slot]).all()),
+                    float(drift),
+                )
+                settled[row] = st
+                if failures[slot] is None:
+                    self.cache.put(keys[row], st)
         self._observed = None
-        after = self.batch.qpos()[slots]
+        after = self.batch.qpos()
+        failures = self.batch.failures()
         reports = []
         for row, (slot, seed, sample) in enumerate(zip(slots, seeds, samples, strict=True)):
-            drift = max(
-                (
-                    _angle_deg(before[row, a + 3 : a + 7], after[row, a + 3 : a + 7])
-                    for a in self.ix.adr.values()
-                ),
-                default=0.0,
-            )
-            finite = bool(np.isfinite(after[row]).all())
-            reports.append(SettleReport(seed, finite, float(drift)))
+            st = settled[row]
+            assert st is not None
+            error = failures[slot] if row in miss else None
+            reports.append(SettleReport(seed, st.finite, st.drift_deg, error, row in hit))
             self.samples[slot], self.seeds[slot] = sample, seed
-            self.init_qpos[slot] = after[row]
+            self.init_qpos[slot] = after[slot]
             self.latched[slot] = False
             self.progress[slot] = 0
             self.success[slot] = False
             self.steps[slot] = 0
         return reports
+
+    def _settle(self, slots: list[int], qpos: np.ndarray, variants: list[int]) -> None:
+        """Reset `slots` to `qpos` and run the settle schedule; keeps the qpos of these slots
+        before the drift window in `_settle_before`."""
+        task = self.task
+        self.batch.reset(
+            slots,
+            qpos,
+            settle_steps=task.settle_steps + task.observe_steps - DRIFT_WINDOW,
+            variants=variants,
+        )
+        self._settle_before = self.batch.qpos()[slots]
+        self.batch.hold(DRIFT_WINDOW, slots)
 
     def step(self, actions: Sequence[Any]) -> list[StepOutcome | None]:
         """One action per slot (None = idle); evaluates the predicate of every acting slot."""

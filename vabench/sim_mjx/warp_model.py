@@ -1,0 +1,153 @@
+"""MuJoCo Warp models and data for a batch: model variants per world and buffer sizing.
+
+Model variants (several object models of one family, `variants.py`) differ only in numbers:
+sizes, positions, masses, inertias. MuJoCo Warp lets a model field carry one row per world
+(the fields whose spec starts with "*"), so the fields that differ between variants get
+n_slots rows, and each world's rows are its slot's variant: every seed of a family steps in
+one batch whatever object it drew.
+
+Contact and constraint buffers are fixed-size on the GPU. `capacity` sizes them from the scene
+(objects, arms, cone type, joint limits); `failure_text` turns MuJoCo Warp's per-world overflow
+bits into the message of the infrastructure error that the affected slots get.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import warp as wp
+from mujoco_warp._src import types as mjw_types
+
+# Fields that may differ between variants without being batched: they serve features the
+# scenes do not use (dof_length weighs velocities for sleeping, which is off) or only the
+# renderer (materials, lights, cameras), which builds its own model.
+_IGNORED_DIFFERENCES = ("dof_length", "mat_", "light_", "cam_", "tex", "bvh_")
+
+# Overflow bits that make a world's physics untrustworthy (buffers too small). The solver's
+# iteration limits (ITERATIONS, LS_ITERATIONS) are not failures: 10 Newton iterations are the
+# scene's setting, as on C MuJoCo.
+FAILURE_BITS = int(
+    mjw.OverflowType.NEFC
+    | mjw.OverflowType.NJMAX_NNZ
+    | mjw.OverflowType.BROADPHASE
+    | mjw.OverflowType.NARROWPHASE
+    | mjw.OverflowType.CCD
+    | mjw.OverflowType.HFIELD
+    | mjw.OverflowType.NVMAX
+    | mjw.OverflowType.EPA_HORIZON
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Capacity:
+    """Per-world buffer sizes of a MuJoCo Warp batch."""
+
+    nconmax: int  # contacts per world (the pool holds nconmax * n_slots)
+    njmax: int  # constraint rows per world
+
+
+def capacity(
+    model: mujoco.MjModel, nconmax: int | None = None, njmax: int | None = None
+) -> Capacity:
+    """Buffer sizes from the scene, unless given.
+
+    Contacts: 16 for the arms' fingers and palm on a held object, 12 for every free object
+    (its resting face on the table or a support: 4-8, and neighbours), 8 per arm. Measured on
+    C MuJoCo over the experts of every family, the most contacts at once were 12 for one object
+    (grasp_single_cube), 24 for four (place_single_cube_heldout) and 32 for five (the basket):
+    the formula leaves 2.6-3x headroom. Rows: each contact takes `condim` rows with elliptic
+    cones and 2 (condim - 1) with pyramidal ones, plus one per limited joint.
+    """
+    n_free = int(np.sum(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE))
+    n_arms = int(
+        sum(
+            mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, f"{a}_waist") >= 0
+            for a in ("left", "right")
+        )
+    )
+    contacts = nconmax if nconmax is not None else 16 + 12 * n_free + 8 * n_arms
+    condim = int(model.geom_condim.max()) if model.ngeom else 3
+    elliptic = model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+    per_contact = condim if elliptic else 2 * (condim - 1)
+    rows = njmax if njmax is not None else contacts * per_contact + int(model.jnt_limited.sum())
+    if contacts < 1 or rows < 1:
+        raise ValueError(f"nconmax and njmax must be >= 1, got {contacts} and {rows}")
+    return Capacity(nconmax=contacts, njmax=rows)
+
+
+def failure_text(bits: int, cap: Capacity) -> str:
+    """The infrastructure error of a world whose overflow bits are `bits`."""
+    names = [
+        f.name.lower()
+        for f in mjw.OverflowType
+        if f.value and not f.value & (f.value - 1) and bits & f.value & FAILURE_BITS
+    ]
+    hint = (
+        f"raise simulator.njmax (now {cap.njmax})"
+        if bits & (mjw.OverflowType.NEFC | mjw.OverflowType.NJMAX_NNZ)
+        else f"raise simulator.nconmax (now {cap.nconmax})"
+    )
+    return f"MuJoCo Warp buffer overflow ({', '.join(names)}): physics not trusted; {hint}"
+
+
+def _array_fields(obj: Any, prefix: str = "") -> dict[str, wp.array]:
+    out: dict[str, wp.array] = {}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name, None)
+        if isinstance(value, wp.array):
+            out[prefix + f.name] = value
+        elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+            out.update(_array_fields(value, prefix + f.name + "."))
+    return out
+
+
+def _batchable(name: str) -> bool:
+    spec = {f.name: f.type for f in dataclasses.fields(mjw_types.Model)}.get(name)
+    shape = getattr(spec, "shape", ())
+    return bool(shape) and shape[0] == "*"
+
+
+class WarpModel:
+    """The device model of a batch: variant 0's model with the fields that differ between
+    variants batched per world. `assign(variants)` points every world at its slot's variant."""
+
+    def __init__(self, models: Sequence[mujoco.MjModel], n_slots: int):
+        self.n_slots = n_slots
+        per_variant = [mjw.put_model(m) for m in models]
+        first = _array_fields(per_variant[0])
+        varying: list[str] = []
+        for k, mw in enumerate(per_variant[1:], start=1):
+            for name, arr in _array_fields(mw).items():
+                a, b = first[name].numpy(), arr.numpy()
+                if a.shape == b.shape and np.array_equal(a, b):
+                    continue
+                if name.startswith(_IGNORED_DIFFERENCES) or name in varying:
+                    continue
+                if "." in name or not _batchable(name):
+                    raise ValueError(
+                        f"model variant {k} differs in {name}, which MuJoCo Warp cannot hold "
+                        "per world"
+                    )
+                varying.append(name)
+        # Per variant, the rows of each varying field (shape (n_variants, *row)).
+        self.values = {
+            name: np.stack([getattr(mw, name).numpy()[0] for mw in per_variant]) for name in varying
+        }
+        self.model = mjw.put_model(models[0], batch_sizes={name: n_slots for name in varying})
+        self.model.opt.warn_overflow = 0  # overflow is reported per slot (failure_text)
+        self.current = np.zeros(n_slots, np.int32)
+
+    def assign(self, variants: np.ndarray) -> None:
+        """Set every world's varying fields to its slot's variant (n_slots,) when it changed."""
+        variants = np.asarray(variants, np.int32)
+        if np.array_equal(variants, self.current) or not self.values:
+            self.current = variants.copy()
+            return
+        for name, rows in self.values.items():
+            getattr(self.model, name).assign(rows[variants])
+        self.current = variants.copy()
