@@ -1,12 +1,19 @@
-"""Agent actions per second: the MJX batch against C MuJoCo, measured side by side in one run.
+"""Agent actions per second: MuJoCo Warp, C MuJoCo on all cores and MJX-JAX, side by side.
 
-A mixed stream of translations, rotations and gripper commands (IK, waypoint checks and the
-ACTION_SECONDS of physics substeps included) on the probe_cube scene (right arm + one cube).
+    python benchmarks/sim_throughput.py [--tasks place_single_cube,lift_pot]
+        [--sizes 256,1024,8192] [--backends warp,c,jax] [--repeats 3] [--json OUT]
 
-    python benchmarks/sim_throughput.py [--sizes 1,16,256,1024,4096] [--repeats 3] [--json OUT]
+One action = plan (25 closed-form IK waypoints with table/limit checks) + ACTION_SECONDS of
+physics (200 substeps at 4 ms) for every slot of the batch, from a mixed stream of
+translations, local rotations and gripper commands (each slot at another point of the stream,
+so every call mixes all kinds). Commands go in as arrays (`BatchBase.step_rows`, the bulk path);
+"warp+encode" also times `step` with one protocol dict per slot (validation and encoding
+included). C MuJoCo runs through `mujoco.rollout` on every core; "C-1" is one thread on up to
+`--c1-max-slots` slots. Each row is measured in one run; the ratios are the point.
 
-For each batch size it prints MJX actions/s (after a compile-and-warm-up step), C MuJoCo in one
-thread (mj_step), C MuJoCo through mujoco.rollout on all cores, and the ratios MJX/C.
+A second table times a reset of `--reset-slots` slots of `--reset-task` from the settled-state
+cache (seeds cycling over the task's verified seeds), against settling them, and reports the
+Warp batch's GPU memory per slot.
 """
 
 from __future__ import annotations
@@ -15,14 +22,20 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 import time
+from pathlib import Path
 
-import jax
 import numpy as np
 
-from vabench.sim_mjx.cpu import CpuBatch
-from vabench.sim_mjx.mjx_batch import SimBatch
+from vabench.protocol import parse_robot_action
+from vabench.seeds import manifest_path, verified_seeds
+from vabench.sim_mjx.actions import CommandRows, encode
+from vabench.sim_mjx.backends import make_batch, warp_problem
+from vabench.sim_mjx.interface import BatchBase
+from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.tasks import get_task
+from vabench.tasks.runner import TaskBatch
 
 # Each pair returns the arm near where it started, so a long stream stays in the workspace.
 STREAM = [
@@ -37,111 +50,161 @@ STREAM = [
     {"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 60},
     {"action": "gripper.rotate_local", "axis": "rx", "sign": "+", "angle_deg": 30},
 ]
+BACKENDS = {"warp": ("mjx", "warp"), "jax": ("mjx", "jax"), "c": ("c", "-")}
 
 
-def actions_for(n: int, t: int) -> list[dict]:
-    """Slot i does stream action (i + t): every call mixes all kinds across the batch."""
+def stream_rows(arms: tuple[str, ...], n: int, t: int) -> CommandRows:
+    """Slot i does stream action (i + t), encoded in bulk from the stream's own rows."""
+    template = CommandRows.idle(len(STREAM), len(arms))
+    for k, raw in enumerate(STREAM):
+        encode(parse_robot_action(raw, arms), arms, template, k)
+    pick = (np.arange(n) + t) % len(STREAM)
+    return CommandRows(
+        template.active[pick], template.delta[pick], template.rotvec[pick], template.grip[pick]
+    )
+
+
+def stream_dicts(n: int, t: int) -> list[dict]:
     return [STREAM[(i + t) % len(STREAM)] for i in range(n)]
 
 
-def time_batch(batch, n: int, repeats: int, reset) -> tuple[float, float]:
+def time_batch(
+    batch: BatchBase, q0: np.ndarray, n: int, repeats: int, encoded: bool
+) -> tuple[float, float]:
     """(seconds for the first call, actions/s over `repeats` further calls)."""
-    reset(batch)
+    batch.reset(range(batch.n_slots), np.broadcast_to(q0, (batch.n_slots, len(q0))))
+
+    def call(t: int) -> int:
+        if encoded:
+            info = batch.step_rows(stream_rows(batch.arms, batch.n_slots, t))
+            return int(np.sum(info.planner_success[:n]))
+        res = batch.step(stream_dicts(n, t))
+        return sum(bool(r and r.planner_success) for r in res)
+
     t0 = time.perf_counter()
-    batch.step(actions_for(n, 0))
-    jax.block_until_ready(getattr(batch, "state", None))
+    call(0)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
     for t in range(1, repeats + 1):
-        res = batch.step(actions_for(n, t))
-    jax.block_until_ready(getattr(batch, "state", None))
+        ok = call(t)
     elapsed = time.perf_counter() - t0
-    ok = sum(r.planner_success for r in res if r is not None)
-    assert ok >= 0.9 * n, f"only {ok}/{n} actions planned: the stream left the workspace"
+    if ok < 0.9 * n:
+        raise RuntimeError(f"only {ok}/{n} actions planned: the stream left the workspace")
     return first, n * repeats / elapsed
+
+
+def throughput(args: argparse.Namespace, threads: int) -> list[dict]:
+    rows: list[dict] = []
+    start = time.perf_counter()
+    header = "| task | batch | backend | actions/s | first call s | vs C (all cores) |"
+    print(header)
+    print("|" + "---|" * 6, flush=True)
+    for task_name in args.tasks.split(","):
+        task = get_task(task_name)
+        models = task.build_models()
+        seed = verified_seeds(task_name)[0] if manifest_path(task_name).exists() else 0
+        q0 = task.initial_qpos(models[0], task.sample(seed))
+        for n in [int(s) for s in args.sizes.split(",")]:
+            if time.perf_counter() - start > args.budget_s:
+                print(f"(budget reached: {task_name} from batch {n} not run)")
+                break
+            found: dict[str, float] = {}
+            for name in args.backends.split(","):
+                if name == "jax" and n > args.jax_max_slots:
+                    continue
+                backend, impl = BACKENDS[name]
+                kwargs = {"threads": threads} if name == "c" else {}
+                variants = [(name, True)] + ([("warp+encode", False)] if name == "warp" else [])
+                if name == "c":
+                    variants.append(("C-1", True))
+                for label, encoded in variants:
+                    size = min(n, args.c1_max_slots) if label == "C-1" else n
+                    kw = {} if label == "C-1" else kwargs
+                    batch = make_batch(models, size, backend, impl, **kw)
+                    try:
+                        first, rate = time_batch(batch, q0, size, args.repeats, encoded)
+                    finally:
+                        batch.close()
+                    found[label] = rate
+                    row = dict(task=task_name, batch=n, backend=label, rate=rate, first_s=first)
+                    if "c" in found:
+                        row["vs_c"] = rate / found["c"]
+                    rows.append(row)
+                    ratio = f"{rate / found['c']:.2f}" if "c" in found else "-"
+                    print(
+                        f"| {task_name} | {size} | {label} | {rate:,.0f} | {first:.1f} | {ratio} |",
+                        flush=True,
+                    )
+    return rows
+
+
+def reset_timing(args: argparse.Namespace) -> dict:
+    """Reset of many slots from the settled-state cache vs settling them (Warp)."""
+    task = get_task(args.reset_task)
+    seeds = verified_seeds(task.name)
+    n = args.reset_slots
+    slot_seeds = [seeds[i % len(seeds)] for i in range(n)]
+    root = Path(tempfile.mkdtemp(prefix="vabench-settled-"))
+    tb = TaskBatch(task, n, backend="mjx", impl="warp", cache=SettledCache(root))
+    t0 = time.perf_counter()
+    tb.reset(range(n), slot_seeds)  # unique seeds settle once each, the rest hit memory
+    settle_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    tb.reset(range(n), slot_seeds)
+    memory_s = time.perf_counter() - t0
+    tb.cache = SettledCache(root)  # a new process: entries come from disk
+    t0 = time.perf_counter()
+    tb.reset(range(n), slot_seeds)
+    disk_s = time.perf_counter() - t0
+    mem = tb.batch.memory_bytes() if hasattr(tb.batch, "memory_bytes") else 0
+    out = dict(
+        task=task.name,
+        slots=n,
+        unique_seeds=len(set(slot_seeds)),
+        first_reset_s=settle_s,
+        cached_reset_memory_s=memory_s,
+        cached_reset_disk_s=disk_s,
+        gpu_bytes_per_slot=mem / n,
+    )
+    print(
+        f"\nreset of {n} slots of {task.name} ({len(set(slot_seeds))} seeds): settle "
+        f"{settle_s:.2f} s; from the cache {1000 * memory_s:.1f} ms (memory), "
+        f"{1000 * disk_s:.1f} ms (disk); GPU memory {mem / n / 1024:.0f} KiB per slot",
+        flush=True,
+    )
+    return out
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--sizes", default="1,16,256,1024,4096")
+    p.add_argument("--tasks", default="place_single_cube,lift_pot")
+    p.add_argument("--sizes", default="256,1024,8192")
+    p.add_argument("--backends", default="warp,c,jax")
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument(
-        "--c-max-slots",
-        type=int,
-        default=64,
-        help="C single-thread: slots timed (cost is per slot)",
-    )
-    p.add_argument(
-        "--budget-s", type=float, default=480.0, help="stop starting new sizes after this"
-    )
-    p.add_argument(
-        "--lanes",
-        type=int,
-        default=None,
-        help="MJX lanes (default: SimBatch's; 0 = the whole batch in one vmap)",
-    )
+    p.add_argument("--c1-max-slots", type=int, default=32, help="C one thread: slots timed")
+    p.add_argument("--jax-max-slots", type=int, default=1024, help="MJX-JAX: largest batch")
+    p.add_argument("--reset-task", default="place_single_cube")
+    p.add_argument("--reset-slots", type=int, default=1024, help="0: skip the reset timing")
+    p.add_argument("--budget-s", type=float, default=540.0, help="stop starting new sizes")
     p.add_argument("--json", default=None)
     args = p.parse_args()
-    task = get_task("probe_cube")
-    model = task.build_model()
-    q0 = task.initial_qpos(model, 0)
     threads = os.cpu_count() or 1
-    device = jax.devices()[0]
-    print(
-        f"device: {device.device_kind} ({device.platform}); C threads: {threads}; "
-        f"jax {jax.__version__}; "
-        f"lanes: {'batch' if args.lanes == 0 else args.lanes or 'default'}"
-    )
+    problem = warp_problem()
+    if problem and "warp" in args.backends:
+        print(f"Warp not measured: {problem}")
+        args.backends = ",".join(b for b in args.backends.split(",") if b != "warp")
+        args.reset_slots = 0
+    gpu = "-"
+    if "warp" in args.backends:
+        import warp as wp
 
-    def reset(b):
-        b.reset(range(b.n_slots), np.broadcast_to(q0, (b.n_slots, model.nq)))
-
-    rows = []
-    start = time.perf_counter()
-    header = (
-        "| batch | MJX actions/s | MJX first call s | C 1-thread actions/s "
-        "| C rollout actions/s | MJX/C-1 | MJX/C-rollout |"
-    )
-    print(header)
-    print("|" + "---|" * 7)
-    for n in [int(s) for s in args.sizes.split(",")]:
-        if time.perf_counter() - start > args.budget_s:
-            print(f"(budget reached: sizes from {n} not run)")
-            break
-        try:
-            sb = SimBatch(model, n, lanes=(n if args.lanes == 0 else args.lanes))
-            first, mjx_rate = time_batch(sb, sb.n_slots, args.repeats, reset)
-            del sb
-        except Exception as err:  # out of device memory, most likely
-            print(f"| {n} | failed: {type(err).__name__}: {str(err)[:120]} |")
-            break
-        c1 = CpuBatch(model, min(n, args.c_max_slots))
-        _, c1_rate = time_batch(c1, c1.n_slots, args.repeats, reset)
-        cr = CpuBatch(model, n, threads=threads)
-        _, cr_rate = time_batch(cr, n, args.repeats, reset)
-        cr.close()
-        row = dict(
-            batch=n,
-            mjx=mjx_rate,
-            mjx_first_s=first,
-            c_single=c1_rate,
-            c_rollout=cr_rate,
-            ratio_single=mjx_rate / c1_rate,
-            ratio_rollout=mjx_rate / cr_rate,
-        )
-        rows.append(row)
-        print(
-            f"| {n} | {mjx_rate:,.1f} | {first:.1f} | {c1_rate:,.1f} | {cr_rate:,.1f} | "
-            f"{row['ratio_single']:.2f} | {row['ratio_rollout']:.2f} |",
-            flush=True,
-        )
-        if args.json:
-            with open(args.json, "w") as f:
-                json.dump(
-                    {"device": str(device.device_kind), "threads": threads, "rows": rows},
-                    f,
-                    indent=1,
-                )
+        gpu = wp.get_device(os.environ.get("VABENCH_WARP_DEVICE", "cuda:0")).name
+    print(f"GPU: {gpu}; C threads: {threads}; backends: {args.backends}")
+    doc: dict = {"gpu": gpu, "threads": threads, "rows": throughput(args, threads)}
+    if args.reset_slots:
+        doc["reset"] = reset_timing(args)
+    if args.json:
+        Path(args.json).write_text(json.dumps(doc, indent=1))
     return 0
 
 

@@ -85,9 +85,10 @@ def warp_problem(device: str | None = None) -> str | None:
     return None
 
 
-def resolve(backend: str = "auto", impl: str = "auto") -> Choice:
-    """The backend that runs, with the reason. Raises BackendUnavailable for an explicit
-    request that cannot run here (never silently falls back)."""
+def resolve(backend: str = "auto", impl: str = "auto", device: str | None = None) -> Choice:
+    """The backend that runs, with the reason (`device`: the Warp device, default
+    `warp_device()`). Raises BackendUnavailable for an explicit request that cannot run here
+    (never silently falls back)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if impl not in IMPLS:
@@ -96,15 +97,16 @@ def resolve(backend: str = "auto", impl: str = "auto") -> Choice:
         return Choice("c", "-", "C MuJoCo was asked for")
     if backend == "mjx" and impl == "jax":
         return Choice("mjx", "jax", "MJX on JAX was asked for")
-    problem = warp_problem()
+    device = device or warp_device()
+    problem = warp_problem(device)
     if backend == "mjx":  # impl warp or auto
         if problem is None:
-            return Choice("mjx", "warp", f"MuJoCo Warp on {warp_device()}")
+            return Choice("mjx", "warp", f"MuJoCo Warp on {device}")
         if impl == "warp":
             raise BackendUnavailable(problem)
         return Choice("mjx", "jax", f"MJX on JAX ({problem})")
     if problem is None:
-        return Choice("mjx", "warp", f"auto: MuJoCo Warp on {warp_device()}")
+        return Choice("mjx", "warp", f"auto: MuJoCo Warp on {device}")
     return Choice("c", "-", f"auto: C MuJoCo ({problem})")
 
 
@@ -117,7 +119,7 @@ def make_batch(
 ) -> BatchBase:
     """A batch of `n_slots` episodes of the scene `models` on the chosen backend. `kwargs` go
     to the backend's constructor (e.g. threads for C, lanes for JAX, nconmax for Warp)."""
-    choice = resolve(backend, impl)
+    choice = resolve(backend, impl, kwargs.get("device") if impl == "warp" else None)
     if choice.backend == "c":
         from vabench.sim_mjx.cpu import CpuBatch
 

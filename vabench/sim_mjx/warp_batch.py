@@ -179,9 +179,8 @@ class WarpBatch(BatchBase):
             if deterministic:
                 self._wm.model.opt.deterministic = int(mjw.DeterminismType.ALL)
             self._m = self._wm.model
-            d0 = mujoco.MjData(m0)
+            d0 = mujoco.MjData(m0)  # no contacts yet: every slot is reset (and observed) below
             d0.qpos[:] = home_qpos(m0)
-            mujoco.mj_forward(m0, d0)
             self._d = mjw.put_data(
                 m0, d0, nworld=n, nconmax=self.capacity.nconmax, njmax=self.capacity.njmax
             )

@@ -1,0 +1,223 @@
+"""The Warp backend on Warp's CPU device: batch independence, frozen idle slots, buffer overflow
+as an infrastructure error, the settled-state cache, fidelity to C MuJoCo, and the message a
+machine without a GPU (or without the packages) gets.
+
+Warp's CPU device runs the very kernels the GPU runs (one CUDA graph per action there, plain
+launches here), thread after thread, so what is tested here is the backend's logic and
+numerics; speed and the GPU-only paths are measured by benchmarks/ on a GPU host
+(docs/PERFORMANCE.md, docs/FIDELITY.md).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("warp", reason="the Warp backend needs warp-lang (the [test] extra has it)")
+pytest.importorskip("mujoco_warp", reason="the Warp backend needs mujoco-warp ([test] extra)")
+
+from vabench.seeds import verified_seeds  # noqa: E402
+from vabench.sim_mjx import backends  # noqa: E402
+from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
+from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase  # noqa: E402
+from vabench.sim_mjx.reset_cache import SettledCache  # noqa: E402
+from vabench.sim_mjx.warp_batch import WarpBatch  # noqa: E402
+from vabench.tasks import get_task  # noqa: E402
+from vabench.tasks.runner import TaskBatch, run_experts  # noqa: E402
+
+DOWN = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 40}
+RIGHT = {"action": "gripper.move_world", "axis": "x", "sign": "+", "distance_mm": 30}
+TURN = {"action": "gripper.rotate_local", "axis": "rz", "sign": "+", "angle_deg": 20}
+CLOSE = {"action": "gripper.close"}
+FAR = {"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 100}
+
+# The finger centre after every action of an expert episode, Warp against C MuJoCo (issue 18's
+# fidelity target). Both integrate the same model in float32 (Warp) and float64 (C) with
+# different contact generation code; 2 mm is what a grasp or a placement can tolerate.
+GC_TOLERANCE_M = 0.002
+
+
+@pytest.fixture(scope="module")
+def cube():
+    task = get_task("grasp_single_cube")
+    model = task.build_model()
+    q0 = task.initial_qpos(model, task.sample(verified_seeds(task.name)[0]))
+    return task, model, q0
+
+
+def _reset(batch, q0, slots=None):
+    slots = list(range(batch.n_slots)) if slots is None else slots
+    batch.reset(slots, np.broadcast_to(q0, (len(slots), len(q0))), settle_steps=50)
+
+
+def _states_equal(a: dict, b: dict) -> bool:
+    return all(np.array_equal(a[f], b[f]) for f in STATE_FIELDS)
+
+
+def test_slot_independent_of_batch_size_index_and_neighbours(cube):
+    """The same slot, alone or third of three with busy neighbours, moves bit for bit alike."""
+    _, model, q0 = cube
+    alone = WarpBatch(model, 1, device="cpu")
+    crowd = WarpBatch(model, 3, device="cpu")
+    _reset(alone, q0)
+    _reset(crowd, q0)
+    for ours, theirs in ((DOWN, RIGHT), (TURN, CLOSE), (CLOSE, DOWN)):
+        alone.step([ours])
+        crowd.step([theirs, FAR, ours])
+        assert _states_equal(alone.get_state([0]), crowd.get_state([2]))
+    assert not np.array_equal(crowd.qpos()[0], crowd.qpos()[2])  # the neighbours did move
+
+
+def test_idle_and_failed_slots_stay_frozen(cube):
+    _, model, q0 = cube
+    batch = WarpBatch(model, 3, device="cpu")
+    _reset(batch, q0)
+    idle = batch.get_state([1])
+    far = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 100}
+    assert batch.step([DOWN, None, far])[2].executed  # 100 mm down: still above the table
+    failing = batch.get_state([2])
+    res = batch.step([DOWN, None, far])  # another 100 mm would put the fingers in the table
+    assert res[1] is None and res[2] is not None and not res[2].planner_success
+    assert res[0].executed and not res[2].executed
+    assert _states_equal(idle, batch.get_state([1]))
+    assert _states_equal(failing, batch.get_state([2]))
+
+
+def test_contact_overflow_is_a_named_infrastructure_error(cube):
+    """One contact per world cannot hold a cube resting on the table (4 corners): the acting
+    slot's result says so and names the setting to raise; nothing passes silently."""
+    _, model, q0 = cube
+    batch = WarpBatch(model, 2, device="cpu", nconmax=1)
+    _reset(batch, q0)
+    assert batch.failures()[0] is not None and "nconmax" in batch.failures()[0]
+    res = batch.step([DOWN, None])
+    assert res[0].infrastructure_error is not None
+    assert "overflow" in res[0].infrastructure_error and "nconmax" in res[0].infrastructure_error
+    assert res[1] is None
+
+
+def test_constraint_overflow_names_njmax(cube):
+    _, model, q0 = cube
+    batch = WarpBatch(model, 1, device="cpu", njmax=2)
+    _reset(batch, q0)
+    res = batch.step([DOWN])
+    assert res[0].infrastructure_error is not None and "njmax" in res[0].infrastructure_error
+
+
+def test_overflow_at_reset_is_reported_and_not_cached(cube, tmp_path):
+    task, _, _ = cube
+    cache = SettledCache(tmp_path)
+    tb = TaskBatch(task, 1, backend="mjx", impl="warp", device="cpu", nconmax=1, cache=cache)
+    report = tb.reset([0], [verified_seeds(task.name)[0]])[0]
+    assert not report.ok and "nconmax" in (report.infrastructure_error or "")
+    assert not list(tmp_path.rglob("*.npz"))
+
+
+@pytest.mark.parametrize("backend", ["c", "warp"])
+def test_cached_reset_equals_a_fresh_settle(cube, tmp_path, backend):
+    """A reset served by the settled-state cache continues exactly as the settled one did."""
+    task, _, _ = cube
+    seed = verified_seeds(task.name)[1]
+    kwargs = {"impl": "warp", "device": "cpu"} if backend == "warp" else {}
+    runs = []
+    for _ in range(2):  # the first settles and fills the cache, the second reads it (disk)
+        tb = TaskBatch(
+            task, 1, backend="mjx" if backend == "warp" else "c", cache=SettledCache(tmp_path),
+            **kwargs,
+        )
+        report = tb.reset([0], [seed])[0]
+        tb.step([DOWN])
+        runs.append((report, tb.batch.get_state([0])))
+    (fresh, s1), (cached, s2) = runs
+    assert not fresh.cached and cached.cached
+    assert (fresh.finite, fresh.max_drift_deg) == (cached.finite, cached.max_drift_deg)
+    assert _states_equal(s1, s2)
+
+
+def test_proprio_equals_the_jax_proprio(cube):
+    _, model, q0 = cube
+    batch = WarpBatch(model, 2, device="cpu")
+    _reset(batch, q0)
+    batch.step([TURN, RIGHT])
+    warp_p = batch.proprio()
+    jax_p = BatchBase.proprio(batch)  # the shared JAX formula on the same qpos
+    for field in ("gc", "ee", "rot", "quat", "rpy", "fingers"):
+        np.testing.assert_allclose(getattr(warp_p, field), getattr(jax_p, field), atol=2e-5)
+
+
+def _expert_replay_gc_deviation(task_name: str, n_seeds: int) -> float:
+    """Run the expert on C, replay its actions on Warp (CPU) in lockstep; the largest finger
+    centre distance between the two after any action."""
+    task = get_task(task_name)
+    seeds = verified_seeds(task_name)[:n_seeds]
+    c = TaskBatch(task, len(seeds), backend="c")
+    episodes = run_experts(c, seeds)
+    assert all(ep.success for ep in episodes)
+    scripts = [[a["action"] for a in ep.actions] for ep in episodes]
+    w = TaskBatch(task, len(seeds), backend="mjx", impl="warp", device="cpu")
+    c.reset(range(len(seeds)), seeds)
+    w.reset(range(len(seeds)), seeds)
+    worst = 0.0
+    outcomes = []
+    for step in range(max(map(len, scripts))):
+        actions = [s[step] if step < len(s) else None for s in scripts]
+        c.step(actions)
+        outcomes = w.step(actions)
+        gc_c, gc_w = c.batch.proprio().gc, w.batch.proprio().gc
+        for i, a in enumerate(actions):
+            if a is not None:
+                worst = max(worst, float(np.max(np.linalg.norm(gc_c[i] - gc_w[i], axis=-1))))
+    assert all(o is None or o.result.infrastructure_error is None for o in outcomes)
+    assert all(w.success)  # C's expert actions solve the seeds on Warp too
+    return worst
+
+
+def test_expert_finger_centre_follows_c_mujoco():
+    assert _expert_replay_gc_deviation("grasp_single_cube", 1) <= GC_TOLERANCE_M
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task_name", ["grasp_single_cube", "place_single_cube"])
+def test_expert_finger_centre_follows_c_mujoco_more_seeds(task_name):
+    assert _expert_replay_gc_deviation(task_name, 3) <= GC_TOLERANCE_M
+
+
+def test_no_gpu_gets_one_clear_message(cube, monkeypatch):
+    import warp as wp
+
+    if wp.is_cuda_available():
+        pytest.skip("this machine has a CUDA GPU")
+    monkeypatch.delenv("VABENCH_WARP_DEVICE", raising=False)
+    task, _, _ = cube
+    with pytest.raises(BackendUnavailable, match="needs an NVIDIA GPU.*VABENCH_WARP_DEVICE=cpu"):
+        TaskBatch(task, 1, backend="mjx", impl="warp")
+    proc = subprocess.run(
+        [sys.executable, "-m", "vabench.replay", "--task", task.name, "--seed", "1000"]
+        + ["--expert", "--backend", "mjx", "--impl", "warp"],
+        capture_output=True,
+        text=True,
+        env={k: v for k, v in __import__("os").environ.items() if k != "VABENCH_WARP_DEVICE"},
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "--impl warp: the Warp backend needs an NVIDIA GPU" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_missing_package_is_named(monkeypatch):
+    real = importlib.util.find_spec
+
+    def find_spec(name, *args, **kwargs):
+        return None if name == "mujoco_warp" else real(name, *args, **kwargs)
+
+    monkeypatch.setattr(importlib.util, "find_spec", find_spec)
+    problem = backends.warp_problem("cuda:0")
+    assert problem is not None
+    assert "mujoco-warp" in problem and "pip install 'vabench[gpu]'" in problem
+    with pytest.raises(BackendUnavailable, match="mujoco-warp"):
+        backends.resolve("mjx", "warp")
+    auto = backends.resolve("auto", "auto")
+    assert auto.backend == "c" and "mujoco-warp" in auto.reason
