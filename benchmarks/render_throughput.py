@@ -73,16 +73,19 @@ def main() -> None:
             f"(draw {1e3 * t_draw / n_base:.1f} ms + encode {1e3 * t_enc / n_base:.1f} ms "
             f"per image, {n_base} images)"
         )
-        print(f"{'workers':>7} {'batch':>6} {'img/s':>8} {'x base':>7} {'draw ms':>8} "
-              f"{'enc ms':>7} {'KB/img':>7}")
+        print(
+            f"{'workers':>7} {'batch':>6} {'img/s':>8} {'x base':>7} {'draw ms':>8} "
+            f"{'enc ms':>7} {'KB/img':>7}"
+        )
         for n_workers in worker_counts:
-            with RenderPool(workers=n_workers, platform=args.platform,
-                            max_size=(max_w, max_h), timeout_s=600) as pool:
-                pool.render(args.task, [RenderItem(qpos, variant, poses[0])] * n_workers,
-                            settings)  # warm up every worker
+            with RenderPool(
+                workers=n_workers, platform=args.platform, max_size=(max_w, max_h), timeout_s=600
+            ) as pool:
+                pool.render(
+                    args.task, [RenderItem(qpos, variant, poses[0])] * n_workers, settings
+                )  # warm up every worker
                 for batch in batches:
-                    items = [RenderItem(qpos, variant, poses[i % len(poses)])
-                             for i in range(batch)]
+                    items = [RenderItem(qpos, variant, poses[i % len(poses)]) for i in range(batch)]
                     before = (pool.stats.render_s, pool.stats.encode_s)
                     t0 = time.perf_counter()
                     jpegs = pool.render(args.task, items, settings)
@@ -91,18 +94,30 @@ def main() -> None:
                     enc = (pool.stats.encode_s - before[1]) / batch
                     kb = sum(len(j) for j in jpegs) / batch / 1024
                     rate = batch / wall
-                    row = dict(width=width, height=height, workers=n_workers, batch=batch,
-                               images_per_s=rate, baseline_images_per_s=base_rate,
-                               ratio=rate / base_rate, draw_ms=1e3 * draw, encode_ms=1e3 * enc,
-                               kb_per_image=kb, platform=str(pool.gl_info))
+                    row = dict(
+                        width=width,
+                        height=height,
+                        workers=n_workers,
+                        batch=batch,
+                        images_per_s=rate,
+                        baseline_images_per_s=base_rate,
+                        ratio=rate / base_rate,
+                        draw_ms=1e3 * draw,
+                        encode_ms=1e3 * enc,
+                        kb_per_image=kb,
+                        platform=str(pool.gl_info),
+                    )
                     rows.append(row)
-                    print(f"{n_workers:>7} {batch:>6} {rate:>8.1f} {rate / base_rate:>7.2f} "
-                          f"{1e3 * draw:>8.1f} {1e3 * enc:>7.1f} {kb:>7.0f}")
+                    print(
+                        f"{n_workers:>7} {batch:>6} {rate:>8.1f} {rate / base_rate:>7.2f} "
+                        f"{1e3 * draw:>8.1f} {1e3 * enc:>7.1f} {kb:>7.0f}"
+                    )
     local.close()
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"renderer": str(local.gl_info), "cpus": os.cpu_count(), "rows": rows},
-                      f, indent=1)
+            json.dump(
+                {"renderer": str(local.gl_info), "cpus": os.cpu_count(), "rows": rows}, f, indent=1
+            )
 
 
 if __name__ == "__main__":

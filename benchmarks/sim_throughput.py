@@ -50,7 +50,7 @@ STREAM = [
     {"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 60},
     {"action": "gripper.rotate_local", "axis": "rx", "sign": "+", "angle_deg": 30},
 ]
-BACKENDS = {"warp": ("mjx", "warp"), "jax": ("mjx", "jax"), "c": ("c", "-")}
+BACKENDS = {"warp": ("mjx", "warp"), "jax": ("mjx", "jax"), "c": ("c", "auto")}
 
 
 def stream_rows(arms: tuple[str, ...], n: int, t: int) -> CommandRows:
@@ -113,28 +113,39 @@ def throughput(args: argparse.Namespace, threads: int) -> list[dict]:
                 if name == "jax" and n > args.jax_max_slots:
                     continue
                 backend, impl = BACKENDS[name]
-                kwargs = {"threads": threads} if name == "c" else {}
-                variants = [(name, True)] + ([("warp+encode", False)] if name == "warp" else [])
-                if name == "c":
-                    variants.append(("C-1", True))
-                for label, encoded in variants:
+                variants: list[tuple[str, bool, dict]] = []
+                if name == "warp":
+                    loops = args.loops.split(",")
+                    for loop in loops:
+                        label = "warp" if len(loops) == 1 else f"warp/{loop}"
+                        variants.append((label, True, {"loop": loop}))
+                    if args.encode:
+                        variants.append(("warp+encode", False, {"loop": loops[0]}))
+                elif name == "c":
+                    variants += [("c", True, {"threads": threads}), ("C-1", True, {})]
+                else:
+                    variants.append((name, True, {}))
+                for label, encoded, kw in variants:
                     size = min(n, args.c1_max_slots) if label == "C-1" else n
-                    kw = {} if label == "C-1" else kwargs
                     batch = make_batch(models, size, backend, impl, **kw)
                     try:
                         first, rate = time_batch(batch, q0, size, args.repeats, encoded)
                     finally:
                         batch.close()
                     found[label] = rate
-                    row = dict(task=task_name, batch=n, backend=label, rate=rate, first_s=first)
-                    if "c" in found:
-                        row["vs_c"] = rate / found["c"]
-                    rows.append(row)
-                    ratio = f"{rate / found['c']:.2f}" if "c" in found else "-"
-                    print(
-                        f"| {task_name} | {size} | {label} | {rate:,.0f} | {first:.1f} | {ratio} |",
-                        flush=True,
+                    rows.append(
+                        dict(task=task_name, batch=size, backend=label, rate=rate, first_s=first)
                     )
+            for row in rows[len(rows) - len(found) :]:  # this size, once C is measured
+                ratio = "-"
+                if "c" in found:
+                    row["vs_c"] = row["rate"] / found["c"]
+                    ratio = f"{row['vs_c']:.2f}"
+                print(
+                    f"| {task_name} | {row['batch']} | {row['backend']} | "
+                    f"{row['rate']:,.0f} | {row['first_s']:.1f} | {ratio} |",
+                    flush=True,
+                )
     return rows
 
 
@@ -181,6 +192,8 @@ def main() -> int:
     p.add_argument("--sizes", default="256,1024,8192")
     p.add_argument("--backends", default="warp,c,jax")
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--loops", default="unrolled", help="Warp substep loops (see LOOPS)")
+    p.add_argument("--encode", action="store_true", help="also time Warp through step(dicts)")
     p.add_argument("--c1-max-slots", type=int, default=32, help="C one thread: slots timed")
     p.add_argument("--jax-max-slots", type=int, default=1024, help="MJX-JAX: largest batch")
     p.add_argument("--reset-task", default="place_single_cube")

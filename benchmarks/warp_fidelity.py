@@ -125,9 +125,7 @@ def main() -> int:
     p.add_argument("--md", default=None)
     p.add_argument("--budget-s", type=float, default=1e9, help="stop starting new families")
     args = p.parse_args()
-    names = (
-        [t.name for t in benchmark_tasks()] if args.tasks == "all" else args.tasks.split(",")
-    )
+    names = [t.name for t in benchmark_tasks()] if args.tasks == "all" else args.tasks.split(",")
     cache = SettledCache.default()
     rows, start = [], time.perf_counter()
     for name in names:

@@ -62,7 +62,8 @@ def independence(model, q0, slots: int, deterministic: bool) -> dict:
     again.reset(range(slots), np.broadcast_to(q0, (slots, len(q0))), settle_steps=100)
     for action in ACTIONS:
         again.step([NEIGHBOUR] * k + [action])
-    out["run_to_run_identical"] = equal(again.get_state(range(slots)), crowd.get_state(range(slots)))
+    everyone = list(range(slots))
+    out["run_to_run_identical"] = equal(again.get_state(everyone), crowd.get_state(everyone))
     return out
 
 

@@ -12,6 +12,11 @@ import io
 import os
 from pathlib import Path
 
+# JAX takes 75 % of a GPU's memory at its first GPU operation unless told otherwise; here it
+# shares the card with MuJoCo Warp (physics), the renderer and other sweep processes, and its
+# own arrays (predicates, MJX batches) are small. Set before JAX starts a backend.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
 import jax
 
 # mujoco.mjx prints "Failed to import warp" on stdout when MuJoCo Warp is absent; keep stdout

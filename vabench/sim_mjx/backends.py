@@ -63,6 +63,7 @@ def warp_problem(device: str | None = None) -> str | None:
     import warp as wp
 
     wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # no 'Module ... load' line per kernel module
     wp.init()
     if device.startswith("cuda"):
         if not wp.is_cuda_available():

@@ -36,6 +36,9 @@ from vabench.sim_mjx.variants import check_same_structure
 from vabench.sim_mjx.warp_model import FAILURE_BITS, WarpModel, capacity, failure_text
 
 HOLD_CHUNK = 100  # physics steps per settle graph (the reset gate holds 2,300 then 200)
+LOOPS = ("unrolled", "while", "per_step")
+"""How a graph holds the substeps: unrolled (one graph, every substep's kernels), while (one
+graph, a device-side loop over one substep), per_step (a graph per substep, launched n times)."""
 PREDICATE_LANES = 32  # width of the JAX predicate and proprio vmaps (see interface.in_lanes)
 
 
@@ -62,6 +65,13 @@ def _restore_time(
     w = wp.tid()
     if keep[w] == 0:
         t[w] = saved[w]
+
+
+@wp.kernel
+def _count(k: wp.array(dtype=int), n: int, more: wp.array(dtype=int)):
+    """One more substep done: the loop goes on while k < n (the device-side loop's test)."""
+    k[0] = k[0] + 1
+    more[0] = wp.where(k[0] < n, 1, 0)
 
 
 @wp.kernel
@@ -152,7 +162,7 @@ class WarpBatch(BatchBase):
     tests). `nconmax` / `njmax`: per-world contact and constraint-row capacity (default: sized
     from the scene). `deterministic`: MuJoCo Warp's stable contact and constraint orderings on
     GPUs (bit-reproducible, slower). `graphs`: capture CUDA graphs (GPU only; off = launch
-    kernel by kernel, for debugging).
+    kernel by kernel, for debugging). `loop`: see LOOPS.
     """
 
     def __init__(
@@ -164,6 +174,7 @@ class WarpBatch(BatchBase):
         njmax: int | None = None,
         deterministic: bool = False,
         graphs: bool = True,
+        loop: str = "unrolled",
     ):
         self._setup(model, n_slots, PREDICATE_LANES)
         check_same_structure(self.models)
@@ -172,6 +183,9 @@ class WarpBatch(BatchBase):
         self.capacity = capacity(m0, nconmax, njmax)
         self.backend_id = f"mjx-warp-{mjw.__version__}-{mujoco.__version__}-{self.device.arch}"
         self._graphs_on = graphs and self.device.is_cuda
+        if loop not in LOOPS:
+            raise ValueError(f"loop must be one of {LOOPS}, got {loop!r}")
+        self.loop = loop
         self._graphs: dict[str, wp.Graph] = {}
         n, arms = n_slots, len(self.arms)
         with wp.ScopedDevice(self.device):
@@ -195,6 +209,8 @@ class WarpBatch(BatchBase):
             self._ok = wp.zeros(n, dtype=int)
             self._mask = wp.zeros(n, dtype=int)
             self._failed = wp.zeros(n, dtype=int)
+            self._k = wp.zeros(1, dtype=int)  # substeps done in the current loop
+            self._more = wp.zeros(1, dtype=int)  # the loop goes on (device-side while)
             self._grip_open = wp.ones((n, arms), dtype=int)
             self._obs = wc.ProprioBuffers.allocate(n, arms, self.device)
             self._flags: wp.array | None = None
@@ -211,20 +227,52 @@ class WarpBatch(BatchBase):
         self.reset(range(n), np.broadcast_to(home_qpos(m0), (n, m0.nq)))
 
     # -- graphs -----------------------------------------------------------------------------
-    def _run(self, name: str, body: Callable[[], None]) -> None:
-        """Run `body` (kernel launches only) as the CUDA graph `name`, captured on first use;
-        on the CPU, or with graphs off, launch it directly."""
+    def _graph(self, name: str, body: Callable[[], None]) -> None:
+        """Launch `body` (device work only) as the CUDA graph `name`, captured on first use."""
+        graph = self._graphs.get(name)
+        if graph is None:
+            with wp.ScopedCapture(device=self.device) as capture:
+                body()
+            graph = self._graphs[name] = capture.graph
+        wp.capture_launch(graph)
+
+    def _physics(self, name: str, pre: Callable, substep: Callable, post: Callable, n: int) -> None:
+        """pre, n x substep, post: as one graph (unrolled, or a device-side while loop), as
+        graphs launched n times per substep, or (CPU, graphs off) as plain launches."""
         self._host.clear()
         with wp.ScopedDevice(self.device):
             if not self._graphs_on:
-                body()
-                return
-            graph = self._graphs.get(name)
-            if graph is None:
-                with wp.ScopedCapture(device=self.device) as capture:
-                    body()
-                graph = self._graphs[name] = capture.graph
-            wp.capture_launch(graph)
+                pre()
+                for _ in range(n):
+                    substep()
+                post()
+            elif self.loop == "per_step":
+                self._graph(f"{name}.pre", pre)
+                for _ in range(n):
+                    self._graph(f"{name}.step", substep)
+                self._graph(f"{name}.post", post)
+            elif self.loop == "while":
+
+                def body() -> None:
+                    pre()
+                    wp.capture_while(self._more, substep)
+                    post()
+
+                self._graph(f"{name}.{n}", body)
+            else:
+
+                def body() -> None:
+                    pre()
+                    for _ in range(n):
+                        substep()
+                    post()
+
+                self._graph(f"{name}.{n}", body)
+
+    def _start_loop(self, n: int) -> None:
+        self._k.zero_()
+        self._more.fill_(1 if n > 0 else 0)
+        self._d.overflow.zero_()
 
     def _save(self) -> None:
         for src, dst in zip(self._state2d, self._saved2d, strict=True):
@@ -245,8 +293,17 @@ class WarpBatch(BatchBase):
         mjw.collision(self._m, self._d)
         wc.launch_proprio(self._geoms, self._d.qpos, self._idx, self._obs, self._grip_open)
 
-    def _action_body(self) -> None:
-        n, arms, d = self.n_slots, len(self.arms), self._d
+    def _step_physics(self, n: int, with_ctrl: bool) -> Callable[[], None]:
+        def substep() -> None:
+            if with_ctrl:
+                wc.launch_ctrl(self._k, self.n_substeps, self._plan, self._idx, self._d.ctrl)
+            mjw.step(self._m, self._d)
+            wp.launch(_count, dim=1, inputs=[self._k, n], outputs=[self._more])
+
+        return substep
+
+    def _action_pre(self) -> None:
+        d = self._d
         wc.launch_plan(
             self._geoms,
             d.qpos,
@@ -261,35 +318,34 @@ class WarpBatch(BatchBase):
             self._go,
         )
         self._save()
-        d.overflow.zero_()
-        for k in range(self.n_substeps):
-            wc.launch_ctrl(k, self.n_substeps, self._plan, self._idx, d.ctrl)
-            mjw.step(self._m, d)
+        self._start_loop(self.n_substeps)
+
+    def _action_post(self) -> None:
         self._restore(self._go)
         wp.launch(
             _finish_action,
-            dim=(n, arms),
-            inputs=[self._go, self._cmd_grip, d.overflow, FAILURE_BITS],
+            dim=(self.n_slots, len(self.arms)),
+            inputs=[self._go, self._cmd_grip, self._d.overflow, FAILURE_BITS],
             outputs=[self._grip_open, self._failed],
         )
         self._observe()
 
-    def _hold_body(self, n_steps: int) -> Callable[[], None]:
-        def body() -> None:
+    def _hold_pre(self, n: int) -> Callable[[], None]:
+        def pre() -> None:
             self._save()
-            self._d.overflow.zero_()
-            for _ in range(n_steps):
-                mjw.step(self._m, self._d)
-            self._restore(self._mask)
-            wp.launch(
-                _finish_hold,
-                dim=self.n_slots,
-                inputs=[self._mask, self._d.overflow, FAILURE_BITS],
-                outputs=[self._failed],
-            )
-            self._observe()
+            self._start_loop(n)
 
-        return body
+        return pre
+
+    def _hold_post(self) -> None:
+        self._restore(self._mask)
+        wp.launch(
+            _finish_hold,
+            dim=self.n_slots,
+            inputs=[self._mask, self._d.overflow, FAILURE_BITS],
+            outputs=[self._failed],
+        )
+        self._observe()
 
     # -- the interface ----------------------------------------------------------------------
     def _execute(self, rows: CommandRows) -> StepInfo:
@@ -298,7 +354,13 @@ class WarpBatch(BatchBase):
         self._cmd_rotvec.assign(rows.rotvec.astype(np.float32))
         self._cmd_grip.assign(rows.grip.astype(np.int32))
         self._failed.zero_()
-        self._run("action", self._action_body)
+        self._physics(
+            "action",
+            self._action_pre,
+            self._step_physics(self.n_substeps, True),
+            self._action_post,
+            self.n_substeps,
+        )
         failed = self._failed.numpy()
         failure = [failure_text(int(b), self.capacity) if b else None for b in failed]
         return StepInfo(
@@ -319,7 +381,9 @@ class WarpBatch(BatchBase):
             chunks.append(n_steps % HOLD_CHUNK)
         failed = np.zeros(self.n_slots, np.int32)
         for k in chunks:
-            self._run(f"hold{k}", self._hold_body(k))
+            self._physics(
+                "hold", self._hold_pre(k), self._step_physics(k, False), self._hold_post, k
+            )
             failed |= self._failed.numpy()
         self._hold_failed = failed
 
@@ -379,7 +443,12 @@ class WarpBatch(BatchBase):
             self._variant[slots] = var
             self._wm.assign(self._variant)
         self._init_qpos[slots] = state["qpos"]
-        self._run("observe", self._observe)
+        self._host.clear()
+        with wp.ScopedDevice(self.device):
+            if self._graphs_on:
+                self._graph("observe", self._observe)
+            else:
+                self._observe()
 
     def get_state(self, slots: Sequence[int]) -> dict[str, np.ndarray]:
         slots = list(slots)

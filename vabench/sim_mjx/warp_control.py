@@ -479,7 +479,7 @@ def min_jerk(s: float) -> float:
 
 @wp.kernel
 def ctrl_kernel(
-    k: int,
+    step: wp.array(dtype=int),
     move_steps: float,
     grip_steps: float,
     waypoints: wp.array3d(dtype=vec6),
@@ -491,9 +491,11 @@ def ctrl_kernel(
     finger_act: wp.array2d(dtype=int),
     ctrl: wp.array2d(dtype=float),
 ):
-    """Arm and finger references of substep k (0-based) into ctrl (controller.ctrl_at)."""
+    """Arm and finger references of substep k = step[0] (0-based) into ctrl
+    (controller.ctrl_at). The substep comes from a device counter so that one recorded launch
+    serves every substep of a graph's loop."""
     n, a = wp.tid()
-    kk = float(k) + 1.0
+    kk = float(step[0]) + 1.0
     u = min_jerk(kk / move_steps) * float(_N_WAYPOINTS - 1)
     i = wp.clamp(int(wp.floor(u)), 0, _N_WAYPOINTS - 2)
     frac = u - float(i)
@@ -570,13 +572,15 @@ def launch_plan(
     wp.launch(slot_ok_kernel, dim=n, inputs=[plan.arm_ok, active], outputs=[ok, go])
 
 
-def launch_ctrl(k: int, n_substeps: int, plan: PlanBuffers, idx: Indices, ctrl: wp.array) -> None:
-    """Write the references of substep k into ctrl."""
+def launch_ctrl(
+    step: wp.array, n_substeps: int, plan: PlanBuffers, idx: Indices, ctrl: wp.array
+) -> None:
+    """Write the references of substep step[0] (a device counter) into ctrl."""
     wp.launch(
         ctrl_kernel,
         dim=plan.moves.shape,
         inputs=[
-            k,
+            step,
             float(rc.MOVE_FRACTION * n_substeps),
             float(rc.GRIP_FRACTION * n_substeps),
             plan.waypoints,
