@@ -53,10 +53,15 @@ STREAM = [
 BACKENDS = {"warp": ("mjx", "warp"), "jax": ("mjx", "jax"), "c": ("c", "auto")}
 
 
+def stream_for(arms: tuple[str, ...]) -> list[dict]:
+    """The stream for a scene: dual-arm scenes name the arm (the right one moves)."""
+    return STREAM if len(arms) == 1 else [{**a, "arm": "right"} for a in STREAM]
+
+
 def stream_rows(arms: tuple[str, ...], n: int, t: int) -> CommandRows:
     """Slot i does stream action (i + t), encoded in bulk from the stream's own rows."""
     template = CommandRows.idle(len(STREAM), len(arms))
-    for k, raw in enumerate(STREAM):
+    for k, raw in enumerate(stream_for(arms)):
         encode(parse_robot_action(raw, arms), arms, template, k)
     pick = (np.arange(n) + t) % len(STREAM)
     return CommandRows(
@@ -64,8 +69,9 @@ def stream_rows(arms: tuple[str, ...], n: int, t: int) -> CommandRows:
     )
 
 
-def stream_dicts(n: int, t: int) -> list[dict]:
-    return [STREAM[(i + t) % len(STREAM)] for i in range(n)]
+def stream_dicts(arms: tuple[str, ...], n: int, t: int) -> list[dict]:
+    stream = stream_for(arms)
+    return [stream[(i + t) % len(stream)] for i in range(n)]
 
 
 def time_batch(
@@ -78,7 +84,7 @@ def time_batch(
         if encoded:
             info = batch.step_rows(stream_rows(batch.arms, batch.n_slots, t))
             return int(np.sum(info.planner_success[:n]))
-        res = batch.step(stream_dicts(n, t))
+        res = batch.step(stream_dicts(batch.arms, n, t))
         return sum(bool(r and r.planner_success) for r in res)
 
     t0 = time.perf_counter()

@@ -301,8 +301,7 @@ class BatchBase:
             raise ValueError(
                 f"qpos must have shape ({len(slots)}, {self.model.nq}), got {qpos.shape}"
             )
-        for slot in slots:
-            self._check_slot(slot)
+        self._check_slots(slots)
         return qpos
 
     def _check_state(self, slots: Sequence[int], state: dict[str, np.ndarray]) -> None:
@@ -312,5 +311,11 @@ class BatchBase:
         for f in STATE_FIELDS:
             if len(state[f]) != len(slots):
                 raise ValueError(f"state[{f!r}] has {len(state[f])} rows for {len(slots)} slots")
-        for slot in slots:
-            self._check_slot(slot)
+        self._check_slots(slots)
+
+    def _check_slots(self, slots: Sequence[int]) -> None:
+        if len(slots):
+            index = np.asarray(slots)
+            if index.min() < 0 or index.max() >= self.n_slots:
+                bad = index[(index < 0) | (index >= self.n_slots)][0]
+                raise IndexError(f"slot {bad} out of range [0, {self.n_slots})")

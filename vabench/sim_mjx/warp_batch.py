@@ -36,9 +36,14 @@ from vabench.sim_mjx.variants import check_same_structure
 from vabench.sim_mjx.warp_model import FAILURE_BITS, WarpModel, capacity, failure_text
 
 HOLD_CHUNK = 100  # physics steps per settle graph (the reset gate holds 2,300 then 200)
-LOOPS = ("unrolled", "while", "per_step")
-"""How a graph holds the substeps: unrolled (one graph, every substep's kernels), while (one
-graph, a device-side loop over one substep), per_step (a graph per substep, launched n times)."""
+LOOPS = ("per_step", "unrolled")
+"""How graphs hold an action's substeps. per_step (default): a graph of one substep (references,
+mujoco_warp.step, counter), launched n times between a graph before and one after; launches
+are asynchronous, so nothing returns to the host between substeps. unrolled: one graph for the
+whole action. Measured on an H100 (docs/PERFORMANCE.md) both step equally fast, but unrolled
+costs 3.5-5 s of capture per batch shape and each distinct hold length. A device-side while
+loop (one small graph) is not possible: MuJoCo Warp allocates scratch arrays inside its step,
+and CUDA graphs allow no allocation inside a conditional body."""
 PREDICATE_LANES = 32  # width of the JAX predicate and proprio vmaps (see interface.in_lanes)
 
 
@@ -68,10 +73,9 @@ def _restore_time(
 
 
 @wp.kernel
-def _count(k: wp.array(dtype=int), n: int, more: wp.array(dtype=int)):
-    """One more substep done: the loop goes on while k < n (the device-side loop's test)."""
+def _count(k: wp.array(dtype=int)):
+    """One more substep done (the references of the next one read k)."""
     k[0] = k[0] + 1
-    more[0] = wp.where(k[0] < n, 1, 0)
 
 
 @wp.kernel
@@ -174,7 +178,7 @@ class WarpBatch(BatchBase):
         njmax: int | None = None,
         deterministic: bool = False,
         graphs: bool = True,
-        loop: str = "unrolled",
+        loop: str = "per_step",
     ):
         self._setup(model, n_slots, PREDICATE_LANES)
         check_same_structure(self.models)
@@ -210,7 +214,6 @@ class WarpBatch(BatchBase):
             self._mask = wp.zeros(n, dtype=int)
             self._failed = wp.zeros(n, dtype=int)
             self._k = wp.zeros(1, dtype=int)  # substeps done in the current loop
-            self._more = wp.zeros(1, dtype=int)  # the loop goes on (device-side while)
             self._grip_open = wp.ones((n, arms), dtype=int)
             self._obs = wc.ProprioBuffers.allocate(n, arms, self.device)
             self._flags: wp.array | None = None
@@ -237,8 +240,8 @@ class WarpBatch(BatchBase):
         wp.capture_launch(graph)
 
     def _physics(self, name: str, pre: Callable, substep: Callable, post: Callable, n: int) -> None:
-        """pre, n x substep, post: as one graph (unrolled, or a device-side while loop), as
-        graphs launched n times per substep, or (CPU, graphs off) as plain launches."""
+        """pre, n x substep, post: as graphs (see LOOPS) or, on the CPU or with graphs off, as
+        plain launches."""
         self._host.clear()
         with wp.ScopedDevice(self.device):
             if not self._graphs_on:
@@ -251,14 +254,6 @@ class WarpBatch(BatchBase):
                 for _ in range(n):
                     self._graph(f"{name}.step", substep)
                 self._graph(f"{name}.post", post)
-            elif self.loop == "while":
-
-                def body() -> None:
-                    pre()
-                    wp.capture_while(self._more, substep)
-                    post()
-
-                self._graph(f"{name}.{n}", body)
             else:
 
                 def body() -> None:
@@ -269,9 +264,8 @@ class WarpBatch(BatchBase):
 
                 self._graph(f"{name}.{n}", body)
 
-    def _start_loop(self, n: int) -> None:
+    def _start_loop(self) -> None:
         self._k.zero_()
-        self._more.fill_(1 if n > 0 else 0)
         self._d.overflow.zero_()
 
     def _save(self) -> None:
@@ -293,12 +287,12 @@ class WarpBatch(BatchBase):
         mjw.collision(self._m, self._d)
         wc.launch_proprio(self._geoms, self._d.qpos, self._idx, self._obs, self._grip_open)
 
-    def _step_physics(self, n: int, with_ctrl: bool) -> Callable[[], None]:
+    def _step_physics(self, with_ctrl: bool) -> Callable[[], None]:
         def substep() -> None:
             if with_ctrl:
                 wc.launch_ctrl(self._k, self.n_substeps, self._plan, self._idx, self._d.ctrl)
             mjw.step(self._m, self._d)
-            wp.launch(_count, dim=1, inputs=[self._k, n], outputs=[self._more])
+            wp.launch(_count, dim=1, inputs=[self._k])
 
         return substep
 
@@ -318,7 +312,7 @@ class WarpBatch(BatchBase):
             self._go,
         )
         self._save()
-        self._start_loop(self.n_substeps)
+        self._start_loop()
 
     def _action_post(self) -> None:
         self._restore(self._go)
@@ -330,12 +324,9 @@ class WarpBatch(BatchBase):
         )
         self._observe()
 
-    def _hold_pre(self, n: int) -> Callable[[], None]:
-        def pre() -> None:
-            self._save()
-            self._start_loop(n)
-
-        return pre
+    def _hold_pre(self) -> None:
+        self._save()
+        self._start_loop()
 
     def _hold_post(self) -> None:
         self._restore(self._mask)
@@ -357,7 +348,7 @@ class WarpBatch(BatchBase):
         self._physics(
             "action",
             self._action_pre,
-            self._step_physics(self.n_substeps, True),
+            self._step_physics(True),
             self._action_post,
             self.n_substeps,
         )
@@ -381,9 +372,7 @@ class WarpBatch(BatchBase):
             chunks.append(n_steps % HOLD_CHUNK)
         failed = np.zeros(self.n_slots, np.int32)
         for k in chunks:
-            self._physics(
-                "hold", self._hold_pre(k), self._step_physics(k, False), self._hold_post, k
-            )
+            self._physics("hold", self._hold_pre, self._step_physics(False), self._hold_post, k)
             failed |= self._failed.numpy()
         self._hold_failed = failed
 

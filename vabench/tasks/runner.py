@@ -134,7 +134,7 @@ class TaskBatch:
         self.batch: BatchBase = make_batch(self.models, n_slots, backend, impl, **batch_kwargs)
         self.cache = cache if cache is not None else SettledCache.default()
         self._digests = [model_digest(m) for m in self.models]
-        self._samples: dict[int, Sample] = {}
+        self._seeds: dict[int, tuple[Sample, np.ndarray, str]] = {}
         self.n_slots = n_slots
         self.ix = ObjectIndex.from_model(self.models[0])
         self.side_a, self.side_b = contact_masks(task, self.models[0])
@@ -156,9 +156,22 @@ class TaskBatch:
     # -- episodes ---------------------------------------------------------------------------
     def sample(self, seed: int) -> Sample:
         """The seed's initial state (samplers are deterministic; some are slow, so memoised)."""
-        if seed not in self._samples:
-            self._samples[seed] = self.task.sample(seed)
-        return self._samples[seed]
+        return self._seed(seed)[0]
+
+    def _seed(self, seed: int) -> tuple[Sample, np.ndarray, str]:
+        """(sample, initial qpos, settled-state cache key) of a seed, memoised: a reset of
+        many slots repeats few seeds (the seeds of a task times its runs)."""
+        entry = self._seeds.get(seed)
+        if entry is None:
+            task = self.task
+            sample = task.sample(seed)
+            qpos = np.asarray(task.initial_qpos(self.models[sample.variant], sample), float)
+            schedule = (task.settle_steps + task.observe_steps - DRIFT_WINDOW, DRIFT_WINDOW)
+            key = settle_key(
+                task.name, self.batch.backend_id, self._digests[sample.variant], qpos, schedule
+            )
+            entry = self._seeds[seed] = (sample, qpos, key)
+        return entry
 
     def reset(self, slots: Sequence[int], seeds: Sequence[int]) -> list[SettleReport]:
         """Start episodes: place each seed's objects, settle, and gate on drift (FACTS). Seeds
@@ -166,26 +179,18 @@ class TaskBatch:
         slots, seeds = list(slots), list(seeds)
         if len(slots) != len(seeds):
             raise ValueError(f"{len(slots)} slots but {len(seeds)} seeds")
-        task = self.task
-        samples = [self.sample(s) for s in seeds]
-        qpos = np.stack([task.initial_qpos(self.models[sm.variant], sm) for sm in samples])
-        variants = [sm.variant for sm in samples]
-        schedule = (task.settle_steps + task.observe_steps - DRIFT_WINDOW, DRIFT_WINDOW)
-        keys = [
-            settle_key(task.name, self.batch.backend_id, self._digests[v], q, schedule)
-            for v, q in zip(variants, qpos, strict=True)
-        ]
-        settled = [self.cache.get(k) for k in keys]
-        hit = [row for row, st in enumerate(settled) if st is not None]
-        miss = [row for row, st in enumerate(settled) if st is None]
+        entries = [self._seed(s) for s in seeds]
+        settled = {s: self.cache.get(self._seed(s)[2]) for s in dict.fromkeys(seeds)}
+        hit = [r for r, s in enumerate(seeds) if settled[s] is not None]
+        miss = [r for r, s in enumerate(seeds) if settled[s] is None]
         if hit:
-            self.batch.set_state(
-                [slots[r] for r in hit],
-                {f: np.stack([settled[r].state[f] for r in hit]) for f in settled[hit[0]].state},  # type: ignore[union-attr]
-                [variants[r] for r in hit],
-            )
+            self._load([slots[r] for r in hit], [seeds[r] for r in hit], settled)
         if miss:
-            self._settle([slots[r] for r in miss], qpos[miss], [variants[r] for r in miss])
+            self._settle(
+                [slots[r] for r in miss],
+                np.stack([entries[r][1] for r in miss]),
+                [entries[r][0].variant for r in miss],
+            )
             failures = self.batch.failures()
             before, after = self._settle_before, self.batch.qpos()
             states = self.batch.get_state([slots[r] for r in miss])
@@ -203,25 +208,34 @@ class TaskBatch:
                     bool(np.isfinite(after[slot]).all()),
                     float(drift),
                 )
-                settled[row] = st
                 if failures[slot] is None:
-                    self.cache.put(keys[row], st)
+                    self.cache.put(entries[row][2], st)
+                settled[seeds[row]] = st  # later rows of this seed read the same report
         self._observed = None
-        after = self.batch.qpos()
-        failures = self.batch.failures()
+        failures = self.batch.failures() if miss else [None] * self.batch.n_slots
+        missed = set(miss)
         reports = []
-        for row, (slot, seed, sample) in enumerate(zip(slots, seeds, samples, strict=True)):
-            st = settled[row]
+        for row, (slot, seed) in enumerate(zip(slots, seeds, strict=True)):
+            st = settled[seed]
             assert st is not None
-            error = failures[slot] if row in miss else None
-            reports.append(SettleReport(seed, st.finite, st.drift_deg, error, row in hit))
-            self.samples[slot], self.seeds[slot] = sample, seed
-            self.init_qpos[slot] = after[slot]
-            self.latched[slot] = False
-            self.progress[slot] = 0
-            self.success[slot] = False
-            self.steps[slot] = 0
+            error = failures[slot] if row in missed else None
+            reports.append(SettleReport(seed, st.finite, st.drift_deg, error, row not in missed))
+            self.samples[slot], self.seeds[slot] = entries[row][0], seed
+        self.init_qpos[slots] = self.batch.qpos()[slots]
+        self.latched[slots] = False
+        self.progress[slots] = 0
+        self.success[slots] = False
+        self.steps[slots] = 0
         return reports
+
+    def _load(self, slots: list[int], seeds: list[int], settled: dict[int, Any]) -> None:
+        """Put `slots` in their seeds' cached settled states, stacked per distinct seed."""
+        distinct = list(dict.fromkeys(seeds))
+        where = {s: i for i, s in enumerate(distinct)}
+        pick = np.array([where[s] for s in seeds])
+        fields = settled[distinct[0]].state
+        state = {f: np.stack([settled[s].state[f] for s in distinct])[pick] for f in fields}
+        self.batch.set_state(slots, state, [self._seed(s)[0].variant for s in seeds])
 
     def _settle(self, slots: list[int], qpos: np.ndarray, variants: list[int]) -> None:
         """Reset `slots` to `qpos` and run the settle schedule; keeps the qpos of these slots
