@@ -7,10 +7,13 @@ the far end, the striking face pointing -y; a red 0.05 m steel block (cube, 0.5 
 x in [0.14, 0.22], y in [0.06, 0.13]. The paper's yaw in [-0.5, 0.5] rad is the block's (as in
 RoboTwin, which places the hammer in a fixed orientation and randomises the block's yaw); the
 hammer's yaw is 0.
-Success (all now, plus one latch), as the paper's row:
+Success (all now, plus one latch), as the paper's row ("Hammer lifted with contact by
+>40 mm; ... physical hammer-block contact; gripper closed"):
 - lifted: the hammer was lifted > 40 mm above its settled height while held (right gripper
   closed and touching it) at some point (latched);
 - gripper_closed: the right gripper closed;
+- held: ... and touching the hammer: the row's "with contact" holds at the strike too, so a
+  hammer that left the fingers (thrown, dropped) and lands on the block does not pass;
 - aligned: the hammer's functional point, the centre of the striking face, p_h + R_h
   (0.115, -0.05, 0), within 20 mm (strictly) in x and in y of the block's top centre,
   p_b + R_b (0, 0, 0.025); computed from the hammer's pose, so any hammer orientation counts;
@@ -87,6 +90,7 @@ class BeatBlockHammerRight(Task):
         checks = {
             "lifted": lifted,
             "gripper_closed": closed,
+            "held": held,
             "aligned": aligned,
             "contact": touching,
         }
@@ -102,7 +106,7 @@ class BeatBlockHammerRight(Task):
             checks=checks,
             latched=jnp.array([lifted]),
             subgoals=subgoals,
-            success=lifted & closed & aligned & touching,
+            success=lifted & held & aligned & touching,
         )
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:

@@ -34,7 +34,13 @@ def lifted(ix: ObjectIndex, s: SlotState, obj: str, by: float = LIFT_M) -> jax.A
 def grasp_evaluation(
     task: Task, ix: ObjectIndex, s: SlotState, latched: jax.Array, obj: str
 ) -> Evaluation:
-    """The grasp predicate of tab:seed-spec-grasp: lifted > 50 mm and the right gripper closed."""
+    """The grasp predicate of tab:seed-spec-grasp: lifted > 50 mm and the right gripper closed.
+
+    The paper's row asks for no contact, so none is tested here (contact only moves the
+    "grasped" checkpoint): a thrown object would pass this row, and it is the physics that must
+    not throw one (assets/scene/table.xml; tests/test_grasp_hold.py checks every grasping
+    family's retained seeds). The hammer's row does say "with contact", and its predicate
+    tests it."""
     r = task.arm("right")
     up = lifted(ix, s, obj)
     closed = ~s.grip_open[r]
