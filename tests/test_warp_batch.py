@@ -20,14 +20,14 @@ import pytest
 pytest.importorskip("warp", reason="the Warp backend needs warp-lang (the [test] extra has it)")
 pytest.importorskip("mujoco_warp", reason="the Warp backend needs mujoco-warp ([test] extra)")
 
-from vabench.seeds import verified_seeds  # noqa: E402
-from vabench.sim_mjx import backends  # noqa: E402
-from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
-from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase  # noqa: E402
-from vabench.sim_mjx.reset_cache import SettledCache  # noqa: E402
-from vabench.sim_mjx.warp_batch import WarpBatch  # noqa: E402
-from vabench.tasks import get_task  # noqa: E402
-from vabench.tasks.runner import TaskBatch, run_experts  # noqa: E402
+from vabench.seeds import verified_seeds
+from vabench.sim_mjx import backends
+from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase
+from vabench.sim_mjx.reset_cache import SettledCache
+from vabench.sim_mjx.warp_batch import WarpBatch
+from vabench.tasks import get_task
+from vabench.tasks.runner import TaskBatch, run_experts
 
 DOWN = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 40}
 RIGHT = {"action": "gripper.move_world", "axis": "x", "sign": "+", "distance_mm": 30}
@@ -193,7 +193,7 @@ def test_no_gpu_gets_one_clear_message(cube, monkeypatch):
         pytest.skip("this machine has a CUDA GPU")
     monkeypatch.delenv("VABENCH_WARP_DEVICE", raising=False)
     task, _, _ = cube
-    with pytest.raises(BackendUnavailable, match="needs an NVIDIA GPU.*VABENCH_WARP_DEVICE=cpu"):
+    with pytest.raises(BackendUnavailable, match=r"needs an NVIDIA GPU.*VABENCH_WARP_DEVICE=cpu"):
         TaskBatch(task, 1, backend="mjx", impl="warp")
     proc = subprocess.run(
         [sys.executable, "-m", "vabench.replay", "--task", task.name, "--seed", "1000"]
