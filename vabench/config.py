@@ -18,7 +18,8 @@
     runs: 3
     step_budget: 5                 # optional cap on every task's budget (smoke runs)
     simulator: {backend: mjx, impl: jax, lanes: null, window_s: 0.01}
-    render: {width: 1280, height: 960, quality: 95, workers: 2, platform: auto}
+    render: {backend: auto, width: 1280, height: 960, quality: 95, subsampling: "420",
+             workers: 2, platform: auto}   # backend: auto | warp (GPU) | gl
     executor: {kind: local, address: null, max_tasks: 4, max_episodes: 256, slots_per_task: null}
     retries: {infrastructure_rounds: 3}
 
@@ -59,6 +60,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from vabench.llm_pool.config import ApiName, ConfigError, ModelEndpoint
 from vabench.llm_pool.policies import POLICIES
 from vabench.llm_pool.server import ServerConfig
+from vabench.render.images import ImageSettings
 from vabench.seeds import verified_seeds
 from vabench.tasks import BASE_FAMILIES, REGISTRY, SUITES
 
@@ -123,13 +125,23 @@ class SimulatorOptions(_Strict):
 
 
 class RenderOptions(_Strict):
+    backend: Literal["auto", "warp", "gl"] = "auto"
+    """warp: MuJoCo Warp's batch ray tracer on an NVIDIA GPU (the [gpu] extra); gl: the GL
+    worker processes (EGL, or Mesa's llvmpipe without a GPU); auto: warp where it can run,
+    else gl (`vabench.render.backends`)."""
     width: int = Field(default=1280, ge=16, le=1280)
     height: int = Field(default=960, ge=16, le=960)
     """Model image size; at most the camera's 1280x960 (FACTS)."""
     quality: int = Field(default=95, ge=1, le=100)
+    subsampling: Literal["420", "422", "444"] = "420"
+    """JPEG chroma subsampling (libjpeg's default 4:2:0), the same on both backends."""
     workers: int = Field(default=2, ge=1)
-    """Render worker processes per sweep process."""
+    """GL render worker processes per sweep process (backend gl)."""
     platform: Literal["auto", "egl", "osmesa"] = "auto"
+    """The GL platform (backend gl)."""
+
+    def image_settings(self) -> ImageSettings:
+        return ImageSettings(self.width, self.height, self.quality, self.subsampling)
 
 
 class ExecutorOptions(_Strict):

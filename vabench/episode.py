@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import logging
 import sys
@@ -31,7 +32,8 @@ from vabench.llm_pool.config import ConfigError, load_endpoints
 from vabench.llm_pool.policies import POLICIES
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
-from vabench.render.worker import ImageSettings, RenderPool
+from vabench.render.backends import make_renderer
+from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import BackendUnavailable
 
 
@@ -106,11 +108,12 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
     )
     image = ImageSettings(args.width, args.height, args.quality)
     impl = {"impl": args.impl} if args.backend == "mjx" else {}
+    rp, choice = make_renderer(
+        args.render, workers=1, platform=args.platform, max_size=(args.width, args.height)
+    )
     try:
-        with RenderPool(
-            workers=1, platform=args.platform, max_size=(args.width, args.height)
-        ) as rp:
-            print(f"renderer: {rp.gl_info}", file=sys.stderr)
+        with contextlib.closing(rp):
+            print(f"renderer: {rp.start()} ({choice.reason})", file=sys.stderr)
             async with (
                 LLMPool(endpoints) as llm,
                 task_services(
@@ -153,6 +156,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=("jax", "warp"),
         default="jax",
         help="with --backend mjx: MJX on JAX or MuJoCo Warp (NVIDIA GPU, [gpu] extra)",
+    )
+    p.add_argument(
+        "--render",
+        choices=("auto", "warp", "gl"),
+        default="auto",
+        help="renderer: warp (GPU ray tracer), gl, or auto (warp where it can run)",
     )
     p.add_argument("--platform", choices=("auto", "egl", "osmesa"), default="auto")
     p.add_argument("--width", type=int, default=1280)

@@ -53,7 +53,8 @@ from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.messages import ChatRequest, Image, Usage
 from vabench.llm_pool.pool import LLMPool
 from vabench.render import camera as cam
-from vabench.render.worker import ImageSettings, RenderError, RenderItem, RenderPool
+from vabench.render.backends import Renderer
+from vabench.render.images import ImageSettings, RenderError, RenderItem
 from vabench.sim_mjx.interface import SimulationError
 from vabench.tasks.base import Task
 
@@ -245,7 +246,7 @@ class Episode:
         else:
             poses, view = cam.passive_bundle(snap.gcs, self.arms), PASSIVE_VIEW_NAME
         jpegs = await self.svc.render.render(
-            [RenderItem(snap.qpos, snap.variant, p) for p in poses]
+            [RenderItem(snap.qpos, snap.variant, p, slot=snap.slot) for p in poses]
         )
         text = observation_text(
             step=step,
@@ -466,7 +467,7 @@ async def task_services(
     task: Task,
     n_slots: int,
     llm: LLMPool,
-    render_pool: RenderPool,
+    render_pool: Renderer,
     *,
     backend: str = "mjx",
     image: ImageSettings | None = None,
@@ -485,11 +486,16 @@ async def task_services(
     render = RenderService(
         render_pool, task.name, image or ImageSettings(), window_s=render_window_s
     )
+    # Warp physics and the Warp renderer on one GPU: images read the state on the device.
+    attach = getattr(render_pool, "attach", None)
+    shared = bool(attach and attach(task.name, sim.batch.batch))
     try:
         yield TaskServices(sim, render, llm, settings or EngineSettings())
     finally:
         await sim.close()
         await render.close()
+        if shared:
+            render_pool.detach(task.name)  # type: ignore[attr-defined]
 
 
 async def run_episodes(specs: Sequence[EpisodeSpec], services: TaskServices) -> list[EpisodeResult]:

@@ -8,7 +8,8 @@ worker thread, one call at a time, and every answer carries a `SlotSnapshot` rea
 call, so an episode never reads the batch while another call changes it.
 
 `RenderService` does the same for images: the render items of every episode that asks within
-the window go to the `RenderPool` as one request, split over its worker processes.
+the window go to the renderer as one request (`vabench.render.backends`: the GL worker
+processes, or one pass of the Warp ray tracer on a GPU).
 
 A snapshot holds both sides of the privilege boundary, kept apart by name: `proprio` is the
 model-visible robot state (the fields of FACTS, via `proprio_fields`); `qpos`, `variant` and
@@ -24,7 +25,8 @@ from typing import Any, Literal
 import numpy as np
 
 from vabench.agent.batching import MicroBatcher
-from vabench.render.worker import ImageSettings, RenderItem, RenderPool
+from vabench.render.backends import Renderer
+from vabench.render.images import ImageSettings, RenderItem
 from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks.base import Task
 from vabench.tasks.runner import SettleReport, StepOutcome, TaskBatch
@@ -36,6 +38,7 @@ class SlotSnapshot:
 
     proprio: dict[str, dict[str, Any]]  # model-visible
     qpos: np.ndarray  # evaluator-side: for the renderer
+    slot: int  # evaluator-side: where the renderer may read the state on the device
     variant: int  # evaluator-side: object model id
     gcs: dict[str, np.ndarray]  # evaluator-side: camera targets (GC per arm)
     progress: int  # checkpoints reached (evaluator-side)
@@ -144,6 +147,7 @@ class SimService:
             snapshot = SlotSnapshot(
                 proprio=proprio_fields(p, r.slot, tb.batch.arms),
                 qpos=np.array(qpos[r.slot]),
+                slot=r.slot,
                 variant=int(variants[r.slot]),
                 gcs={arm: np.array(p.gc[r.slot, i]) for i, arm in enumerate(tb.batch.arms)},
                 progress=int(tb.progress[r.slot]),
@@ -157,7 +161,7 @@ class RenderService:
 
     def __init__(
         self,
-        pool: RenderPool,
+        pool: Renderer,
         task_name: str,
         settings: ImageSettings,
         *,

@@ -2,6 +2,7 @@
 
     python -m vabench.render snapshot --task T --seed S [--view V | --passive] --out DIR
     python -m vabench.render sheet --out FILE.png [--tasks a,b] [--size 320x240]
+    python -m vabench.render parity --out FILE.png [--tasks a,b] [--size 320x240]
 
 `snapshot` resets the seed (C MuJoCo by default, as the seeds were screened) and writes the
 JPEGs a model would receive at reset: the head view "center_high", one semantic view, or the
@@ -9,11 +10,15 @@ five-view passive bundle in its fixed order (files numbered in that order); `--d
 debug_*.jpg beside them for people (contact points, GC markers, site frames, a label).
 `sheet` writes one contact sheet for people: every base task at its first retained seed, in
 the head view and the five semantic views, with labels on the sheet (never on model images).
+`parity` puts the GL and the Warp renderer side by side: per task a GL row and a Warp row of
+the same six views, and prints the mean absolute difference of every image (grey levels).
+`--renderer` picks the renderer of `snapshot` and `sheet` (auto: Warp where it can run).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import logging
 import sys
@@ -24,8 +29,10 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from vabench.render import camera as cam
+from vabench.render.backends import make_renderer
 from vabench.render.debug import DebugOverlays
-from vabench.render.worker import ImageSettings, RenderItem, RenderPool
+from vabench.render.images import ImageSettings, RenderItem
+from vabench.render.worker import RenderPool
 
 
 def reset_state(task_name: str, seed: int, backend: str) -> tuple[np.ndarray, int, dict]:
@@ -61,11 +68,13 @@ def snapshot(args: argparse.Namespace) -> None:
     poses = _views(arms, gcs, args.view, args.passive)
     settings = ImageSettings(args.width, args.height, args.quality)
     items = [RenderItem(qpos, variant, p) for p in poses]
-    with RenderPool(workers=1, platform=args.platform) as pool:
-        print(f"renderer: {pool.gl_info}", file=sys.stderr)
-        jpegs = pool.render(args.task, items, settings)
-        debug = []
-        if args.debug:  # for people: same views with contacts, GC markers, frames and a label
+    renderer, choice = make_renderer(args.renderer, workers=1, platform=args.platform)
+    with contextlib.closing(renderer):
+        print(f"renderer: {renderer.start()} ({choice.reason})", file=sys.stderr)
+        jpegs = renderer.render(args.task, items, settings)
+    debug = []
+    if args.debug:  # for people: same views with contacts, GC markers, frames and a label
+        with RenderPool(workers=1, platform=args.platform) as pool:
             debug = [
                 pool.render_debug(
                     args.task,
@@ -111,8 +120,9 @@ def sheet(args: argparse.Namespace) -> None:
     for c, name in enumerate(columns):
         draw.text((label_w + c * tw + 6, 6), name, fill=(0, 0, 0))
     settings = ImageSettings(args.width, args.height, args.quality)
-    with RenderPool(workers=args.workers, platform=args.platform) as pool:
-        print(f"renderer: {pool.gl_info}", file=sys.stderr)
+    pool, choice = make_renderer(args.renderer, workers=args.workers, platform=args.platform)
+    with contextlib.closing(pool):
+        print(f"renderer: {pool.start()} ({choice.reason})", file=sys.stderr)
         for r, task_name in enumerate(tasks):
             arms = REGISTRY[task_name].arms
             seed = verified_seeds(task_name)[0]
@@ -131,6 +141,63 @@ def sheet(args: argparse.Namespace) -> None:
     print(out)
 
 
+def parity(args: argparse.Namespace) -> None:
+    from vabench.render.warp_renderer import WarpRenderPool
+    from vabench.seeds import verified_seeds
+    from vabench.tasks import REGISTRY
+
+    tasks = args.tasks.split(",")
+    unknown = sorted(set(tasks) - set(REGISTRY))
+    if unknown:
+        raise SystemExit(f"unknown tasks {unknown}; tasks: {sorted(REGISTRY)}")
+    tw, th = (int(v) for v in args.size.split("x"))
+    label_w, header_h = 190, 24
+    columns = [cam.HEAD_VIEW, *cam.VIEWS]
+    rows = 2 * len(tasks)
+    sheet_img = Image.new("RGB", (label_w + tw * len(columns), header_h + th * rows), "white")
+    draw = ImageDraw.Draw(sheet_img)
+    for c, name in enumerate(columns):
+        draw.text((label_w + c * tw + 6, 6), name, fill=(0, 0, 0))
+    settings = ImageSettings(args.width, args.height, 100, "444")  # compare pixels, not JPEG
+    size = (args.width, args.height)
+    with (
+        RenderPool(workers=1, platform=args.platform, max_size=size) as gl_pool,
+        WarpRenderPool(max_size=size) as warp_pool,
+    ):
+        print(f"renderers: {gl_pool.gl_info} | {warp_pool.info}", file=sys.stderr)
+        for r, task_name in enumerate(tasks):
+            arms = REGISTRY[task_name].arms
+            seed = verified_seeds(task_name)[0]
+            qpos, variant, gcs = reset_state(task_name, seed, args.backend)
+            poses = [cam.head_view(gcs, arms), *cam.passive_bundle(gcs, arms)]
+            items = [RenderItem(qpos, variant, p) for p in poses]
+            gl_rgb = [_decode(j) for j in gl_pool.render(task_name, items, settings)]
+            warp_rgb = warp_pool.render_rgb(task_name, items, settings)
+            gaps = [
+                float(np.abs(g.astype(int) - w).mean())
+                for g, w in zip(gl_rgb, warp_rgb, strict=True)
+            ]
+            print(
+                f"{task_name} seed {seed}: mean |GL - Warp| per view: "
+                + ", ".join(f"{c} {d:.2f}" for c, d in zip(columns, gaps, strict=True))
+            )
+            rows: list[tuple[str, Sequence[np.ndarray]]] = [("GL", gl_rgb), ("Warp", warp_rgb)]
+            for k, (label, frames) in enumerate(rows):
+                y = header_h + (2 * r + k) * th
+                draw.text((6, y + 6), f"{task_name}\nseed {seed}\n{label}", fill=(0, 0, 0))
+                for c, rgb in enumerate(frames):
+                    thumb = Image.fromarray(np.asarray(rgb)).resize((tw, th))
+                    sheet_img.paste(thumb, (label_w + c * tw, y))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sheet_img.save(out)
+    print(out)
+
+
+def _decode(jpeg: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB"))
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m vabench.render",
@@ -140,7 +207,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--backend", choices=("c", "mjx"), default="c")
+        p.add_argument("--backend", choices=("c", "mjx"), default="c", help="physics")
+        p.add_argument("--renderer", choices=("auto", "warp", "gl"), default="auto")
         p.add_argument("--platform", choices=("auto", "egl", "osmesa"), default="auto")
         p.add_argument("--width", type=int, default=1280)
         p.add_argument("--height", type=int, default=960)
@@ -168,6 +236,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     sh.add_argument("--workers", type=int, default=2)
     common(sh)
     sh.set_defaults(run=sheet)
+
+    par = sub.add_parser("parity", help="GL and Warp images of the same views side by side")
+    par.add_argument("--out", required=True)
+    par.add_argument("--tasks", default="place_single_cube,place_shoe")
+    par.add_argument("--size", default="320x240", help="thumbnail size WxH")
+    common(par)
+    par.set_defaults(run=parity)
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")

@@ -34,49 +34,12 @@ from typing import Any
 import numpy as np
 
 from vabench.render import gl
-from vabench.render.camera import CameraPose
 from vabench.render.debug import DebugOverlays
+from vabench.render.images import ImageSettings, RenderError, RenderItem, RenderStats
+
+__all__ = ["ImageSettings", "RenderError", "RenderItem", "RenderPool", "RenderStats"]
 
 log = logging.getLogger(__name__)
-
-
-class RenderError(RuntimeError):
-    """A render request that could not be served."""
-
-
-@dataclass(frozen=True)
-class RenderItem:
-    """One image to make: a slot's state, its object model id, and the camera."""
-
-    qpos: np.ndarray
-    variant: int
-    camera: CameraPose
-
-
-@dataclass(frozen=True)
-class ImageSettings:
-    """Resolution and JPEG quality of model images (FACTS: 1280x960, q95)."""
-
-    width: int = 1280
-    height: int = 960
-    quality: int = 95
-
-    def __post_init__(self) -> None:
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
-        if not 1 <= self.quality <= 100:
-            raise ValueError(f"JPEG quality must be in [1, 100], got {self.quality}")
-
-
-@dataclass
-class RenderStats:
-    requests: int = 0
-    images: int = 0
-    restarts: int = 0
-    retries: int = 0
-    render_s: float = 0.0  # inside workers: drawing and reading pixels
-    encode_s: float = 0.0  # inside workers: JPEG encoding
-    wall_s: float = 0.0  # around whole requests, in the caller
 
 
 # -- the worker process ------------------------------------------------------------------------
@@ -88,7 +51,8 @@ def _worker_main(conn: Connection, platform: str, max_size: tuple[int, int]) -> 
     gl.configure(platform)
     os.environ.setdefault("JAX_PLATFORMS", "cpu")  # task modules import JAX; keep it off GPUs
     try:
-        from vabench.render.renderer import SceneRenderer, encode_jpeg
+        from vabench.render.images import encode_jpeg
+        from vabench.render.renderer import SceneRenderer
         from vabench.tasks import REGISTRY
 
         probe = gl.make_context(platform, 16, 16)
@@ -134,7 +98,7 @@ def _worker_main(conn: Connection, platform: str, max_size: tuple[int, int]) -> 
                 except ValueError as err:
                     raise _RequestError(str(err)) from None
                 t1 = time.perf_counter()
-                images.append(encode_jpeg(rgb, settings.quality))
+                images.append(encode_jpeg(rgb, settings.quality, settings.subsampling))
                 t_render += t1 - t0
                 t_encode += time.perf_counter() - t1
             conn.send(("ok", images, t_render, t_encode))

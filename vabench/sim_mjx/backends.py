@@ -18,6 +18,7 @@ from __future__ import annotations
 import importlib.metadata
 import importlib.util
 import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -51,6 +52,19 @@ class Choice:
 def warp_device() -> str:
     """The Warp device the Warp backend uses: VABENCH_WARP_DEVICE, else the first CUDA GPU."""
     return os.environ.get("VABENCH_WARP_DEVICE", "cuda:0")
+
+
+_DEVICE_LOCKS: dict[str, threading.RLock] = {}
+_DEVICE_LOCKS_GUARD = threading.Lock()
+
+
+def device_lock(device: str) -> threading.RLock:
+    """The lock of one Warp device, held by whoever queues work on it (the physics batch for a
+    whole action, the renderer for a whole pass). Warp queues every launch of a device on one
+    stream, so the work of two threads could interleave: a render that reads a batch's state
+    between two substeps of an action would see slots the action has not yet restored."""
+    with _DEVICE_LOCKS_GUARD:
+        return _DEVICE_LOCKS.setdefault(str(device), threading.RLock())
 
 
 def warp_problem(device: str | None = None) -> str | None:

@@ -29,6 +29,7 @@ import warp as wp
 
 from vabench.sim_mjx import warp_control as wc
 from vabench.sim_mjx.actions import CommandRows
+from vabench.sim_mjx.backends import device_lock
 from vabench.sim_mjx.interface import BatchBase, StepInfo
 from vabench.sim_mjx.layout import Proprio
 from vabench.sim_mjx.scene import home_qpos
@@ -119,6 +120,14 @@ def _scatter_rows(
 
 
 @wp.kernel
+def _gather_rows(
+    idx: wp.array(dtype=int), src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float)
+):
+    i, j = wp.tid()
+    dst[i, j] = src[idx[i], j]
+
+
+@wp.kernel
 def _scatter_int_rows(
     idx: wp.array(dtype=int), rows: wp.array2d(dtype=int), dst: wp.array2d(dtype=int)
 ):
@@ -184,6 +193,7 @@ class WarpBatch(BatchBase):
         check_same_structure(self.models)
         m0 = self.model
         self.device = wp.get_device(device or "cuda:0")
+        self.lock = device_lock(str(self.device))
         self.capacity = capacity(m0, nconmax, njmax)
         self.backend_id = f"mjx-warp-{mjw.__version__}-{mujoco.__version__}-{self.device.arch}"
         self._graphs_on = graphs and self.device.is_cuda
@@ -243,7 +253,7 @@ class WarpBatch(BatchBase):
         """pre, n x substep, post: as graphs (see LOOPS) or, on the CPU or with graphs off, as
         plain launches."""
         self._host.clear()
-        with wp.ScopedDevice(self.device):
+        with self.lock, wp.ScopedDevice(self.device):
             if not self._graphs_on:
                 pre()
                 for _ in range(n):
@@ -413,7 +423,7 @@ class WarpBatch(BatchBase):
         if not slots:
             return
         d = self._d
-        with wp.ScopedDevice(self.device):
+        with self.lock, wp.ScopedDevice(self.device):
             idx = wp.array(np.asarray(slots, np.int32), dtype=int)
             for name, dst in (
                 ("qpos", d.qpos),
@@ -433,7 +443,7 @@ class WarpBatch(BatchBase):
             self._wm.assign(self._variant)
         self._init_qpos[slots] = state["qpos"]
         self._host.clear()
-        with wp.ScopedDevice(self.device):
+        with self.lock, wp.ScopedDevice(self.device):
             if self._graphs_on:
                 self._graph("observe", self._observe)
             else:
@@ -451,6 +461,15 @@ class WarpBatch(BatchBase):
             "warmstart": d.qacc_warmstart.numpy()[slots],
             "grip_open": self._grip_open.numpy()[slots].astype(bool),
         }
+
+    def copy_qpos(self, slots: wp.array, dst: wp.array) -> None:
+        """Rows `slots` of the device qpos into rows 0.. of `dst` (a device array on this
+        batch's device), queued behind every action already queued: the renderer reads the
+        state where the physics left it, without a trip through the host."""
+        with self.lock, wp.ScopedDevice(self.device):
+            wp.launch(
+                _gather_rows, dim=(slots.shape[0], dst.shape[1]), inputs=[slots, self._d.qpos, dst]
+            )
 
     def _fetch(self, name: str, array: wp.array) -> np.ndarray:
         if name not in self._host:

@@ -25,8 +25,9 @@ from mujoco_warp._src import types as mjw_types
 
 # Fields that may differ between variants without being batched: they serve features the
 # scenes do not use (dof_length weighs velocities for sleeping, which is off) or only the
-# renderer (materials, lights, cameras), which builds its own model.
-_IGNORED_DIFFERENCES = ("dof_length", "mat_", "light_", "cam_", "tex", "bvh_")
+# renderer (materials, lights, cameras), which builds its own model (`RENDER_IGNORED`).
+PHYSICS_IGNORED = ("dof_length", "mat_", "light_", "cam_", "tex", "bvh_")
+RENDER_IGNORED = ("dof_length",)
 
 # Overflow bits that make a world's physics untrustworthy (buffers too small). The solver's
 # iteration limits (ITERATIONS, LS_ITERATIONS) are not failures: 10 Newton iterations are the
@@ -114,9 +115,18 @@ def _batchable(name: str) -> bool:
 
 class WarpModel:
     """The device model of a batch: variant 0's model with the fields that differ between
-    variants batched per world. `assign(variants)` points every world at its slot's variant."""
+    variants batched per world. `assign(variants)` points every world at its slot's variant.
 
-    def __init__(self, models: Sequence[mujoco.MjModel], n_slots: int):
+    `ignore`: name prefixes of fields whose differences do not matter to the user of the model;
+    `per_world`: fields batched whether or not they differ (the renderer's camera FOV)."""
+
+    def __init__(
+        self,
+        models: Sequence[mujoco.MjModel],
+        n_slots: int,
+        ignore: tuple[str, ...] = PHYSICS_IGNORED,
+        per_world: tuple[str, ...] = (),
+    ):
         self.n_slots = n_slots
         per_variant = [mjw.put_model(m) for m in models]
         first = _array_fields(per_variant[0])
@@ -126,7 +136,7 @@ class WarpModel:
                 a, b = first[name].numpy(), arr.numpy()
                 if a.shape == b.shape and np.array_equal(a, b):
                     continue
-                if name.startswith(_IGNORED_DIFFERENCES) or name in varying:
+                if name.startswith(ignore) or name in varying:
                     continue
                 if "." in name or not _batchable(name):
                     raise ValueError(
@@ -138,7 +148,8 @@ class WarpModel:
         self.values = {
             name: np.stack([getattr(mw, name).numpy()[0] for mw in per_variant]) for name in varying
         }
-        self.model = mjw.put_model(models[0], batch_sizes={name: n_slots for name in varying})
+        batched = {name: n_slots for name in (*varying, *per_world)}
+        self.model = mjw.put_model(models[0], batch_sizes=batched)
         self.model.opt.warn_overflow = 0  # overflow is reported per slot (failure_text)
         self.current = np.zeros(n_slots, np.int32)
 

@@ -33,7 +33,8 @@ from vabench.agent.learning import LearningLimits
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
-from vabench.render.worker import ImageSettings, RenderPool
+from vabench.render.backends import Renderer, make_renderer
+from vabench.render.images import ImageSettings
 from vabench.sweep.results import Ledger, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -143,15 +144,16 @@ class LocalSweep:
                 limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
             )
             render = cfg.render
-            pool = RenderPool(
+            pool, choice = make_renderer(
+                render.backend,
                 workers=render.workers,
                 platform=render.platform,
                 max_size=(render.width, render.height),
             )
-            await asyncio.to_thread(pool.start)
+            info = await asyncio.to_thread(pool.start)
             stack.callback(pool.close)
-            log.info("renderer: %s x %s", render.workers, pool.gl_info)
-            image = ImageSettings(render.width, render.height, render.quality)
+            log.info("renderer: %s (%s)", info, choice.reason)
+            image = render.image_settings()
             round_no = 0
             while pending := self._pending():
                 if round_no:
@@ -166,7 +168,7 @@ class LocalSweep:
         return self.progress
 
     async def _run_round(
-        self, keys: list[Any], llm: LLMPool, pool: RenderPool, image: ImageSettings
+        self, keys: list[Any], llm: LLMPool, pool: Renderer, image: ImageSettings
     ) -> None:
         by_task: dict[str, list[Any]] = defaultdict(list)
         for k in keys:
@@ -186,7 +188,7 @@ class LocalSweep:
         name: str,
         keys: list[Any],
         llm: LLMPool,
-        pool: RenderPool,
+        pool: Renderer,
         image: ImageSettings,
         episode_gate: asyncio.Semaphore,
     ) -> None:

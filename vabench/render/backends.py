@@ -1,0 +1,90 @@
+"""The one edge where a renderer is chosen.
+
+    backend "gl"    the GL worker processes (`worker.RenderPool`): EGL on an NVIDIA GPU, Mesa's
+                    llvmpipe without one. Debug overlays are drawn only here.
+    backend "warp"  MuJoCo Warp's batch ray tracer (`warp_renderer.WarpRenderPool`): every image
+                    of a request in one pass on the GPU, sharing device memory with Warp physics.
+    backend "auto"  "warp" where a CUDA GPU and the [gpu] extra are present, else "gl".
+
+Asking for "warp" where it cannot run raises `BackendUnavailable` naming the missing package or
+device, never a silent fallback. `VABENCH_WARP_DEVICE` picks the Warp device, as for physics
+("cpu" runs the same kernels on the CPU: slow, for tests).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from vabench.render.images import ImageSettings, RenderItem, RenderStats
+from vabench.sim_mjx.backends import BackendUnavailable, warp_device, warp_problem
+
+RENDER_BACKENDS = ("auto", "warp", "gl")
+
+
+class Renderer(Protocol):
+    """What the engine needs of a renderer (both backends provide it)."""
+
+    stats: RenderStats
+
+    def start(self) -> Any: ...
+
+    def render(
+        self, task: str, items: list[RenderItem], settings: ImageSettings | None = None
+    ) -> list[bytes]: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class RenderChoice:
+    backend: str  # "warp" or "gl"
+    reason: str
+
+
+def renderer_problem(device: str) -> str | None:
+    """Why the Warp renderer cannot run on `device` (None when it can)."""
+    problem = warp_problem(device)
+    if problem is None:
+        return None
+    return problem.replace("the Warp backend", "the Warp renderer").replace(
+        "Use backend c", "Use render backend gl"
+    )
+
+
+def resolve_renderer(backend: str = "auto", device: str | None = None) -> RenderChoice:
+    """The renderer that runs, with the reason. Raises BackendUnavailable for an explicit
+    "warp" that cannot run here."""
+    if backend not in RENDER_BACKENDS:
+        raise ValueError(f"render backend must be one of {RENDER_BACKENDS}, got {backend!r}")
+    if backend == "gl":
+        return RenderChoice("gl", "GL was asked for")
+    device = device or warp_device()
+    problem = renderer_problem(device)
+    if backend == "warp":
+        if problem is not None:
+            raise BackendUnavailable(problem)
+        return RenderChoice("warp", f"MuJoCo Warp's ray tracer on {device}")
+    if problem is None:
+        return RenderChoice("warp", f"auto: MuJoCo Warp's ray tracer on {device}")
+    return RenderChoice("gl", f"auto: GL worker processes ({problem})")
+
+
+def make_renderer(
+    backend: str = "auto",
+    *,
+    workers: int = 2,
+    platform: str = "auto",
+    max_size: tuple[int, int] = (1280, 960),
+    device: str | None = None,
+) -> tuple[Renderer, RenderChoice]:
+    """A renderer (not started) of the chosen backend, and why it was chosen. `workers` and
+    `platform` are the GL pool's."""
+    choice = resolve_renderer(backend, device)
+    if choice.backend == "warp":
+        from vabench.render.warp_renderer import WarpRenderPool
+
+        return WarpRenderPool(device=device, max_size=max_size), choice
+    from vabench.render.worker import RenderPool
+
+    return RenderPool(workers=workers, platform=platform, max_size=max_size), choice

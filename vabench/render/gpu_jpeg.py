@@ -1,0 +1,59 @@
+"""JPEG encoding on the GPU, from device memory, with NVIDIA's nvImageCodec (nvJPEG).
+
+Where the Warp renderer runs on a GPU, its frames are already in device memory; nvImageCodec
+encodes a whole batch there and only the JPEG bytes cross to the host (about a tenth of the
+pixels). Install `nvidia-nvimgcodec-cu13` and `nvidia-nvjpeg` on a CUDA 13 host (the `-cu12`
+wheel on CUDA 12). Without them the renderer copies the frames to the host and encodes them on
+a thread pool (`images.JpegThreads`) with the same quality and chroma subsampling.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from typing import Any
+
+from vabench.render.images import ImageSettings
+
+PACKAGE_HINT = "pip install nvidia-nvimgcodec-cu13 nvidia-nvjpeg (CUDA 13; -cu12 for CUDA 12)"
+
+
+def available() -> bool:
+    """Whether nvImageCodec can be imported (a GPU is checked when an encoder is made)."""
+    try:
+        return importlib.util.find_spec("nvidia.nvimgcodec") is not None
+    except ModuleNotFoundError:  # no `nvidia` namespace at all
+        return False
+
+
+class DeviceJpeg:
+    """Encodes (n, H, W, 3) uint8 frames in device memory of GPU `device_id` to JPEG bytes."""
+
+    def __init__(self, device_id: int):
+        from nvidia import nvimgcodec
+
+        self._nv = nvimgcodec
+        self._encoder = nvimgcodec.Encoder(device_id=device_id)
+        self._params: dict[tuple[int, str], Any] = {}
+
+    def _encode_params(self, settings: ImageSettings) -> Any:
+        key = (settings.quality, settings.subsampling)
+        if key not in self._params:
+            nv = self._nv
+            css = getattr(nv.ChromaSubsampling, f"CSS_{settings.subsampling}")
+            self._params[key] = nv.EncodeParams(
+                quality_type=nv.QualityType.QUALITY,
+                quality_value=float(settings.quality),
+                chroma_subsampling=css,
+            )
+        return self._params[key]
+
+    def encode(self, frames: Any, settings: ImageSettings, cuda_stream: int = 0) -> list[bytes]:
+        """`frames`: anything indexable whose items expose `__cuda_array_interface__` (a Warp
+        array of shape (n, H, W, 3)); `cuda_stream`: the stream that wrote them."""
+        images = [self._nv.as_image(frames[i]) for i in range(frames.shape[0])]
+        streams = self._encoder.encode(
+            images, "jpeg", params=self._encode_params(settings), cuda_stream=cuda_stream
+        )
+        if any(s is None for s in streams):
+            raise RuntimeError("nvImageCodec failed to encode a frame")
+        return [bytes(memoryview(s)) for s in streams]
