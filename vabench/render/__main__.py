@@ -24,6 +24,7 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -181,8 +182,8 @@ def parity(args: argparse.Namespace) -> None:
                 f"{task_name} seed {seed}: mean |GL - Warp| per view: "
                 + ", ".join(f"{c} {d:.2f}" for c, d in zip(columns, gaps, strict=True))
             )
-            rows: list[tuple[str, Sequence[np.ndarray]]] = [("GL", gl_rgb), ("Warp", warp_rgb)]
-            for k, (label, frames) in enumerate(rows):
+            pair: list[tuple[str, Any]] = [("GL", gl_rgb), ("Warp", warp_rgb)]
+            for k, (label, frames) in enumerate(pair):
                 y = header_h + (2 * r + k) * th
                 draw.text((6, y + 6), f"{task_name}\nseed {seed}\n{label}", fill=(0, 0, 0))
                 for c, rgb in enumerate(frames):
