@@ -32,8 +32,9 @@ from PIL import Image, ImageDraw
 from vabench.render import camera as cam
 from vabench.render.backends import make_renderer
 from vabench.render.debug import DebugOverlays
-from vabench.render.images import ImageSettings, RenderItem
+from vabench.render.images import ImageSettings, RenderError, RenderItem
 from vabench.render.worker import RenderPool
+from vabench.sim_mjx.backends import BackendUnavailable
 
 
 def reset_state(task_name: str, seed: int, backend: str) -> tuple[np.ndarray, int, dict]:
@@ -65,11 +66,11 @@ def snapshot(args: argparse.Namespace) -> None:
     if args.task not in REGISTRY:
         raise SystemExit(f"unknown task {args.task!r}; tasks: {sorted(REGISTRY)}")
     arms = REGISTRY[args.task].arms
+    renderer, choice = make_renderer(args.renderer, workers=1, platform=args.platform)
     qpos, variant, gcs = reset_state(args.task, args.seed, args.backend)
     poses = _views(arms, gcs, args.view, args.passive)
     settings = ImageSettings(args.width, args.height, args.quality)
     items = [RenderItem(qpos, variant, p) for p in poses]
-    renderer, choice = make_renderer(args.renderer, workers=1, platform=args.platform)
     with contextlib.closing(renderer):
         print(f"renderer: {renderer.start()} ({choice.reason})", file=sys.stderr)
         jpegs = renderer.render(args.task, items, settings)
@@ -247,7 +248,10 @@ def main(argv: Sequence[str] | None = None) -> None:
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    args.run(args)
+    try:
+        args.run(args)
+    except (BackendUnavailable, RenderError) as err:
+        raise SystemExit(f"error: {err}") from None
 
 
 if __name__ == "__main__":

@@ -1,0 +1,253 @@
+"""The Warp renderer on Warp's CPU device: the same kernels a GPU runs, one world per image.
+
+What is checked: the backend choice and its messages; images that match the GL renderer's
+(same framing, same look within a few grey levels); every image independent of the batch it is
+rendered in, of its position and of its neighbours' variants and cameras; passes split by size
+without changing a pixel; the state read on the device from a Warp physics batch equal to its
+host copy; JPEG with the same settings as the GL path. Throughput is measured on a GPU by
+benchmarks/render_throughput.py (docs/PERFORMANCE.md), never here.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("warp", reason="the Warp renderer needs warp-lang (the [test] extra has it)")
+pytest.importorskip("mujoco_warp", reason="the Warp renderer needs mujoco-warp ([test] extra)")
+
+from vabench.render import backends
+from vabench.render import camera as cam
+from vabench.render.__main__ import reset_state
+from vabench.render.images import ImageSettings, RenderError, RenderItem
+from vabench.render.warp_renderer import WarpRenderPool
+from vabench.render.worker import RenderPool
+from vabench.seeds import verified_seeds
+from vabench.sim_mjx.backends import BackendUnavailable
+
+CUBE = "place_single_cube"
+SHOE = "place_shoe"  # ten object variants: per-world model fields
+SIZE = ImageSettings(160, 120, 95)
+EXACT = ImageSettings(160, 120, 100, "444")  # for pixel comparisons with GL
+# GL (rasterised, MSAA, shadow map) and Warp (ray traced, one sample per pixel, ray-cast
+# shadows) draw the same scene: measured 1.7-4.4 grey levels apart on average per image; an
+# object moved by one pixel would move far more.
+MEAN_GAP = 6.0
+CENTROID_PX = 1.5
+
+
+def _decode(jpeg: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB"))
+
+
+def _items(task: str, seed: int) -> list[RenderItem]:
+    arms = ("left", "right") if task == SHOE else ("right",)
+    qpos, variant, gcs = reset_state(task, seed, "c")
+    poses = [cam.head_view(gcs, arms), *cam.passive_bundle(gcs, arms)]
+    return [RenderItem(qpos, variant, p) for p in poses]
+
+
+@pytest.fixture(scope="module")
+def warp_pool():
+    os.environ["VABENCH_WARP_DEVICE"] = "cpu"
+    try:
+        with WarpRenderPool(max_size=(320, 240)) as pool:
+            yield pool
+    finally:
+        os.environ.pop("VABENCH_WARP_DEVICE", None)
+
+
+@pytest.fixture(scope="module")
+def gl_pool():
+    with RenderPool(workers=1, max_size=(320, 240), timeout_s=60) as pool:
+        yield pool
+
+
+@pytest.fixture(scope="module")
+def cube_items():
+    return _items(CUBE, verified_seeds(CUBE)[0])
+
+
+@pytest.fixture(scope="module")
+def shoe_items():
+    seeds = verified_seeds(SHOE)
+    items = _items(SHOE, seeds[0])[:2]
+    for seed in seeds[1:]:  # a second variant, so that neighbouring worlds differ in objects
+        more = _items(SHOE, seed)[:2]
+        if more[0].variant != items[0].variant:
+            return items + more
+    raise AssertionError("place_shoe's verified seeds all use one variant")
+
+
+def _red_centroid(rgb: np.ndarray) -> np.ndarray:
+    r, g, b = (rgb[..., k].astype(int) for k in range(3))
+    ys, xs = np.nonzero((r > 110) & (g < 60) & (b < 60))
+    assert len(xs) > 10, "the red cube is not in the image"
+    return np.array([xs.mean(), ys.mean()])
+
+
+# -- choosing the renderer ---------------------------------------------------------------
+def test_choice_and_its_reasons(monkeypatch):
+    monkeypatch.setattr(backends, "warp_problem", lambda device: None)
+    assert backends.resolve_renderer("auto", "cuda:0").backend == "warp"
+    assert backends.resolve_renderer("gl").backend == "gl"
+    monkeypatch.setattr(
+        backends, "warp_problem", lambda device: "the Warp backend needs the package warp-lang"
+    )
+    auto = backends.resolve_renderer("auto", "cuda:0")
+    assert auto.backend == "gl" and "warp-lang" in auto.reason
+    with pytest.raises(BackendUnavailable, match="the Warp renderer needs the package warp-lang"):
+        backends.resolve_renderer("warp", "cuda:0")
+    with pytest.raises(ValueError, match="render backend must be one of"):
+        backends.resolve_renderer("vulkan")
+
+
+def test_no_gpu_gets_one_clear_message(monkeypatch, tmp_path):
+    import warp as wp
+
+    if wp.is_cuda_available():
+        pytest.skip("this machine has a CUDA GPU")
+    monkeypatch.delenv("VABENCH_WARP_DEVICE", raising=False)
+    with pytest.raises(BackendUnavailable, match=r"needs an NVIDIA GPU.*render backend gl"):
+        WarpRenderPool().start()
+    env = {k: v for k, v in os.environ.items() if k != "VABENCH_WARP_DEVICE"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "vabench.render", "snapshot", "--task", CUBE, "--seed", "1000"]
+        + ["--renderer", "warp", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert proc.returncode != 0
+    assert "the Warp renderer needs an NVIDIA GPU" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_sweep_config_takes_the_render_backend(tmp_path):
+    from vabench.config import SweepConfigError, load_config
+
+    def write(render: str):
+        path = tmp_path / "s.yaml"
+        path.write_text(
+            "models: [{name: m, api: openai_chat, base_url: embedded}]\n"
+            f"tracks: [active]\ntasks: [{CUBE}]\nseeds: [1000]\nruns: 1\nrender: {render}\n"
+        )
+        return path
+
+    config = load_config(write("{backend: warp, subsampling: '444', quality: 90}"))
+    assert config.render.backend == "warp"
+    assert config.render.image_settings() == ImageSettings(1280, 960, 90, "444")
+    assert load_config(write("{}")).render.backend == "auto"
+    with pytest.raises(SweepConfigError, match=r"render\.backend"):
+        load_config(write("{backend: vulkan}"))
+    with pytest.raises(SweepConfigError, match=r"render\.subsampling"):
+        load_config(write("{subsampling: '411'}"))
+
+
+# -- the images --------------------------------------------------------------------------
+def test_images_match_gl(warp_pool, gl_pool, cube_items):
+    warp = warp_pool.render_rgb(CUBE, cube_items, EXACT)
+    gl = [_decode(j) for j in gl_pool.render(CUBE, cube_items, EXACT)]
+    assert warp.shape == (6, 120, 160, 3) and warp.dtype == np.uint8
+    for view, w, g in zip(cube_items, warp, gl, strict=True):
+        gap = float(np.abs(w.astype(int) - g).mean())
+        assert gap <= MEAN_GAP, (view.camera.label, gap)
+        shift = np.linalg.norm(_red_centroid(w) - _red_centroid(g))
+        assert shift <= CENTROID_PX, (view.camera.label, shift)  # same framing
+    assert len({w.tobytes() for w in warp}) == 6  # every view differs
+
+
+def test_variants_per_world_match_gl(warp_pool, gl_pool, shoe_items):
+    warp = warp_pool.render_rgb(SHOE, shoe_items, EXACT)
+    gl = [_decode(j) for j in gl_pool.render(SHOE, shoe_items, EXACT)]
+    for item, w, g in zip(shoe_items, warp, gl, strict=True):
+        assert float(np.abs(w.astype(int) - g).mean()) <= MEAN_GAP, item.variant
+
+
+def test_an_image_does_not_depend_on_its_batch(warp_pool, cube_items, shoe_items):
+    together = warp_pool.render_rgb(SHOE, shoe_items, SIZE)
+    backwards = warp_pool.render_rgb(SHOE, shoe_items[::-1], SIZE)[::-1]
+    alone = np.concatenate([warp_pool.render_rgb(SHOE, [it], SIZE) for it in shoe_items])
+    assert np.array_equal(together, backwards)
+    assert np.array_equal(together, alone)
+    cube = warp_pool.render_rgb(CUBE, cube_items, SIZE)
+    padded = warp_pool.render_rgb(CUBE, cube_items + cube_items[:3], SIZE)  # another pass size
+    assert np.array_equal(cube, padded[:6]) and np.array_equal(cube[:3], padded[6:])
+
+
+def test_a_request_larger_than_a_pass_is_split_without_changing_a_pixel(cube_items, warp_pool):
+    os.environ["VABENCH_WARP_DEVICE"] = "cpu"
+    try:
+        with WarpRenderPool(max_size=(320, 240), max_pass=4) as small:
+            split = small.render_rgb(CUBE, cube_items, SIZE)
+            assert small.stats.passes == 2  # 6 images, at most 4 per pass
+    finally:
+        os.environ.pop("VABENCH_WARP_DEVICE", None)
+    assert np.array_equal(split, warp_pool.render_rgb(CUBE, cube_items, SIZE))
+
+
+def test_jpeg_is_encoded_like_the_gl_path(warp_pool, gl_pool, cube_items):
+    from vabench.render.images import encode_jpeg
+
+    for settings in (SIZE, ImageSettings(160, 120, 80, "444")):
+        jpegs = warp_pool.render(CUBE, cube_items[:2], settings)
+        rgb = warp_pool.render_rgb(CUBE, cube_items[:2], settings)
+        # The packed pixels go to libjpeg-turbo as BGRX: the same bytes as encoding the RGB.
+        expected = [encode_jpeg(f, settings.quality, settings.subsampling) for f in rgb]
+        assert jpegs == expected
+        for jpeg in [*jpegs, *gl_pool.render(CUBE, cube_items[:1], settings)]:
+            img = Image.open(io.BytesIO(jpeg))
+            assert img.size == (160, 120) and img.format == "JPEG"
+            sampling = img.layer[0][1:3]  # luma's sampling factors: (2, 2) for 4:2:0
+            assert sampling == ((1, 1) if settings.subsampling == "444" else (2, 2))
+
+
+def test_bad_requests_fail_at_once(warp_pool, cube_items):
+    item = cube_items[0]
+    with pytest.raises(RenderError, match="variant 3 out of range"):
+        warp_pool.render(CUBE, [RenderItem(item.qpos, 3, item.camera)], SIZE)
+    with pytest.raises(RenderError, match="qpos has shape"):
+        warp_pool.render(CUBE, [RenderItem(item.qpos[:-1], 0, item.camera)], SIZE)
+    with pytest.raises(RenderError, match="exceeds the renderer's maximum"):
+        warp_pool.render(CUBE, [item], ImageSettings(640, 480))
+    with pytest.raises(RenderError, match="unknown task"):
+        warp_pool.render("no_such_task", [item], SIZE)
+    with pytest.raises(RenderError, match="drawn by the GL renderer"):
+        warp_pool.render_debug(CUBE, [item], None)
+    assert len(warp_pool.render(CUBE, [item], SIZE)) == 1  # still usable
+
+
+# -- sharing device memory with Warp physics ---------------------------------------------
+def test_states_read_on_the_device_equal_the_host_copies(warp_pool):
+    from vabench.tasks import get_task
+    from vabench.tasks.runner import TaskBatch
+
+    os.environ["VABENCH_WARP_DEVICE"] = "cpu"
+    try:
+        tb = TaskBatch(get_task(CUBE), 3, backend="mjx", impl="warp")
+        seeds = verified_seeds(CUBE)[:3]
+        assert all(r.ok for r in tb.reset(range(3), seeds))
+        down = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 30}
+        tb.step([down, None, down])  # slot 1 idles: frozen, its state still the reset's
+        qpos, p = tb.observe()
+        variants = tb.batch.variant()
+        items = []
+        for slot in (2, 0, 1, 0):
+            pose = cam.head_view({"right": p.gc[slot, 0]}, ("right",))
+            items.append(RenderItem(qpos[slot], int(variants[slot]), pose, slot=slot))
+        assert warp_pool.attach(CUBE, tb.batch)
+        shared = warp_pool.render_rgb(CUBE, items, SIZE)
+        warp_pool.detach(CUBE)
+        from_host = warp_pool.render_rgb(CUBE, items, SIZE)
+    finally:
+        os.environ.pop("VABENCH_WARP_DEVICE", None)
+    assert np.array_equal(shared, from_host)
+    assert not np.array_equal(shared[0], shared[1])  # the slots differ
+    assert not warp_pool.attach(CUBE, object())  # not a Warp batch: host copies
