@@ -1,14 +1,22 @@
-"""Rendering throughput: the worker pool against rendering each slot in the main process.
+"""Rendering throughput: the Warp ray tracer against the GL worker pool, side by side in one run.
 
-    python benchmarks/render_throughput.py [--sizes 640x480,1280x960] [--batches 1,8,64,256,1024]
-        [--workers 1,2] [--platform auto] [--baseline-cap 64] [--json FILE]
+    python benchmarks/render_throughput.py [--sizes 640x480,1280x960] [--batches 1,64,256,1024]
+        [--workers 4,8] [--slots 256] [--repeats 20] [--renderers gl,warp] [--json FILE]
 
-For each image size and batch size B, one request of B images (a seed of place_single_cube
-after its reset, cameras cycling through the head view and the five semantic views) goes to a
-`RenderPool` of W workers; the baseline renders and encodes the same images one by one in this
-process with the same renderer. Printed: images/s of both, their ratio, and per image the time
-inside the workers spent drawing (incl. reading pixels back) and JPEG encoding. The baseline's
-rate does not depend on B, so it is measured on at most `--baseline-cap` images.
+Images as the engine consumes them: JPEG bytes (quality 95, 4:2:0) of a task's states after
+their resets (the first verified seeds, cycled, so worlds differ), cameras cycling through the
+head view and the five semantic views. For every image size:
+
+1. throughput, images/s for a request of B images: the GL `RenderPool` with W workers (the
+   best W is the baseline), the `WarpRenderPool` with JPEG on host threads (libjpeg-turbo), and
+   with JPEG on the device (nvImageCodec, where installed); with the ratio of each Warp row to
+   the best GL row of the same B;
+2. latency of one step's images for `--slots` slots: the active protocol (one image per slot)
+   and the passive bundle (five per slot), `--repeats` requests each, p50 and p95;
+3. the split of a Warp request: ray tracing (incl. BVH refit and kinematics) vs JPEG.
+
+Run it on a GPU host (`VABENCH_WARP_DEVICE` picks the device; `cpu` works, slowly, with small
+sizes for a smoke check). Results go to docs/PERFORMANCE.md with the device and date.
 """
 
 from __future__ import annotations
@@ -19,105 +27,148 @@ import os
 import sys
 import time
 
+import numpy as np
+
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from vabench.render import gl
+
+def _states(task_name: str, n_seeds: int):
+    from vabench.render import camera as cam
+    from vabench.render.__main__ import reset_state
+    from vabench.seeds import verified_seeds
+    from vabench.tasks import REGISTRY
+
+    arms = REGISTRY[task_name].arms
+    out = []
+    for seed in verified_seeds(task_name)[:n_seeds]:
+        qpos, variant, gcs = reset_state(task_name, seed, "c")
+        out.append((qpos, variant, [cam.head_view(gcs, arms), *cam.passive_bundle(gcs, arms)]))
+    return out
+
+
+def _items(states, n: int, passive: bool = False):
+    from vabench.render.images import RenderItem
+
+    items = []
+    for i in range(n):
+        qpos, variant, poses = states[i % len(states)]
+        if passive:
+            items.extend(RenderItem(qpos, variant, p) for p in poses[1:])
+        else:
+            items.append(RenderItem(qpos, variant, poses[i % len(poses)]))
+    return items
+
+
+def _timed(render, items, settings, repeats: int) -> list[float]:
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = render(items, settings)
+        walls.append(time.perf_counter() - t0)
+        assert len(out) == len(items)
+    return walls
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--sizes", default="640x480,1280x960")
-    p.add_argument("--batches", default="1,8,64,256,1024")
-    p.add_argument("--workers", default="1,2")
-    p.add_argument("--platform", default="egl", choices=("egl", "osmesa"))
-    p.add_argument("--baseline-cap", type=int, default=64)
+    p.add_argument("--batches", default="1,64,256,1024")
+    p.add_argument("--workers", default="4,8", help="GL worker counts to try")
+    p.add_argument("--renderers", default="gl,warp")
+    p.add_argument("--slots", type=int, default=256)
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--seeds", type=int, default=20)
     p.add_argument("--task", default="place_single_cube")
     p.add_argument("--json")
     args = p.parse_args()
-    gl.configure(args.platform)
 
-    from vabench.render import camera as cam
-    from vabench.render.__main__ import reset_state
-    from vabench.render.renderer import SceneRenderer, encode_jpeg
-    from vabench.render.worker import ImageSettings, RenderItem, RenderPool
-    from vabench.seeds import verified_seeds
-    from vabench.tasks import REGISTRY
+    from vabench.render import gpu_jpeg
+    from vabench.render.images import ImageSettings
+    from vabench.render.warp_renderer import WarpRenderPool
+    from vabench.render.worker import RenderPool
 
-    task = REGISTRY[args.task]
-    qpos, variant, gcs = reset_state(args.task, verified_seeds(args.task)[0], "c")
-    poses = [cam.head_view(gcs, task.arms), *cam.passive_bundle(gcs, task.arms)]
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     batches = [int(b) for b in args.batches.split(",")]
-    worker_counts = [int(w) for w in args.workers.split(",")]
-    max_w, max_h = max(s[0] for s in sizes), max(s[1] for s in sizes)
+    renderers = args.renderers.split(",")
+    max_size = (max(s[0] for s in sizes), max(s[1] for s in sizes))
+    states = _states(args.task, args.seeds)
+    print(f"task {args.task}, {len(states)} distinct states; cpus {os.cpu_count()}")
+    report: dict = {"task": args.task, "cpus": os.cpu_count(), "rows": [], "latency": []}
 
-    local = SceneRenderer(task, args.platform, max_w, max_h)
-    print(f"main-process renderer: {local.gl_info}; cpus {os.cpu_count()}")
-    rows = []
+    variants: list[tuple[str, object]] = []
+    if "gl" in renderers:
+        for w in (int(x) for x in args.workers.split(",")):
+            variants.append((f"gl x{w}", RenderPool(workers=w, max_size=max_size, timeout_s=900)))
+    if "warp" in renderers:
+        variants.append(("warp, jpeg host", WarpRenderPool(max_size=max_size, jpeg="host")))
+        if gpu_jpeg.available():
+            variants.append(("warp, jpeg device", WarpRenderPool(max_size=max_size, jpeg="device")))
+    for name, pool in variants:
+        info = pool.start()  # type: ignore[attr-defined]
+        print(f"{name}: {info}")
+        report.setdefault("renderers", {})[name] = str(info)
+
     for width, height in sizes:
-        settings = ImageSettings(width, height, 95)
-        n_base = min(args.baseline_cap, max(batches))
-        local.render(qpos, variant, poses[0], width, height)  # warm up (compiles shaders)
-        t_draw = t_enc = 0.0
-        t0 = time.perf_counter()
-        for i in range(n_base):
-            a = time.perf_counter()
-            rgb = local.render(qpos, variant, poses[i % len(poses)], width, height)
-            b = time.perf_counter()
-            encode_jpeg(rgb, settings.quality)
-            t_draw += b - a
-            t_enc += time.perf_counter() - b
-        base_rate = n_base / (time.perf_counter() - t0)
+        settings = ImageSettings(width, height, 95, "420")
+        print(f"\n{width}x{height}, JPEG q95 4:2:0")
         print(
-            f"\n{width}x{height}: baseline one by one in the main process: {base_rate:.1f} img/s "
-            f"(draw {1e3 * t_draw / n_base:.1f} ms + encode {1e3 * t_enc / n_base:.1f} ms "
-            f"per image, {n_base} images)"
+            f"{'renderer':<20} {'batch':>6} {'img/s':>9} {'x GL':>6} {'draw ms':>8} {'jpeg ms':>8}"
         )
-        print(
-            f"{'workers':>7} {'batch':>6} {'img/s':>8} {'x base':>7} {'draw ms':>8} "
-            f"{'enc ms':>7} {'KB/img':>7}"
-        )
-        for n_workers in worker_counts:
-            with RenderPool(
-                workers=n_workers, platform=args.platform, max_size=(max_w, max_h), timeout_s=600
-            ) as pool:
-                pool.render(
-                    args.task, [RenderItem(qpos, variant, poses[0])] * n_workers, settings
-                )  # warm up every worker
-                for batch in batches:
-                    items = [RenderItem(qpos, variant, poses[i % len(poses)]) for i in range(batch)]
-                    before = (pool.stats.render_s, pool.stats.encode_s)
-                    t0 = time.perf_counter()
-                    jpegs = pool.render(args.task, items, settings)
-                    wall = time.perf_counter() - t0
-                    draw = (pool.stats.render_s - before[0]) / batch
-                    enc = (pool.stats.encode_s - before[1]) / batch
-                    kb = sum(len(j) for j in jpegs) / batch / 1024
-                    rate = batch / wall
-                    row = dict(
+        best_gl: dict[int, float] = {}
+        for name, pool in variants:
+            render = lambda items, s, pool=pool: pool.render(args.task, items, s)  # noqa: E731
+            render(_items(states, 8), settings)  # warm up: contexts, kernels, shaders
+            for batch in batches:
+                items = _items(states, batch)
+                stats = pool.stats  # type: ignore[attr-defined]
+                before = (stats.render_s, stats.encode_s)
+                reps = max(1, min(5, 2048 // batch))
+                walls = _timed(render, items, settings, reps)
+                rate = batch / float(np.median(walls))
+                draw = 1e3 * (stats.render_s - before[0]) / (reps * batch)
+                enc = 1e3 * (stats.encode_s - before[1]) / (reps * batch)
+                if name.startswith("gl"):
+                    best_gl[batch] = max(best_gl.get(batch, 0.0), rate)
+                ratio = rate / best_gl[batch] if best_gl.get(batch) else float("nan")
+                report["rows"].append(
+                    dict(
+                        renderer=name,
                         width=width,
                         height=height,
-                        workers=n_workers,
                         batch=batch,
                         images_per_s=rate,
-                        baseline_images_per_s=base_rate,
-                        ratio=rate / base_rate,
-                        draw_ms=1e3 * draw,
-                        encode_ms=1e3 * enc,
-                        kb_per_image=kb,
-                        platform=str(pool.gl_info),
+                        x_gl=ratio,
+                        draw_ms=draw,
+                        encode_ms=enc,
                     )
-                    rows.append(row)
-                    print(
-                        f"{n_workers:>7} {batch:>6} {rate:>8.1f} {rate / base_rate:>7.2f} "
-                        f"{1e3 * draw:>8.1f} {1e3 * enc:>7.1f} {kb:>7.0f}"
+                )
+                print(f"{name:<20} {batch:>6} {rate:>9.1f} {ratio:>6.2f} {draw:>8.3f} {enc:>8.3f}")
+        print(f"\nlatency of one step's images, {args.slots} slots ({args.repeats} requests)")
+        print(f"{'renderer':<20} {'protocol':>8} {'images':>7} {'p50 ms':>8} {'p95 ms':>8}")
+        for name, pool in variants:
+            render = lambda items, s, pool=pool: pool.render(args.task, items, s)  # noqa: E731
+            for protocol in ("active", "passive"):
+                items = _items(states, args.slots, passive=protocol == "passive")
+                walls = 1e3 * np.array(_timed(render, items, settings, args.repeats))
+                p50, p95 = np.percentile(walls, [50, 95])
+                report["latency"].append(
+                    dict(
+                        renderer=name,
+                        width=width,
+                        height=height,
+                        protocol=protocol,
+                        slots=args.slots,
+                        images=len(items),
+                        p50_ms=p50,
+                        p95_ms=p95,
                     )
-    local.close()
+                )
+                print(f"{name:<20} {protocol:>8} {len(items):>7} {p50:>8.1f} {p95:>8.1f}")
+    for _, pool in variants:
+        pool.close()  # type: ignore[attr-defined]
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(
-                {"renderer": str(local.gl_info), "cpus": os.cpu_count(), "rows": rows}, f, indent=1
-            )
+            json.dump(report, f, indent=1)
 
 
 if __name__ == "__main__":
