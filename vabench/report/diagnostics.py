@@ -161,7 +161,7 @@ def agreement_section(data: DiagnosticsData) -> Section:
             notes.append(f"{r.label}: Fleiss' kappa {r.kappa_note}")
     notes.insert(
         0,
-        f"items judged by exactly {raters} annotators (n = applicable episode-"
+        f"items judged by exactly {raters or 0} annotators (n = applicable episode-"
         "criterion items); positive rate = share of majority labels equal to 1",
     )
     if left_out:
