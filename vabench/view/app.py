@@ -106,7 +106,9 @@ class Viewer:
         try:
             response = await handler(request)
         except web.HTTPException as exc:
-            response = exc
+            for key, value in SECURITY_HEADERS.items():
+                exc.headers.setdefault(key, value)
+            raise
         for key, value in SECURITY_HEADERS.items():
             response.headers.setdefault(key, value)
         return response
