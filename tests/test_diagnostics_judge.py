@@ -108,3 +108,16 @@ def test_judgments_are_written_as_annotators_and_feed_the_agreement_table(run, c
     # a second run judges nothing again
     assert main(["judge", str(run), "--model", "local"]) == 0
     assert "6 already judged" in capsys.readouterr().out
+
+
+def test_the_report_carries_the_diagnostics(run):
+    from vabench.report import generate
+
+    assert main(["judge", str(run), "--model", "local", "--judges", "3"]) == 0
+    out = generate(run)
+    names = {p.name for p in out.files}
+    assert {"diagnostics.md", "agreement.md", "vote_rules.md", "agreement.csv"} <= names
+    report = (run / "report" / "report.md").read_text()
+    assert "## Inter-annotator agreement" in report and "| SPU | TL | 2 |" in report
+    html = (run / "report" / "report.html").read_text()
+    assert "Vote-rule sensitivity" in html and "Gwet AC1" in html
