@@ -69,8 +69,8 @@ def load_models(path: Path) -> tuple[list[Any], set[str]]:
         raise ConfigError(str(path), f"cannot read: {err}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("models"), list):
         raise ConfigError(str(path), "no top-level 'models:' list")
-    embedded = {
-        m.get("name")
+    embedded: set[str] = {
+        str(m.get("name"))
         for m in doc["models"]
         if isinstance(m, dict) and m.get("base_url") == "embedded"
     }
@@ -78,7 +78,7 @@ def load_models(path: Path) -> tuple[list[Any], set[str]]:
         {**m, "base_url": "http://embedded.invalid"} if m.get("name") in embedded else m
         for m in doc["models"]
     ]
-    return load_endpoints(entries, where=f"{path}: models"), embedded  # type: ignore[arg-type]
+    return list(load_endpoints(entries, where=f"{path}: models")), embedded
 
 
 async def _judge(args: argparse.Namespace, index: RunIndex) -> int:

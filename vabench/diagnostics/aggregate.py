@@ -146,9 +146,9 @@ def criterion_scores(
 def module_scores(scores: Mapping[str, Score]) -> dict[str, Score]:
     out = {}
     for module, codes in MODULE_CRITERIA.items():
-        values = [scores[c].value for c in codes if scores[c].value is not None]
+        values = [v for c in codes if (v := scores[c].value) is not None]
         mean = sum(values) / len(values) if values else None
-        out[module] = Score(mean, len(values), len(codes))  # type: ignore[arg-type]
+        out[module] = Score(mean, len(values), len(codes))
     return out
 
 
@@ -229,6 +229,15 @@ class Sensitivity:
     rankings: dict[str, list[Group]]
     correlations: list[tuple[str, str, float | None, float | None]]
     """(rule a, rule b, Spearman rho, Kendall tau) of the conditions' means."""
+    note: str = ""
+    """Why the correlations are missing, when a package is."""
+
+
+def _by_mean(
+    means: Mapping[Group, Mapping[str, float | None]], rule: str
+) -> Callable[[Group], tuple[float, Group]]:
+    """Sort key: best mean first, ties by name."""
+    return lambda g: (-(means[g][rule] or 0.0), g)
 
 
 def sensitivity(collected: Collected, index: RunIndex) -> Sensitivity:
@@ -238,13 +247,15 @@ def sensitivity(collected: Collected, index: RunIndex) -> Sensitivity:
     groups = sorted(per_rule["majority"])
     means = {g: {r: mean_over_criteria(per_rule[r][g]) for r in stats.VOTE_RULES} for g in groups}
     ranked = [g for g in groups if all(means[g][r] is not None for r in stats.VOTE_RULES)]
-    rankings = {
-        r: sorted(ranked, key=lambda g, r=r: (-(means[g][r] or 0.0), g)) for r in stats.VOTE_RULES
-    }
+    rankings = {r: sorted(ranked, key=_by_mean(means, r)) for r in stats.VOTE_RULES}
     correlations = []
+    note = ""
     for a, b in (("strict", "majority"), ("majority", "permissive"), ("strict", "permissive")):
-        rho, tau = stats.rank_correlations(
-            [means[g][a] or 0.0 for g in ranked], [means[g][b] or 0.0 for g in ranked]
-        )
+        try:
+            rho, tau = stats.rank_correlations(
+                [means[g][a] or 0.0 for g in ranked], [means[g][b] or 0.0 for g in ranked]
+            )
+        except stats.MissingDependency as err:  # the report still renders without scipy
+            rho, tau, note = None, None, str(err)
         correlations.append((a, b, rho, tau))
-    return Sensitivity(means, rankings, correlations)
+    return Sensitivity(means, rankings, correlations, note)

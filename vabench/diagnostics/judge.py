@@ -194,7 +194,7 @@ class _Conversation:
         else:
             self.turns.append(Turn.user(question))
         for _ in range(MAX_REPAIRS + 1):
-            result = await pool.complete(model, ChatRequest(list(self.turns), system_prompt()))
+            result = await pool.complete(model, ChatRequest(tuple(self.turns), system_prompt()))
             self.turns.append(Turn.assistant(result.text))
             try:
                 return parse_answer(result.text, codes)
@@ -244,9 +244,7 @@ async def run_judges(
 
     async def second(c: _Conversation) -> None:
         decided = {g: majority(gate_votes(state, c.episode, g).values()) for g in GATE_CODES}
-        codes = [
-            k for k in CRITERION_CODES if CRITERIA[k].gate is None or decided[CRITERIA[k].gate] == 1
-        ]
+        codes = [k for k in CRITERION_CODES if _activated(k, decided)]
         question = (
             f"{STAGE_TWO}: the majority of annotators decided "
             + ", ".join(f"{g} = {decided[g]}" for g in GATE_CODES)
@@ -262,6 +260,11 @@ async def run_judges(
 
     await asyncio.gather(*(second(c) for c in answered))
     return report
+
+
+def _activated(code: str, decided: dict[str, int | None]) -> bool:
+    gate = CRITERIA[code].gate
+    return gate is None or decided[gate] == 1
 
 
 def _write(

@@ -204,7 +204,9 @@ def vote_rule_section(data: DiagnosticsData) -> Section:
         "mean over the nine criteria per condition; strict credits a criterion only when every "
         "judgment is positive, permissive when any is; gates stay majority-voted",
     ]
-    if any(rho is None for _, _, rho, _ in s.correlations):
+    if s.note:
+        notes.append(s.note)
+    elif any(rho is None for _, _, rho, _ in s.correlations):
         notes.append("rank correlations need at least two conditions with different means")
     return Section(
         "vote_rules",
