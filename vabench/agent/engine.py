@@ -203,6 +203,7 @@ class Episode:
             ok=reply.report.ok,
             reason=reply.report.reason,
             drift_deg=round(reply.report.max_drift_deg, 4),
+            objects=reply.snapshot.objects,  # evaluator-only: the viewer's marked panel
         )
         if reply.report.infrastructure_error is not None:
             raise SimulationError(reply.report.infrastructure_error)
@@ -400,6 +401,7 @@ class Episode:
             executed_mm=res.executed_mm,
             proprio=reply.snapshot.proprio,
             checks=out.checks,
+            objects=reply.snapshot.objects,  # evaluator-only: the viewer's marked panel
             progress=out.progress,
             success=out.success,
         )

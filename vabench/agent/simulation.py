@@ -42,6 +42,9 @@ class SlotSnapshot:
     variant: int  # evaluator-side: object model id
     gcs: dict[str, np.ndarray]  # evaluator-side: camera targets (GC per arm)
     progress: int  # checkpoints reached (evaluator-side)
+    objects: dict[str, dict[str, list[float]]] | None = None
+    """Evaluator-side object poses {name: {pos, quat (wxyz)}}, for the records only: the viewer's
+    evaluator panel and the trajectory hints of the diagnostics read them."""
 
 
 @dataclass(frozen=True)
@@ -151,9 +154,23 @@ class SimService:
                 variant=int(variants[r.slot]),
                 gcs={arm: np.array(p.gc[r.slot, i]) for i, arm in enumerate(tb.batch.arms)},
                 progress=int(tb.progress[r.slot]),
+                objects=_object_poses(qpos[r.slot], tb.batch.objects),
             )
             replies.append(SimReply(snapshot, reports.get(r.slot), outcomes.get(r.slot)))
         return replies
+
+
+def _object_poses(
+    qpos: np.ndarray, objects: Sequence[tuple[str, int]]
+) -> dict[str, dict[str, list[float]]]:
+    """Each free object's pose read from one slot's qpos, rounded to 0.1 mm / 1e-4."""
+    return {
+        name: {
+            "pos": [round(float(x), 4) for x in qpos[a : a + 3]],
+            "quat": [round(float(x), 4) for x in qpos[a + 3 : a + 7]],
+        }
+        for name, a in objects
+    }
 
 
 class RenderService:

@@ -279,3 +279,14 @@ def _reference_servo(**options: Any) -> Policy:
 
 
 POLICIES["reference_servo"] = _reference_servo
+
+
+def _rubric_judge(**options: Any) -> Policy:
+    """The stand-in judge of the behavioural diagnostics (`vabench.diagnostics.judge`),
+    imported on first use like the reference servo."""
+    from vabench.diagnostics.judge_policy import RubricJudge
+
+    return RubricJudge(**options)
+
+
+POLICIES["rubric_judge"] = _rubric_judge

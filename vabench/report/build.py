@@ -4,7 +4,9 @@ Files written (each atomically: a temporary sibling, then `os.replace`):
     report.md            every table, with the notes and the figures linked
     <section>.md         one file per topic (success_per_task, macro_average, active_passive,
                          checkpoints, usage; and, only when the sweep holds their data,
-                         summary_source, learning_stage, transfer, long_horizon)
+                         summary_source, learning_stage, transfer, long_horizon; and,
+                         when RUN_DIR/annotations/ holds judgments, diagnostics, agreement,
+                         vote_rules)
     <table>.csv          raw numbers in long format
     figures/*.png        macro-average bars, per-task bars per model/track, active vs passive
     report.html          everything above in one self-contained page (figures as base64)
@@ -102,6 +104,7 @@ def write_report(
         tables.active_passive_section(comparisons, order),
         *track_sections(results, arms, meta),
         tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
+        *diagnostic_sections(results.path.parent),
         tables.usage_section(
             stats.usage(results.scored), unscored, len(unresolved), results.retried
         ),
@@ -183,6 +186,17 @@ def track_sections(
             track_tables.long_horizon_section(tracks.long_horizon(results.scored, meta)),
         ]
     return [s for s in sections if s is not None]
+
+
+def diagnostic_sections(run_dir: Path) -> list[tables.Section]:
+    """The nine behavioural diagnostics, agreement and vote-rule sensitivity, when the run holds
+    annotations (RUN_DIR/annotations/, written by `python -m vabench.view` and the judge)."""
+    from vabench.report import diagnostics
+
+    if not (run_dir / diagnostics.ANNOTATIONS_DIR).is_dir():
+        return []
+    data = diagnostics.load(run_dir)
+    return [] if data is None else diagnostics.sections(data)
 
 
 def _summary(
