@@ -29,7 +29,8 @@ from vabench.llm_pool.policies import PolicyReply, ScriptedPolicy, fenced_json
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render import camera as cam
-from vabench.render.worker import ImageSettings, RenderPool
+from vabench.render.backends import Renderer
+from vabench.render.images import ImageSettings
 from vabench.seeds import verified_seeds
 from vabench.tasks import get_task
 from vabench.tasks.base import Task
@@ -123,7 +124,7 @@ class EpisodeRun:
 async def run_scripted_async(
     task_name: str,
     replies: Sequence[str | dict[str, Any]],
-    pool: RenderPool,
+    pool: Renderer,
     *,
     seed: int | None = None,
     protocol: str = "active",
@@ -133,6 +134,8 @@ async def run_scripted_async(
     server_config: ServerConfig | None = None,
     retry: dict[str, Any] | None = None,
     cycle: bool = False,
+    backend: str = "c",
+    **batch_kwargs: Any,
 ) -> EpisodeRun:
     """One episode of `task_name` (its first verified seed unless `seed`) answered by
     `replies`; see the module docstring."""
@@ -151,7 +154,9 @@ async def run_scripted_async(
         endpoint = server.endpoint_config("m", api, retry={**FAST_RETRY, **(retry or {})})
         async with (
             LLMPool([endpoint]) as llm,
-            task_services(task, 1, llm, pool, backend="c", image=SMALL) as services,
+            task_services(
+                task, 1, llm, pool, backend=backend, image=SMALL, **batch_kwargs
+            ) as services,
         ):
             episode = Episode(spec, services)
             policy.episode = episode

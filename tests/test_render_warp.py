@@ -10,6 +10,7 @@ benchmarks/render_throughput.py (docs/PERFORMANCE.md), never here.
 
 from __future__ import annotations
 
+import base64
 import io
 import os
 import subprocess
@@ -251,3 +252,37 @@ def test_states_read_on_the_device_equal_the_host_copies(warp_pool):
     assert np.array_equal(shared, from_host)
     assert not np.array_equal(shared[0], shared[1])  # the slots differ
     assert not warp_pool.attach(CUBE, object())  # not a Warp batch: host copies
+
+
+# -- in the engine -----------------------------------------------------------------------
+def _model_images(run) -> list[np.ndarray]:
+    from tests.engine_util import body_json
+
+    frames = []
+    for _, raw in run.bodies:
+        body = body_json(raw)
+        for message in body.get("messages", []):
+            for part in message.get("content", []) if isinstance(message, dict) else []:
+                if isinstance(part, dict) and part.get("type") == "image_url":
+                    b64 = part["image_url"]["url"].split(",", 1)[1]
+                    frames.append(_decode(base64.b64decode(b64)))
+    return frames
+
+
+@pytest.mark.parametrize("physics", ["c", "warp"])
+def test_an_episode_sees_warp_images(warp_pool, physics):
+    """Passive protocol through the engine and the embedded server: every observation is the
+    five views, drawn by the Warp renderer; with Warp physics the renderer reads the states in
+    the physics batch's memory."""
+    from tests.engine_util import STOP, move, run_scripted
+
+    kwargs = {"backend": "mjx", "impl": "warp", "device": "cpu"} if physics == "warp" else {}
+    before = warp_pool.stats.shared_state
+    run = run_scripted(
+        CUBE, [move("z", "-", 20), STOP], warp_pool, protocol="passive", budget=3, **kwargs
+    )
+    assert run.result.status in ("success", "failure"), run.result.error
+    frames = _model_images(run)
+    assert len(frames) >= 10 and all(f.shape == (120, 160, 3) for f in frames)
+    shared = warp_pool.stats.shared_state - before
+    assert shared == (10 if physics == "warp" else 0)  # reset and one action, five views each

@@ -375,6 +375,7 @@ class WarpRenderPool:
             t0 = time.perf_counter()
             p.draw(chunk, source)
             self.stats.passes += 1
+            self.stats.shared_state += n if source is not None else 0
             if encode and self._device_jpeg is not None:
                 rgb = p.rgb_on_device()
                 stream = wp.get_stream(self._device).cuda_stream if self._device.is_cuda else 0
