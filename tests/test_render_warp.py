@@ -286,3 +286,17 @@ def test_an_episode_sees_warp_images(warp_pool, physics):
     assert len(frames) >= 10 and all(f.shape == (120, 160, 3) for f in frames)
     shared = warp_pool.stats.shared_state - before
     assert shared == (10 if physics == "warp" else 0)  # reset and one action, five views each
+
+
+def test_concurrent_requests_get_their_own_images(warp_pool, cube_items, shoe_items):
+    """Two tasks' render services ask at once (as in a sweep): JPEG encoding of one request
+    overlaps the next request's pass, and no image is overwritten or swapped."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    alone = {CUBE: warp_pool.render(CUBE, cube_items, SIZE)}
+    alone[SHOE] = warp_pool.render(SHOE, shoe_items, SIZE)
+    jobs = [(CUBE, cube_items), (SHOE, shoe_items)] * 3
+    with ThreadPoolExecutor(2) as threads:
+        got = list(threads.map(lambda job: warp_pool.render(job[0], job[1], SIZE), jobs))
+    for (task, _), images in zip(jobs, got, strict=True):
+        assert images == alone[task]

@@ -15,8 +15,9 @@ with nvImageCodec instead, `gpu_jpeg`.)
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
 
@@ -118,6 +119,19 @@ class JpegThreads:
         if len(frames) <= 1:
             return [encode_jpeg(f, q, s, colorspace) for f in frames]
         return list(self._pool.map(lambda f: encode_jpeg(f, q, s, colorspace), frames))
+
+    def submit(
+        self, frames: Sequence[np.ndarray] | np.ndarray, settings: ImageSettings, colorspace="RGB"
+    ) -> list[Future[tuple[bytes, float]]]:
+        """Start encoding every frame; each future gives (JPEG bytes, seconds it took). The
+        frames must not change until the futures are done."""
+        q, s = settings.quality, settings.subsampling
+
+        def one(frame: np.ndarray) -> tuple[bytes, float]:
+            t0 = time.perf_counter()
+            return encode_jpeg(frame, q, s, colorspace), time.perf_counter() - t0
+
+        return [self._pool.submit(one, f) for f in frames]
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)

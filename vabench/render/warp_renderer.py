@@ -36,6 +36,7 @@ import logging
 import threading
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -186,8 +187,11 @@ class _Pass:
         mjw.render(self.m, self.d, self.rc)
 
     def packed(self, n: int) -> np.ndarray:
-        """(n, H, W) uint32 pixels of the first n worlds, on the host."""
-        return self.rc.rgb_data.numpy()[:n].reshape(n, self.height, self.width)
+        """(n, H, W) uint32 pixels of the first n worlds, a host copy of their own (the next
+        pass reuses the buffer while these are still being encoded)."""
+        rows = self.rc.rgb_data[:n]
+        host = rows.numpy() if rows.device.is_cuda else rows.numpy().copy()  # CPU: a view
+        return host.reshape(n, self.height, self.width)
 
     def rgb_on_device(self) -> wp.array:
         assert self.rgb is not None
@@ -361,8 +365,14 @@ class WarpRenderPool:
                 out.extend(self._one_pass(task, models, chunk, settings, source, encode))
             self.stats.requests += 1
             self.stats.images += len(items)
-            self.stats.wall_s += time.perf_counter() - t0
-            return out
+        # JPEG off the critical path: host encodes run on the thread pool while the next
+        # request (another task's, or this one's next pass) already draws.
+        if out and isinstance(out[0], Future):
+            done = [f.result() for f in out]
+            out = [jpeg for jpeg, _ in done]
+            self.stats.encode_s += sum(seconds for _, seconds in done)
+        self.stats.wall_s += time.perf_counter() - t0
+        return out
 
     def _one_pass(self, task, models, chunk, settings, source, encode) -> list[Any]:
         n = len(chunk)
@@ -385,15 +395,12 @@ class WarpRenderPool:
                 self.stats.encode_s += time.perf_counter() - t1
                 return images
             packed = p.packed(n)  # waits for the pass
-        t1 = time.perf_counter()
-        self.stats.render_s += t1 - t0
+        self.stats.render_s += time.perf_counter() - t0
         if not encode:
             return [packed_to_rgb(packed)]
         assert self._host_jpeg is not None
         bgrx = packed.view(np.uint8).reshape(n, settings.height, settings.width, 4)
-        images = self._host_jpeg.encode(bgrx, settings, colorspace="BGRX")
-        self.stats.encode_s += time.perf_counter() - t1
-        return images
+        return self._host_jpeg.submit(bgrx, settings, colorspace="BGRX")
 
     # -- passes ----------------------------------------------------------------------------
     def _task_models(self, task: str) -> list[mujoco.MjModel]:
