@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# One phase of the GPU measurements on the lent device machine; each phase fits one call
+# (< 10 minutes) and writes its results under $OUT. The order of calls (device tool):
+#   1. carry .wp1:  mkdir -p /tmp/wp && cp .wp1/* /tmp/wp/
+#   2. carry .wp2:  mkdir -p /tmp/wp && cp .wp2/* /tmp/wp/
+#   3. carry .wp3 .whl .gl .nvj:  bash benchmarks/gpu/run.sh setup
+#   4.. (warm machine, nothing carried):  bash benchmarks/gpu/run.sh physics | render | fidelity | tests
+# .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
+# benchmarks/gpu/make_jpeg_part.sh (both run once here, from the project root).
+set -uo pipefail
+phase=${1:?usage: run.sh setup|physics|render|fidelity|tests}
+out=${OUT:-/tmp/out}
+mkdir -p "$out"
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
+export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+export LD_LIBRARY_PATH=/tmp/site/nvidia/cu13/lib:${LD_LIBRARY_PATH:-}
+export XLA_PYTHON_CLIENT_PREALLOCATE=false  # JAX shares the card with Warp
+export VABENCH_STATE_CACHE=/tmp/settled
+date -u +"%Y-%m-%d %H:%M UTC" > "$out/date.txt"
+case "$phase" in
+  setup)
+    # shellcheck disable=SC1091
+    source .wp3/gpu_env.sh || exit 1
+    tar -xJf .nvj/nvj.tar.xz -C /tmp/site && python3 -m pip install -q --no-index --no-deps \
+      --no-compile --target /tmp/site .nvj/*.whl || exit 1
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/gpu.txt"
+    python3 - <<'PY' 2>&1 | tee "$out/setup.log"
+import mujoco, mujoco_warp, warp as wp, simplejpeg
+from nvidia import nvimgcodec
+print("mujoco", mujoco.__version__, "mujoco_warp", mujoco_warp.__version__, "warp", wp.__version__)
+print("nvimgcodec", nvimgcodec.__version__, nvimgcodec.Encoder(device_id=0))
+from vabench.render.backends import resolve_renderer
+from vabench.sim_mjx.backends import resolve
+print(resolve("auto"), resolve_renderer("auto"))
+PY
+    ;;
+  physics)
+    timeout 570 python3 benchmarks/sim_throughput.py --sizes 256,1024,8192 --backends warp,c,jax \
+      --loops per_step --budget-s 420 --json "$out/sim.json" 2>&1 | tee "$out/sim.log"
+    ;;
+  render)
+    timeout 570 python3 benchmarks/render_throughput.py --sizes 640x480,1280x960 \
+      --batches 1,64,256,1024 --workers 4,8 --slots 256 --repeats 20 \
+      --json "$out/render.json" 2>&1 | tee "$out/render.log"
+    ;;
+  fidelity)
+    timeout 570 python3 benchmarks/warp_fidelity.py --tasks all --n 20 --budget-s 480 \
+      --json "$out/fidelity.json" --md "$out/fidelity.md" 2>&1 | tee "$out/fidelity.log"
+    ;;
+  tests)
+    timeout 570 python3 -m pytest -q -x -p no:cacheprovider tests/test_warp_batch.py \
+      tests/test_render_warp.py 2>&1 | tee "$out/tests.log"
+    timeout 200 python3 benchmarks/warp_gpu_checks.py --json "$out/checks.json" 2>&1 \
+      | tee "$out/checks.log"
+    ;;
+  *) echo "unknown phase $phase"; exit 2 ;;
+esac
