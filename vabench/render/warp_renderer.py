@@ -15,9 +15,10 @@ once:
    pixels come to the host and a thread pool encodes them (`images.JpegThreads`), with the
    quality and chroma subsampling of `ImageSettings` either way.
 
-Render batches ("passes") are made per task family, image size and power-of-two world count,
-when first needed, and then reused: a render context (BVHs, textures, buffers) and a model
-whose per-world fields hold each world's object variant and FOV. A request larger than the
+Render batches ("passes") are made per task family, image size and world count (1, 2, 3, 4,
+6, 8, 12, ...: `pass_size`), when first needed, and then reused: a render context (BVHs,
+textures, buffers) and a model whose per-world fields hold each world's object variant and
+FOV. A request larger than the
 largest pass the GPU's memory allows is split into several passes, with a log message, never
 an out-of-memory crash.
 
@@ -63,7 +64,7 @@ from vabench.tasks.base import Task
 
 log = logging.getLogger(__name__)
 
-MIN_PASS = 8  # smallest render batch: fewer distinct passes to build for small requests
+MIN_PASS = 8  # the smallest largest-pass a GPU must hold (else: memory too full to render)
 MAX_PASS = 1024  # largest render batch on a GPU (memory permitting)
 CPU_MAX_PASS = 64
 MEMORY_SHARE = 0.4  # of the GPU memory free when a pass is sized; physics and JAX need the rest
@@ -106,6 +107,18 @@ def render_models(task: Task, width: int, height: int) -> list[mujoco.MjModel]:
         m.vis.map.zfar = FAR / m.stat.extent
         models.append(m)
     return models
+
+
+def pass_size(n: int) -> int:
+    """Worlds of the pass that renders n images: the next of 1, 2, 3, 4, 6, 8, 12, 16, 24, ...
+    Every world of a pass is ray traced, so a pass larger than the request wastes work (at most
+    a third here); a pass of every exact size would build a render context for every request
+    size the engine happens to send."""
+    power = 1 << max(0, (n - 1).bit_length() - 1)  # the largest power of two below n (or 1)
+    for size in (power, 3 * power // 2, 2 * power):
+        if size >= n:
+            return max(size, 1)
+    raise AssertionError(n)
 
 
 def pass_bytes(width: int, height: int, n_worlds: int, device_jpeg: bool) -> int:
@@ -376,7 +389,7 @@ class WarpRenderPool:
 
     def _one_pass(self, task, models, chunk, settings, source, encode) -> list[Any]:
         n = len(chunk)
-        size = max(MIN_PASS, 1 << (n - 1).bit_length())
+        size = pass_size(n)
         device_jpeg = self._device_jpeg is not None
         with self._lock_device, wp.ScopedDevice(self._device):
             p = self._pass(
