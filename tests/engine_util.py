@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.engine import EngineSettings, Episode, EpisodeSpec, task_services
 from vabench.agent.records import EpisodeResult
 from vabench.agent.simulation import SimCounters
 from vabench.llm_pool.apis.base import IncomingRequest
@@ -133,6 +133,7 @@ async def run_scripted_async(
     server_config: ServerConfig | None = None,
     retry: dict[str, Any] | None = None,
     cycle: bool = False,
+    settings: EngineSettings | None = None,
 ) -> EpisodeRun:
     """One episode of `task_name` (its first verified seed unless `seed`) answered by
     `replies`; see the module docstring."""
@@ -151,7 +152,9 @@ async def run_scripted_async(
         endpoint = server.endpoint_config("m", api, retry={**FAST_RETRY, **(retry or {})})
         async with (
             LLMPool([endpoint]) as llm,
-            task_services(task, 1, llm, pool, backend="c", image=SMALL) as services,
+            task_services(
+                task, 1, llm, pool, backend="c", image=SMALL, settings=settings
+            ) as services,
         ):
             episode = Episode(spec, services)
             policy.episode = episode
