@@ -11,6 +11,11 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 from vabench.sweep.__main__ import main
@@ -69,3 +74,93 @@ def test_resuming_with_another_plan_is_refused_naming_the_fields(tmp_path, capsy
     same.write_text(cfg.read_text().replace("max_attempts: 2", "max_attempts: 3"))
     assert main([str(same), "--out", str(out), "--plain", "--no-report"]) == 0
     assert (out / LEDGER).read_bytes() == before
+
+
+PROCESSES = """\
+name: orphans
+models:
+  - {name: local, api: openai_chat, base_url: embedded}
+embedded_server: {policy: conversation_hash, latency: {mean_s: 0.25}}
+tracks: [active]
+summaries: none
+tasks: [grasp_single_cube, handover_horizontal_block]
+seeds: {verified: 4}
+runs: 1
+step_budget: 6
+simulator: {backend: c}
+render: {width: 64, height: 48, workers: 1}
+executor: {kind: processes, max_tasks: 2, slots_per_task: 1}
+"""
+
+
+def descendants(pid: int) -> set[int]:
+    """Every live process below `pid` (from /proc)."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    out: set[int] = set()
+    frontier = {pid}
+    while frontier:
+        frontier = {p for p, pp in parents.items() if pp in frontier} - out
+        out |= frontier
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_processes_workers_die_with_a_killed_parent_and_never_write_the_ledger(tmp_path):
+    """SIGKILL of the sweep's main process alone (not its group): its cell workers must not
+    go on calling the model and appending records (defect A); the next invocation finishes
+    the plan with exactly one record per episode."""
+    cfg = tmp_path / "processes.yaml"
+    cfg.write_text(PROCESSES)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "vabench.sweep", str(cfg), "--out", str(out), "--plain"]
+    proc = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        start_new_session=True,
+    )
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 240
+        # wait until a cell worker is in the middle of an episode (a model reply logged)
+        while not any(
+            '"type": "reply"' in p.read_text() for p in out.glob("episodes/**/events.jsonl")
+        ):
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline, "no episode started in time"
+            time.sleep(0.05)
+        workers = descendants(proc.pid)
+        assert workers
+        os.kill(proc.pid, signal.SIGKILL)  # the main process only
+        proc.wait()
+        ledger_at_kill = (out / LEDGER).read_bytes() if (out / LEDGER).exists() else b""
+        deadline = time.monotonic() + 120
+        while any(alive(p) for p in workers):
+            assert time.monotonic() < deadline, "the workers outlived their parent"
+            time.sleep(0.1)
+        ledger_after = (out / LEDGER).read_bytes() if (out / LEDGER).exists() else b""
+        assert ledger_after == ledger_at_kill, "a worker wrote the ledger after its parent died"
+    finally:
+        for pid in [proc.pid, *workers]:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        proc.stdout.close()
+
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    keys = [(r["task"], r["seed"]) for r in ledger_lines(out)]
+    assert len(keys) == len(set(keys)) == 8

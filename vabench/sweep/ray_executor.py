@@ -48,7 +48,7 @@ import yaml
 
 from vabench.config import SweepConfig, SweepConfigError, load_config
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.results import LEDGER, Ledger, ledger_key
+from vabench.sweep.results import LEDGER, Ledger, Sink, ledger_key
 from vabench.sweep.runner import LocalSweep
 
 log = logging.getLogger(__name__)
@@ -90,11 +90,17 @@ def recorded(run_dir: Path) -> int:
         return 0
 
 
-def run_cell(document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]) -> dict[str, Any]:
+def run_cell(
+    document: dict[str, Any],
+    run_dir: str,
+    keys: Sequence[KeyTuple],
+    sink: Sink | None = None,
+) -> dict[str, Any]:
     """One cell, in a Ray worker: the episodes `keys` (all of one (model, track, task)) of the
     config `document` (a `SweepConfig.document()`) run by a `LocalSweep` into `run_dir`.
     Returns counts for the driver's log: host, episodes (run here), recorded (the cell's
-    records in the ledger now), unscored, retried."""
+    records in the ledger now), unscored, retried. With `sink`, ledger lines go there instead
+    of the files (`executor: processes`: the parent writes them)."""
     host = socket.gethostname()
     run = Path(run_dir)
     if not (run / "plan.json").exists():
@@ -112,7 +118,7 @@ def run_cell(document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]) -
                 f"the sweep config does not load on {host}:\n"
                 + str(err).replace(str(path), str(run / "sweep.yaml"))
             ) from None
-    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run)
+    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, ledger_sink=sink)
     model, track, task = keys[0][:3]
     counts = asyncio.run(sweep.run()).cells[(model, track, task)]
     return {

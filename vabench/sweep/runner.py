@@ -34,7 +34,7 @@ from vabench.agent.records import EpisodeRecorder, EpisodeResult
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.render.worker import ImageSettings, RenderPool
-from vabench.sweep.results import Ledger, ledger_key, recover, set_aside
+from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
 
@@ -77,11 +77,14 @@ class LocalSweep:
         keys: Sequence[Any],
         run_dir: Path,
         on_change: Callable[[SweepProgress], None] | None = None,
+        ledger_sink: Sink | None = None,
     ):
         self.config = config
         self.keys = list(keys)
         self.run_dir = run_dir
-        self.ledger = Ledger.open(run_dir)
+        self.ledger = Ledger.open(run_dir, sink=ledger_sink)
+        for line in self.ledger.collapsed:
+            log.warning("ledger: %s", line)
         self.progress = SweepProgress()
         self.on_change = on_change or (lambda p: None)
         for k in self.keys:
