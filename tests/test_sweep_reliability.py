@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from vabench.sweep.__main__ import main
 from vabench.sweep.results import LEDGER
 
@@ -164,3 +166,56 @@ def test_processes_workers_die_with_a_killed_parent_and_never_write_the_ledger(t
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     keys = [(r["task"], r["seed"]) for r in ledger_lines(out)]
     assert len(keys) == len(set(keys)) == 8
+
+
+REFUSING = """\
+name: refused
+models:
+  - {{name: local, api: anthropic, base_url: embedded, api_key_env: VABENCH_TEST_KEY}}
+embedded_server: {{policy: conversation_hash, api_key: right-key}}
+tracks: [active]
+summaries: {summaries}
+tasks: [grasp_single_cube]
+seeds: {{verified: 3}}
+runs: 1
+step_budget: 2
+simulator: {{backend: c}}
+render: {{width: 64, height: 48, workers: 1}}
+executor: {{slots_per_task: 1}}
+"""
+
+
+def logged_requests(run_dir: Path) -> int:
+    """Model requests logged anywhere under the run directory (episodes, learning sessions,
+    their set-aside attempts)."""
+    return sum(
+        p.read_text().count('"type": "endpoint_refused"') + p.read_text().count('"type": "reply"')
+        for p in run_dir.rglob("events.jsonl")
+    )
+
+
+@pytest.mark.parametrize("summaries", ["none", "own"])
+def test_a_wrong_key_stops_the_sweep_and_the_fixed_run_does_every_episode(
+    tmp_path, capsys, monkeypatch, summaries
+):
+    """Defect D: a 401 used to be recorded as a final error of every episode, and running the
+    command again after fixing the key did nothing. Now the first refused call stops the sweep
+    (the learning session's or the first episode's), naming the model and the variable;
+    nothing is recorded; the same command with the right key runs every episode."""
+    cfg = tmp_path / "refused.yaml"
+    cfg.write_text(REFUSING.format(summaries=summaries))
+    out = tmp_path / "out"
+    monkeypatch.setenv("VABENCH_TEST_KEY", "wrong-key")
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert "model 'local'" in err and "VABENCH_TEST_KEY" in err and "401" in err
+    assert ledger_lines(out) == []
+    assert logged_requests(out) == 1  # one call refused, no other was made
+    assert not list(out.glob("summaries/local/*.json"))  # no refusal stored as a summary
+    assert not list(out.glob("episodes/**/result.json"))
+
+    monkeypatch.setenv("VABENCH_TEST_KEY", "right-key")
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    records = ledger_lines(out)
+    assert sorted(r["seed"] for r in records) == sorted({r["seed"] for r in records})
+    assert len(records) == 3 and all(r["status"] in ("success", "failure") for r in records)

@@ -186,6 +186,10 @@ class Episode:
         except (RenderError, SimulationError) as err:
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:
+            if err.fatal:  # the endpoint's refusal, not this episode's: no result; sweep stops
+                step = self.counts.steps + 1
+                self.rec.event("endpoint_refused", step=step, status=err.status, error=str(err))
+                raise
             return self._finish("error", "request_rejected", f"{err.kind}: {err}")
         except Exception as err:  # a harness bug: recorded, never scored
             self.rec.event("harness_error", error=f"{type(err).__name__}: {err}")

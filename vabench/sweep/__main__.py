@@ -2,7 +2,9 @@
 
 Running the same command again resumes: finished episodes are never re-run, interrupted ones
 start again, infrastructure failures get their retry rounds. Exit code 0 when every planned
-episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config.
+episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run
+directory of another plan, or an endpoint that refused the sweep's requests (a wrong key, an
+unknown model: the sweep stops at once, naming the model and what to check).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from vabench.sweep.display import Display
 from vabench.sweep.plan import estimate, format_estimate, plan
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.sweep.rundir import RunDirMismatch, check_run_dir
-from vabench.sweep.runner import LocalSweep
+from vabench.sweep.runner import LocalSweep, SweepStopped
 
 log = logging.getLogger("vabench.sweep")
 
@@ -72,11 +74,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         except LedgerError as err:  # e.g. a cell retried by Ray wrote a second record
             print(f"error: {err}", file=sys.stderr)
             return 2
+        except SweepStopped as err:
+            print(f"stopped: {err}", file=sys.stderr)
+            return 2
     else:
         display = Display(len(keys), live=False if args.plain else None)
         sweep.on_change = display.update
         progress = asyncio.run(sweep.run())
         display.close(progress)
+        if sweep.stopped is not None:
+            print(f"stopped: {sweep.stopped}", file=sys.stderr)
+            return 2
         records = sweep.ledger.records
     missing = [k.as_id() for k in keys if ledger_key(k) not in records]
     unscored = [r for r in records.values() if r["status"] not in ("success", "failure")]

@@ -34,6 +34,7 @@ from vabench.config import SweepConfig
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_executor import PROGRESS_EVERY_S, KeyTuple, pending_cells, recorded, run_cell
 from vabench.sweep.results import LEDGER, Ledger, LedgerError, ledger_key
+from vabench.sweep.runner import SweepStopped
 
 log = logging.getLogger(__name__)
 
@@ -135,8 +136,10 @@ def run_processes(
                 for cell, cell_keys in cells.items()
             }
             pending = set(futures)
+            stopped: list[str] = []
             while pending:
                 done, pending = cf.wait(pending, timeout=PROGRESS_EVERY_S)
+                done = {f for f in done if not f.cancelled()}
                 for future in done:
                     cell = futures[future]
                     try:
@@ -146,6 +149,10 @@ def run_processes(
                         log.exception("processes: cell %s failed", "/".join(cell))
                     else:
                         log.info("processes: cell %s done: %s", "/".join(cell), summary)
+                        if summary.get("stopped") and not stopped:
+                            stopped.append(summary["stopped"])
+                            for other in pending:  # cells not started yet never start
+                                other.cancel()
                 log.info(
                     "processes: cells %d/%d done (%d failed) | episodes recorded %d/%d",
                     len(futures) - len(pending),
@@ -163,4 +170,6 @@ def run_processes(
             len(cells),
             ", ".join("/".join(c) for c in failures),
         )
+    if stopped:
+        raise SweepStopped(stopped[0])
     return Ledger.open(run_dir).records

@@ -49,7 +49,7 @@ import yaml
 from vabench.config import SweepConfig, SweepConfigError, load_config
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import LEDGER, Ledger, Sink, ledger_key
-from vabench.sweep.runner import LocalSweep
+from vabench.sweep.runner import LocalSweep, SweepStopped
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +127,7 @@ def run_cell(
         "recorded": counts.done,
         "unscored": counts.unscored,
         "retried": counts.retried,
+        "stopped": sweep.stopped,
     }
 
 
@@ -146,8 +147,9 @@ def run_ray(
     started_here = not ray.is_initialized()
     if started_here:
         ray.init(address=config.executor.address)
+    stopped: list[str] = []
     try:
-        failures = _run_cells(ray, config, cells, len(keys), run_dir)
+        failures = _run_cells(ray, config, cells, len(keys), run_dir, stopped)
     finally:
         if started_here:
             ray.shutdown()
@@ -160,6 +162,8 @@ def run_ray(
             lost,
             ", ".join("/".join(c) for c in failures),
         )
+    if stopped:
+        raise SweepStopped(stopped[0])
     return Ledger.open(run_dir).records
 
 
@@ -169,9 +173,11 @@ def _run_cells(
     cells: dict[Cell, list[EpisodeKey]],
     planned: int,
     run_dir: Path,
+    stopped: list[str],
 ) -> dict[Cell, BaseException]:
     """Submit the cells, at most `executor.max_tasks` in flight, and wait for all of them;
-    returns the failed cells with their errors."""
+    returns the failed cells with their errors. A cell stopped by a refusing endpoint
+    (appended to `stopped`) ends the submitting: cells in flight finish, no new one starts."""
     resources = cell_resources(config, ray.cluster_resources().get("GPU", 0))
     remote = ray.remote(run_cell).options(**resources)
     document = config.document()
@@ -189,7 +195,7 @@ def _run_cells(
     failures: dict[Cell, BaseException] = {}
     done = 0
     while queue or in_flight:
-        while queue and len(in_flight) < limit:
+        while queue and len(in_flight) < limit and not stopped:
             cell = queue.pop(0)
             keys = [ledger_key(k) for k in cells[cell]]
             in_flight[remote.remote(document, str(run_dir), keys)] = cell
@@ -204,6 +210,9 @@ def _run_cells(
                 log.error("ray: cell %s failed:\n%s", "/".join(cell), err)
             else:
                 log.info("ray: cell %s done on %s: %s", "/".join(cell), summary["host"], summary)
+                if summary.get("stopped"):
+                    stopped.append(summary["stopped"])
+                    queue.clear()
         log.info(
             "ray: cells %d/%d done (%d failed), %d running | episodes recorded %d/%d",
             done,
