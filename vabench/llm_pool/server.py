@@ -237,8 +237,9 @@ class LocalServer:
                 self.counts[f"status:{record.status}"] += 1
                 if record.fault:
                     self.counts[f"fault:{record.fault}"] += 1
-                if self._log_file is not None:
+                if self._log_file is not None:  # flushed: the log outlives a killed process
                     self._log_file.write(json.dumps(dataclasses.asdict(record)) + "\n")
+                    self._log_file.flush()
 
         return handle
 
