@@ -136,6 +136,7 @@ class EndpointClient:
         self._session: aiohttp.ClientSession | None = None
         self._paused_until = 0.0
         self._closed = False
+        self._warned_no_usage = False
 
     @property
     def name(self) -> str:
@@ -250,7 +251,15 @@ class EndpointClient:
         if isinstance(outcome, _Failure):
             # No usage came back; the provider may have counted the estimate: keep it.
             return outcome
-        self.rate.settle(admission, outcome.usage.total_tokens)
+        if outcome.usage_reported:
+            self.rate.settle(admission, outcome.usage.total_tokens)
+        elif not self._warned_no_usage:  # the estimate stays on the TPM books
+            self._warned_no_usage = True
+            log.warning(
+                "%s: a reply without usage: its tokens count as 0 (cost and token totals of "
+                "this endpoint understate; some local servers omit usage). Said once.",
+                self.name,
+            )
         self.concurrency.on_success()
         return self._result(call, outcome, loop.time() - sent)
 
