@@ -219,3 +219,7 @@ def test_a_wrong_key_stops_the_sweep_and_the_fixed_run_does_every_episode(
     records = ledger_lines(out)
     assert sorted(r["seed"] for r in records) == sorted({r["seed"] for r in records})
     assert len(records) == 3 and all(r["status"] in ("success", "failure") for r in records)
+    for path in out.rglob("*"):  # neither key reached the run directory
+        if path.is_file():
+            data = path.read_bytes()
+            assert b"right-key" not in data and b"wrong-key" not in data, path
