@@ -22,8 +22,8 @@ When the time is up no new call or episode starts; those running finish. Then th
   for it, kind by kind: an injected fault as its status, malformed body, cut body or dropped
   connection; an attempt the client abandoned while the server was still on it (a "slow"
   fault, or a latency or a loaded loop that outlasted the attempt timeout) as a timeout. A
-  client timeout at the instant the server answered is counted apart
-  (`timeouts_as_the_reply_came`): the server logged an answer, the client a timeout;
+  client timeout at the instant the server answered is counted apart (`reconcile`): the
+  server logged an answer (perhaps a faulted one), the client a timeout;
 - the process's resident memory (VmRSS) every 15 s: first sample after warm-up, last, max.
 Prints the figures; `--json` writes them. Exit code 1 if anything is lost, doubled or
 unaccounted for.
@@ -158,6 +158,31 @@ def expected_failures(server_log: Path) -> Counter:
     return expected
 
 
+def reconcile(expected: Counter, client: Counter) -> dict:
+    """Match the server's attempts with the client's failures, kind by kind. A reply the
+    server finished as the client's attempt timed out (a loaded loop read it too late) is a
+    timeout on the client's side and a normal or faulted reply on the server's: such extra
+    timeouts (`timeouts_as_the_reply_came`) may stand in for faulted replies, and only for
+    them; anything else is unaccounted."""
+    surplus = client["slow"] - expected["slow"]
+    stood_in = {
+        k: expected[k] - client[k] for k in expected if k != "slow" and expected[k] > client[k]
+    }
+    unaccounted = {
+        k: expected[k] - client[k]
+        for k in set(expected) | set(client)
+        if k != "slow" and client[k] > expected[k]
+    }
+    if surplus < 0 or sum(stood_in.values()) > surplus:
+        unaccounted["slow"] = -surplus
+        unaccounted.update({f"{k} (not seen)": n for k, n in stood_in.items()})
+    return {
+        "timeouts_as_the_reply_came": max(0, surplus),
+        "of_them_faulted_replies": stood_in,
+        "unaccounted": unaccounted,
+    }
+
+
 def check_episodes(out: Path, results: Counter) -> tuple[Counter, int, Counter]:
     """Statuses, episodes whose records disagree, and the faults their events logged."""
     from vabench.agent.records import read_events, read_result
@@ -279,15 +304,7 @@ async def soak(args) -> dict:
         "server_faults": server_faults,
         "client_faults": dict(client_faults),
         "expected_failures": dict(expected),
-        # a client timeout the server did not see end early: the reply came as the attempt
-        # timed out (a loaded loop read it too late); the call was retried like any timeout
-        "timeouts_as_the_reply_came": max(0, client_faults["slow"] - expected["slow"]),
-        "unaccounted": {
-            k: expected.get(k, 0) - client_faults.get(k, 0)
-            for k in set(expected) | set(client_faults)
-            if expected.get(k, 0) != client_faults.get(k, 0)
-            and not (k == "slow" and client_faults[k] > expected[k])
-        },
+        **reconcile(expected, client_faults),
         "rss_mb_first_after_warmup": round(warm[0], 1),
         "rss_mb_last": round(warm[-1], 1),
         "rss_mb_max": round(max(warm), 1),
