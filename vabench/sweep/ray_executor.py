@@ -31,7 +31,9 @@ environment of each node's Ray processes); a config that does not load there fai
 naming the node.
 
 Ray retries a cell whose worker process died (Ray's default `max_retries`); the retry resumes
-from the ledger like a rerun of the command does. Application errors are not retried.
+from the ledger like a rerun of the command does. Application errors are not retried. A cell
+stopped by an endpoint that refuses the sweep's requests (`LocalSweep.stopped`) ends the
+submitting: the cells in flight finish, none starts, and `run_ray` raises `SweepStopped`.
 """
 
 from __future__ import annotations
