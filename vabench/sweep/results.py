@@ -89,7 +89,10 @@ class Ledger:
         ledger = cls(run_dir, sink=sink)
         path = run_dir / LEDGER
         if path.exists():
-            ledger.records, ledger.collapsed = _load_collapsing(path, run_dir / DUPLICATES)
+            # A worker (sink set) never writes: it collapses in memory, its parent on disk.
+            ledger.records, ledger.collapsed = _load_collapsing(
+                path, run_dir / DUPLICATES, rewrite=sink is None
+            )
         infra = run_dir / INFRA_LOG
         if infra.exists():
             for line in _read_whole_lines(infra):
@@ -152,7 +155,9 @@ class Ledger:
         self.infra_attempts[key_of(record)] += 1
 
 
-def _load_collapsing(path: Path, aside: Path) -> tuple[dict[Key, dict[str, Any]], list[str]]:
+def _load_collapsing(
+    path: Path, aside: Path, rewrite: bool = True
+) -> tuple[dict[Key, dict[str, Any]], list[str]]:
     """The ledger's records by key; second records of a key are moved to `aside` (each line
     once, even if a crash repeats the move) and the ledger rewritten in place without them,
     all under the ledger's lock."""
@@ -179,7 +184,7 @@ def _load_collapsing(path: Path, aside: Path) -> tuple[dict[Key, dict[str, Any]]
                 continue
             records[key] = record
             kept.append(line)
-        if moved:
+        if moved and rewrite:
             known = set(aside.read_text(encoding="utf-8").splitlines()) if aside.exists() else set()
             with open(aside, "a", encoding="utf-8") as f:
                 f.writelines(line + "\n" for line in moved if line not in known)
