@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.engine import EngineSettings, Episode, EpisodeSpec, task_services
 from vabench.agent.records import EpisodeResult
 from vabench.agent.simulation import SimCounters
 from vabench.llm_pool.apis.base import IncomingRequest
@@ -134,6 +134,7 @@ async def run_scripted_async(
     server_config: ServerConfig | None = None,
     retry: dict[str, Any] | None = None,
     cycle: bool = False,
+    settings: EngineSettings | None = None,
     backend: str = "c",
     **batch_kwargs: Any,
 ) -> EpisodeRun:
@@ -155,7 +156,14 @@ async def run_scripted_async(
         async with (
             LLMPool([endpoint]) as llm,
             task_services(
-                task, 1, llm, pool, backend=backend, image=SMALL, **batch_kwargs
+                task,
+                1,
+                llm,
+                pool,
+                backend=backend,
+                image=SMALL,
+                settings=settings,
+                **batch_kwargs,
             ) as services,
         ):
             episode = Episode(spec, services)

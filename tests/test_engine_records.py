@@ -16,6 +16,8 @@ import pytest
 from engine_util import SMALL, STOP, EpisodeRun, camera, move, run_scripted, tool
 from PIL import Image
 
+from vabench.agent.conversation import ContextLimits
+from vabench.agent.engine import EngineSettings
 from vabench.agent.observation import PASSIVE_VIEWS
 from vabench.agent.records import RECORD_VERSION, read_events, read_result
 from vabench.llm_pool.server import ServerConfig
@@ -77,8 +79,12 @@ def _check_records(run: EpisodeRun, directory: Path) -> None:
     assert result.tool_calls == len(by_type.get("tool", []))
     assert result.invalid_outputs == len(by_type.get("rejection", []))
     replies = by_type["reply"]
-    assert result.model_calls == len(replies) == len(by_type["request"])
-    usage = {k: sum(e["usage"][k] or 0 for e in replies) for k in replies[0]["usage"]}
+    assert len(replies) == len(by_type["request"])
+    # every call is logged with its usage: the decisions' replies and the compactions' summaries
+    calls = replies + by_type.get("compaction", [])
+    assert result.model_calls == len(calls)
+    usage = {k: sum(e["usage"][k] or 0 for e in calls) for k in replies[0]["usage"]}
+    assert result.cost_usd == pytest.approx(sum(e["cost_usd"] for e in calls))
     assert usage["input_tokens"] > 0 and usage["output_tokens"] > 0
     assert result.tokens.input == usage["input_tokens"]
     assert result.tokens.cached_input == usage["cached_input_tokens"]
@@ -199,3 +205,30 @@ def test_a_rejected_request_is_an_unscored_error(pool, tmp_path):
     assert len(run.bodies) == 2  # not retried
     assert (r.steps_used, r.camera_actions, r.model_calls) == (1, 1, 1)
     assert read_result(tmp_path) == r
+
+
+def test_compaction_inside_an_episode_is_logged_and_the_episode_goes_on(pool, tmp_path):
+    """A context bound so small that every step from the second compacts: each compaction is
+    one summary call (its reply consumed from the script), logged as a "compaction" event
+    with the step it happened at, and the episode ends as the model decided (defect B: the
+    engine passed `step` twice and every long episode ended as a harness error)."""
+    limits = ContextLimits(
+        window_tokens=8_292, output_reserve_tokens=8_192, compact_fraction=1.0, keep_user_turns=1
+    )
+    script = [camera("view_topdown"), "summary one", move("z", "+", 10), "summary two", STOP]
+    run = run_scripted(
+        TASK,
+        script,
+        pool,
+        seed=SEED,
+        out_dir=tmp_path,
+        settings=EngineSettings(limits=limits),
+    )
+    r = run.result
+    assert (r.status, r.stop_reason) == ("failure", "model_stop"), r.error
+    assert (r.compactions, r.model_calls, r.steps_used) == (2, 5, 2)
+    compactions = [e for e in read_events(tmp_path) if e["type"] == "compaction"]
+    assert [e["step"] for e in compactions] == [2, 3]
+    assert [e["summary"] for e in compactions] == ["summary one", "summary two"]
+    assert all(e["messages_summarised"] >= 2 for e in compactions)
+    _check_records(run, tmp_path)

@@ -229,7 +229,8 @@ def test_anthropic_body_shape_with_cache_markers_and_thinking():
         "thinking": {"type": "enabled", "budget_tokens": 1024},
     }
     headers = ADAPTERS["anthropic"].headers("sk-test")
-    assert headers == {"anthropic-version": "2023-06-01", "x-api-key": "sk-test"}
+    # what the official SDK sends (tests/test_sdk_conformance.py checks it against the SDK)
+    assert headers == {"anthropic-version": "2026-10-21", "Authorization": "Bearer sk-test"}
     plain = _encoded(
         ADAPTERS["anthropic"].build_body(endpoint, request, GenerationOptions(cache_prompt=False))
     )
@@ -381,7 +382,11 @@ def test_documented_anthropic_response_parses_and_costs():
             b'{"choices": [], "usage": {"prompt_tokens": 1, "completion_tokens": 1}}',
             "field 'choices'",
         ),
-        ("openai_responses", b'{"output": []}', "field 'usage'"),
+        (
+            "openai_responses",
+            b'{"output": [], "usage": {"input_tokens": 1}}',
+            "field 'usage.output_tokens'",
+        ),
         (
             "anthropic",
             b'{"content": [{"type": "text", "text": "hi"}], "usage": {"input_tokens": 1}}',

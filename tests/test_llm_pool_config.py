@@ -59,9 +59,9 @@ def _model(**fields):
             "below max_output_tokens",
         ),
         (
-            _model(api="anthropic", generation={"thinking_budget": 1024, "temperature": 0.2}),
+            _model(api="anthropic", generation={"temperature": 0.2}),
             "models[0].generation.temperature",
-            "extended thinking",
+            "takes no temperature",
         ),
         (
             _model(limits={"max_concurrency": 2, "min_concurrency": 4}),

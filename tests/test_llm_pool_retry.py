@@ -107,6 +107,38 @@ def test_client_errors_are_not_retried(status_source, monkeypatch):
     assert err.status == (400 if status_source == "scripted_400" else 401)
 
 
+def test_a_refusal_is_fatal_when_the_endpoint_never_answered_or_the_key_is_wrong(monkeypatch):
+    """Which refusals stop a sweep (`RequestRejected.fatal`): a 400 before the endpoint ever
+    accepted a request (its parameters are wrong for it), a 401 always, naming the key's
+    variable; a 400 after successes is one request's problem."""
+
+    async def main():
+        results = {}
+        async with LocalServer(policy=ScriptedPolicy(["ok"])) as server:
+            config = server.endpoint_config("m", "openai_chat", retry=FAST_RETRY)
+            async with LLMPool([config]) as pool:
+                await pool.complete("m", REQUEST)
+                with pytest.raises(RequestRejected) as after_success:
+                    await pool.complete("m", REQUEST)
+            async with LLMPool([config]) as fresh:  # a new pool: no success yet
+                with pytest.raises(RequestRejected) as first:
+                    await fresh.complete("m", REQUEST)
+            results["400 after a success"] = after_success.value
+            results["400 first"] = first.value
+        monkeypatch.setenv("TEST_LLM_KEY", "a-wrong-key")
+        async with LocalServer(ServerConfig(api_key="the-right-key")) as server:
+            with pytest.raises(RequestRejected) as wrong:
+                await _one_call(server, "anthropic", api_key_env="TEST_LLM_KEY")
+            results["401"] = wrong.value
+        return results
+
+    got = asyncio.run(main())
+    assert not got["400 after a success"].fatal
+    assert got["400 first"].fatal and "generation options" in got["400 first"].hint
+    assert got["401"].fatal and got["401"].status == 401
+    assert "TEST_LLM_KEY" in got["401"].hint
+
+
 def test_transport_faults_are_retried_and_named():
     async def main():
         async with LocalServer() as server:

@@ -1,6 +1,7 @@
 """The sweep runner in process: infrastructure failures get their retry rounds and end listed,
 never scored; a result.json that never reached the ledger is adopted, not run again; a cut
-ledger line is dropped; a bad config stops the command before any call."""
+ledger line is dropped; a second record of an episode is collapsed and reported; a bad config
+stops the command before any call."""
 
 from __future__ import annotations
 
@@ -8,12 +9,10 @@ import asyncio
 import json
 from pathlib import Path
 
-import pytest
-
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.plan import plan
-from vabench.sweep.results import INFRA_LOG, LEDGER, Ledger, LedgerError
+from vabench.sweep.results import DUPLICATES, INFRA_LOG, LEDGER, Ledger, key_of
 from vabench.sweep.runner import LocalSweep
 
 BASE = """\
@@ -83,15 +82,31 @@ def test_orphaned_result_is_adopted_and_a_cut_line_dropped(tmp_path):
     assert len(ledger.read_text().splitlines()) == 2
 
 
-def test_a_second_record_for_one_episode_is_refused(tmp_path):
+def test_a_second_record_for_one_episode_is_collapsed_and_reported(tmp_path):
+    """Two writers raced (a worker of a killed sweep and its resumption): resuming keeps the
+    first record, reports the second and moves it aside (its spend still counts), never
+    refuses the run directory; a repeated open moves nothing twice."""
     cfg = write_config(tmp_path, "{policy: conversation_hash}")
     out = tmp_path / "out"
-    run(cfg, out)
-    line = (out / LEDGER).read_text().splitlines()[0]
+    first = run(cfg, out)
+    original = (out / LEDGER).read_bytes()
+    line = original.decode().splitlines()[0]
+    second = json.loads(line) | {"cost_usd": 1.5, "wall_s": 99.0}
     with open(out / LEDGER, "a") as f:
-        f.write(line + "\n")
-    with pytest.raises(LedgerError, match="a second record"):
-        Ledger.open(out)
+        f.write(json.dumps(second) + "\n")
+    for _ in range(2):
+        ledger = Ledger.open(out)
+        assert ledger.records == first.ledger.records
+        assert (out / LEDGER).read_bytes() == original
+        assert [json.loads(x) for x in (out / DUPLICATES).read_text().splitlines()] == [second]
+    key = "/".join(map(str, key_of(second)))
+    assert len(ledger.collapsed) == 0  # the second open found nothing left to collapse
+    with open(out / LEDGER, "a") as f:
+        f.write(json.dumps(second) + "\n")
+    again = run(cfg, out)  # a resume reports it and runs nothing
+    assert again.ledger.collapsed and key in again.ledger.collapsed[0]
+    assert again.ledger.records == first.ledger.records
+    assert len((out / DUPLICATES).read_text().splitlines()) == 1
 
 
 def test_bad_config_stops_before_any_call(tmp_path, capsys):

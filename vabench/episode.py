@@ -29,6 +29,7 @@ import yaml
 from vabench.agent.engine import Episode, EpisodeSpec, task_services
 from vabench.agent.records import EpisodeResult
 from vabench.llm_pool.config import ConfigError, load_endpoints
+from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.policies import POLICIES
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
@@ -175,6 +176,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = asyncio.run(run(args))
     except (ConfigError, KeyError, FileExistsError, BackendUnavailable) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 2
+    except RequestRejected as err:  # the endpoint refuses every request (key, model, params)
+        print(f"error: {err} ({err.hint})", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps(result.model_dump(), indent=1))

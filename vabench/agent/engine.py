@@ -50,7 +50,7 @@ from vabench.agent.simulation import RenderService, SimService, SlotSnapshot
 from vabench.agent.tools import camera_history, geometry_result
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
-from vabench.llm_pool.messages import ChatRequest, Image, Usage
+from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image, Usage
 from vabench.llm_pool.pool import LLMPool
 from vabench.render import camera as cam
 from vabench.render.backends import Renderer
@@ -150,6 +150,7 @@ class Episode:
         self.camera: cam.CameraPose | None = None
         self.snapshot: SlotSnapshot | None = None
         self.success = False
+        self._last_summary: CompletionResult | None = None
         self.t0 = time.time()
 
     # -- the loop ---------------------------------------------------------------------------
@@ -186,6 +187,10 @@ class Episode:
         except (RenderError, SimulationError) as err:
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:
+            if err.fatal:  # the endpoint's refusal, not this episode's: no result; sweep stops
+                step = self.counts.steps + 1
+                self.rec.event("endpoint_refused", step=step, status=err.status, error=str(err))
+                raise
             return self._finish("error", "request_rejected", f"{err.kind}: {err}")
         except Exception as err:  # a harness bug: recorded, never scored
             self.rec.event("harness_error", error=f"{type(err).__name__}: {err}")
@@ -281,7 +286,21 @@ class Episode:
     async def _call_model(self, step: int) -> str:
         event = await self.conv.compact_if_needed(self._summarize)
         if event is not None:
-            self.rec.event("compaction", step=step, **event.record())
+            # The event's own record names its type and step; the log line takes both from
+            # here (the step being decided), the rest as it is.
+            fields = {k: v for k, v in event.record().items() if k not in ("event", "step")}
+            # The summary was a model call: its usage and cost are logged with it, so the
+            # events account for every call the result counts.
+            summary = self._last_summary
+            assert summary is not None
+            self.rec.event(
+                "compaction",
+                step=step,
+                **fields,
+                usage=dataclasses.asdict(summary.usage),
+                cost_usd=summary.cost_usd,
+                attempts=summary.attempts,
+            )
         request = self.conv.request(self.svc.settings.generation)
         self.rec.event(
             "request",
@@ -310,6 +329,7 @@ class Episode:
     async def _summarize(self, request: ChatRequest) -> str:
         result = await self.svc.llm.complete(self.spec.model, request)
         self._account(result.usage, result.cost_usd)
+        self._last_summary = result
         return result.text
 
     def _account(self, usage: Usage, cost: float) -> None:

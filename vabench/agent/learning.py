@@ -503,6 +503,9 @@ async def learn_summary(
     except InfrastructureError as err:
         status, reason, error = "infrastructure_error", "infrastructure_error", str(err)
     except RequestRejected as err:
+        if err.fatal:  # the endpoint refuses every request: nothing to store, the sweep stops
+            session.event("endpoint_refused", status=err.status, error=str(err))
+            raise
         status, reason, error = "error", "request_rejected", f"{err.status}: {err}"
     s, u = session.summary, session.usage
     result = LearningResult(

@@ -106,23 +106,22 @@ class GenerationOptions(_Strict):
 def check_options_for_api(api: ApiName, options: GenerationOptions) -> None:
     """Reject option combinations the API would answer with a 400, naming the field."""
     if api == "anthropic":
-        if options.temperature is not None and options.temperature > 1:
-            raise ConfigError("generation.temperature", "Anthropic accepts 0 to 1")
+        if options.temperature is not None:
+            raise ConfigError(
+                "generation.temperature",
+                "the Anthropic Messages API (version 2026-10-21, the official SDK's) takes no "
+                "temperature; remove it (it applies to the OpenAI APIs only)",
+            )
         if options.reasoning_effort is not None:
             raise ConfigError(
                 "generation.reasoning_effort", "OpenAI only; use thinking_budget for anthropic"
             )
-        if options.thinking_budget is not None:
-            if options.thinking_budget >= options.resolved_max_output_tokens:
-                raise ConfigError(
-                    "generation.thinking_budget",
-                    f"must be below max_output_tokens ({options.resolved_max_output_tokens})",
-                )
-            if options.temperature not in (None, 1.0):
-                raise ConfigError(
-                    "generation.temperature",
-                    "Anthropic rejects a temperature other than 1 with extended thinking",
-                )
+        budget = options.thinking_budget
+        if budget is not None and budget >= options.resolved_max_output_tokens:
+            raise ConfigError(
+                "generation.thinking_budget",
+                f"must be below max_output_tokens ({options.resolved_max_output_tokens})",
+            )
     elif options.thinking_budget is not None:
         raise ConfigError(
             "generation.thinking_budget", "anthropic only; use reasoning_effort for OpenAI"

@@ -4,8 +4,11 @@
   connections, malformed bodies) through every attempt the retry policy allows. The engine
   re-runs the episode later; it is never scored.
 - `RequestRejected`: the endpoint refused the request itself (a 4xx other than 408/409/429).
-  Retrying cannot help: authentication and missing models stop a sweep; a context overflow
-  ends the episode with that reason.
+  Retrying cannot help. When the refusal is the endpoint's, not the episode's (`fatal`: a
+  wrong key 401/403, an unknown model 404, or a 400 before the endpoint ever answered, i.e.
+  parameters it does not take), the sweep stops and records nothing for the episodes it
+  touched; otherwise (a 400 or 413 of one episode's request, e.g. its context grew too
+  long) the episode ends with that reason.
 - `ResponseFormatError`: a body that is not what the API documents. Raised by the parsers,
   retried by the pool, and named in the final `InfrastructureError` if it persists.
 
@@ -48,10 +51,22 @@ class RequestRejected(LLMError):
     """A non-retryable 4xx: the request itself is wrong (or the key, or the model name)."""
 
     def __init__(
-        self, endpoint: str, message: str, *, status: int, attempts: int, elapsed_s: float
+        self,
+        endpoint: str,
+        message: str,
+        *,
+        status: int,
+        attempts: int,
+        elapsed_s: float,
+        fatal: bool = False,
+        hint: str = "",
     ):
         super().__init__(endpoint, message, attempts=attempts, elapsed_s=elapsed_s)
         self.status = status
+        self.fatal = fatal
+        """The endpoint cannot serve this sweep as configured: stop, record nothing."""
+        self.hint = hint
+        """What to check (the key's environment variable, the model id, the parameters)."""
 
     @property
     def kind(self) -> str:

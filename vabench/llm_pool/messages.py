@@ -239,6 +239,8 @@ class ParsedResponse:
     response_id: str | None = None
     reasoning: str | None = None
     """Reasoning text when the API returns it (Anthropic thinking, Responses summaries)."""
+    usage_reported: bool = True
+    """False when the body had no usage (local servers omit it at times): zero tokens."""
 
 
 @dataclass(frozen=True)

@@ -136,6 +136,7 @@ class EndpointClient:
         self._session: aiohttp.ClientSession | None = None
         self._paused_until = 0.0
         self._closed = False
+        self._warned_no_usage = False
 
     @property
     def name(self) -> str:
@@ -250,7 +251,15 @@ class EndpointClient:
         if isinstance(outcome, _Failure):
             # No usage came back; the provider may have counted the estimate: keep it.
             return outcome
-        self.rate.settle(admission, outcome.usage.total_tokens)
+        if outcome.usage_reported:
+            self.rate.settle(admission, outcome.usage.total_tokens)
+        elif not self._warned_no_usage:  # the estimate stays on the TPM books
+            self._warned_no_usage = True
+            log.warning(
+                "%s: a reply without usage: its tokens count as 0 (cost and token totals of "
+                "this endpoint understate; some local servers omit usage). Said once.",
+                self.name,
+            )
         self.concurrency.on_success()
         return self._result(call, outcome, loop.time() - sent)
 
@@ -260,12 +269,16 @@ class EndpointClient:
         call.failures.append(self._redact(failure.line))
         decision = failure.decision
         if not decision.retry:
+            status = failure.status or 0
+            fatal, hint = self._refusal(status)
             raise RequestRejected(
                 self.name,
                 call.failures[-1],
-                status=failure.status or 0,
+                status=status,
                 attempts=call.attempt,
                 elapsed_s=loop.time() - call.started,
+                fatal=fatal,
+                hint=hint,
             )
         if decision.kind == "rate_limit":
             self._counters.rate_limited += 1
@@ -273,6 +286,27 @@ class EndpointClient:
             if decision.retry_after is not None:  # the endpoint, not just this call, waits
                 self._paused_until = max(self._paused_until, loop.time() + decision.retry_after)
         return decision
+
+    def _refusal(self, status: int) -> tuple[bool, str]:
+        """Whether a non-retryable status means the endpoint cannot serve the sweep at all
+        (see `errors.RequestRejected`), and what to check."""
+        c = self.config
+        if status in (401, 403):
+            where = (
+                f"the key in the environment variable {c.api_key_env} (api_key_env of model "
+                f"{c.name!r})"
+                if c.api_key_env
+                else f"model {c.name!r} has no api_key_env: the endpoint wants a key"
+            )
+            return True, f"check {where}"
+        if status == 404:
+            return True, f"check the model id {c.provider_model!r} and the URL {self.url}"
+        if status == 400 and self._counters.succeeded == 0:
+            return True, (
+                f"the endpoint has not accepted one request of model {c.name!r}: check its "
+                "generation options and max_tokens_field against what the endpoint takes"
+            )
+        return False, ""
 
     async def _back_off(self, call: _Call, decision: RetryDecision) -> None:
         """Wait before the next attempt, or raise if the attempts or the time are spent."""

@@ -74,7 +74,7 @@ class ServerConfig(BaseModel):
     retry_after_header: bool = True
     """Send Retry-After with enforced 429s; False leaves only the API's reset headers."""
     api_key: SecretStr | None = None
-    """Require this key (Bearer for OpenAI routes, x-api-key for Anthropic)."""
+    """Require this key (Bearer; the Anthropic route also takes it as x-api-key)."""
     simulate_cache: bool = True
     log_path: str | None = None
     """Append one JSON line per request here."""
@@ -228,6 +228,8 @@ class LocalServer:
             try:
                 response = await self._respond(request, adapter, record)
                 record.status = response.status if record.fault != "drop" else None
+                if not response.prepared:  # a truncated reply has sent its headers already
+                    response.headers.update(adapter.response_headers())
                 return response
             except asyncio.CancelledError:
                 record.error = "client went away"
@@ -237,8 +239,9 @@ class LocalServer:
                 self.counts[f"status:{record.status}"] += 1
                 if record.fault:
                     self.counts[f"fault:{record.fault}"] += 1
-                if self._log_file is not None:
+                if self._log_file is not None:  # flushed: the log outlives a killed process
                     self._log_file.write(json.dumps(dataclasses.asdict(record)) + "\n")
+                    self._log_file.flush()
 
         return handle
 

@@ -163,6 +163,6 @@ def simulate_usage(
         cached_input_tokens=read,
         cache_write_tokens=write,
         output_tokens=output,
-        reasoning_tokens=None if request.api == "anthropic" else reasoning_tokens,
+        reasoning_tokens=reasoning_tokens,  # Anthropic: None unless thinking was asked for
     )
     return usage, reasoning_text

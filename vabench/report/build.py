@@ -3,7 +3,7 @@
 Files written (each atomically: a temporary sibling, then `os.replace`):
     report.md            every table, with the notes and the figures linked
     <section>.md         one file per topic (success_per_task, macro_average, active_passive,
-                         checkpoints, usage; and, only when the sweep holds their data,
+                         checkpoints, usage, spend; and, only when the sweep holds their data,
                          summary_source, learning_stage, transfer, long_horizon; and,
                          when RUN_DIR/annotations/ holds judgments, diagnostics, agreement,
                          vote_rules)
@@ -23,7 +23,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from vabench.report import figures, html, stats, tables, track_tables, tracks
+from vabench.report import figures, html, spend, stats, tables, track_tables, tracks
 from vabench.report.load import Results, load_results
 from vabench.report.tracks import TaskMeta
 
@@ -109,6 +109,9 @@ def write_report(
             stats.usage(results.scored), unscored, len(unresolved), results.retried
         ),
     ]
+    bill_section = spend.spend_section(spend.bill(results.path.parent))
+    if bill_section is not None:
+        sections.append(bill_section)
 
     pngs: list[tuple[str, str, str, bytes]] = [
         (

@@ -130,7 +130,7 @@ def load_results(run_dir: Path | str) -> Results:
             raise ReportError(
                 f"{where}: duplicate scored record for model={model!r} track={track!r} "
                 f"task={task!r} seed={seed} run={run}; the first is at line "
-                f"{first_scored[record.key]}"
+                f"{first_scored[record.key]} (running the sweep command again collapses it)"
             )
         first_scored[record.key] = i + 1
         out.scored.append(record)

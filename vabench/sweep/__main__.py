@@ -2,55 +2,28 @@
 
 Running the same command again resumes: finished episodes are never re-run, interrupted ones
 start again, infrastructure failures get their retry rounds. Exit code 0 when every planned
-episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config.
+episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run
+directory of another plan, or an endpoint that refused the sweep's requests (a wrong key, an
+unknown model: the sweep stops at once, naming the model and what to check).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-import yaml
-
 from vabench.config import SweepConfigError, load_config
 from vabench.sweep.display import Display
 from vabench.sweep.plan import estimate, format_estimate, plan
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
-from vabench.sweep.runner import LocalSweep
+from vabench.sweep.rundir import RunDirMismatch, check_run_dir
+from vabench.sweep.runner import LocalSweep, SweepStopped
 
 log = logging.getLogger("vabench.sweep")
-
-# What decides the plan: a run directory belongs to one such set (resuming with another
-# would mix episodes of two sweeps in one table).
-PLAN_FIELDS = ("models", "tracks", "tasks", "seeds", "runs", "step_budget")
-
-
-def _plan_identity(keys: Sequence) -> list[str]:
-    return [k.as_id() for k in keys]
-
-
-def _check_run_dir(run_dir: Path, config_dump: dict, keys: Sequence) -> None:
-    """Refuse to resume a run directory made by a different plan."""
-    plan_file = run_dir / "plan.json"
-    ids = _plan_identity(keys)
-    if plan_file.exists():
-        before = json.loads(plan_file.read_text(encoding="utf-8"))
-        if before != ids:
-            raise SystemExit(
-                f"{run_dir} holds a sweep with a different plan ({len(before)} episodes, now "
-                f"{len(ids)}); use another --out, or restore the config that made it"
-            )
-    else:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        plan_file.write_text(json.dumps(ids), encoding="utf-8")
-    (run_dir / "sweep.yaml").write_text(
-        yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8"
-    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -81,7 +54,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             done = len(Ledger.open(run_dir).records)
             print(f"{run_dir}: {done} of {len(keys)} episodes already finished")
         return 0
-    _check_run_dir(run_dir, config.document(), keys)
+    try:
+        check_run_dir(run_dir, config, keys, config.document())
+    except RunDirMismatch as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     try:
         sweep = LocalSweep(config, keys, run_dir)
     except LedgerError as err:
@@ -97,11 +74,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         except LedgerError as err:  # e.g. a cell retried by Ray wrote a second record
             print(f"error: {err}", file=sys.stderr)
             return 2
+        except SweepStopped as err:
+            print(f"stopped: {err}", file=sys.stderr)
+            return 2
     else:
         display = Display(len(keys), live=False if args.plain else None)
         sweep.on_change = display.update
         progress = asyncio.run(sweep.run())
         display.close(progress)
+        if sweep.stopped is not None:
+            print(f"stopped: {sweep.stopped}", file=sys.stderr)
+            return 2
         records = sweep.ledger.records
     missing = [k.as_id() for k in keys if ledger_key(k) not in records]
     unscored = [r for r in records.values() if r["status"] not in ("success", "failure")]

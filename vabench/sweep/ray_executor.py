@@ -31,7 +31,9 @@ environment of each node's Ray processes); a config that does not load there fai
 naming the node.
 
 Ray retries a cell whose worker process died (Ray's default `max_retries`); the retry resumes
-from the ledger like a rerun of the command does. Application errors are not retried.
+from the ledger like a rerun of the command does. Application errors are not retried. A cell
+stopped by an endpoint that refuses the sweep's requests (`LocalSweep.stopped`) ends the
+submitting: the cells in flight finish, none starts, and `run_ray` raises `SweepStopped`.
 """
 
 from __future__ import annotations
@@ -48,8 +50,8 @@ import yaml
 
 from vabench.config import SweepConfig, SweepConfigError, load_config
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.results import LEDGER, Ledger, ledger_key
-from vabench.sweep.runner import LocalSweep
+from vabench.sweep.results import LEDGER, Ledger, Sink, ledger_key
+from vabench.sweep.runner import LocalSweep, SweepStopped
 
 log = logging.getLogger(__name__)
 
@@ -90,11 +92,17 @@ def recorded(run_dir: Path) -> int:
         return 0
 
 
-def run_cell(document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]) -> dict[str, Any]:
+def run_cell(
+    document: dict[str, Any],
+    run_dir: str,
+    keys: Sequence[KeyTuple],
+    sink: Sink | None = None,
+) -> dict[str, Any]:
     """One cell, in a Ray worker: the episodes `keys` (all of one (model, track, task)) of the
     config `document` (a `SweepConfig.document()`) run by a `LocalSweep` into `run_dir`.
     Returns counts for the driver's log: host, episodes (run here), recorded (the cell's
-    records in the ledger now), unscored, retried."""
+    records in the ledger now), unscored, retried. With `sink`, ledger lines go there instead
+    of the files (`executor: processes`: the parent writes them)."""
     host = socket.gethostname()
     run = Path(run_dir)
     if not (run / "plan.json").exists():
@@ -112,7 +120,7 @@ def run_cell(document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]) -
                 f"the sweep config does not load on {host}:\n"
                 + str(err).replace(str(path), str(run / "sweep.yaml"))
             ) from None
-    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run)
+    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, ledger_sink=sink)
     model, track, task = keys[0][:3]
     counts = asyncio.run(sweep.run()).cells[(model, track, task)]
     return {
@@ -121,6 +129,7 @@ def run_cell(document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]) -
         "recorded": counts.done,
         "unscored": counts.unscored,
         "retried": counts.retried,
+        "stopped": sweep.stopped,
     }
 
 
@@ -140,8 +149,9 @@ def run_ray(
     started_here = not ray.is_initialized()
     if started_here:
         ray.init(address=config.executor.address)
+    stopped: list[str] = []
     try:
-        failures = _run_cells(ray, config, cells, len(keys), run_dir)
+        failures = _run_cells(ray, config, cells, len(keys), run_dir, stopped)
     finally:
         if started_here:
             ray.shutdown()
@@ -154,6 +164,8 @@ def run_ray(
             lost,
             ", ".join("/".join(c) for c in failures),
         )
+    if stopped:
+        raise SweepStopped(stopped[0])
     return Ledger.open(run_dir).records
 
 
@@ -163,9 +175,11 @@ def _run_cells(
     cells: dict[Cell, list[EpisodeKey]],
     planned: int,
     run_dir: Path,
+    stopped: list[str],
 ) -> dict[Cell, BaseException]:
     """Submit the cells, at most `executor.max_tasks` in flight, and wait for all of them;
-    returns the failed cells with their errors."""
+    returns the failed cells with their errors. A cell stopped by a refusing endpoint
+    (appended to `stopped`) ends the submitting: cells in flight finish, no new one starts."""
     resources = cell_resources(config, ray.cluster_resources().get("GPU", 0))
     remote = ray.remote(run_cell).options(**resources)
     document = config.document()
@@ -183,7 +197,7 @@ def _run_cells(
     failures: dict[Cell, BaseException] = {}
     done = 0
     while queue or in_flight:
-        while queue and len(in_flight) < limit:
+        while queue and len(in_flight) < limit and not stopped:
             cell = queue.pop(0)
             keys = [ledger_key(k) for k in cells[cell]]
             in_flight[remote.remote(document, str(run_dir), keys)] = cell
@@ -198,6 +212,9 @@ def _run_cells(
                 log.error("ray: cell %s failed:\n%s", "/".join(cell), err)
             else:
                 log.info("ray: cell %s done on %s: %s", "/".join(cell), summary["host"], summary)
+                if summary.get("stopped"):
+                    stopped.append(summary["stopped"])
+                    queue.clear()
         log.info(
             "ray: cells %d/%d done (%d failed), %d running | episodes recorded %d/%d",
             done,

@@ -18,7 +18,14 @@ Several processes, on several machines (`executor: ray`), append to the same log
 is one `write()` of the whole line on an `O_APPEND` descriptor, under an exclusive POSIX record
 lock on the file (fcntl, which NFS honours across clients, unlike `O_APPEND` alone), and
 `open()` reads and cuts under the same lock, so a line another process is writing is never
-taken for a cut one.
+taken for a cut one. With `executor: processes` there is one writer: the cell workers hand
+their lines to the parent (`Ledger(sink=...)`), which appends them (`append_line`), so a worker
+that outlives a killed parent cannot add a line.
+
+A second line for an episode already in the ledger (two writers raced: a worker of a killed
+sweep and its resumption) is not fatal: `open()` keeps the first, moves the others to
+RUN_DIR/results.duplicates.jsonl (their spend still counts in the report) and reports them in
+`Ledger.collapsed`.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ import fcntl
 import json
 import os
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,9 +44,15 @@ from vabench.agent.records import RECORD_VERSION, EpisodeResult, read_result
 
 LEDGER = "results.jsonl"
 INFRA_LOG = "infrastructure.jsonl"
+DUPLICATES = "results.duplicates.jsonl"
+"""Records collapsed out of the ledger as second records of an episode (kept for the bill)."""
+
+Key = tuple[str, str, str, int, int]
+Sink = Callable[[str, dict[str, Any]], None]
+"""Where a ledger's appends go instead of its files: (log name, record)."""
 
 
-def key_of(record: dict[str, Any]) -> tuple[str, str, str, int, int]:
+def key_of(record: dict[str, Any]) -> Key:
     return (
         record["model"],
         record["track"],
@@ -49,7 +62,7 @@ def key_of(record: dict[str, Any]) -> tuple[str, str, str, int, int]:
     )
 
 
-def ledger_key(k: Any) -> tuple[str, str, str, int, int]:
+def ledger_key(k: Any) -> Key:
     """The ledger key of a planned `EpisodeKey` (the same tuple `key_of` reads from a line)."""
     return (k.model, k.track, k.task, int(k.seed), int(k.run))
 
@@ -63,26 +76,23 @@ class Ledger:
     """What has finished (loaded at start, appended as episodes end)."""
 
     run_dir: Path
-    records: dict[tuple[str, str, str, int, int], dict[str, Any]] = field(default_factory=dict)
+    records: dict[Key, dict[str, Any]] = field(default_factory=dict)
     infra_attempts: Counter = field(default_factory=Counter)
+    sink: Sink | None = None
+    """Set in a worker whose parent writes the logs (`executor: processes`)."""
+    collapsed: list[str] = field(default_factory=list)
+    """One line per duplicate record `open()` moved out of the ledger."""
 
     @classmethod
-    def open(cls, run_dir: Path) -> Ledger:
+    def open(cls, run_dir: Path, sink: Sink | None = None) -> Ledger:
         run_dir.mkdir(parents=True, exist_ok=True)
-        ledger = cls(run_dir)
+        ledger = cls(run_dir, sink=sink)
         path = run_dir / LEDGER
         if path.exists():
-            for n, line in enumerate(_read_whole_lines(path), 1):
-                if not line.strip():
-                    continue
-                try:
-                    record = json.loads(line)
-                    key = key_of(record)
-                except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
-                    raise LedgerError(f"{path}:{n}: not a result record ({err})") from None
-                if key in ledger.records:
-                    raise LedgerError(f"{path}:{n}: a second record for {key}")
-                ledger.records[key] = record
+            # A worker (sink set) never writes: it collapses in memory, its parent on disk.
+            ledger.records, ledger.collapsed = _load_collapsing(
+                path, run_dir / DUPLICATES, rewrite=sink is None
+            )
         infra = run_dir / INFRA_LOG
         if infra.exists():
             for line in _read_whole_lines(infra):
@@ -90,15 +100,33 @@ class Ledger:
                     ledger.infra_attempts[key_of(json.loads(line))] += 1
         return ledger
 
-    def finished(self, key: tuple[str, str, str, int, int]) -> bool:
+    def finished(self, key: Key) -> bool:
         return key in self.records
 
     def _append(self, name: str, record: dict[str, Any]) -> None:
+        if self.sink is not None:
+            self.sink(name, record)
+            return
         data = (json.dumps(record) + "\n").encode("utf-8")
         with _locked(self.run_dir / name, os.O_WRONLY | os.O_APPEND | os.O_CREAT) as fd:
             while data:  # one write() in practice; a short one is finished under the lock
                 data = data[os.write(fd, data) :]
             os.fsync(fd)
+
+    def append_line(self, name: str, record: dict[str, Any]) -> None:
+        """Append a line a worker built (`add`/`add_infrastructure_failure` through a sink);
+        a second ledger record of an episode is refused (`LedgerError`)."""
+        if name == LEDGER:
+            key = key_of(record)
+            if key in self.records:
+                raise LedgerError(f"refusing a second record for {key}")
+            self._append(LEDGER, record)
+            self.records[key] = record
+        elif name == INFRA_LOG:
+            self._append(INFRA_LOG, record)
+            self.infra_attempts[key_of(record)] += 1
+        else:
+            raise ValueError(f"unknown log {name!r}")
 
     def add(self, track: str, episode_dir: str, result: EpisodeResult) -> dict[str, Any]:
         record = {
@@ -127,6 +155,50 @@ class Ledger:
         self.infra_attempts[key_of(record)] += 1
 
 
+def _load_collapsing(
+    path: Path, aside: Path, rewrite: bool = True
+) -> tuple[dict[Key, dict[str, Any]], list[str]]:
+    """The ledger's records by key; second records of a key are moved to `aside` (each line
+    once, even if a crash repeats the move) and the ledger rewritten in place without them,
+    all under the ledger's lock."""
+    records: dict[Key, dict[str, Any]] = {}
+    kept: list[str] = []
+    moved: list[str] = []
+    notes: list[str] = []
+    with _locked(path, os.O_RDWR) as fd:
+        for n, line in enumerate(_whole_lines(fd), 1):
+            if not line.strip():
+                continue
+            try:
+                record = json.loads(line)
+                key = key_of(record)
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+                raise LedgerError(f"{path}:{n}: not a result record ({err})") from None
+            if key in records:
+                moved.append(line)
+                notes.append(
+                    f"{path}:{n}: a second record for {'/'.join(map(str, key))} "
+                    f"(status {record.get('status')}); kept the first, moved this one to "
+                    f"{aside.name}"
+                )
+                continue
+            records[key] = record
+            kept.append(line)
+        if moved and rewrite:
+            known = set(aside.read_text(encoding="utf-8").splitlines()) if aside.exists() else set()
+            with open(aside, "a", encoding="utf-8") as f:
+                f.writelines(line + "\n" for line in moved if line not in known)
+                f.flush()
+                os.fsync(f.fileno())
+            data = "".join(line + "\n" for line in kept).encode("utf-8")
+            os.lseek(fd, 0, os.SEEK_SET)
+            os.ftruncate(fd, 0)
+            while data:
+                data = data[os.write(fd, data) :]
+            os.fsync(fd)
+    return records, notes
+
+
 @contextlib.contextmanager
 def _locked(path: Path, flags: int) -> Iterator[int]:
     """A descriptor of `path` holding an exclusive lock on it until the block ends. Everything
@@ -147,13 +219,19 @@ def _read_whole_lines(path: Path) -> list[str]:
     """The lines of a JSONL log, after dropping a last line without its newline (a write cut
     short by a kill). Under the log's lock, so another process's append is never cut."""
     with _locked(path, os.O_RDWR) as fd:
-        chunks = []
-        while chunk := os.read(fd, 1 << 20):
-            chunks.append(chunk)
-        data = b"".join(chunks)
-        if data and not data.endswith(b"\n"):
-            data = data[: data.rfind(b"\n") + 1]
-            os.ftruncate(fd, len(data))
+        return _whole_lines(fd)
+
+
+def _whole_lines(fd: int) -> list[str]:
+    """`_read_whole_lines` on a descriptor whose lock the caller holds."""
+    os.lseek(fd, 0, os.SEEK_SET)
+    chunks = []
+    while chunk := os.read(fd, 1 << 20):
+        chunks.append(chunk)
+    data = b"".join(chunks)
+    if data and not data.endswith(b"\n"):
+        data = data[: data.rfind(b"\n") + 1]
+        os.ftruncate(fd, len(data))
     return data.decode("utf-8").splitlines()
 
 

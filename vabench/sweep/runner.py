@@ -15,6 +15,11 @@ runs once per sweep directory and every later episode reuses it.
 Infrastructure failures are retried in later rounds, up to `retries.infrastructure_rounds`
 re-runs each, logged in infrastructure.jsonl, and after the last round recorded as
 `infrastructure_error`: listed, never scored.
+
+An endpoint that refuses the sweep's requests themselves (`RequestRejected.fatal`: a wrong key,
+an unknown model, parameters it does not take) stops the sweep: no episode starts after it,
+the episodes it ended get no record (their partial logs are set aside when they run again), and
+`stopped` says which model and what to check. The same command runs them once it is fixed.
 """
 
 from __future__ import annotations
@@ -31,15 +36,21 @@ from typing import Any
 from vabench.agent.engine import EpisodeSpec, run_episode, task_services
 from vabench.agent.learning import LearningLimits
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
+from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
-from vabench.sweep.results import Ledger, ledger_key, recover, set_aside
+from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
 
 log = logging.getLogger(__name__)
+
+
+class SweepStopped(Exception):
+    """An endpoint refused the sweep's requests (`LocalSweep.stopped` says which and why);
+    raised by the cell executors once every cell in flight has ended."""
 
 
 @dataclass
@@ -78,13 +89,20 @@ class LocalSweep:
         keys: Sequence[Any],
         run_dir: Path,
         on_change: Callable[[SweepProgress], None] | None = None,
+        ledger_sink: Sink | None = None,
     ):
         self.config = config
         self.keys = list(keys)
         self.run_dir = run_dir
-        self.ledger = Ledger.open(run_dir)
+        self.ledger = Ledger.open(run_dir, sink=ledger_sink)
+        for line in self.ledger.collapsed:
+            log.warning("ledger: %s", line)
         self.progress = SweepProgress()
         self.on_change = on_change or (lambda p: None)
+        self.stopped: str | None = None
+        """Why the sweep stopped early (an endpoint refused it), naming model and fix."""
+        self.refused = 0
+        """Episodes ended without a record by that refusal."""
         for k in self.keys:
             self.progress.cells[(k.model, k.track, k.task)].planned += 1
         for key in self.ledger.records:
@@ -155,7 +173,7 @@ class LocalSweep:
             log.info("renderer: %s (%s)", info, choice.reason)
             image = render.image_settings()
             round_no = 0
-            while pending := self._pending():
+            while (pending := self._pending()) and self.stopped is None:
                 if round_no:
                     self.summaries.forget_failures()
                     log.warning(
@@ -209,6 +227,14 @@ class LocalSweep:
             slots = asyncio.Semaphore(n_slots)
 
             async def one(k: Any) -> None:
+                try:
+                    await run_one(k)
+                except RequestRejected as err:  # only fatal ones leave an episode
+                    self._stop(err)
+
+            async def run_one(k: Any) -> None:
+                if self.stopped is not None:
+                    return
                 track = cfg.track(k.track)
                 # Before taking a slot: the first episodes of a family wait here for its
                 # learning session without holding simulator slots.
@@ -232,6 +258,8 @@ class LocalSweep:
                     self._finish(k, _unavailable(spec, cfg.budget(name), use.unavailable))
                     return
                 async with slots, episode_gate:
+                    if self.stopped is not None:  # stopped while this one waited for a slot
+                        return
                     cell = self.progress.cells[(k.model, k.track, k.task)]
                     cell.running += 1
                     self.on_change(self.progress)
@@ -242,6 +270,16 @@ class LocalSweep:
                     self._finish(k, result)
 
             await asyncio.gather(*(one(k) for k in keys))
+
+    def _stop(self, err: RequestRejected) -> None:
+        self.refused += 1
+        if self.stopped is None:
+            self.stopped = (
+                f"model {err.endpoint!r}: its endpoint refused the sweep's requests "
+                f"({err.message}); {err.hint}. Nothing was recorded for the "
+                "episodes this stopped: the same command runs them once this is fixed."
+            )
+            log.error("stopping the sweep: %s", self.stopped)
 
     def _finish(self, k: Any, result: EpisodeResult) -> None:
         if result.status != "infrastructure_error":

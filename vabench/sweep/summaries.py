@@ -20,8 +20,10 @@ built when missing).
 
 Outcomes: `learned` - the summary text goes into every observation of those episodes;
 `failed` (the model did not produce an accepted summary within the session's budgets) and
-`error` (the provider rejected a learning request) - stored and final: the episodes run without
-a summary and record `summary_status="failed"`; `infrastructure_error` (the provider failed
+`error` (the provider rejected one learning request) - stored and final: the episodes run
+without a summary and record `summary_status="failed"`; a refusal of the endpoint itself (a
+wrong key, an unknown model: `RequestRejected.fatal`) is not stored: it stops the sweep and the
+next invocation learns again; `infrastructure_error` (the provider failed
 beyond the pool's retries) - not stored: the episodes needing it end as infrastructure errors,
 are re-run in the next retry round, and the session is tried again then.
 """
@@ -44,6 +46,7 @@ from vabench.agent.learning import (
     write_result,
 )
 from vabench.agent.records import EpisodeRecorder, SummaryStatus
+from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.pool import LLMPool
 from vabench.tasks import get_task
 from vabench.tasks.base import Task
@@ -106,6 +109,9 @@ class SummaryStage:
         """Learning sessions run by this stage (not counting stored ones it reused)."""
         self._results: dict[tuple[str, str], LearningResult] = {}
         self._locks: dict[tuple[str, str], asyncio.Lock] = {}
+        self._refused: dict[str, RequestRejected] = {}
+        """Models whose endpoint refused a learning request (`RequestRejected.fatal`): every
+        later caller gets the same error at once instead of one more refused call each."""
 
     async def for_episode(self, mode: str, source: str | None, task_name: str) -> SummaryUse:
         """The summary an episode of `task_name` shows on a track of summary `mode` whose
@@ -130,8 +136,14 @@ class SummaryStage:
             return self._results[key]
         lock = self._locks.setdefault(key, asyncio.Lock())
         async with lock:
+            if model in self._refused:
+                raise self._refused[model]
             if key not in self._results:
-                self._results[key] = await self._learn_once(model, get_task(key[1]))
+                try:
+                    self._results[key] = await self._learn_once(model, get_task(key[1]))
+                except RequestRejected as err:  # fatal ones only reach here
+                    self._refused[model] = err
+                    raise
             return self._results[key]
 
     def forget_failures(self) -> None:

@@ -1,10 +1,13 @@
 """Anthropic Messages (`POST {host}/v1/messages`).
 
-Request: headers `x-api-key` and `anthropic-version`; the system prompt is the top-level
-`system` field; user content is a list of `{"type":"text"}` and
+Request: headers `anthropic-version` and the key as `Authorization: Bearer` (what the official
+SDK sends; the API also takes `x-api-key`); the system prompt is the top-level `system` field;
+user content is a list of `{"type":"text"}` and
 `{"type":"image","source":{"type":"base64","media_type":"image/jpeg","data":"..."}}` blocks;
 `max_tokens` is required; extended thinking is `thinking: {"type":"enabled","budget_tokens":N}`
-(N >= 1024 and below max_tokens, and no temperature other than 1 alongside it).
+(N >= 1024 and below max_tokens). This API version takes no `temperature` (the SDK's message
+parameters have none), so vabench never sends one and refuses it in an anthropic model's
+`generation` (`config.check_options_for_api`).
 
 Prompt caching is opt-in through `cache_control: {"type":"ephemeral"}` markers. vabench puts
 one on the system prompt (the prefix that never changes within a task) and one on the last
@@ -14,9 +17,9 @@ prefix). Markers on prefixes shorter than the model's minimum (1,024 or 2,048 to
 ignored by the API at no cost.
 
 Response: `content` blocks (`thinking`, `text`), `stop_reason` (`end_turn`, `max_tokens`,
-`stop_sequence`, `refusal`, ...). Usage: `input_tokens` *excludes* cache reads
-(`cache_read_input_tokens`) and cache writes (`cache_creation_input_tokens`);
-`output_tokens` includes thinking, which is not reported separately.
+`stop_sequence`, `refusal`, ...), a `request-id` header. Usage: `input_tokens` *excludes*
+cache reads (`cache_read_input_tokens`) and cache writes (`cache_creation_input_tokens`);
+`output_tokens` includes thinking, reported apart in `output_tokens_details.thinking_tokens`.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from vabench.llm_pool.apis.base import (
     RequestShapeError,
     ServerReply,
     base64_image,
+    request_id,
     rfc3339_in,
     validate_request_json,
     validate_response_json,
@@ -50,7 +54,8 @@ from vabench.llm_pool.messages import (
 )
 from vabench.llm_pool.tokens import anthropic_image_tokens
 
-ANTHROPIC_VERSION = "2023-06-01"
+ANTHROPIC_VERSION = "2026-10-21"
+"""The `anthropic-version` the official SDK (anthropic 2.13) sends."""
 _EPHEMERAL = {"type": "ephemeral"}
 
 # -- request shape ----------------------------------------------------------------------------
@@ -91,20 +96,47 @@ class _Message(_Strict):
     content: str | list[_Block] = Field(min_length=1)
 
 
-class _Thinking(_Strict):
+class _ThinkingEnabled(_Strict):
     type: Literal["enabled"]
     budget_tokens: int = Field(ge=1024)
+    display: Literal["summarized", "omitted"] | None = None
+
+
+class _ThinkingAdaptive(_Strict):
+    type: Literal["adaptive"]
+    display: Literal["summarized", "omitted"] | None = None
+
+
+class _ThinkingDisabled(_Strict):
+    type: Literal["disabled"]
+
+
+_Thinking = Annotated[
+    _ThinkingEnabled | _ThinkingAdaptive | _ThinkingDisabled, Field(discriminator="type")
+]
+
+
+class _Metadata(_Strict):
+    user_id: str | None = None
 
 
 class MessagesRequest(_Strict):
+    """What the embedded server takes: the parameters a text-and-image call uses (no tools,
+    containers or streaming: vabench sends none of them). `temperature`, `top_p` and `top_k`
+    are still taken from clients of earlier API versions."""
+
     model: str = Field(min_length=1)
     max_tokens: int = Field(ge=1)
     messages: list[_Message] = Field(min_length=1)
     system: str | list[_TextBlock] | None = None
     temperature: float | None = Field(default=None, ge=0, le=1)
+    top_p: float | None = Field(default=None, ge=0, le=1)
+    top_k: int | None = Field(default=None, ge=0)
+    stop_sequences: list[str] | None = None
     thinking: _Thinking | None = None
-    stream: Literal[False] = False
-    metadata: dict[str, Any] | None = None
+    stream: Literal[False] | None = None
+    metadata: _Metadata | None = None
+    service_tier: Literal["auto", "standard_only"] | None = None
 
 
 # -- response shape ---------------------------------------------------------------------------
@@ -120,11 +152,16 @@ class _ContentBlock(_Loose):
     thinking: str | None = None
 
 
+class _OutputDetails(_Loose):
+    thinking_tokens: int | None = None
+
+
 class _Usage(_Loose):
     input_tokens: int
     output_tokens: int
     cache_creation_input_tokens: int | None = None
     cache_read_input_tokens: int | None = None
+    output_tokens_details: _OutputDetails | None = None
 
 
 class MessagesResponse(_Loose):
@@ -132,7 +169,7 @@ class MessagesResponse(_Loose):
     model: str | None = None
     content: list[_ContentBlock]
     stop_reason: str | None = None
-    usage: _Usage
+    usage: _Usage | None = None
 
 
 _FINISH: dict[str, FinishReason] = {
@@ -184,7 +221,7 @@ class Anthropic(ApiAdapter):
     def headers(self, api_key: str | None) -> dict[str, str]:
         headers = {"anthropic-version": ANTHROPIC_VERSION}
         if api_key:
-            headers["x-api-key"] = api_key
+            headers["Authorization"] = f"Bearer {api_key}"
         return headers
 
     def build_body(
@@ -210,8 +247,6 @@ class Anthropic(ApiAdapter):
                 if cache
                 else request.system
             )
-        if options.temperature is not None:
-            body["temperature"] = options.temperature
         if options.thinking_budget is not None:
             body["thinking"] = {"type": "enabled", "budget_tokens": options.thinking_budget}
         return body
@@ -221,12 +256,16 @@ class Anthropic(ApiAdapter):
         texts = [b.text for b in body.content if b.type == "text" and b.text is not None]
         thoughts = [b.thinking for b in body.content if b.type == "thinking" and b.thinking]
         u = body.usage
-        usage = Usage(
-            input_tokens=u.input_tokens,
-            cached_input_tokens=u.cache_read_input_tokens or 0,
-            cache_write_tokens=u.cache_creation_input_tokens or 0,
-            output_tokens=u.output_tokens,
-        )
+        usage = Usage()
+        if u is not None:
+            details = u.output_tokens_details
+            usage = Usage(
+                input_tokens=u.input_tokens,
+                cached_input_tokens=u.cache_read_input_tokens or 0,
+                cache_write_tokens=u.cache_creation_input_tokens or 0,
+                output_tokens=u.output_tokens,
+                reasoning_tokens=details.thinking_tokens if details is not None else None,
+            )
         return ParsedResponse(
             text="".join(texts),
             finish_reason=_FINISH.get(body.stop_reason or "", "other"),
@@ -235,14 +274,17 @@ class Anthropic(ApiAdapter):
             model=body.model,
             response_id=body.id,
             reasoning="\n".join(thoughts) or None,
+            usage_reported=u is not None,
         )
 
     def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
         if not headers.get("anthropic-version"):
             raise RequestShapeError("anthropic-version", "header is required")
         body = validate_request_json(MessagesRequest, raw)
-        if body.thinking is not None:
-            if body.thinking.budget_tokens >= body.max_tokens:
+        budget: int | None = None
+        if isinstance(body.thinking, _ThinkingEnabled):
+            budget = body.thinking.budget_tokens
+            if budget >= body.max_tokens:
                 raise RequestShapeError("thinking.budget_tokens", "must be less than max_tokens")
             if body.temperature not in (None, 1.0):
                 raise RequestShapeError(
@@ -283,7 +325,7 @@ class Anthropic(ApiAdapter):
         options = GenerationOptions(
             max_output_tokens=body.max_tokens,
             temperature=body.temperature,
-            thinking_budget=body.thinking.budget_tokens if body.thinking else None,
+            thinking_budget=budget,
         )
         chat = ChatRequest(tuple(turns), system, options)
         return IncomingRequest(
@@ -312,6 +354,11 @@ class Anthropic(ApiAdapter):
                 "cache_creation_input_tokens": u.cache_write_tokens,
                 "cache_read_input_tokens": u.cached_input_tokens,
                 "output_tokens": u.output_tokens,
+                **(
+                    {"output_tokens_details": {"thinking_tokens": u.reasoning_tokens}}
+                    if u.reasoning_tokens is not None
+                    else {}
+                ),
             },
         }
 
@@ -328,4 +375,8 @@ class Anthropic(ApiAdapter):
         return headers
 
     def server_key(self, headers: Mapping[str, str]) -> str | None:
-        return headers.get("x-api-key")
+        """`x-api-key`, or a bearer token (what the SDK sends for a key and an auth token)."""
+        return headers.get("x-api-key") or super().server_key(headers)
+
+    def response_headers(self) -> dict[str, str]:
+        return {"request-id": request_id("req_")}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -268,6 +269,10 @@ class ApiAdapter(ABC):
         auth = headers.get("authorization", "")
         return auth[7:] if auth.lower().startswith("bearer ") else None
 
+    def response_headers(self) -> dict[str, str]:
+        """Headers the provider puts on every response (its request id)."""
+        return {"x-request-id": request_id("req_")}
+
 
 def openai_error_type(status: int) -> str:
     return {
@@ -288,19 +293,30 @@ def openai_rate_limit_headers(states: Mapping[str, LimitState]) -> dict[str, str
     return headers
 
 
-def openai_usage(usage: Usage) -> tuple[int, int]:
-    """(prompt tokens including cached, cached): OpenAI counts cached inside the prompt and
-    has no cache writes (a write is billed as ordinary input)."""
-    return usage.prompt_tokens, usage.cached_input_tokens
+def openai_usage(usage: Usage) -> tuple[int, int, int]:
+    """(prompt tokens including cached and written, cached, written): OpenAI counts cache
+    reads and writes inside the prompt tokens and reports each in the prompt details."""
+    return usage.prompt_tokens, usage.cached_input_tokens, usage.cache_write_tokens
 
 
 def usage_from_openai(
-    prompt_tokens: int, cached: int | None, output: int, reasoning: int | None
+    prompt_tokens: int,
+    cached: int | None,
+    output: int,
+    reasoning: int | None,
+    cache_write: int | None = None,
 ) -> Usage:
-    cached = cached or 0
+    cached, cache_write = cached or 0, cache_write or 0
     return Usage(
-        input_tokens=max(0, prompt_tokens - cached),
+        input_tokens=max(0, prompt_tokens - cached - cache_write),
         cached_input_tokens=cached,
+        cache_write_tokens=cache_write,
         output_tokens=output,
         reasoning_tokens=reasoning,
     )
+
+
+def request_id(prefix: str) -> str:
+    """A request id as providers send them in a response header (`request-id`, Anthropic;
+    `x-request-id`, OpenAI), for a client to quote."""
+    return f"{prefix}{uuid.uuid4().hex[:24]}"

@@ -37,7 +37,14 @@ from vabench.llm_pool.apis.base import (
     validate_response_json,
 )
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint, ReasoningEffort
-from vabench.llm_pool.messages import ChatRequest, FinishReason, ParsedResponse, Part, Turn
+from vabench.llm_pool.messages import (
+    ChatRequest,
+    FinishReason,
+    ParsedResponse,
+    Part,
+    Turn,
+    Usage,
+)
 from vabench.llm_pool.tokens import openai_image_tokens
 
 # -- request shape (as documented; the embedded server validates against it) ----------------
@@ -71,17 +78,34 @@ class _Message(_Strict):
     name: str | None = None
 
 
+class _ResponseFormat(_Strict):
+    type: Literal["text", "json_object", "json_schema"]
+    json_schema: dict[str, Any] | None = None
+
+
 class ChatCompletionsRequest(_Strict):
+    """What the embedded server takes: the parameters a text-and-image call uses (no tools,
+    audio, logprobs or streaming: vabench sends none of them, and none is served)."""
+
     model: str = Field(min_length=1)
     messages: list[_Message] = Field(min_length=1)
     max_completion_tokens: int | None = Field(default=None, ge=1)
     max_tokens: int | None = Field(default=None, ge=1)
     temperature: float | None = Field(default=None, ge=0, le=2)
+    top_p: float | None = Field(default=None, ge=0, le=1)
+    frequency_penalty: float | None = Field(default=None, ge=-2, le=2)
+    presence_penalty: float | None = Field(default=None, ge=-2, le=2)
+    stop: str | list[str] | None = None
+    response_format: _ResponseFormat | None = None
     reasoning_effort: ReasoningEffort | None = None
-    stream: Literal[False] = False
-    n: Literal[1] = 1
+    stream: Literal[False] | None = None
+    n: Literal[1] | None = None
     seed: int | None = None
     user: str | None = None
+    metadata: dict[str, str] | None = None
+    store: bool | None = None
+    prompt_cache_key: str | None = None
+    service_tier: str | None = None
 
 
 # -- response shape (lenient: unknown fields are ignored, required ones are checked) ---------
@@ -93,6 +117,7 @@ class _Loose(BaseModel):
 
 class _PromptDetails(_Loose):
     cached_tokens: int | None = None
+    cache_write_tokens: int | None = None
 
 
 class _CompletionDetails(_Loose):
@@ -121,7 +146,7 @@ class ChatCompletionsResponse(_Loose):
     id: str | None = None
     model: str | None = None
     choices: list[_Choice] = Field(min_length=1)
-    usage: _Usage
+    usage: _Usage | None = None
 
 
 _FINISH: dict[str, FinishReason] = {
@@ -196,12 +221,18 @@ class OpenAIChat(ApiAdapter):
         if message.refusal:
             finish = "refusal"
         u = body.usage
-        usage = usage_from_openai(
-            u.prompt_tokens,
-            u.prompt_tokens_details.cached_tokens if u.prompt_tokens_details else None,
-            u.completion_tokens,
-            u.completion_tokens_details.reasoning_tokens if u.completion_tokens_details else None,
-        )
+        usage = Usage()
+        if u is not None:
+            prompt = u.prompt_tokens_details or _PromptDetails()
+            usage = usage_from_openai(
+                u.prompt_tokens,
+                prompt.cached_tokens,
+                u.completion_tokens,
+                u.completion_tokens_details.reasoning_tokens
+                if u.completion_tokens_details
+                else None,
+                prompt.cache_write_tokens,
+            )
         return ParsedResponse(
             text=message.content or message.refusal or "",
             finish_reason=finish,
@@ -210,6 +241,7 @@ class OpenAIChat(ApiAdapter):
             model=body.model,
             response_id=body.id,
             reasoning=message.reasoning_content,
+            usage_reported=u is not None,
         )
 
     def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
@@ -247,7 +279,7 @@ class OpenAIChat(ApiAdapter):
         return IncomingRequest(api=self.name, model=body.model, chat=chat)
 
     def build_response(self, reply: ServerReply) -> dict[str, Any]:
-        prompt, cached = openai_usage(reply.usage)
+        prompt, cached, written = openai_usage(reply.usage)
         message: dict[str, Any] = {"role": "assistant", "content": reply.text, "refusal": None}
         if reply.finish_reason == "refusal":
             message.update(content=None, refusal=reply.text)
@@ -268,7 +300,7 @@ class OpenAIChat(ApiAdapter):
                 "prompt_tokens": prompt,
                 "completion_tokens": reply.usage.output_tokens,
                 "total_tokens": prompt + reply.usage.output_tokens,
-                "prompt_tokens_details": {"cached_tokens": cached},
+                "prompt_tokens_details": {"cached_tokens": cached, "cache_write_tokens": written},
                 "completion_tokens_details": {
                     "reasoning_tokens": reply.usage.reasoning_tokens or 0
                 },

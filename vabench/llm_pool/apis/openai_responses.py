@@ -39,7 +39,14 @@ from vabench.llm_pool.apis.base import (
 )
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint, ReasoningEffort
 from vabench.llm_pool.errors import ResponseFormatError
-from vabench.llm_pool.messages import ChatRequest, FinishReason, ParsedResponse, Part, Turn
+from vabench.llm_pool.messages import (
+    ChatRequest,
+    FinishReason,
+    ParsedResponse,
+    Part,
+    Turn,
+    Usage,
+)
 from vabench.llm_pool.tokens import openai_image_tokens
 
 # -- request shape ----------------------------------------------------------------------------
@@ -86,16 +93,39 @@ class _Reasoning(_Strict):
     summary: Literal["auto", "concise", "detailed"] | None = None
 
 
+class _TextFormat(_Strict):
+    type: Literal["text", "json_object", "json_schema"]
+    name: str | None = None
+    schema_: dict[str, Any] | None = Field(default=None, alias="schema")
+    strict: bool | None = None
+    description: str | None = None
+
+
+class _Text(_Strict):
+    format: _TextFormat | None = None
+    verbosity: Literal["low", "medium", "high"] | None = None
+
+
 class ResponsesRequest(_Strict):
+    """What the embedded server takes: the parameters a text-and-image call uses (no tools,
+    background runs, stored conversations or streaming: vabench sends none of them)."""
+
     model: str = Field(min_length=1)
     input: str | list[_UserMessage | _AssistantMessage]
     instructions: str | None = None
     max_output_tokens: int | None = Field(default=None, ge=1)
     temperature: float | None = Field(default=None, ge=0, le=2)
+    top_p: float | None = Field(default=None, ge=0, le=1)
     reasoning: _Reasoning | None = None
-    store: bool = True
-    stream: Literal[False] = False
+    text: _Text | None = None
+    store: bool | None = None
+    stream: Literal[False] | None = None
     user: str | None = None
+    metadata: dict[str, str] | None = None
+    prompt_cache_key: str | None = None
+    service_tier: str | None = None
+    truncation: Literal["auto", "disabled"] | None = None
+    parallel_tool_calls: bool | None = None
 
 
 # -- response shape ---------------------------------------------------------------------------
@@ -123,6 +153,7 @@ class _OutputItem(_Loose):
 
 class _InputDetails(_Loose):
     cached_tokens: int | None = None
+    cache_write_tokens: int | None = None
 
 
 class _OutputDetails(_Loose):
@@ -152,7 +183,7 @@ class ResponsesResponse(_Loose):
     output: list[_OutputItem]
     incomplete_details: _Incomplete | None = None
     error: _Error | None = None
-    usage: _Usage
+    usage: _Usage | None = None
 
 
 _INCOMPLETE: dict[str, FinishReason] = {
@@ -236,12 +267,16 @@ class OpenAIResponses(ApiAdapter):
                 summaries.extend(s.text for s in item.summary or [])
         finish, raw_finish = _finish_of(body, refused)
         u = body.usage
-        usage = usage_from_openai(
-            u.input_tokens,
-            u.input_tokens_details.cached_tokens if u.input_tokens_details else None,
-            u.output_tokens,
-            u.output_tokens_details.reasoning_tokens if u.output_tokens_details else None,
-        )
+        usage = Usage()
+        if u is not None:
+            details = u.input_tokens_details or _InputDetails()
+            usage = usage_from_openai(
+                u.input_tokens,
+                details.cached_tokens,
+                u.output_tokens,
+                u.output_tokens_details.reasoning_tokens if u.output_tokens_details else None,
+                details.cache_write_tokens,
+            )
         return ParsedResponse(
             text="".join(texts),
             finish_reason=finish,
@@ -250,6 +285,7 @@ class OpenAIResponses(ApiAdapter):
             model=body.model,
             response_id=body.id,
             reasoning="\n".join(summaries) or None,
+            usage_reported=u is not None,
         )
 
     def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
@@ -297,7 +333,7 @@ class OpenAIResponses(ApiAdapter):
         return IncomingRequest(api=self.name, model=body.model, chat=chat)
 
     def build_response(self, reply: ServerReply) -> dict[str, Any]:
-        prompt, cached = openai_usage(reply.usage)
+        prompt, cached, written = openai_usage(reply.usage)
         output: list[dict[str, Any]] = []
         if reply.usage.reasoning_tokens:
             summary = [{"type": "summary_text", "text": reply.reasoning}] if reply.reasoning else []
@@ -327,9 +363,13 @@ class OpenAIResponses(ApiAdapter):
             "error": None,
             "model": reply.model,
             "output": output,
+            # what the Response object always carries (the SDK's strict types require them)
+            "parallel_tool_calls": True,
+            "tool_choice": "auto",
+            "tools": [],
             "usage": {
                 "input_tokens": prompt,
-                "input_tokens_details": {"cached_tokens": cached},
+                "input_tokens_details": {"cached_tokens": cached, "cache_write_tokens": written},
                 "output_tokens": reply.usage.output_tokens,
                 "output_tokens_details": {"reasoning_tokens": reply.usage.reasoning_tokens or 0},
                 "total_tokens": prompt + reply.usage.output_tokens,

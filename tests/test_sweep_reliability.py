@@ -1,0 +1,225 @@
+"""What the sweep promises across invocations (docs/RELIABILITY.md), each through the command:
+
+- a run directory belongs to one plan: resuming it with a config whose plan differs is refused,
+  naming the differing fields, before anything runs;
+- an endpoint that refuses the sweep's requests (a wrong key, an unknown model) stops the sweep
+  within its first calls, naming the model and the key's variable; nothing is recorded for the
+  episodes it touched, and the same command runs them once the endpoint is fixed;
+- a duplicate ledger record (two writers raced) is reported and collapsed on resume, not fatal.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from vabench.sweep.__main__ import main
+from vabench.sweep.results import LEDGER
+
+CONFIG = """\
+name: reliability
+models:
+  - name: local
+    api: {api}
+    base_url: embedded
+    retry: {{max_attempts: 2, backoff_base_s: 0.01, backoff_max_s: 0.02}}
+embedded_server: {server}
+tracks: [active]
+tasks: [grasp_single_cube]
+seeds: {{verified: 2}}
+runs: 1
+step_budget: {budget}
+simulator: {{backend: c}}
+render: {{width: 64, height: 48, workers: 1}}
+"""
+
+
+def write(
+    path: Path,
+    *,
+    server: str = "{policy: conversation_hash}",
+    budget: int = 2,
+    api: str = "openai_chat",
+) -> Path:
+    path.write_text(CONFIG.format(server=server, budget=budget, api=api))
+    return path
+
+
+def ledger_lines(run_dir: Path) -> list[dict]:
+    path = run_dir / LEDGER
+    return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
+
+
+def test_resuming_with_another_plan_is_refused_naming_the_fields(tmp_path, capsys):
+    out = tmp_path / "out"
+    cfg = write(tmp_path / "a.yaml", budget=2)
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    before = (out / LEDGER).read_bytes()
+    assert len(ledger_lines(out)) == 2
+    capsys.readouterr()
+
+    changed = write(tmp_path / "b.yaml", budget=3)
+    assert main([str(changed), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert "step_budget: 2 -> 3" in err and "--out" in err
+    assert (out / LEDGER).read_bytes() == before  # nothing ran, nothing was written
+
+    # what does not decide the plan (retries, render workers) may change
+    same = tmp_path / "c.yaml"
+    same.write_text(cfg.read_text().replace("max_attempts: 2", "max_attempts: 3"))
+    assert main([str(same), "--out", str(out), "--plain", "--no-report"]) == 0
+    assert (out / LEDGER).read_bytes() == before
+
+
+PROCESSES = """\
+name: orphans
+models:
+  - {name: local, api: openai_chat, base_url: embedded}
+embedded_server: {policy: conversation_hash, latency: {mean_s: 0.25}}
+tracks: [active]
+summaries: none
+tasks: [grasp_single_cube, handover_horizontal_block]
+seeds: {verified: 3}
+runs: 1
+step_budget: 5
+simulator: {backend: c}
+render: {width: 64, height: 48, workers: 1}
+executor: {kind: processes, max_tasks: 2, slots_per_task: 1}
+"""
+
+
+def descendants(pid: int) -> set[int]:
+    """Every live process below `pid` (from /proc)."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    out: set[int] = set()
+    frontier = {pid}
+    while frontier:
+        frontier = {p for p, pp in parents.items() if pp in frontier} - out
+        out |= frontier
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_processes_workers_die_with_a_killed_parent_and_never_write_the_ledger(tmp_path):
+    """SIGKILL of the sweep's main process alone (not its group): its cell workers must not
+    go on calling the model and appending records (defect A); the next invocation finishes
+    the plan with exactly one record per episode."""
+    cfg = tmp_path / "processes.yaml"
+    cfg.write_text(PROCESSES)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "vabench.sweep", str(cfg), "--out", str(out), "--plain"]
+    proc = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        start_new_session=True,
+    )
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 240
+        # wait until a cell worker is in the middle of an episode (a model reply logged)
+        while not any(
+            '"type": "reply"' in p.read_text() for p in out.glob("episodes/**/events.jsonl")
+        ):
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline, "no episode started in time"
+            time.sleep(0.05)
+        workers = descendants(proc.pid)
+        assert workers
+        os.kill(proc.pid, signal.SIGKILL)  # the main process only
+        proc.wait()
+        ledger_at_kill = (out / LEDGER).read_bytes() if (out / LEDGER).exists() else b""
+        deadline = time.monotonic() + 120
+        while any(alive(p) for p in workers):
+            assert time.monotonic() < deadline, "the workers outlived their parent"
+            time.sleep(0.1)
+        ledger_after = (out / LEDGER).read_bytes() if (out / LEDGER).exists() else b""
+        assert ledger_after == ledger_at_kill, "a worker wrote the ledger after its parent died"
+    finally:
+        for pid in [proc.pid, *workers]:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        proc.stdout.close()
+
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    keys = [(r["task"], r["seed"]) for r in ledger_lines(out)]
+    assert len(keys) == len(set(keys)) == 6
+
+
+REFUSING = """\
+name: refused
+models:
+  - {{name: local, api: anthropic, base_url: embedded, api_key_env: VABENCH_TEST_KEY}}
+embedded_server: {{policy: conversation_hash, api_key: right-key}}
+tracks: [active]
+summaries: {summaries}
+tasks: [grasp_single_cube]
+seeds: {{verified: 3}}
+runs: 1
+step_budget: 2
+simulator: {{backend: c}}
+render: {{width: 64, height: 48, workers: 1}}
+executor: {{slots_per_task: 1}}
+"""
+
+
+def logged_requests(run_dir: Path) -> int:
+    """Model requests logged anywhere under the run directory (episodes, learning sessions,
+    their set-aside attempts)."""
+    return sum(
+        p.read_text().count('"type": "endpoint_refused"') + p.read_text().count('"type": "reply"')
+        for p in run_dir.rglob("events.jsonl")
+    )
+
+
+@pytest.mark.parametrize("summaries", ["none", "own"])
+def test_a_wrong_key_stops_the_sweep_and_the_fixed_run_does_every_episode(
+    tmp_path, capsys, monkeypatch, summaries
+):
+    """Defect D: a 401 used to be recorded as a final error of every episode, and running the
+    command again after fixing the key did nothing. Now the first refused call stops the sweep
+    (the learning session's or the first episode's), naming the model and the variable;
+    nothing is recorded; the same command with the right key runs every episode."""
+    cfg = tmp_path / "refused.yaml"
+    cfg.write_text(REFUSING.format(summaries=summaries))
+    out = tmp_path / "out"
+    monkeypatch.setenv("VABENCH_TEST_KEY", "wrong-key")
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert "model 'local'" in err and "VABENCH_TEST_KEY" in err and "401" in err
+    assert ledger_lines(out) == []
+    assert logged_requests(out) == 1  # one call refused, no other was made
+    assert not list(out.glob("summaries/local/*.json"))  # no refusal stored as a summary
+    assert not list(out.glob("episodes/**/result.json"))
+
+    monkeypatch.setenv("VABENCH_TEST_KEY", "right-key")
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    records = ledger_lines(out)
+    assert sorted(r["seed"] for r in records) == sorted({r["seed"] for r in records})
+    assert len(records) == 3 and all(r["status"] in ("success", "failure") for r in records)
+    for path in out.rglob("*"):  # neither key reached the run directory
+        if path.is_file():
+            data = path.read_bytes()
+            assert b"right-key" not in data and b"wrong-key" not in data, path

@@ -1,0 +1,207 @@
+"""The bill: what every model call of a sweep cost, not only the calls of recorded episodes.
+
+The usage table counts scored episodes; a provider bills every call. This section adds up the
+cost (US dollars at the configured prices, as the pool computed it per call) and tokens of
+each place a call leaves a trace in the run directory, per model:
+
+- scored episodes, unscored records: results.jsonl (status success/failure, or not);
+- infrastructure failures run again: infrastructure.jsonl (each failed attempt's result);
+- interrupted attempts: an events.jsonl without a result.json (a killed sweep's episodes, set
+  aside as `partial_N/` when run again; episodes an endpoint refusal stopped): the cost of its
+  `reply` and `compaction` events;
+- duplicate records collapsed: results.duplicates.jsonl;
+- learning sessions: summaries/<model>/<family>.json, and interrupted sessions' events.
+
+Attempts whose usage never came back (a timeout, a dropped or cut connection: the provider may
+still bill their input) are counted, not priced: `unknown_usage_attempts`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from vabench.report.tables import Csv, Section, Table
+
+SOURCES = (
+    "scored episodes",
+    "unscored records",
+    "infrastructure failures run again",
+    "interrupted attempts",
+    "duplicate records collapsed",
+    "learning sessions",
+)
+_TOKEN_FIELDS = ("input", "cached_input", "cache_write", "output", "reasoning")
+_USAGE_KEYS = {
+    "input": "input_tokens",
+    "cached_input": "cached_input_tokens",
+    "cache_write": "cache_write_tokens",
+    "output": "output_tokens",
+    "reasoning": "reasoning_tokens",
+}
+# Failure lines of attempts whose usage never came back (see vabench.llm_pool.pool._attempt).
+_NO_USAGE = ("timeout", "ClientError", "ServerDisconnected", "ClientPayloadError", "Connection")
+
+
+@dataclass
+class Spend:
+    """One (model, source): records or attempts, their cost and tokens."""
+
+    model: str
+    source: str
+    items: int = 0
+    cost_usd: float = 0.0
+    tokens: dict[str, int] = field(default_factory=lambda: dict.fromkeys(_TOKEN_FIELDS, 0))
+
+
+@dataclass
+class Bill:
+    rows: list[Spend]
+    unknown_usage_attempts: dict[str, int]
+    """Per model: failed HTTP attempts whose usage is unknown (timeouts, cut connections)."""
+
+    def total(self, model: str) -> float:
+        return math.fsum(r.cost_usd for r in self.rows if r.model == model)
+
+
+def _jsonl(path: Path) -> Iterator[dict[str, Any]]:
+    if not path.is_file():
+        return
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError:  # a line cut by a crash: nothing to bill from it
+            continue
+        if isinstance(obj, dict):
+            yield obj
+
+
+def _add_record(s: Spend, record: dict[str, Any]) -> None:
+    s.items += 1
+    s.cost_usd += float(record.get("cost_usd") or 0.0)
+    tokens = record.get("tokens") or {}
+    for name in _TOKEN_FIELDS:
+        s.tokens[name] += int(tokens.get(name) or 0)
+
+
+def _add_calls(s: Spend, events: list[dict[str, Any]]) -> None:
+    calls = [e for e in events if e.get("type") in ("reply", "compaction") and "usage" in e]
+    if not events:
+        return
+    s.items += 1
+    for e in calls:
+        s.cost_usd += float(e.get("cost_usd") or 0.0)
+        for name, key in _USAGE_KEYS.items():
+            s.tokens[name] += int(e["usage"].get(key) or 0)
+
+
+def _no_usage_failures(events: list[dict[str, Any]]) -> int:
+    n = 0
+    for e in events:
+        if e.get("type") in ("reply", "llm_failure"):
+            n += sum(1 for f in e.get("failures") or [] if any(m in f for m in _NO_USAGE))
+    return n
+
+
+def _interrupted_logs(run_dir: Path) -> Iterator[Path]:
+    """events.jsonl of attempts that ended without a result: set-aside `partial_N/` logs,
+    and episode or learning directories holding events but no result."""
+    for events in run_dir.rglob("events.jsonl"):
+        d = events.parent
+        if d.name.startswith("attempt_"):
+            continue  # a finished attempt: its result is in infrastructure.jsonl
+        finished = (d / "result.json").exists() or (d / "learning.json").exists()
+        if d.name.startswith("partial_") or not finished:
+            yield events
+
+
+def _model_of(run_dir: Path, events_file: Path, events: list[dict[str, Any]]) -> str | None:
+    for e in events:
+        if e.get("type") in ("episode_start", "learning_start") and e.get("model"):
+            return str(e["model"])
+    parts = events_file.relative_to(run_dir).parts
+    if len(parts) > 1 and parts[0] in ("episodes", "summaries"):
+        return parts[1]
+    return None
+
+
+def bill(run_dir: Path | str) -> Bill:
+    """Every source of the module docstring, per model."""
+    run_dir = Path(run_dir)
+    rows: dict[tuple[str, str], Spend] = {}
+    unknown: dict[str, int] = defaultdict(int)
+
+    def row(model: str, source: str) -> Spend:
+        return rows.setdefault((model, source), Spend(model, source))
+
+    for record in _jsonl(run_dir / "results.jsonl"):
+        scored = record.get("status") in ("success", "failure")
+        _add_record(row(str(record.get("model")), SOURCES[0 if scored else 1]), record)
+    for record in _jsonl(run_dir / "infrastructure.jsonl"):
+        _add_record(row(str(record.get("model")), SOURCES[2]), record)
+    for record in _jsonl(run_dir / "results.duplicates.jsonl"):
+        _add_record(row(str(record.get("model")), SOURCES[4]), record)
+    for path in sorted((run_dir / "summaries").glob("*/*.json")):
+        try:
+            learned = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError):
+            continue
+        _add_record(row(str(learned.get("model") or path.parent.name), SOURCES[5]), learned)
+    for events_file in sorted(_interrupted_logs(run_dir)):
+        events = list(_jsonl(events_file))
+        model = _model_of(run_dir, events_file, events)
+        if model is None:
+            continue
+        learning = events_file.relative_to(run_dir).parts[0] == "summaries"
+        _add_calls(row(model, SOURCES[5] if learning else SOURCES[3]), events)
+    for events_file in run_dir.rglob("events.jsonl"):
+        events = list(_jsonl(events_file))
+        if (n := _no_usage_failures(events)) and (m := _model_of(run_dir, events_file, events)):
+            unknown[m] += n
+    order = {s: i for i, s in enumerate(SOURCES)}
+    ordered = sorted(rows.values(), key=lambda r: (r.model, order[r.source]))
+    return Bill(ordered, dict(sorted(unknown.items())))
+
+
+def spend_section(b: Bill) -> Section | None:
+    """The "Spend of every call" section; None when no call left a trace (no tokens, no
+    cost anywhere: a bill of nothing)."""
+    if not any(r.cost_usd or any(r.tokens.values()) for r in b.rows):
+        return None
+    rows, csv_rows = [], []
+    for model in sorted({r.model for r in b.rows}):
+        mine = [r for r in b.rows if r.model == model]
+        for r in mine:
+            tokens = sum(r.tokens.values()) - r.tokens["reasoning"]  # reasoning is in output
+            rows.append([model, r.source, str(r.items), f"{tokens:,}", f"{r.cost_usd:.4f}"])
+            csv_rows.append(
+                [model, r.source, r.items, *(r.tokens[n] for n in _TOKEN_FIELDS), r.cost_usd]
+            )
+        rows.append([model, "total", "", "", f"{b.total(model):.4f}"])
+    notes = [
+        "every call the sweep made, by where its trace lies: the usage table counts scored "
+        "episodes only; this is the bill"
+    ]
+    for model, n in b.unknown_usage_attempts.items():
+        notes.append(
+            f"{model}: {n} call attempt(s) timed out or lost their connection; their usage never "
+            "came back (not priced above; a provider may bill their input)"
+        )
+    return Section(
+        "spend",
+        "Spend of every call",
+        [Table("Spend", ["model", "source", "records / attempts", "tokens", "cost USD"], rows)],
+        [
+            Csv(
+                "spend",
+                ["model", "source", "items", *(f"tokens_{n}" for n in _TOKEN_FIELDS), "cost_usd"],
+                csv_rows,
+            )
+        ],
+        notes,
+    )

@@ -1,0 +1,133 @@
+"""Which sweep a run directory belongs to: RUN_DIR/plan.json, written once, checked on resume.
+
+A run directory holds the episodes of one plan. Resuming it with a config whose plan differs
+would put episodes of two sweeps in one table (a changed `step_budget` keeps every episode id
+and silently mixes budgets), so the first run stores the plan's identity and every later run
+compares field by field:
+
+    {"v": 2, "fields": {PLAN_FIELD: value, ...}, "episodes": ["model/track/task/seed/run", ...]}
+
+`PLAN_FIELDS` are what decide the episodes and their outcomes. Of each model only what changes
+its answers counts (name, API, provider model id, generation options); its limits, retries,
+prices, headers and key variable do not, so a run may resume with a new key or a higher rate
+limit. For models served by the embedded server its policy counts too (the policy is the
+model). Everything else (executor, render workers, retries) may change between invocations.
+
+A plan.json of version 1 (a bare list of episode ids, before the fields were stored) is
+compared by ids and then upgraded in place.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from vabench.config import SweepConfig
+from vabench.sweep.plan import EpisodeKey
+
+PLAN_FILE = "plan.json"
+PLAN_VERSION = 2
+PLAN_FIELDS = ("models", "tracks", "tasks", "seeds", "runs", "step_budget")
+"""The config fields that decide the plan (see the module docstring)."""
+_MODEL_FIELDS = ("name", "api", "model", "generation")
+
+
+class RunDirMismatch(ValueError):
+    """The run directory was made by a plan that differs from the config's; names the fields."""
+
+
+def plan_identity(config: SweepConfig) -> dict[str, Any]:
+    """The values of `PLAN_FIELDS` that decide `config`'s plan (JSON-ready)."""
+    doc = config.document()
+    server = doc.get("embedded_server", {})
+    models = []
+    for m in config.models:
+        entry = m.model_dump(mode="json", include=set(_MODEL_FIELDS), exclude_none=True)
+        entry["model"] = m.provider_model
+        entry["generation"] = m.generation.model_dump(mode="json", exclude_none=True)
+        if m.name in config.embedded_models:
+            policy = server.get("model_policies", {}).get(m.provider_model)
+            entry["embedded_policy"] = policy or {
+                "policy": server.get("policy", "random_action"),
+                "options": server.get("policy_options", {}),
+            }
+        models.append(entry)
+    return {
+        "models": models,
+        "tracks": doc["tracks"],
+        "tasks": doc["tasks"],
+        "seeds": doc["seeds"],
+        "runs": doc["runs"],
+        "step_budget": doc["step_budget"],
+    }
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value, sort_keys=True)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def differing_fields(before: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """One line per plan field whose value differs: `field: before -> now` (models by name)."""
+    lines = []
+    for name in PLAN_FIELDS:
+        a, b = before.get(name), now.get(name)
+        if a == b:
+            continue
+        if name == "models" and isinstance(a, list) and isinstance(b, list):
+            old = {m.get("name"): m for m in a}
+            new = {m.get("name"): m for m in b}
+            for model in sorted(old.keys() | new.keys(), key=str):
+                if old.get(model) != new.get(model):
+                    lines.append(
+                        f"models[{model}]: {_short(old.get(model))} -> {_short(new.get(model))}"
+                    )
+            continue
+        lines.append(f"{name}: {_short(a)} -> {_short(b)}")
+    return lines
+
+
+def check_run_dir(
+    run_dir: Path, config: SweepConfig, keys: list[EpisodeKey], config_dump: dict[str, Any]
+) -> None:
+    """Store the plan's identity in a new run directory, or refuse one made by another plan
+    (`RunDirMismatch` naming the differing fields); then write the resolved config."""
+    path = run_dir / PLAN_FILE
+    ids = [k.as_id() for k in keys]
+    fields = plan_identity(config)
+    if path.exists():
+        before = json.loads(path.read_text(encoding="utf-8"))
+        if isinstance(before, list):  # version 1: ids only
+            if before != ids:
+                raise RunDirMismatch(_refusal(run_dir, [f"episodes: {len(before)} -> {len(ids)}"]))
+        else:
+            diff = differing_fields(before.get("fields", {}), fields)
+            if not diff and before.get("episodes") != ids:
+                diff = [f"episodes: {len(before.get('episodes', []))} -> {len(ids)}"]
+            if diff:
+                raise RunDirMismatch(_refusal(run_dir, diff))
+            (run_dir / "sweep.yaml").write_text(
+                yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8"
+            )
+            return
+    run_dir.mkdir(parents=True, exist_ok=True)
+    record = {"v": PLAN_VERSION, "fields": fields, "episodes": ids}
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(record), encoding="utf-8")
+    tmp.replace(path)
+    (run_dir / "sweep.yaml").write_text(
+        yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8"
+    )
+
+
+def _refusal(run_dir: Path, diff: list[str]) -> str:
+    lines = "\n".join(f"  {line}" for line in diff)
+    return (
+        f"{run_dir} holds a sweep with a different plan; resuming it would mix the episodes "
+        f"of two sweeps in one table. Differing fields (run directory -> this config):\n"
+        f"{lines}\n"
+        "Restore the config that made it, or start a new run directory with --out DIR."
+    )
