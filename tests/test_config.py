@@ -46,11 +46,14 @@ def test_minimal_config_gets_the_documented_defaults(tmp_path):
     assert config.tasks == BASE_FAMILIES  # every base family is registered
     assert config.seeds == {t: tuple(verified_seeds(t)) for t in BASE_FAMILIES}
     assert config.runs == 3 and config.step_budget is None
-    assert config.simulator.backend == "mjx" and config.simulator.window_s == 0.01
+    assert config.simulator.backend == "auto" and config.simulator.impl == "auto"
+    assert config.simulator.window_s == 0.01
     assert (config.render.width, config.render.height, config.render.quality) == (1280, 960, 95)
     assert config.render.workers == 2 and config.render.platform == "auto"
-    assert config.executor.kind == "local" and config.executor.max_tasks == 4
-    assert config.executor.max_episodes == 256 and config.executor.slots_per_task is None
+    assert config.render.backend == "auto"
+    assert config.executor.kind == "auto" and config.executor.max_tasks is None
+    assert config.executor.max_episodes == 256 and config.executor.in_flight == "auto"
+    assert config.executor.slots_per_task is None
     assert config.retries.infrastructure_rounds == 3
     assert config.embedded_models == ()
 
@@ -187,9 +190,15 @@ def test_overrides_replace_values_before_checking(tmp_path):
         (minimal(tracks=["active", "active"]), "tracks[1]", "duplicate"),
         (minimal(tracks=[]), "tracks", "at least 1"),
         (minimal(models=[]), "models", "at least 1"),
-        (minimal(simulator={"backend": "gpu"}), "simulator.backend", "'mjx' or 'c'"),
+        (minimal(simulator={"backend": "gpu"}), "simulator.backend", "'auto', 'mjx' or 'c'"),
         (minimal(render={"width": 4000}), "render.width", "less than or equal to 1280"),
-        (minimal(executor={"kind": "k8s"}), "executor.kind", "'local', 'processes' or 'ray'"),
+        (
+            minimal(executor={"kind": "k8s"}),
+            "executor.kind",
+            "'auto', 'local', 'processes' or 'ray'",
+        ),
+        (minimal(executor={"in_flight": 0}), "executor.in_flight", "'auto' or a whole number"),
+        (minimal(executor={"in_flight": "many"}), "executor.in_flight", "got 'many'"),
         (minimal(executor={"address": "ray://h:1"}), "executor.address", "kind: ray"),
         (
             minimal(models=[MODEL, {**MODEL, "base_url": "http://x/v1"}]),

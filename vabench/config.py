@@ -17,10 +17,11 @@
                                    # these seeds for every task; {task: [seeds]}: per task
     runs: 3
     step_budget: 5                 # optional cap on every task's budget (smoke runs)
-    simulator: {backend: mjx, impl: jax, lanes: null, window_s: 0.01}
+    simulator: {backend: auto, impl: auto, lanes: null, window_s: 0.01}  # backend: auto | mjx | c
     render: {backend: auto, width: 1280, height: 960, quality: 95, subsampling: "420",
              workers: 2, platform: auto}   # backend: auto | warp (GPU) | gl
-    executor: {kind: local, address: null, max_tasks: 4, max_episodes: 256, slots_per_task: null}
+    executor: {kind: auto, address: null, max_tasks: null, max_episodes: 256, in_flight: auto,
+               slots_per_task: null}       # kind: auto | local | processes | ray
     retries: {infrastructure_rounds: 3}
 
 `load_config` reads and checks the whole file before anything is called: unknown keys (typos),
@@ -55,7 +56,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from vabench.llm_pool.config import ApiName, ConfigError, ModelEndpoint
 from vabench.llm_pool.policies import POLICIES
@@ -90,11 +91,14 @@ class _Strict(BaseModel):
 
 
 class SimulatorOptions(_Strict):
-    backend: Literal["mjx", "c"] = "mjx"
-    """"mjx": every slot of a task in one GPU/TPU batch (impl below); "c": C MuJoCo slot by
-    slot (the fastest path without an NVIDIA GPU). See README, "Choosing a backend"."""
-    impl: Literal["jax", "warp"] = "jax"
-    """mjx only: "warp" (MuJoCo Warp, NVIDIA GPUs; the [gpu] extra) or "jax" (MJX on JAX)."""
+    backend: Literal["auto", "mjx", "c"] = "auto"
+    """"auto": MuJoCo Warp where a CUDA GPU and the [gpu] extra are present, else C MuJoCo
+    (`sim_mjx.backends.resolve`; `--dry-run` says which and why); "mjx": every slot of a task
+    in one GPU/TPU batch (impl below); "c": C MuJoCo slot by slot (the fastest path without an
+    NVIDIA GPU). See README, "Choosing a physics backend"."""
+    impl: Literal["auto", "jax", "warp"] = "auto"
+    """mjx only: "warp" (MuJoCo Warp, NVIDIA GPUs; the [gpu] extra), "jax" (MJX on JAX), or
+    "auto" (warp where it can run, else jax)."""
     lanes: int | None = Field(default=None, ge=1)
     """Width of the vectorised physics (impl jax only; see `sim_mjx.interface.in_lanes`)."""
     nconmax: int | None = Field(default=None, ge=1)
@@ -108,15 +112,16 @@ class SimulatorOptions(_Strict):
     window_s: float = Field(default=0.01, ge=0)
     """How long the simulator batch waits to gather actions before stepping."""
 
-    def batch_kwargs(self) -> dict[str, Any]:
-        """The TaskBatch arguments these options ask for."""
-        out: dict[str, Any] = {}
-        if self.backend != "mjx":
+    def batch_kwargs(self, backend: str, impl: str) -> dict[str, Any]:
+        """The TaskBatch arguments these options ask for, on the resolved `backend` and `impl`
+        (`sim_mjx.backends.resolve`)."""
+        out: dict[str, Any] = {"backend": backend}
+        if backend != "mjx":
             return out
-        out["impl"] = self.impl
-        if self.impl == "jax" and self.lanes:
+        out["impl"] = impl
+        if impl == "jax" and self.lanes:
             out["lanes"] = self.lanes
-        if self.impl == "warp":
+        if impl == "warp":
             extra = {"nconmax": self.nconmax, "njmax": self.njmax}
             out.update({k: v for k, v in extra.items() if v is not None})
             if self.deterministic:
@@ -145,19 +150,33 @@ class RenderOptions(_Strict):
 
 
 class ExecutorOptions(_Strict):
-    kind: Literal["local", "processes", "ray"] = "local"
-    """local: one process; processes: (model, track, task) cells as worker processes of this
-    host, `max_tasks` at once (many cores: C rollouts, CPU-heavy embedded policies); ray: cells
-    as Ray tasks over a cluster."""
+    kind: Literal["auto", "local", "processes", "ray"] = "auto"
+    """auto: `processes` on a host of 4 or more cores, else `local` (`sweep.choices`; `--dry-run`
+    says which and why); local: one process; processes: cells of the plan as worker processes
+    of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy embedded policies);
+    ray: cells as Ray tasks over a cluster."""
     address: str | None = None
     """`ray.init(address=...)`; unset starts or joins a local Ray instance (ray only)."""
-    max_tasks: int = Field(default=4, ge=1)
-    """Task batches run at once in one process (local), or cells at once (processes, ray)."""
+    max_tasks: int | None = Field(default=None, ge=1)
+    """Task batches run at once in one process (local; default 4), or cells at once
+    (processes: default one per core; ray: default 4)."""
     max_episodes: int = Field(default=256, ge=1)
-    """Episodes in flight at once in one process."""
+    """The most episodes in flight at once in one process (and simulator slots per task
+    batch)."""
+    in_flight: Literal["auto"] | int = "auto"
+    """Episodes in flight in one process: "auto" adapts between 1 and `max_episodes` so that
+    the simulator, renderer and model endpoints stay busy without queueing (Little's law,
+    `sweep.inflight`); a number holds that many (at most `max_episodes`)."""
     slots_per_task: int | None = Field(default=None, ge=1)
     """Simulator slots of one task batch; default: the task's planned episodes, at most
     `max_episodes`."""
+
+    @field_validator("in_flight", mode="plain")
+    @classmethod
+    def _in_flight(cls, value: Any) -> Literal["auto"] | int:
+        if value == "auto" or (_is_int(value) and value >= 1):
+            return value
+        raise ValueError(f"expected 'auto' or a whole number >= 1, got {value!r}")
 
     def slots(self, planned: int) -> int:
         """Simulator slots for a task batch that will run `planned` episodes."""

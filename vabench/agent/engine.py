@@ -31,7 +31,7 @@ import contextlib
 import dataclasses
 import functools
 import time
-from collections.abc import AsyncIterator, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -95,6 +95,9 @@ class TaskServices:
     render: RenderService
     llm: LLMPool
     settings: EngineSettings = field(default_factory=EngineSettings)
+    on_decision: Callable[[EpisodeSpec, float], None] | None = None
+    """Told the wall time of every decision an episode completes (observation, model calls,
+    action): the sweep sizes the episodes it keeps in flight from it (`sweep.inflight`)."""
 
 
 class _EpisodeEnd(Exception):
@@ -171,7 +174,10 @@ class Episode:
         try:
             await self._reset(slot)
             while self.counts.steps < self.budget:
+                started = time.monotonic()
                 await self._decide_and_act(slot)
+                if self.svc.on_decision is not None:
+                    self.svc.on_decision(self.spec, time.monotonic() - started)
             raise _EpisodeEnd("failure", "budget_exhausted")
         except _EpisodeEnd as end:
             return self._finish(end.status, end.stop_reason, end.error)
@@ -496,6 +502,7 @@ async def task_services(
     settings: EngineSettings | None = None,
     sim_window_s: float = 0.01,
     render_window_s: float = 0.005,
+    on_decision: Callable[[EpisodeSpec, float], None] | None = None,
     **batch_kwargs: Any,
 ) -> AsyncIterator[TaskServices]:
     """The services for up to `n_slots` concurrent episodes of `task` (building the simulator
@@ -512,7 +519,7 @@ async def task_services(
     attach = getattr(render_pool, "attach", None)
     shared = bool(attach and attach(task.name, sim.batch.batch))
     try:
-        yield TaskServices(sim, render, llm, settings or EngineSettings())
+        yield TaskServices(sim, render, llm, settings or EngineSettings(), on_decision)
     finally:
         await sim.close()
         await render.close()

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from vabench.children import children_ignore_sigint, ignore_sigint
 from vabench.render import gl
 from vabench.render.debug import DebugOverlays
 from vabench.render.images import ImageSettings, RenderError, RenderItem, RenderStats
@@ -48,6 +49,7 @@ class _RequestError(Exception):
 
 
 def _worker_main(conn: Connection, platform: str, max_size: tuple[int, int]) -> None:
+    ignore_sigint()  # the parent ends this process (vabench.children)
     gl.configure(platform)
     os.environ.setdefault("JAX_PLATFORMS", "cpu")  # task modules import JAX; keep it off GPUs
     try:
@@ -185,7 +187,8 @@ class RenderPool:
                 name=f"vabench-render-{index}",
                 daemon=True,
             )
-            proc.start()
+            with children_ignore_sigint():
+                proc.start()
         finally:
             if self.egl_devices:
                 if env_backup is None:

@@ -1,10 +1,17 @@
-"""`python -m vabench.sweep CONFIG [--dry-run] [--out DIR] [--no-report]` (see vabench.sweep).
+"""`python -m vabench.sweep CONFIG [--dry-run] [--out DIR] [--no-report] [--plain]`
+(see vabench.sweep).
+
+The defaults pick the fastest path this machine offers (`simulator.backend`, `render.backend`
+and `executor.kind` are `auto`; `--dry-run` prints what was picked and why). Progress shows on
+a clock: a live table on a terminal, a line every 15 s otherwise (`--plain`,
+`--progress-every`).
 
 Running the same command again resumes: finished episodes are never re-run, interrupted ones
-start again, infrastructure failures get their retry rounds. Exit code 0 when every planned
-episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run
-directory of another plan, or an endpoint that refused the sweep's requests (a wrong key, an
-unknown model: the sweep stops at once, naming the model and what to check).
+start again, infrastructure failures get their retry rounds. Ctrl-C stops the sweep cleanly
+(a second press at once) and says how to resume. Exit code 0 when every planned episode is in
+results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run directory of
+another plan, or an endpoint that refused the sweep's requests (a wrong key, an unknown model:
+the sweep stops at once, naming the model and what to check), 130 after Ctrl-C.
 """
 
 from __future__ import annotations
@@ -13,17 +20,23 @@ import argparse
 import asyncio
 import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from vabench.config import SweepConfigError, load_config
-from vabench.sweep.display import Display
+from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.sweep.choices import choose, configure_jax, with_executor
+from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of
+from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted
 from vabench.sweep.plan import estimate, format_estimate, plan
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.sweep.rundir import RunDirMismatch, check_run_dir
 from vabench.sweep.runner import LocalSweep, SweepStopped
 
 log = logging.getLogger("vabench.sweep")
+
+TICK_S = 1.0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -34,22 +47,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("config", type=Path)
     p.add_argument(
-        "--dry-run", action="store_true", help="print the plan and its cost; run nothing"
+        "--dry-run", action="store_true", help="print the plan, its cost and the choices made"
     )
     p.add_argument("--out", help="run directory (default: the config's out)")
     p.add_argument("--no-report", action="store_true")
-    p.add_argument("--plain", action="store_true", help="log lines instead of a live table")
+    p.add_argument("--plain", action="store_true", help="progress lines instead of a live table")
+    p.add_argument(
+        "--progress-every",
+        type=float,
+        default=PLAIN_EVERY_S,
+        metavar="SECONDS",
+        help=f"seconds between plain progress lines (default {PLAIN_EVERY_S:.0f})",
+    )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     try:
         config = load_config(args.config, overrides={"out": args.out} if args.out else None)
+        choices = choose(config)
     except SweepConfigError as err:
         print(err, file=sys.stderr)
+        return 2
+    except (BackendUnavailable, ValueError) as err:  # an explicit backend that cannot run here
+        print(f"error: {args.config}: {err}", file=sys.stderr)
         return 2
     keys = plan(config)
     run_dir = Path(config.out)
     if args.dry_run:
         print(format_estimate(estimate(config, keys)))
+        print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
         if (run_dir / "results.jsonl").exists():
             done = len(Ledger.open(run_dir).records)
             print(f"{run_dir}: {done} of {len(keys)} episodes already finished")
@@ -59,40 +84,94 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RunDirMismatch as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    try:
-        sweep = LocalSweep(config, keys, run_dir)
-    except LedgerError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    if config.executor.kind in ("ray", "processes"):
-        from vabench.sweep.process_executor import run_processes
-        from vabench.sweep.ray_executor import run_ray
+    configure_jax(choices.physics)
+    config = with_executor(config, choices.executor)
+    for line in choices.lines():
+        log.info(line)
+    display = Display(
+        config.name, live=False if args.plain else None, every_s=max(args.progress_every, 0.1)
+    )
+    ctrl_c = CtrlC()
+    ctrl_c.install()
+    last: list[Status] = [Tally(run_dir, keys).status()]
 
-        run_cells = run_ray if config.executor.kind == "ray" else run_processes
-        try:
-            records = run_cells(config, keys, run_dir)
-        except LedgerError as err:  # e.g. a cell retried by Ray wrote a second record
-            print(f"error: {err}", file=sys.stderr)
-            return 2
-        except SweepStopped as err:
-            print(f"stopped: {err}", file=sys.stderr)
-            return 2
-    else:
-        display = Display(len(keys), live=False if args.plain else None)
-        sweep.on_change = display.update
-        progress = asyncio.run(sweep.run())
-        display.close(progress)
-        if sweep.stopped is not None:
-            print(f"stopped: {sweep.stopped}", file=sys.stderr)
-            return 2
-        records = sweep.ledger.records
+    def show(status: Status) -> None:
+        last[0] = status
+        display.update(status)
+
+    try:
+        if config.executor.kind == "local":
+            records = _run_local(config, keys, run_dir, show, ctrl_c)
+        else:
+            from vabench.sweep.process_executor import run_processes
+            from vabench.sweep.ray_executor import run_ray
+
+            run_cells = run_ray if config.executor.kind == "ray" else run_processes
+            records = run_cells(config, keys, run_dir, on_status=show)
+            last[0] = Tally(run_dir, keys).status()
+        display.close(last[0])
+        return _conclude(records, keys, run_dir, args.no_report)
+    except Interrupted:
+        display.close(last[0])
+        done = Tally(run_dir, keys).status().total().done
+        print(
+            f"stopped; {done} of {len(keys)} episodes recorded; run the same command to resume",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    except (LedgerError, SweepStopped) as err:  # e.g. a cell retried by Ray wrote twice
+        display.close(last[0])
+        print(f"{'stopped' if isinstance(err, SweepStopped) else 'error'}: {err}", file=sys.stderr)
+        return 2
+    finally:
+        ctrl_c.restore()
+
+
+def _run_local(
+    config: Any, keys: Sequence[Any], run_dir: Path, show: Callable[[Status], None], ctrl_c: CtrlC
+) -> dict[Any, dict[str, Any]]:
+    """The local executor under the display's clock; Ctrl-C cancels it at the next await
+    (raises `Interrupted` once it has cleaned up)."""
+    sweep = LocalSweep(config, keys, run_dir)
+
+    async def run() -> None:
+        loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        assert task is not None
+
+        async def tick() -> None:
+            while True:
+                show(status_of(sweep.progress))
+                await asyncio.sleep(TICK_S)
+
+        with ctrl_c.on_first(lambda: loop.call_soon_threadsafe(task.cancel)):
+            ticker = asyncio.create_task(tick())
+            try:
+                await sweep.run()
+            except asyncio.CancelledError:
+                if not ctrl_c.pressed:
+                    raise
+                raise Interrupted() from None
+            finally:
+                ticker.cancel()
+                show(status_of(sweep.progress))
+
+    asyncio.run(run())
+    if sweep.stopped is not None:
+        raise SweepStopped(sweep.stopped)
+    return sweep.ledger.records
+
+
+def _conclude(
+    records: dict[Any, dict[str, Any]], keys: Sequence[Any], run_dir: Path, no_report: bool
+) -> int:
     missing = [k.as_id() for k in keys if ledger_key(k) not in records]
     unscored = [r for r in records.values() if r["status"] not in ("success", "failure")]
     for r in unscored:
         print(f"unscored: {r['episode_dir']}: {r['status']} ({r['stop_reason']}): {r['error']}")
     if missing:
         print(f"{len(missing)} planned episodes have no record: {missing[:5]} ...")
-    if not args.no_report:
+    if not no_report:
         from vabench.report import ReportError, make_report
 
         try:

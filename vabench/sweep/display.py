@@ -1,111 +1,265 @@
-"""Where a sweep stands: a live table on a terminal, plain log lines otherwise.
+"""Where a sweep stands, on a clock: a live table on a terminal, plain lines otherwise.
 
-Per model and track: episodes done / planned, running, successes, unscored (errors and
-infrastructure failures), episodes retried; overall: model calls in flight, calls per second,
-tokens, cost and an ETA from the rate of finished episodes.
+Every executor describes its state as one `Status` (per model and track: episodes done /
+planned, successes, unscored, retried, running; model calls, tokens and cost; the episodes in
+flight, their limit and why) and hands it to `Display.update` once a second:
+
+- the local executor from its own counters (`status_of`), which move as each episode ends;
+- the processes and Ray executors from the run directory's ledger, read as it grows (`Tally`:
+  each line is counted when it is appended, not when its cell ends), plus, for the processes
+  executor, what its workers report each second (running, in flight, calls, tokens, cost).
+
+On a terminal a rich table is redrawn every second (a bar per model and track); without one
+(`--plain`, logs, CI) a line is printed every `every_s` seconds (default 15) with the same
+counts, and once more at the end. Rates (calls per second, the ETA) are taken over the last
+minute, so they follow the sweep's current pace.
 """
 
 from __future__ import annotations
 
+import collections
+import json
 import sys
 import time
-from collections import defaultdict
-from typing import Any
+from collections.abc import Iterable
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, TextIO
 
-from vabench.sweep.runner import CellCounts, SweepProgress
+from vabench.sweep.results import INFRA_LOG, LEDGER, key_of
+
+PLAIN_EVERY_S = 15.0
+RATE_WINDOW_S = 60.0
 
 
-def _usage(progress: SweepProgress) -> tuple[int, int, int, float]:
-    """(in flight, calls finished, tokens, cost) over every endpoint of the pool."""
-    if progress.pool is None:
-        return 0, 0, 0, 0.0
-    stats = progress.pool.stats().values()
-    return (
-        sum(s.in_flight for s in stats),
-        sum(s.succeeded for s in stats),
-        sum(s.usage.total_tokens for s in stats),
-        sum(s.cost_usd for s in stats),
-    )
+@dataclass
+class Counts:
+    planned: int = 0
+    done: int = 0
+    success: int = 0
+    unscored: int = 0
+    retried: int = 0
+    running: int = 0
+
+    def add(self, other: Counts) -> None:
+        for f in fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+
+@dataclass
+class Status:
+    """Where the sweep stands (see the module docstring)."""
+
+    tracks: dict[tuple[str, str], Counts] = field(default_factory=dict)
+    calls: int = 0
+    tokens: int = 0
+    cost: float = 0.0
+    calls_in_flight: int = 0
+    in_flight: int | None = None
+    limit: int | None = None
+    reason: str | None = None
+
+    def total(self) -> Counts:
+        out = Counts()
+        for c in self.tracks.values():
+            out.add(c)
+        return out
+
+
+def status_of(progress: Any) -> Status:
+    """The status of a `runner.LocalSweep`'s `SweepProgress` (per-task counters, its LLM pool,
+    its in-flight gate)."""
+    tracks: dict[tuple[str, str], Counts] = collections.defaultdict(Counts)
+    for (model, track, _task), cell in list(progress.cells.items()):
+        tracks[(model, track)].add(
+            Counts(cell.planned, cell.done, cell.success, cell.unscored, cell.retried, cell.running)
+        )
+    status = Status(dict(tracks))
+    if progress.pool is not None:
+        stats = list(progress.pool.stats().values())
+        status.calls = sum(s.succeeded for s in stats)
+        status.tokens = sum(s.usage.total_tokens for s in stats)
+        status.cost = sum(s.cost_usd for s in stats)
+        status.calls_in_flight = sum(s.in_flight for s in stats)
+    gate = progress.gate
+    if gate is not None:
+        status.in_flight, status.limit, status.reason = gate.in_flight, gate.limit, gate.reason
+    return status
+
+
+class Tally:
+    """A run directory's ledger and infrastructure log, counted as they grow (by whoever
+    writes them: this process's ledger thread, or Ray workers on other machines)."""
+
+    def __init__(self, run_dir: Path, keys: Iterable[Any]):
+        self.run_dir = Path(run_dir)
+        self.planned = {(k.model, k.track, k.task, int(k.seed), int(k.run)) for k in keys}
+        self.tracks: dict[tuple[str, str], Counts] = collections.defaultdict(Counts)
+        for key in self.planned:
+            self.tracks[key[:2]].planned += 1
+        self.calls = self.tokens = 0
+        self.cost = 0.0
+        self._seen: set[tuple[Any, ...]] = set()
+        self._offsets = {LEDGER: 0, INFRA_LOG: 0}
+        self.refresh()
+        self.calls = self.tokens = 0  # this invocation's spend only, as the local display
+        self.cost = 0.0
+
+    def _new_lines(self, name: str) -> list[str]:
+        try:
+            with open(self.run_dir / name, "rb") as f:
+                f.seek(self._offsets[name])
+                data = f.read()
+        except FileNotFoundError:
+            return []
+        whole = data[: data.rfind(b"\n") + 1]  # a line being appended is read next time
+        self._offsets[name] += len(whole)
+        return [line for line in whole.decode("utf-8").splitlines() if line.strip()]
+
+    def refresh(self) -> None:
+        for line in self._new_lines(LEDGER):
+            record = json.loads(line)
+            key = key_of(record)
+            if key in self._seen or key not in self.planned:
+                continue
+            self._seen.add(key)
+            c = self.tracks[key[:2]]
+            c.done += 1
+            c.success += bool(record.get("success"))
+            c.unscored += record.get("status") not in ("success", "failure")
+            tokens = record.get("tokens") or {}
+            self.calls += int(record.get("model_calls") or 0)
+            self.tokens += int(tokens.get("input", 0)) + int(tokens.get("output", 0))
+            self.cost += float(record.get("cost_usd") or 0.0)
+        for line in self._new_lines(INFRA_LOG):
+            key = key_of(json.loads(line))
+            if key in self.planned:
+                self.tracks[key[:2]].retried += 1
+
+    def status(self) -> Status:
+        return Status(
+            {k: Counts(**vars(c)) for k, c in self.tracks.items()},
+            calls=self.calls,
+            tokens=self.tokens,
+            cost=self.cost,
+        )
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(seconds)
+    h, rest = divmod(seconds, 3600)
+    m, s = divmod(rest, 60)
+    return f"{h}h{m:02d}m" if h else (f"{m}m{s:02d}s" if m else f"{s}s")
 
 
 class Display:
-    """Call `update(progress)` whenever something changes; it throttles itself."""
+    """`update(status)` about once a second; `close(status)` at the end."""
 
-    def __init__(self, total_planned: int, interval_s: float = 1.0, live: bool | None = None):
-        self.t0 = time.monotonic()
-        self.total_planned = total_planned
-        self.interval_s = interval_s
-        self.live_mode = sys.stdout.isatty() if live is None else live
-        self._last = 0.0
-        self._done0: int | None = None
-        self._calls0: tuple[float, int] | None = None
+    def __init__(
+        self,
+        title: str = "sweep",
+        live: bool | None = None,
+        every_s: float = PLAIN_EVERY_S,
+        out: TextIO | None = None,
+        clock: Any = time.monotonic,
+    ):
+        self.title = title
+        self.out = out or sys.stdout
+        self.live_mode = self.out.isatty() if live is None else live
+        self.every_s = every_s
+        self.clock = clock
+        self.t0 = clock()
+        self._last_print: float | None = None
+        self._history: collections.deque[tuple[float, int, int]] = collections.deque()
         self._live: Any = None
         if self.live_mode:
+            from rich.console import Console
             from rich.live import Live
 
-            self._live = Live(refresh_per_second=2, transient=False)
+            self._live = Live(console=Console(file=self.out), auto_refresh=False)
             self._live.start()
-        else:
-            self.interval_s = max(interval_s, 10.0)
 
-    def _eta(self, total: CellCounts) -> str:
-        if self._done0 is None:
-            self._done0 = total.done
-        new = total.done - self._done0
-        elapsed = time.monotonic() - self.t0
+    # -- rates -----------------------------------------------------------------------------
+    def _rates(self, done: int, calls: int) -> tuple[float, float]:
+        """(episodes per second, calls per second) over the last `RATE_WINDOW_S`."""
+        now = self.clock()
+        self._history.append((now, done, calls))
+        while len(self._history) > 2 and now - self._history[1][0] >= RATE_WINDOW_S:
+            self._history.popleft()
+        t0, done0, calls0 = self._history[0]
+        span = now - t0
+        if span <= 0:
+            return 0.0, 0.0
+        return (done - done0) / span, (calls - calls0) / span
+
+    def _eta(self, total: Counts, episodes_per_s: float) -> str:
         left = total.planned - total.done
-        if new <= 0 or left <= 0:
-            return "-" if left else "done"
-        seconds = left * elapsed / new
-        return time.strftime("%H:%M:%S", time.gmtime(seconds))
+        if left <= 0:
+            return "done"
+        return _duration(left / episodes_per_s) if episodes_per_s > 0 else "-"
 
-    def _rate(self, calls: int) -> float:
-        now = time.monotonic()
-        if self._calls0 is None:
-            self._calls0 = (now, calls)
-            return 0.0
-        t0, c0 = self._calls0
-        return (calls - c0) / max(now - t0, 1e-9)
-
-    def update(self, progress: SweepProgress, force: bool = False) -> None:
-        now = time.monotonic()
-        if not force and now - self._last < self.interval_s:
-            return
-        self._last = now
-        total = progress.total()
-        in_flight, calls, tokens, cost = _usage(progress)
-        head = (
-            f"{total.done}/{total.planned} episodes, {total.running} running, "
-            f"{total.success} successes, {total.unscored} unscored, {total.retried} retried"
-            f" | calls in flight {in_flight}, {self._rate(calls):.1f}/s, "
-            f"{tokens:,} tokens, ${cost:.2f} | ETA {self._eta(total)}"
+    # -- output ----------------------------------------------------------------------------
+    def line(self, status: Status) -> str:
+        """The plain line (also the live table's heading)."""
+        total = status.total()
+        per_s, calls_per_s = self._rates(total.done, status.calls)
+        pct = 100.0 * total.done / total.planned if total.planned else 100.0
+        parts = [
+            f"episodes {total.done}/{total.planned} ({pct:.0f}%): {total.success} successes, "
+            f"{total.unscored} unscored, {total.retried} retried, {total.running} running",
+        ]
+        if status.limit is not None:
+            parts.append(f"in flight {status.in_flight} (limit {status.limit}: {status.reason})")
+        parts.append(
+            f"calls {calls_per_s:.1f}/s, {status.calls_in_flight} in flight, "
+            f"{status.tokens:,} tokens, ${status.cost:.2f}"
         )
-        if not self.live_mode:
-            print(head, flush=True)
-            return
-        from rich.table import Table
+        parts.append(f"elapsed {_duration(self.clock() - self.t0)}, ETA {self._eta(total, per_s)}")
+        if len(status.tracks) > 1:
+            parts.append(
+                ", ".join(
+                    f"{'/'.join(k) if len({m for m, _ in status.tracks}) > 1 else k[1]} "
+                    f"{c.done}/{c.planned}"
+                    for k, c in sorted(status.tracks.items())
+                )
+            )
+        return " | ".join(parts)
 
-        table = Table(title=head, title_justify="left")
-        for col in ("model", "track", "done", "running", "success", "unscored", "retried"):
-            table.add_column(col, justify="left" if col in ("model", "track") else "right")
-        rows: dict[tuple[str, str], CellCounts] = defaultdict(CellCounts)
-        for (model, track, _task), c in progress.cells.items():
-            r = rows[(model, track)]
-            for name in ("planned", "done", "success", "running", "unscored", "retried"):
-                setattr(r, name, getattr(r, name) + getattr(c, name))
-        for (model, track), r in sorted(rows.items()):
+    def update(self, status: Status, force: bool = False) -> None:
+        now = self.clock()
+        if self.live_mode:
+            self._live.update(self._table(status), refresh=True)
+            return
+        if force or self._last_print is None or now - self._last_print >= self.every_s:
+            self._last_print = now
+            stamp = time.strftime("%H:%M:%S")
+            print(f"{stamp} {self.title}: {self.line(status)}", file=self.out, flush=True)
+
+    def _table(self, status: Status) -> Any:
+        from rich.console import Group
+        from rich.progress_bar import ProgressBar
+        from rich.table import Table
+        from rich.text import Text
+
+        head = Text(f"{self.title}: {self.line(status).replace(' | ', chr(10))}")
+        table = Table(box=None, pad_edge=False)
+        for col in ("model", "track", "", "done", "success", "running", "unscored", "retried"):
+            table.add_column(col, justify="left" if col in ("model", "track", "") else "right")
+        for (model, track), c in sorted(status.tracks.items()):
             table.add_row(
                 model,
                 track,
-                f"{r.done}/{r.planned}",
-                str(r.running),
-                str(r.success),
-                str(r.unscored),
-                str(r.retried),
+                ProgressBar(total=max(c.planned, 1), completed=c.done, width=30),
+                f"{c.done}/{c.planned}",
+                str(c.success),
+                str(c.running),
+                str(c.unscored),
+                str(c.retried),
             )
-        self._live.update(table)
+        return Group(head, table)
 
-    def close(self, progress: SweepProgress) -> None:
-        self.update(progress, force=True)
+    def close(self, status: Status) -> None:
+        self.update(status, force=True)
         if self._live is not None:
             self._live.stop()
+            self._live = None

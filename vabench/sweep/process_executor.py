@@ -1,63 +1,101 @@
-"""`executor: processes`: the sweep's (model, track, task) cells as worker processes of one host.
+"""`executor: processes`: the sweep's cells as worker processes of one host.
 
 For many-core hosts where one sweep process is CPU-bound: C MuJoCo rollouts (one core per
 process), a CPU-heavy embedded policy (the reference servo decodes and segments every image),
 the learning stage's demonstration builds. The cells are those of `executor: ray`
-(`ray_executor.pending_cells`) and each runs exactly as a Ray cell does (`run_cell`: a
-`LocalSweep` restricted to the cell, with its own LLM pool, embedded server, render workers and
-simulator batch), so the records equal those of the local executor. At most
-`executor.max_tasks` cells run at once, each in a spawned process (never forked: the parent
-holds JAX and thread pools). A cell that raises is logged with its traceback while the others
+(`ray_executor.pending_cells`, one per (model, track, task)), cut into chunks so that the last
+processes to finish do not leave the others' cores idle (`chunks`); each chunk runs exactly as
+a Ray cell does (`run_cell`: a `LocalSweep` restricted to it, with its own LLM pool, embedded
+server, render workers and simulator batch), so the records equal those of the local executor.
+At most `executor.max_tasks` run at once, each in a spawned process (never forked: the parent
+holds JAX and thread pools). A chunk that raises is logged with its traceback while the others
 run on; its episodes are listed as missing and a rerun resumes them.
+
+The workers' environment (`choices.child_environment`): JAX never preallocates GPU memory and
+stays on the CPU unless the physics is MJX on JAX; with several GPUs each worker gets one.
 
 One writer, and no orphans: a worker never writes the ledger or the infrastructure log. It
 writes its episodes' directories (result.json atomically, as always) and sends each log line to
-the parent through a pipe; a thread of the parent appends them (`LedgerWriter`). Each worker
-watches its parent and exits at once when the parent is gone (`_watch_parent`), so a SIGKILL of
-the sweep's main process leaves no worker calling the model; an episode a worker finished in
-the instant before is adopted from its result.json by the next invocation.
+the parent through a pipe, with a status line every second (episodes running, in flight, model
+calls, tokens, cost) for the display; a thread of the parent appends the lines
+(`LedgerWriter`). Each worker watches its parent and exits at once when the parent is gone
+(`_watch_parent`), so a SIGKILL of the sweep's main process leaves no worker calling the model;
+an episode a worker finished in the instant before is adopted from its result.json by the next
+invocation. Ctrl-C (`sweep.interrupt`): workers ignore it; the parent ends them, keeps every
+whole line they sent, and raises `Interrupted`.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import logging
+import math
 import multiprocessing
 import os
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from vabench.children import children_ignore_sigint, ignore_sigint
 from vabench.config import SweepConfig
+from vabench.sim_mjx.backends import resolve
+from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
+from vabench.sweep.display import Status, Tally
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.ray_executor import PROGRESS_EVERY_S, KeyTuple, pending_cells, recorded, run_cell
+from vabench.sweep.ray_executor import (
+    PROGRESS_EVERY_S,
+    STATUS,
+    KeyTuple,
+    pending_cells,
+    run_cell,
+)
 from vabench.sweep.results import LEDGER, Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import SweepStopped
+from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
 
 PARENT_CHECK_S = 0.2
 """How often a worker checks that its parent is alive."""
+TICK_S = 1.0
+"""How often the parent redraws the display."""
+MIN_CHUNK = 10
+"""The fewest episodes a cell is cut down to: each chunk pays its own start-up."""
+CHUNKS_PER_WORKER = 3
 
 _lines: Any = None
 """In a worker: the pipe to the parent's `LedgerWriter` (set by `_init_worker`)."""
 
 
 class LedgerWriter:
-    """The parent's thread that appends the lines the workers send, in arrival order."""
+    """The parent's thread that appends the lines the workers send, in arrival order, and keeps
+    their latest status lines."""
 
     def __init__(self, run_dir: Path, lines: Any):
         self.ledger = Ledger.open(run_dir)
         self.lines = lines
         self.errors: list[str] = []
+        self.statuses: dict[str, dict[str, Any]] = {}
+        self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ledger-writer", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        while (item := self.lines.get()) is not None:
+        while True:
+            while self.lines.empty():  # SimpleQueue.get has no timeout
+                if self._stopping.is_set():
+                    return
+                time.sleep(0.05)
+            item = self.lines.get()
+            if item is None:
+                return
             name, record = item
+            if name == STATUS:
+                self.statuses[record["cell"]] = record
+                continue
             try:
                 self.ledger.append_line(name, record)
             except (LedgerError, OSError, KeyError, ValueError) as err:
@@ -70,10 +108,46 @@ class LedgerWriter:
         self.lines.put(None)
         self._thread.join()
 
+    def abandon(self) -> None:
+        """After the workers were ended: append what is in the pipe, then stop (without the
+        sentinel: a worker ended while writing to the pipe may hold its lock)."""
+        self._stopping.set()
+        self._thread.join(timeout=10)
 
-def _init_worker(parent_pid: int, lines: Any) -> None:
+    def status(self, tally: Tally) -> Status:
+        """The ledger's counts with what the workers report (running, in flight, spend)."""
+        status = tally.status()
+        reports = list(self.statuses.values())
+        live = [r for r in reports if not r["finished"]]
+        for r in live:
+            model, track = r["cell"].split("/")[:2]
+            if (model, track) in status.tracks:
+                status.tracks[(model, track)].running += r["running"]
+        status.calls = sum(r["calls"] for r in reports)
+        status.tokens = sum(r["tokens"] for r in reports)
+        status.cost = sum(r["cost"] for r in reports)
+        status.calls_in_flight = sum(r["calls_in_flight"] for r in live)
+        if live:
+            status.in_flight = sum(r["in_flight"] for r in live)
+            status.limit = sum(r["limit"] for r in live)
+            status.reason = (
+                live[0]["reason"]
+                if len(live) == 1
+                else f"{len(live)} worker processes, e.g. {live[0]['reason']}"
+            )
+        return status
+
+
+def _init_worker(parent_pid: int, lines: Any, counter: Any, gpus: tuple[str, ...]) -> None:
     global _lines
+    ignore_sigint()  # the parent ends this process (vabench.children)
     _lines = lines
+    with counter.get_lock():
+        index = counter.value
+        counter.value += 1
+    gpu = gpu_for_worker(index, gpus)
+    if gpu is not None:  # before anything here initialises CUDA
+        os.environ["CUDA_VISIBLE_DEVICES"] = gpu
     threading.Thread(
         target=_watch_parent, args=(parent_pid,), name="parent-watch", daemon=True
     ).start()
@@ -97,78 +171,144 @@ def _run_cell_in_worker(
     return run_cell(document, run_dir, keys, sink=_send)
 
 
+def chunks(
+    cells: dict[tuple[str, str, str], list[EpisodeKey]], workers: int, cost: Callable[[str], int]
+) -> list[tuple[str, list[EpisodeKey]]]:
+    """The cells cut into named chunks of nearly equal size, at least `CHUNKS_PER_WORKER` per
+    worker where the cells are large enough (never below `MIN_CHUNK` episodes), costliest
+    first (`cost(task)`: the task's step budget), so the processes finish close together. A
+    chunk is named after its cell ("model/track/task", "... part i/n" when cut)."""
+    total = sum(len(v) for v in cells.values())
+    size = max(MIN_CHUNK, math.ceil(total / (workers * CHUNKS_PER_WORKER)))
+    out = []
+    for cell, keys in cells.items():
+        parts = math.ceil(len(keys) / size)
+        step = math.ceil(len(keys) / parts)
+        for i, start in enumerate(range(0, len(keys), step), 1):
+            name = "/".join(cell) + (f" part {i}/{parts}" if parts > 1 else "")
+            out.append((name, keys[start : start + step]))
+    return sorted(out, key=lambda c: -len(c[1]) * cost(c[1][0].task))
+
+
+@contextlib.contextmanager
+def _environment(env: dict[str, str]) -> Iterator[None]:
+    """`env` added to os.environ while worker processes are started (they copy it)."""
+    before = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _end_workers(pool: cf.ProcessPoolExecutor) -> None:
+    """Terminate the pool's processes (`terminate_workers` arrives in Python 3.14)."""
+    processes = list((pool._processes or {}).values())
+    for p in processes:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    for p in processes:
+        p.join(timeout=10)
+
+
 def run_processes(
-    config: SweepConfig, keys: Sequence[EpisodeKey], run_dir: Path
+    config: SweepConfig,
+    keys: Sequence[EpisodeKey],
+    run_dir: Path,
+    on_status: Callable[[Status], None] | None = None,
 ) -> dict[KeyTuple, dict[str, Any]]:
-    """Run the pending episodes of `keys`, one process per cell, `executor.max_tasks` at once;
-    return the ledger's records afterwards."""
+    """Run the pending episodes of `keys` in worker processes, `executor.max_tasks` at once;
+    return the ledger's records afterwards. `on_status` is called about once a second."""
     run_dir = Path(run_dir).resolve()
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
         log.info("processes: every planned episode is already in %s; nothing to run", LEDGER)
         return Ledger.open(run_dir).records
-    document = config.document()
-    workers = min(config.executor.max_tasks, len(cells))
+    machine = this_machine()
+    workers = min(config.executor.max_tasks or machine.cores, len(cells))
+    # the task's step budget ranks chunks by cost (a task the registry lacks fails in its cell)
+    parts = chunks(cells, workers, lambda t: config.budget(t) if t in REGISTRY else 1)
+    workers = min(workers, len(parts))
+    env = child_environment(resolve(config.simulator.backend, config.simulator.impl))
     log.info(
-        "processes: %d cells (%d episodes), %d at once",
+        "processes: %d cells (%d episodes) in %d chunks, %d at once; workers get %s",
         len(cells),
         sum(len(v) for v in cells.values()),
+        len(parts),
         workers,
+        " ".join(f"{k}={v}" for k, v in env.items()) or "this environment",
     )
-    failures = []
+    document = config.document()
+    tally = Tally(run_dir, keys)
+    failures: list[str] = []
+    stopped: list[str] = []
     context = multiprocessing.get_context("spawn")
     lines = context.SimpleQueue()  # put() writes the pipe before returning: nothing buffered
     writer = LedgerWriter(run_dir, lines)
+    pool: cf.ProcessPoolExecutor | None = None
+    finished = False
     try:
-        with cf.ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=context,
-            initializer=_init_worker,
-            initargs=(os.getpid(), lines),
-        ) as pool:
+        with _environment(env), children_ignore_sigint():
+            pool = cf.ProcessPoolExecutor(
+                max_workers=workers,
+                mp_context=context,
+                initializer=_init_worker,
+                initargs=(os.getpid(), lines, context.Value("i", 0), machine.gpus),
+            )
             futures = {
                 pool.submit(
-                    _run_cell_in_worker,
-                    document,
-                    str(run_dir),
-                    [ledger_key(k) for k in cell_keys],
-                ): cell
-                for cell, cell_keys in cells.items()
+                    _run_cell_in_worker, document, str(run_dir), [ledger_key(k) for k in part]
+                ): name
+                for name, part in parts
             }
-            pending = set(futures)
-            stopped: list[str] = []
-            while pending:
-                done, pending = cf.wait(pending, timeout=PROGRESS_EVERY_S)
-                done = {f for f in done if not f.cancelled()}
-                for future in done:
-                    cell = futures[future]
-                    try:
-                        summary = future.result()
-                    except Exception:
-                        failures.append(cell)
-                        log.exception("processes: cell %s failed", "/".join(cell))
-                    else:
-                        log.info("processes: cell %s done: %s", "/".join(cell), summary)
-                        if summary.get("stopped") and not stopped:
-                            stopped.append(summary["stopped"])
-                            for other in pending:  # cells not started yet never start
-                                other.cancel()
+        pending = set(futures)
+        last_log = time.monotonic()
+        while pending:
+            done, pending = cf.wait(pending, timeout=TICK_S)
+            for future in (f for f in done if not f.cancelled()):
+                name = futures[future]
+                try:
+                    summary = future.result()
+                except Exception:
+                    failures.append(name)
+                    log.exception("processes: cell %s failed", name)
+                    continue
+                log.info("processes: cell %s done: %s", name, summary)
+                if summary.get("stopped") and not stopped:
+                    stopped.append(summary["stopped"])
+                    for other in pending:  # chunks not started yet never start
+                        other.cancel()
+            tally.refresh()
+            if on_status is not None:
+                on_status(writer.status(tally))
+            if done or time.monotonic() - last_log >= PROGRESS_EVERY_S:
+                last_log = time.monotonic()
                 log.info(
                     "processes: cells %d/%d done (%d failed) | episodes recorded %d/%d",
                     len(futures) - len(pending),
                     len(futures),
                     len(failures),
-                    recorded(run_dir),
+                    tally.status().total().done,
                     len(keys),
                 )
+        finished = True
     finally:
-        writer.close()
+        if finished:
+            assert pool is not None
+            pool.shutdown()
+            writer.close()
+        else:  # interrupted (or failed): end the workers, keep every whole line they sent
+            if pool is not None:
+                _end_workers(pool)
+                pool.shutdown(wait=True, cancel_futures=True)
+            writer.abandon()
     if failures:
         log.error(
-            "processes: %d of %d cells failed: %s",
-            len(failures),
-            len(cells),
-            ", ".join("/".join(c) for c in failures),
+            "processes: %d of %d cells failed: %s", len(failures), len(parts), ", ".join(failures)
         )
     if stopped:
         raise SweepStopped(stopped[0])

@@ -13,10 +13,9 @@
    simulator batch, writing episode directories and ledger lines into the shared run
    directory. Cells are disjoint, so no episode runs twice; the ledger's appends are whole
    lines under a file lock (`vabench.sweep.results`), so several writers never mix lines;
-4. at most `executor.max_tasks` cells are in flight at once; each claims 1 CPU from Ray's
-   scheduler (its render workers, `render.workers` processes, are not counted) and, for the
-   MJX backend on a cluster with GPUs, 1 GPU (JAX preallocates most of a GPU's memory, so
-   cells do not share one);
+4. at most `executor.max_tasks` cells (default 4) are in flight at once; each claims 1 CPU
+   from Ray's scheduler (its render workers, `render.workers` processes, are not counted)
+   and, for the `mjx` or `auto` backend on a cluster with GPUs, 1 GPU;
 5. the driver logs a progress line when a cell ends and every `PROGRESS_EVERY_S` seconds
    (cells done / total, episodes in `results.jsonl` / planned); a cell that raises is logged
    with its cell, host and remote traceback, and the other cells still run to the end;
@@ -40,18 +39,22 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import socket
 import tempfile
-from collections.abc import Iterable, Sequence
+import time
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from vabench.config import SweepConfig, SweepConfigError, load_config
+from vabench.sweep.choices import RAY_MAX_TASKS
+from vabench.sweep.display import Status, Tally, status_of
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import LEDGER, Ledger, Sink, ledger_key
-from vabench.sweep.runner import LocalSweep, SweepStopped
+from vabench.sweep.runner import LocalSweep, SweepProgress, SweepStopped
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +64,15 @@ KeyTuple = tuple[str, str, str, int, int]
 """(model, track, task, seed, run), as the ledger keys its records."""
 
 PROGRESS_EVERY_S = 10.0
-"""Seconds between progress lines while no cell ends."""
+"""Seconds between log lines while no cell ends."""
+TICK_S = 1.0
+"""Seconds between display updates."""
+STATUS = "status"
+"""The name of a cell's status lines in its sink (`executor: processes`)."""
+STATUS_EVERY_S = 1.0
+WORKER_ENVIRONMENT = ("JAX_PLATFORMS", "XLA_PYTHON_CLIENT_PREALLOCATE", "CUDA_VISIBLE_DEVICES")
+"""What a cell reports of its environment (the choices made for processes started on a GPU
+host, `sweep.choices`)."""
 
 
 def pending_cells(
@@ -79,17 +90,9 @@ def pending_cells(
 
 def cell_resources(config: SweepConfig, cluster_gpus: float) -> dict[str, float]:
     """What one cell asks Ray's scheduler for (see the module docstring, 4)."""
-    gpus = 1.0 if config.simulator.backend == "mjx" and cluster_gpus >= 1 else 0.0
+    # backend auto picks Warp on a node with a GPU: claim one there as mjx does
+    gpus = 1.0 if config.simulator.backend != "c" and cluster_gpus >= 1 else 0.0
     return {"num_cpus": 1.0, "num_gpus": gpus}
-
-
-def recorded(run_dir: Path) -> int:
-    """Whole lines in the run's results.jsonl (read without the lock: a line being appended
-    has no newline yet and is not counted)."""
-    try:
-        return (run_dir / LEDGER).read_bytes().count(b"\n")
-    except FileNotFoundError:
-        return 0
 
 
 def run_cell(
@@ -101,8 +104,10 @@ def run_cell(
     """One cell, in a Ray worker: the episodes `keys` (all of one (model, track, task)) of the
     config `document` (a `SweepConfig.document()`) run by a `LocalSweep` into `run_dir`.
     Returns counts for the driver's log: host, episodes (run here), recorded (the cell's
-    records in the ledger now), unscored, retried. With `sink`, ledger lines go there instead
-    of the files (`executor: processes`: the parent writes them)."""
+    records in the ledger now), unscored, retried, and the environment it ran in (JAX's
+    platform, the variables of `WORKER_ENVIRONMENT`). With `sink`, ledger lines go there
+    instead of the files (`executor: processes`: the parent writes them), with a `STATUS` line
+    every second for the parent's display."""
     host = socket.gethostname()
     run = Path(run_dir)
     if not (run / "plan.json").exists():
@@ -122,7 +127,11 @@ def run_cell(
             ) from None
     sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, ledger_sink=sink)
     model, track, task = keys[0][:3]
-    counts = asyncio.run(sweep.run()).cells[(model, track, task)]
+    cell = f"{model}/{track}/{task}"
+    report = None if sink is None else (lambda status: sink(STATUS, {"cell": cell, **status}))
+    counts = asyncio.run(_run_reporting(sweep, report)).cells[(model, track, task)]
+    import jax
+
     return {
         "host": host,
         "episodes": len(keys),
@@ -130,14 +139,55 @@ def run_cell(
         "unscored": counts.unscored,
         "retried": counts.retried,
         "stopped": sweep.stopped,
+        "jax": jax.default_backend(),
+        "environment": {k: os.environ.get(k) for k in WORKER_ENVIRONMENT},
+    }
+
+
+async def _run_reporting(
+    sweep: LocalSweep, report: Callable[[dict[str, Any]], None] | None
+) -> SweepProgress:
+    """`sweep.run()`, with `report(status)` every `STATUS_EVERY_S` and once at the end."""
+    if report is None:
+        return await sweep.run()
+
+    async def every_second() -> None:
+        while True:
+            report(_cell_status(sweep.progress, finished=False))
+            await asyncio.sleep(STATUS_EVERY_S)
+
+    ticker = asyncio.create_task(every_second())
+    try:
+        return await sweep.run()
+    finally:
+        ticker.cancel()
+        report(_cell_status(sweep.progress, finished=True))
+
+
+def _cell_status(progress: SweepProgress, finished: bool) -> dict[str, Any]:
+    status = status_of(progress)
+    return {
+        "finished": finished,
+        "running": status.total().running,
+        "in_flight": status.in_flight or 0,
+        "limit": status.limit or 0,
+        "reason": status.reason or "",
+        "calls": status.calls,
+        "tokens": status.tokens,
+        "cost": status.cost,
+        "calls_in_flight": status.calls_in_flight,
     }
 
 
 def run_ray(
-    config: SweepConfig, keys: Sequence[EpisodeKey], run_dir: Path
+    config: SweepConfig,
+    keys: Sequence[EpisodeKey],
+    run_dir: Path,
+    on_status: Callable[[Status], None] | None = None,
 ) -> dict[KeyTuple, dict[str, Any]]:
     """Run the pending episodes of `keys` as Ray tasks, one per cell, and return the ledger's
-    records afterwards (see the module docstring)."""
+    records afterwards (see the module docstring). `on_status` is called about once a second
+    with the ledger's counts, read as it grows."""
     run_dir = Path(run_dir).resolve()  # workers may start elsewhere: send an absolute path
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
@@ -151,7 +201,8 @@ def run_ray(
         ray.init(address=config.executor.address)
     stopped: list[str] = []
     try:
-        failures = _run_cells(ray, config, cells, len(keys), run_dir, stopped)
+        tally = Tally(run_dir, keys)
+        failures = _run_cells(ray, config, cells, tally, run_dir, stopped, on_status)
     finally:
         if started_here:
             ray.shutdown()
@@ -173,17 +224,19 @@ def _run_cells(
     ray: Any,
     config: SweepConfig,
     cells: dict[Cell, list[EpisodeKey]],
-    planned: int,
+    tally: Tally,
     run_dir: Path,
     stopped: list[str],
+    on_status: Callable[[Status], None] | None,
 ) -> dict[Cell, BaseException]:
     """Submit the cells, at most `executor.max_tasks` in flight, and wait for all of them;
     returns the failed cells with their errors. A cell stopped by a refusing endpoint
-    (appended to `stopped`) ends the submitting: cells in flight finish, no new one starts."""
+    (appended to `stopped`) ends the submitting: cells in flight finish, no new one starts.
+    Interrupted (Ctrl-C), the cells in flight are cancelled, their workers ended."""
     resources = cell_resources(config, ray.cluster_resources().get("GPU", 0))
     remote = ray.remote(run_cell).options(**resources)
     document = config.document()
-    limit = config.executor.max_tasks
+    limit = config.executor.max_tasks or RAY_MAX_TASKS
     log.info(
         "ray: %d cells (%d episodes) on a cluster of %s; %d cells at once, each %s",
         len(cells),
@@ -196,32 +249,55 @@ def _run_cells(
     in_flight: dict[Any, Cell] = {}
     failures: dict[Cell, BaseException] = {}
     done = 0
-    while queue or in_flight:
-        while queue and len(in_flight) < limit and not stopped:
-            cell = queue.pop(0)
-            keys = [ledger_key(k) for k in cells[cell]]
-            in_flight[remote.remote(document, str(run_dir), keys)] = cell
-        ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=PROGRESS_EVERY_S)
-        for ref in ready:
-            cell = in_flight.pop(ref)
-            done += 1
-            try:
-                summary = ray.get(ref)
-            except Exception as err:  # the cell's own error, wrapped by Ray with its traceback
-                failures[cell] = err
-                log.error("ray: cell %s failed:\n%s", "/".join(cell), err)
-            else:
-                log.info("ray: cell %s done on %s: %s", "/".join(cell), summary["host"], summary)
-                if summary.get("stopped"):
-                    stopped.append(summary["stopped"])
-                    queue.clear()
-        log.info(
-            "ray: cells %d/%d done (%d failed), %d running | episodes recorded %d/%d",
-            done,
-            len(cells),
-            len(failures),
-            len(in_flight),
-            recorded(run_dir),
-            planned,
-        )
+    last_log = time.monotonic()
+    try:
+        while queue or in_flight:
+            while queue and len(in_flight) < limit and not stopped:
+                cell = queue.pop(0)
+                keys = [ledger_key(k) for k in cells[cell]]
+                in_flight[remote.remote(document, str(run_dir), keys)] = cell
+            ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=TICK_S)
+            done += _collect(ray, ready, in_flight, failures, stopped, queue)
+            tally.refresh()
+            if on_status is not None:
+                on_status(tally.status())
+            if ready or time.monotonic() - last_log >= PROGRESS_EVERY_S:
+                last_log = time.monotonic()
+                log.info(
+                    "ray: cells %d/%d done (%d failed), %d running | episodes recorded %d/%d",
+                    done,
+                    len(cells),
+                    len(failures),
+                    len(in_flight),
+                    tally.status().total().done,
+                    len(tally.planned),
+                )
+    except BaseException:  # Ctrl-C: no cell of this sweep goes on calling the model
+        for ref in in_flight:
+            ray.cancel(ref, force=True)
+        raise
     return failures
+
+
+def _collect(
+    ray: Any,
+    ready: list[Any],
+    in_flight: dict[Any, Cell],
+    failures: dict[Cell, BaseException],
+    stopped: list[str],
+    queue: list[Cell],
+) -> int:
+    """Take the results of the `ready` cells; returns how many ended."""
+    for ref in ready:
+        cell = in_flight.pop(ref)
+        try:
+            summary = ray.get(ref)
+        except Exception as err:  # the cell's own error, wrapped by Ray with its traceback
+            failures[cell] = err
+            log.error("ray: cell %s failed:\n%s", "/".join(cell), err)
+        else:
+            log.info("ray: cell %s done on %s: %s", "/".join(cell), summary["host"], summary)
+            if summary.get("stopped"):
+                stopped.append(summary["stopped"])
+                queue.clear()
+    return len(ready)

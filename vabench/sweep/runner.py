@@ -3,7 +3,9 @@
 One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
 it, one render pool, and up to `executor.max_tasks` task batches at once; each batch serves
 every model and track of its task (the simulator does not care who decides). Episodes in
-flight are bounded per batch by its slots and overall by `executor.max_episodes`.
+flight are bounded per batch by its slots and overall by the `inflight.InFlight` gate: a limit
+that adapts to what the simulator, renderer and endpoints sustain (`executor.in_flight: auto`),
+at most `executor.max_episodes`.
 
 Resume (see `results.Ledger`): episodes already in results.jsonl are never run again; an
 episode whose result.json exists but never reached the ledger (killed in between) is adopted;
@@ -41,6 +43,9 @@ from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
+from vabench.sim_mjx.backends import Choice, resolve
+from vabench.sweep.choices import LOCAL_MAX_TASKS
+from vabench.sweep.inflight import InFlight
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -71,6 +76,8 @@ class SweepProgress:
         default_factory=lambda: defaultdict(CellCounts)
     )
     pool: LLMPool | None = None
+    gate: InFlight | None = None
+    """The in-flight limit of this process (its limit and why)."""
 
     def total(self) -> CellCounts:
         out = CellCounts()
@@ -103,6 +110,11 @@ class LocalSweep:
         """Why the sweep stopped early (an endpoint refused it), naming model and fix."""
         self.refused = 0
         """Episodes ended without a record by that refusal."""
+        ex = config.executor
+        fixed = None if ex.in_flight == "auto" else ex.in_flight
+        self.gate = InFlight(ex.max_episodes, fixed)
+        self.progress.gate = self.gate
+        self.physics: Choice | None = None
         for k in self.keys:
             self.progress.cells[(k.model, k.track, k.task)].planned += 1
         for key in self.ledger.records:
@@ -148,6 +160,7 @@ class LocalSweep:
     async def run(self) -> SweepProgress:
         self._adopt_orphans()
         cfg = self.config
+        self.physics = resolve(cfg.simulator.backend, cfg.simulator.impl)
         async with contextlib.AsyncExitStack() as stack:
             endpoints = list(cfg.models)
             if cfg.embedded_models:
@@ -191,13 +204,11 @@ class LocalSweep:
         by_task: dict[str, list[Any]] = defaultdict(list)
         for k in keys:
             by_task[k.task].append(k)
-        ex = self.config.executor
-        task_gate = asyncio.Semaphore(ex.max_tasks)
-        episode_gate = asyncio.Semaphore(ex.max_episodes)
+        task_gate = asyncio.Semaphore(self.config.executor.max_tasks or LOCAL_MAX_TASKS)
 
         async def one_task(name: str, task_keys: list[Any]) -> None:
             async with task_gate:
-                await self._run_task(name, task_keys, llm, pool, image, episode_gate)
+                await self._run_task(name, task_keys, llm, pool, image)
 
         await asyncio.gather(*(one_task(n, ks) for n, ks in by_task.items()))
 
@@ -208,21 +219,25 @@ class LocalSweep:
         llm: LLMPool,
         pool: Renderer,
         image: ImageSettings,
-        episode_gate: asyncio.Semaphore,
     ) -> None:
         cfg, ex, sim = self.config, self.config.executor, self.config.simulator
         task = get_task(name)
         n_slots = ex.slots(len(keys))
-        batch_kwargs = sim.batch_kwargs()
+        assert self.physics is not None
+        gate = self.gate
+
+        def on_decision(spec: EpisodeSpec, seconds: float) -> None:
+            gate.observe((spec.model, spec.protocol), seconds)
+
         async with task_services(
             task,
             n_slots,
             llm,
             pool,
-            backend=sim.backend,
             image=image,
             sim_window_s=sim.window_s,
-            **batch_kwargs,
+            on_decision=on_decision,
+            **sim.batch_kwargs(self.physics.backend, self.physics.impl),
         ) as svc:
             slots = asyncio.Semaphore(n_slots)
 
@@ -257,7 +272,7 @@ class LocalSweep:
                 if use.unavailable is not None:
                     self._finish(k, _unavailable(spec, cfg.budget(name), use.unavailable))
                     return
-                async with slots, episode_gate:
+                async with slots, gate.slot():
                     if self.stopped is not None:  # stopped while this one waited for a slot
                         return
                     cell = self.progress.cells[(k.model, k.track, k.task)]

@@ -1,0 +1,191 @@
+"""What a sweep runs on: the fastest path this machine offers, chosen once, with the reasons.
+
+    physics    simulator.backend auto: MuJoCo Warp on a CUDA GPU with the [gpu] extra, else
+               C MuJoCo (`sim_mjx.backends.resolve`)
+    renderer   render.backend auto: Warp's ray tracer on such a GPU, else the GL worker
+               processes (`render.backends.resolve_renderer`)
+    executor   executor.kind auto: `processes` (one cell per core at once) on a host of
+               `PROCESSES_FROM_CORES` cores or more, else `local` (one process)
+    in flight  executor.in_flight auto: adapts to what the machine and endpoints sustain
+               (`sweep.inflight`)
+
+`--dry-run` prints these lines and the sweep logs them when it starts. `VABENCH_CORES` tells the
+choices how many cores to size for (default: the CPUs this process may run on); the test suite
+pins it so that its sweeps run the same way on any machine.
+
+Processes the sweep starts get an environment chosen here (`child_environment`, also applied
+to the sweep's own process by `configure_jax`): JAX never preallocates GPU memory
+(XLA_PYTHON_CLIENT_PREALLOCATE=false: on one H100 host, 16 worker processes that each took
+75 % of the GPU lost 1,140 of 1,320 episodes), and JAX stays on the CPU unless the physics is
+MJX on JAX (JAX_PLATFORMS=cpu: C MuJoCo and Warp use JAX only for small host-side functions).
+With several GPUs, each worker process is given one of them (`gpu_for_worker`). Values the user
+set in the environment are kept.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from vabench.render.backends import RenderChoice, resolve_renderer
+from vabench.sim_mjx.backends import Choice, resolve
+
+PROCESSES_FROM_CORES = 4
+"""From this many cores on, `executor: auto` runs cells in worker processes: below it the
+parent, one cell process and its render workers would share too few cores to gain."""
+LOCAL_MAX_TASKS = 4
+"""Task batches at once in one process (`executor: local`)."""
+RAY_MAX_TASKS = 4
+
+
+@dataclass(frozen=True)
+class Machine:
+    cores: int
+    gpus: tuple[str, ...]
+    """Visible CUDA devices (ids as CUDA_VISIBLE_DEVICES names them)."""
+    cores_from: str = "CPUs this process may use"
+
+    def describe(self) -> str:
+        n = len(self.gpus)
+        gpus = f"{n} GPU{'s' if n != 1 else ''}" if n else "no GPU"
+        return f"{self.cores} cores ({self.cores_from}), {gpus}"
+
+
+def visible_gpus(environ: Mapping[str, str] = os.environ) -> tuple[str, ...]:
+    """The CUDA devices processes started here would see: CUDA_VISIBLE_DEVICES when set (up to
+    its first hidden entry, as CUDA reads it), else the GPUs of the NVIDIA driver."""
+    listed = environ.get("CUDA_VISIBLE_DEVICES")
+    if listed is not None:
+        out: list[str] = []
+        for entry in (x.strip() for x in listed.split(",")):
+            if not entry or entry.startswith("-"):
+                break
+            out.append(entry)
+        return tuple(out)
+    driver = Path("/proc/driver/nvidia/gpus")
+    n = len(list(driver.iterdir())) if driver.is_dir() else 0
+    return tuple(str(i) for i in range(n))
+
+
+def this_machine(environ: Mapping[str, str] = os.environ) -> Machine:
+    pinned = environ.get("VABENCH_CORES")
+    if pinned:
+        try:
+            cores = int(pinned)
+        except ValueError:
+            raise ValueError(f"VABENCH_CORES must be a whole number, got {pinned!r}") from None
+        if cores < 1:
+            raise ValueError(f"VABENCH_CORES must be >= 1, got {cores}")
+        return Machine(cores, visible_gpus(environ), "VABENCH_CORES")
+    return Machine(len(os.sched_getaffinity(0)), visible_gpus(environ))
+
+
+@dataclass(frozen=True)
+class ExecutorChoice:
+    kind: str  # local | processes | ray
+    max_tasks: int
+    reason: str
+
+    @property
+    def label(self) -> str:
+        unit = "task batches" if self.kind == "local" else "cells"
+        return f"{self.kind}, {self.max_tasks} {unit} at once"
+
+
+def resolve_executor(options: Any, machine: Machine) -> ExecutorChoice:
+    """`options` is the config's `ExecutorOptions`."""
+    kind, max_tasks = options.kind, options.max_tasks
+    if kind == "auto":
+        if machine.cores >= PROCESSES_FROM_CORES:
+            return ExecutorChoice(
+                "processes",
+                max_tasks or machine.cores,
+                f"auto: {machine.cores} cores: cells in worker processes, one per core",
+            )
+        return ExecutorChoice(
+            "local",
+            max_tasks or LOCAL_MAX_TASKS,
+            f"auto: {machine.cores} cores: one process (worker processes pay off from "
+            f"{PROCESSES_FROM_CORES} cores)",
+        )
+    default = {"local": LOCAL_MAX_TASKS, "processes": machine.cores, "ray": RAY_MAX_TASKS}[kind]
+    return ExecutorChoice(kind, max_tasks or default, "asked for")
+
+
+@dataclass(frozen=True)
+class Choices:
+    machine: Machine
+    physics: Choice
+    renderer: RenderChoice
+    executor: ExecutorChoice
+    in_flight: str
+
+    def lines(self) -> list[str]:
+        physics = {"c": "C MuJoCo", "mjx/warp": "MuJoCo Warp", "mjx/jax": "MJX on JAX"}
+        renderer = {"gl": "GL worker processes", "warp": "MuJoCo Warp's ray tracer"}
+        return [
+            f"machine:   {self.machine.describe()}",
+            f"physics:   {physics[self.physics.label]} ({self.physics.reason})",
+            f"renderer:  {renderer[self.renderer.backend]} ({self.renderer.reason})",
+            f"executor:  {self.executor.label} ({self.executor.reason})",
+            f"in flight: {self.in_flight}",
+        ]
+
+
+def choose(config: Any, machine: Machine | None = None) -> Choices:
+    """Resolve every `auto` of `config` (a `SweepConfig`) for this machine. Raises
+    `sim_mjx.backends.BackendUnavailable` (its message naming what is missing) when the config
+    asks explicitly for a backend that cannot run here."""
+    machine = machine or this_machine()
+    sim, ex = config.simulator, config.executor
+    if ex.in_flight == "auto":
+        in_flight = (
+            f"adaptive, at most {ex.max_episodes} episodes per process (executor.in_flight: "
+            "enough to keep simulator, renderer and endpoints busy without queueing)"
+        )
+    else:
+        in_flight = f"{min(ex.in_flight, ex.max_episodes)} episodes per process (asked for)"
+    return Choices(
+        machine,
+        resolve(sim.backend, sim.impl),
+        resolve_renderer(config.render.backend),
+        resolve_executor(ex, machine),
+        in_flight,
+    )
+
+
+def with_executor(config: Any, choice: ExecutorChoice) -> Any:
+    """`config` with its executor's kind and max_tasks as chosen."""
+    executor = config.executor.model_copy(
+        update={"kind": choice.kind, "max_tasks": choice.max_tasks}
+    )
+    return config.model_copy(update={"executor": executor})
+
+
+def child_environment(physics: Choice, environ: Mapping[str, str] = os.environ) -> dict[str, str]:
+    """The variables to add to the environment of processes the sweep starts (see the module
+    docstring); variables already set in `environ` are left as they are."""
+    wanted = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    if physics.label != "mjx/jax":
+        wanted["JAX_PLATFORMS"] = "cpu"
+    return {k: v for k, v in wanted.items() if k not in environ}
+
+
+def configure_jax(physics: Choice) -> None:
+    """Apply `child_environment` to this process; JAX reads these when it first creates a
+    backend, which nothing in the sweep has done before its choices are made."""
+    env = child_environment(physics)
+    os.environ.update(env)
+    if "JAX_PLATFORMS" in env:
+        import jax
+
+        jax.config.update("jax_platforms", env["JAX_PLATFORMS"])
+
+
+def gpu_for_worker(index: int, gpus: tuple[str, ...]) -> str | None:
+    """The GPU worker process `index` uses when several are visible (round robin); None when
+    there are fewer than two (nothing to spread)."""
+    return gpus[index % len(gpus)] if len(gpus) > 1 else None

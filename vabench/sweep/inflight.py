@@ -1,0 +1,153 @@
+"""How many episodes one sweep process keeps in flight: enough to keep the simulator, the
+renderer and the model endpoints busy, and no more.
+
+An episode is a chain of decisions, each waiting on the renderer, a model endpoint and the
+simulator. With N episodes in flight and a decision taking R seconds, decisions complete at
+X = N / R per second (Little's law). While no stage is saturated, R stays at its unloaded value
+R0 and X grows with N; once one stage saturates, X stops growing and every further episode only
+lengthens the queues: R grows as N / X_max. Too few wastes the machine; too many makes every
+episode slow and the first one finish late (256 episodes in lockstep on a 2-core laptop: none
+finished in 10 minutes, all of them near their end together).
+
+`LimitController` sets N from the decisions' own timing, as TCP Vegas and Netflix's
+concurrency-limits do. Once a window of decisions has completed (at least half the limit, and
+`MIN_WINDOW`), it takes their median time relative to the best its kind (model, protocol) ever
+showed, R / R0, and sets
+
+    limit <- limit * clamp(R0 / R, 0.5, 1) + sqrt(limit)
+
+so that at equilibrium R = R0 * (1 + 1 / sqrt(limit)): about sqrt(limit) decisions queued,
+every stage busy, no long queue. It starts at one episode (so R0 is measured unloaded) and
+doubles each window until the first sign of queueing (`SLOW_START_TOLERANCE`); R0 creeps up by
+`R0_DRIFT` per window so that a minimum caught in a lucky moment is forgotten. `InFlight` is the
+asyncio gate episodes pass through; `reason` says why the limit is what it is (the display
+shows it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import math
+import statistics
+from collections.abc import AsyncIterator, Hashable
+
+MIN_WINDOW = 4
+"""Fewest decisions a window needs before the limit moves."""
+SLOW_START_TOLERANCE = 1.25
+"""Slow start ends at the first window whose decisions take this much longer than R0."""
+R0_DRIFT = 1.01
+MIN_GRADIENT = 0.5
+"""The most one window may shrink the limit (halving), so one noisy window cannot empty it."""
+
+
+class LimitController:
+    """The limit, from the times of completed decisions (see the module docstring)."""
+
+    def __init__(self, ceiling: int, fixed: int | None = None, initial: int = 1):
+        if ceiling < 1:
+            raise ValueError(f"ceiling must be >= 1, got {ceiling}")
+        self.ceiling = ceiling
+        self.fixed = fixed
+        if fixed is not None:
+            self.limit = max(1, min(fixed, ceiling))
+            self.reason = f"executor.in_flight = {fixed}" + (
+                f", capped by executor.max_episodes = {ceiling}" if fixed > ceiling else ""
+            )
+            return
+        self.limit = max(1, min(initial, ceiling))
+        self.reason = "starting with one episode to time an unloaded decision"
+        self.slow_start = True
+        self.best: dict[Hashable, float] = {}
+        self._window: list[tuple[Hashable, float]] = []
+        self.windows = 0
+
+    def observe(self, kind: Hashable, seconds: float) -> bool:
+        """One decision of `kind` completed in `seconds`; True when the limit changed."""
+        if self.fixed is not None:
+            return False
+        self._window.append((kind, seconds))
+        if len(self._window) < max(MIN_WINDOW, self.limit // 2):
+            return False
+        window, self._window = self._window, []
+        self.windows += 1
+        for k in {k for k, _ in window}:
+            own = [s for kk, s in window if kk == k]
+            self.best[k] = min(self.best.get(k, math.inf) * R0_DRIFT, statistics.median(own))
+        stretch = statistics.median(s / self.best[k] for k, s in window)
+        before = self.limit
+        if self.slow_start and stretch < SLOW_START_TOLERANCE:
+            self.limit = min(self.ceiling, self.limit * 2)
+            self.reason = f"decisions at {stretch:.2f}x their unloaded time: doubling"
+        else:
+            self.slow_start = False
+            gradient = max(MIN_GRADIENT, min(1.0, 1.0 / stretch))
+            wanted = self.limit * gradient + math.sqrt(self.limit)
+            self.limit = max(1, min(self.ceiling, int(wanted)))
+            self.reason = f"decisions at {stretch:.2f}x their unloaded time: " + (
+                "no queue, growing" if gradient >= 1.0 else "a stage is saturated"
+            )
+        if self.limit == self.ceiling:
+            self.reason += f" (at executor.max_episodes = {self.ceiling})"
+        return self.limit != before
+
+
+class InFlight:
+    """The asyncio gate: `async with gate.slot():` around an episode; `observe` after each of
+    its decisions. Waiters are admitted in arrival order."""
+
+    def __init__(self, ceiling: int, fixed: int | None = None, initial: int = 1):
+        self.controller = LimitController(ceiling, fixed, initial)
+        self.in_flight = 0
+        self.peak = 0
+        self._waiters: collections.deque[asyncio.Future[None]] = collections.deque()
+
+    @property
+    def limit(self) -> int:
+        return self.controller.limit
+
+    @property
+    def reason(self) -> str:
+        return self.controller.reason
+
+    def observe(self, kind: Hashable, seconds: float) -> None:
+        if self.controller.observe(kind, seconds):
+            self._admit()
+
+    @contextlib.asynccontextmanager
+    async def slot(self) -> AsyncIterator[None]:
+        await self._acquire()
+        try:
+            yield
+        finally:
+            self.in_flight -= 1
+            self._admit()
+
+    async def _acquire(self) -> None:
+        if not self._waiters and self.in_flight < self.limit:
+            self._enter()
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._waiters.append(future)
+        try:
+            await future
+        except asyncio.CancelledError:
+            if future.done() and not future.cancelled():  # admitted, then cancelled: give back
+                self.in_flight -= 1
+                self._admit()
+            else:
+                with contextlib.suppress(ValueError):
+                    self._waiters.remove(future)
+            raise
+
+    def _enter(self) -> None:
+        self.in_flight += 1
+        self.peak = max(self.peak, self.in_flight)
+
+    def _admit(self) -> None:
+        while self._waiters and self.in_flight < self.limit:
+            future = self._waiters.popleft()
+            if not future.done():
+                self._enter()
+                future.set_result(None)
