@@ -12,7 +12,10 @@ its children itself.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import threading
+import time
 from collections.abc import Iterator
 
 
@@ -33,3 +36,19 @@ def ignore_sigint() -> None:
     it was blocked is discarded, not delivered)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+PARENT_CHECK_S = 0.2
+"""How often a child checks that its parent is alive."""
+
+
+def exit_with_parent(parent_pid: int) -> None:
+    """Start a thread that ends this process as soon as its parent is gone (reparented: another
+    parent pid), so a SIGKILL of the parent leaves no child behind still working."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(70)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()

@@ -15,6 +15,7 @@ a scripted one for tests that need exact replies, an echo for correlating calls.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import random
 import re
@@ -260,14 +261,40 @@ class ConversationHashPolicy:
         self.arms = arms
 
     async def respond(self, request: IncomingRequest) -> str:
-        if (reply := learning_reply(request)) is not None:
-            return reply
-        chat = request.chat
-        h = hashlib.sha256(f"{self.seed}\n{chat.system or ''}".encode())
-        for turn in chat.turns:
-            h.update(b"\x00" + turn.role.encode() + b"\x00" + turn.text.encode())
-        actor = RandomActionPolicy(seed=int.from_bytes(h.digest()[:8], "big"), arms=self.arms)
-        return fenced_json(actor.action(actor._dual(request)))
+        return conversation_hash_reply(request, self.seed, self.arms)
+
+
+def conversation_hash_reply(
+    request: IncomingRequest, seed: int = 0, arms: Literal["auto", "right", "both"] = "auto"
+) -> str:
+    """`conversation_hash`'s reply: a pure function of the request."""
+    if (reply := learning_reply(request)) is not None:
+        return reply
+    chat = request.chat
+    h = hashlib.sha256(f"{seed}\n{chat.system or ''}".encode())
+    for turn in chat.turns:
+        h.update(b"\x00" + turn.role.encode() + b"\x00" + turn.text.encode())
+    actor = RandomActionPolicy(seed=int.from_bytes(h.digest()[:8], "big"), arms=arms)
+    return fenced_json(actor.action(actor._dual(request)))
+
+
+PURE_REPLIES: dict[str, str] = {
+    "reference_servo": "vabench.reference_agent.policy:reply_text",
+    "conversation_hash": "vabench.llm_pool.policies:conversation_hash_reply",
+}
+"""Stateless policies whose reply is a pure function `f(request, **options) -> str` that another
+process can compute: the embedded server may run them in worker processes
+(`ServerConfig.policy_processes`), so a CPU-heavy policy uses every core."""
+
+
+def pure_reply(policy: str, options: dict[str, Any], request: IncomingRequest) -> str:
+    """The reply of the pure policy `policy` (in a policy worker process)."""
+    return pure_function(policy)(request, **options)
+
+
+def pure_function(policy: str) -> Callable[..., str]:
+    module, _, name = PURE_REPLIES[policy].partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def _reference_servo(**options: Any) -> Policy:

@@ -58,6 +58,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--api-key-env", help="require the key held by this environment variable")
     p.add_argument("--log", help="append a JSON line per request to this file")
     p.add_argument("--seed", type=int)
+    p.add_argument(
+        "--policy-processes",
+        type=int,
+        help="worker processes computing the replies of a stateless policy (reference_servo, "
+        "conversation_hash); default 0: in this process",
+    )
     return p
 
 
@@ -92,6 +98,7 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
         ("rate_period_s", args.rate_period),
         ("log_path", args.log),
         ("seed", args.seed),
+        ("policy_processes", args.policy_processes),
     ):
         if value is not None:
             data[key] = value

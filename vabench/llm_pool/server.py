@@ -24,14 +24,18 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+import multiprocessing
+import os
 import random
 import socket
 from collections import Counter, deque
+from concurrent.futures import ProcessPoolExecutor
 from typing import IO, Any
 
 from aiohttp import web
 from pydantic import BaseModel, ConfigDict, Field, SecretStr
 
+from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
 from vabench.llm_pool.apis import ADAPTERS, ApiAdapter, IncomingRequest, LimitState, ServerReply
 from vabench.llm_pool.apis.base import RequestShapeError
 from vabench.llm_pool.config import DEFAULT_MAX_OUTPUT_TOKENS
@@ -47,7 +51,15 @@ from vabench.llm_pool.faults import (
     truncated_response,
 )
 from vabench.llm_pool.limits import RateBudget
-from vabench.llm_pool.policies import Policy, PolicyError, PolicyReply, make_policy
+from vabench.llm_pool.policies import (
+    PURE_REPLIES,
+    Policy,
+    PolicyError,
+    PolicyReply,
+    make_policy,
+    pure_function,
+    pure_reply,
+)
 from vabench.llm_pool.simulate import LatencyModel, PromptCache, simulate_usage
 from vabench.llm_pool.tokens import CHARS_PER_TOKEN, block_tokens, text_tokens
 
@@ -81,6 +93,11 @@ class ServerConfig(BaseModel):
     log_size: int = Field(default=10_000, ge=0)
     """Requests kept in memory (`LocalServer.log`)."""
     seed: int | None = None
+    policy_processes: int = Field(default=0, ge=0)
+    """Worker processes that compute the replies of stateless policies (`policies.PURE_REPLIES`:
+    reference_servo, conversation_hash), so a CPU-heavy policy uses several cores while this
+    process keeps the HTTP, the simulated latency, caching, limits and faults. 0: replies are
+    computed here, in a thread. Other policies ignore it."""
 
 
 @dataclasses.dataclass
@@ -124,6 +141,17 @@ class LocalServer:
             name: make_policy(spec.policy, **spec.options)
             for name, spec in self.config.model_policies.items()
         }
+        # (policy name, options) per requested model, for policies computed in processes
+        default = (
+            None
+            if policy
+            else PolicySpec(policy=self.config.policy, options=self.config.policy_options)
+        )
+        self._specs: dict[str | None, PolicySpec | None] = {
+            None: default,
+            **self.config.model_policies,
+        }
+        self._workers: ProcessPoolExecutor | None = None
         self.cache = PromptCache() if self.config.simulate_cache else None
         self._requests = self._budget(self.config.rpm)
         self._tokens = self._budget(self.config.tpm)
@@ -153,6 +181,7 @@ class LocalServer:
 
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> LocalServer:
         """Listen on host:port (port 0: a free port, see `.port`)."""
+        await self._start_workers()
         if self.config.log_path:
             self._log_file = open(self.config.log_path, "a", encoding="utf-8")  # noqa: SIM115
         # handler_cancellation: a client that gives up (timeout) cancels our sleeping handler
@@ -171,6 +200,9 @@ class LocalServer:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        if self._workers is not None:
+            workers, self._workers = self._workers, None
+            await asyncio.to_thread(workers.shutdown, True, cancel_futures=True)
         if self._log_file is not None:
             self._log_file.close()
             self._log_file = None
@@ -199,6 +231,26 @@ class LocalServer:
         if self._runner is None or self._runner.server is None:
             return 0
         return len(self._runner.server.connections)
+
+    async def _start_workers(self) -> None:
+        """Start the policy worker processes (when asked and some policy is pure), each loading
+        its policy's code once, before the first request."""
+        n = self.config.policy_processes
+        pure = {s.policy for s in self._specs.values() if s and s.policy in PURE_REPLIES}
+        if not n or not pure:
+            return
+        loop = asyncio.get_running_loop()
+        self._workers = ProcessPoolExecutor(
+            max_workers=n,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_policy_worker,
+            initargs=(os.getpid(),),
+        )
+        with children_ignore_sigint():  # workers start on these first submissions
+            loading = [
+                loop.run_in_executor(self._workers, _load_pure, sorted(pure)) for _ in range(n)
+            ]
+        await asyncio.gather(*loading)
 
     # -- small routes ------------------------------------------------------------------------
     async def _models(self, request: web.Request) -> web.Response:
@@ -313,8 +365,14 @@ class LocalServer:
     async def _reply(
         self, incoming: IncomingRequest, counts: list[int], max_output: int
     ) -> ServerReply:
-        policy = self._model_policies.get(incoming.model, self.policy)
-        answer = await policy.respond(incoming)
+        spec = self._specs.get(incoming.model, self._specs[None])
+        if self._workers is not None and spec is not None and spec.policy in PURE_REPLIES:
+            answer: str | PolicyReply = await asyncio.get_running_loop().run_in_executor(
+                self._workers, pure_reply, spec.policy, spec.options, incoming
+            )
+        else:
+            policy = self._model_policies.get(incoming.model, self.policy)
+            answer = await policy.respond(incoming)
         reply = answer if isinstance(answer, PolicyReply) else PolicyReply(answer)
         usage, reasoning = simulate_usage(incoming, reply.text, counts, self.cache)
         text, finish = reply.text, reply.finish_reason
@@ -376,3 +434,14 @@ class LocalServer:
                 LimitState(limit, 0, wait) if wait > 0 else LimitState(limit, int(left), reset)
             )
         return adapter.rate_limit_headers(states)
+
+
+def _init_policy_worker(parent_pid: int) -> None:
+    ignore_sigint()  # the server's process ends its workers (vabench.children)
+    exit_with_parent(parent_pid)
+
+
+def _load_pure(policies: list[str]) -> None:
+    """Import the pure policies' code in a worker before its first request."""
+    for name in policies:
+        pure_function(name)

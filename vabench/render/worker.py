@@ -48,6 +48,15 @@ class _RequestError(Exception):
     """Raised in the worker for a request that is wrong in itself (not retried)."""
 
 
+def _send(conn: Connection, message: tuple[Any, ...]) -> bool:
+    """Answer the pool; False when it is gone (its process ended): this worker ends quietly."""
+    try:
+        conn.send(message)
+    except (BrokenPipeError, ConnectionResetError, EOFError):
+        return False
+    return True
+
+
 def _worker_main(conn: Connection, platform: str, max_size: tuple[int, int]) -> None:
     ignore_sigint()  # the parent ends this process (vabench.children)
     gl.configure(platform)
@@ -61,9 +70,10 @@ def _worker_main(conn: Connection, platform: str, max_size: tuple[int, int]) -> 
         info = gl.describe(platform)
         probe.free()
     except Exception as err:  # no GL here: say so and let the pool try another platform
-        conn.send(("failed", f"{type(err).__name__}: {err}"))
+        _send(conn, ("failed", f"{type(err).__name__}: {err}"))
         return
-    conn.send(("ready", info))
+    if not _send(conn, ("ready", info)):
+        return
     renderers: dict[str, SceneRenderer] = {}
     crash_next = False
     while True:
@@ -103,11 +113,13 @@ def _worker_main(conn: Connection, platform: str, max_size: tuple[int, int]) -> 
                 images.append(encode_jpeg(rgb, settings.quality, settings.subsampling))
                 t_render += t1 - t0
                 t_encode += time.perf_counter() - t1
-            conn.send(("ok", images, t_render, t_encode))
+            reply: tuple[Any, ...] = ("ok", images, t_render, t_encode)
         except _RequestError as err:
-            conn.send(("bad_request", str(err)))
+            reply = ("bad_request", str(err))
         except Exception:  # a GL or driver failure: the pool restarts this worker
-            conn.send(("crashed", traceback.format_exc()))
+            _send(conn, ("crashed", traceback.format_exc()))
+            return
+        if not _send(conn, reply):
             return
 
 

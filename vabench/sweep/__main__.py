@@ -39,7 +39,10 @@ log = logging.getLogger("vabench.sweep")
 TICK_S = 1.0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
+    """The command. `ctrl_c`: a handler already installed for the life of the process (the
+    command line's, so a press after `main` returns still exits at once); without one, `main`
+    installs its own for the run and restores the previous handler on return."""
     p = argparse.ArgumentParser(
         prog="python -m vabench.sweep",
         description=__doc__,
@@ -91,8 +94,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     display = Display(
         config.name, live=False if args.plain else None, every_s=max(args.progress_every, 0.1)
     )
-    ctrl_c = CtrlC()
-    ctrl_c.install()
+    own_handler = ctrl_c is None
+    if ctrl_c is None:
+        ctrl_c = CtrlC()
+        ctrl_c.install()
     last: list[Status] = [Tally(run_dir, keys).status()]
 
     def show(status: Status) -> None:
@@ -124,7 +129,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{'stopped' if isinstance(err, SweepStopped) else 'error'}: {err}", file=sys.stderr)
         return 2
     finally:
-        ctrl_c.restore()
+        if own_handler:
+            ctrl_c.restore()
 
 
 def _run_local(
@@ -182,4 +188,11 @@ def _conclude(
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    handler = CtrlC()
+    handler.install()
+    try:
+        status = main(ctrl_c=handler)
+    except Interrupted:  # pressed before the sweep started (loading, checking the run dir)
+        print("stopped; run the same command to resume", file=sys.stderr)
+        status = EXIT_INTERRUPTED
+    sys.exit(status)

@@ -10,18 +10,21 @@ episode slow and the first one finish late (256 episodes in lockstep on a 2-core
 finished in 10 minutes, all of them near their end together).
 
 `LimitController` sets N from the decisions' own timing, as TCP Vegas and Netflix's
-concurrency-limits do. Once a window of decisions has completed (at least half the limit, and
-`MIN_WINDOW`), it takes their median time relative to the best its kind (model, protocol) ever
-showed, R / R0, and sets
+concurrency-limits (gradient2) do. Each kind of decision (model, protocol, task) has a baseline
+R0, the best median time a window of its decisions ever showed: its unloaded time. Once a window
+of decisions has completed (at least half the episodes in flight, and `MIN_WINDOW`), the
+controller takes the median of their times relative to their baselines, the stretch R / R0,
+and sets, with n the most episodes in flight during the window,
 
-    limit <- limit * clamp(R0 / R, 0.5, 1) + sqrt(limit)
+    limit <- n + sqrt(n)                          while stretch <= TOLERANCE
+    limit <- n * max(0.5, TOLERANCE / stretch)    past it
 
-so that at equilibrium R = R0 * (1 + 1 / sqrt(limit)): about sqrt(limit) decisions queued,
-every stage busy, no long queue. It starts at one episode (so R0 is measured unloaded) and
-doubles each window until the first sign of queueing (`SLOW_START_TOLERANCE`); R0 creeps up by
-`R0_DRIFT` per window so that a minimum caught in a lucky moment is forgotten. `InFlight` is the
-asyncio gate episodes pass through; `reason` says why the limit is what it is (the display
-shows it).
+Below the knee the stretch is about 1 and the limit grows by sqrt(n) a window; past it,
+R = n / X_max, and the limit settles where decisions take about `TOLERANCE` times their
+unloaded time: every stage busy, a short queue. The tolerance also absorbs a baseline caught
+in a lucky moment. It starts at one episode (so R0 is measured unloaded) and doubles each window
+until the first window past the tolerance (slow start). `InFlight` is the asyncio gate episodes
+pass through; `reason` says why the limit is what it is (the display shows it).
 """
 
 from __future__ import annotations
@@ -35,9 +38,8 @@ from collections.abc import AsyncIterator, Hashable
 
 MIN_WINDOW = 4
 """Fewest decisions a window needs before the limit moves."""
-SLOW_START_TOLERANCE = 1.25
-"""Slow start ends at the first window whose decisions take this much longer than R0."""
-R0_DRIFT = 1.01
+TOLERANCE = 1.5
+"""How much longer than unloaded a decision may take before the limit stops growing."""
 MIN_GRADIENT = 0.5
 """The most one window may shrink the limit (halving), so one noisy window cannot empty it."""
 
@@ -50,6 +52,7 @@ class LimitController:
             raise ValueError(f"ceiling must be >= 1, got {ceiling}")
         self.ceiling = ceiling
         self.fixed = fixed
+        self.windows = 0
         if fixed is not None:
             self.limit = max(1, min(fixed, ceiling))
             self.reason = f"executor.in_flight = {fixed}" + (
@@ -61,32 +64,36 @@ class LimitController:
         self.slow_start = True
         self.best: dict[Hashable, float] = {}
         self._window: list[tuple[Hashable, float]] = []
-        self.windows = 0
+        self._busiest = 0
 
-    def observe(self, kind: Hashable, seconds: float) -> bool:
-        """One decision of `kind` completed in `seconds`; True when the limit changed."""
+    def observe(self, kind: Hashable, seconds: float, in_flight: int | None = None) -> bool:
+        """One decision of `kind` completed in `seconds` with `in_flight` episodes in flight
+        (default: the limit); True when the limit changed."""
         if self.fixed is not None:
             return False
         self._window.append((kind, seconds))
-        if len(self._window) < max(MIN_WINDOW, self.limit // 2):
+        self._busiest = max(self._busiest, self.limit if in_flight is None else in_flight)
+        if len(self._window) < max(MIN_WINDOW, self._busiest // 2):
             return False
         window, self._window = self._window, []
+        busiest, self._busiest = max(1, self._busiest), 0
         self.windows += 1
         for k in {k for k, _ in window}:
-            own = [s for kk, s in window if kk == k]
-            self.best[k] = min(self.best.get(k, math.inf) * R0_DRIFT, statistics.median(own))
+            own = statistics.median(s for kk, s in window if kk == k)
+            self.best[k] = min(self.best.get(k, math.inf), own)
         stretch = statistics.median(s / self.best[k] for k, s in window)
         before = self.limit
-        if self.slow_start and stretch < SLOW_START_TOLERANCE:
-            self.limit = min(self.ceiling, self.limit * 2)
+        if self.slow_start and stretch <= TOLERANCE:
+            self.limit = min(self.ceiling, busiest * 2)
             self.reason = f"decisions at {stretch:.2f}x their unloaded time: doubling"
         else:
             self.slow_start = False
-            gradient = max(MIN_GRADIENT, min(1.0, 1.0 / stretch))
-            wanted = self.limit * gradient + math.sqrt(self.limit)
+            gradient = max(MIN_GRADIENT, min(1.0, TOLERANCE / stretch))
+            # below the tolerance, grow by sqrt(n); past it, shrink to where it would be met
+            wanted = busiest + math.sqrt(busiest) if gradient >= 1.0 else busiest * gradient
             self.limit = max(1, min(self.ceiling, int(wanted)))
             self.reason = f"decisions at {stretch:.2f}x their unloaded time: " + (
-                "no queue, growing" if gradient >= 1.0 else "a stage is saturated"
+                "growing" if gradient >= 1.0 else "a stage is saturated"
             )
         if self.limit == self.ceiling:
             self.reason += f" (at executor.max_episodes = {self.ceiling})"
@@ -112,7 +119,7 @@ class InFlight:
         return self.controller.reason
 
     def observe(self, kind: Hashable, seconds: float) -> None:
-        if self.controller.observe(kind, seconds):
+        if self.controller.observe(kind, seconds, self.in_flight):
             self._admit()
 
     @contextlib.asynccontextmanager

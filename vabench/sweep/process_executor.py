@@ -19,10 +19,10 @@ writes its episodes' directories (result.json atomically, as always) and sends e
 the parent through a pipe, with a status line every second (episodes running, in flight, model
 calls, tokens, cost) for the display; a thread of the parent appends the lines
 (`LedgerWriter`). Each worker watches its parent and exits at once when the parent is gone
-(`_watch_parent`), so a SIGKILL of the sweep's main process leaves no worker calling the model;
-an episode a worker finished in the instant before is adopted from its result.json by the next
-invocation. Ctrl-C (`sweep.interrupt`): workers ignore it; the parent ends them, keeps every
-whole line they sent, and raises `Interrupted`.
+(`children.exit_with_parent`), so a SIGKILL of the sweep's main process leaves no worker
+calling the model; an episode a worker finished in the instant before is adopted from its
+result.json by the next invocation. Ctrl-C (`sweep.interrupt`): workers ignore it; the parent
+ends them, keeps every whole line they sent, and raises `Interrupted`.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from vabench.children import children_ignore_sigint, ignore_sigint
+from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
 from vabench.config import SweepConfig
 from vabench.sim_mjx.backends import resolve
 from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
@@ -48,6 +48,7 @@ from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_executor import (
     PROGRESS_EVERY_S,
     STATUS,
+    WORKER_ENVIRONMENT,
     KeyTuple,
     pending_cells,
     run_cell,
@@ -58,8 +59,6 @@ from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
 
-PARENT_CHECK_S = 0.2
-"""How often a worker checks that its parent is alive."""
 TICK_S = 1.0
 """How often the parent redraws the display."""
 MIN_CHUNK = 10
@@ -148,17 +147,8 @@ def _init_worker(parent_pid: int, lines: Any, counter: Any, gpus: tuple[str, ...
     gpu = gpu_for_worker(index, gpus)
     if gpu is not None:  # before anything here initialises CUDA
         os.environ["CUDA_VISIBLE_DEVICES"] = gpu
-    threading.Thread(
-        target=_watch_parent, args=(parent_pid,), name="parent-watch", daemon=True
-    ).start()
-
-
-def _watch_parent(parent_pid: int) -> None:
-    """Exit the worker as soon as its parent is gone (reparented: another parent pid). Its own
-    children (render workers) see their pipes close and exit too."""
-    while os.getppid() == parent_pid:
-        time.sleep(PARENT_CHECK_S)
-    os._exit(70)
+    # gone with its parent; its own children (render workers) see their pipes close and exit
+    exit_with_parent(parent_pid)
 
 
 def _send(name: str, record: dict[str, Any]) -> None:
@@ -234,13 +224,15 @@ def run_processes(
     parts = chunks(cells, workers, lambda t: config.budget(t) if t in REGISTRY else 1)
     workers = min(workers, len(parts))
     env = child_environment(resolve(config.simulator.backend, config.simulator.impl))
+    seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
-        "processes: %d cells (%d episodes) in %d chunks, %d at once; workers get %s",
+        "processes: %d cells (%d episodes) in %d chunks, %d at once; workers run with %s%s",
         len(cells),
         sum(len(v) for v in cells.values()),
         len(parts),
         workers,
-        " ".join(f"{k}={v}" for k, v in env.items()) or "this environment",
+        " ".join(f"{k}={v}" for k, v in seen.items()) or "this environment",
+        f", one of GPUs {','.join(machine.gpus)} each" if len(machine.gpus) > 1 else "",
     )
     document = config.document()
     tally = Tally(run_dir, keys)

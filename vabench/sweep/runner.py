@@ -227,7 +227,7 @@ class LocalSweep:
         gate = self.gate
 
         def on_decision(spec: EpisodeSpec, seconds: float) -> None:
-            gate.observe((spec.model, spec.protocol), seconds)
+            gate.observe((spec.model, spec.protocol, spec.task), seconds)
 
         async with task_services(
             task,

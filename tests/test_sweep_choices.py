@@ -1,0 +1,131 @@
+"""The fastest path by default (vabench.sweep.choices): what `auto` picks for physics, renderer
+and executor on which machine, said by `--dry-run` with the reasons; the environment worker
+processes get on a GPU host; and the processes executor on a CUDA-like host (a fake
+CUDA_VISIBLE_DEVICES listing two GPUs) losing nothing."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+
+from vabench.config import ExecutorOptions
+from vabench.sim_mjx.backends import Choice
+from vabench.sweep.__main__ import main
+from vabench.sweep.choices import (
+    Machine,
+    child_environment,
+    gpu_for_worker,
+    resolve_executor,
+    this_machine,
+    visible_gpus,
+)
+
+
+@pytest.mark.parametrize(
+    ("options", "cores", "kind", "max_tasks"),
+    [
+        ({}, 2, "local", 4),
+        ({}, 3, "local", 4),
+        ({}, 4, "processes", 4),
+        ({}, 16, "processes", 16),
+        ({"max_tasks": 6}, 16, "processes", 6),
+        ({"kind": "local"}, 16, "local", 4),
+        ({"kind": "processes"}, 8, "processes", 8),
+        ({"kind": "ray"}, 8, "ray", 4),
+    ],
+)
+def test_the_executor_is_sized_from_the_cores(options, cores, kind, max_tasks):
+    choice = resolve_executor(ExecutorOptions(**options), Machine(cores, ()))
+    assert (choice.kind, choice.max_tasks) == (kind, max_tasks)
+    assert choice.reason.startswith("auto: ") == ("kind" not in options)
+
+
+def test_the_machine_is_read_from_the_environment():
+    assert this_machine({"VABENCH_CORES": "12"}).cores == 12
+    with pytest.raises(ValueError, match="VABENCH_CORES must be a whole number, got 'many'"):
+        this_machine({"VABENCH_CORES": "many"})
+    assert visible_gpus({"CUDA_VISIBLE_DEVICES": "0,1"}) == ("0", "1")
+    assert visible_gpus({"CUDA_VISIBLE_DEVICES": "2,-1,3"}) == ("2",)  # CUDA stops at -1
+    assert visible_gpus({"CUDA_VISIBLE_DEVICES": ""}) == ()
+    assert gpu_for_worker(3, ("0", "1")) == "1" and gpu_for_worker(3, ("0",)) is None
+
+
+def test_workers_never_preallocate_and_keep_jax_off_the_gpu_unless_it_simulates():
+    c, warp, jax = Choice("c", "-", ""), Choice("mjx", "warp", ""), Choice("mjx", "jax", "")
+    cpu_jax = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", "JAX_PLATFORMS": "cpu"}
+    assert child_environment(c, {}) == cpu_jax
+    assert child_environment(warp, {}) == cpu_jax  # Warp's physics uses JAX on the host only
+    assert child_environment(jax, {}) == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    assert child_environment(c, {"JAX_PLATFORMS": "cuda"}) == {  # the user's choice stands
+        "XLA_PYTHON_CLIENT_PREALLOCATE": "false"
+    }
+
+
+CONFIG = """\
+name: choices
+models:
+  - {{name: local, api: openai_chat, base_url: embedded}}
+embedded_server: {{policy: conversation_hash}}
+tracks: [active]
+summaries: none
+tasks: [grasp_single_cube, handover_horizontal_block]
+seeds: {{verified: 2}}
+runs: 1
+step_budget: 2
+render: {{width: 64, height: 48, workers: 1}}
+{extra}
+"""
+
+
+def test_dry_run_says_what_was_picked_and_why(tmp_path, capsys):
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(extra=""))
+    assert main([str(cfg), "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    section = text[text.index("Runs with:") :]
+    assert "machine:   2 cores (VABENCH_CORES)" in section
+    # no CUDA GPU here: C MuJoCo and the GL workers, each with the reason
+    assert "physics:   C MuJoCo (auto: C MuJoCo (the Warp backend needs" in section
+    assert "renderer:  GL worker processes (auto: GL worker processes (" in section
+    assert "executor:  local, 4 task batches at once (auto: 2 cores: one process" in section
+    assert "in flight: adaptive, at most 256 episodes per process" in section
+
+
+def test_an_explicit_backend_that_cannot_run_here_is_one_clear_error(tmp_path, capsys):
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(extra="simulator: {backend: mjx, impl: warp}"))
+    assert main([str(cfg), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the Warp backend needs" in err[0] and str(cfg) in err[0]
+
+
+def test_auto_runs_worker_processes_on_a_cuda_like_host_and_loses_nothing(
+    tmp_path, monkeypatch, caplog
+):
+    """A host with 4 cores and two (fake) GPUs: `executor: auto` runs worker processes, each
+    with JAX kept off the GPU (no CUDA physics here), no preallocation and one of the GPUs;
+    every planned episode is recorded exactly once."""
+    monkeypatch.setenv("VABENCH_CORES", "4")
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1")
+    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(extra=""))
+    out = tmp_path / "out"
+    with caplog.at_level(logging.INFO):
+        assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    assert "executor:  processes, 4 cells at once (auto: 4 cores" in caplog.text
+    assert "one of GPUs 0,1 each" in caplog.text
+    summaries = [r.args for r in caplog.records if "cell %s done: %s" in str(r.msg)]
+    assert len(summaries) == 2
+    for _cell, summary in summaries:
+        assert summary["jax"] == "cpu"
+        env = summary["environment"]
+        assert env["JAX_PLATFORMS"] == "cpu" and env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+        assert env["CUDA_VISIBLE_DEVICES"] in ("0", "1")
+    lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    keys = {(r["task"], r["seed"]) for r in lines}
+    assert len(lines) == len(keys) == 4
+    assert all(r["status"] in ("success", "failure") for r in lines)

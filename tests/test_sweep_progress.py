@@ -1,0 +1,157 @@
+"""Progress on a clock (vabench.sweep.display): without a terminal, one line every
+`--progress-every` seconds with the same counts as the live table; episodes are counted as they
+finish, by the local executor and by the processes executor (from the ledger as its thread
+appends each line, not when a cell ends)."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+
+from vabench.config import load_config
+from vabench.sweep.__main__ import main
+from vabench.sweep.display import Counts, Display, Status, Tally
+from vabench.sweep.plan import EpisodeKey, plan
+from vabench.sweep.process_executor import run_processes
+from vabench.sweep.rundir import check_run_dir
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def status(done: int, planned: int = 110, calls: int = 0) -> Status:
+    return Status(
+        {
+            ("m", "active"): Counts(planned=planned - 10, done=done, success=done, running=3),
+            ("m", "passive"): Counts(planned=10),
+        },
+        calls=calls,
+        tokens=12_345,
+        cost=0.5,
+        in_flight=3,
+        limit=4,
+        reason="decisions at 1.20x their unloaded time: growing",
+    )
+
+
+def test_plain_lines_come_on_the_clock_with_every_count():
+    clock, out = Clock(), io.StringIO()
+    display = Display("all", live=False, every_s=15, out=out, clock=clock)
+    display.update(status(0))  # the first update prints at once
+    clock.now = 5
+    display.update(status(5, calls=50))  # too soon: nothing
+    clock.now = 10
+    display.update(status(10, calls=100))
+    clock.now = 15
+    display.update(status(15, calls=150))
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 2
+    last = lines[-1]
+    for words in (
+        "all: episodes 15/110 (14%): 15 successes, 0 unscored, 0 retried, 3 running",
+        "in flight 3 (limit 4: decisions at 1.20x their unloaded time: growing)",
+        "calls 10.0/s",
+        "12,345 tokens, $0.50",
+        "elapsed 15s, ETA 1m35s",  # 95 left at 1 episode/s
+        "active 15/100, passive 0/10",
+    ):
+        assert words in last, last
+    display.close(status(110))  # the end always prints
+    assert "episodes 110/110 (100%)" in out.getvalue().splitlines()[-1]
+    assert "ETA done" in out.getvalue().splitlines()[-1]
+
+
+def ledger_line(key: EpisodeKey, status: str = "success") -> str:
+    record = {
+        "model": key.model,
+        "track": key.track,
+        "task": key.task,
+        "seed": key.seed,
+        "run": key.run,
+        "status": status,
+        "success": status == "success",
+        "model_calls": 4,
+        "tokens": {"input": 100, "output": 10},
+        "cost_usd": 0.01,
+    }
+    return json.dumps(record) + "\n"
+
+
+def test_the_tally_counts_whole_lines_as_they_are_appended(tmp_path):
+    keys = [EpisodeKey("m", "active", "t", seed, 1) for seed in range(4)]
+    ledger = tmp_path / "results.jsonl"
+    ledger.write_text(ledger_line(keys[0]))  # before this invocation: counted, not spent here
+    tally = Tally(tmp_path, keys)
+    assert tally.status().total().done == 1 and tally.status().tokens == 0
+    line = ledger_line(keys[1], "failure")
+    with ledger.open("a") as f:
+        f.write(line[:20])  # a line being appended is not counted yet
+    tally.refresh()
+    assert tally.status().total().done == 1
+    with ledger.open("a") as f:
+        f.write(line[20:] + ledger_line(keys[1]) + ledger_line(keys[2], "error"))
+    tally.refresh()
+    total = tally.status().total()
+    assert (total.done, total.success, total.unscored) == (3, 1, 1)  # a second record: once
+    assert tally.status().calls == 8 and tally.status().tokens == 220  # spent here
+
+
+CONFIG = """\
+name: progress
+models:
+  - {{name: local, api: openai_chat, base_url: embedded}}
+embedded_server: {{policy: conversation_hash, latency: {{mean_s: 0.2}}}}
+tracks: [active]
+summaries: none
+tasks: [grasp_single_cube]
+seeds: {{verified: 5}}
+runs: 1
+step_budget: 3
+simulator: {{backend: c}}
+render: {{width: 64, height: 48, workers: 1}}
+executor: {executor}
+"""
+LINE = re.compile(r"progress: episodes (\d+)/5 ")
+
+
+def test_plain_progress_lines_count_episodes_as_they_finish(tmp_path, capsys):
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(executor="{kind: local}"))
+    out = tmp_path / "out"
+    args = [str(cfg), "--out", str(out), "--plain", "--no-report", "--progress-every", "0.5"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    counts = [int(m.group(1)) for m in LINE.finditer(text)]
+    assert counts[0] == 0 and counts[-1] == 5 and counts == sorted(counts), text
+    assert any(0 < c < 5 for c in counts), text  # lines came while the sweep ran
+    last = text.strip().splitlines()[-1]
+    for words in ("successes", "unscored", "retried", "in flight", "calls", "tokens", "ETA"):
+        assert words in last, last
+
+
+def test_the_processes_executor_counts_each_episode_when_its_line_arrives(tmp_path):
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(executor="{kind: processes, max_tasks: 1}"))
+    out = tmp_path / "out"
+    config = load_config(cfg, overrides={"out": str(out)})
+    keys = plan(config)
+    check_run_dir(out, config, keys, config.document())
+    seen: list[Status] = []
+    records = run_processes(config, keys, out, on_status=seen.append)
+    assert len(records) == 5
+    done = [s.total().done for s in seen]
+    assert done == sorted(done) and done[-1] == 5
+    # one cell of five episodes: the display moved while it ran, not only when it ended
+    assert any(0 < d < 5 for d in done), done
+    # the worker's status lines: episodes running, the in-flight limit and why, the spend
+    assert any(s.total().running > 0 and s.limit for s in seen)
+    assert any(s.reason and "unloaded" in s.reason for s in seen) or all(
+        s.reason is None or s.reason.startswith("starting") for s in seen
+    )
+    assert seen[-1].calls >= 5 and seen[-1].tokens > 0
