@@ -10,7 +10,9 @@ decisions. With no simulator and no renderer an episode would take steps * laten
 episodes would finish in that time: the ideal. Printed per C: measured wall time and episodes
 per hour, their ratio to the ideal, the harness overhead per decision (wall / steps - latency),
 and where the time went: simulator busy seconds per decision (resets + batched actions), render
-busy seconds per observation, mean simulator and render batch sizes.
+busy seconds per observation, mean simulator and render batch sizes, and the CPU time of this
+process per decision (engine, model client and the embedded server, which runs in it; render
+workers excluded): 1 / that is the most decisions per second one engine process can drive.
 
 `--shared-batch` runs every C on one batch of max(C) slots (one MJX compile; idle slots
 frozen), as a sweep does; otherwise each C gets a batch of exactly C slots. Compilation and
@@ -41,9 +43,9 @@ async def run_level(task, n_episodes, steps, latency, svc_factory, seeds):
             EpisodeSpec(task.name, seeds[i % len(seeds)], "local", step_budget=steps)
             for i in range(n_episodes)
         ]
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         results = await run_episodes(specs, svc)
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
         sim = [
             a - b
             for a, b in zip(
@@ -69,6 +71,7 @@ async def run_level(task, n_episodes, steps, latency, svc_factory, seeds):
         ideal_episodes_per_hour=n_episodes / (steps * latency) * 3600,
         ratio=steps * latency / wall,
         overhead_per_decision_s=wall / steps - latency,
+        engine_cpu_per_decision_s=cpu / max(decisions, 1),
         sim_busy_per_decision_s=sim[0] / max(decisions, 1),
         sim_calls=sim[1],
         sim_mean_batch=sim[2] / max(sim[1], 1),
@@ -131,7 +134,7 @@ async def main_async(args) -> list[dict]:
                 print(
                     f"{'C':>5} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} {'ep/h':>9} "
                     f"{'ovh/dec s':>9} {'sim s/dec':>9} {'sim bat':>7} {'ren s/img':>9} "
-                    f"{'ren bat':>7} {'err':>4}"
+                    f"{'ren bat':>7} {'cpu ms/dec':>10} {'err':>4}"
                 )
                 for c in levels:
 
@@ -164,7 +167,8 @@ async def main_async(args) -> list[dict]:
                         f"{row['overhead_per_decision_s']:>9.3f} "
                         f"{row['sim_busy_per_decision_s']:>9.4f} {row['sim_mean_batch']:>7.1f} "
                         f"{row['render_busy_per_image_s']:>9.4f} "
-                        f"{row['render_mean_batch']:>7.1f} {row['errors']:>4}",
+                        f"{row['render_mean_batch']:>7.1f} "
+                        f"{row['engine_cpu_per_decision_s'] * 1000:>10.2f} {row['errors']:>4}",
                         flush=True,
                     )
     return rows
