@@ -1,0 +1,61 @@
+"""The task families the agent knows, each as (start plan, locate, manipulation plan).
+
+`family_of(instruction, arms)` names the family from the instruction (held-out variants keep
+their base family's instruction, so they run its plan with perception that does not depend on
+the base objects' colours and sizes). The executor calls the rest:
+- `start_plan(family)`: park where the arms hide little, look from above, see;
+- `look_again(family, looks)`: the objects were not found: observe from higher up;
+- `locate(family, hsv, cam, memo)`: the objects in the topdown image, or None;
+- `manipulation_plan(family, scene, memo)`: the steps that do the task.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from vabench.reference_agent import perception, plans
+from vabench.reference_agent.geometry import TopdownCamera
+from vabench.reference_agent.perception import Scene
+
+Step = list[Any]
+
+SINGLE = (
+    "bell",
+    "hammer",
+    "cube_bowl",
+    "cube_on_cube",
+    "cube_pad",
+    "bottle_pad",
+    "bottle_upright",
+    "bottle_lying",
+    "pen_leaning",
+    "pen",
+    "cube",
+)
+
+
+def family_of(instruction: str, arms: tuple[str, ...]) -> str | None:
+    """The family an instruction names for a task with `arms`, or None (no plan)."""
+    if set(arms) == {"right"}:
+        return plans.family_of(instruction)
+    return None
+
+
+def start_plan(family: str) -> list[Step]:
+    return plans.start_plan()
+
+
+def look_again(family: str, looks: int) -> list[Step]:
+    """From higher up, the topdown view covers more of the table (and the arm hides less)."""
+    x, y, z = plans.PARK
+    return [["go", x, y, round(z + 0.06 * looks, 4), "zxy"], ["look", "topdown"], ["see"]]
+
+
+def locate(family: str, hsv: np.ndarray, cam: TopdownCamera, memo: dict[str, Any]) -> Scene | None:
+    return perception.locate(family, hsv, cam)
+
+
+def manipulation_plan(family: str, scene: Scene, memo: dict[str, Any]) -> list[Step] | None:
+    return plans.manipulation_plan(family, scene)
