@@ -10,6 +10,8 @@ Steps (`kind` may name an arm as `kind:left` / `kind:right`; without one it is t
 the only arm of single-arm tasks):
   ["down"] / ["fwd", max_deg]  turn about ry or rz until rx points straight down / along +y
   ["yaw", heading, period]     turn about rx until ry has `heading` (deg) modulo `period`
+  ["turn", deg]                turn about the vertical by `deg` (counter-clockwise seen from
+                               above) from where the gripper is when the step is reached
   ["go", x, y, z, order]       move GC there, one world axis at a time in `order` ("xyz", "z")
   ["dgo", [l], [r], order]     both arms at once (dual_gripper.move_world), each to its target
   ["open"], ["close"]          one gripper; ["dopen"], ["dclose"] both at once
@@ -50,10 +52,6 @@ Step = list[Any]
 Decision = tuple[Action | None, str, dict[str, Any]]
 
 
-def r4(v: float) -> float:
-    return round(float(v), 4)
-
-
 def split_kind(step: Step) -> tuple[str, str]:
     kind, _, arm = str(step[0]).partition(":")
     return kind, arm or "right"
@@ -88,7 +86,7 @@ def _next_axis(target: np.ndarray, gc: np.ndarray, order: str) -> tuple[str, flo
 
 
 def _gcs(obs: Observation) -> dict[str, list[float]]:
-    return {name: [r4(v) for v in arm.gc] for name, arm in obs.arms.items()}
+    return {name: [g.r4(v) for v in arm.gc] for name, arm in obs.arms.items()}
 
 
 def _stuck(kind: str, arm: str, obs: Observation, memo: dict[str, Any]) -> bool:
@@ -111,13 +109,16 @@ def _step_action(obs: Observation, step: Step, kind: str, arm_name: str) -> Acti
         goal = np.array([0.0, 0.0, -1.0]) if kind == "down" else np.array([0.0, 1.0, 0.0])
         if g.angle_between(arm.rx, goal) <= TURN_TOL:
             return None
-        # about ry or rz, whichever brings rx closer: a tilt left about rz would put one
-        # fingertip lower than the other
-        by_y = g.turn_to_align(arm.rx, arm.ry, goal)
-        by_z = g.turn_to_align(arm.rx, arm.rz, goal)
+        # about ry or rz, whichever brings rx closer (ry on a tie: a tilt about rz would put
+        # one fingertip lower than the other)
+        turns = {"ry": g.turn_to_align(arm.rx, arm.ry, goal)}
+        turns["rz"] = g.turn_to_align(arm.rx, arm.rz, goal)
+        left = {
+            k: g.angle_between(g.rotate(arm.rx, getattr(arm, k), a), goal) for k, a in turns.items()
+        }
+        axis = "ry" if left["ry"] <= left["rz"] + 1.0 else "rz"
         max_deg = float(step[1]) if len(step) > 1 else MAX_TURN_DEG
-        turn = _turn("ry", by_y, max_deg) if abs(by_y) >= abs(by_z) else _turn("rz", by_z, max_deg)
-        return _with_arm(turn, arm_name, dual)
+        return _with_arm(_turn(axis, turns[axis], max_deg), arm_name, dual)
     if kind == "yaw":
         assert arm is not None
         turn = g.yaw_turn(arm.rx, arm.ry, float(step[1]), float(step[2]))
@@ -202,6 +203,16 @@ def decide(obs: Observation, family: str) -> Decision:
             continue
         if kind == "stop":
             return None, str(step[1]) if len(step) > 1 else "stop step", memo
+        if kind == "turn" and arm in obs.arms:
+            # a turn about the vertical by step[1] deg from wherever the gripper is now: fixed
+            # as an absolute heading when first reached, so later decisions steer to it
+            target = g.heading_deg(obs.arms[arm].ry) + float(step[1])
+            plan = [
+                *plan[:i],
+                [f"yaw:{arm}", round(g.wrap(target, 360.0), 1), 360.0],
+                *plan[i + 1 :],
+            ]
+            continue
         if kind in ("open", "close", "dopen", "dclose") and last == [step[0], i]:
             out = None  # an aperture command is sent once per step
         else:
@@ -221,7 +232,8 @@ def _see(obs: Observation, family: str, plan: list[Step], i: int, memo: dict[str
     if obs.image is not None and centre is not None:
         hsv = decode(obs.image)
         cam = g.topdown_camera(tuple(centre), hsv.shape[1], hsv.shape[0])  # type: ignore[arg-type]
-        scene = families.locate(family, hsv, cam, memo)
+        gcs = {n: a.gc for n, a in obs.arms.items()}
+        scene = families.locate(family, hsv, cam, gcs, memo)
     if scene is None:
         looks = int(memo.get("looks", 0)) + 1
         if looks > MAX_LOOKS:
@@ -231,7 +243,7 @@ def _see(obs: Observation, family: str, plan: list[Step], i: int, memo: dict[str
     rest = families.manipulation_plan(family, scene, memo)
     if rest is None:
         return None, f"no plan for {family}", memo
-    seen = {k: [r4(v.x), r4(v.y), round(v.heading, 1)] for k, v in scene.items()}
+    seen = {k: [g.r4(v.x), g.r4(v.y), round(v.heading, 1)] for k, v in scene.items()}
     memo = {k: v for k, v in memo.items() if k != "looks"}
     memo.update(plan=rest, i=0, seen=seen, last=None)
     return decide(dataclasses.replace(obs, memo=memo), family)

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from vabench.reference_agent import perception, plans
+from vabench.reference_agent import perception, perception_dual, plans, plans_dual
 from vabench.reference_agent.geometry import TopdownCamera
 from vabench.reference_agent.perception import Scene
 
@@ -40,22 +40,51 @@ def family_of(instruction: str, arms: tuple[str, ...]) -> str | None:
     """The family an instruction names for a task with `arms`, or None (no plan)."""
     if set(arms) == {"right"}:
         return plans.family_of(instruction)
+    if set(arms) == {"left", "right"}:
+        s = instruction.lower()
+        if "pot" in s:
+            return "pot"
+        if "shoe" in s:
+            return "shoe"
+        if "hand it over" in s or "handover" in s:
+            return "handover"
     return None
 
 
 def start_plan(family: str) -> list[Step]:
-    return plans.start_plan()
+    return plans_dual.start_plan() if family in DUAL else plans.start_plan()
 
 
 def look_again(family: str, looks: int) -> list[Step]:
     """From higher up, the topdown view covers more of the table (and the arm hides less)."""
+    if family in DUAL:
+        return plans_dual.look_again(looks)
     x, y, z = plans.PARK
     return [["go", x, y, round(z + 0.06 * looks, 4), "zxy"], ["look", "topdown"], ["see"]]
 
 
-def locate(family: str, hsv: np.ndarray, cam: TopdownCamera, memo: dict[str, Any]) -> Scene | None:
+def locate(
+    family: str,
+    hsv: np.ndarray,
+    cam: TopdownCamera,
+    gcs: dict[str, np.ndarray],
+    memo: dict[str, Any],
+) -> Scene | None:
+    if family in DUAL:
+        if not perception.looks_like_scene(hsv):
+            return None
+        return DUAL[family][0](hsv, cam, gcs)
     return perception.locate(family, hsv, cam)
 
 
 def manipulation_plan(family: str, scene: Scene, memo: dict[str, Any]) -> list[Step] | None:
+    if family in DUAL:
+        return DUAL[family][1](scene)
     return plans.manipulation_plan(family, scene)
+
+
+DUAL = {
+    "pot": (perception_dual.locate_pot, plans_dual.pot_plan),
+    "shoe": (perception_dual.locate_shoe, plans_dual.shoe_plan),
+    "handover": (perception_dual.locate_block, plans_dual.block_plan),
+}

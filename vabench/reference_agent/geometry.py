@@ -76,6 +76,11 @@ def view_centre(gcs: dict[str, np.ndarray], view: str) -> np.ndarray | None:
     return np.asarray(gcs[target]) if target in gcs else None
 
 
+def r4(v: float) -> float:
+    """A coordinate as the memo carries it: 0.1 mm."""
+    return round(float(v), 4)
+
+
 def heading_deg(v: np.ndarray) -> float:
     """Heading of a vector's horizontal part, counter-clockwise from +x, in (-180, 180]."""
     return math.degrees(math.atan2(float(v[1]), float(v[0])))
