@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.engine import EngineSettings, Episode, EpisodeSpec, task_services
 from vabench.agent.records import EpisodeResult
 from vabench.agent.simulation import SimCounters
 from vabench.agent.visibility import Secret, episode_secrets
@@ -136,6 +136,7 @@ async def run_scripted_async(
     cycle: bool = False,
     inner: Any | None = None,
     image: ImageSettings = SMALL,
+    settings: EngineSettings | None = None,
 ) -> EpisodeRun:
     """One episode of `task_name` (its first verified seed unless `seed`) answered by
     `replies`, or by the embedded-server policy `inner` (an object with `async respond`)
@@ -157,7 +158,9 @@ async def run_scripted_async(
         endpoint = server.endpoint_config("m", api, retry={**FAST_RETRY, **(retry or {})})
         async with (
             LLMPool([endpoint]) as llm,
-            task_services(task, 1, llm, pool, backend="c", image=image) as services,
+            task_services(
+                task, 1, llm, pool, backend="c", image=image, settings=settings
+            ) as services,
         ):
             episode = Episode(spec, services)
             policy.episode = episode

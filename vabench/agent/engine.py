@@ -279,7 +279,8 @@ class Episode:
     async def _call_model(self, step: int) -> str:
         event = await self.conv.compact_if_needed(self._summarize)
         if event is not None:
-            self.rec.event("compaction", step=step, **event.record())
+            # the record names the step the compaction happened at; the decision's step wins
+            self.rec.event("compaction", **{**event.record(), "step": step})
         request = self.conv.request(self.svc.settings.generation)
         self.rec.event(
             "request",

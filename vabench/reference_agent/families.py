@@ -15,7 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from vabench.reference_agent import perception, perception_dual, plans, plans_dual
+from vabench.reference_agent import (
+    perception,
+    perception_basket,
+    perception_dual,
+    plans,
+    plans_basket,
+    plans_dual,
+)
 from vabench.reference_agent.geometry import TopdownCamera
 from vabench.reference_agent.perception import Scene
 
@@ -39,6 +46,8 @@ SINGLE = (
 def family_of(instruction: str, arms: tuple[str, ...]) -> str | None:
     """The family an instruction names for a task with `arms`, or None (no plan)."""
     if set(arms) == {"right"}:
+        if "basket" in instruction.lower():
+            return "basket"
         return plans.family_of(instruction)
     if set(arms) == {"left", "right"}:
         s = instruction.lower()
@@ -52,6 +61,8 @@ def family_of(instruction: str, arms: tuple[str, ...]) -> str | None:
 
 
 def start_plan(family: str) -> list[Step]:
+    if family == "basket":
+        return plans_basket.start_plan()
     return plans_dual.start_plan() if family in DUAL else plans.start_plan()
 
 
@@ -59,6 +70,8 @@ def look_again(family: str, looks: int) -> list[Step]:
     """From higher up, the topdown view covers more of the table (and the arm hides less)."""
     if family in DUAL:
         return plans_dual.look_again(looks)
+    if family == "basket":
+        return plans_basket.look_again(looks)
     x, y, z = plans.PARK
     return [["go", x, y, round(z + 0.06 * looks, 4), "zxy"], ["look", "topdown"], ["see"]]
 
@@ -70,9 +83,11 @@ def locate(
     gcs: dict[str, np.ndarray],
     memo: dict[str, Any],
 ) -> Scene | None:
-    if family in DUAL:
+    if family in DUAL or family == "basket":
         if not perception.looks_like_scene(hsv):
             return None
+        if family == "basket":
+            return perception_basket.locate(hsv, cam, gcs)
         return DUAL[family][0](hsv, cam, gcs)
     return perception.locate(family, hsv, cam)
 
@@ -80,6 +95,8 @@ def locate(
 def manipulation_plan(family: str, scene: Scene, memo: dict[str, Any]) -> list[Step] | None:
     if family in DUAL:
         return DUAL[family][1](scene)
+    if family == "basket":
+        return plans_basket.basket_plan(scene, memo)
     return plans.manipulation_plan(family, scene)
 
 

@@ -42,6 +42,9 @@ class Seen:
     y: float
     heading: float = 0.0
     length: float = 0.0
+    offset: float = 0.0
+    """Along `heading`: from (x, y) to the middle of the object's extent (a lying bottle is
+    grasped at its body, while its footprint reaches further on the neck's side)."""
 
     @property
     def xy(self) -> np.ndarray:
@@ -51,7 +54,7 @@ class Seen:
 Scene = dict[str, Seen]
 
 
-def _square(b: Blob, half: float | None, cam: TopdownCamera) -> Seen:
+def square_centre(b: Blob, half: float | None, cam: TopdownCamera) -> Seen:
     """A square top face: its yaw, and its centre from the far edges when the size is known
     (the centroid leans towards the camera by the sides it also sees)."""
     yaw = b.square_yaw()
@@ -133,7 +136,7 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
             lo, hi = b.points.min(axis=0), b.points.max(axis=0)
             seen = Seen(float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2)
         elif square:
-            seen = _square(b, SQUARE_HALF.get((family, name)), cam)
+            seen = square_centre(b, SQUARE_HALF.get((family, name)), cam)
         else:
             seen = _long(b)
         if not (REACH_X[0] <= seen.x <= REACH_X[1] and REACH_Y[0] <= seen.y <= REACH_Y[1]):

@@ -37,7 +37,7 @@ BLOCK_TOP_Z = 0.03
 MIN_OBJECT_M2 = 2e-3
 
 
-def _without_grippers(
+def without_grippers(
     mask: np.ndarray, cam: TopdownCamera, gcs: dict[str, np.ndarray]
 ) -> np.ndarray:
     """`mask` with the pixels around each gripper's projection cleared."""
@@ -55,7 +55,7 @@ def _world(cam: TopdownCamera, rc: tuple[np.ndarray, np.ndarray], z: float) -> n
     return cam.to_world(rc[1], rc[0], TABLE_Z + z)
 
 
-def _axis_heading(points: np.ndarray, centre: np.ndarray) -> float:
+def axis_heading(points: np.ndarray, centre: np.ndarray) -> float:
     """Heading (deg, in (-90, 90]) of the principal axis of `points` about `centre`."""
     d = points - centre
     sxx, syy, sxy = (d[:, 0] ** 2).mean(), (d[:, 1] ** 2).mean(), (d[:, 0] * d[:, 1]).mean()
@@ -66,7 +66,7 @@ def _axis_heading(points: np.ndarray, centre: np.ndarray) -> float:
 def _objects(
     hsv: np.ndarray, cam: TopdownCamera, gcs: dict[str, np.ndarray], z: float
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    mask = _without_grippers(foreground(hsv), cam, gcs)
+    mask = without_grippers(foreground(hsv), cam, gcs)
     px_area = cam.metres_per_pixel(TABLE_Z + z) ** 2
     return components(mask, int(MIN_OBJECT_M2 / px_area))
 
@@ -88,31 +88,31 @@ def locate_pot(hsv: np.ndarray, cam: TopdownCamera, gcs: dict[str, np.ndarray]) 
     # handles: dark, or saturated in another hue than the pot's body, in a ring around it
     diff = np.abs(((hsv[..., 0].astype(int) - hue + 128) % 256) - 128) > 15
     cand = dark(hsv) | (hue_mask(hsv, 0, 255) & diff)
-    rows, cols = np.nonzero(_without_grippers(cand, cam, gcs))
+    rows, cols = np.nonzero(without_grippers(cand, cam, gcs))
     pts = cam.to_world(cols, rows, TABLE_Z + POT_HANDLE_Z)
     r = np.linalg.norm(pts - centre, axis=1)
     ring = pts[(r > HANDLE_RING[0]) & (r < HANDLE_RING[1])]
     if len(ring) < 20:
         return None
-    heading = _axis_heading(ring, centre)
+    heading = axis_heading(ring, centre)
     return {"pot": Seen(float(centre[0]), float(centre[1]), heading, 2 * POT_HANDLE_R)}
 
 
 def locate_shoe(hsv: np.ndarray, cam: TopdownCamera, gcs: dict[str, np.ndarray]) -> Scene | None:
     mat_mask = hue_mask(hsv, *MAT_HUE, min_s=120) & (hsv[..., 2] < 180)
-    mats = components(_without_grippers(mat_mask, cam, gcs), 50)
+    mats = components(without_grippers(mat_mask, cam, gcs), 50)
     if not mats:
         return None
     mat_pts = _world(cam, mats[0], 0.001)
-    mat = Seen(*(float(v) for v in mat_pts.mean(axis=0)), _axis_heading(mat_pts, mat_pts.mean(0)))
-    mask = _without_grippers(foreground(hsv) & ~mat_mask, cam, gcs)
+    mat = Seen(*(float(v) for v in mat_pts.mean(axis=0)), axis_heading(mat_pts, mat_pts.mean(0)))
+    mask = without_grippers(foreground(hsv) & ~mat_mask, cam, gcs)
     px_area = cam.metres_per_pixel(TABLE_Z + SHOE_TOP_Z) ** 2
     shoes = components(mask, int(MIN_OBJECT_M2 / px_area))
     if not shoes:
         return None
     pts = _world(cam, shoes[0], SHOE_TOP_Z)
     centre = pts.mean(axis=0)
-    axis = _axis_heading(pts, centre)
+    axis = axis_heading(pts, centre)
     u = np.array([math.cos(math.radians(axis)), math.sin(math.radians(axis))])
     along = (pts - centre) @ u
     # the collar: dark pixels inside the shoe's outline, near its axis (the sole's dark rim
@@ -134,5 +134,5 @@ def locate_block(hsv: np.ndarray, cam: TopdownCamera, gcs: dict[str, np.ndarray]
         return None
     pts = _world(cam, objects[0], BLOCK_TOP_Z)
     centre = pts.mean(axis=0)
-    heading = _axis_heading(pts, centre)
+    heading = axis_heading(pts, centre)
     return {"block": Seen(float(centre[0]), float(centre[1]), heading)}
