@@ -13,8 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vabench.reference_agent import perception_generic as generic
 from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
-from vabench.reference_agent.vision import Blob, find_blob, table_fraction
+from vabench.reference_agent.vision import Blob, colour_mask, find_blob, opened, table_fraction
 
 MIN_TABLE_FRACTION = 0.20  # real views: >= 0.35 (measured); JPEG noise: ~0.05
 REACH_X = (-0.10, 0.50)  # m: where the right arm can pick and place on the table
@@ -76,6 +77,21 @@ def _long(b: Blob) -> Seen:
     return Seen(float(c[0]), float(c[1]), h, hi - lo)
 
 
+def _other_object(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Seen | None:
+    """A held-out bottle (`perception_generic`): lying, its centroid and axis on a plane near
+    its top (its height unknown: the base bottle's); upright, its axis from its silhouette's
+    bottom. The green pad, when the task has one, is not the object."""
+    pad = opened(colour_mask(hsv, "green")) if family == "bottle_pad" else None
+    piece = generic.largest_object(hsv, cam, pad)
+    if piece is None:
+        return None
+    if family == "bottle_lying":
+        centre, heading, length = generic.lying(*piece, cam, TABLE_Z + 0.04)
+        return Seen(float(centre[0]), float(centre[1]), heading, length)
+    x, y = generic.upright_axis(*piece, cam)
+    return Seen(float(x), float(y))
+
+
 def looks_like_scene(hsv: np.ndarray) -> bool:
     """Whether an image shows the table (every view of these tasks does)."""
     return table_fraction(hsv) >= MIN_TABLE_FRACTION
@@ -124,9 +140,15 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
         found["dest"] = find_blob(hsv, cam, ("blue",), t + BOWL_RIM_Z, 0.10, 4e-3)
     elif family == "hammer":
         found["dest"] = find_blob(hsv, cam, ("red",), t + 0.05, 0.05, 8e-4)
-    if not found or any(b is None for b in found.values()):
-        return None
     scene: Scene = {}
+    if family in ("bottle_lying", "bottle_upright", "bottle_pad") and found["obj"] is None:
+        # not the base family's bottle: whatever object is there, by shape alone
+        other = _other_object(family, hsv, cam)
+        if other is not None:
+            del found["obj"]
+            scene["obj"] = other
+    if not (found or scene) or any(b is None for b in found.values()):
+        return None
     for name, b in found.items():
         assert b is not None
         square = family.startswith("cube") or name == "dest"

@@ -24,8 +24,13 @@ import numpy as np
 
 from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
 from vabench.reference_agent.perception import Scene, Seen, square_centre
-from vabench.reference_agent.perception_dual import axis_heading, without_grippers
-from vabench.reference_agent.segment import components, dark, hue_mask
+from vabench.reference_agent.segment import (
+    axis_heading,
+    components,
+    dark,
+    hue_mask,
+    without_grippers,
+)
 from vabench.reference_agent.vision import Blob, opened
 
 BASKET_HALF = (0.142, 0.112)  # outer half-sizes along x and y

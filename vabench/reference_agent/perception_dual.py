@@ -24,9 +24,15 @@ import numpy as np
 
 from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
 from vabench.reference_agent.perception import Scene, Seen
-from vabench.reference_agent.segment import components, dark, foreground, hue_mask
+from vabench.reference_agent.segment import (
+    axis_heading,
+    components,
+    dark,
+    foreground,
+    hue_mask,
+    without_grippers,
+)
 
-GRIPPER_MASK_M = 0.10  # around a parked gripper's projection (GC plane)
 POT_RIM_Z = 0.105  # m above the table: between the two pots' rims (100 and 115 mm)
 POT_HANDLE_R = 0.1125  # handle centres from the pot's axis (lift_pot description)
 POT_HANDLE_Z = 0.085
@@ -37,30 +43,8 @@ BLOCK_TOP_Z = 0.03
 MIN_OBJECT_M2 = 2e-3
 
 
-def without_grippers(
-    mask: np.ndarray, cam: TopdownCamera, gcs: dict[str, np.ndarray]
-) -> np.ndarray:
-    """`mask` with the pixels around each gripper's projection cleared."""
-    rows, cols = np.indices(mask.shape)
-    out = mask.copy()
-    for gc in gcs.values():
-        scale = cam.focal_px / max(1e-3, cam.z - float(gc[2]))
-        u = cam.width / 2 + (float(gc[0]) - cam.x) * scale
-        v = cam.height / 2 - (float(gc[1]) - cam.y) * scale
-        out &= (cols - u) ** 2 + (rows - v) ** 2 > (GRIPPER_MASK_M * scale) ** 2
-    return out
-
-
 def _world(cam: TopdownCamera, rc: tuple[np.ndarray, np.ndarray], z: float) -> np.ndarray:
     return cam.to_world(rc[1], rc[0], TABLE_Z + z)
-
-
-def axis_heading(points: np.ndarray, centre: np.ndarray) -> float:
-    """Heading (deg, in (-90, 90]) of the principal axis of `points` about `centre`."""
-    d = points - centre
-    sxx, syy, sxy = (d[:, 0] ** 2).mean(), (d[:, 1] ** 2).mean(), (d[:, 0] * d[:, 1]).mean()
-    h = 0.5 * math.degrees(math.atan2(2 * sxy, sxx - syy))
-    return h if h > -90 else h + 180
 
 
 def _objects(

@@ -15,13 +15,18 @@ grows with the number of runs, not of pixels, and numpy and the standard library
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from vabench.reference_agent.geometry import TopdownCamera
 from vabench.reference_agent.vision import opened
 
 MIN_SATURATION = 90  # the table and its shadows: ~47-55; objects: > 100
 WHITE_VALUE, WHITE_MAX_SATURATION = 190, 40
 DARK_VALUE = 60  # robot, floor, black object parts; table shadows are ~85-95
+GRIPPER_MASK_M = 0.10  # around a parked gripper's projection (GC plane): its finger pads are
+# orange, like some objects
 
 
 def saturated(hsv: np.ndarray) -> np.ndarray:
@@ -93,3 +98,29 @@ def components(mask: np.ndarray, min_pixels: int = 1) -> list[tuple[np.ndarray, 
             out.append((rows, cols))
     out.sort(key=lambda rc: -len(rc[0]))
     return out
+
+
+def without_grippers(
+    mask: np.ndarray,
+    cam: TopdownCamera,
+    gcs: dict[str, np.ndarray],
+    radius: float = GRIPPER_MASK_M,
+) -> np.ndarray:
+    """`mask` with the pixels within `radius` (m, on the GC plane) of each gripper's
+    projection cleared."""
+    rows, cols = np.indices(mask.shape)
+    out = mask.copy()
+    for gc in gcs.values():
+        scale = cam.focal_px / max(1e-3, cam.z - float(gc[2]))
+        u = cam.width / 2 + (float(gc[0]) - cam.x) * scale
+        v = cam.height / 2 - (float(gc[1]) - cam.y) * scale
+        out &= (cols - u) ** 2 + (rows - v) ** 2 > (radius * scale) ** 2
+    return out
+
+
+def axis_heading(points: np.ndarray, centre: np.ndarray) -> float:
+    """Heading (deg, in (-90, 90]) of the principal axis of `points` about `centre`."""
+    d = points - centre
+    sxx, syy, sxy = (d[:, 0] ** 2).mean(), (d[:, 1] ** 2).mean(), (d[:, 0] * d[:, 1]).mean()
+    h = 0.5 * math.degrees(math.atan2(2 * sxy, sxx - syy))
+    return h if h > -90 else h + 180
