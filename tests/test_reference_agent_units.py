@@ -17,6 +17,7 @@ from PIL import Image, ImageDraw
 
 from vabench.reference_agent import geometry as g
 from vabench.reference_agent.executor import decide
+from vabench.reference_agent.grasp_check import in_hand
 from vabench.reference_agent.perception_dual import locate_block, locate_pot
 from vabench.reference_agent.request import Arm, Observation
 from vabench.reference_agent.segment import components
@@ -168,3 +169,35 @@ def test_a_relative_turn_becomes_an_absolute_heading_once():
     # counter-clockwise quarter turn is -90 about rx
     assert action is not None
     assert (action["axis"], action["sign"], action["angle_deg"]) == ("rx", "-", 90.0)
+
+
+def _side_view(object_below_gc_m: float | None) -> np.ndarray:
+    """A drawn side view centred on GC (camera 0.58 m out, 0.06 m up: ~0.58 m away) with a
+    50 mm red cube whose centre is `object_below_gc_m` below GC, or no object."""
+    im = Image.new("RGB", (W, H), TABLE_RGB)
+    if object_below_gc_m is not None:
+        s = (H / 2) / math.tan(math.radians(55 / 2)) / math.hypot(0.58, 0.02, 0.06)
+        v = H / 2 + object_below_gc_m * s
+        ImageDraw.Draw(im).rectangle(
+            [W / 2 - 0.025 * s, v - 0.025 * s, W / 2 + 0.025 * s, v + 0.025 * s], fill=(200, 30, 25)
+        )
+    return _hsv(im)
+
+
+def test_grasp_check_sees_a_held_object_and_not_one_left_below():
+    gc = np.array([0.2, -0.1, 0.85])
+    assert in_hand(_side_view(0.005), gc)  # held, GC 5 mm above the cube's centre
+    assert not in_hand(_side_view(0.06 + 0.005), gc)  # left on the table, the gripper rose 60 mm
+    assert not in_hand(_side_view(None), gc)
+
+
+def test_an_empty_grasp_opens_and_starts_over():
+    right = _arm((0.2, -0.1, 0.85), **DOWN_X, is_open=False)
+    image = _jpeg(Image.fromarray(np.asarray(Image.new("RGB", (W, H), TABLE_RGB))))
+    memo = {"f": "cube", "plan": [["hold", [["retry"]]], ["go", 0.2, -0.1, 0.9, "z"]], "i": 0}
+    obs = Observation(
+        9, 50, "Pick up the red cube.", "side", {"right": right}, 8, image, memo, (image,)
+    )
+    action, _, memo = decide(obs, "cube")
+    assert action == {"action": "gripper.open"}
+    assert memo["plan"] == [["open"], ["retry"]]

@@ -19,6 +19,8 @@ the only arm of single-arm tasks):
                                views come with every observation, so there it is a no-op
   ["see"]                      locate the family's objects; on success the rest of the plan is
                                replaced by the family's manipulation plan (`families`)
+  ["hold", [steps]]            the side view shows the object in the fingers (`grasp_check`);
+                               if not, open and go on with `steps` (look again, start over)
   ["retry"]                    the task did not end: start over (park, look, see), at most
                                `MAX_TRIES` times
   ["stop"]
@@ -33,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from vabench.reference_agent import families
+from vabench.reference_agent import families, grasp_check
 from vabench.reference_agent import geometry as g
 from vabench.reference_agent.perception import looks_like_scene
 from vabench.reference_agent.request import Observation
@@ -42,6 +44,7 @@ from vabench.reference_agent.vision import decode
 MOVE_TOL = 0.001  # m
 TURN_TOL = 0.7  # deg (actions turn by at least 1 deg)
 MAX_MOVE_MM = 100
+REFUSED_MOVE_MM = 20  # the longest move after one the planner refused
 MAX_TURN_DEG = 90
 MAX_TRIES = 3
 MAX_LOOKS = 2  # failed looks in a row before giving up
@@ -57,8 +60,8 @@ def split_kind(step: Step) -> tuple[str, str]:
     return kind, arm or "right"
 
 
-def _move(axis: str, delta_m: float) -> dict[str, Any]:
-    mm = max(1.0, min(MAX_MOVE_MM, round(abs(delta_m) * 1000, 1)))
+def _move(axis: str, delta_m: float, max_mm: float = MAX_MOVE_MM) -> dict[str, Any]:
+    mm = max(1.0, min(max_mm, round(abs(delta_m) * 1000, 1)))
     return {"axis": axis, "sign": "+" if delta_m > 0 else "-", "distance_mm": mm}
 
 
@@ -100,7 +103,9 @@ def _stuck(kind: str, arm: str, obs: Observation, memo: dict[str, Any]) -> bool:
     )
 
 
-def _step_action(obs: Observation, step: Step, kind: str, arm_name: str) -> Action | None:
+def _step_action(
+    obs: Observation, step: Step, kind: str, arm_name: str, avoid: str | None = None
+) -> Action | None:
     """The action that advances `step`, or None when the observation shows it done."""
     dual = obs.dual
     arm = obs.arms.get(arm_name)
@@ -125,10 +130,15 @@ def _step_action(obs: Observation, step: Step, kind: str, arm_name: str) -> Acti
         return _with_arm(_turn("rx", turn), arm_name, dual) if abs(turn) > TURN_TOL else None
     if kind == "go":
         assert arm is not None
-        nxt = _next_axis(np.array(step[1:4], float), arm.gc, step[4])
+        # after a move the planner refused, the other axes first: a target out of reach
+        # from here along one axis is often within reach after a move along another
+        order = "".join(sorted(step[4], key=lambda a: a == avoid))
+        nxt = _next_axis(np.array(step[1:4], float), arm.gc, order)
         if nxt is None:
             return None
-        return _with_arm({"action": "gripper.move_world", **_move(*nxt)}, arm_name, dual)
+        # and shorter: the planner rejects a whole move for one bad waypoint
+        move = _move(*nxt, REFUSED_MOVE_MM if avoid else MAX_MOVE_MM)
+        return _with_arm({"action": "gripper.move_world", **move}, arm_name, dual)
     if kind == "dgo":
         moves = {
             name: _next_axis(np.array(target, float), obs.arms[name].gc, step[3])
@@ -161,7 +171,10 @@ def decide(obs: Observation, family: str) -> Decision:
     memo: dict[str, Any] = dict(obs.memo) if obs.memo.get("f") == family else {"f": family}
     plan: list[Step] = memo.get("plan") or families.start_plan(family)
     i = int(memo.get("i", 0))
-    if obs.image is None or not looks_like_scene(decode(obs.image)):
+    topdown = (
+        obs.passive or g.view_centre({n: a.gc for n, a in obs.arms.items()}, obs.view) is not None
+    )
+    if obs.image is None or not looks_like_scene(decode(obs.image), topdown):
         # every view of these scenes shows the table; an image that does not (noise, a broken
         # render) is no ground for any action: look again (active), then give up
         blind = int(memo.get("blind", 0)) + 1
@@ -195,6 +208,15 @@ def decide(obs: Observation, family: str) -> Decision:
             return {"action": f"camera.view_{view}"}, f"look: {view}", memo
         if kind == "see":
             return _see(obs, family, plan, i, memo)
+        if kind == "hold":
+            side = obs.view_image("side") if obs.passive else obs.image
+            seen = (obs.passive or obs.view == "side") and side is not None
+            if seen and not grasp_check.in_hand(decode(side), obs.arms[arm].gc):  # type: ignore[arg-type]
+                # nothing between the fingers: open and start again from a new look
+                plan, i, last = [["open"], *step[1]], 0, None
+                continue
+            i += 1
+            continue
         if kind == "retry":
             tries = int(memo.get("try", 0)) + 1
             if tries >= MAX_TRIES:
@@ -216,9 +238,10 @@ def decide(obs: Observation, family: str) -> Decision:
         if kind in ("open", "close", "dopen", "dclose") and last == [step[0], i]:
             out = None  # an aperture command is sent once per step
         else:
-            out = _step_action(obs, step, kind, arm)
+            refused = last == [step[0], i] and planner_failed
+            out = _step_action(obs, step, kind, arm, memo.get("axis") if refused else None)
         if out is not None:
-            memo.update(plan=plan, i=i, last=[step[0], i], at=_gcs(obs))
+            memo.update(plan=plan, i=i, last=[step[0], i], at=_gcs(obs), axis=out.get("axis"))
             return out, f"step {i}: {step[0]}", memo
         i += 1
         memo.pop("fails", None)

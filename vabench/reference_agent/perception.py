@@ -18,6 +18,8 @@ from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
 from vabench.reference_agent.vision import Blob, colour_mask, find_blob, opened, table_fraction
 
 MIN_TABLE_FRACTION = 0.20  # real views: >= 0.35 (measured); JPEG noise: ~0.05
+MIN_SIDE_TABLE_FRACTION = 0.08
+MAX_ROUGHNESS = 12.0  # mean |value step| between neighbouring pixels: renders ~2-5, noise ~80
 REACH_X = (-0.10, 0.50)  # m: where the right arm can pick and place on the table
 REACH_Y = (-0.35, 0.25)
 # half-sizes of the cubes (FACTS object facts); the pads are thin: their centroid is fine
@@ -92,9 +94,16 @@ def _other_object(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Seen | No
     return Seen(float(x), float(y))
 
 
-def looks_like_scene(hsv: np.ndarray) -> bool:
-    """Whether an image shows the table (every view of these tasks does)."""
-    return table_fraction(hsv) >= MIN_TABLE_FRACTION
+def looks_like_scene(hsv: np.ndarray, topdown: bool = True) -> bool:
+    """Whether an image shows the table (every view of these tasks does): a topdown view
+    mostly; a side view, looking along the table at gripper height, partly (the wall and the
+    robot fill the rest, ~12 % table measured), and then it must also be smooth, as a render
+    is and noise is not."""
+    if topdown:
+        return table_fraction(hsv) >= MIN_TABLE_FRACTION
+    v = hsv[..., 2].astype(np.int16)
+    rough = float(np.abs(np.diff(v, axis=1)).mean())
+    return table_fraction(hsv) >= MIN_SIDE_TABLE_FRACTION and rough < MAX_ROUGHNESS
 
 
 def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:

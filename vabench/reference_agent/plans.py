@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from vabench.reference_agent import geometry as g
+from vabench.reference_agent.grasp_check import LIFT
 from vabench.reference_agent.perception import Scene
 
 PARK = (0.38, -0.25, 1.05)  # GC where the arm does not hide the objects from the topdown view
@@ -51,16 +52,27 @@ def _r(v: float) -> float:
     return round(float(v), 4)
 
 
-def topdown_grasp(x: float, y: float, z: float, heading: float, period: float) -> list[Step]:
-    """Fingers straight down closing along `heading`, GC to (x, y, z), close, lift."""
+def topdown_grasp(
+    x: float, y: float, z: float, heading: float, period: float, check: bool = True
+) -> list[Step]:
+    """Fingers straight down closing along `heading`, GC to (x, y, z), close, lift; with
+    `check`, a short lift first and a look from the side: an empty grasp starts over."""
     x, y = _r(x), _r(y)
+    lift: list[Step] = [["go", x, y, _r(z + 0.12), "z"]]
+    if check:
+        lift = [
+            ["go", x, y, _r(z + LIFT), "z"],
+            ["look", "side"],
+            ["hold", [["retry"]]],
+            *lift,
+        ]
     return [
         ["down"],
         ["yaw", round(heading, 1), period],
         ["go", x, y, _r(z + 0.08), "xyz"],
         ["go", x, y, _r(z), "z"],
         ["close"],
-        ["go", x, y, _r(z + 0.12), "z"],
+        *lift,
     ]
 
 
@@ -139,7 +151,7 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
         # hammer slip
         cx, cy = d.x - 0.07, d.y + 0.05 - 0.004
         head = gz - T  # the head's underside is on the table while the hammer lies there
-        steps = topdown_grasp(gx, gy, gz, 90.0, 180.0)[:-1]
+        steps = topdown_grasp(gx, gy, gz, 90.0, 180.0, check=False)[:-1]
         carry = T + 0.05 + head + 0.03
         steps += [["go", _r(gx), _r(gy), _r(gz + 0.10), "z"]]
         steps += [["go", _r(cx), _r(cy), _r(carry), "zxy"]]

@@ -4,7 +4,8 @@ From the observation pose (GC far to the right and behind the objects, high, fin
 arm then reaches into the image from its lower edge, below every object, and the view holds
 the whole near half of the table and the basket) the agent locates the basket and the objects
 still outside it (`perception_basket`), takes the first of them in `ORDER`, and:
-hovers above it, turns top-down across it, descends, closes, lifts above everything, turns it
+hovers above it, turns top-down across it, descends, closes, rises a little and looks from the
+side (an empty grasp: back to look again), lifts above everything, turns it
 square to the basket (long objects along the basket's y, cubes with faces along its axes),
 carries it over its slot in the basket, lowers it (the upright bottle onto the floor, the pen
 to just above it) or lets it drop from just above the rim, opens, rises and goes back to look.
@@ -25,13 +26,17 @@ import numpy as np
 
 from vabench.reference_agent.geometry import TABLE_Z as T
 from vabench.reference_agent.geometry import r4, wrap
-from vabench.reference_agent.perception import Scene
+from vabench.reference_agent.grasp_check import LIFT
+from vabench.reference_agent.perception import Scene, Seen
 
 Step = list[Any]
 
 OBS = (0.50, -0.32, 1.12)  # GC where the agent looks from
-HOVER_Z = 1.05
-CARRY_Z = 1.08
+HOVER_Z = T + 0.237  # above the upright bottle with the fingertips 30 mm clear; higher, the
+# arm cannot turn its fingers straight down over objects close to its base
+REACH_X, REACH_Y = (-0.05, 0.45), (-0.32, 0.10)  # where an object can be picked up again
+UPRIGHT_HEIGHT = 0.168
+CLEARANCE = 0.03
 ORDER = ("upright_bottle", "pen", "bottle", "cube", "small_cube")
 MAX_ATTEMPTS = 2
 SLOTS = {  # footprint centres in the basket's frame
@@ -53,16 +58,24 @@ GRASP_Z = {  # GC above the table
 RELEASE_Z = {  # GC above the table when the gripper opens
     "upright_bottle": FLOOR_Z + 0.06 + 0.053 + 0.003,  # standing on the floor
     "pen": FLOOR_Z + 0.003 + 0.018,  # lying 3 mm above the floor
+    "bottle": FLOOR_Z + 0.005 + 0.0314,  # lying 5 mm above the floor: dropped, it rolls
 }
 DROP_Z = RIM_Z + 0.008 + 0.015  # others: the fingertips 8 mm above the rim
 
 
 def start_plan() -> list[Step]:
-    return [["open"], ["go", *OBS, "zxy"], ["down"], ["look", "topdown"], ["see"]]
+    """From the start (or after a failure: fingers straight down first, the arm may be stuck
+    tilted) to the observation pose, then look."""
+    return [["open"], ["down"], ["go", *OBS, "zxy"], ["down"], ["look", "topdown"], ["see"]]
 
 
 def look_again(looks: int) -> list[Step]:
     return [["go", *OBS[:2], r4(OBS[2] + 0.04 * looks), "zxy"], ["look", "topdown"], ["see"]]
+
+
+def _reachable(o: Seen) -> bool:
+    """An object knocked beyond the basket or off the near half is left where it is."""
+    return REACH_X[0] <= o.x <= REACH_X[1] and REACH_Y[0] <= o.y <= REACH_Y[1]
 
 
 def _grip(kind: str, heading: float) -> tuple[float, float]:
@@ -86,7 +99,11 @@ def _square_turn(kind: str, heading: float) -> float:
 def basket_plan(scene: Scene, memo: dict[str, Any]) -> list[Step]:
     basket = scene["basket"]
     attempts: dict[str, int] = memo.setdefault("attempts", {})
-    todo = [k for k in ORDER if k in scene and attempts.get(k, 0) < MAX_ATTEMPTS]
+    todo = [
+        k
+        for k in ORDER
+        if k in scene and attempts.get(k, 0) < MAX_ATTEMPTS and _reachable(scene[k])
+    ]
     if not todo:
         left = [k for k in ORDER if k in scene]
         return [["stop", f"objects left outside the basket: {left}" if left else "all placed"]]
@@ -102,26 +119,46 @@ def basket_plan(scene: Scene, memo: dict[str, Any]) -> list[Step]:
     sx, sy = np.array([basket.x, basket.y]) + SLOTS[kind] - shift
     release = RELEASE_Z.get(kind, DROP_Z)
     gz = T + GRASP_Z[kind]
+    # carried with its bottom 30 mm above the rim (the upright bottle, first) or above the
+    # upright bottle standing in the basket (the rest): the lowest that clears everything,
+    # since the arm's reach shrinks with height over the basket's far corner
+    above = RIM_Z if kind == "upright_bottle" else FLOOR_Z + UPRIGHT_HEIGHT
+    carry = r4(T + above + CLEARANCE + GRASP_Z[kind])
     steps: list[Step] = [
-        ["go", OBS[0], OBS[1], HOVER_Z, "z"],
-        ["go", r4(o.x), r4(o.y), HOVER_Z, "yx"],
+        ["go", OBS[0], OBS[1], r4(HOVER_Z), "z"],
+        ["go", r4(o.x), r4(o.y), r4(HOVER_Z), "yx"],
         ["down"],
         ["yaw", ry, period],
         ["go", r4(o.x), r4(o.y), r4(gz + 0.08), "z"],
         ["go", r4(o.x), r4(o.y), r4(gz), "z"],
         ["close"],
-        ["go", r4(o.x), r4(o.y), CARRY_Z, "z"],
+        ["go", r4(o.x), r4(o.y), r4(gz + LIFT), "z"],
+        ["look", "side"],
+        ["hold", look_from_obs()],  # an empty grasp: look again, that object again
+        ["go", r4(o.x), r4(o.y), carry, "z"],
     ]
     if abs(turn) >= 1.0:
         steps.append(["turn", round(turn, 1)])
     steps += [
-        ["go", r4(sx), r4(sy), CARRY_Z, "xy"],
+        ["go", r4(sx), r4(sy), carry, "xy"],
         ["go", r4(sx), r4(sy), r4(T + release), "z"],
         ["open"],
-        ["go", r4(sx), r4(sy), CARRY_Z, "z"],
-        ["go", *OBS, "zxy"],
+        ["go", r4(sx), r4(sy), carry, "z"],
+        *look_from_obs(),
+    ]
+    return steps
+
+
+def look_from_obs() -> list[Step]:
+    """Back to the observation pose: the fingers closing along x again (as where the episode
+    starts: turned by a quarter, the wrist cannot reach the pose), towards the robot first
+    (high over the basket's far side the arm is at the edge of its reach), then out to the
+    right, then up."""
+    return [
+        ["down"],
+        ["yaw", 0.0, 180.0],
+        ["go", *OBS, "yxz"],
         ["down"],
         ["look", "topdown"],
         ["see"],
     ]
-    return steps
