@@ -54,6 +54,8 @@ TOP_Z = {  # the height of the surface the camera sees of each kind
 }
 CAP_Z = 0.165  # the upright bottle's cap top (the water bottle's shape: 168 mm tall)
 MIN_PIECE_M2 = 1.2e-4
+PALM_MASK_M = 0.0  # the gripper seen from straight above: its palm hides its orange finger
+# pads, and what it hides of an object is not there to mask
 
 
 def _hue_class(hsv: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> dict[str, float]:
@@ -67,7 +69,7 @@ def _hue_class(hsv: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> dict[str,
 
 
 def locate_basket(hsv: np.ndarray, cam: TopdownCamera, gcs: dict) -> Seen | None:
-    mask = without_grippers(opened(hue_mask(hsv, *HUES["brown"])), cam, gcs)
+    mask = without_grippers(opened(hue_mask(hsv, *HUES["brown"])), cam, gcs, PALM_MASK_M)
     pieces = components(mask, 200)
     if not pieces:
         return None
@@ -139,7 +141,7 @@ def locate(hsv: np.ndarray, cam: TopdownCamera, gcs: dict) -> Scene | None:
     if basket is None:
         return None
     saturated = hue_mask(hsv, 0, 255) & ~hue_mask(hsv, *HUES["brown"])
-    mask = without_grippers(opened(saturated), cam, gcs)
+    mask = without_grippers(opened(saturated), cam, gcs, PALM_MASK_M)
     px_area = cam.metres_per_pixel(TABLE_Z + 0.05) ** 2
     scene: Scene = {"basket": basket}
     for rows, cols in components(mask, int(MIN_PIECE_M2 / px_area)):
