@@ -17,6 +17,8 @@ import asyncio
 import pytest
 from engine_util import EpisodeRun, run_scripted_async, secrets_of
 
+from vabench.agent.conversation import ContextLimits
+from vabench.agent.engine import EngineSettings
 from vabench.agent.visibility import find_leaks
 from vabench.reference_agent import ReferenceServo
 from vabench.render.worker import ImageSettings, RenderPool
@@ -30,6 +32,11 @@ SMOKE = (
 )
 BUDGET = 12  # steps: enough for the agent to look, locate and start acting
 IMAGE = ImageSettings(320, 240)  # the agent finds the objects at this size (tiny ones: not)
+# The basket episode runs with a context window small enough to be compacted within the budget
+# (its real episodes are long and compact several times): the summary request is inspected
+# like any other, and the episode must go on after it.
+COMPACTED = "put_everything_in_basket"
+TINY = EngineSettings(limits=ContextLimits(window_tokens=6_000, output_reserve_tokens=1_000))
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +54,7 @@ def runs() -> dict[tuple[str, str], EpisodeRun]:
                     budget=BUDGET,
                     inner=ReferenceServo(),
                     image=IMAGE,
+                    settings=TINY if task == COMPACTED else None,
                 )
 
         return list(await asyncio.gather(*(one(t, p) for t, p in SMOKE)))
@@ -79,3 +87,14 @@ def test_the_smoke_run_acts(runs, episode):
     """The requests inspected above come from an agent that acts, not one that stops at once
     (so they hold robot states after moves, executed actions and the agent's memo)."""
     assert runs[episode].result.robot_actions > 0
+
+
+def test_a_compacted_episode_goes_on(runs):
+    """History compaction inside a real episode: the engine asks for a summary, records the
+    compaction with its step, and the agent (whose memo is in the kept turns) acts on."""
+    run = runs[COMPACTED, "active"]
+    compactions = run.of_type("compaction")
+    assert run.result.compactions == len(compactions) >= 1, run.result.error
+    assert all(isinstance(e["step"], int) and e["step"] >= 1 for e in compactions)
+    first = min(e["step"] for e in compactions)
+    assert any(e["step"] > first for e in run.of_type("action"))
