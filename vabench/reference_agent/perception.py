@@ -15,6 +15,7 @@ import numpy as np
 
 from vabench.reference_agent import perception_generic as generic
 from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
+from vabench.reference_agent.segment import components
 from vabench.reference_agent.vision import Blob, colour_mask, find_blob, opened, table_fraction
 
 MIN_TABLE_FRACTION = 0.20  # real views: >= 0.35 (measured); JPEG noise: ~0.05
@@ -77,6 +78,12 @@ def _long(b: Blob) -> Seen:
     h = b.axis_heading()
     lo, hi = b.extent(h)
     return Seen(float(c[0]), float(c[1]), h, hi - lo)
+
+
+def _whole_piece(hsv: np.ndarray, cam: TopdownCamera, colour: str, plane_z: float) -> Blob:
+    """The largest connected piece of `colour`, on the plane z = plane_z."""
+    rows, cols = components(opened(colour_mask(hsv, colour)))[0]
+    return Blob(cam.to_world(cols, rows, plane_z), cam.metres_per_pixel(plane_z) ** 2)
 
 
 def _other_object(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Seen | None:
@@ -147,6 +154,10 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
         found["dest"] = find_blob(hsv, cam, ("green",), t + 0.05, 0.05, 8e-4)
     elif family == "cube_bowl":
         found["dest"] = find_blob(hsv, cam, ("blue",), t + BOWL_RIM_Z, 0.10, 4e-3)
+        if found["dest"] is not None:
+            # the whole connected container, not the pixels within a radius: a larger one
+            # than the base's bowl (the held-out basin) is otherwise cut off on one side
+            found["dest"] = _whole_piece(hsv, cam, "blue", t + BOWL_RIM_Z)
     elif family == "hammer":
         found["dest"] = find_blob(hsv, cam, ("red",), t + 0.05, 0.05, 8e-4)
     scene: Scene = {}
@@ -163,7 +174,10 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
         square = family.startswith("cube") or name == "dest"
         if (family == "cube_bowl" and name == "dest") or (family == "hammer" and name == "obj"):
             # the walls flare outwards, so from above the rim is the outline: its box's
-            # centre is the bowl's axis (the centroid leans to the wall facing the camera)
+            # centre is the bowl's axis (the centroid leans to the wall facing the camera); a
+            # container with upright walls shows its near walls' outer faces too, which moves
+            # the box's centre 10-15 mm towards the camera, well inside its interior
+
             lo, hi = b.points.min(axis=0), b.points.max(axis=0)
             seen = Seen(float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2)
         elif square:
