@@ -5,7 +5,7 @@ their base family's instruction, so they run its plan with perception that does 
 the base objects' colours and sizes). The executor calls the rest:
 - `start_plan(family)`: park where the arms hide little, look from above, see;
 - `look_again(family, looks)`: the objects were not found: observe from higher up;
-- `locate(family, hsv, cam, memo)`: the objects in the topdown image, or None;
+- `locate(family, hsv, cam, gcs, memo)`: the objects in the topdown image, or None;
 - `manipulation_plan(family, scene, memo)`: the steps that do the task.
 """
 
@@ -27,21 +27,6 @@ from vabench.reference_agent.geometry import TopdownCamera
 from vabench.reference_agent.perception import Scene
 
 Step = list[Any]
-
-SINGLE = (
-    "bell",
-    "hammer",
-    "cube_bowl",
-    "cube_on_cube",
-    "cube_pad",
-    "bottle_pad",
-    "bottle_upright",
-    "bottle_lying",
-    "pen_leaning",
-    "pen",
-    "cube",
-)
-
 
 def family_of(instruction: str, arms: tuple[str, ...]) -> str | None:
     """The family an instruction names for a task with `arms`, or None (no plan)."""
