@@ -19,6 +19,7 @@ from vabench.reference_agent import geometry as g
 from vabench.reference_agent.executor import decide
 from vabench.reference_agent.grasp_check import in_hand
 from vabench.reference_agent.perception_dual import locate_block, locate_pot
+from vabench.reference_agent.perception_generic import largest_object, upright_axis
 from vabench.reference_agent.request import Arm, Observation
 from vabench.reference_agent.segment import components
 
@@ -201,3 +202,45 @@ def test_an_empty_grasp_opens_and_starts_over():
     action, _, memo = decide(obs, "cube")
     assert action == {"action": "gripper.open"}
     assert memo["plan"] == [["open"], ["retry"]]
+
+
+def _hull(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Convex hull (Andrew's monotone chain), for drawing a prism's silhouette."""
+    pts = sorted(set(points))
+
+    def half(seq):
+        out: list[tuple[float, float]] = []
+        for p in seq:
+            while (
+                len(out) >= 2
+                and (
+                    (out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
+                    - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])
+                )
+                <= 0
+            ):
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = half(pts), half(reversed(pts))
+    return lower[:-1] + upper[:-1]
+
+
+@pytest.mark.parametrize(
+    ("half", "height", "yaw"), [(0.025, 0.22, 0.0), (0.032, 0.168, 0.0), (0.025, 0.22, 30.0)]
+)
+def test_upright_axis_from_the_silhouette_bottom(half, height, yaw):
+    """An upright square prism (a held-out bottle's shape) drawn as the parked topdown camera
+    sees it: its axis comes back within 6 mm whatever its height (never given)."""
+    park = (0.38, -0.25, 1.05)
+    cam = g.topdown_camera(park, W, H)
+    cx, cy = 0.25, -0.05
+    base = _rect(cx, cy, half, half, yaw)
+    corners = [_pixel(cam, x, y, z) for x, y in base for z in (0.741, 0.741 + height)]
+    im = Image.new("RGB", (W, H), TABLE_RGB)
+    ImageDraw.Draw(im).polygon(_hull(corners), fill=(240, 120, 20))
+    piece = largest_object(_hsv(im), cam)
+    assert piece is not None
+    x, y = upright_axis(*piece, cam)
+    assert math.hypot(x - cx, y - cy) < 0.006
