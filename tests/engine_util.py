@@ -24,6 +24,7 @@ import numpy as np
 from vabench.agent.engine import EngineSettings, Episode, EpisodeSpec, task_services
 from vabench.agent.records import EpisodeResult
 from vabench.agent.simulation import SimCounters
+from vabench.agent.visibility import Secret, episode_secrets
 from vabench.llm_pool.apis.base import IncomingRequest
 from vabench.llm_pool.policies import PolicyReply, ScriptedPolicy, fenced_json
 from vabench.llm_pool.pool import LLMPool
@@ -134,15 +135,20 @@ async def run_scripted_async(
     server_config: ServerConfig | None = None,
     retry: dict[str, Any] | None = None,
     cycle: bool = False,
+    inner: Any | None = None,
+    image: ImageSettings = SMALL,
     settings: EngineSettings | None = None,
     backend: str = "c",
     **batch_kwargs: Any,
 ) -> EpisodeRun:
     """One episode of `task_name` (its first verified seed unless `seed`) answered by
-    `replies`; see the module docstring."""
+    `replies`, or by the embedded-server policy `inner` (an object with `async respond`)
+    when given; see the module docstring."""
     task = get_task(task_name)
     seed = verified_seeds(task_name)[0] if seed is None else seed
-    policy = ProbingPolicy(replies, cycle=cycle)
+    policy = ProbingPolicy(replies or [STOP], cycle=cycle)
+    if inner is not None:
+        policy.script = inner
     spec = EpisodeSpec(
         task_name,
         seed,
@@ -161,7 +167,7 @@ async def run_scripted_async(
                 llm,
                 pool,
                 backend=backend,
-                image=SMALL,
+                image=image,
                 settings=settings,
                 **batch_kwargs,
             ) as services,
@@ -187,6 +193,26 @@ async def run_scripted_async(
 
 def run_scripted(*args: Any, **kwargs: Any) -> EpisodeRun:
     return asyncio.run(run_scripted_async(*args, **kwargs))
+
+
+def secrets_of(run: EpisodeRun) -> list[Secret]:
+    """Everything evaluator-only an episode knew, as `find_leaks` secrets: object positions
+    as sampled and at every request, the seed, every camera position a view action could
+    produce at every request, the active camera's, model ids, latch, checkpoint and body
+    names."""
+    task = run.task
+    objects: dict[str, Any] = {
+        f"{name} sampled": pos for name, (pos, _) in task.sample(run.seed).poses.items()
+    }
+    cameras: dict[str, Any] = {}
+    for i, probe in enumerate(run.probes):
+        objects.update({f"{name} at request {i}": pos for name, pos in probe.objects.items()})
+        views = camera_positions(probe.gcs, task.arms)
+        cameras.update({f"{view} at request {i}": pos for view, pos in views.items()})
+        if probe.camera_pos is not None:
+            cameras[f"active camera at request {i}"] = probe.camera_pos
+    identifiers = [*task.variants, *task.latches, *task.checkpoints, *run.object_names]
+    return episode_secrets(objects, run.seed, cameras, identifiers)
 
 
 # -- reading provider request bodies ----------------------------------------------------------

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import Any
 
 import pytest
 from engine_util import (
@@ -25,11 +24,11 @@ from engine_util import (
     EpisodeRun,
     body_json,
     camera,
-    camera_positions,
     count_images,
     move,
     robot_state,
     run_scripted_async,
+    secrets_of,
     tool,
     user_texts,
 )
@@ -38,8 +37,6 @@ from vabench.agent.conversation import ContextLimits
 from vabench.agent.visibility import (
     ARM_FIELDS,
     LOCAL_AXES,
-    Secret,
-    episode_secrets,
     find_leaks,
 )
 from vabench.render import camera as cam
@@ -114,23 +111,6 @@ def episodes(pool) -> dict[tuple[str, str], EpisodeRun]:
         return list(await asyncio.gather(*(one(gate, t, p) for t, p in EPISODES)))
 
     return dict(zip(EPISODES, asyncio.run(run_all()), strict=True))
-
-
-def secrets_of(run: EpisodeRun) -> list[Secret]:
-    """Everything evaluator-only this episode knew, as `find_leaks` secrets."""
-    task = run.task
-    objects: dict[str, Any] = {
-        f"{name} sampled": pos for name, (pos, _) in task.sample(run.seed).poses.items()
-    }
-    cameras: dict[str, Any] = {}
-    for i, probe in enumerate(run.probes):
-        objects.update({f"{name} at request {i}": pos for name, pos in probe.objects.items()})
-        views = camera_positions(probe.gcs, task.arms)
-        cameras.update({f"{view} at request {i}": pos for view, pos in views.items()})
-        if probe.camera_pos is not None:
-            cameras[f"active camera at request {i}"] = probe.camera_pos
-    identifiers = [*task.variants, *task.latches, *task.checkpoints, *run.object_names]
-    return episode_secrets(objects, run.seed, cameras, identifiers)
 
 
 def _check_episode(run: EpisodeRun, protocol: str) -> None:

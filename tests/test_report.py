@@ -416,3 +416,53 @@ def test_cli_missing_results_is_one_clear_error(tmp_path):
     assert proc.stderr.strip() == f"error: {tmp_path / 'results.jsonl'}: not found " + (
         f"(is {tmp_path} a sweep run directory?)"
     )
+
+
+# -- skipped episodes ------------------------------------------------------------------------
+
+
+def skipped(model: str, track: str, task: str, seed: int, run: int) -> dict:
+    """An episode the model stopped before its first step (nothing attempted)."""
+    return line(model, track, task, seed, run, False, stop_reason="model_stop", steps_used=0)
+
+
+def test_all_skipped_family_is_left_out_of_the_sign_test(tmp_path):
+    # active run 1: cube 4/4, bell 2/4, pot 0/4 (all four skipped: stopped at once)
+    # passive run 1: cube 1/4 (worse), bell 2/4 (tie), pot 0/4 attempted (budget exhausted)
+    lines = pattern("m", "active", 1, {CUBE: 4, BELL: 2})
+    lines += [skipped("m", "active", POT, seed, 1) for seed in range(4)]
+    lines += pattern("m", "passive", 1, {CUBE: 1, BELL: 2, POT: 0})
+    (cmp,) = S.track_comparisons(S.task_cells(records(lines)))
+    pairs = {p.task: p for p in cmp.families}
+    assert (pairs[POT].active_skipped, pairs[POT].skipped_side) == (4, "active")
+    assert pairs[CUBE].skipped_side is None and pairs[BELL].skipped_side is None
+    # the pot pair is a tie in counts (0/4 vs 0/4) but compares nothing: not a tie, left out
+    assert (cmp.passive_worse, cmp.passive_better, cmp.ties, cmp.skipped) == (1, 0, 1, (POT,))
+    assert (cmp.compared, cmp.p_value) == (2, 1)  # n = 1, k = 1: 2 * 1/2
+    # an attempted family with some skipped episodes stays in
+    part = [x for x in lines if x["task"] != POT or x["track"] == "passive"]
+    part += [skipped("m", "active", POT, 0, 1)] + pattern("m", "active", 1, {POT: 0})[1:]
+    (cmp2,) = S.track_comparisons(S.task_cells(records(part)))
+    assert (cmp2.skipped, cmp2.ties) == ((), 2)
+
+    out = make_report(write(tmp_path, lines))
+    md = (out / "report.md").read_text()
+    assert f"| {POT} | 0/4 | 0/4 | — (all skipped under active) |" in md
+    assert "left out of the sign test and shown without a Δ, every episode skipped" in md
+    with open(out / "active_passive.csv") as f:
+        rows = {r["task"]: r for r in csv.DictReader(f)}
+    assert (rows[POT]["delta_rate"], rows[POT]["active_skipped"]) == ("", "4")
+
+
+def test_no_sign_test_when_every_family_is_skipped(tmp_path):
+    lines = pattern("m", "active", 1, {CUBE: 3})
+    lines += [skipped("m", "passive", CUBE, seed, 1) for seed in range(4)]
+    (cmp,) = S.track_comparisons(S.task_cells(records(lines)))
+    assert (cmp.skipped, cmp.p_value, cmp.non_tied) == ((CUBE,), None, 0)
+    out = make_report(write(tmp_path, lines))
+    md = (out / "report.md").read_text()
+    assert "| m | run 1 | 1 | 0 | 0 | 0 | 0 | — |" in md
+    assert "no family is left: no sign test" in md
+    head = md.split("\n## ")[0]  # the summary lines above the sections
+    assert "no sign test, every family was skipped (stopped before its first step)" in head
+    assert "sign test p = " not in head

@@ -508,3 +508,24 @@ def test_every_track_section_in_markdown_csv_and_html(tmp_path):
     for name in ("summary_source", "summary_cross_model", "summary_per_task", "learning_stage",
                  "transfer", "transfer_macro", "long_horizon"):  # fmt: skip
         assert (out / f"{name}.csv").stat().st_size > 0, name
+
+
+def test_transfer_pair_with_an_all_skipped_side_gets_no_delta(tmp_path):
+    # run 1: B1 4/4 -> H1 2/4; B2 2/4 -> H2 0/4, every H2 episode stopped before its first
+    # step. H2 is left out of the macros: base 4/4 = 1, held-out 2/4, Δ -1/2 (1 run).
+    lines = transfer_sweep()[:8] + transfer_sweep()[16:20]
+    lines += [
+        line("m", "transfer", H2, seed, 1, False, stop_reason="model_stop", steps_used=0)
+        for seed in range(4)
+    ]
+    cells, _ = T.condition_cells(records(lines))
+    (cmp,) = T.transfer_comparisons(cells, META)
+    fams = {f.heldout: f for f in cmp.families}
+    h2 = fams[H2]
+    assert (h2.heldout_skipped, h2.skipped_side, h2.delta) == (4, "held-out", None)
+    assert (fams[H1].skipped_side, fams[H1].delta) == (None, Fraction(-1, 2))
+    assert cmp.skipped == (H2,)
+    assert (cmp.base.mean, cmp.heldout.mean, cmp.delta.mean) == (1, Fraction(1, 2), Fraction(-1, 2))
+    md = (report(write(tmp_path, lines)) / "report.md").read_text()
+    assert f"| {B2} | {H2} | 50.00 (2/4) | 0.00 (0/4) | — (all held-out skipped) |" in md
+    assert "shown without a Δ, every episode of the base or the held-out side skipped" in md

@@ -55,8 +55,30 @@ class TopdownCamera:
 
 
 def topdown_camera(gc: tuple[float, float, float], width: int, height: int) -> TopdownCamera:
-    """The camera of `camera.view_topdown` chosen while GC was at `gc`."""
+    """The camera of `camera.view_topdown` chosen while the point it centres on (GC, or the
+    midpoint of both GCs) was at `gc`. Only the height can be clamped where the agent looks
+    from (a clamp in x or y would tilt the view; the agent never centres a view there)."""
     return TopdownCamera(gc[0], gc[1], min(gc[2] + TOPDOWN_OFFSET_Z, CAMERA_Z_MAX), width, height)
+
+
+def view_centre(gcs: dict[str, np.ndarray], view: str) -> np.ndarray | None:
+    """The point a topdown view label is centred on: "topdown" follows the only arm, or the
+    midpoint of both in dual-arm tasks, as "both_topdown" does; "left_topdown" and
+    "right_topdown" follow that arm. None for any other view (adjusted views included)."""
+    if view == "topdown":
+        target = next(iter(gcs)) if len(gcs) == 1 else "both"
+    elif view.endswith("_topdown"):
+        target = view.removesuffix("_topdown")
+    else:
+        return None
+    if target == "both":
+        return (np.asarray(gcs["left"]) + np.asarray(gcs["right"])) / 2
+    return np.asarray(gcs[target]) if target in gcs else None
+
+
+def r4(v: float) -> float:
+    """A coordinate as the memo carries it: 0.1 mm."""
+    return round(float(v), 4)
 
 
 def heading_deg(v: np.ndarray) -> float:

@@ -13,10 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vabench.reference_agent import perception_generic as generic
 from vabench.reference_agent.geometry import TABLE_Z, TopdownCamera
-from vabench.reference_agent.vision import Blob, find_blob, table_fraction
+from vabench.reference_agent.segment import components
+from vabench.reference_agent.vision import Blob, colour_mask, find_blob, opened, table_fraction
 
 MIN_TABLE_FRACTION = 0.20  # real views: >= 0.35 (measured); JPEG noise: ~0.05
+MIN_SIDE_TABLE_FRACTION = 0.08
+MAX_ROUGHNESS = 12.0  # mean |value step| between neighbouring pixels: renders ~2-5, noise ~80
 REACH_X = (-0.10, 0.50)  # m: where the right arm can pick and place on the table
 REACH_Y = (-0.35, 0.25)
 # half-sizes of the cubes (FACTS object facts); the pads are thin: their centroid is fine
@@ -42,6 +46,9 @@ class Seen:
     y: float
     heading: float = 0.0
     length: float = 0.0
+    offset: float = 0.0
+    """Along `heading`: from (x, y) to the middle of the object's extent (a lying bottle is
+    grasped at its body, while its footprint reaches further on the neck's side)."""
 
     @property
     def xy(self) -> np.ndarray:
@@ -51,7 +58,7 @@ class Seen:
 Scene = dict[str, Seen]
 
 
-def _square(b: Blob, half: float | None, cam: TopdownCamera) -> Seen:
+def square_centre(b: Blob, half: float | None, cam: TopdownCamera) -> Seen:
     """A square top face: its yaw, and its centre from the far edges when the size is known
     (the centroid leans towards the camera by the sides it also sees)."""
     yaw = b.square_yaw()
@@ -73,9 +80,37 @@ def _long(b: Blob) -> Seen:
     return Seen(float(c[0]), float(c[1]), h, hi - lo)
 
 
-def looks_like_scene(hsv: np.ndarray) -> bool:
-    """Whether an image shows the table (every view of these tasks does)."""
-    return table_fraction(hsv) >= MIN_TABLE_FRACTION
+def _whole_piece(hsv: np.ndarray, cam: TopdownCamera, colour: str, plane_z: float) -> Blob:
+    """The largest connected piece of `colour`, on the plane z = plane_z."""
+    rows, cols = components(opened(colour_mask(hsv, colour)))[0]
+    return Blob(cam.to_world(cols, rows, plane_z), cam.metres_per_pixel(plane_z) ** 2)
+
+
+def _other_object(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Seen | None:
+    """A held-out bottle (`perception_generic`): lying, its centroid and axis on a plane near
+    its top (its height unknown: the base bottle's); upright, its axis from its silhouette's
+    bottom. The green pad, when the task has one, is not the object."""
+    pad = opened(colour_mask(hsv, "green")) if family == "bottle_pad" else None
+    piece = generic.largest_object(hsv, cam, pad)
+    if piece is None:
+        return None
+    if family == "bottle_lying":
+        centre, heading, length = generic.lying(*piece, cam, TABLE_Z + 0.04)
+        return Seen(float(centre[0]), float(centre[1]), heading, length)
+    x, y = generic.upright_axis(*piece, cam)
+    return Seen(float(x), float(y))
+
+
+def looks_like_scene(hsv: np.ndarray, topdown: bool = True) -> bool:
+    """Whether an image shows the table (every view of these tasks does): a topdown view
+    mostly; a side view, looking along the table at gripper height, partly (the wall and the
+    robot fill the rest, ~12 % table measured), and then it must also be smooth, as a render
+    is and noise is not."""
+    if topdown:
+        return table_fraction(hsv) >= MIN_TABLE_FRACTION
+    v = hsv[..., 2].astype(np.int16)
+    rough = float(np.abs(np.diff(v, axis=1)).mean())
+    return table_fraction(hsv) >= MIN_SIDE_TABLE_FRACTION and rough < MAX_ROUGHNESS
 
 
 def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
@@ -119,21 +154,34 @@ def locate(family: str, hsv: np.ndarray, cam: TopdownCamera) -> Scene | None:
         found["dest"] = find_blob(hsv, cam, ("green",), t + 0.05, 0.05, 8e-4)
     elif family == "cube_bowl":
         found["dest"] = find_blob(hsv, cam, ("blue",), t + BOWL_RIM_Z, 0.10, 4e-3)
+        if found["dest"] is not None:
+            # the whole connected container, not the pixels within a radius: a larger one
+            # than the base's bowl (the held-out basin) is otherwise cut off on one side
+            found["dest"] = _whole_piece(hsv, cam, "blue", t + BOWL_RIM_Z)
     elif family == "hammer":
         found["dest"] = find_blob(hsv, cam, ("red",), t + 0.05, 0.05, 8e-4)
-    if not found or any(b is None for b in found.values()):
-        return None
     scene: Scene = {}
+    if family in ("bottle_lying", "bottle_upright", "bottle_pad") and found["obj"] is None:
+        # not the base family's bottle: whatever object is there, by shape alone
+        other = _other_object(family, hsv, cam)
+        if other is not None:
+            del found["obj"]
+            scene["obj"] = other
+    if not (found or scene) or any(b is None for b in found.values()):
+        return None
     for name, b in found.items():
         assert b is not None
         square = family.startswith("cube") or name == "dest"
         if (family == "cube_bowl" and name == "dest") or (family == "hammer" and name == "obj"):
             # the walls flare outwards, so from above the rim is the outline: its box's
-            # centre is the bowl's axis (the centroid leans to the wall facing the camera)
+            # centre is the bowl's axis (the centroid leans to the wall facing the camera); a
+            # container with upright walls shows its near walls' outer faces too, which moves
+            # the box's centre 10-15 mm towards the camera, well inside its interior
+
             lo, hi = b.points.min(axis=0), b.points.max(axis=0)
             seen = Seen(float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2)
         elif square:
-            seen = _square(b, SQUARE_HALF.get((family, name)), cam)
+            seen = square_centre(b, SQUARE_HALF.get((family, name)), cam)
         else:
             seen = _long(b)
         if not (REACH_X[0] <= seen.x <= REACH_X[1] and REACH_Y[0] <= seen.y <= REACH_Y[1]):

@@ -1,51 +1,23 @@
-"""The agent's plans: a list of steps per task family, executed one decision at a time.
+"""The single-arm families' plans: what to do once the objects are located.
 
-A plan is a JSON list of steps carried in the memo (see `request`), with the index of the
-current step. Each decision runs `decide`: a step that the observation shows done (GC at its
-target, the gripper turned, the aperture set) is skipped; the first that is not yields the next
-action. Moves are closed-loop on the robot state (GC from `finger_center_xyz`), so a clipped or
-partly executed move is simply continued.
-
-Steps:
-  ["down"]                  turn about ry or rz until rx points straight down
-  ["fwd"]                   the same until rx points along world +y (side grasps)
-  ["yaw", heading, period]  turn about rx until ry has `heading` (deg) modulo `period`
-  ["go", x, y, z, order]    move GC there, one world axis at a time in `order` ("xyz", "z")
-  ["open"], ["close"]       the gripper
-  ["look", view]            a camera view (fresh image of the current scene)
-  ["see"]                   locate the family's objects in the topdown image; on success the
-                            rest of the plan is replaced by the family's manipulation plan
-  ["retry"]                 the task did not end: start over (park, look, see), at most
-                            `MAX_TRIES` times
-  ["stop"]
-A step the planner fails `MAX_PLANNER_FAILS` times (rejected, or GC left where it was) also
-starts over: the arm may reach the same target from the parking pose.
+`family_of` names the family from the instruction; `start_plan` parks the arm where it hides
+little and looks from above; `manipulation_plan` turns a located `Scene` into the steps that
+do the task (step kinds: `executor`), ending in "retry" (a plan that runs to its end without
+the episode ending has failed).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
-import numpy as np
-
 from vabench.reference_agent import geometry as g
-from vabench.reference_agent.perception import Scene, locate, looks_like_scene
-from vabench.reference_agent.request import Observation
-from vabench.reference_agent.vision import decode
+from vabench.reference_agent.grasp_check import LIFT
+from vabench.reference_agent.perception import Scene
 
 PARK = (0.38, -0.25, 1.05)  # GC where the arm does not hide the objects from the topdown view
 START_GC = (0.28, -0.20, 0.95)  # GC at reset (the robot state of the first observation)
-MOVE_TOL = 0.001  # m
-TURN_TOL = 0.7  # deg (actions turn by at least 1 deg)
-MAX_MOVE_MM = 100
-MAX_TURN_DEG = 90
-MAX_TRIES = 3
-MAX_LOOKS = 2  # failed looks in a row before giving up
-MAX_PLANNER_FAILS = 2  # failed attempts at one step before starting over
 T = g.TABLE_Z
 
-Action = dict[str, Any]
 Step = list[Any]
 
 
@@ -80,16 +52,27 @@ def _r(v: float) -> float:
     return round(float(v), 4)
 
 
-def topdown_grasp(x: float, y: float, z: float, heading: float, period: float) -> list[Step]:
-    """Fingers straight down closing along `heading`, GC to (x, y, z), close, lift."""
+def topdown_grasp(
+    x: float, y: float, z: float, heading: float, period: float, check: bool = True
+) -> list[Step]:
+    """Fingers straight down closing along `heading`, GC to (x, y, z), close, lift; with
+    `check`, a short lift first and a look from the side: an empty grasp starts over."""
     x, y = _r(x), _r(y)
+    lift: list[Step] = [["go", x, y, _r(z + 0.12), "z"]]
+    if check:
+        lift = [
+            ["go", x, y, _r(z + LIFT), "z"],
+            ["look", "side"],
+            ["hold", [["retry"]]],
+            *lift,
+        ]
     return [
         ["down"],
         ["yaw", round(heading, 1), period],
         ["go", x, y, _r(z + 0.08), "xyz"],
         ["go", x, y, _r(z), "z"],
         ["close"],
-        ["go", x, y, _r(z + 0.12), "z"],
+        *lift,
     ]
 
 
@@ -168,7 +151,7 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
         # hammer slip
         cx, cy = d.x - 0.07, d.y + 0.05 - 0.004
         head = gz - T  # the head's underside is on the table while the hammer lies there
-        steps = topdown_grasp(gx, gy, gz, 90.0, 180.0)[:-1]
+        steps = topdown_grasp(gx, gy, gz, 90.0, 180.0, check=False)[:-1]
         carry = T + 0.05 + head + 0.03
         steps += [["go", _r(gx), _r(gy), _r(gz + 0.10), "z"]]
         steps += [["go", _r(cx), _r(cy), _r(carry), "zxy"]]
@@ -195,131 +178,3 @@ def manipulation_plan(family: str, scene: Scene) -> list[Step] | None:
     else:
         return None
     return [*steps, ["retry"]]
-
-
-# -- executing one step ------------------------------------------------------------------------
-
-
-def _move(axis: str, delta_m: float) -> Action:
-    mm = max(1.0, min(MAX_MOVE_MM, round(abs(delta_m) * 1000, 1)))
-    return {
-        "action": "gripper.move_world",
-        "axis": axis,
-        "sign": "+" if delta_m > 0 else "-",
-        "distance_mm": mm,
-    }
-
-
-def _turn(axis: str, deg: float) -> Action:
-    a = max(1.0, min(MAX_TURN_DEG, round(abs(deg), 1)))
-    return {
-        "action": "gripper.rotate_local",
-        "axis": axis,
-        "sign": "+" if deg > 0 else "-",
-        "angle_deg": a,
-    }
-
-
-def _stuck(kind: str, gc: np.ndarray, memo: dict[str, Any]) -> bool:
-    """A move that left GC where it was (rejected or clipped to the workspace)."""
-    at = memo.get("at")
-    return kind == "go" and at is not None and float(np.abs(gc - np.array(at)).max()) < 5e-4
-
-
-def decide(obs: Observation, family: str) -> tuple[Action | None, str, dict[str, Any]]:
-    """(action or None for stop, a reason, the memo to carry) for this observation."""
-    memo: dict[str, Any] = dict(obs.memo) if obs.memo.get("f") == family else {"f": family}
-    plan: list[Step] = memo.get("plan") or start_plan()
-    i = int(memo.get("i", 0))
-    if obs.image is None or not looks_like_scene(decode(obs.image)):
-        # every view of this scene shows the table; an image that does not (noise, a broken
-        # render) is no ground for any action: look again, then give up
-        blind = int(memo.get("blind", 0)) + 1
-        if blind > MAX_LOOKS:
-            return None, "the images do not show the scene", memo
-        memo.update(plan=plan, i=i, blind=blind, last=None)
-        return {"action": "camera.view_topdown"}, "image unreadable: look again", memo
-    memo.pop("blind", None)
-    arm = obs.arms["right"]
-    last = memo.get("last")
-    for _ in range(len(plan) + 4):
-        if i >= len(plan):
-            return None, "plan finished", {**memo, "plan": plan, "i": i}
-        step = plan[i]
-        kind = step[0]
-        out: Action | None = None
-        fails = int(memo.get("fails", 0))
-        if last == [kind, i] and (arm.last_planner is False or _stuck(kind, arm.gc, memo)):
-            fails += 1
-        if fails >= MAX_PLANNER_FAILS and kind != "retry":
-            # the planner cannot do this step from here: start over from the parked pose
-            plan, i, last = [["retry"]], 0, None
-            memo.pop("fails", None)
-            continue
-        memo["fails"] = fails
-        if kind == "down" or kind == "fwd":
-            goal = np.array([0.0, 0.0, -1.0]) if kind == "down" else np.array([0.0, 1.0, 0.0])
-            if g.angle_between(arm.rx, goal) > TURN_TOL:
-                # about ry or rz, whichever brings rx closer: a tilt left about rz would put
-                # one fingertip lower than the other
-                by_y = g.turn_to_align(arm.rx, arm.ry, goal)
-                by_z = g.turn_to_align(arm.rx, arm.rz, goal)
-                out = _turn("ry", by_y) if abs(by_y) >= abs(by_z) else _turn("rz", by_z)
-        elif kind == "yaw":
-            turn = g.yaw_turn(arm.rx, arm.ry, float(step[1]), float(step[2]))
-            if abs(turn) > TURN_TOL:
-                out = _turn("rx", turn)
-        elif kind == "go":
-            err = np.array(step[1:4], float) - arm.gc
-            for axis in step[4]:
-                k = "xyz".index(axis)
-                if abs(err[k]) > MOVE_TOL:
-                    out = _move(axis, float(err[k]))
-                    break
-        elif kind in ("open", "close"):
-            if arm.is_open != (kind == "open") and last != [kind, i]:
-                out = {"action": f"gripper.{kind}"}
-        elif kind == "look":
-            memo.update(plan=plan, i=i + 1, last=["look", i])
-            return {"action": f"camera.view_{step[1]}"}, f"look: {step[1]}", memo
-        elif kind == "see":
-            return _see(obs, family, plan, i, memo)
-        elif kind == "retry":
-            tries = int(memo.get("try", 0)) + 1
-            if tries >= MAX_TRIES:
-                return None, "the task did not end after every try", memo
-            plan, i, memo = start_plan(), 0, {"f": family, "try": tries}  # a fresh memo
-            continue
-        elif kind == "stop":
-            return None, "stop step", memo
-        if out is not None:
-            memo.update(plan=plan, i=i, last=[kind, i], at=[_r(v) for v in arm.gc])
-            return out, f"step {i}: {kind}", memo
-        i += 1
-        memo.pop("fails", None)
-        last = None
-    return None, "no progress", memo
-
-
-def _see(
-    obs: Observation, family: str, plan: list[Step], i: int, memo: dict[str, Any]
-) -> tuple[Action | None, str, dict[str, Any]]:
-    arm = obs.arms["right"]
-    scene = None
-    if obs.image is not None and obs.view == "topdown":
-        hsv = decode(obs.image)
-        cam = g.topdown_camera(tuple(arm.gc), hsv.shape[1], hsv.shape[0])  # type: ignore[arg-type]
-        scene = locate(family, hsv, cam)
-    if scene is None:
-        looks = int(memo.get("looks", 0)) + 1
-        if looks > MAX_LOOKS:
-            return None, "the objects are not visible in the topdown view", memo
-        memo.update(plan=plan, i=i, looks=looks, last=["look", i])
-        return {"action": "camera.view_topdown"}, "objects not found: look again", memo
-    rest = manipulation_plan(family, scene)
-    if rest is None:
-        return None, f"no plan for {family}", memo
-    seen = {k: [_r(v.x), _r(v.y), round(v.heading, 1)] for k, v in scene.items()}
-    memo = {k: v for k, v in memo.items() if k != "looks"}
-    memo.update(plan=rest, i=0, seen=seen, last=None)
-    return decide(dataclasses.replace(obs, memo=memo), family)

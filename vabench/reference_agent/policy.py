@@ -6,7 +6,8 @@ import asyncio
 import json
 from typing import Any
 
-from vabench.reference_agent.plans import decide, family_of
+from vabench.reference_agent.executor import decide
+from vabench.reference_agent.families import family_of
 from vabench.reference_agent.request import MEMO_MARK, RequestError, parse_request
 
 
@@ -37,9 +38,9 @@ def reply_text(request: Any) -> str:
         obs = parse_request(request)
     except RequestError as err:
         return fenced({"stop": True, "reason": f"cannot read the observation: {err}"})
-    family = family_of(obs.instruction)
-    if family is None or set(obs.arms) != {"right"}:
-        return fenced({"stop": True, "reason": "no plan for this task (single right arm only)"})
+    family = family_of(obs.instruction, tuple(obs.arms))
+    if family is None:
+        return fenced({"stop": True, "reason": "no plan for this task"})
     action, reason, memo = decide(obs, family)
     text = reason + MEMO_MARK + json.dumps(memo, separators=(",", ":"))
     if action is None:

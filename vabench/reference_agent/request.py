@@ -9,6 +9,11 @@ keeps the recent turns) never loses it.
 The observation text is the one `vabench.agent.observation.render_observation` writes
 ("Step k of N ...", "Instruction: ...", "Current view: ...", the robot state JSON block); a
 repair turn repeats it after the error message, so the same patterns apply.
+
+Images: the active protocol sends one image per observation, from the view the "Current view"
+line names; the passive protocol sends five, always in the order the system prompt and that
+line list (topdown, side, front_side_45, side_top_45, oblique_45), all centred on the GC (the
+midpoint of both GCs in dual-arm tasks).
 """
 
 from __future__ import annotations
@@ -45,6 +50,10 @@ class Arm:
     last_planner: bool | None
 
 
+PASSIVE_VIEWS = ("topdown", "side", "front_side_45", "side_top_45", "oblique_45")
+_PASSIVE_LINE = "the five fixed views"
+
+
 @dataclass(frozen=True)
 class Observation:
     step: int
@@ -54,11 +63,26 @@ class Observation:
     arms: dict[str, Arm]
     executed: int
     image: bytes | None
+    """The image the agent locates objects in: the active protocol's one image, or the
+    passive bundle's topdown image."""
     memo: dict[str, Any] = field(default_factory=dict)
+    images: tuple[bytes, ...] = ()
+    """Every image of the observation, in the order sent."""
+    passive: bool = False
 
     @property
     def steps_left(self) -> int:
         return self.budget - self.step + 1
+
+    @property
+    def dual(self) -> bool:
+        return len(self.arms) > 1
+
+    def view_image(self, view: str) -> bytes | None:
+        """The passive bundle's image of `view` (None in the active protocol)."""
+        if not self.passive or len(self.images) != len(PASSIVE_VIEWS):
+            return None
+        return self.images[PASSIVE_VIEWS.index(view)]
 
 
 def _arm(fields: dict[str, Any]) -> Arm:
@@ -92,10 +116,10 @@ def parse_memo(reply: str) -> dict[str, Any]:
     return memo if isinstance(memo, dict) else {}
 
 
-def _text_and_image(turn: Any) -> tuple[str, bytes | None]:
+def _text_and_images(turn: Any) -> tuple[str, tuple[bytes, ...]]:
     texts = [p for p in turn.content if isinstance(p, str)]
-    images = [p for p in turn.content if not isinstance(p, str)]
-    return "\n".join(texts), (images[-1].data if images else None)
+    images = tuple(p.data for p in turn.content if not isinstance(p, str))
+    return "\n".join(texts), images
 
 
 def parse_request(request: Any) -> Observation:
@@ -106,7 +130,7 @@ def parse_request(request: Any) -> Observation:
     users = [t for t in turns if t.role == "user"]
     if not users:
         raise RequestError("no user turn")
-    text, image = _text_and_image(users[-1])
+    text, images = _text_and_images(users[-1])
     step = _STEP.search(text)
     robot = _ROBOT.search(text)
     if step is None or robot is None:
@@ -116,17 +140,23 @@ def parse_request(request: Any) -> Observation:
     except (json.JSONDecodeError, KeyError, TypeError) as err:
         raise RequestError(f"robot state: {err}") from None
     assistants = [t for t in turns if t.role == "assistant"]
-    memo = parse_memo(_text_and_image(assistants[-1])[0]) if assistants else {}
+    memo = parse_memo(_text_and_images(assistants[-1])[0]) if assistants else {}
     instruction = _INSTRUCTION.search(text)
     view = _VIEW.search(text)
+    view_name = view.group(1).strip() if view else ""
     executed = _EXECUTED.search(text)
+    passive = view_name.startswith(_PASSIVE_LINE)
+    if passive:
+        view_name = "topdown"  # the bundle's first image is the one the agent locates in
     return Observation(
         step=int(step.group(1)),
         budget=int(step.group(2)),
         instruction=instruction.group(1).strip() if instruction else "",
-        view=view.group(1).strip() if view else "",
+        view=view_name,
         arms=arms,
         executed=int(executed.group(1)) if executed else 0,
-        image=image,
+        image=(images[0] if passive else images[-1]) if images else None,
         memo=memo,
+        images=images,
+        passive=passive,
     )

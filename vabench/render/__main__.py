@@ -24,7 +24,6 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -106,60 +105,78 @@ def snapshot(args: argparse.Namespace) -> None:
             print(out / f"debug_{name}")
 
 
-def sheet(args: argparse.Namespace) -> None:
-    from vabench.seeds import verified_seeds
-    from vabench.tasks import BASE_FAMILIES, REGISTRY
+class ContactSheet:
+    """A grid for people: a header of view names, a label per row, thumbnails (never a model
+    image: labels go on the sheet only)."""
 
-    tasks = args.tasks.split(",") if args.tasks else list(BASE_FAMILIES)
-    unknown = sorted(set(tasks) - set(REGISTRY))
+    LABEL_W, HEADER_H = 190, 24
+    COLUMNS = (cam.HEAD_VIEW, *cam.VIEWS)
+
+    def __init__(self, n_rows: int, thumb: str):
+        self.tw, self.th = (int(v) for v in thumb.split("x"))
+        size = (self.LABEL_W + self.tw * len(self.COLUMNS), self.HEADER_H + self.th * n_rows)
+        self.image = Image.new("RGB", size, "white")
+        self.draw = ImageDraw.Draw(self.image)
+        for c, name in enumerate(self.COLUMNS):
+            self.draw.text((self.LABEL_W + c * self.tw + 6, 6), name, fill=(0, 0, 0))
+
+    def row(self, r: int, label: str, frames: Sequence[np.ndarray]) -> None:
+        y = self.HEADER_H + r * self.th
+        self.draw.text((6, y + 6), label, fill=(0, 0, 0))
+        for c, rgb in enumerate(frames):
+            thumb = Image.fromarray(np.asarray(rgb)).resize((self.tw, self.th))
+            self.image.paste(thumb, (self.LABEL_W + c * self.tw, y))
+
+    def save(self, path: str) -> None:
+        out = Path(path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        self.image.save(out)
+        print(out)
+
+
+def _tasks(names: list[str]) -> list[str]:
+    from vabench.tasks import REGISTRY
+
+    unknown = sorted(set(names) - set(REGISTRY))
     if unknown:
         raise SystemExit(f"unknown tasks {unknown}; tasks: {sorted(REGISTRY)}")
-    tw, th = (int(v) for v in args.size.split("x"))
-    label_w, header_h = 190, 24
-    columns = [cam.HEAD_VIEW, *cam.VIEWS]
-    sheet_img = Image.new("RGB", (label_w + tw * len(columns), header_h + th * len(tasks)), "white")
-    draw = ImageDraw.Draw(sheet_img)
-    for c, name in enumerate(columns):
-        draw.text((label_w + c * tw + 6, 6), name, fill=(0, 0, 0))
+    return names
+
+
+def _first_seed_items(task_name: str, backend: str) -> tuple[int, list[RenderItem]]:
+    """The head view and the five views of a task's first verified seed after its reset."""
+    from vabench.seeds import verified_seeds
+    from vabench.tasks import REGISTRY
+
+    arms = REGISTRY[task_name].arms
+    seed = verified_seeds(task_name)[0]
+    qpos, variant, gcs = reset_state(task_name, seed, backend)
+    poses = [cam.head_view(gcs, arms), *cam.passive_bundle(gcs, arms)]
+    return seed, [RenderItem(qpos, variant, p) for p in poses]
+
+
+def sheet(args: argparse.Namespace) -> None:
+    from vabench.tasks import BASE_FAMILIES
+
+    tasks = _tasks(args.tasks.split(",") if args.tasks else list(BASE_FAMILIES))
+    grid = ContactSheet(len(tasks), args.size)
     settings = ImageSettings(args.width, args.height, args.quality)
     pool, choice = make_renderer(args.renderer, workers=args.workers, platform=args.platform)
     with contextlib.closing(pool):
         print(f"renderer: {pool.start()} ({choice.reason})", file=sys.stderr)
         for r, task_name in enumerate(tasks):
-            arms = REGISTRY[task_name].arms
-            seed = verified_seeds(task_name)[0]
-            qpos, variant, gcs = reset_state(task_name, seed, args.backend)
-            poses = [cam.head_view(gcs, arms), *cam.passive_bundle(gcs, arms)]
-            jpegs = pool.render(task_name, [RenderItem(qpos, variant, p) for p in poses], settings)
-            y = header_h + r * th
-            draw.text((6, y + 6), f"{task_name}\nseed {seed}", fill=(0, 0, 0))
-            for c, jpeg in enumerate(jpegs):
-                thumb = Image.open(io.BytesIO(jpeg)).convert("RGB").resize((tw, th))
-                sheet_img.paste(thumb, (label_w + c * tw, y))
+            seed, items = _first_seed_items(task_name, args.backend)
+            jpegs = pool.render(task_name, items, settings)
+            grid.row(r, f"{task_name}\nseed {seed}", [_decode(j) for j in jpegs])
             print(f"{task_name}: seed {seed}", file=sys.stderr)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    sheet_img.save(out)
-    print(out)
+    grid.save(args.out)
 
 
 def parity(args: argparse.Namespace) -> None:
     from vabench.render.warp_renderer import WarpRenderPool
-    from vabench.seeds import verified_seeds
-    from vabench.tasks import REGISTRY
 
-    tasks = args.tasks.split(",")
-    unknown = sorted(set(tasks) - set(REGISTRY))
-    if unknown:
-        raise SystemExit(f"unknown tasks {unknown}; tasks: {sorted(REGISTRY)}")
-    tw, th = (int(v) for v in args.size.split("x"))
-    label_w, header_h = 190, 24
-    columns = [cam.HEAD_VIEW, *cam.VIEWS]
-    rows = 2 * len(tasks)
-    sheet_img = Image.new("RGB", (label_w + tw * len(columns), header_h + th * rows), "white")
-    draw = ImageDraw.Draw(sheet_img)
-    for c, name in enumerate(columns):
-        draw.text((label_w + c * tw + 6, 6), name, fill=(0, 0, 0))
+    tasks = _tasks(args.tasks.split(","))
+    grid = ContactSheet(2 * len(tasks), args.size)
     settings = ImageSettings(args.width, args.height, 100, "444")  # compare pixels, not JPEG
     size = (args.width, args.height)
     with (
@@ -168,32 +185,20 @@ def parity(args: argparse.Namespace) -> None:
     ):
         print(f"renderers: {gl_pool.gl_info} | {warp_pool.info}", file=sys.stderr)
         for r, task_name in enumerate(tasks):
-            arms = REGISTRY[task_name].arms
-            seed = verified_seeds(task_name)[0]
-            qpos, variant, gcs = reset_state(task_name, seed, args.backend)
-            poses = [cam.head_view(gcs, arms), *cam.passive_bundle(gcs, arms)]
-            items = [RenderItem(qpos, variant, p) for p in poses]
+            seed, items = _first_seed_items(task_name, args.backend)
             gl_rgb = [_decode(j) for j in gl_pool.render(task_name, items, settings)]
-            warp_rgb = warp_pool.render_rgb(task_name, items, settings)
+            warp_rgb = list(warp_pool.render_rgb(task_name, items, settings))
             gaps = [
                 float(np.abs(g.astype(int) - w).mean())
                 for g, w in zip(gl_rgb, warp_rgb, strict=True)
             ]
             print(
                 f"{task_name} seed {seed}: mean |GL - Warp| per view: "
-                + ", ".join(f"{c} {d:.2f}" for c, d in zip(columns, gaps, strict=True))
+                + ", ".join(f"{c} {d:.2f}" for c, d in zip(grid.COLUMNS, gaps, strict=True))
             )
-            pair: list[tuple[str, Any]] = [("GL", gl_rgb), ("Warp", warp_rgb)]
-            for k, (label, frames) in enumerate(pair):
-                y = header_h + (2 * r + k) * th
-                draw.text((6, y + 6), f"{task_name}\nseed {seed}\n{label}", fill=(0, 0, 0))
-                for c, rgb in enumerate(frames):
-                    thumb = Image.fromarray(np.asarray(rgb)).resize((tw, th))
-                    sheet_img.paste(thumb, (label_w + c * tw, y))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    sheet_img.save(out)
-    print(out)
+            grid.row(2 * r, f"{task_name}\nseed {seed}\nGL", gl_rgb)
+            grid.row(2 * r + 1, f"{task_name}\nseed {seed}\nWarp", warp_rgb)
+    grid.save(args.out)
 
 
 def _decode(jpeg: bytes) -> np.ndarray:

@@ -219,10 +219,21 @@ def _summary(
                 f"over {s.n} run(s)"
             )
     for cmp in comparisons:
+        left_out = (
+            f" ({len(cmp.skipped)} families left out: every episode skipped under one protocol)"
+            if cmp.skipped
+            else ""
+        )
+        if cmp.p_value is None:
+            lines.append(
+                f"{cmp.model} active vs passive ({tables.runs_label(cmp.runs)}): no sign test, "
+                "every family was skipped (stopped before its first step) under one protocol"
+            )
+            continue
         lines.append(
             f"{cmp.model} active vs passive ({tables.runs_label(cmp.runs)}): passive worse on "
             f"{cmp.passive_worse} of {cmp.non_tied} non-tied families, sign test "
-            f"p = {float(cmp.p_value):.4g}"
+            f"p = {float(cmp.p_value):.4g}{left_out}"
         )
     return lines
 

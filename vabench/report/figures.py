@@ -86,7 +86,9 @@ def active_passive_figure(cmp: TrackComparison, order: Sequence[str]) -> bytes:
     runs = ",".join(map(str, cmp.runs))
     ax.set_title(
         f"{cmp.model} (runs {runs}): passive worse on {cmp.passive_worse} of {cmp.non_tied} "
-        f"non-tied families, sign test p = {float(cmp.p_value):.3g}",
+        f"non-tied families, sign test p = "
+        + ("—" if cmp.p_value is None else f"{float(cmp.p_value):.3g}")
+        + (f" ({len(cmp.skipped)} all-skipped left out)" if cmp.skipped else ""),
         fontsize=9,
     )
     ax.legend(fontsize=8)

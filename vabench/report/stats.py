@@ -14,6 +14,12 @@ Definitions (paper, "Base evaluation protocol" and "Active evidence acquisition"
   two-sided exact sign test over the non-tied families:
   p = min(1, 2 · P[X ≤ min(k, n − k)]), X ~ Bin(n, 1/2), n non-tied families, k of them worse
   under passive. Ties and the sign compare rates, which equal counts when totals match.
+- Skipped episodes: an episode the model stopped before taking any step (stop reason
+  model_stop, no step used) says nothing about the protocol it ran under. A family whose
+  episodes under one of the two tracks are all skipped is left out of the sign test and gets
+  no Δ (`FamilyPair.skipped_side` names the side); its counts are still shown, and the
+  macro-averages still count those episodes as failures. With no family left to compare there
+  is no sign test at all (`p_value` None).
 - Subtask progress: a micro-average, checkpoints reached / checkpoints possible over every
   scored episode of a model and track (each episode contributes `progress` of `n_checkpoints`).
 
@@ -29,15 +35,34 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 
+from vabench.agent.records import EpisodeResult
 from vabench.report.load import Record, ReportError
 
 SUBSETS = ("single", "dual", "all")
 SUBSET_TITLES = {"single": "Single-arm", "dual": "Dual-arm", "all": "All"}
 
 
+def is_skipped(result: EpisodeResult) -> bool:
+    """A scored episode the model ended before its first step: stopped at once, nothing tried."""
+    return (
+        result.scored
+        and not result.success
+        and result.stop_reason == "model_stop"
+        and result.steps_used == 0
+    )
+
+
+def skipped_side(active_skipped: bool, passive_skipped: bool) -> str | None:
+    """ "active", "passive", "both" or None: the side(s) whose episodes were all skipped."""
+    if active_skipped and passive_skipped:
+        return "both"
+    return "active" if active_skipped else ("passive" if passive_skipped else None)
+
+
 @dataclass(frozen=True)
 class Cell:
-    """Success count of one (model, track, task, run)."""
+    """Success count of one (model, track, task, run); `skipped` of the `total` episodes were
+    stopped before any step (`is_skipped`)."""
 
     model: str
     track: str
@@ -45,6 +70,7 @@ class Cell:
     run: int
     successes: int
     total: int
+    skipped: int = 0
 
     @property
     def rate(self) -> Fraction:
@@ -86,11 +112,21 @@ class FamilyPair:
     active_total: int
     passive: int
     passive_total: int
+    active_skipped: int = 0
+    passive_skipped: int = 0
 
     @property
     def delta(self) -> Fraction:
         """Passive minus active success rate."""
         return Fraction(self.passive, self.passive_total) - Fraction(self.active, self.active_total)
+
+    @property
+    def skipped_side(self) -> str | None:
+        """The track(s) under which every episode of this family was skipped: then the pair
+        compares nothing and stays out of the sign test."""
+        return skipped_side(
+            self.active_skipped == self.active_total, self.passive_skipped == self.passive_total
+        )
 
 
 @dataclass(frozen=True)
@@ -103,13 +139,22 @@ class TrackComparison:
     passive_worse: int
     passive_better: int
     ties: int
-    p_value: Fraction
+    p_value: Fraction | None
+    """None when every family was left out (`skipped`): no test was made."""
     only_one_track: tuple[str, ...]
     """Families run under one of the two tracks only: left out of the comparison."""
+    skipped: tuple[str, ...] = ()
+    """Families whose episodes were all skipped under one track (or both): left out of the
+    sign test, shown without a Δ."""
 
     @property
     def non_tied(self) -> int:
         return self.passive_worse + self.passive_better
+
+    @property
+    def compared(self) -> int:
+        """Families in the sign test (non-tied and tied)."""
+        return len(self.families) - len(self.skipped)
 
 
 @dataclass(frozen=True)
@@ -174,7 +219,7 @@ def subset_of(task: str, arms: Mapping[str, int]) -> str:
 
 def task_cells(records: Iterable[Record]) -> list[Cell]:
     """Successes and scored totals per (model, track, task, run), sorted by those keys."""
-    counts: dict[tuple[str, str, str, int], list[int]] = defaultdict(lambda: [0, 0])
+    counts: dict[tuple[str, str, str, int], list[int]] = defaultdict(lambda: [0, 0, 0])
     for rec in records:
         r = rec.result
         if not r.scored:
@@ -182,7 +227,8 @@ def task_cells(records: Iterable[Record]) -> list[Cell]:
         c = counts[(r.model, rec.track, r.task, r.run)]
         c[0] += int(r.success)
         c[1] += 1
-    return [Cell(*k, successes=s, total=t) for k, (s, t) in sorted(counts.items())]
+        c[2] += int(is_skipped(r))
+    return [Cell(*k, successes=s, total=t, skipped=n) for k, (s, t, n) in sorted(counts.items())]
 
 
 def macro_averages(cells: Sequence[Cell], arms: Mapping[str, int]) -> list[Macro]:
@@ -250,23 +296,35 @@ def compare_tracks(
     sums: dict[str, dict[str, list[int]]] = {active: {}, passive: {}}
     for c in cells:
         if c.model == model and c.run in runs and c.track in sums:
-            s = sums[c.track].setdefault(c.task, [0, 0])
+            s = sums[c.track].setdefault(c.task, [0, 0, 0])
             s[0] += c.successes
             s[1] += c.total
+            s[2] += c.skipped
     both = sorted(set(sums[active]) & set(sums[passive]))
     one = sorted(set(sums[active]) ^ set(sums[passive]))
-    pairs = tuple(FamilyPair(t, *sums[active][t], *sums[passive][t]) for t in both)
-    worse = sum(1 for p in pairs if p.delta < 0)
-    better = sum(1 for p in pairs if p.delta > 0)
+    pairs = tuple(
+        FamilyPair(
+            t,
+            *sums[active][t][:2],
+            *sums[passive][t][:2],
+            active_skipped=sums[active][t][2],
+            passive_skipped=sums[passive][t][2],
+        )
+        for t in both
+    )
+    tested = [p for p in pairs if p.skipped_side is None]
+    worse = sum(1 for p in tested if p.delta < 0)
+    better = sum(1 for p in tested if p.delta > 0)
     return TrackComparison(
         model=model,
         runs=tuple(sorted(runs)),
         families=pairs,
         passive_worse=worse,
         passive_better=better,
-        ties=len(pairs) - worse - better,
-        p_value=sign_test(worse, worse + better),
+        ties=len(tested) - worse - better,
+        p_value=sign_test(worse, worse + better) if tested else None,
         only_one_track=tuple(one),
+        skipped=tuple(p.task for p in pairs if p.skipped_side is not None),
     )
 
 

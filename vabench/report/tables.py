@@ -199,7 +199,7 @@ def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequen
                 str(cmp.passive_worse),
                 str(cmp.passive_better),
                 str(cmp.ties),
-                f"{float(cmp.p_value):.4g}",
+                p_value_text(cmp.p_value),
             ]
         )
         rows = [
@@ -207,7 +207,9 @@ def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequen
                 p.task,
                 f"{p.active}/{p.active_total}",
                 f"{p.passive}/{p.passive_total}",
-                _delta_text(p.passive - p.active, p.delta, p.active_total == p.passive_total),
+                _delta_text(p.passive - p.active, p.delta, p.active_total == p.passive_total)
+                if p.skipped_side is None
+                else f"— (all skipped under {p.skipped_side})",
             ]
             for p in families
         ]
@@ -224,7 +226,9 @@ def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequen
                     p.active_total,
                     p.passive,
                     p.passive_total,
-                    p.delta,
+                    p.delta if p.skipped_side is None else None,
+                    p.active_skipped,
+                    p.passive_skipped,
                 ]
             )
         test_rows.append(
@@ -239,6 +243,13 @@ def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequen
                 cmp.p_value,
             ]
         )
+        if cmp.skipped:
+            notes.append(
+                f"{cmp.model} ({label}): left out of the sign test and shown without a Δ, "
+                "every episode skipped (the model stopped before its first step) under one "
+                f"protocol, so the pair compares nothing: {list(cmp.skipped)}"
+                + ("" if cmp.p_value is not None else "; no family is left: no sign test")
+            )
         if cmp.only_one_track:
             notes.append(
                 f"{cmp.model} ({label}): left out, run under one track only: "
@@ -271,6 +282,8 @@ def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequen
                     "passive",
                     "passive_total",
                     "delta_rate",
+                    "active_skipped",
+                    "passive_skipped",
                 ],
                 fam_rows,
             ),
@@ -297,6 +310,11 @@ def in_order(pairs: Sequence[FamilyPair], order: Sequence[str]) -> list[FamilyPa
     """Families in `order` (the registry's: the paper's), unknown ones last by name."""
     rank = {t: i for i, t in enumerate(order)}
     return sorted(pairs, key=lambda p: (rank.get(p.task, len(rank)), p.task))
+
+
+def p_value_text(p: Fraction | None) -> str:
+    """The sign test's p, or a dash where no family could be compared."""
+    return "—" if p is None else f"{float(p):.4g}"
 
 
 def _delta_text(count: int, rate: Fraction, same_totals: bool) -> str:

@@ -293,7 +293,7 @@ def transfer_section(comparisons: Sequence[TransferComparison]) -> Section | Non
                 f.heldout,
                 f"{pct(f.base_rate)} ({f.base_successes}/{f.base_total})",
                 f"{pct(f.heldout_rate)} ({f.heldout_successes}/{f.heldout_total})",
-                signed(f.delta),
+                signed(f.delta) if f.skipped_side is None else f"— (all {f.skipped_side} skipped)",
             ]
             for f in cmp.families
         ]
@@ -317,6 +317,8 @@ def transfer_section(comparisons: Sequence[TransferComparison]) -> Section | Non
                 f.heldout_successes,
                 f.heldout_total,
                 f.delta,
+                f.base_skipped,
+                f.heldout_skipped,
             ]
             for f in cmp.families
         ]
@@ -337,6 +339,12 @@ def transfer_section(comparisons: Sequence[TransferComparison]) -> Section | Non
             notes.append(
                 f"{cond}: left out, no base-family run under the same protocol and run: "
                 f"{list(cmp.unmatched)}"
+            )
+        if cmp.skipped:
+            notes.append(
+                f"{cond}: left out of the macro-averages and shown without a Δ, every episode "
+                "of the base or the held-out side skipped (the model stopped before its first "
+                f"step), so the pair compares nothing: {list(cmp.skipped)}"
             )
         if any(f.base_mode != cmp.mode for f in cmp.families):
             notes.append(f"{cond}: base families taken from own-summary runs")
@@ -368,6 +376,8 @@ def transfer_section(comparisons: Sequence[TransferComparison]) -> Section | Non
                     "heldout_successes",
                     "heldout_total",
                     "delta_rate",
+                    "base_skipped",
+                    "heldout_skipped",
                 ],
                 fam_rows,
             ),

@@ -18,8 +18,11 @@ from are not in the records; they come from a `TaskMeta` (the registry's, or a h
 - Controlled transfer (tab:generalization-summary, tab:single-arm-generalization): a held-out
   task (suite "transfer") is paired with its base family under the same protocol and the same
   summary mode (falling back to "own"). Per run: the macro-average over the families with both
-  sides scored in that run; across runs: mean and sample SD of the base, held-out and Δ =
-  held-out − base macro-averages. Per family: counts pooled over those runs.
+  sides scored in that run, leaving out a pair whose episodes on one side were all skipped
+  (the model stopped before its first step: nothing was attempted, so Δ would measure that,
+  not the transfer; such a family is listed with its counts and no Δ); across runs: mean and
+  sample SD of the base, held-out and Δ = held-out − base macro-averages. Per family: counts
+  pooled over those runs.
 - Long-horizon composition: per (model, track, task) of suite "long_horizon" and run, objects
   placed = the sum of `progress` (k checkpoints = k objects) out of the sum of
   `n_checkpoints`, and strict success = successes / episodes.
@@ -36,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.report.load import Record, ReportError
-from vabench.report.stats import SUBSETS, Spread, mean_sd, subset_of
+from vabench.report.stats import SUBSETS, Spread, is_skipped, mean_sd, skipped_side, subset_of
 
 OWN = "own"
 
@@ -63,10 +66,16 @@ class CondCell:
     successes: int
     total: int
     track: str
+    skipped: int = 0
+    """Episodes stopped before their first step (`stats.is_skipped`)."""
 
     @property
     def rate(self) -> Fraction:
         return Fraction(self.successes, self.total)
+
+    @property
+    def all_skipped(self) -> bool:
+        return self.skipped == self.total
 
 
 def mode_rank(mode: str) -> tuple[int, str]:
@@ -80,20 +89,21 @@ def condition_cells(records: Iterable[Record]) -> tuple[list[CondCell], list[str
     """Cells per condition, and notes. When two tracks ran the same condition and task (say
     `active` and a copy of it under another name), only the first track by name is counted: the
     same episodes would otherwise count twice."""
-    counts: dict[tuple[str, str, str, str, int, str], list[int]] = defaultdict(lambda: [0, 0])
+    counts: dict[tuple[str, str, str, str, int, str], list[int]] = defaultdict(lambda: [0, 0, 0])
     for rec in records:
         r = rec.result
         if r.scored:
             c = counts[(r.model, r.protocol, r.summary_mode, r.task, r.run, rec.track)]
             c[0] += int(r.success)
             c[1] += 1
+            c[2] += int(is_skipped(r))
     tracks: dict[tuple[str, str, str, str], set[str]] = defaultdict(set)
     for model, protocol, mode, task, _, track in counts:
         tracks[(model, protocol, mode, task)].add(track)
     cells, notes = [], []
-    for (model, protocol, mode, task, run, track), (s, t) in sorted(counts.items()):
+    for (model, protocol, mode, task, run, track), (s, t, n) in sorted(counts.items()):
         if track == min(tracks[(model, protocol, mode, task)]):
-            cells.append(CondCell(model, protocol, mode, task, run, s, t, track))
+            cells.append(CondCell(model, protocol, mode, task, run, s, t, track, n))
     for (model, protocol, mode, task), names in sorted(tracks.items()):
         if len(names) > 1:
             first, *rest = sorted(names)
@@ -369,6 +379,8 @@ class TransferFamily:
     base_total: int
     heldout_successes: int
     heldout_total: int
+    base_skipped: int = 0
+    heldout_skipped: int = 0
 
     @property
     def base_rate(self) -> Fraction:
@@ -379,9 +391,18 @@ class TransferFamily:
         return Fraction(self.heldout_successes, self.heldout_total)
 
     @property
-    def delta(self) -> Fraction:
-        """Held-out minus base success rate."""
-        return self.heldout_rate - self.base_rate
+    def skipped_side(self) -> str | None:
+        """ "base", "held-out" or "both" when every episode of that side was skipped (the
+        model stopped before its first step): then Δ compares nothing."""
+        side = skipped_side(
+            self.base_skipped == self.base_total, self.heldout_skipped == self.heldout_total
+        )
+        return {"active": "base", "passive": "held-out"}.get(side or "", side)
+
+    @property
+    def delta(self) -> Fraction | None:
+        """Held-out minus base success rate; None when one side was all skipped."""
+        return None if self.skipped_side else self.heldout_rate - self.base_rate
 
 
 @dataclass(frozen=True)
@@ -399,6 +420,9 @@ class TransferComparison:
     """Run-level macro-averages across runs; delta's values are per-run held-out − base."""
     unmatched: tuple[str, ...]
     """Held-out tasks without a scored base-family run under the same protocol and run."""
+    skipped: tuple[str, ...] = ()
+    """Held-out tasks left out of the macro-averages in some run because every episode of
+    one side (base or held-out) was skipped there."""
 
 
 def transfer_comparisons(cells: Sequence[CondCell], meta: TaskMeta) -> list[TransferComparison]:
@@ -416,6 +440,7 @@ def transfer_comparisons(cells: Sequence[CondCell], meta: TaskMeta) -> list[Tran
         ]
         per_run: dict[int, list[tuple[Fraction, Fraction]]] = defaultdict(list)
         pooled: dict[tuple[str, str, str], list[int]] = {}
+        skipped: set[str] = set()
         for h in held:
             base = meta.base_family.get(h.task)
             if base is None:
@@ -432,10 +457,14 @@ def transfer_comparisons(cells: Sequence[CondCell], meta: TaskMeta) -> list[Tran
             )
             if b is None:
                 continue
-            per_run[h.run].append((b.rate, h.rate))
-            p = pooled.setdefault((h.task, base, b.mode), [0, 0, 0, 0])
+            if b.all_skipped or h.all_skipped:
+                skipped.add(h.task)  # nothing attempted on one side: no pair for the macros
+            else:
+                per_run[h.run].append((b.rate, h.rate))
+            p = pooled.setdefault((h.task, base, b.mode), [0, 0, 0, 0, 0, 0])
             p[0], p[1] = p[0] + b.successes, p[1] + b.total
             p[2], p[3] = p[2] + h.successes, p[3] + h.total
+            p[4], p[5] = p[4] + b.skipped, p[5] + h.skipped
         runs = tuple(sorted(per_run))
         base_m = [_avg([b for b, _ in per_run[r]]) for r in runs]
         held_m = [_avg([h for _, h in per_run[r]]) for r in runs]
@@ -453,6 +482,7 @@ def transfer_comparisons(cells: Sequence[CondCell], meta: TaskMeta) -> list[Tran
                 heldout=_spread(held_m),
                 delta=_spread([h - b for b, h in zip(base_m, held_m, strict=True)]),
                 unmatched=tuple(sorted({h.task for h in held} - matched)),
+                skipped=tuple(sorted(skipped)),
             )
         )
     return out

@@ -156,8 +156,23 @@ class BatchBase:
     ) -> None:
         """Reset `slots` to the given qpos rows (len(slots), nq): zero velocity, arm references
         at the arm's joints, fingers open, each slot with its model variant (default 0); then
-        settle them for `settle_steps` physics steps."""
-        raise NotImplementedError
+        settle them for `settle_steps` physics steps. The same for every backend: a state
+        written with `set_state`, then `hold`."""
+        slots = list(slots)
+        qpos = self._check_reset(slots, qpos)
+        n, m = len(slots), self.model
+        state = {
+            "time": np.zeros(n),
+            "qpos": qpos,
+            "qvel": np.zeros((n, m.nv)),
+            "act": np.zeros((n, m.na)),
+            "ctrl": self.layout.reset_ctrl(np.zeros((n, m.nu)), qpos),
+            "warmstart": np.zeros((n, m.nv)),
+            "grip_open": np.ones((n, len(self.arms)), bool),
+        }
+        self.set_state(slots, state, self._check_variants(slots, variants))
+        if settle_steps > 0:
+            self.hold(settle_steps, slots)
 
     def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
         """Advance physics n_steps with the current references held (all slots by default)."""

@@ -199,30 +199,6 @@ class SimBatch(BatchBase):
         )
         self.reset(range(n_slots), home)
 
-    def reset(
-        self,
-        slots: Sequence[int],
-        qpos: np.ndarray,
-        settle_steps: int = 0,
-        variants: Sequence[int] | None = None,
-    ) -> None:
-        slots = list(slots)
-        qpos = self._check_reset(slots, qpos)
-        n = len(slots)
-        ctrl = self.layout.reset_ctrl(np.zeros((n, self.model.nu)), qpos)
-        state = {
-            "time": np.zeros(n),
-            "qpos": qpos,
-            "qvel": np.zeros((n, self.model.nv)),
-            "act": np.zeros((n, self.model.na)),
-            "ctrl": ctrl,
-            "warmstart": np.zeros((n, self.model.nv)),
-            "grip_open": np.ones((n, len(self.arms)), bool),
-        }
-        self.set_state(slots, state, self._check_variants(slots, variants))
-        if settle_steps > 0:
-            self.hold(settle_steps, slots)
-
     def set_state(
         self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
     ) -> None:

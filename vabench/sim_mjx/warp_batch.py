@@ -391,29 +391,6 @@ class WarpBatch(BatchBase):
         failed = getattr(self, "_hold_failed", np.zeros(self.n_slots, np.int32))
         return [failure_text(int(b), self.capacity) if b else None for b in failed]
 
-    def reset(
-        self,
-        slots: Sequence[int],
-        qpos: np.ndarray,
-        settle_steps: int = 0,
-        variants: Sequence[int] | None = None,
-    ) -> None:
-        slots = list(slots)
-        qpos = self._check_reset(slots, qpos)
-        n, m = len(slots), self.model
-        state = {
-            "time": np.zeros(n),
-            "qpos": qpos,
-            "qvel": np.zeros((n, m.nv)),
-            "act": np.zeros((n, m.na)),
-            "ctrl": self.layout.reset_ctrl(np.zeros((n, m.nu)), qpos),
-            "warmstart": np.zeros((n, m.nv)),
-            "grip_open": np.ones((n, len(self.arms)), bool),
-        }
-        self.set_state(slots, state, self._check_variants(slots, variants))
-        if settle_steps > 0:
-            self.hold(settle_steps, slots)
-
     def set_state(
         self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
     ) -> None:
