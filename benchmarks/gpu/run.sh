@@ -2,13 +2,16 @@
 # One phase of the GPU measurements on the lent device machine; each phase fits one call
 # (< 10 minutes) and writes its results under $OUT. The order of calls (device tool):
 #   1. carry .wp1:  mkdir -p /tmp/wp && cp .wp1/* /tmp/wp/
-#   2. carry .wp2:  mkdir -p /tmp/wp && cp .wp2/* /tmp/wp/
+#   2. carry .wp2 .dep:  mkdir -p /tmp/wp /tmp/dep && cp .wp2/* /tmp/wp/ && cp .dep/* /tmp/dep/
 #   3. carry .wp3 .whl .gl .nvj:  bash benchmarks/gpu/run.sh setup
-#   4.. (warm machine, nothing carried):  bash benchmarks/gpu/run.sh physics | render | fidelity | tests
+#   4.. (warm machine, nothing carried):
+#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | main
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
-# benchmarks/gpu/make_jpeg_part.sh (both run once here, from the project root).
+# benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh (all run once
+# here, from the project root). `main` runs configs/all.yaml as shipped; a call that ends before
+# the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|fidelity|tests}
+phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|main}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -23,6 +26,10 @@ case "$phase" in
     source .wp3/gpu_env.sh || exit 1
     tar -xJf .nvj/nvj.tar.xz -C /tmp/site && python3 -m pip install -q --no-index --no-deps \
       --no-compile --target /tmp/site .nvj/*.whl || exit 1
+    if ! python3 -c "import aiohttp, rich, yaml, PIL" 2>/dev/null; then
+      python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site /tmp/dep/*.whl \
+        || exit 1
+    fi
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/gpu.txt"
     python3 - <<'PY' 2>&1 | tee "$out/setup.log"
 import mujoco, mujoco_warp, warp as wp, simplejpeg
@@ -52,6 +59,19 @@ PY
       tests/test_render_warp.py 2>&1 | tee "$out/tests.log"
     timeout 200 python3 benchmarks/warp_gpu_checks.py --json "$out/checks.json" 2>&1 \
       | tee "$out/checks.log"
+    ;;
+  main)
+    # The product's front door as shipped, timed; the report is made from results.jsonl
+    # afterwards (matplotlib is not on the device image).
+    run=/tmp/run_all
+    python3 -m vabench.sweep configs/all.yaml --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
+    start=$EPOCHREALTIME
+    timeout 520 python3 -m vabench.sweep configs/all.yaml --out "$run" --plain \
+      --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
+    rc=${PIPESTATUS[0]}
+    echo "rc $rc wall_s $(python3 -c "print(round($EPOCHREALTIME - $start, 1))")" | tee -a "$out/main_wall.txt"
+    cp "$run"/results.jsonl "$run"/infrastructure.jsonl "$run"/*.json "$out/" 2>/dev/null
+    nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
     ;;
   *) echo "unknown phase $phase"; exit 2 ;;
 esac
