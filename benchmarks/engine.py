@@ -1,8 +1,11 @@
 """Episode engine throughput against the ideal set by model latency alone.
 
-    python benchmarks/engine.py [--backend c|mjx] [--concurrency 1,10,100,1000] [--latency 2]
-        [--steps 5] [--size 640x480] [--render-workers 2] [--task grasp_single_cube]
-        [--shared-batch] [--json FILE]
+    python benchmarks/engine.py [--backend c|mjx] [--impl jax|warp] [--renderer gl|warp]
+        [--concurrency 1,10,100,1000] [--latency 2] [--steps 5] [--size 640x480]
+        [--render-workers 2] [--task grasp_single_cube] [--shared-batch] [--json FILE]
+
+On a GPU host the product's path is `--backend mjx --impl warp --renderer warp` (MuJoCo Warp
+physics, Warp's ray tracer reading the batch's state on the device).
 
 For each concurrency C, C episodes of one task run at once against the embedded server (random
 valid robot actions, every reply after exactly `--latency` seconds), each for `--steps`
@@ -89,7 +92,8 @@ async def main_async(args) -> list[dict]:
     from vabench.agent.engine import task_services
     from vabench.llm_pool.pool import LLMPool
     from vabench.llm_pool.server import LocalServer, ServerConfig
-    from vabench.render.worker import ImageSettings, RenderPool
+    from vabench.render.backends import make_renderer
+    from vabench.render.worker import ImageSettings
     from vabench.seeds import verified_seeds
     from vabench.tasks import get_task
 
@@ -103,13 +107,20 @@ async def main_async(args) -> list[dict]:
         policy_options={"seed": 1},
         latency={"mean_s": args.latency, "dist": "fixed"},
     )
-    batch_kwargs = {"lanes": args.lanes} if args.lanes else {}
+    batch_kwargs: dict = {"lanes": args.lanes} if args.lanes else {}
+    if args.backend == "mjx":
+        batch_kwargs["impl"] = args.impl
     rows = []
-    with RenderPool(
-        workers=args.render_workers, platform=args.platform, max_size=(width, height), timeout_s=600
-    ) as rp:
+    renderer, choice = make_renderer(
+        args.renderer, workers=args.render_workers, platform=args.platform, max_size=(width, height)
+    )
+    with renderer as rp:
+        described = (
+            f"{args.render_workers} x {rp.gl_info}" if choice.backend == "gl" else "Warp ray tracer"
+        )
+        physics = args.backend + (f"/{args.impl}" if args.backend == "mjx" else "")
         print(
-            f"renderer: {args.render_workers} x {rp.gl_info}; backend {args.backend}; "
+            f"renderer: {described}; backend {physics}; "
             f"latency {args.latency} s; {args.steps} decisions per episode; {args.size}"
         )
         async with LocalServer(config) as server:
@@ -158,7 +169,7 @@ async def main_async(args) -> list[dict]:
                         shared_batch=args.shared_batch,
                         size=args.size,
                         latency_s=args.latency,
-                        renderer=str(rp.gl_info),
+                        renderer=described,
                     )
                     rows.append(row)
                     print(
@@ -178,6 +189,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--task", default="grasp_single_cube")
     p.add_argument("--backend", choices=("c", "mjx"), default="c")
+    p.add_argument("--impl", choices=("jax", "warp"), default="jax", help="mjx only")
+    p.add_argument("--renderer", choices=("gl", "warp"), default="gl")
     p.add_argument("--concurrency", default="1,10,100,1000")
     p.add_argument("--latency", type=float, default=2.0)
     p.add_argument("--steps", type=int, default=5)

@@ -5,13 +5,13 @@
 #   2. carry .wp2 .dep:  mkdir -p /tmp/wp /tmp/dep && cp .wp2/* /tmp/wp/ && cp .dep/* /tmp/dep/
 #   3. carry .wp3 .whl .gl .nvj:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | main
+#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
 # benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh (all run once
 # here, from the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|main}
+phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -42,16 +42,16 @@ print(resolve("auto"), resolve_renderer("auto"))
 PY
     ;;
   physics)
-    timeout 570 python3 benchmarks/sim_throughput.py --sizes 256,1024,8192 --backends warp,c,jax \
-      --loops per_step --budget-s 420 --json "$out/sim.json" 2>&1 | tee "$out/sim.log"
+    timeout 570 python3 benchmarks/sim_throughput.py --sizes 256,1024,8192 --backends warp,c \
+      --loops per_step --budget-s 300 --json "$out/sim.json" 2>&1 | tee "$out/sim.log"
     ;;
   render)
     timeout 570 python3 benchmarks/render_throughput.py --sizes 640x480,1280x960 \
-      --batches 1,64,256,1024 --workers 4,8 --slots 256 --repeats 20 \
+      --batches 1,256,1024 --workers 8 --slots 256 --repeats 10 \
       --json "$out/render.json" 2>&1 | tee "$out/render.log"
     ;;
   fidelity)
-    timeout 570 python3 benchmarks/warp_fidelity.py --tasks all --n 20 --budget-s 480 \
+    timeout 570 python3 benchmarks/warp_fidelity.py --tasks all --n 20 --budget-s 420 \
       --json "$out/fidelity.json" --md "$out/fidelity.md" 2>&1 | tee "$out/fidelity.log"
     ;;
   tests)
@@ -59,6 +59,19 @@ PY
       tests/test_render_warp.py 2>&1 | tee "$out/tests.log"
     timeout 200 python3 benchmarks/warp_gpu_checks.py --json "$out/checks.json" 2>&1 \
       | tee "$out/checks.log"
+    ;;
+  engine)
+    # Issue 20's engine and server targets: episodes in flight against the ideal C/L (Warp
+    # physics + Warp images, then C MuJoCo + GL as the CPU path's figure on the same host), and
+    # the embedded server's calls/s against its policy worker processes.
+    timeout 240 python3 benchmarks/engine.py --backend mjx --impl warp --renderer warp \
+      --concurrency 1,100,1000 --latency 2 --steps 5 --size 640x480 \
+      --json "$out/engine_warp.json" 2>&1 | tee "$out/engine.log"
+    timeout 120 python3 benchmarks/engine.py --backend c --renderer gl --render-workers 8 \
+      --concurrency 1000 --latency 2 --steps 5 --size 640x480 \
+      --json "$out/engine_c.json" 2>&1 | tee -a "$out/engine.log"
+    timeout 200 python3 benchmarks/server_scaling.py --processes 0,4,8,15 --concurrency 64 \
+      --seconds 15 --json "$out/server.json" 2>&1 | tee "$out/server.log"
     ;;
   main)
     # The product's front door as shipped, timed; the report is made from results.jsonl
