@@ -129,3 +129,30 @@ def test_auto_runs_worker_processes_on_a_cuda_like_host_and_loses_nothing(
     keys = {(r["task"], r["seed"]) for r in lines}
     assert len(lines) == len(keys) == 4
     assert all(r["status"] in ("success", "failure") for r in lines)
+
+
+def test_batched_physics_fills_its_batch_instead_of_adapting(tmp_path, capsys):
+    """MJX (and MuJoCo Warp) step every slot of a batch for the price of one: `in_flight: auto`
+    holds the ceiling there and says why; C MuJoCo adapts."""
+    from vabench.sweep.inflight import BATCHED, InFlight
+
+    cfg = tmp_path / "mjx.yaml"
+    cfg.write_text(CONFIG.format(extra="simulator: {backend: mjx, impl: jax}"))
+    assert main([str(cfg), "--dry-run"]) == 0
+    assert f"in flight: 256 episodes per process at most ({BATCHED})" in capsys.readouterr().out
+    gate = InFlight(256, 256, why=BATCHED)
+    assert gate.limit == 256 and gate.reason == BATCHED
+    gate.observe("k", 10.0)  # slow decisions never shrink it
+    assert gate.limit == 256
+
+
+def test_policy_workers_take_half_the_cores_from_four_on(monkeypatch):
+    from vabench.llm_pool.server import ServerConfig, policy_workers
+
+    for cores, expected in (("2", 0), ("3", 0), ("4", 2), ("16", 8)):
+        monkeypatch.setenv("VABENCH_CORES", cores)
+        assert policy_workers("auto") == expected
+    assert policy_workers(3) == 3
+    assert ServerConfig(policy_processes="auto").policy_processes == "auto"
+    with pytest.raises(ValueError, match="policy_processes"):
+        ServerConfig(policy_processes="many")

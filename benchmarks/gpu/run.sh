@@ -51,7 +51,7 @@ PY
       --json "$out/render.json" 2>&1 | tee "$out/render.log"
     ;;
   fidelity)
-    timeout 570 python3 benchmarks/warp_fidelity.py --tasks all --n 20 --budget-s 420 \
+    timeout 570 python3 benchmarks/warp_fidelity.py --tasks "${FIDELITY_TASKS:-all}" --n 20 --budget-s 420 \
       --json "$out/fidelity.json" --md "$out/fidelity.md" 2>&1 | tee "$out/fidelity.log"
     ;;
   tests)

@@ -30,10 +30,10 @@ import random
 import socket
 from collections import Counter, deque
 from concurrent.futures import ProcessPoolExecutor
-from typing import IO, Any
+from typing import IO, Any, Literal
 
 from aiohttp import web
-from pydantic import BaseModel, ConfigDict, Field, SecretStr
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 
 from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
 from vabench.llm_pool.apis import ADAPTERS, ApiAdapter, IncomingRequest, LimitState, ServerReply
@@ -70,6 +70,16 @@ class PolicySpec(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict)
 
 
+def policy_workers(setting: int | str) -> int:
+    """The policy worker processes of `ServerConfig.policy_processes` on this machine
+    (`VABENCH_CORES` pins the core count, as for the sweep's choices)."""
+    if setting != "auto":
+        return int(setting)
+    pinned = os.environ.get("VABENCH_CORES")
+    cores = int(pinned) if pinned and pinned.isdigit() else len(os.sched_getaffinity(0))
+    return cores // 2 if cores >= 4 else 0
+
+
 class ServerConfig(BaseModel):
     """Everything the embedded server simulates; every field has a harmless default."""
 
@@ -93,11 +103,20 @@ class ServerConfig(BaseModel):
     log_size: int = Field(default=10_000, ge=0)
     """Requests kept in memory (`LocalServer.log`)."""
     seed: int | None = None
-    policy_processes: int = Field(default=0, ge=0)
+    policy_processes: int | Literal["auto"] = 0
     """Worker processes that compute the replies of stateless policies (`policies.PURE_REPLIES`:
     reference_servo, conversation_hash), so a CPU-heavy policy uses several cores while this
     process keeps the HTTP, the simulated latency, caching, limits and faults. 0: replies are
-    computed here, in a thread. Other policies ignore it."""
+    computed here, in a thread. "auto": half the cores from 4 cores on (the other half runs the
+    sweep's own processes), else 0 (`policy_workers`). Other policies ignore it."""
+
+    @field_validator("policy_processes", mode="plain")
+    @classmethod
+    def _policy_processes(cls, value: Any) -> int | Literal["auto"]:
+        whole = isinstance(value, int) and not isinstance(value, bool)
+        if value == "auto" or (whole and value >= 0):
+            return value
+        raise ValueError(f"expected 'auto' or a whole number >= 0, got {value!r}")
 
 
 @dataclasses.dataclass
@@ -235,7 +254,7 @@ class LocalServer:
     async def _start_workers(self) -> None:
         """Start the policy worker processes (when asked and some policy is pure), each loading
         its policy's code once, before the first request."""
-        n = self.config.policy_processes
+        n = policy_workers(self.config.policy_processes)
         pure = {s.policy for s in self._specs.values() if s and s.policy in PURE_REPLIES}
         if not n or not pure:
             return

@@ -28,6 +28,7 @@ from vabench.reference_agent.perception import Scene
 
 Step = list[Any]
 
+
 def family_of(instruction: str, arms: tuple[str, ...]) -> str | None:
     """The family an instruction names for a task with `arms`, or None (no plan)."""
     if set(arms) == {"right"}:

@@ -47,12 +47,17 @@ class DeviceJpeg:
             )
         return self._params[key]
 
-    def encode(self, frames: Any, settings: ImageSettings, cuda_stream: int = 0) -> list[bytes]:
+    def encode(
+        self, frames: Any, settings: ImageSettings, cuda_stream: int | None = 0
+    ) -> list[bytes]:
         """`frames`: anything indexable whose items expose `__cuda_array_interface__` (a Warp
-        array of shape (n, H, W, 3)); `cuda_stream`: the stream that wrote them."""
+        array of shape (n, H, W, 3)); `cuda_stream`: the handle of the stream that wrote them.
+        Warp reports the default stream's handle as None (a NULL pointer through ctypes), which
+        nvImageCodec refuses: it is stream 0 to CUDA (every episode of a sweep on an H100 failed
+        on it before this)."""
         images = [self._nv.as_image(frames[i]) for i in range(frames.shape[0])]
         streams = self._encoder.encode(
-            images, "jpeg", params=self._encode_params(settings), cuda_stream=cuda_stream
+            images, "jpeg", params=self._encode_params(settings), cuda_stream=int(cuda_stream or 0)
         )
         if any(s is None for s in streams):
             raise RuntimeError("nvImageCodec failed to encode a frame")

@@ -58,11 +58,14 @@ def capacity(
     """Buffer sizes from the scene, unless given.
 
     Contacts: 16 for the arms' fingers and palm on a held object, 12 for every free object
-    (its resting face on the table or a support: 4-8, and neighbours), 8 per arm. Measured on
-    C MuJoCo over the experts of every family, the most contacts at once were 12 for one object
-    (grasp_single_cube), 24 for four (place_single_cube_heldout) and 32 for five (the basket):
-    the formula leaves 2.6-3x headroom. Rows: each contact takes `condim` rows with elliptic
-    cones and 2 (condim - 1) with pyramidal ones, plus one per limited joint.
+    (its resting face on the table or a support: 4-8, and neighbours), 16 for every further
+    collision geom of a free object (a basket's walls, a bowl's segments: each touches what
+    leans on it), 8 per arm. Measured on C MuJoCo over the experts of every family, the most
+    contacts at once were 12 for one object (grasp_single_cube), 24 for four
+    (place_single_cube_heldout) and 32 for five (the basket); without the per-geom term the
+    basket's 96 overflowed under the reference agent on an H100 (6 of 60 episodes), which
+    piles objects against the walls as the expert does not. Rows: each contact takes `condim`
+    rows with elliptic cones and 2 (condim - 1) with pyramidal ones, plus one per limited joint.
     """
     n_free = int(np.sum(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE))
     n_arms = int(
@@ -71,7 +74,18 @@ def capacity(
             for a in ("left", "right")
         )
     )
-    contacts = nconmax if nconmax is not None else 16 + 12 * n_free + 8 * n_arms
+    free_bodies = {
+        int(model.jnt_bodyid[j])
+        for j in np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE)
+    }
+    free_geoms = sum(
+        1
+        for g in range(model.ngeom)
+        if (model.geom_contype[g] | model.geom_conaffinity[g])
+        and _root_in(model, int(model.geom_bodyid[g]), free_bodies)
+    )
+    extra = max(0, free_geoms - n_free)
+    contacts = nconmax if nconmax is not None else 16 + 12 * n_free + 16 * extra + 8 * n_arms
     condim = int(model.geom_condim.max()) if model.ngeom else 3
     elliptic = model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     per_contact = condim if elliptic else 2 * (condim - 1)
@@ -79,6 +93,13 @@ def capacity(
     if contacts < 1 or rows < 1:
         raise ValueError(f"nconmax and njmax must be >= 1, got {contacts} and {rows}")
     return Capacity(nconmax=contacts, njmax=rows)
+
+
+def _root_in(model: mujoco.MjModel, body: int, roots: set[int]) -> bool:
+    """Whether `body` is one of `roots` or inside one of their subtrees."""
+    while body and body not in roots:
+        body = int(model.body_parentid[body])
+    return body in roots
 
 
 def failure_text(bits: int, cap: Capacity) -> str:

@@ -32,6 +32,7 @@ from typing import Any
 
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
+from vabench.sweep.inflight import BATCHED
 
 PROCESSES_FROM_CORES = 4
 """From this many cores on, `executor: auto` runs cells in worker processes: below it the
@@ -141,7 +142,10 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
     asks explicitly for a backend that cannot run here."""
     machine = machine or this_machine()
     sim, ex = config.simulator, config.executor
-    if ex.in_flight == "auto":
+    physics = resolve(sim.backend, sim.impl)
+    if ex.in_flight == "auto" and physics.backend == "mjx":
+        in_flight = f"{ex.max_episodes} episodes per process at most ({BATCHED})"
+    elif ex.in_flight == "auto":
         in_flight = (
             f"adaptive, at most {ex.max_episodes} episodes per process (executor.in_flight: "
             "enough to keep simulator, renderer and endpoints busy without queueing)"
@@ -150,7 +154,7 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
         in_flight = f"{min(ex.in_flight, ex.max_episodes)} episodes per process (asked for)"
     return Choices(
         machine,
-        resolve(sim.backend, sim.impl),
+        physics,
         resolve_renderer(config.render.backend),
         resolve_executor(ex, machine),
         in_flight,

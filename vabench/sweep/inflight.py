@@ -25,6 +25,12 @@ unloaded time: every stage busy, a short queue. The tolerance also absorbs a bas
 in a lucky moment. It starts at one episode (so R0 is measured unloaded) and doubles each window
 until the first window past the tolerance (slow start). `InFlight` is the asyncio gate episodes
 pass through; `reason` says why the limit is what it is (the display shows it).
+
+Batched physics (MuJoCo Warp, MJX) is the exception: one step of the batch costs about the same
+for one acting slot as for all of them, so the only way to use it is to fill it, and a
+decision's time measures the other processes sharing the GPU more than this one's load (on one
+H100, 16 sweep processes held at 1-2 episodes each by this controller made 5 decisions/s). There
+`auto` holds the ceiling (`BATCHED`).
 """
 
 from __future__ import annotations
@@ -44,10 +50,16 @@ MIN_GRADIENT = 0.5
 """The most one window may shrink the limit (halving), so one noisy window cannot empty it."""
 
 
+BATCHED = "batched physics: every slot of a step costs the same, so all the batch's episodes"
+
+
 class LimitController:
     """The limit, from the times of completed decisions (see the module docstring)."""
 
-    def __init__(self, ceiling: int, fixed: int | None = None, initial: int = 1):
+    def __init__(
+        self, ceiling: int, fixed: int | None = None, initial: int = 1, why: str | None = None
+    ):
+        """`fixed`: hold that many (`why` says why; default: the config asked for it)."""
         if ceiling < 1:
             raise ValueError(f"ceiling must be >= 1, got {ceiling}")
         self.ceiling = ceiling
@@ -55,7 +67,7 @@ class LimitController:
         self.windows = 0
         if fixed is not None:
             self.limit = max(1, min(fixed, ceiling))
-            self.reason = f"executor.in_flight = {fixed}" + (
+            self.reason = (why or f"executor.in_flight = {fixed}") + (
                 f", capped by executor.max_episodes = {ceiling}" if fixed > ceiling else ""
             )
             return
@@ -104,8 +116,10 @@ class InFlight:
     """The asyncio gate: `async with gate.slot():` around an episode; `observe` after each of
     its decisions. Waiters are admitted in arrival order."""
 
-    def __init__(self, ceiling: int, fixed: int | None = None, initial: int = 1):
-        self.controller = LimitController(ceiling, fixed, initial)
+    def __init__(
+        self, ceiling: int, fixed: int | None = None, initial: int = 1, why: str | None = None
+    ):
+        self.controller = LimitController(ceiling, fixed, initial, why)
         self.in_flight = 0
         self.peak = 0
         self._waiters: collections.deque[asyncio.Future[None]] = collections.deque()

@@ -45,7 +45,7 @@ from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import Choice, resolve
 from vabench.sweep.choices import LOCAL_MAX_TASKS
-from vabench.sweep.inflight import InFlight
+from vabench.sweep.inflight import BATCHED, InFlight
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -161,6 +161,10 @@ class LocalSweep:
         self._adopt_orphans()
         cfg = self.config
         self.physics = resolve(cfg.simulator.backend, cfg.simulator.impl)
+        ex = cfg.executor
+        if ex.in_flight == "auto" and self.physics.backend == "mjx":
+            self.gate = InFlight(ex.max_episodes, ex.max_episodes, why=BATCHED)
+            self.progress.gate = self.gate
         async with contextlib.AsyncExitStack() as stack:
             endpoints = list(cfg.models)
             if cfg.embedded_models:
