@@ -160,9 +160,7 @@ executor: {kind: local}
 """
 
 
-def test_a_sweep_starts_with_one_episode_so_the_first_ends_before_the_rest_start(
-    tmp_path, capsys
-):
+def test_a_sweep_starts_with_one_episode_so_the_first_ends_before_the_rest_start(tmp_path, capsys):
     cfg = tmp_path / "sweep.yaml"
     cfg.write_text(SWEEP)
     out = tmp_path / "out"

@@ -126,7 +126,10 @@ def test_cached_reset_equals_a_fresh_settle(cube, tmp_path, backend):
     runs = []
     for _ in range(2):  # the first settles and fills the cache, the second reads it (disk)
         tb = TaskBatch(
-            task, 1, backend="mjx" if backend == "warp" else "c", cache=SettledCache(tmp_path),
+            task,
+            1,
+            backend="mjx" if backend == "warp" else "c",
+            cache=SettledCache(tmp_path),
             **kwargs,
         )
         report = tb.reset([0], [seed])[0]
