@@ -168,6 +168,62 @@ def test_processes_workers_die_with_a_killed_parent_and_never_write_the_ledger(t
     assert len(keys) == len(set(keys)) == 6
 
 
+def test_a_dead_worker_is_replaced_and_its_chunks_rerun(tmp_path):
+    """A cell worker killed mid-episode (as an nvJPEG abort killed one on an H100) breaks the
+    whole process pool; the sweep starts new workers for the chunks it took down and finishes
+    the plan in the same invocation, one record per episode."""
+    cfg = tmp_path / "processes.yaml"
+    cfg.write_text(PROCESSES)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "vabench.sweep", str(cfg), "--out", str(out), "--plain"]
+    command.append("--no-report")
+    proc = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 240
+        while not any(
+            '"type": "reply"' in p.read_text() for p in out.glob("episodes/**/events.jsonl")
+        ):
+            assert proc.poll() is None, proc.communicate()[0][-3000:]
+            assert time.monotonic() < deadline, "no episode started in time"
+            time.sleep(0.05)
+        workers = [
+            pid
+            for pid in descendants(proc.pid)
+            if _parent(pid) == proc.pid and b"spawn_main" in _cmdline(pid)
+        ]
+        assert workers
+        os.kill(workers[0], signal.SIGKILL)
+        text, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, text[-3000:]
+    assert "a worker process died" in text and "Traceback" not in text
+    keys = [(r["task"], r["seed"]) for r in ledger_lines(out)]
+    assert len(keys) == len(set(keys)) == 6
+
+
+def _parent(pid: int) -> int:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except OSError:
+        return -1
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
 REFUSING = """\
 name: refused
 models:

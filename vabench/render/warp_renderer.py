@@ -57,7 +57,7 @@ from vabench.render.images import (
     packed_to_rgb,
 )
 from vabench.render.renderer import VIEW_CAMERA, render_spec
-from vabench.sim_mjx.backends import device_lock, warp_device
+from vabench.sim_mjx.backends import device_lock, gpu_share, warp_device
 from vabench.sim_mjx.warp_model import RENDER_IGNORED, WarpModel
 from vabench.tasks import REGISTRY
 from vabench.tasks.base import Task
@@ -436,7 +436,7 @@ class WarpRenderPool:
             return self.max_pass
         if not self._device.is_cuda:
             return CPU_MAX_PASS
-        free = self._device.free_memory
+        free = self._device.free_memory // gpu_share()
         fit = int(free * MEMORY_SHARE) // pass_bytes(
             settings.width, settings.height, 1, self._device_jpeg is not None
         )

@@ -49,6 +49,17 @@ class Choice:
         return "c" if self.backend == "c" else f"mjx/{self.impl}"
 
 
+GPU_SHARE = "VABENCH_GPU_SHARE"
+"""Environment variable: how many processes share each GPU (set by the processes executor for
+its workers). GPU buffers sized from the memory free (the Warp renderer's passes) take
+1 / share of it, so that processes sizing at the same moment do not overcommit the card."""
+
+
+def gpu_share() -> int:
+    value = os.environ.get(GPU_SHARE, "1")
+    return max(1, int(value)) if value.isdigit() else 1
+
+
 def warp_device() -> str:
     """The Warp device the Warp backend uses: VABENCH_WARP_DEVICE, else the first CUDA GPU."""
     return os.environ.get("VABENCH_WARP_DEVICE", "cuda:0")

@@ -9,7 +9,10 @@ a Ray cell does (`run_cell`: a `LocalSweep` restricted to it, with its own LLM p
 server, render workers and simulator batch), so the records equal those of the local executor.
 At most `executor.max_tasks` run at once, each in a spawned process (never forked: the parent
 holds JAX and thread pools). A chunk that raises is logged with its traceback while the others
-run on; its episodes are listed as missing and a rerun resumes them.
+run on; its episodes are listed as missing and a rerun resumes them. A worker that dies (out of
+memory, a crash in native code) breaks the whole pool: new workers take up the chunks it took
+down, up to `MAX_POOL_RESTARTS` times (an H100 run lost 46 of 72 chunks to one nvJPEG abort
+before this).
 
 The workers' environment (`choices.child_environment`): JAX never preallocates GPU memory and
 stays on the CPU unless the physics is MJX on JAX; with several GPUs each worker gets one.
@@ -41,7 +44,7 @@ from typing import Any
 
 from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
 from vabench.config import SweepConfig
-from vabench.sim_mjx.backends import resolve
+from vabench.sim_mjx.backends import GPU_SHARE, resolve
 from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
 from vabench.sweep.display import Status, Tally
 from vabench.sweep.plan import EpisodeKey
@@ -60,6 +63,9 @@ from vabench.tasks import REGISTRY
 log = logging.getLogger(__name__)
 
 TICK_S = 1.0
+MAX_POOL_RESTARTS = 3
+"""Times the workers are started again after one of them died (each death takes down every
+chunk the pool was running: concurrent.futures marks the whole pool broken)."""
 """How often the parent redraws the display."""
 MIN_CHUNK = 10
 """The fewest episodes a cell is cut down to: each chunk pays its own start-up."""
@@ -224,6 +230,8 @@ def run_processes(
     parts = chunks(cells, workers, lambda t: config.budget(t) if t in REGISTRY else 1)
     workers = min(workers, len(parts))
     env = child_environment(resolve(config.simulator.backend, config.simulator.impl))
+    # Workers that share a GPU size their GPU buffers (render passes) to their share of it.
+    env[GPU_SHARE] = str(math.ceil(workers / max(1, len(machine.gpus))))
     seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
         "processes: %d cells (%d episodes) in %d chunks, %d at once; workers run with %s%s",
@@ -243,55 +251,79 @@ def run_processes(
     writer = LedgerWriter(run_dir, lines)
     pool: cf.ProcessPoolExecutor | None = None
     finished = False
+    todo = list(parts)
+    restarts = 0
     try:
-        with _environment(env), children_ignore_sigint():
-            pool = cf.ProcessPoolExecutor(
-                max_workers=workers,
-                mp_context=context,
-                initializer=_init_worker,
-                initargs=(os.getpid(), lines, context.Value("i", 0), machine.gpus),
-            )
-            futures = {
-                pool.submit(
-                    _run_cell_in_worker, document, str(run_dir), [ledger_key(k) for k in part]
-                ): name
-                for name, part in parts
-            }
-        pending = set(futures)
-        last_log = time.monotonic()
-        while pending:
-            done, pending = cf.wait(pending, timeout=TICK_S)
-            for future in (f for f in done if not f.cancelled()):
-                name = futures[future]
-                try:
-                    summary = future.result()
-                except Exception:
-                    failures.append(name)
-                    log.exception("processes: cell %s failed", name)
-                    continue
-                log.info("processes: cell %s done: %s", name, summary)
-                if summary.get("stopped") and not stopped:
-                    stopped.append(summary["stopped"])
-                    for other in pending:  # chunks not started yet never start
-                        other.cancel()
-            tally.refresh()
-            if on_status is not None:
-                on_status(writer.status(tally))
-            if done or time.monotonic() - last_log >= PROGRESS_EVERY_S:
-                last_log = time.monotonic()
-                log.info(
-                    "processes: cells %d/%d done (%d failed) | episodes recorded %d/%d",
-                    len(futures) - len(pending),
-                    len(futures),
-                    len(failures),
-                    tally.status().total().done,
-                    len(keys),
+        while todo:
+            with _environment(env), children_ignore_sigint():
+                pool = cf.ProcessPoolExecutor(
+                    max_workers=workers,
+                    mp_context=context,
+                    initializer=_init_worker,
+                    initargs=(os.getpid(), lines, context.Value("i", 0), machine.gpus),
+                )
+                futures = {
+                    pool.submit(
+                        _run_cell_in_worker, document, str(run_dir), [ledger_key(k) for k in part]
+                    ): (name, part)
+                    for name, part in todo
+                }
+            todo = []
+            pending = set(futures)
+            last_log = time.monotonic()
+            while pending:
+                done, pending = cf.wait(pending, timeout=TICK_S)
+                for future in (f for f in done if not f.cancelled()):
+                    name, part = futures[future]
+                    try:
+                        summary = future.result()
+                    except cf.process.BrokenProcessPool:
+                        todo.append((name, part))  # a worker died: every chunk of the pool
+                        continue
+                    except Exception:
+                        failures.append(name)
+                        log.exception("processes: cell %s failed", name)
+                        continue
+                    log.info("processes: cell %s done: %s", name, summary)
+                    if summary.get("stopped") and not stopped:
+                        stopped.append(summary["stopped"])
+                        for other in pending:  # chunks not started yet never start
+                            other.cancel()
+                tally.refresh()
+                if on_status is not None:
+                    on_status(writer.status(tally))
+                if done or time.monotonic() - last_log >= PROGRESS_EVERY_S:
+                    last_log = time.monotonic()
+                    log.info(
+                        "processes: cells %d/%d done (%d failed) | episodes recorded %d/%d",
+                        len(parts) - len(pending) - len(todo),
+                        len(parts),
+                        len(failures),
+                        tally.status().total().done,
+                        len(keys),
+                    )
+            pool.shutdown(wait=True)
+            if todo and restarts >= MAX_POOL_RESTARTS:
+                failures.extend(name for name, _ in todo)
+                log.error(
+                    "processes: a worker process died %d times; %d chunks not run",
+                    restarts + 1,
+                    len(todo),
+                )
+                todo = []
+            elif todo:
+                restarts += 1
+                log.warning(
+                    "processes: a worker process died (killed, out of memory, or a crash in "
+                    "native code: its last lines are above); starting new workers for the %d "
+                    "chunks it took down (recorded episodes are kept, interrupted ones restart)",
+                    len(todo),
                 )
         finished = True
     finally:
         if finished:
-            assert pool is not None
-            pool.shutdown()
+            if pool is not None:
+                pool.shutdown()
             writer.close()
         else:  # interrupted (or failed): end the workers, keep every whole line they sent
             if pool is not None:
