@@ -120,32 +120,38 @@ def alive(pid: int) -> bool:
     return state != "Z"
 
 
-def test_processes_workers_die_with_a_killed_parent_and_never_write_the_ledger(tmp_path):
-    """SIGKILL of the sweep's main process alone (not its group): its cell workers must not
-    go on calling the model and appending records (defect A); the next invocation finishes
-    the plan with exactly one record per episode."""
+def _processes_sweep_mid_episode(tmp_path: Path, *extra: str):
+    """Start the PROCESSES sweep as a subprocess (own session) and return (config, run
+    directory, process) once a cell worker is in the middle of an episode (a reply logged)."""
     cfg = tmp_path / "processes.yaml"
     cfg.write_text(PROCESSES)
     out = tmp_path / "out"
     command = [sys.executable, "-m", "vabench.sweep", str(cfg), "--out", str(out), "--plain"]
     proc = subprocess.Popen(
-        command,
+        [*command, *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
         env=dict(os.environ, PYTHONUNBUFFERED="1"),
         start_new_session=True,
     )
+    deadline = time.monotonic() + 240
+    while not any('"type": "reply"' in p.read_text() for p in out.glob("episodes/**/events.jsonl")):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+            raise AssertionError(f"no episode started in time: {proc.communicate()[0][-3000:]}")
+        time.sleep(0.05)
+    return cfg, out, proc
+
+
+def test_processes_workers_die_with_a_killed_parent_and_never_write_the_ledger(tmp_path):
+    """SIGKILL of the sweep's main process alone (not its group): its cell workers must not
+    go on calling the model and appending records (defect A); the next invocation finishes
+    the plan with exactly one record per episode."""
+    cfg, out, proc = _processes_sweep_mid_episode(tmp_path)
     workers: set[int] = set()
     try:
-        deadline = time.monotonic() + 240
-        # wait until a cell worker is in the middle of an episode (a model reply logged)
-        while not any(
-            '"type": "reply"' in p.read_text() for p in out.glob("episodes/**/events.jsonl")
-        ):
-            assert proc.poll() is None, proc.communicate()[0][-3000:]
-            assert time.monotonic() < deadline, "no episode started in time"
-            time.sleep(0.05)
         workers = descendants(proc.pid)
         assert workers
         os.kill(proc.pid, signal.SIGKILL)  # the main process only
@@ -172,27 +178,8 @@ def test_a_dead_worker_is_replaced_and_its_chunks_rerun(tmp_path):
     """A cell worker killed mid-episode (as an nvJPEG abort killed one on an H100) breaks the
     whole process pool; the sweep starts new workers for the chunks it took down and finishes
     the plan in the same invocation, one record per episode."""
-    cfg = tmp_path / "processes.yaml"
-    cfg.write_text(PROCESSES)
-    out = tmp_path / "out"
-    command = [sys.executable, "-m", "vabench.sweep", str(cfg), "--out", str(out), "--plain"]
-    command.append("--no-report")
-    proc = subprocess.Popen(
-        command,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        start_new_session=True,
-    )
+    _, out, proc = _processes_sweep_mid_episode(tmp_path, "--no-report")
     try:
-        deadline = time.monotonic() + 240
-        while not any(
-            '"type": "reply"' in p.read_text() for p in out.glob("episodes/**/events.jsonl")
-        ):
-            assert proc.poll() is None, proc.communicate()[0][-3000:]
-            assert time.monotonic() < deadline, "no episode started in time"
-            time.sleep(0.05)
         workers = [
             pid
             for pid in descendants(proc.pid)
