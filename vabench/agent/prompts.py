@@ -18,13 +18,13 @@ and step sizes. `visibility.EVALUATOR_ONLY_TERMS` are avoided (tests check it).
 
 from __future__ import annotations
 
+import typing
 from collections.abc import Sequence
 
 from vabench.agent.observation import INITIAL_VIEW, PASSIVE_VIEWS
+from vabench.protocol import MAX_CAMERA_CHAIN, MAX_TOOL_ROUND_TRIPS, ObservationProtocol
 
-PROTOCOLS = ("active", "passive")
-MAX_CAMERA_CHAIN = 5  # FACTS: the prompt limits camera-only chains to 5 (the engine enforces it)
-MAX_TOOL_CALLS = 20  # FACTS: model/tool round trips per environment decision
+PROTOCOLS: tuple[str, ...] = typing.get_args(ObservationProtocol)
 
 TOOL_DOCS: dict[str, str] = {
     "geometry.verify": (
@@ -201,7 +201,7 @@ def _tools(tools: Sequence[str]) -> str:
     lines = "\n".join(f"- {TOOL_DOCS[t]}" for t in tools)
     return f"""# Tools
 Tools never move the robot and cost no step; their result comes back as the next message.
-At most {MAX_TOOL_CALLS} replies per step, tool calls included.
+At most {MAX_TOOL_ROUND_TRIPS} replies per step, tool calls included.
 {lines}"""
 
 

@@ -43,7 +43,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-VIEWS = ("topdown", "side", "front_side_45", "side_top_45", "oblique_45")
+from vabench.protocol.vocabulary import CAMERA_INCREMENTS, CAMERA_TARGETS, CAMERA_VIEWS
+
+VIEWS = CAMERA_VIEWS
 """The five semantic views, in the fixed order of the passive bundle."""
 
 VIEW_OFFSETS: Mapping[str, tuple[float, float, float]] = {
@@ -57,7 +59,7 @@ VIEW_UP: Mapping[str, tuple[float, float, float]] = {
     "topdown": (0.0, 1.0, 0.0),
     **{v: (0.0, 0.0, 1.0) for v in VIEWS[1:]},
 }
-TARGETS = ("left", "right", "both")
+TARGETS = CAMERA_TARGETS
 
 HEAD_VIEW = "center_high"
 HEAD_POS = (0.0, -0.58, 1.48)
@@ -73,18 +75,8 @@ ZOOM_STEP = 0.08  # m
 TURN_STEP = math.radians(10.0)
 MIN_FOCUS = 0.05  # m: zoom_in never passes through the focus point
 
-INCREMENTS = (
-    "move_left",
-    "move_right",
-    "move_up",
-    "move_down",
-    "zoom_in",
-    "zoom_out",
-    "yaw_left",
-    "yaw_right",
-    "pitch_up",
-    "pitch_down",
-)
+INCREMENTS = CAMERA_INCREMENTS
+"""The camera moves relative to the current view (the model's names, `vabench.protocol`)."""
 
 
 @dataclass(frozen=True)

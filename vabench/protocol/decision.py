@@ -1,0 +1,109 @@
+"""One decision from one reply: dispatch, validation, the camera-chain rule, labels, and the
+vocabulary listed in every observation.
+
+Dispatch: `"stop": true` first (any other key is ignored), then "tool" (a missing "args" means
+{}), then "action". A non-boolean "stop" is an error rather than a guess. Unknown keys are
+ignored, except "arm" on a camera action, which is rejected with a hint to use
+`camera.view_left_*` / `camera.view_right_*` (ignoring it would silently aim elsewhere).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal
+
+from pydantic import ValidationError
+
+from vabench.protocol.camera import (
+    CameraAction,
+    action_names,
+    check_camera_chain,
+    parse_camera_action,
+)
+from vabench.protocol.context import DecisionContext
+from vabench.protocol.errors import DecisionError, decision_error, show, unknown_action
+from vabench.protocol.extract import as_object, extract_json_object
+from vabench.protocol.robot import (
+    ROBOT_MODELS,
+    Aperture,
+    DecisionModel,
+    DualMove,
+    MoveWorld,
+    RotateLocal,
+    parse_robot_action,
+    robot_forms,
+)
+from vabench.protocol.tools import TOOL_FORMS, ToolCall, parse_tool_call
+from vabench.protocol.vocabulary import DecisionKind, ObservationProtocol, camera_action_names
+
+
+class Stop(DecisionModel):
+    """The model ends the episode."""
+
+    kind: ClassVar[DecisionKind] = "stop"
+    stop: Literal[True] = True
+
+    def label(self) -> str:
+        return "stop"
+
+
+Decision = MoveWorld | RotateLocal | Aperture | DualMove | CameraAction | ToolCall | Stop
+
+
+def decision_from_object(obj: Any, ctx: DecisionContext) -> Decision:
+    """Dispatch and validate one decoded decision: "stop": true, then "tool", then "action".
+
+    Does not apply the camera-chain rule (`parse_decision` does)."""
+    obj = as_object(obj, "the decision")
+    if "stop" in obj:
+        if not isinstance(obj["stop"], bool):
+            raise DecisionError("stop", f"must be true or false, got {show(obj['stop'])}")
+        if obj["stop"]:
+            try:
+                return Stop.model_validate(obj)
+            except ValidationError as err:
+                raise decision_error(err) from None
+    if "tool" in obj:
+        return parse_tool_call(obj, ctx)
+    if "action" not in obj:
+        raise DecisionError(
+            "action",
+            'required: reply with {"action": ...}, {"tool": ..., "args": {...}} or {"stop": true}',
+        )
+    name = obj["action"]
+    if name in ROBOT_MODELS:
+        return parse_robot_action(obj, ctx.arms)
+    if isinstance(name, str) and name.startswith("camera."):
+        return parse_camera_action(obj, ctx)
+    raise unknown_action(name, action_names(ctx.arms, ctx.protocol))
+
+
+def parse_decision(text: str, ctx: DecisionContext) -> Decision:
+    """The validated decision of one model reply, or `DecisionError` with repair text.
+
+    Extraction (`extract_json_object`), dispatch and validation (`decision_from_object`),
+    then the camera-chain rule (`check_camera_chain` with `ctx.camera_chain`)."""
+    decision = decision_from_object(extract_json_object(text), ctx)
+    check_camera_chain(decision, ctx.camera_chain)
+    return decision
+
+
+def decision_label(decision: Decision) -> str:
+    """A compact, stable label for records and the action history, e.g.
+    "move_world right z+30mm", "camera.view_topdown", "tool geometry.verify", "stop"."""
+    return decision.label()
+
+
+def available_actions(
+    arms: Sequence[str], protocol: ObservationProtocol, tools: Sequence[str]
+) -> list[str]:
+    """The decision vocabulary listed in each observation, one template per line: robot
+    actions with their ranges (and "arm" in dual-arm tasks), camera actions in the active
+    protocol only (dual-arm view targets only in dual-arm tasks), the offered tools, stop."""
+    cameras = camera_action_names(arms) if protocol == "active" else ()
+    return [
+        *robot_forms(arms),
+        *(f'{{"action": "{n}"}}' for n in cameras),
+        *(TOOL_FORMS[t] for t in tools),
+        '{"stop": true}',
+    ]
