@@ -1,0 +1,178 @@
+"""Reading a sweep config file: YAML with positions, overrides from the command line, and
+one `SweepConfigError` listing every problem in the order the file reads."""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from vabench.config.problems import Problem, SweepConfigError, pydantic_problems, yaml_problem
+from vabench.config.resolve import (
+    model_problems,
+    resolve_seeds,
+    resolve_tasks,
+    resolve_tracks,
+    server_problems,
+)
+from vabench.config.schema import (
+    EMBEDDED,
+    EMBEDDED_PLACEHOLDER_URL,
+    SweepConfig,
+    SweepFile,
+    suite_tasks,
+)
+from vabench.llm_pool.server import ServerConfig
+
+
+def load_config(
+    path: Path | str,
+    *,
+    environ: Mapping[str, str] = os.environ,
+    overrides: Mapping[str, Any] | None = None,
+) -> SweepConfig:
+    """Read, check and resolve the sweep config at `path`.
+
+    `overrides` replace values of the document before it is checked; keys are dotted field
+    paths (`out`, `executor.kind`), as the command line sets them. `environ` is where the
+    models' `api_key_env` variables must be set (and non-empty).
+
+    Raises `SweepConfigError` listing every problem found (see the module docstring).
+    """
+    path = Path(path)
+    file = str(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise SweepConfigError(file, [Problem("", f"cannot read: {err.strerror or err}")]) from None
+    try:
+        doc = yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass
+    except yaml.MarkedYAMLError as err:
+        raise SweepConfigError(file, [yaml_problem(err)]) from None
+    except yaml.YAMLError as err:
+        raise SweepConfigError(file, [Problem("", f"YAML error: {err}")]) from None
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise SweepConfigError(
+            file, [Problem("", f"expected a mapping of settings, got {type(doc).__name__}")]
+        )
+    doc = _apply_overrides(doc, overrides or {})
+    config, problems = _check(doc, path.stem, environ)
+    if problems or config is None:
+        order = {key: i for i, key in enumerate(doc)}  # report in the order the file reads
+        problems.sort(key=lambda p: _position(p.path, order))
+        raise SweepConfigError(file, problems)
+    return config
+
+
+def _position(path: str, order: Mapping[str, int]) -> tuple[int, int]:
+    """Where a problem's field is in the file: its section, then its list entry."""
+    match = re.match(r"([^.\[]*)(?:\[(\d+)\])?", path)
+    head, index = (match.group(1), match.group(2)) if match else (path, None)
+    return order.get(head, len(order)), -1 if index is None else int(index)
+
+
+def _check(
+    doc: dict[str, Any], stem: str, environ: Mapping[str, str]
+) -> tuple[SweepConfig | None, list[Problem]]:
+    """Validate the document; every section is checked even when another one fails."""
+    problems: list[Problem] = []
+    doc, embedded = _mark_embedded(doc)
+    parsed: SweepFile | None = None
+    try:
+        parsed = SweepFile.model_validate(doc)
+    except ValidationError as err:
+        problems += pydantic_problems(err, SweepFile)
+    problems += model_problems(doc.get("models"), environ)
+    problems += server_problems(doc.get("embedded_server"))
+    tasks, task_problems = resolve_tasks(doc.get("tasks", "base"))
+    problems += task_problems
+    tracks, track_problems = resolve_tracks(doc, tasks)
+    problems += track_problems
+    planned: dict[str, None] = {}
+    for track in tracks:
+        planned.update(dict.fromkeys(suite_tasks(track.suite, tasks)))
+    seeds, seed_problems = resolve_seeds(doc.get("seeds", "verified"), list(planned))
+    if not task_problems and not track_problems:  # else they would only repeat those
+        problems += seed_problems
+    executor = doc.get("executor")
+    if isinstance(executor, dict) and executor.get("address") and executor.get("kind") != "ray":
+        problems.append(Problem("executor.address", "only used with kind: ray"))
+    if problems or parsed is None:
+        return None, problems
+    name = parsed.name or stem
+    config = SweepConfig(
+        name=name,
+        out=parsed.out or f"runs/{name}",
+        models=tuple(parsed.models),
+        embedded_models=tuple(embedded),
+        embedded_server=parsed.embedded_server or ServerConfig(),
+        tracks=tuple(tracks),
+        tasks=tuple(tasks),
+        learning=parsed.learning,
+        seeds=seeds,
+        runs=parsed.runs,
+        step_budget=parsed.step_budget,
+        simulator=parsed.simulator,
+        render=parsed.render,
+        executor=parsed.executor,
+        retries=parsed.retries,
+    )
+    return config, []
+
+
+def _mark_embedded(doc: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """The document with `base_url: embedded` replaced by the placeholder URL, and the names of
+    those models (so the endpoint schema checks them like any other)."""
+    models = doc.get("models")
+    if not isinstance(models, list):
+        return doc, []
+    out, names = [], []
+    for entry in models:
+        if isinstance(entry, dict) and entry.get("base_url") == EMBEDDED:
+            entry = {**entry, "base_url": EMBEDDED_PLACEHOLDER_URL}
+            names.append(str(entry.get("name")))
+        out.append(entry)
+    return {**doc, "models": out}, names
+
+
+def _apply_overrides(doc: dict[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    doc = dict(doc)
+    for dotted, value in overrides.items():
+        *parents, leaf = dotted.split(".")
+        node = doc
+        for key in parents:
+            child = node.get(key)
+            node[key] = dict(child) if isinstance(child, dict) else {}
+            node = node[key]
+        node[leaf] = value
+    return doc
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A SafeLoader that rejects a key written twice in one mapping (PyYAML keeps the last one
+    silently, so a repeated `runs:` would hide the first)."""
+
+
+def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode) -> dict[Any, Any]:
+    seen = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                "while reading a mapping",
+                node.start_mark,
+                f"duplicate key {key!r}",
+                key_node.start_mark,
+            )
+        seen.add(key)
+    return loader.construct_mapping(node)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)

@@ -1,0 +1,302 @@
+"""The schema of a sweep config and the resolved `SweepConfig` the sweep runs from.
+
+The sections a file may hold (`simulator`, `render`, `executor`, ...) are pydantic models with
+every field documented; `SweepConfig` is the checked, resolved result (`vabench.config.load`).
+"""
+
+from __future__ import annotations
+
+import re
+import typing
+from collections.abc import Callable, Iterable
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from vabench.config.problems import is_int
+from vabench.llm_pool.config import ApiName, ModelEndpoint
+from vabench.llm_pool.server import ServerConfig
+from vabench.render.images import ImageSettings
+from vabench.tasks import REGISTRY, SUITES
+
+Track = Literal["active", "passive"]
+"""A camera protocol (also the names of the two built-in base-suite tracks)."""
+TRACKS: tuple[str, ...] = typing.get_args(Track)
+Suite = Literal["base", "transfer", "long_horizon"]
+BUILTIN_TRACKS: dict[str, tuple[Track, Suite]] = {
+    "active": ("active", "base"),
+    "passive": ("passive", "base"),
+    "transfer": ("active", "transfer"),
+    "long_horizon": ("active", "long_horizon"),
+}
+"""Built-in track name -> (camera protocol, task suite)."""
+
+
+def suite_tasks(suite: str, selected: Iterable[str]) -> tuple[str, ...]:
+    """The registered tasks of `suite` for the selected base-suite tasks: those tasks
+    themselves ("base"), the held-out variants of the selected ones ("transfer"), every
+    long-horizon family ("long_horizon")."""
+    selected = tuple(selected)
+    if suite == "base":
+        return selected
+    if suite == "transfer":
+        return tuple(
+            n for n in SUITES["transfer"] if n in REGISTRY and REGISTRY[n].base_family in selected
+        )
+    return tuple(n for n in SUITES[suite] if n in REGISTRY)
+
+
+SUMMARY_MODES = ("own", "none", "shared:<model>")
+
+EMBEDDED = "embedded"
+"""The `base_url` that means "the embedded server the sweep starts"."""
+EMBEDDED_PLACEHOLDER_URL = "http://embedded.invalid"
+"""Stands in for the embedded server's address until it runs (`SweepConfig.endpoints`)."""
+
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+"""Model and track names become directory names."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SimulatorOptions(_Strict):
+    backend: Literal["auto", "mjx", "c"] = "auto"
+    """"auto": MuJoCo Warp where a CUDA GPU and the [gpu] extra are present, else C MuJoCo
+    (`sim_mjx.backends.resolve`; `--dry-run` says which and why); "mjx": every slot of a task
+    in one GPU/TPU batch (impl below); "c": C MuJoCo slot by slot (the fastest path without an
+    NVIDIA GPU). See README, "Choosing a physics backend"."""
+    impl: Literal["auto", "jax", "warp"] = "auto"
+    """mjx only: "warp" (MuJoCo Warp, NVIDIA GPUs; the [gpu] extra), "jax" (MJX on JAX), or
+    "auto" (warp where it can run, else jax)."""
+    lanes: int | None = Field(default=None, ge=1)
+    """Width of the vectorised physics (impl jax only; see `sim_mjx.interface.in_lanes`)."""
+    nconmax: int | None = Field(default=None, ge=1)
+    """Contacts per slot the GPU buffers hold (impl warp only; default: sized from the scene).
+    A slot that overflows ends as an infrastructure error naming this field."""
+    njmax: int | None = Field(default=None, ge=1)
+    """Constraint rows per slot (impl warp only; default: sized from the scene)."""
+    deterministic: bool = False
+    """impl warp only: MuJoCo Warp's stable contact and constraint orderings (bit-reproducible
+    runs on a GPU, slower)."""
+    window_s: float = Field(default=0.01, ge=0)
+    """How long the simulator batch waits to gather actions before stepping."""
+
+    def batch_kwargs(self, backend: str, impl: str) -> dict[str, Any]:
+        """The TaskBatch arguments these options ask for, on the resolved `backend` and `impl`
+        (`sim_mjx.backends.resolve`)."""
+        out: dict[str, Any] = {"backend": backend}
+        if backend != "mjx":
+            return out
+        out["impl"] = impl
+        if impl == "jax" and self.lanes:
+            out["lanes"] = self.lanes
+        if impl == "warp":
+            extra = {"nconmax": self.nconmax, "njmax": self.njmax}
+            out.update({k: v for k, v in extra.items() if v is not None})
+            if self.deterministic:
+                out["deterministic"] = True
+        return out
+
+
+class RenderOptions(_Strict):
+    backend: Literal["auto", "warp", "gl"] = "auto"
+    """warp: MuJoCo Warp's batch ray tracer on an NVIDIA GPU (the [gpu] extra); gl: the GL
+    worker processes (EGL, or Mesa's llvmpipe without a GPU); auto: warp where it can run,
+    else gl (`vabench.render.backends`)."""
+    width: int = Field(default=1280, ge=16, le=1280)
+    height: int = Field(default=960, ge=16, le=960)
+    """Model image size; at most the camera's 1280x960 (FACTS)."""
+    quality: int = Field(default=95, ge=1, le=100)
+    subsampling: Literal["420", "422", "444"] = "420"
+    """JPEG chroma subsampling (libjpeg's default 4:2:0), the same on both backends."""
+    workers: int = Field(default=2, ge=1)
+    """GL render worker processes per sweep process (backend gl)."""
+    platform: Literal["auto", "egl", "osmesa"] = "auto"
+    """The GL platform (backend gl)."""
+
+    def image_settings(self) -> ImageSettings:
+        return ImageSettings(self.width, self.height, self.quality, self.subsampling)
+
+
+class ExecutorOptions(_Strict):
+    kind: Literal["auto", "local", "processes", "ray"] = "auto"
+    """auto: `processes` on a host of 4 or more cores, else `local` (`sweep.choices`; `--dry-run`
+    says which and why); local: one process; processes: cells of the plan as worker processes
+    of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy embedded policies);
+    ray: cells as Ray tasks over a cluster."""
+    address: str | None = None
+    """`ray.init(address=...)`; unset starts or joins a local Ray instance (ray only)."""
+    max_tasks: int | None = Field(default=None, ge=1)
+    """Task batches run at once in one process (local; default 4), or cells at once
+    (processes: default one per core; ray: default 4)."""
+    max_episodes: int = Field(default=256, ge=1)
+    """The most episodes in flight at once in one process (and simulator slots per task
+    batch)."""
+    in_flight: Literal["auto"] | int = "auto"
+    """Episodes in flight in one process: "auto" adapts between 1 and `max_episodes` so that
+    the simulator, renderer and model endpoints stay busy without queueing (Little's law,
+    `sweep.inflight`); a number holds that many (at most `max_episodes`)."""
+    slots_per_task: int | None = Field(default=None, ge=1)
+    """Simulator slots of one task batch; default: the task's planned episodes, at most
+    `max_episodes`."""
+
+    @field_validator("in_flight", mode="plain")
+    @classmethod
+    def _in_flight(cls, value: Any) -> Literal["auto"] | int:
+        if value == "auto" or (is_int(value) and value >= 1):
+            return value
+        raise ValueError(f"expected 'auto' or a whole number >= 1, got {value!r}")
+
+    def slots(self, planned: int) -> int:
+        """Simulator slots for a task batch that will run `planned` episodes."""
+        if self.slots_per_task is not None:
+            return self.slots_per_task
+        return max(1, min(planned, self.max_episodes))
+
+
+class TrackSpec(_Strict):
+    """One track: which tasks, under which camera protocol, reading whose summaries."""
+
+    name: str
+    protocol: Track = "active"
+    suite: Suite = "base"
+    summaries: str = "own"
+    """own | none | shared:<model> (see the module docstring)."""
+
+    def summary_source(self, model: str) -> str | None:
+        """The model whose summaries episodes of `model` read on this track (None: none)."""
+        if self.summaries == "none":
+            return None
+        return model if self.summaries == "own" else self.summaries.removeprefix("shared:")
+
+
+class LearningOptions(_Strict):
+    demo_cache: str = ".cache/demos"
+    """Where demonstration videos are cached (built when missing; `python -m vabench.demos`)."""
+    max_model_calls: int = Field(default=30, ge=1)
+    """Model calls one learning session may use (`agent.learning.LearningLimits`)."""
+
+
+class RetryOptions(_Strict):
+    infrastructure_rounds: int = Field(default=3, ge=0)
+    """How many times episodes ended by an infrastructure error are re-run (FACTS: 3)."""
+
+
+class SweepFile(_Strict):
+    """The document's schema. `tasks` and `seeds` have several spellings and name registry
+    entries, so they are checked by `resolve.resolve_tasks` and `resolve.resolve_seeds`
+    instead."""
+
+    name: str | None = Field(default=None, min_length=1)
+    out: str | None = Field(default=None, min_length=1)
+    models: list[ModelEndpoint] = Field(min_length=1)
+    embedded_server: ServerConfig | None = None
+    tracks: list[Any] = Field(min_length=1)
+    """Checked by `resolve.resolve_tracks`."""
+    summaries: str = "own"
+    learning: LearningOptions = Field(default_factory=LearningOptions)
+    tasks: Any = "base"
+    seeds: Any = "verified"
+    runs: int = Field(default=3, ge=1)
+    step_budget: int | None = Field(default=None, ge=1)
+    simulator: SimulatorOptions = Field(default_factory=SimulatorOptions)
+    render: RenderOptions = Field(default_factory=RenderOptions)
+    executor: ExecutorOptions = Field(default_factory=ExecutorOptions)
+    retries: RetryOptions = Field(default_factory=RetryOptions)
+
+
+class SweepConfig(_Strict):
+    """A checked, resolved sweep configuration."""
+
+    name: str
+    out: str
+    models: tuple[ModelEndpoint, ...]
+    """Embedded models carry `EMBEDDED_PLACEHOLDER_URL`; use `endpoints()` to call them."""
+    embedded_models: tuple[str, ...] = ()
+    """Names of the models served by the embedded server."""
+    embedded_server: ServerConfig = Field(default_factory=ServerConfig)
+    tracks: tuple[TrackSpec, ...]
+    tasks: tuple[str, ...]
+    """The selected tasks of base-suite tracks, in the order written (`base`: the paper's
+    order); other suites derive theirs (`track_tasks`)."""
+    seeds: dict[str, tuple[int, ...]]
+    """The seeds of every planned task (`all_tasks`)."""
+    learning: LearningOptions = Field(default_factory=LearningOptions)
+    runs: int = 3
+    step_budget: int | None = None
+    simulator: SimulatorOptions = Field(default_factory=SimulatorOptions)
+    render: RenderOptions = Field(default_factory=RenderOptions)
+    executor: ExecutorOptions = Field(default_factory=ExecutorOptions)
+    retries: RetryOptions = Field(default_factory=RetryOptions)
+
+    def model(self, name: str) -> ModelEndpoint:
+        for endpoint in self.models:
+            if endpoint.name == name:
+                return endpoint
+        raise KeyError(f"no model {name!r}; models: {[m.name for m in self.models]}")
+
+    def track(self, name: str) -> TrackSpec:
+        for track in self.tracks:
+            if track.name == name:
+                return track
+        raise KeyError(f"no track {name!r}; tracks: {[t.name for t in self.tracks]}")
+
+    @property
+    def track_names(self) -> tuple[str, ...]:
+        return tuple(t.name for t in self.tracks)
+
+    def track_tasks(self, track: TrackSpec | str) -> tuple[str, ...]:
+        """The tasks a track runs (see the module docstring)."""
+        spec = self.track(track) if isinstance(track, str) else track
+        return suite_tasks(spec.suite, self.tasks)
+
+    @property
+    def all_tasks(self) -> tuple[str, ...]:
+        """Every task some track runs, each once, in track then task order."""
+        out: dict[str, None] = {}
+        for track in self.tracks:
+            out.update(dict.fromkeys(self.track_tasks(track)))
+        return tuple(out)
+
+    def budget(self, task: str) -> int:
+        """The step budget episodes of `task` run with: the task's, capped by `step_budget`."""
+        own = REGISTRY[task].step_budget
+        return own if self.step_budget is None else min(own, self.step_budget)
+
+    def endpoints(self, embedded_base_url: Callable[[ApiName], str]) -> list[ModelEndpoint]:
+        """The endpoints to call, embedded ones pointed at the running server
+        (`embedded_base_url` is e.g. `LocalServer.base_url`)."""
+        return [
+            m.model_copy(update={"base_url": embedded_base_url(m.api)})
+            if m.name in self.embedded_models
+            else m
+            for m in self.models
+        ]
+
+    def document(self) -> dict[str, Any]:
+        """This config as a YAML-able mapping that `load_config` reads back to an equal config
+        (explicit tasks, seeds per task). The embedded server's `api_key` is left out: a
+        secret never goes to a run directory."""
+        models = []
+        for m in self.models:
+            entry = m.model_dump(mode="json", exclude_defaults=True)
+            if m.name in self.embedded_models:
+                entry["base_url"] = EMBEDDED
+            models.append(entry)
+        doc: dict[str, Any] = {"name": self.name, "out": self.out, "models": models}
+        if self.embedded_models:
+            doc["embedded_server"] = self.embedded_server.model_dump(
+                mode="json", exclude_defaults=True, exclude={"api_key"}
+            )
+        doc |= {
+            "tracks": [t.model_dump(mode="json") for t in self.tracks],
+            "tasks": list(self.tasks),
+            "seeds": {t: list(s) for t, s in self.seeds.items()},
+            "runs": self.runs,
+            "step_budget": self.step_budget,
+        }
+        for key in ("learning", "simulator", "render", "executor", "retries"):
+            doc[key] = getattr(self, key).model_dump(mode="json")
+        return doc
