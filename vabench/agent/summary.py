@@ -44,6 +44,7 @@ from pydantic import (
 from pydantic_core import ErrorDetails
 
 from vabench.protocol import DecisionError
+from vabench.protocol.errors import show
 
 MAX_TEXT_CHARS = 500
 """Characters of one string field or list item."""
@@ -143,8 +144,7 @@ OPTIONAL_FIELDS = tuple(n for n, f in DemoSummary.model_fields.items() if not f.
 def _message(e: ErrorDetails) -> str:
     """Repair text for one validation error of a summary field."""
     kind, ctx, got = e["type"], e.get("ctx", {}), e.get("input")
-    shown = json.dumps(got, default=str)
-    shown = shown if len(shown) <= 60 else shown[:57] + "..."
+    shown = show(got)
     if kind == "missing":
         return "required"
     if kind == "extra_forbidden":
@@ -209,11 +209,8 @@ def _problems(err: ValidationError, obj: dict[str, Any]) -> list[tuple[str, str]
             len(e["loc"]) == 2 and e["type"].endswith("_type") for e in matching
         ):
             shapes = sorted({_shape(e["loc"][1]) for e in branches}, key=list(_SHAPES).index)
-            shown = json.dumps(obj.get(name), default=str)
-            shown = shown if len(shown) <= 60 else shown[:57] + "..."
-            problems.append(
-                (where, f"must be {' or '.join(_SHAPES[s] for s in shapes)}, got {shown}")
-            )
+            valid = " or ".join(_SHAPES[s] for s in shapes)
+            problems.append((where, f"must be {valid}, got {show(obj.get(name))}"))
             continue
         for e in matching:
             problems.append((where + _suffix(e["loc"][2:]), _message(e)))

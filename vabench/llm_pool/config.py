@@ -16,6 +16,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from vabench.field_errors import dotted
+
 ApiName = Literal["openai_chat", "openai_responses", "anthropic"]
 ReasoningEffort = Literal["none", "minimal", "low", "medium", "high"]
 
@@ -181,21 +183,14 @@ class ModelEndpoint(_Strict):
         return (self.base_url or DEFAULT_BASE_URLS[self.api]).rstrip("/")
 
 
-def _field_path(prefix: str, loc: Iterable[Any]) -> str:
-    path = prefix
-    for part in loc:
-        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
-    return path
-
-
 def _as_config_error(err: ValidationError, prefix: str) -> ConfigError:
     first = err.errors()[0]
     message = first["msg"]
     ctx_error = first.get("ctx", {}).get("error")
     if isinstance(ctx_error, ConfigError):  # raised inside a validator: keep its field
-        return ConfigError(_field_path(prefix, ctx_error.field.split(".")), ctx_error.message)
+        return ConfigError(dotted(ctx_error.field.split("."), prefix), ctx_error.message)
     message = message.removeprefix("Value error, ")
-    return ConfigError(_field_path(prefix, first["loc"]), message)
+    return ConfigError(dotted(first["loc"], prefix), message)
 
 
 def load_endpoint(data: Mapping[str, Any], *, where: str = "") -> ModelEndpoint:
