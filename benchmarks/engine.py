@@ -89,7 +89,7 @@ async def run_level(task, n_episodes, steps, latency, svc_factory, seeds):
 async def main_async(args) -> list[dict]:
     import contextlib
 
-    from vabench.agent.engine import task_services
+    from vabench.agent.services import task_services
     from vabench.llm_pool.pool import LLMPool
     from vabench.llm_pool.server import LocalServer, ServerConfig
     from vabench.render.backends import make_renderer

@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.engine import Episode, EpisodeSpec
+from vabench.agent.services import task_services
 from vabench.llm_pool.config import load_endpoints
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer

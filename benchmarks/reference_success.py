@@ -26,8 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from vabench.agent.engine import EpisodeSpec, run_episodes, task_services
+from vabench.agent.engine import EpisodeSpec, run_episodes
 from vabench.agent.records import EpisodeResult
+from vabench.agent.services import task_services
 from vabench.llm_pool.config import load_endpoints
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer

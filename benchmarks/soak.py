@@ -117,7 +117,8 @@ async def caller(pool, endpoint: str, ids, books: Books, stop: asyncio.Event) ->
 
 
 async def episodes(pool, render, out: Path, n: int, steps: int, stop: asyncio.Event) -> Counter:
-    from vabench.agent.engine import EpisodeSpec, run_episode, task_services
+    from vabench.agent.engine import EpisodeSpec, run_episode
+    from vabench.agent.services import task_services
     from vabench.render.worker import ImageSettings
     from vabench.seeds import verified_seeds
     from vabench.tasks import get_task

@@ -21,8 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from vabench.agent.engine import EngineSettings, Episode, EpisodeSpec, task_services
+from vabench.agent.engine import Episode, EpisodeSpec
 from vabench.agent.records import EpisodeResult
+from vabench.agent.services import EngineSettings, task_services
 from vabench.agent.simulation import SimCounters
 from vabench.agent.visibility import Secret, episode_secrets
 from vabench.llm_pool.apis.base import IncomingRequest

@@ -20,15 +20,8 @@ from engine_util import FAST_RETRY, body_json, count_images, reply, tool, user_t
 from PIL import Image as PILImage
 
 from vabench import protocol as P
-from vabench.agent.learning import (
-    MIN_DISTINCT_FRAMES,
-    DemoFrames,
-    LearningLimits,
-    LearningResult,
-    learn_summary,
-    learning_prompt,
-    read_result,
-)
+from vabench.agent.demonstration import MIN_DISTINCT_FRAMES, DemoFrames, learning_prompt
+from vabench.agent.learning import LearningLimits, LearningResult, learn_summary, read_result
 from vabench.agent.records import EpisodeRecorder
 from vabench.agent.summary import (
     MAX_LIST_ITEMS,

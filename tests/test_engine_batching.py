@@ -13,7 +13,8 @@ import asyncio
 import numpy as np
 import pytest
 
-from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.engine import Episode, EpisodeSpec
+from vabench.agent.services import task_services
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.worker import ImageSettings, RenderPool

@@ -17,9 +17,9 @@ from engine_util import SMALL, STOP, EpisodeRun, camera, move, run_scripted, too
 from PIL import Image
 
 from vabench.agent.conversation import ContextLimits
-from vabench.agent.engine import EngineSettings
 from vabench.agent.observation import PASSIVE_VIEWS
 from vabench.agent.records import RECORD_VERSION, read_events, read_result
+from vabench.agent.services import EngineSettings
 from vabench.llm_pool.server import ServerConfig
 from vabench.render.worker import RenderPool
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 import asyncio
 import json
 
-from vabench.agent.learning import DemoFrames, learn_summary
+from vabench.agent.demonstration import DemoFrames
+from vabench.agent.learning import learn_summary
 from vabench.agent.visibility import Secret, episode_secrets, find_leaks
 from vabench.demos import build_demo, load_demo
 from vabench.demos.store import CACHE_DIR

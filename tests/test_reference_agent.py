@@ -23,8 +23,9 @@ from PIL import Image as PILImage
 
 from vabench import protocol
 from vabench.agent.conversation import SUMMARY_INSTRUCTION
-from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.engine import Episode, EpisodeSpec
 from vabench.agent.records import EpisodeResult
+from vabench.agent.services import task_services
 from vabench.llm_pool.apis.base import IncomingRequest
 from vabench.llm_pool.config import load_endpoints
 from vabench.llm_pool.messages import ChatRequest, Image, Turn

@@ -18,7 +18,7 @@ import pytest
 from engine_util import EpisodeRun, run_scripted_async, secrets_of
 
 from vabench.agent.conversation import ContextLimits
-from vabench.agent.engine import EngineSettings
+from vabench.agent.services import EngineSettings
 from vabench.agent.visibility import find_leaks
 from vabench.reference_agent import ReferenceServo
 from vabench.render.worker import ImageSettings, RenderPool

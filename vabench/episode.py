@@ -26,8 +26,9 @@ from typing import Any
 
 import yaml
 
-from vabench.agent.engine import Episode, EpisodeSpec, task_services
+from vabench.agent.engine import Episode, EpisodeSpec
 from vabench.agent.records import EpisodeResult
+from vabench.agent.services import task_services
 from vabench.llm_pool.config import ConfigError, load_endpoints
 from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.policies import POLICIES

@@ -27,17 +27,15 @@ side (the snapshot's evaluator fields feed only the renderer and the camera mode
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
-import functools
 import time
-from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from vabench import protocol as P
-from vabench.agent.conversation import ContextLimits, Conversation
+from vabench.agent.conversation import Conversation
 from vabench.agent.observation import (
     PASSIVE_VIEW_NAME,
     PASSIVE_VIEWS,
@@ -45,20 +43,16 @@ from vabench.agent.observation import (
     observation_text,
 )
 from vabench.agent.prompts import system_prompt
-from vabench.agent.records import EpisodeRecorder, EpisodeResult, SummaryStatus, TokenTotals
-from vabench.agent.simulation import RenderService, SimService, SlotSnapshot
+from vabench.agent.records import EpisodeRecorder, EpisodeResult, SummaryStatus
+from vabench.agent.services import TaskServices
+from vabench.agent.session import SessionEnd, Spend, reply_fields
+from vabench.agent.simulation import SlotSnapshot
 from vabench.agent.tools import camera_history, geometry_result
-from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
-from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image, Usage
-from vabench.llm_pool.pool import LLMPool
+from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image
 from vabench.render import camera as cam
-from vabench.render.backends import Renderer
-from vabench.render.images import ImageSettings, RenderError, RenderItem
+from vabench.render.images import RenderError, RenderItem
 from vabench.sim_mjx.interface import SimulationError
-from vabench.tasks.base import Task
-
-Protocol = Literal["active", "passive"]
 
 
 @dataclass(frozen=True)
@@ -68,7 +62,7 @@ class EpisodeSpec:
     task: str
     seed: int
     model: str
-    protocol: Protocol = "active"
+    protocol: P.ObservationProtocol = "active"
     run: int = 0
     out_dir: Path | None = None
     demonstration_summary: str | dict[str, Any] | None = None
@@ -81,31 +75,6 @@ class EpisodeSpec:
     the record states the budget used)."""
 
 
-@dataclass(frozen=True)
-class EngineSettings:
-    limits: ContextLimits = field(default_factory=ContextLimits)
-    generation: GenerationOptions | None = None
-
-
-@dataclass
-class TaskServices:
-    """The shared services episodes of one task run on."""
-
-    sim: SimService
-    render: RenderService
-    llm: LLMPool
-    settings: EngineSettings = field(default_factory=EngineSettings)
-    on_decision: Callable[[EpisodeSpec, float], None] | None = None
-    """Told the wall time of every decision an episode completes (observation, model calls,
-    action): the sweep sizes the episodes it keeps in flight from it (`sweep.inflight`)."""
-
-
-class _EpisodeEnd(Exception):
-    def __init__(self, status: str, stop_reason: str, error: str | None = None):
-        super().__init__(stop_reason)
-        self.status, self.stop_reason, self.error = status, stop_reason, error
-
-
 @dataclass
 class _Counts:
     steps: int = 0
@@ -114,9 +83,7 @@ class _Counts:
     invalid_outputs: int = 0
     invalid_actions: int = 0
     tools: int = 0
-    calls: int = 0
-    usage: Usage = field(default_factory=Usage)
-    cost: float = 0.0
+    spend: Spend = field(default_factory=Spend)
 
 
 class Episode:
@@ -178,9 +145,9 @@ class Episode:
                 await self._decide_and_act(slot)
                 if self.svc.on_decision is not None:
                     self.svc.on_decision(self.spec, time.monotonic() - started)
-            raise _EpisodeEnd("failure", "budget_exhausted")
-        except _EpisodeEnd as end:
-            return self._finish(end.status, end.stop_reason, end.error)
+            raise SessionEnd("failure", "budget_exhausted")
+        except SessionEnd as end:
+            return self._finish(end.status, end.reason, end.error)
         except InfrastructureError as err:
             self.rec.event(
                 "llm_failure",
@@ -219,7 +186,7 @@ class Episode:
         if reply.report.infrastructure_error is not None:
             raise SimulationError(reply.report.infrastructure_error)
         if not reply.report.ok:
-            raise _EpisodeEnd("error", "reset_failed", reply.report.reason)
+            raise SessionEnd("error", "reset_failed", reply.report.reason)
         self.snapshot = reply.snapshot
         if self.spec.protocol == "active":
             self.camera = cam.head_view(reply.snapshot.gcs, self.arms)
@@ -239,7 +206,7 @@ class Episode:
             decision=decision.model_dump(exclude_none=True),
         )
         if isinstance(decision, P.Stop):
-            raise _EpisodeEnd("failure", "model_stop")
+            raise SessionEnd("failure", "model_stop")
         self.counts.steps += 1
         self.kinds.append(decision.kind)
         self.executed.append(label)
@@ -316,17 +283,12 @@ class Episode:
             est_tokens=self.conv.estimate_tokens(),
         )
         result = await self.svc.llm.complete(self.spec.model, request)
-        self._account(result.usage, result.cost_usd)
+        self.counts.spend.add(result)
         self.conv.add_reply(result.text)
         self.rec.event(
             "reply",
             step=step,
-            text=result.text,
-            finish_reason=result.finish_reason,
-            latency_s=round(result.latency_s, 4),
-            attempts=result.attempts,
-            usage=dataclasses.asdict(result.usage),
-            cost_usd=result.cost_usd,
+            **reply_fields(result),
             reasoning=result.reasoning,
             failures=list(result.failures),
         )
@@ -334,14 +296,9 @@ class Episode:
 
     async def _summarize(self, request: ChatRequest) -> str:
         result = await self.svc.llm.complete(self.spec.model, request)
-        self._account(result.usage, result.cost_usd)
+        self.counts.spend.add(result)
         self._last_summary = result
         return result.text
-
-    def _account(self, usage: Usage, cost: float) -> None:
-        self.counts.calls += 1
-        self.counts.usage = self.counts.usage + usage
-        self.counts.cost += cost
 
     async def _decide(
         self, step: int, text: str, images: Image | Mapping[str, Image]
@@ -358,7 +315,7 @@ class Episode:
                     "rejection", step=step, field=err.field, message=str(err), repair=repairs + 1
                 )
                 if repairs >= P.MAX_REPAIRS_PER_DECISION:
-                    raise _EpisodeEnd("failure", "invalid_output", str(err)) from None
+                    raise SessionEnd("failure", "invalid_output", str(err)) from None
                 repairs += 1
                 self.conv.add_repair(str(err), text, images, step)
                 continue
@@ -366,7 +323,7 @@ class Episode:
                 self._tool(step, decision)
                 continue
             return decision
-        raise _EpisodeEnd(
+        raise SessionEnd(
             "failure",
             "round_trip_limit",
             f"{P.MAX_TOOL_ROUND_TRIPS} model calls without an environment decision",
@@ -379,7 +336,7 @@ class Episode:
         elif call.name == "camera.history":
             result = camera_history(self.frames, call.args.step)  # type: ignore[union-attr]
         else:  # demonstration tools arrive with the demonstrations issue
-            raise _EpisodeEnd("error", "harness_error", f"tool {call.name} is not implemented")
+            raise SessionEnd("error", "harness_error", f"tool {call.name} is not implemented")
         self.rec.event(
             "tool",
             step=step,
@@ -433,11 +390,11 @@ class Episode:
         )
         if out.success:
             self.success = True
-            raise _EpisodeEnd("success", "success")
+            raise SessionEnd("success", "success")
 
     # -- ending -------------------------------------------------------------------------------
     def _finish(self, status: str, stop_reason: str, error: str | None) -> EpisodeResult:
-        c, u = self.counts, self.counts.usage
+        c = self.counts
         progress = self.snapshot.progress if self.snapshot is not None else 0
         result = EpisodeResult(
             task=self.spec.task,
@@ -456,19 +413,13 @@ class Episode:
             invalid_outputs=c.invalid_outputs,
             invalid_actions=c.invalid_actions,
             tool_calls=c.tools,
-            model_calls=c.calls,
+            model_calls=c.spend.calls,
             compactions=len(self.conv.compactions),
             checkpoints_reached=list(self.task.checkpoints[:progress]),
             progress=progress,
             n_checkpoints=len(self.task.checkpoints),
-            tokens=TokenTotals(
-                input=u.input_tokens,
-                cached_input=u.cached_input_tokens,
-                cache_write=u.cache_write_tokens,
-                output=u.output_tokens,
-                reasoning=u.reasoning_tokens or 0,
-            ),
-            cost_usd=round(c.cost, 6),
+            tokens=c.spend.tokens(),
+            cost_usd=round(c.spend.cost, 6),
             wall_s=round(time.time() - self.t0, 3),
             started_at=round(self.t0, 3),
             summary_mode=self.spec.summary_mode,
@@ -488,43 +439,6 @@ def _passive_view(camera_view: str) -> str:
 
 async def run_episode(spec: EpisodeSpec, services: TaskServices) -> EpisodeResult:
     return await Episode(spec, services).run()
-
-
-@contextlib.asynccontextmanager
-async def task_services(
-    task: Task,
-    n_slots: int,
-    llm: LLMPool,
-    render_pool: Renderer,
-    *,
-    backend: str = "mjx",
-    image: ImageSettings | None = None,
-    settings: EngineSettings | None = None,
-    sim_window_s: float = 0.01,
-    render_window_s: float = 0.005,
-    on_decision: Callable[[EpisodeSpec, float], None] | None = None,
-    **batch_kwargs: Any,
-) -> AsyncIterator[TaskServices]:
-    """The services for up to `n_slots` concurrent episodes of `task` (building the simulator
-    batch, which compiles under MJX, runs off the event loop)."""
-    sim = await asyncio.to_thread(
-        functools.partial(
-            SimService, task, n_slots, backend=backend, window_s=sim_window_s, **batch_kwargs
-        )
-    )
-    render = RenderService(
-        render_pool, task.name, image or ImageSettings(), window_s=render_window_s
-    )
-    # Warp physics and the Warp renderer on one GPU: images read the state on the device.
-    attach = getattr(render_pool, "attach", None)
-    shared = bool(attach and attach(task.name, sim.batch.batch))
-    try:
-        yield TaskServices(sim, render, llm, settings or EngineSettings(), on_decision)
-    finally:
-        await sim.close()
-        await render.close()
-        if shared:
-            render_pool.detach(task.name)  # type: ignore[attr-defined]
 
 
 async def run_episodes(specs: Sequence[EpisodeSpec], services: TaskServices) -> list[EpisodeResult]:

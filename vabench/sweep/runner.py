@@ -35,9 +35,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from vabench.agent.engine import EpisodeSpec, run_episode, task_services
+from vabench.agent.engine import EpisodeSpec, run_episode
 from vabench.agent.learning import LearningLimits
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
+from vabench.agent.services import task_services
 from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from vabench.agent.demonstration import DemoFrames
 from vabench.agent.learning import (
-    DemoFrames,
     LearningLimits,
     LearningResult,
     learn_summary,

@@ -1,0 +1,78 @@
+"""The shared services the episodes of one task run on: the simulator batch, the renderer and
+the model pool (`task_services` builds them), with the engine's settings."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from vabench.agent.conversation import ContextLimits
+from vabench.agent.simulation import RenderService, SimService
+from vabench.llm_pool.config import GenerationOptions
+from vabench.llm_pool.pool import LLMPool
+from vabench.render.backends import Renderer
+from vabench.render.images import ImageSettings
+from vabench.tasks.base import Task
+
+if TYPE_CHECKING:
+    from vabench.agent.engine import EpisodeSpec
+
+
+@dataclass(frozen=True)
+class EngineSettings:
+    limits: ContextLimits = field(default_factory=ContextLimits)
+    generation: GenerationOptions | None = None
+
+
+@dataclass
+class TaskServices:
+    """The shared services episodes of one task run on."""
+
+    sim: SimService
+    render: RenderService
+    llm: LLMPool
+    settings: EngineSettings = field(default_factory=EngineSettings)
+    on_decision: Callable[[EpisodeSpec, float], None] | None = None
+    """Told the wall time of every decision an episode completes (observation, model calls,
+    action): the sweep sizes the episodes it keeps in flight from it (`sweep.inflight`)."""
+
+
+@contextlib.asynccontextmanager
+async def task_services(
+    task: Task,
+    n_slots: int,
+    llm: LLMPool,
+    render_pool: Renderer,
+    *,
+    backend: str = "mjx",
+    image: ImageSettings | None = None,
+    settings: EngineSettings | None = None,
+    sim_window_s: float = 0.01,
+    render_window_s: float = 0.005,
+    on_decision: Callable[[EpisodeSpec, float], None] | None = None,
+    **batch_kwargs: Any,
+) -> AsyncIterator[TaskServices]:
+    """The services for up to `n_slots` concurrent episodes of `task` (building the simulator
+    batch, which compiles under MJX, runs off the event loop)."""
+    sim = await asyncio.to_thread(
+        functools.partial(
+            SimService, task, n_slots, backend=backend, window_s=sim_window_s, **batch_kwargs
+        )
+    )
+    render = RenderService(
+        render_pool, task.name, image or ImageSettings(), window_s=render_window_s
+    )
+    # Warp physics and the Warp renderer on one GPU: images read the state on the device.
+    attach = getattr(render_pool, "attach", None)
+    shared = bool(attach and attach(task.name, sim.batch.batch))
+    try:
+        yield TaskServices(sim, render, llm, settings or EngineSettings(), on_decision)
+    finally:
+        await sim.close()
+        await render.close()
+        if shared:
+            render_pool.detach(task.name)  # type: ignore[attr-defined]
