@@ -118,8 +118,9 @@ class RequestBody(StrictModel):
 class ContentPart(StrictModel):
     """One part of a message's content in a request body; reads itself into a `Part`."""
 
+    @abstractmethod
     def part(self, field: str) -> Part:
-        raise NotImplementedError
+        """The part; `field` names it in a `RequestShapeError` (an image that does not read)."""
 
 
 def parts_of(content: str | Sequence[ContentPart], field: str) -> list[Part]:
@@ -131,10 +132,11 @@ def parts_of(content: str | Sequence[ContentPart], field: str) -> list[Part]:
 
 
 class UsageBody(LooseModel):
-    """The usage block of a response, counted the API's way; `to_usage` splits it ours."""
+    """The usage block of a response, counted the API's way."""
 
+    @abstractmethod
     def to_usage(self) -> Usage:
-        raise NotImplementedError
+        """The counts split our way (see `Usage`)."""
 
 
 class ResponseBody(LooseModel):
