@@ -1,8 +1,9 @@
 """The client pool: `await pool.complete(endpoint_name, request)` from any number of episodes.
 
-Each endpoint has one aiohttp session (its own connection pool, sized to its concurrency),
-one `ConcurrencyLimiter` and one `RateLimiter`, shared by every episode that calls it. One
-call goes through these steps, each attempt holding one concurrency slot:
+Each endpoint has one aiohttp session (its own connection pool, sized to its concurrency,
+in `transport.Transport`), one `ConcurrencyLimiter` and one `RateLimiter`, shared by every
+episode that calls it. One call goes through these steps, each attempt holding one
+concurrency slot:
 
     estimate tokens -> slot -> wait out any server-requested pause -> rate admission
     -> POST -> parse -> settle tokens to the reported usage -> CompletionResult
@@ -28,11 +29,10 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-import aiohttp
 from pydantic import SecretStr
 
 from vabench.llm_pool.apis import get_adapter
-from vabench.llm_pool.apis.base import encode_body, error_message
+from vabench.llm_pool.apis.base import encode_body
 from vabench.llm_pool.config import (
     ConfigError,
     GenerationOptions,
@@ -40,11 +40,12 @@ from vabench.llm_pool.config import (
     check_options_for_api,
     load_endpoints,
 )
-from vabench.llm_pool.errors import InfrastructureError, RequestRejected, ResponseFormatError
+from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
-from vabench.llm_pool.retry import RetryDecision, backoff_delay, decide
+from vabench.llm_pool.retry import RetryDecision, backoff_delay
 from vabench.llm_pool.tokens import estimate_input_tokens
+from vabench.llm_pool.transport import Failure, Transport
 
 # asyncio.timeout tells our own deadline from a caller's cancellation; wait_for (3.11 and
 # before) can swallow a cancellation that races with its timeout, leaving a task that ignores
@@ -103,27 +104,14 @@ class _Call:
     body: bytes | None = None
 
 
-@dataclass(frozen=True)
-class _Failure:
-    line: str
-    decision: RetryDecision
-    status: int | None = None
-
-
 class EndpointClient:
     """Calls to one endpoint; created by `LLMPool`, shared by every episode using it."""
 
     def __init__(self, config: ModelEndpoint, api_key: SecretStr | None, rng: random.Random):
         self.config = config
         self.adapter = get_adapter(config.api)
-        self.url = self.adapter.url(config.resolved_base_url)
-        self._api_key = api_key
-        key = api_key.get_secret_value() if api_key is not None else None
-        self._headers = {
-            "Content-Type": "application/json",
-            **config.headers,
-            **self.adapter.headers(key),
-        }
+        self._transport = Transport(config, self.adapter, api_key)
+        self.url = self._transport.url
         self._rng = rng
         limits = config.limits
         self.concurrency = ConcurrencyLimiter(
@@ -133,7 +121,6 @@ class EndpointClient:
             limits.rpm, limits.tpm, period_s=limits.period_s, burst_s=limits.burst_s
         )
         self._counters = _Counters()
-        self._session: aiohttp.ClientSession | None = None
         self._paused_until = 0.0
         self._closed = False
         self._warned_no_usage = False
@@ -144,24 +131,6 @@ class EndpointClient:
 
     def __repr__(self) -> str:
         return f"EndpointClient({self.name!r}, {self.config.api}, {self.url})"
-
-    def _redact(self, text: str) -> str:
-        """Providers sometimes echo (part of) a key in errors; never let it reach a record."""
-        if self._api_key is not None:
-            key = self._api_key.get_secret_value()
-            if key:
-                text = text.replace(key, "[redacted]")
-        return text
-
-    def _get_session(self) -> aiohttp.ClientSession:
-        if self._session is None:
-            connector = aiohttp.TCPConnector(
-                limit=self.config.limits.max_concurrency, limit_per_host=0
-            )
-            self._session = aiohttp.ClientSession(
-                connector=connector, timeout=aiohttp.ClientTimeout(total=None)
-            )
-        return self._session
 
     def stats(self) -> EndpointStats:
         c = self._counters
@@ -222,7 +191,7 @@ class EndpointClient:
                 decision = self._note_failure(call, outcome)
             await self._back_off(call, decision)  # outside the slot: others may use it
 
-    async def _attempt_in_slot(self, call: _Call) -> CompletionResult | _Failure:
+    async def _attempt_in_slot(self, call: _Call) -> CompletionResult | Failure:
         """Admission, then one HTTP attempt, while holding a concurrency slot."""
         loop = asyncio.get_running_loop()
         retry = self.config.retry
@@ -247,8 +216,8 @@ class EndpointClient:
         attempt_timeout = min(retry.request_timeout_s, max(0.001, call.deadline - loop.time()))
         self._counters.attempts += 1
         sent = loop.time()
-        outcome = await self._attempt(call.body, attempt_timeout)
-        if isinstance(outcome, _Failure):
+        outcome = await self._transport.post(call.body, attempt_timeout)
+        if isinstance(outcome, Failure):
             # No usage came back; the provider may have counted the estimate: keep it.
             return outcome
         if outcome.usage_reported:
@@ -263,10 +232,10 @@ class EndpointClient:
         self.concurrency.on_success()
         return self._result(call, outcome, loop.time() - sent)
 
-    def _note_failure(self, call: _Call, failure: _Failure) -> RetryDecision:
+    def _note_failure(self, call: _Call, failure: Failure) -> RetryDecision:
         """Record a failed attempt; raise at once if it must not be retried."""
         loop = asyncio.get_running_loop()
-        call.failures.append(self._redact(failure.line))
+        call.failures.append(failure.line)
         decision = failure.decision
         if not decision.retry:
             status = failure.status or 0
@@ -338,30 +307,6 @@ class EndpointClient:
             await asyncio.sleep(pause)
         return await self.rate.acquire(estimate)
 
-    async def _attempt(self, body: bytes, timeout: float) -> ParsedResponse | _Failure:
-        """One HTTP exchange; transport problems become `_Failure`s, cancellation propagates."""
-        try:
-            async with self._get_session().post(
-                self.url,
-                data=body,
-                headers=self._headers,
-                timeout=aiohttp.ClientTimeout(total=timeout),
-            ) as resp:
-                raw = await resp.read()
-                status, headers = resp.status, resp.headers
-        except asyncio.TimeoutError:
-            return _Failure(f"timeout after {timeout:.1f} s", RetryDecision("transient", "timeout"))
-        except aiohttp.ClientError as err:
-            line = f"{type(err).__name__}: {err}"
-            return _Failure(line, RetryDecision("transient", "connection"))
-        if 200 <= status < 300:
-            try:
-                return self.adapter.parse_response(raw)
-            except ResponseFormatError as err:
-                return _Failure(str(err), RetryDecision("transient", "malformed"), status)
-        line = f"HTTP {status}: {error_message(raw)}"
-        return _Failure(line, decide(status, headers), status)
-
     def _result(self, call: _Call, parsed: ParsedResponse, latency: float) -> CompletionResult:
         cost = parsed.usage.cost(self.config.prices)
         self._counters.usage += parsed.usage
@@ -393,9 +338,7 @@ class EndpointClient:
 
     async def close(self) -> None:
         self._closed = True
-        if self._session is not None:
-            await self._session.close()
-            self._session = None
+        await self._transport.close()
 
 
 class LLMPool:

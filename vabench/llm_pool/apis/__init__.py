@@ -1,4 +1,5 @@
-"""Provider API adapters, one module per API, registered by their config name."""
+"""Provider API adapters, one module per API, registered by their config name (`base` holds
+the steps they share, `openai_common` what the two OpenAI APIs share)."""
 
 from __future__ import annotations
 

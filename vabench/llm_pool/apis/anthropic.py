@@ -26,32 +26,29 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Mapping
+from datetime import datetime, timedelta, timezone
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from vabench.llm_pool.apis.base import (
+    Answer,
     ApiAdapter,
+    ContentPart,
     IncomingRequest,
     InlineImage,
-    LimitState,
+    LooseModel,
+    Prompt,
+    RequestBody,
     RequestShapeError,
+    ResponseBody,
     ServerReply,
+    StrictModel,
+    UsageBody,
     base64_image,
-    request_id,
-    rfc3339_in,
-    validate_request_json,
-    validate_response_json,
 )
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint
-from vabench.llm_pool.messages import (
-    ChatRequest,
-    FinishReason,
-    ParsedResponse,
-    Part,
-    Turn,
-    Usage,
-)
+from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 from vabench.llm_pool.tokens import anthropic_image_tokens
 
 ANTHROPIC_VERSION = "2026-10-21"
@@ -61,53 +58,55 @@ _EPHEMERAL = {"type": "ephemeral"}
 # -- request shape ----------------------------------------------------------------------------
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class _CacheControl(_Strict):
+class _CacheControl(StrictModel):
     type: Literal["ephemeral"]
     ttl: Literal["5m", "1h"] | None = None
 
 
-class _TextBlock(_Strict):
+class _TextBlock(ContentPart):
     type: Literal["text"]
     text: str
     cache_control: _CacheControl | None = None
 
+    def part(self, field: str) -> Part:
+        return self.text
 
-class _Base64Source(_Strict):
+
+class _Base64Source(StrictModel):
     type: Literal["base64"]
     media_type: Literal["image/jpeg", "image/png", "image/gif", "image/webp"]
     data: str
 
 
-class _ImageBlock(_Strict):
+class _ImageBlock(ContentPart):
     type: Literal["image"]
     source: _Base64Source
     cache_control: _CacheControl | None = None
+
+    def part(self, field: str) -> Part:
+        return base64_image(self.source.data, self.source.media_type, f"{field}.source.data")
 
 
 _Block = Annotated[_TextBlock | _ImageBlock, Field(discriminator="type")]
 
 
-class _Message(_Strict):
+class _Message(StrictModel):
     role: Literal["user", "assistant"]
     content: str | list[_Block] = Field(min_length=1)
 
 
-class _ThinkingEnabled(_Strict):
+class _ThinkingEnabled(StrictModel):
     type: Literal["enabled"]
     budget_tokens: int = Field(ge=1024)
     display: Literal["summarized", "omitted"] | None = None
 
 
-class _ThinkingAdaptive(_Strict):
+class _ThinkingAdaptive(StrictModel):
     type: Literal["adaptive"]
     display: Literal["summarized", "omitted"] | None = None
 
 
-class _ThinkingDisabled(_Strict):
+class _ThinkingDisabled(StrictModel):
     type: Literal["disabled"]
 
 
@@ -116,16 +115,15 @@ _Thinking = Annotated[
 ]
 
 
-class _Metadata(_Strict):
+class _Metadata(StrictModel):
     user_id: str | None = None
 
 
-class MessagesRequest(_Strict):
+class MessagesRequest(RequestBody):
     """What the embedded server takes: the parameters a text-and-image call uses (no tools,
     containers or streaming: vabench sends none of them). `temperature`, `top_p` and `top_k`
     are still taken from clients of earlier API versions."""
 
-    model: str = Field(min_length=1)
     max_tokens: int = Field(ge=1)
     messages: list[_Message] = Field(min_length=1)
     system: str | list[_TextBlock] | None = None
@@ -142,31 +140,35 @@ class MessagesRequest(_Strict):
 # -- response shape ---------------------------------------------------------------------------
 
 
-class _Loose(BaseModel):
-    model_config = ConfigDict(extra="ignore")
-
-
-class _ContentBlock(_Loose):
+class _ContentBlock(LooseModel):
     type: str
     text: str | None = None
     thinking: str | None = None
 
 
-class _OutputDetails(_Loose):
+class _OutputDetails(LooseModel):
     thinking_tokens: int | None = None
 
 
-class _Usage(_Loose):
+class _Usage(UsageBody):
     input_tokens: int
     output_tokens: int
     cache_creation_input_tokens: int | None = None
     cache_read_input_tokens: int | None = None
     output_tokens_details: _OutputDetails | None = None
 
+    def to_usage(self) -> Usage:
+        details = self.output_tokens_details
+        return Usage(
+            input_tokens=self.input_tokens,
+            cached_input_tokens=self.cache_read_input_tokens or 0,
+            cache_write_tokens=self.cache_creation_input_tokens or 0,
+            output_tokens=self.output_tokens,
+            reasoning_tokens=details.thinking_tokens if details is not None else None,
+        )
 
-class MessagesResponse(_Loose):
-    id: str | None = None
-    model: str | None = None
+
+class MessagesResponse(ResponseBody):
     content: list[_ContentBlock]
     stop_reason: str | None = None
     usage: _Usage | None = None
@@ -197,20 +199,19 @@ _ERROR_TYPES = {
 }
 
 
-def _block(part: Part) -> dict[str, Any]:
-    if isinstance(part, str):
-        return {"type": "text", "text": part}
-    source = {
-        "type": "base64",
-        "media_type": part.media_type,
-        "data": InlineImage(part, data_url=False),
-    }
-    return {"type": "image", "source": source}
+def rfc3339_in(seconds: float) -> str:
+    when = datetime.now(timezone.utc) + timedelta(seconds=seconds)
+    return when.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
-class Anthropic(ApiAdapter):
+class Anthropic(ApiAdapter[MessagesRequest, MessagesResponse]):
     name = "anthropic"
     route = "/v1/messages"
+    request_model = MessagesRequest
+    response_model = MessagesResponse
+    response_label = "messages"
+    rate_limit_header = "anthropic-ratelimit-{limit}-{field}"
+    request_id_header = "request-id"
 
     def image_tokens(self, width: int, height: int) -> int:
         return anthropic_image_tokens(width, height)
@@ -219,21 +220,13 @@ class Anthropic(ApiAdapter):
         return f"{base_url}/messages" if base_url.endswith("/v1") else f"{base_url}/v1/messages"
 
     def headers(self, api_key: str | None) -> dict[str, str]:
-        headers = {"anthropic-version": ANTHROPIC_VERSION}
-        if api_key:
-            headers["Authorization"] = f"Bearer {api_key}"
-        return headers
+        return {"anthropic-version": ANTHROPIC_VERSION, **super().headers(api_key)}
 
     def build_body(
         self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
     ) -> dict[str, Any]:
         cache = options.cache_prompt is not False
-        messages: list[dict[str, Any]] = []
-        for turn in request.turns:
-            if turn.role == "assistant":
-                messages.append({"role": "assistant", "content": turn.text})
-            else:
-                messages.append({"role": "user", "content": [_block(p) for p in turn.content]})
+        messages = self.messages(request)
         if cache:
             messages[-1]["content"][-1]["cache_control"] = _EPHEMERAL
         body: dict[str, Any] = {
@@ -251,36 +244,33 @@ class Anthropic(ApiAdapter):
             body["thinking"] = {"type": "enabled", "budget_tokens": options.thinking_budget}
         return body
 
-    def parse_response(self, raw: bytes) -> ParsedResponse:
-        body = validate_response_json(MessagesResponse, raw, "messages")
+    def part(self, part: Part) -> dict[str, Any]:
+        if isinstance(part, str):
+            return {"type": "text", "text": part}
+        source = {
+            "type": "base64",
+            "media_type": part.media_type,
+            "data": InlineImage(part, data_url=False),
+        }
+        return {"type": "image", "source": source}
+
+    def read_answer(self, body: MessagesResponse) -> Answer:
         texts = [b.text for b in body.content if b.type == "text" and b.text is not None]
         thoughts = [b.thinking for b in body.content if b.type == "thinking" and b.thinking]
-        u = body.usage
-        usage = Usage()
-        if u is not None:
-            details = u.output_tokens_details
-            usage = Usage(
-                input_tokens=u.input_tokens,
-                cached_input_tokens=u.cache_read_input_tokens or 0,
-                cache_write_tokens=u.cache_creation_input_tokens or 0,
-                output_tokens=u.output_tokens,
-                reasoning_tokens=details.thinking_tokens if details is not None else None,
-            )
-        return ParsedResponse(
+        return Answer(
             text="".join(texts),
             finish_reason=_FINISH.get(body.stop_reason or "", "other"),
             raw_finish_reason=body.stop_reason,
-            usage=usage,
-            model=body.model,
-            response_id=body.id,
+            usage=body.usage,
             reasoning="\n".join(thoughts) or None,
-            usage_reported=u is not None,
         )
 
     def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
         if not headers.get("anthropic-version"):
             raise RequestShapeError("anthropic-version", "header is required")
-        body = validate_request_json(MessagesRequest, raw)
+        return super().parse_request(raw, headers)
+
+    def read_request(self, body: MessagesRequest) -> Prompt:
         budget: int | None = None
         if isinstance(body.thinking, _ThinkingEnabled):
             budget = body.thinking.budget_tokens
@@ -307,30 +297,22 @@ class Anthropic(ApiAdapter):
                 blocks = list(m.content)
             parts: list[Part] = []
             for j, b in enumerate(blocks):
-                if isinstance(b, _TextBlock):
-                    parts.append(b.text)
-                elif m.role == "assistant":
-                    raise RequestShapeError(f"messages.{i}.content.{j}", "images in assistant turn")
-                else:
-                    field = f"messages.{i}.content.{j}.source.data"
-                    parts.append(base64_image(b.source.data, b.source.media_type, field))
+                field = f"messages.{i}.content.{j}"
+                if isinstance(b, _ImageBlock) and m.role == "assistant":
+                    raise RequestShapeError(field, "images in assistant turn")
+                parts.append(b.part(field))
                 if b.cache_control is not None:
                     breakpoints.append(index)
                 index += 1
             turns.append(Turn(m.role, tuple(parts)))
         if len(breakpoints) > 4:
             raise RequestShapeError("cache_control", "at most 4 blocks may have cache_control")
-        if turns[-1].role != "user":
-            raise RequestShapeError("messages", "the last message must be a user message")
         options = GenerationOptions(
             max_output_tokens=body.max_tokens,
             temperature=body.temperature,
             thinking_budget=budget,
         )
-        chat = ChatRequest(tuple(turns), system, options)
-        return IncomingRequest(
-            api=self.name, model=body.model, chat=chat, cache_breakpoints=tuple(breakpoints)
-        )
+        return Prompt(turns, system, options, tuple(breakpoints))
 
     def build_response(self, reply: ServerReply) -> dict[str, Any]:
         content: list[dict[str, Any]] = []
@@ -366,17 +348,9 @@ class Anthropic(ApiAdapter):
         error_type = _ERROR_TYPES.get(status, "api_error")
         return {"type": "error", "error": {"type": error_type, "message": message}}
 
-    def rate_limit_headers(self, states: Mapping[str, LimitState]) -> dict[str, str]:
-        headers: dict[str, str] = {}
-        for name, s in states.items():
-            headers[f"anthropic-ratelimit-{name}-limit"] = str(s.limit)
-            headers[f"anthropic-ratelimit-{name}-remaining"] = str(max(0, s.remaining))
-            headers[f"anthropic-ratelimit-{name}-reset"] = rfc3339_in(s.reset_s)
-        return headers
+    def reset_text(self, seconds: float) -> str:
+        return rfc3339_in(seconds)
 
     def server_key(self, headers: Mapping[str, str]) -> str | None:
         """`x-api-key`, or a bearer token (what the SDK sends for a key and an auth token)."""
         return headers.get("x-api-key") or super().server_key(headers)
-
-    def response_headers(self) -> dict[str, str]:
-        return {"request-id": request_id("req_")}

@@ -1,29 +1,43 @@
-"""The contract every provider API module fulfils, on both sides of the wire.
+"""The contract every provider API module fulfils, on both sides of the wire, and the steps
+the APIs share.
 
 An `ApiAdapter` knows one API's shapes: the client half builds request bodies and parses
 responses; the server half (used by the embedded server) validates request bodies against the
 documented shape and writes responses and errors the way the provider does. Keeping both
 halves of one API in one module is what lets the tests check that what the client sends is
 what the API documents: the server parses it with the strict models written from the docs.
+
+The steps are written once, here: turns into messages, a 2xx body into a `ParsedResponse`, a
+request body into an `IncomingRequest`, rate-limit and request-id headers. An API module
+supplies only what its API does differently: its request and response models, how a content
+part, an answer and a usage block read, and its header names. Beside the contract are the
+helpers those steps use: validation errors that name the field, inline images from data URLs,
+images spliced into encoded bodies, a provider's error message.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta, timezone
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import pydantic_core
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from vabench.llm_pool.config import ApiName, GenerationOptions, ModelEndpoint
 from vabench.llm_pool.errors import ResponseFormatError
-from vabench.llm_pool.messages import ChatRequest, FinishReason, Image, ParsedResponse, Usage
+from vabench.llm_pool.messages import (
+    ChatRequest,
+    FinishReason,
+    Image,
+    ParsedResponse,
+    Part,
+    Turn,
+    Usage,
+)
 
 M = TypeVar("M", bound=BaseModel)
 DATA_URL_MEDIA_TYPES = ("image/jpeg", "image/png", "image/gif", "image/webp")
@@ -71,6 +85,76 @@ class LimitState:
     limit: int
     remaining: int
     reset_s: float
+
+
+@dataclass(frozen=True)
+class Prompt:
+    """A request body read into API-neutral parts, before the checks every API makes."""
+
+    turns: list[Turn]
+    system: str | None
+    options: GenerationOptions
+    cache_breakpoints: tuple[int, ...] = ()
+
+
+class StrictModel(BaseModel):
+    """A request shape as the API documents it: an unknown field is an error."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class LooseModel(BaseModel):
+    """A response shape: unknown fields are ignored (APIs add them), required ones checked."""
+
+    model_config = ConfigDict(extra="ignore")
+
+
+class RequestBody(StrictModel):
+    """The field every API's request body starts with."""
+
+    model: str = Field(min_length=1)
+
+
+class ContentPart(StrictModel):
+    """One part of a message's content in a request body; reads itself into a `Part`."""
+
+    @abstractmethod
+    def part(self, field: str) -> Part:
+        """The part; `field` names it in a `RequestShapeError` (an image that does not read)."""
+
+
+def parts_of(content: str | Sequence[ContentPart], field: str) -> list[Part]:
+    """A message's content as parts: a plain string is one text part; a list of parts is
+    read part by part, each naming its own field (`{field}.{index}`)."""
+    if isinstance(content, str):
+        return [content]
+    return [p.part(f"{field}.{j}") for j, p in enumerate(content)]
+
+
+class UsageBody(LooseModel):
+    """The usage block of a response, counted the API's way."""
+
+    @abstractmethod
+    def to_usage(self) -> Usage:
+        """The counts split our way (see `Usage`)."""
+
+
+class ResponseBody(LooseModel):
+    """The fields every API's response body starts with."""
+
+    id: str | None = None
+    model: str | None = None
+
+
+@dataclass(frozen=True)
+class Answer:
+    """An API's reading of a 2xx body: its answer and its usage block (None when absent)."""
+
+    text: str
+    finish_reason: FinishReason
+    raw_finish_reason: str | None
+    usage: UsageBody | None
+    reasoning: str | None = None
 
 
 _TYPE_LABELS = frozenset({"str", "int", "float", "bool", "list", "dict", "none"})
@@ -203,26 +287,40 @@ def error_message(raw: bytes, limit: int = 500) -> str:
     return raw[:limit].decode("utf-8", "replace")
 
 
-def go_duration(seconds: float) -> str:
-    """Seconds as OpenAI writes them in reset headers: `20ms`, `1.5s`, `6m0s`."""
-    if seconds < 1:
-        return f"{max(0, math.ceil(seconds * 1000))}ms"
-    minutes, secs = divmod(seconds, 60)
-    secs_text = f"{secs:.3f}".rstrip("0").rstrip(".")
-    return f"{int(minutes)}m{secs_text}s" if minutes else f"{secs_text}s"
+def request_id(prefix: str) -> str:
+    """A request id as providers send them in a response header (`request-id`, Anthropic;
+    `x-request-id`, OpenAI), for a client to quote."""
+    return f"{prefix}{uuid.uuid4().hex[:24]}"
 
 
-def rfc3339_in(seconds: float) -> str:
-    when = datetime.now(timezone.utc) + timedelta(seconds=seconds)
-    return when.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+RequestT = TypeVar("RequestT", bound=RequestBody)
+ResponseT = TypeVar("ResponseT", bound=ResponseBody)
 
 
-class ApiAdapter(ABC):
-    """One provider API. Subclasses are stateless singletons registered in `apis.ADAPTERS`."""
+class ApiAdapter(ABC, Generic[RequestT, ResponseT]):
+    """One provider API. Subclasses are stateless singletons registered in `apis.ADAPTERS`.
+
+    The steps every API shares are written here once; a subclass supplies its shapes (the
+    request and response models), the way its parts and answers read, and its header names.
+    """
 
     name: ClassVar[ApiName]
     route: ClassVar[str]
     """The path the embedded server serves, e.g. `/v1/chat/completions`."""
+    request_model: type[RequestT]
+    """The request shape as documented (the embedded server validates against it)."""
+    response_model: type[ResponseT]
+    """The response shape (lenient: unknown fields are ignored, required ones are checked)."""
+    response_label: ClassVar[str]
+    """How errors about this API's response bodies name it."""
+    last_turn_error: ClassVar[tuple[str, str]] = (
+        "messages",
+        "the last message must be a user message",
+    )
+    rate_limit_header: ClassVar[str]
+    """Rate-limit header names, with `{limit}` (requests, tokens) and `{field}` (limit,
+    remaining, reset)."""
+    request_id_header: ClassVar[str] = "x-request-id"
 
     @abstractmethod
     def image_tokens(self, width: int, height: int) -> int:
@@ -233,9 +331,9 @@ class ApiAdapter(ABC):
     def url(self, base_url: str) -> str:
         """The endpoint URL for a configured base URL (see `ModelEndpoint.base_url`)."""
 
-    @abstractmethod
     def headers(self, api_key: str | None) -> dict[str, str]:
-        """Authentication and versioning headers."""
+        """Authentication and versioning headers: the key as a bearer token."""
+        return {"Authorization": f"Bearer {api_key}"} if api_key else {}
 
     @abstractmethod
     def build_body(
@@ -244,13 +342,54 @@ class ApiAdapter(ABC):
         """The JSON body for one call."""
 
     @abstractmethod
+    def part(self, part: Part) -> dict[str, Any]:
+        """One text or image part of a user turn in this API's shape."""
+
+    def messages(self, request: ChatRequest) -> list[dict[str, Any]]:
+        """The turns as every API takes them: an assistant turn's text as a plain string, a
+        user turn's content as a list of parts."""
+        return [
+            {"role": "assistant", "content": turn.text}
+            if turn.role == "assistant"
+            else {"role": "user", "content": [self.part(p) for p in turn.content]}
+            for turn in request.turns
+        ]
+
     def parse_response(self, raw: bytes) -> ParsedResponse:
         """Read a 2xx body; raises `ResponseFormatError` naming the problem."""
+        body = validate_response_json(self.response_model, raw, self.response_label)
+        answer = self.read_answer(body)
+        return ParsedResponse(
+            text=answer.text,
+            finish_reason=answer.finish_reason,
+            raw_finish_reason=answer.raw_finish_reason,
+            usage=answer.usage.to_usage() if answer.usage is not None else Usage(),
+            model=body.model,
+            response_id=body.id,
+            reasoning=answer.reasoning,
+            usage_reported=answer.usage is not None,
+        )
+
+    @abstractmethod
+    def read_answer(self, body: ResponseT) -> Answer:
+        """The answer of a validated 2xx body."""
 
     # -- server half -------------------------------------------------------------------------
-    @abstractmethod
     def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
         """Validate a request as the API would; raises `RequestShapeError` naming the field."""
+        body = validate_request_json(self.request_model, raw)
+        prompt = self.read_request(body)
+        if not prompt.turns or prompt.turns[-1].role != "user":
+            raise RequestShapeError(*self.last_turn_error)
+        chat = ChatRequest(tuple(prompt.turns), prompt.system, prompt.options)
+        return IncomingRequest(
+            api=self.name, model=body.model, chat=chat, cache_breakpoints=prompt.cache_breakpoints
+        )
+
+    @abstractmethod
+    def read_request(self, body: RequestT) -> Prompt:
+        """The prompt of a validated request body; raises `RequestShapeError` for what the
+        shape alone does not rule out."""
 
     @abstractmethod
     def build_response(self, reply: ServerReply) -> dict[str, Any]:
@@ -260,9 +399,21 @@ class ApiAdapter(ABC):
     def error_body(self, status: int, message: str) -> dict[str, Any]:
         """An error body in this API's shape."""
 
-    @abstractmethod
     def rate_limit_headers(self, states: Mapping[str, LimitState]) -> dict[str, str]:
         """Rate-limit headers for `states` keyed by "requests" and "tokens"."""
+        headers: dict[str, str] = {}
+        for limit, s in states.items():
+            for field, value in (
+                ("limit", str(s.limit)),
+                ("remaining", str(max(0, s.remaining))),
+                ("reset", self.reset_text(s.reset_s)),
+            ):
+                headers[self.rate_limit_header.format(limit=limit, field=field)] = value
+        return headers
+
+    @abstractmethod
+    def reset_text(self, seconds: float) -> str:
+        """A rate limit's reset, `seconds` from now, as this API writes it."""
 
     def server_key(self, headers: Mapping[str, str]) -> str | None:
         """The API key a request carries (for the server's optional key check)."""
@@ -271,52 +422,4 @@ class ApiAdapter(ABC):
 
     def response_headers(self) -> dict[str, str]:
         """Headers the provider puts on every response (its request id)."""
-        return {"x-request-id": request_id("req_")}
-
-
-def openai_error_type(status: int) -> str:
-    return {
-        400: "invalid_request_error",
-        401: "invalid_api_key",
-        403: "permission_denied",
-        404: "not_found",
-        429: "rate_limit_exceeded",
-    }.get(status, "server_error")
-
-
-def openai_rate_limit_headers(states: Mapping[str, LimitState]) -> dict[str, str]:
-    headers: dict[str, str] = {}
-    for name, s in states.items():
-        headers[f"x-ratelimit-limit-{name}"] = str(s.limit)
-        headers[f"x-ratelimit-remaining-{name}"] = str(max(0, s.remaining))
-        headers[f"x-ratelimit-reset-{name}"] = go_duration(s.reset_s)
-    return headers
-
-
-def openai_usage(usage: Usage) -> tuple[int, int, int]:
-    """(prompt tokens including cached and written, cached, written): OpenAI counts cache
-    reads and writes inside the prompt tokens and reports each in the prompt details."""
-    return usage.prompt_tokens, usage.cached_input_tokens, usage.cache_write_tokens
-
-
-def usage_from_openai(
-    prompt_tokens: int,
-    cached: int | None,
-    output: int,
-    reasoning: int | None,
-    cache_write: int | None = None,
-) -> Usage:
-    cached, cache_write = cached or 0, cache_write or 0
-    return Usage(
-        input_tokens=max(0, prompt_tokens - cached - cache_write),
-        cached_input_tokens=cached,
-        cache_write_tokens=cache_write,
-        output_tokens=output,
-        reasoning_tokens=reasoning,
-    )
-
-
-def request_id(prefix: str) -> str:
-    """A request id as providers send them in a response header (`request-id`, Anthropic;
-    `x-request-id`, OpenAI), for a client to quote."""
-    return f"{prefix}{uuid.uuid4().hex[:24]}"
+        return {self.request_id_header: request_id("req_")}

@@ -16,78 +16,78 @@ from __future__ import annotations
 
 import time
 import uuid
-from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from vabench.llm_pool.apis.base import (
-    ApiAdapter,
-    IncomingRequest,
+    Answer,
+    ContentPart,
     InlineImage,
-    LimitState,
+    LooseModel,
+    Prompt,
+    RequestBody,
     RequestShapeError,
+    ResponseBody,
     ServerReply,
-    openai_error_type,
-    openai_rate_limit_headers,
-    openai_usage,
+    StrictModel,
+    UsageBody,
     parse_data_url,
-    usage_from_openai,
-    validate_request_json,
-    validate_response_json,
+    parts_of,
+)
+from vabench.llm_pool.apis.openai_common import (
+    OpenAIApi,
+    OutputDetails,
+    PromptDetails,
+    output_details,
+    prompt_details,
+    usage_of,
 )
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint, ReasoningEffort
-from vabench.llm_pool.messages import (
-    ChatRequest,
-    FinishReason,
-    ParsedResponse,
-    Part,
-    Turn,
-    Usage,
-)
-from vabench.llm_pool.tokens import openai_image_tokens
+from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 
 # -- request shape (as documented; the embedded server validates against it) ----------------
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class _TextPart(_Strict):
+class _TextPart(ContentPart):
     type: Literal["text"]
     text: str
 
+    def part(self, field: str) -> Part:
+        return self.text
 
-class _ImageURL(_Strict):
+
+class _ImageURL(StrictModel):
     url: str
     detail: Literal["auto", "low", "high"] | None = None
 
 
-class _ImagePart(_Strict):
+class _ImagePart(ContentPart):
     type: Literal["image_url"]
     image_url: _ImageURL
+
+    def part(self, field: str) -> Part:
+        return parse_data_url(self.image_url.url, f"{field}.image_url.url")
 
 
 _ContentPart = Annotated[_TextPart | _ImagePart, Field(discriminator="type")]
 
 
-class _Message(_Strict):
+class _Message(StrictModel):
     role: Literal["system", "developer", "user", "assistant"]
     content: str | list[_ContentPart]
     name: str | None = None
 
 
-class _ResponseFormat(_Strict):
+class _ResponseFormat(StrictModel):
     type: Literal["text", "json_object", "json_schema"]
     json_schema: dict[str, Any] | None = None
 
 
-class ChatCompletionsRequest(_Strict):
+class ChatCompletionsRequest(RequestBody):
     """What the embedded server takes: the parameters a text-and-image call uses (no tools,
     audio, logprobs or streaming: vabench sends none of them, and none is served)."""
 
-    model: str = Field(min_length=1)
     messages: list[_Message] = Field(min_length=1)
     max_completion_tokens: int | None = Field(default=None, ge=1)
     max_tokens: int | None = Field(default=None, ge=1)
@@ -111,40 +111,33 @@ class ChatCompletionsRequest(_Strict):
 # -- response shape (lenient: unknown fields are ignored, required ones are checked) ---------
 
 
-class _Loose(BaseModel):
-    model_config = ConfigDict(extra="ignore")
-
-
-class _PromptDetails(_Loose):
-    cached_tokens: int | None = None
-    cache_write_tokens: int | None = None
-
-
-class _CompletionDetails(_Loose):
-    reasoning_tokens: int | None = None
-
-
-class _Usage(_Loose):
+class _Usage(UsageBody):
     prompt_tokens: int
     completion_tokens: int
-    prompt_tokens_details: _PromptDetails | None = None
-    completion_tokens_details: _CompletionDetails | None = None
+    prompt_tokens_details: PromptDetails | None = None
+    completion_tokens_details: OutputDetails | None = None
+
+    def to_usage(self) -> Usage:
+        return usage_of(
+            self.prompt_tokens,
+            self.prompt_tokens_details,
+            self.completion_tokens,
+            self.completion_tokens_details,
+        )
 
 
-class _AnswerMessage(_Loose):
+class _AnswerMessage(LooseModel):
     content: str | None = None
     refusal: str | None = None
     reasoning_content: str | None = None
 
 
-class _Choice(_Loose):
+class _Choice(LooseModel):
     message: _AnswerMessage
     finish_reason: str | None = None
 
 
-class ChatCompletionsResponse(_Loose):
-    id: str | None = None
-    model: str | None = None
+class ChatCompletionsResponse(ResponseBody):
     choices: list[_Choice] = Field(min_length=1)
     usage: _Usage | None = None
 
@@ -161,12 +154,6 @@ def _openai_finish(finish: FinishReason) -> str:
     return "stop" if finish == "refusal" else finish
 
 
-def _part(part: Part) -> dict[str, Any]:
-    if isinstance(part, str):
-        return {"type": "text", "text": part}
-    return {"type": "image_url", "image_url": {"url": InlineImage(part, data_url=True)}}
-
-
 def _text_of(content: str | list[_ContentPart], field: str) -> str:
     if isinstance(content, str):
         return content
@@ -178,33 +165,20 @@ def _text_of(content: str | list[_ContentPart], field: str) -> str:
     return "\n".join(texts)
 
 
-class OpenAIChat(ApiAdapter):
+class OpenAIChat(OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
     name = "openai_chat"
     route = "/v1/chat/completions"
-
-    def image_tokens(self, width: int, height: int) -> int:
-        return openai_image_tokens(width, height)
-
-    def url(self, base_url: str) -> str:
-        return f"{base_url}/chat/completions"
-
-    def headers(self, api_key: str | None) -> dict[str, str]:
-        return {"Authorization": f"Bearer {api_key}"} if api_key else {}
+    request_model = ChatCompletionsRequest
+    response_model = ChatCompletionsResponse
+    response_label = "chat completions"
 
     def build_body(
         self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
     ) -> dict[str, Any]:
-        messages: list[dict[str, Any]] = []
-        if request.system:
-            messages.append({"role": "system", "content": request.system})
-        for turn in request.turns:
-            if turn.role == "assistant":
-                messages.append({"role": "assistant", "content": turn.text})
-            else:
-                messages.append({"role": "user", "content": [_part(p) for p in turn.content]})
+        system = [{"role": "system", "content": request.system}] if request.system else []
         body: dict[str, Any] = {
             "model": endpoint.provider_model,
-            "messages": messages,
+            "messages": system + self.messages(request),
             endpoint.max_tokens_field: options.resolved_max_output_tokens,
         }
         if options.temperature is not None:
@@ -213,39 +187,26 @@ class OpenAIChat(ApiAdapter):
             body["reasoning_effort"] = options.reasoning_effort
         return body
 
-    def parse_response(self, raw: bytes) -> ParsedResponse:
-        body = validate_response_json(ChatCompletionsResponse, raw, "chat completions")
+    def part(self, part: Part) -> dict[str, Any]:
+        if isinstance(part, str):
+            return {"type": "text", "text": part}
+        return {"type": "image_url", "image_url": {"url": InlineImage(part, data_url=True)}}
+
+    def read_answer(self, body: ChatCompletionsResponse) -> Answer:
         choice = body.choices[0]
         message = choice.message
         finish: FinishReason = _FINISH.get(choice.finish_reason or "", "other")
         if message.refusal:
             finish = "refusal"
-        u = body.usage
-        usage = Usage()
-        if u is not None:
-            prompt = u.prompt_tokens_details or _PromptDetails()
-            usage = usage_from_openai(
-                u.prompt_tokens,
-                prompt.cached_tokens,
-                u.completion_tokens,
-                u.completion_tokens_details.reasoning_tokens
-                if u.completion_tokens_details
-                else None,
-                prompt.cache_write_tokens,
-            )
-        return ParsedResponse(
+        return Answer(
             text=message.content or message.refusal or "",
             finish_reason=finish,
             raw_finish_reason=choice.finish_reason,
-            usage=usage,
-            model=body.model,
-            response_id=body.id,
+            usage=body.usage,
             reasoning=message.reasoning_content,
-            usage_reported=u is not None,
         )
 
-    def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
-        body = validate_request_json(ChatCompletionsRequest, raw)
+    def read_request(self, body: ChatCompletionsRequest) -> Prompt:
         if body.max_tokens is not None and body.max_completion_tokens is not None:
             raise RequestShapeError(
                 "max_tokens", "set max_tokens or max_completion_tokens, not both"
@@ -258,28 +219,17 @@ class OpenAIChat(ApiAdapter):
                 system.append(_text_of(m.content, field))
             elif m.role == "assistant":
                 turns.append(Turn.assistant(_text_of(m.content, field)))
-            elif isinstance(m.content, str):
-                turns.append(Turn.user(m.content))
             else:
-                parts: list[Part] = []
-                for j, p in enumerate(m.content):
-                    if isinstance(p, _TextPart):
-                        parts.append(p.text)
-                    else:
-                        parts.append(parse_data_url(p.image_url.url, f"{field}.{j}.image_url.url"))
-                turns.append(Turn.user(*parts))
-        if not turns or turns[-1].role != "user":
-            raise RequestShapeError("messages", "the last message must be a user message")
+                turns.append(Turn.user(*parts_of(m.content, field)))
         options = GenerationOptions(
             max_output_tokens=body.max_completion_tokens or body.max_tokens,
             temperature=body.temperature,
             reasoning_effort=body.reasoning_effort,
         )
-        chat = ChatRequest(tuple(turns), "\n".join(system) or None, options)
-        return IncomingRequest(api=self.name, model=body.model, chat=chat)
+        return Prompt(turns, "\n".join(system) or None, options)
 
     def build_response(self, reply: ServerReply) -> dict[str, Any]:
-        prompt, cached, written = openai_usage(reply.usage)
+        u = reply.usage
         message: dict[str, Any] = {"role": "assistant", "content": reply.text, "refusal": None}
         if reply.finish_reason == "refusal":
             message.update(content=None, refusal=reply.text)
@@ -297,19 +247,10 @@ class OpenAIChat(ApiAdapter):
                 }
             ],
             "usage": {
-                "prompt_tokens": prompt,
-                "completion_tokens": reply.usage.output_tokens,
-                "total_tokens": prompt + reply.usage.output_tokens,
-                "prompt_tokens_details": {"cached_tokens": cached, "cache_write_tokens": written},
-                "completion_tokens_details": {
-                    "reasoning_tokens": reply.usage.reasoning_tokens or 0
-                },
+                "prompt_tokens": u.prompt_tokens,
+                "completion_tokens": u.output_tokens,
+                "total_tokens": u.total_tokens,
+                "prompt_tokens_details": prompt_details(u),
+                "completion_tokens_details": output_details(u),
             },
         }
-
-    def error_body(self, status: int, message: str) -> dict[str, Any]:
-        error_type = openai_error_type(status)
-        return {"error": {"message": message, "type": error_type, "param": None, "code": None}}
-
-    def rate_limit_headers(self, states: Mapping[str, LimitState]) -> dict[str, str]:
-        return openai_rate_limit_headers(states)

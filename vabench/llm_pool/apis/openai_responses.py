@@ -17,57 +17,58 @@ from __future__ import annotations
 
 import time
 import uuid
-from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from vabench.llm_pool.apis.base import (
-    ApiAdapter,
-    IncomingRequest,
+    Answer,
+    ContentPart,
     InlineImage,
-    LimitState,
+    LooseModel,
+    Prompt,
+    RequestBody,
     RequestShapeError,
+    ResponseBody,
     ServerReply,
-    openai_error_type,
-    openai_rate_limit_headers,
-    openai_usage,
+    StrictModel,
+    UsageBody,
     parse_data_url,
-    usage_from_openai,
-    validate_request_json,
-    validate_response_json,
+    parts_of,
+)
+from vabench.llm_pool.apis.openai_common import (
+    OpenAIApi,
+    OutputDetails,
+    PromptDetails,
+    output_details,
+    prompt_details,
+    usage_of,
 )
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint, ReasoningEffort
 from vabench.llm_pool.errors import ResponseFormatError
-from vabench.llm_pool.messages import (
-    ChatRequest,
-    FinishReason,
-    ParsedResponse,
-    Part,
-    Turn,
-    Usage,
-)
-from vabench.llm_pool.tokens import openai_image_tokens
+from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 
 # -- request shape ----------------------------------------------------------------------------
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class _InputText(_Strict):
+class _InputText(ContentPart):
     type: Literal["input_text"]
     text: str
 
+    def part(self, field: str) -> Part:
+        return self.text
 
-class _InputImage(_Strict):
+
+class _InputImage(ContentPart):
     type: Literal["input_image"]
     image_url: str
     detail: Literal["auto", "low", "high"] = "auto"
 
+    def part(self, field: str) -> Part:
+        return parse_data_url(self.image_url, f"{field}.image_url")
 
-class _OutputText(_Strict):
+
+class _OutputText(StrictModel):
     type: Literal["output_text"]
     text: str
     annotations: list[Any] = Field(default_factory=list)
@@ -76,24 +77,30 @@ class _OutputText(_Strict):
 _InputPart = Annotated[_InputText | _InputImage, Field(discriminator="type")]
 
 
-class _UserMessage(_Strict):
+class _UserMessage(StrictModel):
     type: Literal["message"] | None = None
     role: Literal["user", "system", "developer"]
     content: str | list[_InputPart]
 
 
-class _AssistantMessage(_Strict):
+class _AssistantMessage(StrictModel):
     type: Literal["message"] | None = None
     role: Literal["assistant"]
     content: str | list[_OutputText]
 
+    @property
+    def text(self) -> str:
+        return (
+            self.content if isinstance(self.content, str) else "".join(c.text for c in self.content)
+        )
 
-class _Reasoning(_Strict):
+
+class _Reasoning(StrictModel):
     effort: ReasoningEffort | None = None
     summary: Literal["auto", "concise", "detailed"] | None = None
 
 
-class _TextFormat(_Strict):
+class _TextFormat(StrictModel):
     type: Literal["text", "json_object", "json_schema"]
     name: str | None = None
     schema_: dict[str, Any] | None = Field(default=None, alias="schema")
@@ -101,16 +108,15 @@ class _TextFormat(_Strict):
     description: str | None = None
 
 
-class _Text(_Strict):
+class _Text(StrictModel):
     format: _TextFormat | None = None
     verbosity: Literal["low", "medium", "high"] | None = None
 
 
-class ResponsesRequest(_Strict):
+class ResponsesRequest(RequestBody):
     """What the embedded server takes: the parameters a text-and-image call uses (no tools,
     background runs, stored conversations or streaming: vabench sends none of them)."""
 
-    model: str = Field(min_length=1)
     input: str | list[_UserMessage | _AssistantMessage]
     instructions: str | None = None
     max_output_tokens: int | None = Field(default=None, ge=1)
@@ -131,54 +137,47 @@ class ResponsesRequest(_Strict):
 # -- response shape ---------------------------------------------------------------------------
 
 
-class _Loose(BaseModel):
-    model_config = ConfigDict(extra="ignore")
-
-
-class _Content(_Loose):
+class _Content(LooseModel):
     type: str
     text: str | None = None
     refusal: str | None = None
 
 
-class _Summary(_Loose):
+class _Summary(LooseModel):
     text: str = ""
 
 
-class _OutputItem(_Loose):
+class _OutputItem(LooseModel):
     type: str
     content: list[_Content] | None = None
     summary: list[_Summary] | None = None
 
 
-class _InputDetails(_Loose):
-    cached_tokens: int | None = None
-    cache_write_tokens: int | None = None
-
-
-class _OutputDetails(_Loose):
-    reasoning_tokens: int | None = None
-
-
-class _Usage(_Loose):
+class _Usage(UsageBody):
     input_tokens: int
     output_tokens: int
-    input_tokens_details: _InputDetails | None = None
-    output_tokens_details: _OutputDetails | None = None
+    input_tokens_details: PromptDetails | None = None
+    output_tokens_details: OutputDetails | None = None
+
+    def to_usage(self) -> Usage:
+        return usage_of(
+            self.input_tokens,
+            self.input_tokens_details,
+            self.output_tokens,
+            self.output_tokens_details,
+        )
 
 
-class _Incomplete(_Loose):
+class _Incomplete(LooseModel):
     reason: str | None = None
 
 
-class _Error(_Loose):
+class _Error(LooseModel):
     code: str | None = None
     message: str | None = None
 
 
-class ResponsesResponse(_Loose):
-    id: str | None = None
-    model: str | None = None
+class ResponsesResponse(ResponseBody):
     status: str | None = None
     output: list[_OutputItem]
     incomplete_details: _Incomplete | None = None
@@ -192,12 +191,6 @@ _INCOMPLETE: dict[str, FinishReason] = {
 }
 
 
-def _part(part: Part) -> dict[str, Any]:
-    if isinstance(part, str):
-        return {"type": "input_text", "text": part}
-    return {"type": "input_image", "image_url": InlineImage(part, data_url=True), "detail": "auto"}
-
-
 def _finish_of(body: ResponsesResponse, refused: bool) -> tuple[FinishReason, str | None]:
     if refused:
         return "refusal", body.status
@@ -209,31 +202,20 @@ def _finish_of(body: ResponsesResponse, refused: bool) -> tuple[FinishReason, st
     return "other", body.status
 
 
-class OpenAIResponses(ApiAdapter):
+class OpenAIResponses(OpenAIApi[ResponsesRequest, ResponsesResponse]):
     name = "openai_responses"
     route = "/v1/responses"
-
-    def image_tokens(self, width: int, height: int) -> int:
-        return openai_image_tokens(width, height)
-
-    def url(self, base_url: str) -> str:
-        return f"{base_url}/responses"
-
-    def headers(self, api_key: str | None) -> dict[str, str]:
-        return {"Authorization": f"Bearer {api_key}"} if api_key else {}
+    request_model = ResponsesRequest
+    response_model = ResponsesResponse
+    response_label = "responses"
+    last_turn_error = ("input", "the last input message must be a user message")
 
     def build_body(
         self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
     ) -> dict[str, Any]:
-        items: list[dict[str, Any]] = []
-        for turn in request.turns:
-            if turn.role == "assistant":
-                items.append({"role": "assistant", "content": turn.text})
-            else:
-                items.append({"role": "user", "content": [_part(p) for p in turn.content]})
         body: dict[str, Any] = {
             "model": endpoint.provider_model,
-            "input": items,
+            "input": self.messages(request),
             "max_output_tokens": options.resolved_max_output_tokens,
             "store": False,
         }
@@ -245,8 +227,13 @@ class OpenAIResponses(ApiAdapter):
             body["reasoning"] = {"effort": options.reasoning_effort}
         return body
 
-    def parse_response(self, raw: bytes) -> ParsedResponse:
-        body = validate_response_json(ResponsesResponse, raw, "responses")
+    def part(self, part: Part) -> dict[str, Any]:
+        if isinstance(part, str):
+            return {"type": "input_text", "text": part}
+        image_url = InlineImage(part, data_url=True)
+        return {"type": "input_image", "image_url": image_url, "detail": "auto"}
+
+    def read_answer(self, body: ResponsesResponse) -> Answer:
         if body.status == "failed":
             error = body.error or _Error()
             raise ResponseFormatError(
@@ -266,30 +253,15 @@ class OpenAIResponses(ApiAdapter):
             elif item.type == "reasoning":
                 summaries.extend(s.text for s in item.summary or [])
         finish, raw_finish = _finish_of(body, refused)
-        u = body.usage
-        usage = Usage()
-        if u is not None:
-            details = u.input_tokens_details or _InputDetails()
-            usage = usage_from_openai(
-                u.input_tokens,
-                details.cached_tokens,
-                u.output_tokens,
-                u.output_tokens_details.reasoning_tokens if u.output_tokens_details else None,
-                details.cache_write_tokens,
-            )
-        return ParsedResponse(
+        return Answer(
             text="".join(texts),
             finish_reason=finish,
             raw_finish_reason=raw_finish,
-            usage=usage,
-            model=body.model,
-            response_id=body.id,
+            usage=body.usage,
             reasoning="\n".join(summaries) or None,
-            usage_reported=u is not None,
         )
 
-    def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
-        body = validate_request_json(ResponsesRequest, raw)
+    def read_request(self, body: ResponsesRequest) -> Prompt:
         system = [body.instructions] if body.instructions else []
         turns: list[Turn] = []
         items = (
@@ -300,42 +272,26 @@ class OpenAIResponses(ApiAdapter):
         for i, item in enumerate(items):
             field = f"input.{i}.content"
             if isinstance(item, _AssistantMessage):
-                text = (
-                    item.content
-                    if isinstance(item.content, str)
-                    else "".join(c.text for c in item.content)
-                )
-                turns.append(Turn.assistant(text))
+                turns.append(Turn.assistant(item.text))
                 continue
-            parts: list[Part] = []
-            if isinstance(item.content, str):
-                parts.append(item.content)
-            else:
-                for j, p in enumerate(item.content):
-                    if isinstance(p, _InputText):
-                        parts.append(p.text)
-                    else:
-                        parts.append(parse_data_url(p.image_url, f"{field}.{j}.image_url"))
+            parts = parts_of(item.content, field)
             if item.role == "user":
                 turns.append(Turn.user(*parts))
             elif all(isinstance(p, str) for p in parts):
                 system.append("\n".join(p for p in parts if isinstance(p, str)))
             else:
                 raise RequestShapeError(field, "images are not allowed in system messages")
-        if not turns or turns[-1].role != "user":
-            raise RequestShapeError("input", "the last input message must be a user message")
         options = GenerationOptions(
             max_output_tokens=body.max_output_tokens,
             temperature=body.temperature,
             reasoning_effort=body.reasoning.effort if body.reasoning else None,
         )
-        chat = ChatRequest(tuple(turns), "\n".join(system) or None, options)
-        return IncomingRequest(api=self.name, model=body.model, chat=chat)
+        return Prompt(turns, "\n".join(system) or None, options)
 
     def build_response(self, reply: ServerReply) -> dict[str, Any]:
-        prompt, cached, written = openai_usage(reply.usage)
+        u = reply.usage
         output: list[dict[str, Any]] = []
-        if reply.usage.reasoning_tokens:
+        if u.reasoning_tokens:
             summary = [{"type": "summary_text", "text": reply.reasoning}] if reply.reasoning else []
             output.append({"type": "reasoning", "id": f"rs_{uuid.uuid4().hex}", "summary": summary})
         content = (
@@ -368,17 +324,10 @@ class OpenAIResponses(ApiAdapter):
             "tool_choice": "auto",
             "tools": [],
             "usage": {
-                "input_tokens": prompt,
-                "input_tokens_details": {"cached_tokens": cached, "cache_write_tokens": written},
-                "output_tokens": reply.usage.output_tokens,
-                "output_tokens_details": {"reasoning_tokens": reply.usage.reasoning_tokens or 0},
-                "total_tokens": prompt + reply.usage.output_tokens,
+                "input_tokens": u.prompt_tokens,
+                "input_tokens_details": prompt_details(u),
+                "output_tokens": u.output_tokens,
+                "output_tokens_details": output_details(u),
+                "total_tokens": u.total_tokens,
             },
         }
-
-    def error_body(self, status: int, message: str) -> dict[str, Any]:
-        error_type = openai_error_type(status)
-        return {"error": {"message": message, "type": error_type, "param": None, "code": None}}
-
-    def rate_limit_headers(self, states: Mapping[str, LimitState]) -> dict[str, str]:
-        return openai_rate_limit_headers(states)

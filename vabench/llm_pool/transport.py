@@ -1,0 +1,94 @@
+"""One HTTP exchange with an endpoint, and what its outcome means for the call.
+
+A `Transport` holds what every attempt at an endpoint shares: its aiohttp session (one
+connection pool sized to the endpoint's concurrency, opened on first use), its API's URL and
+headers, and its key. `post` sends one encoded body and returns the parsed reply or a
+`Failure`: a line for the record and the retry decision. HTTP error statuses are classified by
+`retry.decide`; timeouts, dropped connections and malformed 2xx bodies are transient. Only
+cancellation propagates.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+import aiohttp
+from pydantic import SecretStr
+
+from vabench.llm_pool.apis import ApiAdapter
+from vabench.llm_pool.apis.base import error_message
+from vabench.llm_pool.config import ModelEndpoint
+from vabench.llm_pool.errors import ResponseFormatError
+from vabench.llm_pool.messages import ParsedResponse
+from vabench.llm_pool.retry import RetryDecision, decide
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A failed attempt: its line for the record, whether and how to retry, its HTTP status."""
+
+    line: str
+    decision: RetryDecision
+    status: int | None = None
+
+
+class Transport:
+    """HTTP to one endpoint; created by `EndpointClient`."""
+
+    def __init__(self, config: ModelEndpoint, adapter: ApiAdapter, api_key: SecretStr | None):
+        self.adapter = adapter
+        self.url = adapter.url(config.resolved_base_url)
+        self._key = api_key.get_secret_value() if api_key is not None else None
+        self._headers = {
+            "Content-Type": "application/json",
+            **config.headers,
+            **adapter.headers(self._key),
+        }
+        self._connections = config.limits.max_concurrency
+        self._session: aiohttp.ClientSession | None = None
+
+    def _get_session(self) -> aiohttp.ClientSession:
+        if self._session is None:
+            connector = aiohttp.TCPConnector(limit=self._connections, limit_per_host=0)
+            self._session = aiohttp.ClientSession(
+                connector=connector, timeout=aiohttp.ClientTimeout(total=None)
+            )
+        return self._session
+
+    async def post(self, body: bytes, timeout: float) -> ParsedResponse | Failure:
+        """One HTTP exchange; transport problems become `Failure`s, cancellation propagates."""
+        try:
+            async with self._get_session().post(
+                self.url,
+                data=body,
+                headers=self._headers,
+                timeout=aiohttp.ClientTimeout(total=timeout),
+            ) as resp:
+                raw = await resp.read()
+                status, headers = resp.status, resp.headers
+        except asyncio.TimeoutError:
+            return self._failure(
+                f"timeout after {timeout:.1f} s", RetryDecision("transient", "timeout")
+            )
+        except aiohttp.ClientError as err:
+            line = f"{type(err).__name__}: {err}"
+            return self._failure(line, RetryDecision("transient", "connection"))
+        if 200 <= status < 300:
+            try:
+                return self.adapter.parse_response(raw)
+            except ResponseFormatError as err:
+                return self._failure(str(err), RetryDecision("transient", "malformed"), status)
+        line = f"HTTP {status}: {error_message(raw)}"
+        return self._failure(line, decide(status, headers), status)
+
+    def _failure(self, line: str, decision: RetryDecision, status: int | None = None) -> Failure:
+        # Providers sometimes echo (part of) a key in errors; never let it reach a record.
+        if self._key:
+            line = line.replace(self._key, "[redacted]")
+        return Failure(line, decision, status)
+
+    async def close(self) -> None:
+        if self._session is not None:
+            await self._session.close()
+            self._session = None
