@@ -27,7 +27,7 @@ from vabench.config.schema import (
     SweepFile,
     suite_tasks,
 )
-from vabench.llm_pool.server import ServerConfig
+from vabench.llm_pool.server_config import ServerConfig
 
 
 def load_config(

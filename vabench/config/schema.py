@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from vabench.config.problems import is_int
 from vabench.llm_pool.config import ApiName, ModelEndpoint
-from vabench.llm_pool.server import ServerConfig
+from vabench.llm_pool.server_config import ServerConfig
 from vabench.render.images import ImageSettings
 from vabench.tasks import REGISTRY, SUITES
 

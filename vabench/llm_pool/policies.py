@@ -293,27 +293,31 @@ def pure_reply(policy: str, options: dict[str, Any], request: IncomingRequest) -
 
 
 def pure_function(policy: str) -> Callable[..., str]:
-    module, _, name = PURE_REPLIES[policy].partition(":")
+    return _located(PURE_REPLIES[policy])
+
+
+def _located(where: str) -> Any:
+    """The object at "module:name", importing the module on first use."""
+    module, _, name = where.partition(":")
     return getattr(importlib.import_module(module), name)
 
 
-def _reference_servo(**options: Any) -> Policy:
-    """The non-LLM reference agent, imported on first use: `vabench.reference_agent` loads
-    nothing of the simulator, tasks or renderer, and importing this module does not load it."""
-    from vabench.reference_agent import ReferenceServo
-
-    return ReferenceServo(**options)
-
-
-POLICIES["reference_servo"] = _reference_servo
-
-
-def _rubric_judge(**options: Any) -> Policy:
-    """The stand-in judge of the behavioural diagnostics (`vabench.diagnostics.judge`),
-    imported on first use like the reference servo."""
-    from vabench.diagnostics.judge_policy import RubricJudge
-
-    return RubricJudge(**options)
+PLUGGED_POLICIES: dict[str, str] = {
+    "reference_servo": "vabench.reference_agent:ReferenceServo",
+    "rubric_judge": "vabench.diagnostics.judge_policy:RubricJudge",
+}
+"""Policies that live with what they stand in for: the non-LLM reference agent and the
+behavioural diagnostics' stand-in judge (`vabench.diagnostics.judge`). They are named by where
+they are and imported on first use, so that this package depends on neither (the diagnostics
+sit above it) and importing it loads neither."""
 
 
-POLICIES["rubric_judge"] = _rubric_judge
+def _plugged(where: str) -> PolicyFactory:
+    def factory(**options: Any) -> Policy:
+        return _located(where)(**options)
+
+    return factory
+
+
+for _name, _where in PLUGGED_POLICIES.items():
+    POLICIES[_name] = _plugged(_where)
