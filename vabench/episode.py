@@ -37,6 +37,7 @@ from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.backends import make_renderer
 from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.sim_mjx.cli import add_physics_arguments, physics_kwargs
 
 
 def load_models(path: Path) -> list[Any]:
@@ -109,7 +110,7 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
         args.task, args.seed, args.model, args.protocol, args.run, out, step_budget=args.max_steps
     )
     image = ImageSettings(args.width, args.height, args.quality)
-    impl = {"impl": args.impl} if args.backend == "mjx" else {}
+    impl = physics_kwargs(args)
     rp, choice = make_renderer(
         args.render, workers=1, platform=args.platform, max_size=(args.width, args.height)
     )
@@ -152,13 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--protocol", choices=("active", "passive"), default="active")
     p.add_argument("--run", type=int, default=0)
     p.add_argument("--out")
-    p.add_argument("--backend", choices=("mjx", "c"), default="mjx")
-    p.add_argument(
-        "--impl",
-        choices=("jax", "warp"),
-        default="jax",
-        help="with --backend mjx: MJX on JAX or MuJoCo Warp (NVIDIA GPU, [gpu] extra)",
-    )
+    add_physics_arguments(p)
     p.add_argument(
         "--render",
         choices=("auto", "warp", "gl"),

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.sim_mjx.cli import add_physics_arguments
 from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks import REGISTRY, get_task
 from vabench.tasks.expert import ExpertContext, ExpertFailed
@@ -124,15 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--actions", type=Path, help="JSON file: a list of action objects")
     source.add_argument("--expert", action="store_true", help="run the family's expert")
-    parser.add_argument(
-        "--backend", choices=("mjx", "c"), default="mjx", help="MJX (default) or C MuJoCo"
-    )
-    parser.add_argument(
-        "--impl",
-        choices=("jax", "warp"),
-        default="jax",
-        help="with --backend mjx: MJX on JAX (default) or MuJoCo Warp (NVIDIA GPU, [gpu] extra)",
-    )
+    add_physics_arguments(parser)
     parser.add_argument(
         "--json", action="store_true", help="print the JSON document (the only output form now)"
     )

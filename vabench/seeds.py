@@ -27,6 +27,7 @@ import mujoco
 
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.sim_mjx.cli import add_physics_arguments, physics_kwargs
 from vabench.tasks import BENCHMARK_FAMILIES, REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
 from vabench.tasks.runner import TaskBatch, run_experts
@@ -154,13 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     verify = sub.add_parser("verify", help="screen candidates and write the manifests")
     verify.add_argument("--task", action="append", help="a family (repeatable); default: all")
-    verify.add_argument("--backend", choices=("c", "mjx"), default="c")
-    verify.add_argument(
-        "--impl",
-        choices=("jax", "warp"),
-        default="jax",
-        help="with --backend mjx: MJX on JAX or MuJoCo Warp (NVIDIA GPU, [gpu] extra)",
-    )
+    add_physics_arguments(verify, backend="c")
     verify.add_argument("--n", type=int, default=N_RETAINED, help="seeds to retain")
     verify.add_argument("--batch", type=int, default=None, help="candidates per batch (default n)")
     verify.add_argument("--max-candidates", type=int, default=200)
@@ -194,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.batch,
                 args.max_candidates,
                 log=lambda s: print(s, file=sys.stderr, flush=True),
-                **({"impl": args.impl} if args.backend == "mjx" else {}),
+                **physics_kwargs(args),
             )
         except BackendUnavailable as err:
             parser.error(f"--impl {args.impl}: {err}")

@@ -34,6 +34,9 @@ RATE_WINDOW_S = 60.0
 
 @dataclass
 class Counts:
+    """Episodes of one cell, track or sweep: planned, recorded (done), successes, recorded but
+    not scored, re-run after an infrastructure error, and running now."""
+
     planned: int = 0
     done: int = 0
     success: int = 0
@@ -71,9 +74,7 @@ def status_of(progress: Any) -> Status:
     its in-flight gate)."""
     tracks: dict[tuple[str, str], Counts] = collections.defaultdict(Counts)
     for (model, track, _task), cell in list(progress.cells.items()):
-        tracks[(model, track)].add(
-            Counts(cell.planned, cell.done, cell.success, cell.unscored, cell.retried, cell.running)
-        )
+        tracks[(model, track)].add(cell)
     status = Status(dict(tracks))
     if progress.pool is not None:
         stats = list(progress.pool.stats().values())

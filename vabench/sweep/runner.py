@@ -46,6 +46,7 @@ from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import Choice, resolve
 from vabench.sweep.choices import LOCAL_MAX_TASKS
+from vabench.sweep.display import Counts
 from vabench.sweep.inflight import BATCHED, InFlight
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
@@ -60,31 +61,18 @@ class SweepStopped(Exception):
 
 
 @dataclass
-class CellCounts:
-    planned: int = 0
-    done: int = 0
-    success: int = 0
-    running: int = 0
-    unscored: int = 0
-    retried: int = 0
-
-
-@dataclass
 class SweepProgress:
     """Live counters for the display, per (model, track, task)."""
 
-    cells: dict[tuple[str, str, str], CellCounts] = field(
-        default_factory=lambda: defaultdict(CellCounts)
-    )
+    cells: dict[tuple[str, str, str], Counts] = field(default_factory=lambda: defaultdict(Counts))
     pool: LLMPool | None = None
     gate: InFlight | None = None
     """The in-flight limit of this process (its limit and why)."""
 
-    def total(self) -> CellCounts:
-        out = CellCounts()
+    def total(self) -> Counts:
+        out = Counts()
         for c in self.cells.values():
-            for name in ("planned", "done", "success", "running", "unscored", "retried"):
-                setattr(out, name, getattr(out, name) + getattr(c, name))
+            out.add(c)
         return out
 
 
