@@ -9,6 +9,8 @@ A family is one module of `vabench.tasks` exporting `TASK`, an instance of a `Ta
 - `sample(seed)` draws the evaluator-only initial object poses and the model id, from the
   paper's ranges (appendix tables tab:seed-spec-*), deterministically from the seed alone (its
   random stream is `rng(seed)`: `seed_stream`, which a held-out variant replaces by its own).
+  By default it draws the objects of `on_table` in order (`OnTable`), then the model id
+  uniformly when there are several.
 - `evaluate(ix, slot, latched)` is the terminal predicate of the paper's table row for one slot,
   pure and jittable (the batch vmaps it): named checks, the latched flags ("was lifted at some
   point", the handover chain, the bell press) updated from the current state, the subgoal flags
@@ -187,8 +189,11 @@ class Task:
     means its own (base families) or its base family's summary (transfer variants, which get no
     video: FACTS "Held-out variants reuse the base task's summary"); the basket names the four
     atomic families of FACTS."""
-    objects: tuple[tuple[str, str], ...] = ()
-    """(object name, file in `assets/objects/`) that the default `populate` attaches, in order."""
+    objects: tuple[tuple[str, str | tuple[str, ...]], ...] = ()
+    """(object name, file in `assets/objects/`) that the default `populate` attaches, in order;
+    a tuple of files in place of one names the object's file of each model id."""
+    on_table: tuple[tuple[str, OnTable], ...] = ()
+    """(object name, where it rests) that the default `sample` draws, in order."""
     seed_stream: Callable[[int], np.random.Generator] = np.random.default_rng
     """A seed's random stream (`rng`); a held-out variant draws from its own, so that its seed s
     is another scene than seed s of its base family (`vabench.tasks.heldout`)."""
@@ -208,7 +213,7 @@ class Task:
     def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
         """Add the task's objects to the scene spec (by default `objects`, for every variant)."""
         for name, file in self.objects:
-            attach_object(spec, file, name)
+            attach_object(spec, file if isinstance(file, str) else file[variant], name)
 
     def build_model(self, variant: int = 0) -> mujoco.MjModel:
         return scene.build_model(self.arms, lambda spec: self.populate(spec, variant))
@@ -218,7 +223,14 @@ class Task:
 
     def sample(self, seed: int) -> Sample:
         """Evaluator-only initial object poses and model id; deterministic in the seed alone."""
-        return Sample({})
+        rng = self.rng(seed)
+        poses = self.draw(rng)
+        variant = int(rng.integers(len(self.variants))) if len(self.variants) > 1 else 0
+        return Sample(poses, variant=variant)
+
+    def draw(self, rng: np.random.Generator) -> ObjectPoses:
+        """The poses of `on_table`, in order (a family may add objects drawn after them)."""
+        return {name: at.sample(rng) for name, at in self.on_table}
 
     def initial_qpos(self, model: mujoco.MjModel, sample: Sample | int) -> np.ndarray:
         if isinstance(sample, int):

@@ -1,14 +1,14 @@
 """The shapes of family that several families share. No TASK here: the registry skips this module.
 
 - `GraspFamily`: one object picked up by the right arm (tab:seed-spec-grasp: grasp_single_*,
-  grasp_pen_leaning_cube and their held-out variants): the grasp predicate on `target`
-  (`common.grasp_evaluation`), the checkpoints reached, grasped, lifted, completed; the expert
-  is the family's `grasp` followed by a lift of 100 mm.
+  grasp_pen_leaning_cube and their held-out variants): the grasp predicate on `target` (the
+  first of `objects`; `common.grasp_evaluation`), the checkpoints reached, grasped, lifted,
+  completed; the expert is the family's `grasp` followed by a lift of 100 mm.
 - `PlaceFamily`: one object carried by the right arm onto or into a support (tab:seed-spec-place:
   place_single_cube, place_single_bottle_upright, place_cube_in_bowl, place_cube_on_cube and
-  their held-out variants): both drawn on the table (`obj_at`, then `target_at`), the shared
-  place predicate (`common.place_evaluation`) over the family's own `placement` checks, the
-  latch "was_lifted", the six place checkpoints.
+  their held-out variants): `obj`, the first of `objects`, goes onto or into `target`, the
+  second; the shared place predicate (`common.place_evaluation`) over the family's own
+  `placement` checks, the latch "was_lifted", the six place checkpoints.
 - `PadPlaceFamily`: a `PlaceFamily` whose support is a flat pad: the pad-placement predicate of
   the paper (_single_right_arm_place_target_task) with the family's tolerances.
 
@@ -22,14 +22,11 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from vabench.tasks import common
 from vabench.tasks.base import (
     Evaluation,
     ObjectIndex,
-    ObjectPoses,
-    OnTable,
     Sample,
     Script,
     SlotState,
@@ -42,11 +39,15 @@ Check = tuple[str, jax.Array]  # a named predicate check
 
 @dataclass(frozen=True)
 class GraspFamily(Task):
-    """A one-object grasp family (see the module docstring); the family defines `sample` and
-    `grasp`."""
+    """A one-object grasp family (see the module docstring); the family defines `grasp`, and
+    `sample` unless `on_table` places its objects."""
 
-    target: str = ""  # the object to pick up
     checkpoints: tuple[str, ...] = common.GRASP_CHECKPOINTS
+
+    @property
+    def target(self) -> str:
+        """The object to pick up: the first of `objects`."""
+        return self.objects[0][0]
 
     def __post_init__(self) -> None:
         if not self.contact_pairs:
@@ -67,27 +68,25 @@ class GraspFamily(Task):
 @dataclass(frozen=True)
 class PlaceFamily(Task):
     """A right-arm place family (see the module docstring); the family defines `placement`
-    and `expert`."""
+    and `expert` (and `on_table` places the objects)."""
 
-    obj: str = ""  # the object carried
-    target: str = ""  # the support it goes onto or into
-    obj_at: OnTable | None = None  # where each is drawn (every place family gives both)
-    target_at: OnTable | None = None
     checkpoints: tuple[str, ...] = common.PLACE_CHECKPOINTS
     latches: tuple[str, ...] = ("was_lifted",)
+
+    @property
+    def obj(self) -> str:
+        """The object carried: the first of `objects`."""
+        return self.objects[0][0]
+
+    @property
+    def target(self) -> str:
+        """The support it goes onto or into: the second of `objects`."""
+        return self.objects[1][0]
 
     def __post_init__(self) -> None:
         if not self.contact_pairs:
             pairs = ((self.obj, "right_gripper"), (self.obj, self.target))
             object.__setattr__(self, "contact_pairs", pairs)
-
-    def sample(self, seed: int) -> Sample:
-        return Sample(self.layout(self.rng(seed)))
-
-    def layout(self, rng: np.random.Generator) -> ObjectPoses:
-        """The initial poses: `obj`, then `target` (a variant may add objects after them)."""
-        assert self.obj_at is not None and self.target_at is not None, self.name
-        return {self.obj: self.obj_at.sample(rng), self.target: self.target_at.sample(rng)}
 
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
         placement, still = self.placement(ix, s)

@@ -42,13 +42,11 @@ class GraspPenLeaningCube(GraspFamily):
         return Sample(sk.leaning_pen_poses(x, y, yaw, np.radians(LEAN_DEG)))
 
     def grasp(self, ctx: ExpertContext) -> Script:
-        across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2
-        yield from sk.topdown_grasp_at(ctx, "right", lambda v: v.pos("pen"), across)
+        yield from sk.grasp_across(ctx, "right", "pen", long_axis=0)
 
 
 TASK = GraspPenLeaningCube(
     name="grasp_pen_leaning_cube",
     instruction="Pick up the pen leaning against the blue cube and lift it.",
     objects=(("pen", "pen_marker.xml"), ("block", "cube_blue_80.xml")),
-    target="pen",
 )

@@ -44,13 +44,11 @@ class GraspSingleBottle(GraspFamily):
         return Sample({"bottle": self.lying_pose(x, y, yaw)})
 
     def grasp(self, ctx: ExpertContext) -> Script:
-        across = sk.axis_heading(ctx.view.mat("bottle"), 2) + np.pi / 2
-        yield from sk.topdown_grasp_at(ctx, "right", lambda v: v.pos("bottle"), across)
+        yield from sk.grasp_across(ctx, "right", "bottle", long_axis=2)
 
 
 TASK = GraspSingleBottle(
     name="grasp_single_bottle",
     instruction="Pick up the bottle lying on the table and lift it off the table.",
     objects=(("bottle", "bottle_water.xml"),),
-    target="bottle",
 )

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import OnTable, Sample, Script
+from vabench.tasks.base import OnTable, Script
 from vabench.tasks.expert import ExpertContext
 from vabench.tasks.families import GraspFamily
 
@@ -29,13 +29,6 @@ place_single_bottle_upright; the held-out variants stand a taller container ther
 
 @dataclass(frozen=True)
 class GraspSingleBottleUpright(GraspFamily):
-    """The family; its held-out variant changes the container (`objects`, `bottle_at`)."""
-
-    bottle_at: OnTable = BOTTLE_AT
-
-    def sample(self, seed: int) -> Sample:
-        return Sample({"bottle": self.bottle_at.sample(self.rng(seed))})
-
     def grasp(self, ctx: ExpertContext) -> Script:
         yield from sk.side_grasp(ctx, "right", lambda v: v.pos("bottle"))
 
@@ -44,5 +37,5 @@ TASK = GraspSingleBottleUpright(
     name="grasp_single_bottle_upright",
     instruction="Pick up the upright bottle and lift it off the table.",
     objects=(("bottle", "bottle_water.xml"),),
-    target="bottle",
+    on_table=(("bottle", BOTTLE_AT),),
 )

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 
 from vabench.tasks import skills_heldout_bottles as hb
+from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
 from vabench.tasks.grasp_single_bottle_upright import TASK as BASE
 from vabench.tasks.heldout import variant
 
@@ -30,6 +31,6 @@ TASK = variant(
     BASE,
     "grasp_single_bottle_upright_heldout",
     objects=(("bottle", "bottle_square.xml"),),
-    bottle_at=dataclasses.replace(BASE.bottle_at, half_h=hb.SQUARE_HALF_H),
+    on_table=(("bottle", dataclasses.replace(BOTTLE_AT, half_h=hb.SQUARE_HALF_H)),),
     seed_stream=hb.heldout_rng,
 )

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from vabench.tasks import common
-from vabench.tasks.base import OnTable, Sample, Script
+from vabench.tasks.base import ObjectPoses, OnTable, Script
 from vabench.tasks.expert import ExpertContext
 from vabench.tasks.families import GraspFamily
 from vabench.tasks.heldout import NO_DISTRACTORS, Distractors
@@ -28,14 +30,12 @@ CUBE_AT = OnTable(x=(0.18, 0.26), y=(-0.16, -0.06), half_h=CUBE_HALF, yaw_deg=(-
 class GraspSingleCube(GraspFamily):
     """The family; its held-out variant changes the data below (and the objects)."""
 
-    cube_at: OnTable = CUBE_AT
     symmetry_deg: float = 90.0  # of the top-down grasp: the cube's faces
     distractors: Distractors = NO_DISTRACTORS
 
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        pos, quat = self.cube_at.sample(rng)
-        return Sample({"cube": (pos, quat), **self.distractors.sample(rng, pos)})
+    def draw(self, rng: np.random.Generator) -> ObjectPoses:
+        poses = super().draw(rng)  # the cube, then the distractors around it
+        return {**poses, **self.distractors.sample(rng, poses["cube"][0])}
 
     def grasp(self, ctx: ExpertContext) -> Script:
         yield from common.topdown_grasp(ctx, "right", "cube", symmetry_deg=self.symmetry_deg)
@@ -45,5 +45,5 @@ TASK = GraspSingleCube(
     name="grasp_single_cube",
     instruction="Pick up the red cube and lift it off the table.",
     objects=(("cube", "cube_red_50.xml"),),
-    target="cube",
+    on_table=(("cube", CUBE_AT),),
 )

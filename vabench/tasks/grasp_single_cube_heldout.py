@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from vabench.tasks.grasp_single_cube import CUBE_AT
 from vabench.tasks.grasp_single_cube import TASK as BASE
 from vabench.tasks.heldout import Distractors, salted, variant
 
@@ -48,7 +49,7 @@ TASK = variant(
     BASE,
     "grasp_single_cube_heldout",
     objects=(("cube", TARGET_FILE), *DISTRACTORS.objects),
-    cube_at=dataclasses.replace(BASE.cube_at, half_h=TARGET_HALF[2]),  # the base's ranges
+    on_table=(("cube", dataclasses.replace(CUBE_AT, half_h=TARGET_HALF[2])),),  # the base's ranges
     # body x is the box's narrow axis; topdown(yaw) closes the fingers along the object's x
     symmetry_deg=180.0,
     distractors=DISTRACTORS,

@@ -97,8 +97,5 @@ TASK = PlaceCubeInBowl(
     name="place_cube_in_bowl",
     instruction="Pick up the red cube and put it into the blue bowl.",
     objects=(("cube", "cube_red_40.xml"), ("bowl", "bowl_blue.xml")),
-    obj="cube",
-    target="bowl",
-    obj_at=CUBE_AT,
-    target_at=BOWL_AT,
+    on_table=(("cube", CUBE_AT), ("bowl", BOWL_AT)),
 )

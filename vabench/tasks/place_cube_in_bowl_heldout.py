@@ -80,6 +80,6 @@ TASK = variant(
     "place_cube_in_bowl_heldout",
     PlaceCubeInBowlHeldout,
     objects=(("cube", "cube_red_40.xml"), ("bowl", "basin_navy.xml")),
-    target_at=BASIN_AT,
+    on_table=(("cube", base.CUBE_AT), ("bowl", BASIN_AT)),
     seed_stream=salted(SALT),
 )

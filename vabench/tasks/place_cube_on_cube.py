@@ -105,8 +105,5 @@ TASK = PlaceCubeOnCube(
     instruction="Pick up the red cube and stack it on top of the green cube.",
     step_budget=200,
     objects=(("red", "cube_red_50.xml"), ("base", "cube_green_50.xml")),
-    obj="red",
-    target="base",
-    obj_at=RED_AT,
-    target_at=BASE_AT,
+    on_table=(("red", RED_AT), ("base", BASE_AT)),
 )

@@ -71,6 +71,6 @@ TASK = variant(
     "place_cube_on_cube_heldout",
     PlaceCubeOnCubeHeldout,
     objects=(("red", "cube_red_50.xml"), ("base", "block_green_80x60x60.xml")),
-    target_at=SUPPORT_AT,
+    on_table=(("red", base.RED_AT), ("base", SUPPORT_AT)),
     seed_stream=salted(SALT),
 )

@@ -27,6 +27,7 @@ from vabench.tasks.families import PadPlaceFamily
 from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
 
 PAD_HALF_THICK = 0.003
+PAD_AT = OnTable(x=(0.03, 0.09), y=(0.07, 0.13), half_h=PAD_HALF_THICK)
 
 
 @dataclass(frozen=True)
@@ -44,10 +45,7 @@ TASK = PlaceSingleBottleUpright(
     instruction="Pick up the bottle and place it upright on the green pad.",
     step_budget=100,
     objects=(("bottle", "bottle_water.xml"), ("pad", "pad_green_130.xml")),
-    obj="bottle",
-    target="pad",
-    obj_at=BOTTLE_AT,
-    target_at=OnTable(x=(0.03, 0.09), y=(0.07, 0.13), half_h=PAD_HALF_THICK),
+    on_table=(("bottle", BOTTLE_AT), ("pad", PAD_AT)),
     rest_height=PAD_HALF_THICK + sk.BOTTLE_HALF_H,  # bottle origin above the pad centre
     xy_tol=0.040,
     height_tol=0.035,

@@ -26,15 +26,16 @@ from __future__ import annotations
 import dataclasses
 
 from vabench.tasks import skills_heldout_bottles as hb
+from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
 from vabench.tasks.heldout import variant
-from vabench.tasks.place_single_bottle_upright import PAD_HALF_THICK
+from vabench.tasks.place_single_bottle_upright import PAD_AT, PAD_HALF_THICK
 from vabench.tasks.place_single_bottle_upright import TASK as BASE
 
 TASK = variant(
     BASE,
     "place_single_bottle_upright_heldout",
     objects=(("bottle", "bottle_square.xml"), ("pad", "pad_green_130.xml")),
-    obj_at=dataclasses.replace(BASE.obj_at, half_h=hb.SQUARE_HALF_H),
+    on_table=(("bottle", dataclasses.replace(BOTTLE_AT, half_h=hb.SQUARE_HALF_H)), ("pad", PAD_AT)),
     rest_height=PAD_HALF_THICK + hb.SQUARE_HALF_H,  # bottle origin above the pad centre
     seed_stream=hb.heldout_rng,
 )

@@ -73,10 +73,9 @@ class PlaceSingleCubeHeldout(base.PlaceSingleCube):
     """The base family's predicate (inherited), plus the decoy and the wall, and the expert
     that carries the cube over the wall."""
 
-    def layout(self, rng: np.random.Generator) -> ObjectPoses:
-        poses = super().layout(rng)  # the red cube and the green goal pad
-        decoy = DECOY_AT.sample(rng)
-        return {**poses, "decoy": decoy, "obstacle": wall_pose(poses["cube"][0], poses["pad"][0])}
+    def draw(self, rng: np.random.Generator) -> ObjectPoses:
+        poses = super().draw(rng)  # the red cube, the green goal pad, the decoy
+        return {**poses, "obstacle": wall_pose(poses["cube"][0], poses["pad"][0])}
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         yield from common.topdown_grasp(ctx, "right", "cube", grasp_dz=GRASP_DZ)
@@ -94,7 +93,6 @@ TASK = variant(
     "place_single_cube_heldout",
     PlaceSingleCubeHeldout,
     objects=(*base.TASK.objects, ("decoy", "pad_blue.xml"), ("obstacle", "wall_purple.xml")),
-    obj_at=CUBE_AT,
-    target_at=PAD_AT,
+    on_table=(("cube", CUBE_AT), ("pad", PAD_AT), ("decoy", DECOY_AT)),
     seed_stream=salted(SALT),
 )
