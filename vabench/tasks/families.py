@@ -24,14 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from vabench.tasks import common
-from vabench.tasks.base import (
-    Evaluation,
-    ObjectIndex,
-    Sample,
-    Script,
-    SlotState,
-    Task,
-)
+from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
 from vabench.tasks.expert import ExpertContext
 
 Check = tuple[str, jax.Array]  # a named predicate check
