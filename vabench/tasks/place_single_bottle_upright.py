@@ -3,10 +3,11 @@
 Scene (paper Table tab:seed-spec-place): the bottle as in grasp_single_bottle_upright
 (bottle_water.xml, upright, x in [0.20, 0.28], y in [-0.16, -0.04]); a green pad (half-size
 0.065 m, FACTS; 3 mm half-thick) at x in [0.03, 0.09], y in [0.07, 0.13], axis-aligned.
-Success (all now, plus one latch; place_single_cube's shared predicate): the bottle was lifted
->= 50 mm at some point (latched); the x and y errors of its body centre to the pad centre each
-<= 40 mm; its height error to the resting height on the pad (pad half-thickness + 60 mm) <= 35
-mm; the pad displaced <= 2 mm; bottle-pad contact; right gripper open. Budget 100 steps.
+Success (all now, plus one latch; the pad predicate of `families.PadPlaceFamily`, as
+place_single_cube's): the bottle was lifted >= 50 mm at some point (latched); the x and y errors
+of its body centre to the pad centre each <= 40 mm; its height error to the resting height on
+the pad (pad half-thickness + 60 mm) <= 35 mm; the pad displaced <= 2 mm; bottle-pad contact;
+right gripper open. Budget 100 steps.
 The paper's row checks no orientation: a bottle lying on the pad has its centre 31 mm above the
 pad's top, 29 mm below the upright resting height, and passes the height check.
 Checkpoints: reached, grasped, lifted (latched), transported (x/y and height within
