@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from tests.task_states import StateBuilder
-from vabench.seeds import load_manifest
 from vabench.tasks import BASKET_DEMONSTRATIONS, get_task
 from vabench.tasks.base import advance_progress
+from vabench.tasks.manifests import load_manifest
 from vabench.tasks.runner import TaskBatch, run_experts
 
 NAME = "put_everything_in_basket"

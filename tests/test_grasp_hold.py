@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from tests.hold_monitor import HoldMonitor, SlotTrace, watch_experts
-from vabench.seeds import load_manifest
 from vabench.tasks import benchmark_tasks, get_task
+from vabench.tasks.manifests import load_manifest
 from vabench.tasks.runner import TaskBatch
 
 HOLD_MM = 10.0

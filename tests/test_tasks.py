@@ -12,9 +12,9 @@ import sys
 import numpy as np
 import pytest
 
-from vabench.seeds import load_manifest
 from vabench.sim_mjx import scene
 from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, REGISTRY, SUITES, get_task
+from vabench.tasks.manifests import load_manifest
 from vabench.tasks.runner import TaskBatch, run_experts
 
 # FACTS.md, "Tasks, budgets, evaluation seeds" (transcribed independently of the modules).

@@ -10,6 +10,7 @@ The first `n` candidates whose expert succeeds within the step budget are retain
 `configs/seeds/<task>.json` records the retained seeds, how many candidates were probed (up to
 and including the last retained one, as in the paper's yield table) and why each rejected
 candidate failed. `table` prints the yield table in the paper's form from the manifests.
+Reading a manifest is `vabench.tasks.manifests`'s (`verified_seeds` is re-exported here).
 """
 
 from __future__ import annotations
@@ -25,15 +26,14 @@ from typing import Any
 
 import mujoco
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.backends import BackendUnavailable
 from vabench.sim_mjx.cli import add_physics_arguments, physics_kwargs
 from vabench.tasks import BENCHMARK_FAMILIES, REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
+from vabench.tasks.manifests import MANIFEST_DIR, MANIFEST_VERSION, load_manifest, manifest_path
+from vabench.tasks.manifests import verified_seeds as verified_seeds  # re-exported for callers
 from vabench.tasks.runner import TaskBatch, run_experts
 
-MANIFEST_DIR = rc.ASSETS.parent / "configs" / "seeds"
-MANIFEST_VERSION = 1
 FIRST_CANDIDATE = 1000
 N_RETAINED = 20
 
@@ -66,27 +66,6 @@ class Manifest:
                 "date": dt.date.today().isoformat(),
             },
         }
-
-
-def manifest_path(task: str, directory: Path = MANIFEST_DIR) -> Path:
-    return directory / f"{task}.json"
-
-
-def load_manifest(task: str, directory: Path = MANIFEST_DIR) -> dict[str, Any]:
-    """A family's manifest; raises FileNotFoundError naming the command that makes it."""
-    path = manifest_path(task, directory)
-    if not path.exists():
-        raise FileNotFoundError(
-            f"no seed manifest {path}; run `python -m vabench.seeds verify --task {task}`"
-        )
-    doc = json.loads(path.read_text())
-    if doc.get("version") != MANIFEST_VERSION or doc.get("task") != task:
-        raise ValueError(f"{path}: not a version-{MANIFEST_VERSION} manifest of {task}")
-    return doc
-
-
-def verified_seeds(task: str, directory: Path = MANIFEST_DIR) -> list[int]:
-    return list(load_manifest(task, directory)["retained"])
 
 
 def screen(

@@ -56,7 +56,17 @@ SUITES = {
 """Benchmark families per suite, in the paper's order."""
 BENCHMARK_FAMILIES = BASE_FAMILIES + TRANSFER_FAMILIES + LONG_HORIZON_FAMILIES
 
-_NOT_TASKS = {"base", "common", "expert", "objects", "runner", "__main__"}
+_NOT_TASKS = {
+    "base",
+    "common",
+    "expert",
+    "families",
+    "heldout",
+    "manifests",
+    "objects",
+    "runner",
+    "__main__",
+}
 
 
 def _discover() -> dict[str, Task]:

@@ -18,11 +18,10 @@ from typing import Any
 
 from vabench.tasks import REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
+from vabench.tasks.manifests import manifest_path, verified_seeds
 
 
 def describe(task: Task) -> dict[str, Any]:
-    from vabench.seeds import manifest_path, verified_seeds
-
     return {
         "name": task.name,
         "suite": task.suite,

@@ -3,10 +3,14 @@
 A family is one module of `vabench.tasks` exporting `TASK`, an instance of a `Task` subclass.
 
 - `populate(spec, variant)` adds the family's objects (authored in `assets/objects/`) to the
-  scene; `variants` names the object model ids (bell 2, pot 2, shoe 10): every variant has the
-  same structure, so all seeds of a family share one batch (see `sim_mjx.variants`).
+  scene: by default the `objects` of the task's data, in order; `variants` names the object
+  model ids (bell 2, pot 2, shoe 10): every variant has the same structure, so all seeds of a
+  family share one batch (see `sim_mjx.variants`).
 - `sample(seed)` draws the evaluator-only initial object poses and the model id, from the
-  paper's ranges (appendix tables tab:seed-spec-*), deterministically from the seed alone.
+  paper's ranges (appendix tables tab:seed-spec-*), deterministically from the seed alone (its
+  random stream is `rng(seed)`: `seed_stream`, which a held-out variant replaces by its own).
+  By default it draws the objects of `on_table` in order (`OnTable`), then the model id
+  uniformly when there are several.
 - `evaluate(ix, slot, latched)` is the terminal predicate of the paper's table row for one slot,
   pure and jittable (the batch vmaps it): named checks, the latched flags ("was lifted at some
   point", the handover chain, the bell press) updated from the current state, the subgoal flags
@@ -19,7 +23,7 @@ A family is one module of `vabench.tasks` exporting `TASK`, an instance of a `Ta
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -31,6 +35,7 @@ import numpy as np
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx import scene
 from vabench.sim_mjx.pytree import pytree_dataclass
+from vabench.tasks.objects import attach_object
 
 if TYPE_CHECKING:
     from vabench.tasks.expert import ExpertContext
@@ -70,6 +75,23 @@ def quat_to_mat(q: jax.Array) -> jax.Array:
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
         ]
     )
+
+
+@dataclass(frozen=True)
+class OnTable:
+    """Where a sampler puts an object resting on the table: its centre at x and y uniform in
+    `x` and `y`, `half_h` above the table top, its yaw uniform in `yaw_deg` (None: 0), drawn in
+    that order."""
+
+    x: tuple[float, float]
+    y: tuple[float, float]
+    half_h: float = 0.0
+    yaw_deg: tuple[float, float] | None = None
+
+    def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        pos = np.array([rng.uniform(*self.x), rng.uniform(*self.y), rc.TABLE_Z + self.half_h])
+        yaw = 0.0 if self.yaw_deg is None else np.radians(rng.uniform(*self.yaw_deg))
+        return pos, yaw_quat(yaw)
 
 
 @dataclass(frozen=True)
@@ -167,6 +189,14 @@ class Task:
     means its own (base families) or its base family's summary (transfer variants, which get no
     video: FACTS "Held-out variants reuse the base task's summary"); the basket names the four
     atomic families of FACTS."""
+    objects: tuple[tuple[str, str | tuple[str, ...]], ...] = ()
+    """(object name, file in `assets/objects/`) that the default `populate` attaches, in order;
+    a tuple of files in place of one names the object's file of each model id."""
+    on_table: tuple[tuple[str, OnTable], ...] = ()
+    """(object name, where it rests) that the default `sample` draws, in order."""
+    seed_stream: Callable[[int], np.random.Generator] = np.random.default_rng
+    """A seed's random stream (`rng`); a held-out variant draws from its own, so that its seed s
+    is another scene than seed s of its base family (`vabench.tasks.heldout`)."""
 
     @property
     def summary_family(self) -> str:
@@ -181,7 +211,9 @@ class Task:
 
     # -- scene ------------------------------------------------------------------------------
     def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        """Add the task's objects to the scene spec."""
+        """Add the task's objects to the scene spec (by default `objects`, for every variant)."""
+        for name, file in self.objects:
+            attach_object(spec, file if isinstance(file, str) else file[variant], name)
 
     def build_model(self, variant: int = 0) -> mujoco.MjModel:
         return scene.build_model(self.arms, lambda spec: self.populate(spec, variant))
@@ -191,7 +223,14 @@ class Task:
 
     def sample(self, seed: int) -> Sample:
         """Evaluator-only initial object poses and model id; deterministic in the seed alone."""
-        return Sample({})
+        rng = self.rng(seed)
+        poses = self.draw(rng)
+        variant = int(rng.integers(len(self.variants))) if len(self.variants) > 1 else 0
+        return Sample(poses, variant=variant)
+
+    def draw(self, rng: np.random.Generator) -> ObjectPoses:
+        """The poses of `on_table`, in order (a family may add objects drawn after them)."""
+        return {name: at.sample(rng) for name, at in self.on_table}
 
     def initial_qpos(self, model: mujoco.MjModel, sample: Sample | int) -> np.ndarray:
         if isinstance(sample, int):
@@ -231,6 +270,5 @@ class Task:
         """Yield model-facing actions until done; `ctx.view` holds the state after each."""
         return iter(())
 
-    @staticmethod
-    def rng(seed: int) -> np.random.Generator:
-        return np.random.default_rng(seed)
+    def rng(self, seed: int) -> np.random.Generator:
+        return self.seed_stream(seed)

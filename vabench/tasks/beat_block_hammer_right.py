@@ -35,14 +35,12 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
 from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task, yaw_quat
 from vabench.tasks.expert import ExpertContext, topdown
-from vabench.tasks.objects import attach_object
 
 HAMMER_X, HAMMER_Y = (0.02, 0.06), (-0.10, -0.04)
 BLOCK_X, BLOCK_Y, BLOCK_YAW = (0.14, 0.22), (0.06, 0.13), (-0.5, 0.5)
@@ -63,10 +61,6 @@ STRIKE_STEP = 0.002
 
 @dataclass(frozen=True)
 class BeatBlockHammerRight(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "hammer.xml", "hammer")
-        attach_object(spec, "block_red_steel.xml", "block")
-
     def sample(self, seed: int) -> Sample:
         rng = self.rng(seed)
         hammer = np.array(
@@ -146,9 +140,9 @@ class BeatBlockHammerRight(Task):
 TASK = BeatBlockHammerRight(
     name="beat_block_hammer_right",
     instruction="Pick up the hammer and strike the top of the red block with the hammer's head.",
-    arms=("right",),
     step_budget=100,
     checkpoints=("reached", "grasped", "lifted", "aligned", "completed"),
+    objects=(("hammer", "hammer.xml"), ("block", "block_red_steel.xml")),
     latches=("lifted",),
     contact_pairs=(("hammer", "right_gripper"), ("hammer", "block")),
 )

@@ -26,24 +26,21 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks.base import (
     TIP_BEYOND_GC,
     Evaluation,
     ObjectIndex,
+    OnTable,
     Sample,
     Script,
     SlotState,
     Task,
-    yaw_quat,
 )
 from vabench.tasks.expert import ExpertContext, nearest, yaw_candidates
-from vabench.tasks.objects import attach_object
 
-X_RANGE, Y_RANGE = (0.12, 0.26), (-0.18, -0.04)
+BELL_AT = OnTable(x=(0.12, 0.26), y=(-0.18, -0.04))  # its origin: the centre of its base's bottom
 PRESS_OFFSET = np.array([0.0, 0.0, 0.076])  # button top in the bell frame (both variants)
 XY_TOL, Z_TOL = 0.025, 0.030
 VARIANT_FILES = ("bell_a.xml", "bell_b.xml")
@@ -58,15 +55,6 @@ def press_point(ix: ObjectIndex, qpos: jax.Array) -> jax.Array:
 
 @dataclass(frozen=True)
 class ClickBellRight(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, VARIANT_FILES[variant], "bell")
-
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        pos = np.array([rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE), rc.TABLE_Z])
-        variant = int(rng.integers(len(VARIANT_FILES)))
-        return Sample({"bell": (pos, yaw_quat(0.0))}, variant=variant)
-
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
         r = self.arm("right")
         err = jnp.abs(s.tip(r) - press_point(ix, s.qpos))
@@ -108,5 +96,7 @@ TASK = ClickBellRight(
     checkpoints=("gripper_closed", "aligned", "completed"),
     latches=("pressed",),
     contact_pairs=(("bell", "right_gripper"),),
+    objects=(("bell", VARIANT_FILES),),
+    on_table=(("bell", BELL_AT),),
     variants=("bell_a", "bell_b"),
 )

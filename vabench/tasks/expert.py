@@ -115,27 +115,19 @@ class ExpertContext:
     def _with_arm(self, action: Action, arm: str) -> Action:
         return {**action, "arm": arm} if self.dual else action
 
+    def _signed(
+        self, arm: str, action: str, axis: str, amount: float, key: str, most: float
+    ) -> Action:
+        """A move or rotation action: sign and magnitude (capped at `most`, 0.1 precision)."""
+        sign = "+" if amount > 0 else "-"
+        magnitude = round(min(abs(float(amount)), most), 1)
+        return self._with_arm({"action": action, "axis": axis, "sign": sign, key: magnitude}, arm)
+
     def move(self, arm: str, axis: str, mm: float) -> Action:
-        return self._with_arm(
-            {
-                "action": "gripper.move_world",
-                "axis": axis,
-                "sign": "+" if mm > 0 else "-",
-                "distance_mm": round(min(abs(float(mm)), MOVE_MAX_MM), 1),
-            },
-            arm,
-        )
+        return self._signed(arm, "gripper.move_world", axis, mm, "distance_mm", MOVE_MAX_MM)
 
     def rotate(self, arm: str, axis: str, deg: float) -> Action:
-        return self._with_arm(
-            {
-                "action": "gripper.rotate_local",
-                "axis": axis,
-                "sign": "+" if deg > 0 else "-",
-                "angle_deg": round(min(abs(float(deg)), ROTATE_MAX_DEG), 1),
-            },
-            arm,
-        )
+        return self._signed(arm, "gripper.rotate_local", axis, deg, "angle_deg", ROTATE_MAX_DEG)
 
     def aperture(self, arm: str, close: bool) -> Action:
         verb = "close" if close else "open"

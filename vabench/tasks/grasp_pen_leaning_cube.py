@@ -22,46 +22,31 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
-import mujoco
 import numpy as np
 
-from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
+from vabench.tasks.base import Sample, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.objects import attach_object
+from vabench.tasks.families import GraspFamily
 
 X_RANGE, Y_RANGE, YAW_DEG = (0.16, 0.22), (-0.24, -0.20), (-15.0, 15.0)
 LEAN_DEG = 30.0
 
 
 @dataclass(frozen=True)
-class GraspPenLeaningCube(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "pen_marker.xml", "pen")
-        attach_object(spec, "cube_blue_80.xml", "block")
-
+class GraspPenLeaningCube(GraspFamily):
     def sample(self, seed: int) -> Sample:
         rng = self.rng(seed)
         x, y = rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE)
         yaw = np.radians(rng.uniform(*YAW_DEG))
         return Sample(sk.leaning_pen_poses(x, y, yaw, np.radians(LEAN_DEG)))
 
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return common.grasp_evaluation(self, ix, s, latched, "pen")
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2
-        yield from sk.topdown_grasp_at(ctx, "right", lambda v: v.pos("pen"), across)
-        yield from common.lift(ctx, "right", 0.10)
+    def grasp(self, ctx: ExpertContext) -> Script:
+        yield from sk.grasp_across(ctx, "right", "pen", long_axis=0)
 
 
 TASK = GraspPenLeaningCube(
     name="grasp_pen_leaning_cube",
     instruction="Pick up the pen leaning against the blue cube and lift it.",
-    arms=("right",),
-    step_budget=50,
-    checkpoints=common.GRASP_CHECKPOINTS,
-    contact_pairs=(("pen", "right_gripper"),),
+    objects=(("pen", "pen_marker.xml"), ("block", "cube_blue_80.xml")),
 )

@@ -16,46 +16,39 @@ lift 100 mm.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
-import jax
-import mujoco
 import numpy as np
 
-from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
+from vabench.tasks.base import Sample, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.objects import attach_object
+from vabench.tasks.families import GraspFamily
 
 X_RANGE, Y_RANGE, YAW_DEG = (0.20, 0.28), (-0.16, -0.04), (-22.5, 22.5)
 
 
 @dataclass(frozen=True)
-class GraspSingleBottle(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "bottle_water.xml", "bottle")
+class GraspSingleBottle(GraspFamily):
+    """The family; its held-out variant changes the container (`objects`, `lying_pose`)."""
+
+    lying_pose: Callable[[float, float, float], tuple[np.ndarray, np.ndarray]] = (
+        sk.lying_bottle_pose
+    )  # the container's pose on the table at (x, y, yaw)
 
     def sample(self, seed: int) -> Sample:
         rng = self.rng(seed)
         x, y = rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE)
         yaw = np.radians(rng.uniform(*YAW_DEG))
-        return Sample({"bottle": sk.lying_bottle_pose(x, y, yaw)})
+        return Sample({"bottle": self.lying_pose(x, y, yaw)})
 
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return common.grasp_evaluation(self, ix, s, latched, "bottle")
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        across = sk.axis_heading(ctx.view.mat("bottle"), 2) + np.pi / 2
-        yield from sk.topdown_grasp_at(ctx, "right", lambda v: v.pos("bottle"), across)
-        yield from common.lift(ctx, "right", 0.10)
+    def grasp(self, ctx: ExpertContext) -> Script:
+        yield from sk.grasp_across(ctx, "right", "bottle", long_axis=2)
 
 
 TASK = GraspSingleBottle(
     name="grasp_single_bottle",
     instruction="Pick up the bottle lying on the table and lift it off the table.",
-    arms=("right",),
-    step_budget=50,
-    checkpoints=common.GRASP_CHECKPOINTS,
-    contact_pairs=(("bottle", "right_gripper"),),
+    objects=(("bottle", "bottle_water.xml"),),
 )

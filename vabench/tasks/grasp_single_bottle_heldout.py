@@ -21,57 +21,36 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
-import mujoco
 import numpy as np
 
-from vabench.tasks import common
 from vabench.tasks import skills_heldout_bottles as hb
 from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
-from vabench.tasks.expert import ExpertContext
+from vabench.tasks.base import Script
+from vabench.tasks.expert import ExpertContext, View
 from vabench.tasks.grasp_single_bottle import TASK as BASE
-from vabench.tasks.objects import attach_object
-
-X_RANGE, Y_RANGE, YAW_DEG = (0.20, 0.28), (-0.16, -0.04), (-22.5, 22.5)
+from vabench.tasks.grasp_single_bottle import GraspSingleBottle
+from vabench.tasks.heldout import variant
 
 
 @dataclass(frozen=True)
-class GraspSingleBottleHeldout(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "bottle_shampoo.xml", "bottle")
+class GraspSingleBottleHeldout(GraspSingleBottle):
+    """The base family with the expert's grasp across the flat bottle's width."""
 
-    @staticmethod
-    def rng(seed: int) -> np.random.Generator:
-        return hb.heldout_rng(seed)
-
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        x, y = rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE)
-        yaw = np.radians(rng.uniform(*YAW_DEG))
-        return Sample({"bottle": hb.lying_shampoo_pose(x, y, yaw)})
-
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return common.grasp_evaluation(self, ix, s, latched, "bottle")
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
+    def grasp(self, ctx: ExpertContext) -> Script:
         across = sk.axis_heading(ctx.view.mat("bottle"), 0)  # the width, local x
 
-        def centre(v):  # never below the lowest top-down GC the planner allows
+        def centre(v: View) -> np.ndarray:  # never below the lowest top-down GC allowed
             p = v.pos("bottle")
             return np.r_[p[:2], max(p[2], sk.TOPDOWN_MIN_GC_Z + 0.001)]
 
         yield from sk.topdown_grasp_at(ctx, "right", centre, across)
-        yield from common.lift(ctx, "right", 0.10)
 
 
-TASK = GraspSingleBottleHeldout(
-    name="grasp_single_bottle_heldout",
-    instruction=BASE.instruction,
-    arms=BASE.arms,
-    step_budget=BASE.step_budget,
-    checkpoints=common.GRASP_CHECKPOINTS,
-    contact_pairs=(("bottle", "right_gripper"),),
-    suite="transfer",
-    base_family=BASE.name,
+TASK = variant(
+    BASE,
+    "grasp_single_bottle_heldout",
+    GraspSingleBottleHeldout,
+    objects=(("bottle", "bottle_shampoo.xml"),),
+    lying_pose=hb.lying_shampoo_pose,
+    seed_stream=hb.heldout_rng,
 )

@@ -17,45 +17,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
-import mujoco
-import numpy as np
-
-from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
+from vabench.tasks.base import OnTable, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.objects import attach_object
+from vabench.tasks.families import GraspFamily
 
-X_RANGE, Y_RANGE = (0.20, 0.28), (-0.16, -0.04)
-
-
-def sample_upright_bottle(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """The bottle pose of grasp_single_bottle_upright (shared with place_single_bottle_upright)."""
-    return sk.upright_bottle_pose(rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE))
+BOTTLE_AT = OnTable(x=(0.20, 0.28), y=(-0.16, -0.04), half_h=sk.BOTTLE_HALF_H)
+"""The upright bottle (its origin, the body's centre, above the table) of this family and of
+place_single_bottle_upright; the held-out variants stand a taller container there."""
 
 
 @dataclass(frozen=True)
-class GraspSingleBottleUpright(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "bottle_water.xml", "bottle")
-
-    def sample(self, seed: int) -> Sample:
-        return Sample({"bottle": sample_upright_bottle(self.rng(seed))})
-
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return common.grasp_evaluation(self, ix, s, latched, "bottle")
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
+class GraspSingleBottleUpright(GraspFamily):
+    def grasp(self, ctx: ExpertContext) -> Script:
         yield from sk.side_grasp(ctx, "right", lambda v: v.pos("bottle"))
-        yield from common.lift(ctx, "right", 0.10)
 
 
 TASK = GraspSingleBottleUpright(
     name="grasp_single_bottle_upright",
     instruction="Pick up the upright bottle and lift it off the table.",
-    arms=("right",),
-    step_budget=50,
-    checkpoints=common.GRASP_CHECKPOINTS,
-    contact_pairs=(("bottle", "right_gripper"),),
+    objects=(("bottle", "bottle_water.xml"),),
+    on_table=(("bottle", BOTTLE_AT),),
 )

@@ -20,55 +20,17 @@ faces, at the body's centre), close, lift 100 mm.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
 
-import jax
-import mujoco
-import numpy as np
-
-from vabench.tasks import common
 from vabench.tasks import skills_heldout_bottles as hb
-from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
-from vabench.tasks.expert import ExpertContext
+from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
 from vabench.tasks.grasp_single_bottle_upright import TASK as BASE
-from vabench.tasks.objects import attach_object
+from vabench.tasks.heldout import variant
 
-X_RANGE, Y_RANGE = (0.20, 0.28), (-0.16, -0.04)
-
-
-def sample_upright_square(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """The container pose (shared with place_single_bottle_upright_heldout)."""
-    return hb.upright_square_pose(rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE))
-
-
-@dataclass(frozen=True)
-class GraspSingleBottleUprightHeldout(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "bottle_square.xml", "bottle")
-
-    @staticmethod
-    def rng(seed: int) -> np.random.Generator:
-        return hb.heldout_rng(seed)
-
-    def sample(self, seed: int) -> Sample:
-        return Sample({"bottle": sample_upright_square(self.rng(seed))})
-
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return common.grasp_evaluation(self, ix, s, latched, "bottle")
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        yield from sk.side_grasp(ctx, "right", lambda v: v.pos("bottle"))
-        yield from common.lift(ctx, "right", 0.10)
-
-
-TASK = GraspSingleBottleUprightHeldout(
-    name="grasp_single_bottle_upright_heldout",
-    instruction=BASE.instruction,
-    arms=BASE.arms,
-    step_budget=BASE.step_budget,
-    checkpoints=common.GRASP_CHECKPOINTS,
-    contact_pairs=(("bottle", "right_gripper"),),
-    suite="transfer",
-    base_family=BASE.name,
+TASK = variant(
+    BASE,
+    "grasp_single_bottle_upright_heldout",
+    objects=(("bottle", "bottle_square.xml"),),
+    on_table=(("bottle", dataclasses.replace(BOTTLE_AT, half_h=hb.SQUARE_HALF_H)),),
+    seed_stream=hb.heldout_rng,
 )

@@ -13,49 +13,37 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task, yaw_quat
+from vabench.tasks.base import ObjectPoses, OnTable, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.objects import attach_object
+from vabench.tasks.families import GraspFamily
+from vabench.tasks.heldout import NO_DISTRACTORS, Distractors
 
 CUBE_HALF = 0.025
-X_RANGE, Y_RANGE, YAW_DEG = (0.18, 0.26), (-0.16, -0.06), (-45.0, 45.0)
-
-
-def sample_cube(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """The cube pose of grasp_single_cube (shared with place_single_cube)."""
-    x = rng.uniform(*X_RANGE)
-    y = rng.uniform(*Y_RANGE)
-    yaw = np.radians(rng.uniform(*YAW_DEG))
-    return np.array([x, y, rc.TABLE_Z + CUBE_HALF]), yaw_quat(yaw)
+CUBE_AT = OnTable(x=(0.18, 0.26), y=(-0.16, -0.06), half_h=CUBE_HALF, yaw_deg=(-45.0, 45.0))
+"""The cube of grasp_single_cube (and of place_single_cube)."""
 
 
 @dataclass(frozen=True)
-class GraspSingleCube(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "cube_red_50.xml", "cube")
+class GraspSingleCube(GraspFamily):
+    """The family; its held-out variant changes the data below (and the objects)."""
 
-    def sample(self, seed: int) -> Sample:
-        return Sample({"cube": sample_cube(self.rng(seed))})
+    symmetry_deg: float = 90.0  # of the top-down grasp: the cube's faces
+    distractors: Distractors = NO_DISTRACTORS
 
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return common.grasp_evaluation(self, ix, s, latched, "cube")
+    def draw(self, rng: np.random.Generator) -> ObjectPoses:
+        poses = super().draw(rng)  # the cube, then the distractors around it
+        return {**poses, **self.distractors.sample(rng, poses["cube"][0])}
 
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        yield from common.topdown_grasp(ctx, "right", "cube")
-        yield from common.lift(ctx, "right", 0.10)
+    def grasp(self, ctx: ExpertContext) -> Script:
+        yield from common.topdown_grasp(ctx, "right", "cube", symmetry_deg=self.symmetry_deg)
 
 
 TASK = GraspSingleCube(
     name="grasp_single_cube",
     instruction="Pick up the red cube and lift it off the table.",
-    arms=("right",),
-    step_budget=50,
-    checkpoints=common.GRASP_CHECKPOINTS,
-    contact_pairs=(("cube", "right_gripper"),),
+    objects=(("cube", "cube_red_50.xml"),),
+    on_table=(("cube", CUBE_AT),),
 )

@@ -19,50 +19,28 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
-import mujoco
-import numpy as np
-
 from vabench.sim_mjx import robot_constants as rc
-from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task
+from vabench.tasks.base import OnTable, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.objects import attach_object
+from vabench.tasks.families import GraspFamily
 
-X_RANGE, Y_RANGE, YAW_DEG = (0.18, 0.26), (-0.20, -0.10), (-30.0, 30.0)
+# yaw: the heading of the pen's long axis (its local x)
+PEN_AT = OnTable(x=(0.18, 0.26), y=(-0.20, -0.10), half_h=sk.PEN_RADIUS, yaw_deg=(-30.0, 30.0))
 # GC above the pen's axis: 1 mm above the lowest GC the planner allows (11 mm; the fingertips
 # then reach 4 mm below the axis)
 GRASP_DZ = sk.TOPDOWN_MIN_GC_Z + 0.001 - (rc.TABLE_Z + sk.PEN_RADIUS)
 
 
 @dataclass(frozen=True)
-class GraspSinglePen(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "pen_marker.xml", "pen")
-
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        x, y = rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE)
-        yaw = np.radians(rng.uniform(*YAW_DEG))
-        return Sample({"pen": sk.lying_pen_pose(x, y, yaw)})
-
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        return common.grasp_evaluation(self, ix, s, latched, "pen")
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        across = sk.axis_heading(ctx.view.mat("pen"), 0) + np.pi / 2
-        yield from sk.topdown_grasp_at(
-            ctx, "right", lambda v: v.pos("pen") + [0.0, 0.0, GRASP_DZ], across
-        )
-        yield from common.lift(ctx, "right", 0.10)
+class GraspSinglePen(GraspFamily):
+    def grasp(self, ctx: ExpertContext) -> Script:
+        yield from sk.grasp_across(ctx, "right", "pen", long_axis=0, dz=GRASP_DZ)
 
 
 TASK = GraspSinglePen(
     name="grasp_single_pen",
     instruction="Pick up the pen lying on the table and lift it off the table.",
-    arms=("right",),
-    step_budget=50,
-    checkpoints=common.GRASP_CHECKPOINTS,
-    contact_pairs=(("pen", "right_gripper"),),
+    objects=(("pen", "pen_marker.xml"),),
+    on_table=(("pen", PEN_AT),),
 )

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
@@ -48,7 +47,6 @@ from vabench.tasks.base import (
     Task,
 )
 from vabench.tasks.expert import ExpertContext, View, nearest, topdown
-from vabench.tasks.objects import attach_object
 
 HALF = (0.015, 0.015, 0.10)
 X_ABS, Y_RANGE = (0.15, 0.20), (-0.05, 0.0)
@@ -69,9 +67,6 @@ def vertical(r: jax.Array) -> jax.Array:
 
 @dataclass(frozen=True)
 class HandoverHorizontalBlock(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "block_orange_200.xml", "block")
-
     def sample(self, seed: int) -> Sample:
         rng = self.rng(seed)
         side = 1.0 if rng.uniform() < 0.5 else -1.0
@@ -182,4 +177,5 @@ TASK = HandoverHorizontalBlock(
     checkpoints=("giver_grasped", "presented", "receiver_grasped", "giver_released", "completed"),
     latches=("giver_grasped", "presented", "receiver_grasped", "giver_released"),
     contact_pairs=(("block", "left_gripper"), ("block", "right_gripper")),
+    objects=(("block", "block_orange_200.xml"),),
 )

@@ -25,17 +25,14 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task, yaw_quat
+from vabench.tasks.base import Evaluation, ObjectIndex, OnTable, Sample, Script, SlotState, Task
 from vabench.tasks.expert import ExpertContext, View, nearest, topdown, yaw_of
-from vabench.tasks.objects import attach_object
 
 POT_FILES = ("pot_a.xml", "pot_b.xml")
-XY_RANGE, YAW_DEG = (-0.05, 0.05), (-22.5, 22.5)
+POT_AT = OnTable(x=(-0.05, 0.05), y=(-0.05, 0.05), yaw_deg=(-22.5, 22.5))
 HANDLE = {"left": np.array([-0.1125, 0.0, 0.085]), "right": np.array([0.1125, 0.0, 0.085])}
 MIN_Z = 0.82
 TCP_TOL = 0.03
@@ -49,16 +46,6 @@ HANDLE_HALF_WIDTH = 0.012  # across the handle, where the fingers close
 
 @dataclass(frozen=True)
 class LiftPot(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, POT_FILES[variant], "pot")
-
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        x, y = rng.uniform(*XY_RANGE), rng.uniform(*XY_RANGE)
-        yaw = np.radians(rng.uniform(*YAW_DEG))
-        variant = int(rng.integers(len(POT_FILES)))
-        return Sample({"pot": (np.array([x, y, rc.TABLE_Z]), yaw_quat(yaw))}, variant=variant)
-
     def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
         p, r = ix.pos(s.qpos, "pot"), ix.mat(s.qpos, "pot")
         high = p[2] > MIN_Z
@@ -117,5 +104,7 @@ TASK = LiftPot(
     step_budget=50,
     checkpoints=("reached", "grasped", "lifted", "completed"),
     contact_pairs=(("pot", "left_gripper"), ("pot", "right_gripper")),
+    objects=(("pot", POT_FILES),),
+    on_table=(("pot", POT_AT),),
     variants=("pot_a", "pot_b"),
 )

@@ -29,27 +29,17 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
-from vabench.tasks.base import (
-    Evaluation,
-    ObjectIndex,
-    Sample,
-    Script,
-    SlotState,
-    Task,
-    yaw_quat,
-)
+from vabench.tasks.base import ObjectIndex, OnTable, Sample, Script, SlotState
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.objects import attach_object
+from vabench.tasks.families import Check, PlaceFamily
 
 CUBE_HALF = 0.02
 BOWL_FLOOR = 0.008  # floor slab thickness: a cube on the floor sits at BOWL_FLOOR + CUBE_HALF
-CUBE_X, CUBE_Y, CUBE_YAW_DEG = (0.22, 0.27), (-0.17, -0.10), (-45.0, 45.0)
-BOWL_X, BOWL_Y = (0.10, 0.14), (0.0, 0.04)
+CUBE_AT = OnTable(x=(0.22, 0.27), y=(-0.17, -0.10), half_h=CUBE_HALF, yaw_deg=(-45.0, 45.0))
+BOWL_AT = OnTable(x=(0.10, 0.14), y=(0.0, 0.04))  # its origin (bottom centre) on the table
 
 CENTER_TOL = 0.055  # centre distance < 55 mm
 REL_HEIGHT = (0.015, 0.095)  # cube - bowl height, 15-95 mm
@@ -61,29 +51,26 @@ GRASP_DZ = 0.005  # GC above the cube's centre when grasping
 
 
 @dataclass(frozen=True)
-class PlaceCubeInBowl(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "cube_red_40.xml", "cube")
-        attach_object(spec, "bowl_blue.xml", "bowl")
+class PlaceCubeInBowl(PlaceFamily):
+    """The family; its held-out variant's container has its own `centred` and carry heights."""
 
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        cube = np.array([rng.uniform(*CUBE_X), rng.uniform(*CUBE_Y), rc.TABLE_Z + CUBE_HALF])
-        cube_yaw = np.radians(rng.uniform(*CUBE_YAW_DEG))
-        bowl = np.array([rng.uniform(*BOWL_X), rng.uniform(*BOWL_Y), rc.TABLE_Z])
-        return Sample({"cube": (cube, yaw_quat(cube_yaw)), "bowl": (bowl, yaw_quat(0.0))})
-
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
+    def placement(self, ix: ObjectIndex, s: SlotState) -> tuple[dict[str, jax.Array], Check]:
         p, b = ix.pos(s.qpos, "cube"), ix.pos(s.qpos, "bowl")
         rel = p[2] - b[2]
         placement = {
-            "centred": jnp.linalg.norm(p[:2] - b[:2]) < CENTER_TOL,
+            "centred": self.centred(ix, s, p, b),
             "height": (rel >= REL_HEIGHT[0]) & (rel <= REL_HEIGHT[1]),
         }
         still = ix.displacement(s, "bowl") < BOWL_MOVE_TOL
-        return common.place_evaluation(
-            self, ix, s, latched, "cube", "bowl", placement, ("bowl_still", still)
-        )
+        return placement, ("bowl_still", still)
+
+    def centred(self, ix: ObjectIndex, s: SlotState, p: jax.Array, b: jax.Array) -> jax.Array:
+        return jnp.linalg.norm(p[:2] - b[:2]) < CENTER_TOL
+
+    def carry_heights(self, bowl_z: float) -> tuple[float, float]:
+        """The cube centre's height over the bowl while carried, and when the fingers open."""
+        rest_z = bowl_z + BOWL_FLOOR + CUBE_HALF
+        return rest_z + RIM_CLEARANCE, rest_z + RELEASE_DROP
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         # GC 5 mm above the cube's centre: on MJX a grasp at the centre (fingertips 5 mm above
@@ -94,9 +81,9 @@ class PlaceCubeInBowl(Task):
         # the fingers still ends over the bowl and is dropped in, instead of being chased.
         offset = ctx.view.arms["right"].gc - ctx.view.pos("cube")
         bowl = ctx.view.pos("bowl")
-        rest_z = bowl[2] + BOWL_FLOOR + CUBE_HALF
-        high = np.r_[bowl[:2], rest_z + RIM_CLEARANCE] + offset
-        low = np.r_[bowl[:2], rest_z + RELEASE_DROP] + offset
+        high_z, low_z = self.carry_heights(bowl[2])
+        high = np.r_[bowl[:2], high_z] + offset
+        low = np.r_[bowl[:2], low_z] + offset
         yield from ctx.move_to("right", np.r_[ctx.view.arms["right"].gc[:2], high[2]], order="z")
         yield from ctx.move_to("right", high, order="xyz")
         held = np.linalg.norm(ctx.view.arms["right"].gc - offset - ctx.view.pos("cube")) < 0.015
@@ -109,9 +96,6 @@ class PlaceCubeInBowl(Task):
 TASK = PlaceCubeInBowl(
     name="place_cube_in_bowl",
     instruction="Pick up the red cube and put it into the blue bowl.",
-    arms=("right",),
-    step_budget=50,
-    checkpoints=common.PLACE_CHECKPOINTS,
-    latches=("was_lifted",),
-    contact_pairs=(("cube", "right_gripper"), ("cube", "bowl")),
+    objects=(("cube", "cube_red_40.xml"), ("bowl", "bowl_blue.xml")),
+    on_table=(("cube", CUBE_AT), ("bowl", BOWL_AT)),
 )

@@ -40,32 +40,21 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
-from vabench.tasks import common
 from vabench.tasks import place_cube_in_bowl as base
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task, yaw_quat
-from vabench.tasks.expert import ExpertContext
-from vabench.tasks.grasp_single_cube_heldout import salted_rng
-from vabench.tasks.objects import attach_object
+from vabench.tasks.base import ObjectIndex, OnTable, SlotState
+from vabench.tasks.heldout import salted, variant
 
 SALT = 0x6C5A3
 
-CUBE_HALF = base.CUBE_HALF
-CUBE_X, CUBE_Y, CUBE_YAW_DEG = base.CUBE_X, base.CUBE_Y, base.CUBE_YAW_DEG
-BASIN_X, BASIN_Y, BASIN_YAW_DEG = (0.04, 0.08), (0.08, 0.12), (-20.0, 20.0)
+BASIN_AT = OnTable(x=(0.04, 0.08), y=(0.08, 0.12), yaw_deg=(-20.0, 20.0))
 BASIN_FLOOR = 0.008
 BASIN_RIM = 0.06
 INTERIOR_HALF = np.array([0.09, 0.07])  # interior half-extents along body x and y
 
-REL_HEIGHT = base.REL_HEIGHT  # 15-95 mm
-BOWL_MOVE_TOL = base.BOWL_MOVE_TOL  # 5 mm
-
 RIM_CLEARANCE = 0.045  # carried cube's bottom above the rim
 RELEASE_DROP = 0.01  # cube bottom above the floor when the fingers open
-GRASP_DZ = base.GRASP_DZ
 
 
 def interior_offset(p_cube: jax.Array, p_basin: jax.Array, r_basin: jax.Array) -> jax.Array:
@@ -74,56 +63,23 @@ def interior_offset(p_cube: jax.Array, p_basin: jax.Array, r_basin: jax.Array) -
 
 
 @dataclass(frozen=True)
-class PlaceCubeInBowlHeldout(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "cube_red_40.xml", "cube")
-        attach_object(spec, "basin_navy.xml", "bowl")
+class PlaceCubeInBowlHeldout(base.PlaceCubeInBowl):
+    """The base family with the basin's interior as "centred" and its own carry heights."""
 
-    def sample(self, seed: int) -> Sample:
-        rng = salted_rng(seed, SALT)
-        cube = np.array([rng.uniform(*CUBE_X), rng.uniform(*CUBE_Y), rc.TABLE_Z + CUBE_HALF])
-        cube_yaw = np.radians(rng.uniform(*CUBE_YAW_DEG))
-        basin = np.array([rng.uniform(*BASIN_X), rng.uniform(*BASIN_Y), rc.TABLE_Z])
-        basin_yaw = np.radians(rng.uniform(*BASIN_YAW_DEG))
-        return Sample({"cube": (cube, yaw_quat(cube_yaw)), "bowl": (basin, yaw_quat(basin_yaw))})
-
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        p, b = ix.pos(s.qpos, "cube"), ix.pos(s.qpos, "bowl")
+    def centred(self, ix: ObjectIndex, s: SlotState, p: jax.Array, b: jax.Array) -> jax.Array:
         uv = interior_offset(p, b, ix.mat(s.qpos, "bowl"))
-        rel = p[2] - b[2]
-        placement = {
-            "centred": jnp.all(jnp.abs(uv) < INTERIOR_HALF),
-            "height": (rel >= REL_HEIGHT[0]) & (rel <= REL_HEIGHT[1]),
-        }
-        still = ix.displacement(s, "bowl") < BOWL_MOVE_TOL
-        return common.place_evaluation(
-            self, ix, s, latched, "cube", "bowl", placement, ("bowl_still", still)
-        )
+        return jnp.all(jnp.abs(uv) < INTERIOR_HALF)
 
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        yield from common.topdown_grasp(ctx, "right", "cube", grasp_dz=GRASP_DZ)
-        yield from common.lift(ctx, "right", 0.07)
-        offset = ctx.view.arms["right"].gc - ctx.view.pos("cube")
-        basin = ctx.view.pos("bowl")
-        high = np.r_[basin[:2], basin[2] + BASIN_RIM + RIM_CLEARANCE + CUBE_HALF] + offset
-        low = np.r_[basin[:2], basin[2] + BASIN_FLOOR + RELEASE_DROP + CUBE_HALF] + offset
-        yield from ctx.move_to("right", np.r_[ctx.view.arms["right"].gc[:2], high[2]], order="z")
-        yield from ctx.move_to("right", high, order="xyz")
-        held = np.linalg.norm(ctx.view.arms["right"].gc - offset - ctx.view.pos("cube")) < 0.015
-        if held:  # else it has slipped out on the way: lowering would press on it; just open
-            yield from ctx.move_to("right", low, order="z")
-        yield from ctx.grip("right", close=False)
-        yield from common.lift(ctx, "right", 0.05)
+    def carry_heights(self, bowl_z: float) -> tuple[float, float]:
+        high = bowl_z + BASIN_RIM + RIM_CLEARANCE + base.CUBE_HALF
+        return high, bowl_z + BASIN_FLOOR + RELEASE_DROP + base.CUBE_HALF
 
 
-TASK = PlaceCubeInBowlHeldout(
-    name="place_cube_in_bowl_heldout",
-    instruction=base.TASK.instruction,
-    arms=base.TASK.arms,
-    step_budget=base.TASK.step_budget,
-    checkpoints=base.TASK.checkpoints,
-    latches=base.TASK.latches,
-    contact_pairs=base.TASK.contact_pairs,
-    suite="transfer",
-    base_family=base.TASK.name,
+TASK = variant(
+    base.TASK,
+    "place_cube_in_bowl_heldout",
+    PlaceCubeInBowlHeldout,
+    objects=(("cube", "cube_red_40.xml"), ("bowl", "basin_navy.xml")),
+    on_table=(("cube", base.CUBE_AT), ("bowl", BASIN_AT)),
+    seed_stream=salted(SALT),
 )

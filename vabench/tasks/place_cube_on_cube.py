@@ -31,27 +31,17 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
-from vabench.tasks.base import (
-    Evaluation,
-    ObjectIndex,
-    Sample,
-    Script,
-    SlotState,
-    Task,
-    yaw_quat,
-)
+from vabench.tasks.base import ObjectIndex, OnTable, Sample, Script, SlotState
 from vabench.tasks.expert import ExpertContext, yaw_of
-from vabench.tasks.objects import attach_object
+from vabench.tasks.families import Check, PlaceFamily
 
 HALF = 0.025  # both cubes
-RED_X, RED_Y = (0.20, 0.26), (-0.14, -0.06)
-BASE_X, BASE_Y = (0.10, 0.14), (0.0, 0.04)
 YAW_DEG = (-45.0, 45.0)
+RED_AT = OnTable(x=(0.20, 0.26), y=(-0.14, -0.06), half_h=HALF, yaw_deg=YAW_DEG)
+BASE_AT = OnTable(x=(0.10, 0.14), y=(0.0, 0.04), half_h=HALF, yaw_deg=YAW_DEG)
 
 OVERLAP_MIN = 0.002
 HEIGHT_TOL = 0.012
@@ -76,49 +66,44 @@ def top_overlap(
 
 
 @dataclass(frozen=True)
-class PlaceCubeOnCube(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "cube_red_50.xml", "red")
-        attach_object(spec, "cube_green_50.xml", "base")
+class PlaceCubeOnCube(PlaceFamily):
+    """The family; its held-out variant's support has its own top face and resting height."""
 
-    def sample(self, seed: int) -> Sample:
-        rng = self.rng(seed)
-        red = np.array([rng.uniform(*RED_X), rng.uniform(*RED_Y), rc.TABLE_Z + HALF])
-        red_yaw = np.radians(rng.uniform(*YAW_DEG))
-        base = np.array([rng.uniform(*BASE_X), rng.uniform(*BASE_Y), rc.TABLE_Z + HALF])
-        base_yaw = np.radians(rng.uniform(*YAW_DEG))
-        return Sample({"red": (red, yaw_quat(red_yaw)), "base": (base, yaw_quat(base_yaw))})
+    def top_face(self) -> Any:
+        """The support's top face: half extents along its body x and y."""
+        return HALF
 
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
+    def resting_z(self, base_z: Any) -> Any:
+        """The red cube's centre height when it rests on a support whose centre is at base_z."""
+        return base_z + 2 * HALF
+
+    def placement(self, ix: ObjectIndex, s: SlotState) -> tuple[dict[str, jax.Array], Check]:
         p, b = ix.pos(s.qpos, "red"), ix.pos(s.qpos, "base")
-        overlap = top_overlap(p, ix.mat(s.qpos, "red"), b, ix.mat(s.qpos, "base"))
+        r_red, r_base = ix.mat(s.qpos, "red"), ix.mat(s.qpos, "base")
+        overlap = top_overlap(p, r_red, b, r_base, face=self.top_face(), red_half=HALF)
         placement = {
             "overlap": jnp.all(overlap >= OVERLAP_MIN),
-            "height": jnp.abs(p[2] - (b[2] + 2 * HALF)) <= HEIGHT_TOL,
+            "height": jnp.abs(p[2] - self.resting_z(b[2])) <= HEIGHT_TOL,
         }
         still = ix.displacement(s, "base") <= BASE_MOVE_TOL
-        return common.place_evaluation(
-            self, ix, s, latched, "red", "base", placement, ("base_still", still)
-        )
+        return placement, ("base_still", still)
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         yield from common.topdown_grasp(ctx, "right", "red")
         yield from common.lift(ctx, "right", 0.08)
         turn = yaw_of(ctx.view.mat("base")) - yaw_of(ctx.view.mat("red"))
-        turn = (turn + np.pi / 4) % (np.pi / 2) - np.pi / 4  # cube symmetry: 90 deg
+        turn = (turn + np.pi / 4) % (np.pi / 2) - np.pi / 4  # red cube symmetry: 90 deg
         c, s = np.cos(turn), np.sin(turn)
         rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         yield from ctx.rotate_to("right", rz @ ctx.view.arms["right"].rot)
         base = ctx.view.pos("base")
-        yield from common.carry_and_release(ctx, "right", "red", base[:2], base[2] + 2 * HALF)
+        yield from common.carry_and_release(ctx, "right", "red", base[:2], self.resting_z(base[2]))
 
 
 TASK = PlaceCubeOnCube(
     name="place_cube_on_cube",
     instruction="Pick up the red cube and stack it on top of the green cube.",
-    arms=("right",),
     step_budget=200,
-    checkpoints=common.PLACE_CHECKPOINTS,
-    latches=("was_lifted",),
-    contact_pairs=(("red", "right_gripper"), ("red", "base")),
+    objects=(("red", "cube_red_50.xml"), ("base", "cube_green_50.xml")),
+    on_table=(("red", RED_AT), ("base", BASE_AT)),
 )

@@ -38,91 +38,39 @@ the support's centre, lower it onto the top face, open, back off upwards.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from vabench.sim_mjx import robot_constants as rc
-from vabench.tasks import common
 from vabench.tasks import place_cube_on_cube as base
-from vabench.tasks.base import Evaluation, ObjectIndex, Sample, Script, SlotState, Task, yaw_quat
-from vabench.tasks.expert import ExpertContext, yaw_of
-from vabench.tasks.grasp_single_cube_heldout import salted_rng
-from vabench.tasks.objects import attach_object
+from vabench.tasks.base import OnTable
+from vabench.tasks.heldout import salted, variant
 
 SALT = 0x6C5A4
 
 RED_HALF = base.HALF  # 25 mm
-RED_X, RED_Y, RED_YAW_DEG = base.RED_X, base.RED_Y, base.YAW_DEG
 SUPPORT_HALF = np.array([0.04, 0.03, 0.03])
-SUPPORT_X, SUPPORT_Y, SUPPORT_YAW_DEG = (0.08, 0.12), (0.03, 0.07), (50.0, 130.0)
-
-OVERLAP_MIN = base.OVERLAP_MIN  # 2 mm
-HEIGHT_TOL = base.HEIGHT_TOL  # 12 mm
-BASE_MOVE_TOL = base.BASE_MOVE_TOL  # 12 mm
-
-
-def top_overlap(
-    p_red: jax.Array, r_red: jax.Array, p_sup: jax.Array, r_sup: jax.Array
-) -> jax.Array:
-    """Overlap depth (m) of the red cube's projection with the support's top face along each of
-    the support's horizontal axes, shape (2,): the base's rule with the support's extents."""
-    face = jnp.asarray(SUPPORT_HALF[:2])
-    return base.top_overlap(p_red, r_red, p_sup, r_sup, face=face, red_half=RED_HALF)
+SUPPORT_AT = OnTable(x=(0.08, 0.12), y=(0.03, 0.07), half_h=0.03, yaw_deg=(50.0, 130.0))
 
 
 @dataclass(frozen=True)
-class PlaceCubeOnCubeHeldout(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        attach_object(spec, "cube_red_50.xml", "red")
-        attach_object(spec, "block_green_80x60x60.xml", "base")
+class PlaceCubeOnCubeHeldout(base.PlaceCubeOnCube):
+    """The base family with the block's top face and resting height (the scaling rule)."""
 
-    def sample(self, seed: int) -> Sample:
-        rng = salted_rng(seed, SALT)
-        red = np.array([rng.uniform(*RED_X), rng.uniform(*RED_Y), rc.TABLE_Z + RED_HALF])
-        red_yaw = np.radians(rng.uniform(*RED_YAW_DEG))
-        sup = np.array(
-            [rng.uniform(*SUPPORT_X), rng.uniform(*SUPPORT_Y), rc.TABLE_Z + SUPPORT_HALF[2]]
-        )
-        sup_yaw = np.radians(rng.uniform(*SUPPORT_YAW_DEG))
-        return Sample({"red": (red, yaw_quat(red_yaw)), "base": (sup, yaw_quat(sup_yaw))})
+    def top_face(self) -> jax.Array:
+        return jnp.asarray(SUPPORT_HALF[:2])
 
-    def evaluate(self, ix: ObjectIndex, s: SlotState, latched: jax.Array) -> Evaluation:
-        p, b = ix.pos(s.qpos, "red"), ix.pos(s.qpos, "base")
-        overlap = top_overlap(p, ix.mat(s.qpos, "red"), b, ix.mat(s.qpos, "base"))
-        placement = {
-            "overlap": jnp.all(overlap >= OVERLAP_MIN),
-            "height": jnp.abs(p[2] - (b[2] + SUPPORT_HALF[2] + RED_HALF)) <= HEIGHT_TOL,
-        }
-        still = ix.displacement(s, "base") <= BASE_MOVE_TOL
-        return common.place_evaluation(
-            self, ix, s, latched, "red", "base", placement, ("base_still", still)
-        )
-
-    def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
-        yield from common.topdown_grasp(ctx, "right", "red")
-        yield from common.lift(ctx, "right", 0.08)
-        turn = yaw_of(ctx.view.mat("base")) - yaw_of(ctx.view.mat("red"))
-        turn = (turn + np.pi / 4) % (np.pi / 2) - np.pi / 4  # red cube symmetry: 90 deg
-        c, s = np.cos(turn), np.sin(turn)
-        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        yield from ctx.rotate_to("right", rz @ ctx.view.arms["right"].rot)
-        sup = ctx.view.pos("base")
-        yield from common.carry_and_release(
-            ctx, "right", "red", sup[:2], sup[2] + SUPPORT_HALF[2] + RED_HALF
-        )
+    def resting_z(self, base_z: Any) -> Any:
+        return base_z + SUPPORT_HALF[2] + RED_HALF
 
 
-TASK = PlaceCubeOnCubeHeldout(
-    name="place_cube_on_cube_heldout",
-    instruction=base.TASK.instruction,
-    arms=base.TASK.arms,
-    step_budget=base.TASK.step_budget,
-    checkpoints=base.TASK.checkpoints,
-    latches=base.TASK.latches,
-    contact_pairs=base.TASK.contact_pairs,
-    suite="transfer",
-    base_family=base.TASK.name,
+TASK = variant(
+    base.TASK,
+    "place_cube_on_cube_heldout",
+    PlaceCubeOnCubeHeldout,
+    objects=(("red", "cube_red_50.xml"), ("base", "block_green_80x60x60.xml")),
+    on_table=(("red", base.RED_AT), ("base", SUPPORT_AT)),
+    seed_stream=salted(SALT),
 )

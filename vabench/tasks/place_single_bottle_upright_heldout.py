@@ -23,44 +23,19 @@ open, back off upwards.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
 
-import numpy as np
-
-from vabench.tasks import common
 from vabench.tasks import skills_heldout_bottles as hb
-from vabench.tasks.grasp_single_bottle_upright_heldout import sample_upright_square
-from vabench.tasks.place_single_bottle_upright import (
-    PAD_HALF_THICK,
-    PlaceSingleBottleUpright,
-)
+from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
+from vabench.tasks.heldout import variant
+from vabench.tasks.place_single_bottle_upright import PAD_AT, PAD_HALF_THICK
 from vabench.tasks.place_single_bottle_upright import TASK as BASE
 
-REST_HEIGHT = PAD_HALF_THICK + hb.SQUARE_HALF_H  # bottle origin above the pad centre
-
-
-@dataclass(frozen=True)
-class PlaceSingleBottleUprightHeldout(PlaceSingleBottleUpright):
-    """The base family with the square bottle, drawn from the variant's own seed stream."""
-
-    @staticmethod
-    def rng(seed: int) -> np.random.Generator:
-        return hb.heldout_rng(seed)
-
-    def sample_bottle(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        return sample_upright_square(rng)
-
-
-TASK = PlaceSingleBottleUprightHeldout(
-    name="place_single_bottle_upright_heldout",
-    bottle_file="bottle_square.xml",
-    rest_height=REST_HEIGHT,
-    instruction=BASE.instruction,
-    arms=BASE.arms,
-    step_budget=BASE.step_budget,
-    checkpoints=common.PLACE_CHECKPOINTS,
-    latches=("was_lifted",),
-    contact_pairs=(("bottle", "right_gripper"), ("bottle", "pad")),
-    suite="transfer",
-    base_family=BASE.name,
+TASK = variant(
+    BASE,
+    "place_single_bottle_upright_heldout",
+    objects=(("bottle", "bottle_square.xml"), ("pad", "pad_green_130.xml")),
+    on_table=(("bottle", dataclasses.replace(BOTTLE_AT, half_h=hb.SQUARE_HALF_H)), ("pad", PAD_AT)),
+    rest_height=PAD_HALF_THICK + hb.SQUARE_HALF_H,  # bottle origin above the pad centre
+    seed_stream=hb.heldout_rng,
 )

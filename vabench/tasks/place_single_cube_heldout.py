@@ -32,25 +32,24 @@ upwards.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
-import mujoco
 import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
 from vabench.tasks import place_single_cube as base
-from vabench.tasks.base import Sample, Script, yaw_quat
+from vabench.tasks.base import ObjectPoses, OnTable, Sample, Script, yaw_quat
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.grasp_single_cube import CUBE_HALF, X_RANGE, YAW_DEG
-from vabench.tasks.grasp_single_cube_heldout import salted_rng
-from vabench.tasks.objects import attach_object
+from vabench.tasks.grasp_single_cube import CUBE_HALF
+from vabench.tasks.heldout import salted, variant
 
 SALT = 0x6C5A2
 
-CUBE_X, CUBE_Y = X_RANGE, (-0.16, -0.10)
-PAD_X, PAD_Y = base.PAD_X, (0.09, 0.13)
-DECOY_X, DECOY_Y = (0.29, 0.35), (0.09, 0.13)
+CUBE_AT = dataclasses.replace(base.CUBE_AT, y=(-0.16, -0.10))
+PAD_AT = dataclasses.replace(base.PAD_AT, y=(0.09, 0.13))
+DECOY_AT = OnTable(x=(0.29, 0.35), y=(0.09, 0.13), half_h=base.PAD_HALF_THICK)
 WALL_HALF = np.array([0.06, 0.015, 0.05])
 CUBE_CLEAR = 0.085  # wall centre at least this far from the cube centre, along the segment
 PAD_CLEAR = 0.10  # ... and at least this far from the goal pad's centre
@@ -71,28 +70,12 @@ def wall_pose(cube: np.ndarray, pad: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 @dataclass(frozen=True)
 class PlaceSingleCubeHeldout(base.PlaceSingleCube):
-    """The base family's objects and predicate (inherited), plus the decoy and the wall."""
+    """The base family's predicate (inherited), plus the decoy and the wall, and the expert
+    that carries the cube over the wall."""
 
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        super().populate(spec, variant)  # the red cube and the green goal pad
-        attach_object(spec, "pad_blue.xml", "decoy")
-        attach_object(spec, "wall_purple.xml", "obstacle")
-
-    def sample(self, seed: int) -> Sample:
-        rng = salted_rng(seed, SALT)
-        cube = np.array([rng.uniform(*CUBE_X), rng.uniform(*CUBE_Y), rc.TABLE_Z + CUBE_HALF])
-        cube_yaw = np.radians(rng.uniform(*YAW_DEG))
-        z_pad = rc.TABLE_Z + base.PAD_HALF_THICK
-        pad = np.array([rng.uniform(*PAD_X), rng.uniform(*PAD_Y), z_pad])
-        decoy = np.array([rng.uniform(*DECOY_X), rng.uniform(*DECOY_Y), z_pad])
-        return Sample(
-            {
-                "cube": (cube, yaw_quat(cube_yaw)),
-                "pad": (pad, yaw_quat(0.0)),
-                "decoy": (decoy, yaw_quat(0.0)),
-                "obstacle": wall_pose(cube, pad),
-            }
-        )
+    def draw(self, rng: np.random.Generator) -> ObjectPoses:
+        poses = super().draw(rng)  # the red cube, the green goal pad, the decoy
+        return {**poses, "obstacle": wall_pose(poses["cube"][0], poses["pad"][0])}
 
     def expert(self, sample: Sample, ctx: ExpertContext) -> Script:
         yield from common.topdown_grasp(ctx, "right", "cube", grasp_dz=GRASP_DZ)
@@ -105,14 +88,11 @@ class PlaceSingleCubeHeldout(base.PlaceSingleCube):
         )
 
 
-TASK = PlaceSingleCubeHeldout(
-    name="place_single_cube_heldout",
-    instruction=base.TASK.instruction,
-    arms=base.TASK.arms,
-    step_budget=base.TASK.step_budget,
-    checkpoints=base.TASK.checkpoints,
-    latches=base.TASK.latches,
-    contact_pairs=base.TASK.contact_pairs,
-    suite="transfer",
-    base_family=base.TASK.name,
+TASK = variant(
+    base.TASK,
+    "place_single_cube_heldout",
+    PlaceSingleCubeHeldout,
+    objects=(*base.TASK.objects, ("decoy", "pad_blue.xml"), ("obstacle", "wall_purple.xml")),
+    on_table=(("cube", CUBE_AT), ("pad", PAD_AT), ("decoy", DECOY_AT)),
+    seed_stream=salted(SALT),
 )

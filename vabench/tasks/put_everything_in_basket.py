@@ -79,7 +79,6 @@ from vabench.tasks.base import (
     yaw_quat,
 )
 from vabench.tasks.expert import ExpertContext, nearest, topdown
-from vabench.tasks.objects import attach_object
 
 OBJECTS = ("upright_bottle", "bottle", "cube", "small_cube", "pen")
 """The five objects, in sampling order."""
@@ -275,11 +274,6 @@ UPRIGHT_HEIGHT = sk.BOTTLE_HALF_H + UPRIGHT_TOP
 
 @dataclass(frozen=True)
 class PutEverythingInBasket(Task):
-    def populate(self, spec: mujoco.MjSpec, variant: int) -> None:
-        for name in OBJECTS:
-            attach_object(spec, FILES[name], name)
-        attach_object(spec, "basket_brown.xml", "basket")
-
     def sample(self, seed: int) -> Sample:
         rng = self.rng(seed)
         basket_xy = np.array([rng.uniform(*BASKET_X), rng.uniform(*BASKET_Y)])
@@ -406,7 +400,6 @@ class PutEverythingInBasket(Task):
 TASK = PutEverythingInBasket(
     name="put_everything_in_basket",
     instruction="Put every object on the table into the basket.",
-    arms=("right",),
     step_budget=250,
     checkpoints=("placed_1", "placed_2", "placed_3", "placed_4", "completed"),
     contact_pairs=(
@@ -414,6 +407,7 @@ TASK = PutEverythingInBasket(
         *((o, "basket") for o in OBJECTS),
         *_object_pairs(),
     ),
+    objects=(*((name, FILES[name]) for name in OBJECTS), ("basket", "basket_brown.xml")),
     suite="long_horizon",
     demonstrations=BASKET_DEMONSTRATIONS,
 )

@@ -54,8 +54,3 @@ def lying_shampoo_pose(x: float, y: float, yaw: float) -> tuple[np.ndarray, np.n
     """The shampoo bottle on a broad face; yaw 0 = axis along world +x (pump to the right)."""
     quat = quat_mul(yaw_quat(yaw), mat_to_quat(_LYING))
     return np.array([x, y, rc.TABLE_Z + SHAMPOO_HALF_T]), quat
-
-
-def upright_square_pose(x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
-    """The square bottle standing on its base, faces normal to world x and y."""
-    return np.array([x, y, rc.TABLE_Z + SQUARE_HALF_H]), np.array([1.0, 0.0, 0.0, 0.0])

@@ -1,4 +1,4 @@
-"""Objects, poses, the grasp predicate and expert skills shared by the pen and bottle families
+"""Objects, poses and expert skills shared by the pen and bottle families
 (grasp_single_pen, grasp_single_bottle, grasp_single_bottle_upright, grasp_pen_leaning_cube,
 place_single_bottle_upright). No TASK here: the registry skips this module.
 
@@ -90,8 +90,19 @@ def axis_heading(r: np.ndarray, column: int) -> float:
     return float(np.arctan2(r[1, column], r[0, column]))
 
 
-# -- predicate -------------------------------------------------------------------------------
 # -- expert skills ---------------------------------------------------------------------------
+def grasp_across(
+    ctx: ExpertContext, arm: str, obj: str, long_axis: int, dz: float | None = None
+) -> Iterator[Action]:
+    """`topdown_grasp_at` closing across the object's long axis (its local axis `long_axis`,
+    lying about horizontal), GC at the object's origin (or `dz` above it)."""
+    across = axis_heading(ctx.view.mat(obj), long_axis) + np.pi / 2
+    if dz is None:
+        yield from topdown_grasp_at(ctx, arm, lambda v: v.pos(obj), across)
+    else:
+        yield from topdown_grasp_at(ctx, arm, lambda v: v.pos(obj) + [0.0, 0.0, dz], across)
+
+
 def topdown_grasp_at(
     ctx: ExpertContext,
     arm: str,
