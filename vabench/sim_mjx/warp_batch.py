@@ -28,6 +28,8 @@ import numpy as np
 import warp as wp
 
 from vabench.sim_mjx import warp_control as wc
+from vabench.sim_mjx import warp_kinematics as wk
+from vabench.sim_mjx import warp_layout as wl
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.backends import device_lock
 from vabench.sim_mjx.interface import BatchBase, StepInfo
@@ -212,8 +214,8 @@ class WarpBatch(BatchBase):
             self._d = mjw.put_data(
                 m0, d0, nworld=n, nconmax=self.capacity.nconmax, njmax=self.capacity.njmax
             )
-            self._idx = wc.layout_arrays(self.layout, self.device)
-            self._geoms = wc.arm_geometries(self.geoms, self.device)
+            self._idx = wl.layout_arrays(self.layout, self.device)
+            self._geoms = wk.arm_geometries(self.geoms, self.device)
             self._cmd_active = wp.zeros(n, dtype=int)
             self._cmd_delta = wp.zeros((n, arms), dtype=wp.vec3)
             self._cmd_rotvec = wp.zeros((n, arms), dtype=wp.vec3)
@@ -225,7 +227,7 @@ class WarpBatch(BatchBase):
             self._failed = wp.zeros(n, dtype=int)
             self._k = wp.zeros(1, dtype=int)  # substeps done in the current loop
             self._grip_open = wp.ones((n, arms), dtype=int)
-            self._obs = wc.ProprioBuffers.allocate(n, arms, self.device)
+            self._obs = wl.ProprioBuffers.allocate(n, arms, self.device)
             self._flags: wp.array | None = None
             self._sides: tuple[bytes, wp.array, wp.array] | None = None
             d = self._d
@@ -295,7 +297,7 @@ class WarpBatch(BatchBase):
         contact flags read them) and the proprioception."""
         mjw.kinematics(self._m, self._d)
         mjw.collision(self._m, self._d)
-        wc.launch_proprio(self._geoms, self._d.qpos, self._idx, self._obs, self._grip_open)
+        wl.launch_proprio(self._geoms, self._d.qpos, self._idx, self._obs, self._grip_open)
 
     def _step_physics(self, with_ctrl: bool) -> Callable[[], None]:
         def substep() -> None:
