@@ -1,4 +1,5 @@
-"""The Warp port of the executor (`warp_control`) against its JAX original, on Warp's CPU device.
+"""The Warp port of the executor (`warp_kinematics`, `warp_layout`, `warp_control`) against its
+JAX original, on Warp's CPU device.
 
 The JAX kinematics and planner are the oracle here (they are themselves tested against C MuJoCo
 in test_kinematics.py): forward kinematics, gripper points and proprioception, the IK and its
@@ -25,6 +26,8 @@ from vabench.sim_mjx import layout as lay  # noqa: E402
 from vabench.sim_mjx import robot_constants as rc  # noqa: E402
 from vabench.sim_mjx import scene  # noqa: E402
 from vabench.sim_mjx import warp_control as wc  # noqa: E402
+from vabench.sim_mjx import warp_kinematics as wk  # noqa: E402
+from vabench.sim_mjx import warp_layout as wl  # noqa: E402
 
 wp.config.quiet = True  # Warp < 1.10
 wp.config.log_level = getattr(wp, "LOG_WARNING", 30)  # Warp >= 1.10: no "Module ... load" lines
@@ -47,7 +50,7 @@ def dual():
     m = scene.build_model(("left", "right"))
     layout = lay.ArmLayout.from_model(m)
     geoms = layout.geometry(m)
-    return m, layout, geoms, wc.arm_geometries(geoms, "cpu"), wc.layout_arrays(layout, "cpu")
+    return m, layout, geoms, wk.arm_geometries(geoms, "cpu"), wl.layout_arrays(layout, "cpu")
 
 
 def _front_q(rng: np.random.Generator, n: int, geoms: kin.ArmGeometry) -> np.ndarray:
@@ -71,8 +74,8 @@ def _qpos(m, layout: lay.ArmLayout, q: np.ndarray, fingers: np.ndarray) -> np.nd
 
 @wp.kernel
 def _kinematics_kernel(
-    geoms: wp.array(dtype=wc.ArmGeometryW),
-    q: wp.array2d(dtype=wc.vec6),
+    geoms: wp.array(dtype=wk.ArmGeometryW),
+    q: wp.array2d(dtype=wk.vec6),
     fingers: wp.array2d(dtype=wp.vec2),
     rotvec: wp.array2d(dtype=wp.vec3),
     wrist: wp.array2d(dtype=wp.vec3),
@@ -84,14 +87,14 @@ def _kinematics_kernel(
 ):
     n, a = wp.tid()
     g = geoms[a]
-    w, r = wc.fk(g, q[n, a])
+    w, r = wk.fk(g, q[n, a])
     wrist[n, a] = w
     rot[n, a] = r
-    e, _r, c = wc.gripper_points(g, q[n, a], fingers[n, a])
+    e, _r, c = wk.gripper_points(g, q[n, a], fingers[n, a])
     ee[n, a] = e
     gc[n, a] = c
-    low[n, a] = wc.lowest_gripper_z(g, q[n, a], fingers[n, a])
-    exp[n, a] = wc.axis_angle(rotvec[n, a])
+    low[n, a] = wk.lowest_gripper_z(g, q[n, a], fingers[n, a])
+    exp[n, a] = wk.axis_angle(rotvec[n, a])
 
 
 def test_fk_gripper_points_and_boxes(dual):
@@ -104,7 +107,7 @@ def test_fk_gripper_points_and_boxes(dual):
     rotvec = rng.normal(0.0, 1.0, (n, 2, 3)).astype(np.float32)
     rotvec[:10] = 0.0  # Rodrigues at zero is the identity, exactly
 
-    arrays = [wp.array(x, dtype=t) for x, t in ((q, wc.vec6), (fingers, wp.vec2))]
+    arrays = [wp.array(x, dtype=t) for x, t in ((q, wk.vec6), (fingers, wp.vec2))]
     arrays.append(wp.array(rotvec, dtype=wp.vec3))
     out = [wp.zeros((n, 2), dtype=t) for t in (wp.vec3, wp.mat33, wp.vec3, wp.vec3, float)]
     out.append(wp.zeros((n, 2), dtype=wp.mat33))
@@ -130,8 +133,8 @@ def test_proprio_matches_proprio_slot(dual):
     q = rng.uniform(lo, hi, (n, *lo.shape)).astype(np.float32)
     qpos = _qpos(m, layout, q, rng.uniform(0.0, rc.FINGER_OPEN, (n, 2, 2)))
     grip = rng.integers(0, 2, (n, 2)).astype(np.int32)
-    obs = wc.ProprioBuffers.allocate(n, 2, "cpu")
-    wc.launch_proprio(wgeoms, wp.array(qpos, dtype=float), idx, obs, wp.array(grip, dtype=int))
+    obs = wl.ProprioBuffers.allocate(n, 2, "cpu")
+    wl.launch_proprio(wgeoms, wp.array(qpos, dtype=float), idx, obs, wp.array(grip, dtype=int))
 
     want = jax.jit(jax.vmap(lambda qp, g: lay.proprio_slot(layout, geoms, qp, g)))(qpos, grip)
     for name in ("gc", "ee", "rot", "fingers"):
@@ -153,27 +156,27 @@ def test_proprio_matches_proprio_slot(dual):
 
 @wp.kernel
 def _ik_kernel(
-    geoms: wp.array(dtype=wc.ArmGeometryW),
+    geoms: wp.array(dtype=wk.ArmGeometryW),
     ee: wp.array2d(dtype=wp.vec3),
     rot: wp.array2d(dtype=wp.mat33),
-    q_prev: wp.array2d(dtype=wc.vec6),
-    q: wp.array2d(dtype=wc.vec6),
+    q_prev: wp.array2d(dtype=wk.vec6),
+    q: wp.array2d(dtype=wk.vec6),
     ok: wp.array2d(dtype=int),
 ):
     n, a = wp.tid()
-    qn, okn = wc.ik(geoms[a], ee[n, a], rot[n, a], q_prev[n, a])
+    qn, okn = wk.ik(geoms[a], ee[n, a], rot[n, a], q_prev[n, a])
     q[n, a] = qn
     ok[n, a] = wp.where(okn, 1, 0)
 
 
 def _warp_ik(wgeoms, ee, rot, q_prev):
     n = len(ee)
-    q, ok = wp.zeros((n, 2), dtype=wc.vec6), wp.zeros((n, 2), dtype=int)
+    q, ok = wp.zeros((n, 2), dtype=wk.vec6), wp.zeros((n, 2), dtype=int)
     inputs = [wp.array(ee, dtype=wp.vec3), wp.array(rot, dtype=wp.mat33)]
     wp.launch(
         _ik_kernel,
         dim=(n, 2),
-        inputs=[wgeoms, *inputs, wp.array(q_prev, dtype=wc.vec6)],
+        inputs=[wgeoms, *inputs, wp.array(q_prev, dtype=wk.vec6)],
         outputs=[q, ok],
     )
     return q.numpy(), ok.numpy().astype(bool)

@@ -70,12 +70,7 @@ class CpuBatch(BatchBase):
             self._pool.close()
             self._pool = None
 
-    def set_state(
-        self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
-    ) -> None:
-        slots = list(slots)
-        self._check_state(slots, state)
-        var = self._check_variants(slots, variants)
+    def _write_state(self, slots: list[int], state: dict[str, np.ndarray], var: np.ndarray) -> None:
         for row, slot in enumerate(slots):
             m, d = self.models[var[row]], self._datas[var[row]]
             mujoco.mj_resetData(m, d)

@@ -96,6 +96,15 @@ def in_lanes(fn: Any, n_batched: int, lanes: int) -> Any:
     return run
 
 
+def hold_chunks(n_steps: int, chunk: int) -> list[int]:
+    """n_steps as steps of `chunk` and a remainder: a backend compiles (or captures) one
+    program per chunk length, not one per hold length (the reset gate holds 2,300 then 200)."""
+    chunks = [chunk] * (n_steps // chunk)
+    if n_steps % chunk:
+        chunks.append(n_steps % chunk)
+    return chunks
+
+
 def _action_key(raw: Any) -> Any:
     """A hashable key of a raw action (dict or protocol model), or None when it has none."""
     if isinstance(raw, BaseModel):
@@ -182,10 +191,10 @@ class BatchBase:
         """The physics state of `slots`: {field: (len(slots), ...)} for STATE_FIELDS."""
         raise NotImplementedError
 
-    def set_state(
-        self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
+    def _write_state(
+        self, slots: list[int], state: dict[str, np.ndarray], variants: np.ndarray
     ) -> None:
-        """Put `slots` in the given state (from `get_state` of the same backend and scene)."""
+        """`set_state` once its arguments are checked (`variants`: one valid id per slot)."""
         raise NotImplementedError
 
     def qpos(self) -> np.ndarray:
@@ -214,6 +223,14 @@ class BatchBase:
         """Release threads or device memory (the batch is unusable afterwards)."""
 
     # -- shared -----------------------------------------------------------------------------
+    def set_state(
+        self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
+    ) -> None:
+        """Put `slots` in the given state (from `get_state` of the same backend and scene)."""
+        slots = list(slots)
+        self._check_state(slots, state)
+        self._write_state(slots, state, self._check_variants(slots, variants))
+
     def _check_variants(self, slots: Sequence[int], variants: Sequence[int] | None) -> np.ndarray:
         if variants is None:
             return np.zeros(len(slots), np.int32)

@@ -25,7 +25,7 @@ from mujoco import mjx
 from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx.actions import CommandRows
-from vabench.sim_mjx.interface import BatchBase, StepInfo, in_lanes
+from vabench.sim_mjx.interface import BatchBase, StepInfo, hold_chunks, in_lanes
 from vabench.sim_mjx.layout import ArmLayout, plan_from, with_refs
 from vabench.sim_mjx.pytree import pytree_dataclass
 from vabench.sim_mjx.scene import home_qpos
@@ -199,16 +199,10 @@ class SimBatch(BatchBase):
         )
         self.reset(range(n_slots), home)
 
-    def set_state(
-        self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
-    ) -> None:
-        slots = list(slots)
-        self._check_state(slots, state)
-        v = self._check_variants(slots, variants)
-        mask = np.zeros(self.n_slots, bool)
-        mask[slots] = True
+    def _fields(self) -> dict[str, jax.Array]:
+        """The batch's arrays of STATE_FIELDS, (N, ...) each."""
         d = self.state.data
-        current = {
+        return {
             "time": d.time,
             "qpos": d.qpos,
             "qvel": d.qvel,
@@ -217,15 +211,21 @@ class SimBatch(BatchBase):
             "warmstart": d.qacc_warmstart,
             "grip_open": self.state.grip_open,
         }
+
+    def _write_state(
+        self, slots: list[int], state: dict[str, np.ndarray], variants: np.ndarray
+    ) -> None:
+        mask = np.zeros(self.n_slots, bool)
+        mask[slots] = True
         full = {}
-        for name, arr in current.items():
+        for name, arr in self._fields().items():
             host = np.array(arr)
             host[slots] = state[name]
             full[name] = jnp.asarray(host, arr.dtype)
         init = np.array(self.state.init_qpos)
         init[slots] = state["qpos"]
         var = np.array(self.state.variant)
-        var[slots] = v
+        var[slots] = variants
         self.state = self._load(
             self.mx,
             self.variants.stacked,
@@ -238,17 +238,7 @@ class SimBatch(BatchBase):
 
     def get_state(self, slots: Sequence[int]) -> dict[str, np.ndarray]:
         slots = list(slots)
-        d = self.state.data
-        fields = {
-            "time": d.time,
-            "qpos": d.qpos,
-            "qvel": d.qvel,
-            "act": d.act,
-            "ctrl": d.ctrl,
-            "warmstart": d.qacc_warmstart,
-            "grip_open": self.state.grip_open,
-        }
-        return {name: np.asarray(arr)[slots] for name, arr in fields.items()}
+        return {name: np.asarray(arr)[slots] for name, arr in self._fields().items()}
 
     def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
         """Advance physics n_steps with the current references held (all slots by default)."""
@@ -257,13 +247,8 @@ class SimBatch(BatchBase):
             if slots is None
             else np.isin(np.arange(self.n_slots), slots)
         )
-        # Fixed-size chunks: one compiled program serves every settle length (the reset gate
-        # holds 2,300 then 200 steps) instead of one compile per length.
         mask_j = jnp.asarray(mask)
-        chunks = [HOLD_CHUNK] * (n_steps // HOLD_CHUNK)
-        if n_steps % HOLD_CHUNK:
-            chunks.append(n_steps % HOLD_CHUNK)
-        for n in chunks:
+        for n in hold_chunks(n_steps, HOLD_CHUNK):
             self.state = self._settle(self.mx, self.variants.stacked, n, self.state, mask_j)
 
     def _execute(self, rows: CommandRows) -> StepInfo:

@@ -117,6 +117,11 @@ def failure_text(bits: int, cap: Capacity) -> str:
     return f"MuJoCo Warp buffer overflow ({', '.join(names)}): physics not trusted; {hint}"
 
 
+def failure_texts(bits: np.ndarray, cap: Capacity) -> list[str | None]:
+    """Per world, `failure_text` of its overflow bits, or None where they are zero."""
+    return [failure_text(int(b), cap) if b else None for b in bits]
+
+
 def _array_fields(obj: Any, prefix: str = "") -> dict[str, wp.array]:
     out: dict[str, wp.array] = {}
     for f in dataclasses.fields(obj):

@@ -1,0 +1,157 @@
+"""The Warp batch's kernels over per-slot rows, around the physics: the merge, the commit, and
+moving rows between slots, the host and the renderer.
+
+- the merge: `Snapshot` saves the rows an action may change (qpos, qvel, ctrl, warm start,
+  act, time) before its substeps and gives slots that must not advance (idle, invalid, failed
+  plan) their saved rows back bit for bit;
+- the commit: `finish_action` / `finish_hold` record the gripper command of slots that moved and
+  their buffer overflow bits; `count_substep` is the device counter the references read;
+- moving rows: `scatter_rows` / `scatter` (`set_state`), `gather_rows` (the renderer's qpos);
+- `contact_flags`: the predicates' watched contact pairs per slot, from MuJoCo Warp's contacts.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+
+@wp.kernel
+def save_rows(src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float)):
+    w, j = wp.tid()
+    dst[w, j] = src[w, j]
+
+
+@wp.kernel
+def restore_rows(
+    keep: wp.array(dtype=int), saved: wp.array2d(dtype=float), dst: wp.array2d(dtype=float)
+):
+    """Rows of worlds whose physics must not advance get their saved values back."""
+    w, j = wp.tid()
+    if keep[w] == 0:
+        dst[w, j] = saved[w, j]
+
+
+@wp.kernel
+def restore_time(keep: wp.array(dtype=int), saved: wp.array(dtype=float), t: wp.array(dtype=float)):
+    w = wp.tid()
+    if keep[w] == 0:
+        t[w] = saved[w]
+
+
+class Snapshot:
+    """Saved copies of `rows` ((N, k) float arrays; those with k = 0 are skipped) and of the
+    per-world `time`, for the merge."""
+
+    def __init__(self, rows: list[wp.array], time: wp.array):
+        self.rows = [a for a in rows if a.shape[1]]
+        self.saved = [wp.empty_like(a) for a in self.rows]
+        self.time = time
+        self.saved_time = wp.empty_like(time)
+
+    def save(self) -> None:
+        for src, dst in zip(self.rows, self.saved, strict=True):
+            wp.launch(save_rows, dim=src.shape, inputs=[src, dst])
+        wp.copy(self.saved_time, self.time)
+
+    def restore(self, keep: wp.array) -> None:
+        """Worlds with keep[w] == 0 get their saved rows and time back."""
+        for dst, saved in zip(self.rows, self.saved, strict=True):
+            wp.launch(restore_rows, dim=dst.shape, inputs=[keep, saved, dst])
+        wp.launch(restore_time, dim=self.time.shape[0], inputs=[keep, self.saved_time, self.time])
+
+
+@wp.kernel
+def count_substep(k: wp.array(dtype=int)):
+    """One more substep done (the references of the next one read k)."""
+    k[0] = k[0] + 1
+
+
+@wp.kernel
+def finish_action(
+    go: wp.array(dtype=int),
+    cmd_grip: wp.array2d(dtype=int),
+    overflow: wp.array(dtype=int),
+    failure_bits: int,
+    grip_open: wp.array2d(dtype=int),
+    failed: wp.array(dtype=int),
+):
+    """Commit the gripper command of slots that moved; record overflow of those slots."""
+    w, a = wp.tid()
+    if go[w] == 0:
+        return
+    g = cmd_grip[w, a]
+    if g >= 0:
+        grip_open[w, a] = wp.where(g == 1, 1, 0)
+    if a == 0:
+        failed[w] = overflow[w] & failure_bits
+
+
+@wp.kernel
+def finish_hold(
+    mask: wp.array(dtype=int),
+    overflow: wp.array(dtype=int),
+    failure_bits: int,
+    failed: wp.array(dtype=int),
+):
+    w = wp.tid()
+    if mask[w] != 0:
+        failed[w] = overflow[w] & failure_bits
+
+
+@wp.kernel
+def scatter_rows(idx: wp.array(dtype=int), rows: wp.array2d(dtype=Any), dst: wp.array2d(dtype=Any)):
+    """Row i of `rows` into row idx[i] of `dst` (float state rows and int grip rows alike)."""
+    i, j = wp.tid()
+    dst[idx[i], j] = rows[i, j]
+
+
+# Declared here, not made at the first launch: a new overload reloads the module, which must
+# not happen once graphs that use its kernels are captured.
+for _dtype in (float, int):
+    wp.overload(
+        scatter_rows,
+        {"rows": wp.array2d(dtype=_dtype), "dst": wp.array2d(dtype=_dtype)},
+    )
+
+
+@wp.kernel
+def scatter(idx: wp.array(dtype=int), values: wp.array(dtype=float), dst: wp.array(dtype=float)):
+    i = wp.tid()
+    dst[idx[i]] = values[i]
+
+
+@wp.kernel
+def gather_rows(
+    idx: wp.array(dtype=int), src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float)
+):
+    i, j = wp.tid()
+    dst[i, j] = src[idx[i], j]
+
+
+@wp.kernel
+def contact_flags(
+    nacon: wp.array(dtype=int),
+    geom: wp.array(dtype=wp.vec2i),
+    dist: wp.array(dtype=float),
+    worldid: wp.array(dtype=int),
+    side_a: wp.array2d(dtype=int),
+    side_b: wp.array2d(dtype=int),
+    flags: wp.array2d(dtype=int),
+):
+    """flags[w, p] = 1 when a touching contact (dist <= 0) of world w joins a geom of side_a[p]
+    and one of side_b[p] (either order). Every writer writes 1: no race matters."""
+    c = wp.tid()
+    if c >= nacon[0] or dist[c] > 0.0:
+        return
+    g1, g2 = geom[c][0], geom[c][1]
+    if g1 < 0 or g2 < 0:
+        return
+    w = worldid[c]
+    for p in range(side_a.shape[0]):
+        hit = (side_a[p, g1] != 0 and side_b[p, g2] != 0) or (
+            side_a[p, g2] != 0 and side_b[p, g1] != 0
+        )
+        if hit:
+            flags[w, p] = 1
