@@ -94,8 +94,8 @@ async def main_async(args) -> list[dict]:
     from vabench.llm_pool.server import LocalServer, ServerConfig
     from vabench.render.backends import make_renderer
     from vabench.render.worker import ImageSettings
-    from vabench.seeds import verified_seeds
     from vabench.tasks import get_task
+    from vabench.tasks.manifests import verified_seeds
 
     task = get_task(args.task)
     seeds = verified_seeds(task.name)

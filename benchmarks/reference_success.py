@@ -34,8 +34,8 @@ from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.reference_agent import ReferenceServo
 from vabench.render.worker import ImageSettings, RenderPool
-from vabench.seeds import verified_seeds
 from vabench.tasks import get_task
+from vabench.tasks.manifests import verified_seeds
 
 MODEL = "reference-servo"
 

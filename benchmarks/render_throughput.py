@@ -35,8 +35,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 def _states(task_name: str, n_seeds: int):
     from vabench.render import camera as cam
     from vabench.render.__main__ import reset_state
-    from vabench.seeds import verified_seeds
     from vabench.tasks import REGISTRY
+    from vabench.tasks.manifests import verified_seeds
 
     arms = REGISTRY[task_name].arms
     out = []

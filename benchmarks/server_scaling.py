@@ -40,8 +40,8 @@ from vabench.llm_pool.config import load_endpoints
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.worker import ImageSettings, RenderPool
-from vabench.seeds import verified_seeds
 from vabench.tasks import get_task
+from vabench.tasks.manifests import verified_seeds
 
 WIDTH, HEIGHT = 1280, 960
 DEFAULT_TASKS = ("grasp_single_cube", "place_cube_in_bowl", "grasp_single_pen")

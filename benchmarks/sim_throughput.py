@@ -29,12 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from vabench.protocol import parse_robot_action
-from vabench.seeds import manifest_path, verified_seeds
 from vabench.sim_mjx.actions import CommandRows, encode
 from vabench.sim_mjx.backends import make_batch, warp_problem
 from vabench.sim_mjx.interface import BatchBase
 from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.tasks import get_task
+from vabench.tasks.manifests import manifest_path, verified_seeds
 from vabench.tasks.runner import TaskBatch
 
 # Each pair returns the arm near where it started, so a long stream stays in the workspace.

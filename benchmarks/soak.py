@@ -120,8 +120,8 @@ async def episodes(pool, render, out: Path, n: int, steps: int, stop: asyncio.Ev
     from vabench.agent.engine import EpisodeSpec, run_episode
     from vabench.agent.services import task_services
     from vabench.render.worker import ImageSettings
-    from vabench.seeds import verified_seeds
     from vabench.tasks import get_task
+    from vabench.tasks.manifests import verified_seeds
 
     task = get_task("grasp_single_cube")
     seeds = verified_seeds(task.name)

@@ -71,7 +71,7 @@ def main() -> None:
             rows.append({"sweep": "smoke", "wall_s": wall})
 
         sys.path.insert(0, str(ROOT))
-        from vabench.seeds import verified_seeds
+        from vabench.tasks.manifests import verified_seeds
 
         seeds_per_task = len(verified_seeds(TASKS[0]))
         per_run = len(TASKS) * 2 * seeds_per_task

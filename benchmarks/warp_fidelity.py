@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vabench.seeds import verified_seeds
 from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.tasks import benchmark_tasks, get_task
+from vabench.tasks.manifests import verified_seeds
 from vabench.tasks.runner import TaskBatch, run_experts
 
 GC_TOLERANCE_MM = 2.0

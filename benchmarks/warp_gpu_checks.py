@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vabench.seeds import verified_seeds
 from vabench.sim_mjx.interface import STATE_FIELDS
 from vabench.sim_mjx.warp_batch import WarpBatch
 from vabench.tasks import get_task
+from vabench.tasks.manifests import verified_seeds
 from vabench.tasks.runner import TaskBatch, run_experts
 
 ACTIONS = [

@@ -33,9 +33,9 @@ from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render import camera as cam
 from vabench.render.backends import Renderer
 from vabench.render.images import ImageSettings
-from vabench.seeds import verified_seeds
 from vabench.tasks import get_task
 from vabench.tasks.base import Task
+from vabench.tasks.manifests import verified_seeds
 
 SMALL = ImageSettings(160, 120)
 """Tiny images: the engine's behaviour does not depend on the resolution."""

@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from vabench.config import EMBEDDED_PLACEHOLDER_URL, SweepConfigError, load_config
-from vabench.seeds import verified_seeds
 from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, get_task
+from vabench.tasks.manifests import verified_seeds
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 KEY = "sk-test-secret-0123456789"

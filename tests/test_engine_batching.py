@@ -18,8 +18,8 @@ from vabench.agent.services import task_services
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.worker import ImageSettings, RenderPool
-from vabench.seeds import verified_seeds
 from vabench.tasks import get_task
+from vabench.tasks.manifests import verified_seeds
 from vabench.tasks.runner import TaskBatch
 
 TASK = "grasp_single_cube"

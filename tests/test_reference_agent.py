@@ -35,8 +35,8 @@ from vabench.llm_pool.server import LocalServer
 from vabench.reference_agent import ReferenceServo, reply_text
 from vabench.reference_agent.policy import SUMMARY_REPLY
 from vabench.render.worker import ImageSettings, RenderPool
-from vabench.seeds import verified_seeds
 from vabench.tasks import get_task
+from vabench.tasks.manifests import verified_seeds
 
 PACKAGE = Path(__file__).resolve().parents[1] / "vabench" / "reference_agent"
 FORBIDDEN = ("mujoco", "jax", "vabench.sim_mjx", "vabench.tasks", "vabench.render")

@@ -18,7 +18,7 @@ from vabench.render import camera as cam
 from vabench.render.__main__ import reset_state
 from vabench.render.debug import DebugOverlays
 from vabench.render.worker import ImageSettings, RenderError, RenderItem, RenderPool
-from vabench.seeds import verified_seeds
+from vabench.tasks.manifests import verified_seeds
 
 TASK = "place_single_cube"
 SMALL = ImageSettings(width=320, height=240, quality=95)

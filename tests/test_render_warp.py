@@ -29,8 +29,8 @@ from vabench.render.__main__ import reset_state
 from vabench.render.images import ImageSettings, RenderError, RenderItem
 from vabench.render.warp_renderer import WarpRenderPool
 from vabench.render.worker import RenderPool
-from vabench.seeds import verified_seeds
 from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.tasks.manifests import verified_seeds
 
 CUBE = "place_single_cube"
 SHOE = "place_shoe"  # ten object variants: per-world model fields

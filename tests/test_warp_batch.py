@@ -20,13 +20,13 @@ import pytest
 pytest.importorskip("warp", reason="the Warp backend needs warp-lang (the [test] extra has it)")
 pytest.importorskip("mujoco_warp", reason="the Warp backend needs mujoco-warp ([test] extra)")
 
-from vabench.seeds import verified_seeds
 from vabench.sim_mjx import backends
 from vabench.sim_mjx.backends import BackendUnavailable
 from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase
 from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.sim_mjx.warp_batch import WarpBatch
 from vabench.tasks import get_task
+from vabench.tasks.manifests import verified_seeds
 from vabench.tasks.runner import TaskBatch, run_experts
 
 DOWN = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 40}

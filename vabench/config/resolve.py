@@ -16,8 +16,8 @@ from pydantic import ValidationError
 from vabench.config.problems import Problem, is_int, pydantic_problems, unknown
 from vabench.config.schema import BUILTIN_TRACKS, SAFE_NAME, SUMMARY_MODES, TrackSpec, suite_tasks
 from vabench.llm_pool.policies import POLICIES
-from vabench.seeds import verified_seeds
 from vabench.tasks import BASE_FAMILIES, REGISTRY
+from vabench.tasks.manifests import verified_seeds
 
 
 def model_problems(models: Any, environ: Mapping[str, str]) -> list[Problem]:

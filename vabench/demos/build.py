@@ -37,13 +37,13 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from vabench import seeds as seed_manifests
 from vabench.demos import store
 from vabench.render import camera as cam
 from vabench.render.worker import ImageSettings, RenderItem, RenderPool
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.cpu import CpuBatch
 from vabench.tasks import REGISTRY
+from vabench.tasks import manifests as seed_manifests
 from vabench.tasks.runner import TaskBatch, run_experts
 
 log = logging.getLogger(__name__)

@@ -145,8 +145,8 @@ def _tasks(names: list[str]) -> list[str]:
 
 def _first_seed_items(task_name: str, backend: str) -> tuple[int, list[RenderItem]]:
     """The head view and the five views of a task's first verified seed after its reset."""
-    from vabench.seeds import verified_seeds
     from vabench.tasks import REGISTRY
+    from vabench.tasks.manifests import verified_seeds
 
     arms = REGISTRY[task_name].arms
     seed = verified_seeds(task_name)[0]
