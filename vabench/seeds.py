@@ -10,7 +10,7 @@ The first `n` candidates whose expert succeeds within the step budget are retain
 `configs/seeds/<task>.json` records the retained seeds, how many candidates were probed (up to
 and including the last retained one, as in the paper's yield table) and why each rejected
 candidate failed. `table` prints the yield table in the paper's form from the manifests.
-Reading a manifest is `vabench.tasks.manifests`'s (`verified_seeds` is re-exported here).
+Reading a manifest (`verified_seeds`, `load_manifest`) is `vabench.tasks.manifests`.
 """
 
 from __future__ import annotations
