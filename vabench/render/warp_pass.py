@@ -1,0 +1,173 @@
+"""One render batch of the Warp renderer: `n_worlds` worlds of one task family at one image
+size, each ray traced through its own camera (`vabench.render.warp_renderer` makes, sizes and
+reuses them).
+
+A pass owns a render context (BVHs, textures, buffers) and a model whose per-world fields hold
+each world's object variant and FOV. `draw` writes the states of its items (gathered on the
+device from a Warp physics batch, or uploaded from host copies), runs the kinematics, places
+each world's camera, refits the BVH and ray traces every world in one launch; `packed` brings
+the pixels to the host, `rgb_on_device` unpacks them for the device JPEG encoder.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import warp as wp
+
+from vabench.render.camera import FAR, NEAR
+from vabench.render.images import RenderItem
+from vabench.render.renderer import VIEW_CAMERA, render_spec
+from vabench.sim_mjx.warp_model import RENDER_IGNORED, WarpModel
+from vabench.tasks.base import Task
+
+
+@wp.kernel
+def _place_cameras(
+    cam: int,
+    pos: wp.array(dtype=wp.vec3),
+    rot: wp.array(dtype=wp.mat33),
+    fovy: wp.array(dtype=float),
+    cam_xpos: wp.array2d(dtype=wp.vec3),
+    cam_xmat: wp.array2d(dtype=wp.mat33),
+    cam_fovy: wp.array2d(dtype=float),
+):
+    """World w looks through its own camera (kinematics placed the model's, overwritten here)."""
+    w = wp.tid()
+    cam_xpos[w, cam] = pos[w]
+    cam_xmat[w, cam] = rot[w]
+    cam_fovy[w, cam] = fovy[w]
+
+
+@wp.kernel
+def _unpack_rgb(packed: wp.array2d(dtype=wp.uint32), width: int, rgb: wp.array4d(dtype=wp.uint8)):
+    """0x??RRGGBB per pixel -> (H, W, 3) bytes, for the device JPEG encoder."""
+    w, p = wp.tid()
+    v = packed[w, p]
+    y, x = p // width, p % width
+    rgb[w, y, x, 0] = wp.uint8((v >> wp.uint32(16)) & wp.uint32(255))
+    rgb[w, y, x, 1] = wp.uint8((v >> wp.uint32(8)) & wp.uint32(255))
+    rgb[w, y, x, 2] = wp.uint8(v & wp.uint32(255))
+
+
+def render_models(task: Task, width: int, height: int) -> list[mujoco.MjModel]:
+    """The render model of every object variant of `task` (the GL path's, same clip planes)."""
+    models = []
+    for variant in range(len(task.variants)):
+        m = render_spec(task, variant, width, height).compile()
+        m.vis.map.znear = NEAR / m.stat.extent  # MuJoCo scales the clip planes by the extent
+        m.vis.map.zfar = FAR / m.stat.extent
+        models.append(m)
+    return models
+
+
+def pass_size(n: int) -> int:
+    """Worlds of the pass that renders n images: the next of 1, 2, 3, 4, 6, 8, 12, 16, 24, ...
+    Every world of a pass is ray traced, so a pass larger than the request wastes work (at most
+    a third here); a pass of every exact size would build a render context for every request
+    size the engine happens to send."""
+    power = 1 << max(0, (n - 1).bit_length() - 1)  # the largest power of two below n (or 1)
+    for size in (power, 3 * power // 2, 2 * power):
+        if size >= n:
+            return max(size, 1)
+    raise AssertionError(n)
+
+
+def pass_bytes(width: int, height: int, n_worlds: int, device_jpeg: bool) -> int:
+    """Device memory a pass needs beyond its model: packed pixels (+ RGB bytes for nvJPEG) and
+    a margin for BVH nodes and data per world."""
+    per_world = width * height * (4 + (3 if device_jpeg else 0)) + 256 * 1024
+    return per_world * n_worlds
+
+
+class RenderPass:
+    """A render batch of `n_worlds` worlds of one task family at one image size."""
+
+    def __init__(
+        self,
+        models: Sequence[mujoco.MjModel],
+        n_worlds: int,
+        width: int,
+        height: int,
+        device_jpeg: bool,
+    ):
+        self.n_worlds, self.width, self.height = n_worlds, width, height
+        m0 = models[0]
+        self.cam = mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_CAMERA, VIEW_CAMERA)
+        self.wm = WarpModel(models, n_worlds, ignore=RENDER_IGNORED, per_world=("cam_fovy",))
+        self.m = self.wm.model
+        # Kinematics only: no contacts or constraints are ever computed in these worlds.
+        self.d = mjw.make_data(m0, nworld=n_worlds, nconmax=1, njmax=1)
+        self.rc = mjw.create_render_context(
+            m0,
+            nworld=n_worlds,
+            cam_res=(width, height),
+            render_rgb=True,
+            render_depth=False,
+            render_seg=False,
+            use_textures=True,
+            use_shadows=True,
+            cam_active=[VIEW_CAMERA],
+            use_precomputed_rays=False,  # per-world FOV
+            render_skybox=True,
+        )
+        self.slots = wp.zeros(n_worlds, dtype=int)
+        self.pos = wp.zeros(n_worlds, dtype=wp.vec3)
+        self.rot = wp.zeros(n_worlds, dtype=wp.mat33)
+        self.fovy = wp.zeros(n_worlds, dtype=float)
+        self.rgb = wp.zeros((n_worlds, height, width, 3), dtype=wp.uint8) if device_jpeg else None
+        self._variants = np.zeros(n_worlds, np.int32)
+
+    def draw(self, items: Sequence[RenderItem], source: Any | None) -> None:
+        """Ray trace `items` into worlds 0..len(items)-1 (queued on the device; the caller
+        holds the device lock). `source`: a physics batch to gather the states from."""
+        n, nq = len(items), self.d.qpos.shape[1]
+        variants = self._variants.copy()
+        variants[:n] = [it.variant for it in items]
+        self.wm.assign(variants)
+        if source is not None:
+            self.slots.assign(np.array([it.slot for it in items] + [0] * (self.n_worlds - n)))
+            source.copy_qpos(self.slots, self.d.qpos)
+        else:
+            qpos = np.zeros((self.n_worlds, nq), np.float32)
+            qpos[:n] = np.stack([np.asarray(it.qpos, np.float32) for it in items])
+            self.d.qpos.assign(qpos)
+        mjw.kinematics(self.m, self.d)
+        mjw.camlight(self.m, self.d)
+        pos = np.zeros((self.n_worlds, 3), np.float32)
+        rot = np.tile(np.eye(3, dtype=np.float32), (self.n_worlds, 1, 1))
+        fovy = np.full(self.n_worlds, 45.0, np.float32)
+        for i, it in enumerate(items):
+            pos[i], rot[i], fovy[i] = it.camera.pos, it.camera.rot, it.camera.fovy
+        self.pos.assign(pos)
+        self.rot.assign(rot)
+        self.fovy.assign(fovy)
+        wp.launch(
+            _place_cameras,
+            dim=self.n_worlds,
+            inputs=[self.cam, self.pos, self.rot, self.fovy],
+            outputs=[self.d.cam_xpos, self.d.cam_xmat, self.m.cam_fovy],
+        )
+        mjw.refit_bvh(self.m, self.d, self.rc)
+        mjw.render(self.m, self.d, self.rc)
+
+    def packed(self, n: int) -> np.ndarray:
+        """(n, H, W) uint32 pixels of the first n worlds, a host copy of their own (the next
+        pass reuses the buffer while these are still being encoded)."""
+        rows = self.rc.rgb_data[:n]
+        host = rows.numpy() if rows.device.is_cuda else rows.numpy().copy()  # CPU: a view
+        return host.reshape(n, self.height, self.width)
+
+    def rgb_on_device(self) -> wp.array:
+        assert self.rgb is not None
+        wp.launch(
+            _unpack_rgb,
+            dim=(self.n_worlds, self.width * self.height),
+            inputs=[self.rc.rgb_data, self.width],
+            outputs=[self.rgb],
+        )
+        return self.rgb
