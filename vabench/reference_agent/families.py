@@ -29,20 +29,21 @@ from vabench.reference_agent.perception import Scene
 Step = list[Any]
 
 
+DUAL_FAMILY_WORDS = (
+    (("pot",), "pot"),
+    (("shoe",), "shoe"),
+    (("hand it over",), "handover"),
+    (("handover",), "handover"),
+)
+"""The dual-arm families by the words of their instruction (as `plans.FAMILY_WORDS`)."""
+
+
 def family_of(instruction: str, arms: tuple[str, ...]) -> str | None:
     """The family an instruction names for a task with `arms`, or None (no plan)."""
     if set(arms) == {"right"}:
-        if "basket" in instruction.lower():
-            return "basket"
-        return plans.family_of(instruction)
+        return plans.named_family(instruction, ((("basket",), "basket"), *plans.FAMILY_WORDS))
     if set(arms) == {"left", "right"}:
-        s = instruction.lower()
-        if "pot" in s:
-            return "pot"
-        if "shoe" in s:
-            return "shoe"
-        if "hand it over" in s or "handover" in s:
-            return "handover"
+        return plans.named_family(instruction, DUAL_FAMILY_WORDS)
     return None
 
 

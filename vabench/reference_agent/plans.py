@@ -8,6 +8,7 @@ the episode ending has failed).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from vabench.reference_agent import geometry as g
@@ -21,26 +22,33 @@ T = g.TABLE_Z
 Step = list[Any]
 
 
+FAMILY_WORDS: tuple[tuple[tuple[str, ...], str], ...] = (
+    (("bell",), "bell"),
+    (("hammer",), "hammer"),
+    (("bowl",), "cube_bowl"),
+    (("stack",), "cube_on_cube"),
+    (("green cube",), "cube_on_cube"),
+    (("pad", "bottle"), "bottle_pad"),
+    (("pad",), "cube_pad"),
+    (("bottle", "upright"), "bottle_upright"),
+    (("bottle",), "bottle_lying"),
+    (("pen", "leaning"), "pen_leaning"),
+    (("pen",), "pen"),
+    (("cube",), "cube"),
+)
+"""The single-arm families by the words of their instruction: the first entry whose words all
+appear wins, so the more specific entries come first."""
+
+
+def named_family(instruction: str, words: Sequence[tuple[tuple[str, ...], str]]) -> str | None:
+    """The family of the first entry of `words` whose words all appear in `instruction`."""
+    s = instruction.lower()
+    return next((family for need, family in words if all(w in s for w in need)), None)
+
+
 def family_of(instruction: str) -> str | None:
     """The task family an instruction names, or None (dual-arm or unknown tasks)."""
-    s = instruction.lower()
-    if "bell" in s:
-        return "bell"
-    if "hammer" in s:
-        return "hammer"
-    if "bowl" in s:
-        return "cube_bowl"
-    if "stack" in s or "green cube" in s:
-        return "cube_on_cube"
-    if "pad" in s:
-        return "bottle_pad" if "bottle" in s else "cube_pad"
-    if "bottle" in s:
-        return "bottle_upright" if "upright" in s else "bottle_lying"
-    if "pen" in s:
-        return "pen_leaning" if "leaning" in s else "pen"
-    if "cube" in s:
-        return "cube"
-    return None
+    return named_family(instruction, FAMILY_WORDS)
 
 
 def start_plan() -> list[Step]:
