@@ -44,7 +44,7 @@ from pydantic import (
 from pydantic_core import ErrorDetails
 
 from vabench.protocol import DecisionError
-from vabench.protocol.errors import show
+from vabench.protocol.errors import repair_message, show
 
 MAX_TEXT_CHARS = 500
 """Characters of one string field or list item."""
@@ -142,29 +142,21 @@ OPTIONAL_FIELDS = tuple(n for n, f in DemoSummary.model_fields.items() if not f.
 
 
 def _message(e: ErrorDetails) -> str:
-    """Repair text for one validation error of a summary field."""
+    """Repair text for one validation error of a summary field (what the decision protocol
+    says, `repair_message`, where a summary field needs no other words)."""
     kind, ctx, got = e["type"], e.get("ctx", {}), e.get("input")
-    shown = show(got)
-    if kind == "missing":
-        return "required"
     if kind == "extra_forbidden":
         return f"unknown field; valid fields: {', '.join(DemoSummary.model_fields)}"
-    if kind == "string_too_short":
-        return "must not be empty"
     if kind == "string_too_long":
         return f"at most {ctx.get('max_length')} characters, got {len(str(got))}"
     if kind == "too_short":
         return f"must hold at least {ctx.get('min_length')} item(s)"
-    if kind == "too_long":
-        return f"must hold at most {ctx.get('max_length')} items, got {ctx.get('actual_length')}"
     if kind in ("string_type", "list_type", "dict_type"):
-        return f"must be {_SHAPES[kind[:4].replace('stri', 'str')]}, got {shown}"
-    if kind == "literal_error":
-        return f"must be {ctx.get('expected')}, got {shown}"
+        return f"must be {_SHAPES[kind[:4].replace('stri', 'str')]}, got {show(got)}"
     if kind in ("greater_than_equal", "less_than_equal", "float_type", "float_parsing"):
-        return f"must be a number between 0 and 1, got {shown}"
-    if kind == "value_error":
-        return str(ctx.get("error", e["msg"]))
+        return f"must be a number between 0 and 1, got {show(got)}"
+    if kind in ("missing", "string_too_short", "too_long", "literal_error", "value_error"):
+        return repair_message(e)
     return str(e["msg"])
 
 

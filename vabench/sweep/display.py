@@ -48,6 +48,13 @@ class Counts:
         for f in fields(self):
             setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
+    @classmethod
+    def total(cls, parts: Iterable[Counts]) -> Counts:
+        out = cls()
+        for part in parts:
+            out.add(part)
+        return out
+
 
 @dataclass
 class Status:
@@ -63,10 +70,7 @@ class Status:
     reason: str | None = None
 
     def total(self) -> Counts:
-        out = Counts()
-        for c in self.tracks.values():
-            out.add(c)
-        return out
+        return Counts.total(self.tracks.values())
 
 
 def status_of(progress: Any) -> Status:

@@ -70,10 +70,7 @@ class SweepProgress:
     """The in-flight limit of this process (its limit and why)."""
 
     def total(self) -> Counts:
-        out = Counts()
-        for c in self.cells.values():
-            out.add(c)
-        return out
+        return Counts.total(self.cells.values())
 
 
 class LocalSweep:
