@@ -23,7 +23,16 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from vabench.report import figures, html, spend, stats, tables, track_tables, tracks
+from vabench.report import (
+    active_passive,
+    figures,
+    html,
+    spend,
+    stats,
+    tables,
+    track_tables,
+    tracks,
+)
 from vabench.report.load import Results, load_results
 from vabench.report.tracks import TaskMeta
 
@@ -83,7 +92,7 @@ def write_report(
     task_spreads = stats.task_spread(cells)
     macros = stats.macro_averages(cells, arms)
     macro_spreads = stats.macro_spread(macros)
-    comparisons = stats.track_comparisons(cells)
+    comparisons = active_passive.track_comparisons(cells)
     unscored = stats.unscored_counts(results.unscored)
     unresolved = stats.unresolved(results.scored, results.unscored)
 
@@ -130,7 +139,7 @@ def write_report(
                 figures.task_success_figure(cells, task_spreads, model, track, order),
             )
         )
-    shown: dict[str, stats.TrackComparison] = {}
+    shown: dict[str, active_passive.TrackComparison] = {}
     for cmp in comparisons:  # the pooled comparison, when there is one, comes last per model
         shown[cmp.model] = cmp
     for model, cmp in shown.items():
@@ -205,7 +214,7 @@ def diagnostic_sections(run_dir: Path) -> list[tables.Section]:
 def _summary(
     results: Results,
     spreads: Mapping[tuple[str, str, str], stats.Spread],
-    comparisons: Sequence[stats.TrackComparison],
+    comparisons: Sequence[active_passive.TrackComparison],
     n_unresolved: int,
 ) -> list[str]:
     lines = [

@@ -1,6 +1,6 @@
-"""The paper's aggregation, as pure functions over scored records.
+"""The paper's base aggregation, as pure functions over scored records.
 
-Definitions (paper, "Base evaluation protocol" and "Active evidence acquisition"):
+Definitions (paper, "Base evaluation protocol"):
 
 - Per-task success of model m, track t, run r, task τ: successes / scored episodes (20 seeds in
   the paper; infrastructure failures are re-run and never scored, so the total is whatever was
@@ -10,16 +10,10 @@ Definitions (paper, "Base evaluation protocol" and "Active evidence acquisition"
   task uses more than one arm (`arms[task] > 1`).
 - Across runs: mean and SAMPLE standard deviation (n - 1) of the run-level macro-averages; the
   SD of a single run is undefined (None).
-- Active vs passive: per family, success counts of both tracks and Δ = passive − active; the
-  two-sided exact sign test over the non-tied families:
-  p = min(1, 2 · P[X ≤ min(k, n − k)]), X ~ Bin(n, 1/2), n non-tied families, k of them worse
-  under passive. Ties and the sign compare rates, which equal counts when totals match.
 - Skipped episodes: an episode the model stopped before taking any step (stop reason
-  model_stop, no step used) says nothing about the protocol it ran under. A family whose
-  episodes under one of the two tracks are all skipped is left out of the sign test and gets
-  no Δ (`FamilyPair.skipped_side` names the side); its counts are still shown, and the
-  macro-averages still count those episodes as failures. With no family left to compare there
-  is no sign test at all (`p_value` None).
+  model_stop, no step used) is a failure here, and is counted apart (`Cell.skipped`) so that
+  comparisons between two sides (`active_passive`, `suites`) can leave out a side that
+  attempted nothing.
 - Subtask progress: a micro-average, checkpoints reached / checkpoints possible over every
   scored episode of a model and track (each episode contributes `progress` of `n_checkpoints`).
 
@@ -52,11 +46,14 @@ def is_skipped(result: EpisodeResult) -> bool:
     )
 
 
-def skipped_side(active_skipped: bool, passive_skipped: bool) -> str | None:
-    """ "active", "passive", "both" or None: the side(s) whose episodes were all skipped."""
-    if active_skipped and passive_skipped:
+def skipped_side(
+    first: bool, second: bool, sides: tuple[str, str] = ("active", "passive")
+) -> str | None:
+    """The side of `sides` whose episodes were all skipped (`first`, `second`), "both" or
+    None."""
+    if first and second:
         return "both"
-    return "active" if active_skipped else ("passive" if passive_skipped else None)
+    return sides[0] if first else (sides[1] if second else None)
 
 
 @dataclass(frozen=True)
@@ -101,60 +98,6 @@ class Spread:
     @property
     def n(self) -> int:
         return len(self.values)
-
-
-@dataclass(frozen=True)
-class FamilyPair:
-    """One family under both tracks: counts and Δ = passive − active."""
-
-    task: str
-    active: int
-    active_total: int
-    passive: int
-    passive_total: int
-    active_skipped: int = 0
-    passive_skipped: int = 0
-
-    @property
-    def delta(self) -> Fraction:
-        """Passive minus active success rate."""
-        return Fraction(self.passive, self.passive_total) - Fraction(self.active, self.active_total)
-
-    @property
-    def skipped_side(self) -> str | None:
-        """The track(s) under which every episode of this family was skipped: then the pair
-        compares nothing and stays out of the sign test."""
-        return skipped_side(
-            self.active_skipped == self.active_total, self.passive_skipped == self.passive_total
-        )
-
-
-@dataclass(frozen=True)
-class TrackComparison:
-    """Active vs passive for one model over the given runs (one run, or several pooled)."""
-
-    model: str
-    runs: tuple[int, ...]
-    families: tuple[FamilyPair, ...]
-    passive_worse: int
-    passive_better: int
-    ties: int
-    p_value: Fraction | None
-    """None when every family was left out (`skipped`): no test was made."""
-    only_one_track: tuple[str, ...]
-    """Families run under one of the two tracks only: left out of the comparison."""
-    skipped: tuple[str, ...] = ()
-    """Families whose episodes were all skipped under one track (or both): left out of the
-    sign test, shown without a Δ."""
-
-    @property
-    def non_tied(self) -> int:
-        return self.passive_worse + self.passive_better
-
-    @property
-    def compared(self) -> int:
-        """Families in the sign test (non-tied and tied)."""
-        return len(self.families) - len(self.skipped)
 
 
 @dataclass(frozen=True)
@@ -273,78 +216,6 @@ def task_spread(cells: Sequence[Cell]) -> dict[tuple[str, str, str], Spread]:
     for c in sorted(cells, key=lambda c: (c.model, c.track, c.task, c.run)):
         values[(c.model, c.track, c.task)].append(c.rate)
     return {k: mean_sd(v) for k, v in sorted(values.items())}
-
-
-def sign_test(k: int, n: int) -> Fraction:
-    """Two-sided exact sign test: min(1, 2 P[X <= min(k, n-k)]), X ~ Bin(n, 1/2); 1 if n = 0."""
-    if not 0 <= k <= n:
-        raise ValueError(f"sign_test needs 0 <= k <= n, got k={k}, n={n}")
-    if n == 0:
-        return Fraction(1)
-    tail = sum(math.comb(n, i) for i in range(min(k, n - k) + 1))
-    return min(Fraction(1), Fraction(2 * tail, 2**n))
-
-
-def compare_tracks(
-    cells: Sequence[Cell],
-    model: str,
-    runs: Sequence[int],
-    active: str = "active",
-    passive: str = "passive",
-) -> TrackComparison:
-    """Active vs passive for `model`, counts summed over `runs`, families in both tracks."""
-    sums: dict[str, dict[str, list[int]]] = {active: {}, passive: {}}
-    for c in cells:
-        if c.model == model and c.run in runs and c.track in sums:
-            s = sums[c.track].setdefault(c.task, [0, 0, 0])
-            s[0] += c.successes
-            s[1] += c.total
-            s[2] += c.skipped
-    both = sorted(set(sums[active]) & set(sums[passive]))
-    one = sorted(set(sums[active]) ^ set(sums[passive]))
-    pairs = tuple(
-        FamilyPair(
-            t,
-            *sums[active][t][:2],
-            *sums[passive][t][:2],
-            active_skipped=sums[active][t][2],
-            passive_skipped=sums[passive][t][2],
-        )
-        for t in both
-    )
-    tested = [p for p in pairs if p.skipped_side is None]
-    worse = sum(1 for p in tested if p.delta < 0)
-    better = sum(1 for p in tested if p.delta > 0)
-    return TrackComparison(
-        model=model,
-        runs=tuple(sorted(runs)),
-        families=pairs,
-        passive_worse=worse,
-        passive_better=better,
-        ties=len(tested) - worse - better,
-        p_value=sign_test(worse, worse + better) if tested else None,
-        only_one_track=tuple(one),
-        skipped=tuple(p.task for p in pairs if p.skipped_side is not None),
-    )
-
-
-def track_comparisons(
-    cells: Sequence[Cell], active: str = "active", passive: str = "passive"
-) -> list[TrackComparison]:
-    """For each model run under both tracks: one comparison per run present in both (matched
-    run numbers, as the paper pairs a passive run with its active run), plus one over all those
-    runs pooled when there are several."""
-    runs: dict[tuple[str, str], set[int]] = defaultdict(set)
-    for c in cells:
-        runs[(c.model, c.track)].add(c.run)
-    out = []
-    for model in sorted({c.model for c in cells}):
-        common = sorted(runs.get((model, active), set()) & runs.get((model, passive), set()))
-        for run in common:
-            out.append(compare_tracks(cells, model, [run], active, passive))
-        if len(common) > 1:
-            out.append(compare_tracks(cells, model, common, active, passive))
-    return out
 
 
 def checkpoint_micro(records: Iterable[Record], arms: Mapping[str, int]) -> list[Checkpoints]:

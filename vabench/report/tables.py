@@ -13,15 +13,14 @@ from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Any
 
+from vabench.report.active_passive import TrackComparison, in_order
 from vabench.report.stats import (
     SUBSET_TITLES,
     SUBSETS,
     Cell,
     Checkpoints,
-    FamilyPair,
     Macro,
     Spread,
-    TrackComparison,
     Usage,
     subset_of,
 )
@@ -304,12 +303,6 @@ def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequen
         ],
         notes or ([] if comparisons else ["no model was run under both active and passive"]),
     )
-
-
-def in_order(pairs: Sequence[FamilyPair], order: Sequence[str]) -> list[FamilyPair]:
-    """Families in `order` (the registry's: the paper's), unknown ones last by name."""
-    rank = {t: i for i, t in enumerate(order)}
-    return sorted(pairs, key=lambda p: (rank.get(p.task, len(rank)), p.task))
 
 
 def p_value_text(p: Fraction | None) -> str:

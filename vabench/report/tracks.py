@@ -394,10 +394,11 @@ class TransferFamily:
     def skipped_side(self) -> str | None:
         """ "base", "held-out" or "both" when every episode of that side was skipped (the
         model stopped before its first step): then Δ compares nothing."""
-        side = skipped_side(
-            self.base_skipped == self.base_total, self.heldout_skipped == self.heldout_total
+        return skipped_side(
+            self.base_skipped == self.base_total,
+            self.heldout_skipped == self.heldout_total,
+            ("base", "held-out"),
         )
-        return {"active": "base", "passive": "held-out"}.get(side or "", side)
 
     @property
     def delta(self) -> Fraction | None:
