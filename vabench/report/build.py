@@ -25,6 +25,7 @@ from pathlib import Path
 
 from vabench.report import (
     active_passive,
+    base_tables,
     figures,
     html,
     spend,
@@ -108,13 +109,13 @@ def write_report(
             f"{results.path.name}: a truncated last line (a crash mid-write) was ignored"
         )
     sections = [
-        tables.macro_section(macros, macro_spreads, macro_notes),
-        tables.per_task_section(cells, task_spreads, arms, order),
-        tables.active_passive_section(comparisons, order),
+        base_tables.macro_section(macros, macro_spreads, macro_notes),
+        base_tables.per_task_section(cells, task_spreads, arms, order),
+        base_tables.active_passive_section(comparisons, order),
         *track_sections(results, arms, meta),
-        tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
+        base_tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
         *diagnostic_sections(results.path.parent),
-        tables.usage_section(
+        base_tables.usage_section(
             stats.usage(results.scored), unscored, len(unresolved), results.retried
         ),
     ]
@@ -242,7 +243,7 @@ def _summary(
         lines.append(
             f"{cmp.model} active vs passive ({tables.runs_label(cmp.runs)}): passive worse on "
             f"{cmp.passive_worse} of {cmp.non_tied} non-tied families, sign test "
-            f"p = {float(cmp.p_value):.4g}{left_out}"
+            f"p = {tables.p_value_text(cmp.p_value)}{left_out}"
         )
     return lines
 

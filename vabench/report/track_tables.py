@@ -10,8 +10,17 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from fractions import Fraction
 
-from vabench.report.stats import SUBSET_TITLES, SUBSETS, Spread, subset_of
-from vabench.report.tables import Csv, Section, Table, mean_sd_text, pct, runs_label
+from vabench.report.stats import SUBSET_TITLES, SUBSETS, subset_of
+from vabench.report.tables import (
+    Csv,
+    Section,
+    Table,
+    mean_sd_text,
+    pct,
+    runs_label,
+    runs_text,
+    signed,
+)
 from vabench.report.tracks import (
     OWN,
     CrossModel,
@@ -23,28 +32,12 @@ from vabench.report.tracks import (
 )
 
 
-def signed(x: Fraction | None) -> str:
-    return "—" if x is None else f"{100 * float(x):+.2f}"
-
-
-def signed_spread(s: Spread | None) -> str:
-    if s is None:
-        return "—"
-    if s.sd is None:
-        return f"{signed(s.mean)} (1 run)"
-    return f"{signed(s.mean)} ± {pct(s.sd)}"
-
-
 def mode_label(mode: str) -> str:
     if mode == OWN:
         return "own (model-specific)"
     if mode.startswith("shared:"):
         return f"{mode.removeprefix('shared:')} (shared)"
     return "none (no summary)" if mode == "none" else mode
-
-
-def _runs_text(runs: Sequence[int]) -> str:
-    return ",".join(map(str, runs)) if runs else "—"
 
 
 def summary_section(
@@ -61,7 +54,7 @@ def summary_section(
     for cmp in comparisons:
         n_single = sum(1 for t in cmp.tasks if subset_of(t, arms) == "single")
         rows = [
-            [mode_label(m), _runs_text(cmp.mode_runs[m])]
+            [mode_label(m), runs_text(cmp.mode_runs[m])]
             + [mean_sd_text(cmp.macros[(m, s)]) for s in SUBSETS]
             for m in cmp.modes
         ]
@@ -281,10 +274,10 @@ def transfer_section(comparisons: Sequence[TransferComparison]) -> Section | Non
                 cmp.protocol,
                 cmp.mode,
                 str(len(cmp.families)),
-                _runs_text(cmp.runs),
+                runs_text(cmp.runs),
                 mean_sd_text(cmp.base),
                 mean_sd_text(cmp.heldout),
-                signed_spread(cmp.delta),
+                mean_sd_text(cmp.delta, sign=True),
             ]
         )
         rows = [
