@@ -106,23 +106,17 @@ def compare_tracks(
             s[2] += c.skipped
     both = sorted(set(sums[active]) & set(sums[passive]))
     one = sorted(set(sums[active]) ^ set(sums[passive]))
-    pairs = tuple(
-        FamilyPair(
-            t,
-            *sums[active][t][:2],
-            *sums[passive][t][:2],
-            active_skipped=sums[active][t][2],
-            passive_skipped=sums[passive][t][2],
-        )
-        for t in both
-    )
+    pairs = []
+    for t in both:
+        (a, a_total, a_skipped), (p, p_total, p_skipped) = sums[active][t], sums[passive][t]
+        pairs.append(FamilyPair(t, a, a_total, p, p_total, a_skipped, p_skipped))
     tested = [p for p in pairs if p.skipped_side is None]
     worse = sum(1 for p in tested if p.delta < 0)
     better = sum(1 for p in tested if p.delta > 0)
     return TrackComparison(
         model=model,
         runs=tuple(sorted(runs)),
-        families=pairs,
+        families=tuple(pairs),
         passive_worse=worse,
         passive_better=better,
         ties=len(tested) - worse - better,

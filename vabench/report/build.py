@@ -30,12 +30,14 @@ from vabench.report import (
     html,
     spend,
     stats,
+    suite_tables,
+    suites,
+    summaries,
+    summary_tables,
     tables,
-    track_tables,
-    tracks,
 )
+from vabench.report.conditions import TaskMeta, condition_cells
 from vabench.report.load import Results, load_results
-from vabench.report.tracks import TaskMeta
 
 REPORT_DIR = "report"
 SUMMARIES_DIR = "summaries"
@@ -181,22 +183,25 @@ def track_sections(
     results: Results, arms: Mapping[str, int], meta: TaskMeta | None
 ) -> list[tables.Section]:
     """Summary source, learning stage, transfer and long horizon: those with data only."""
-    cells, notes = tracks.condition_cells(results.scored)
-    suites = None if meta is None else meta.suite
-    comparisons, more = tracks.summary_comparisons(cells, arms, suites)
+    cells, notes = condition_cells(results.scored)
+    comparisons, more = summaries.summary_comparisons(
+        cells, arms, None if meta is None else meta.suite
+    )
     sections = [
-        track_tables.summary_section(
+        summary_tables.summary_section(
             comparisons,
-            tracks.cross_model(comparisons),
+            summaries.cross_model(comparisons),
             arms,
-            notes + more + tracks.failed_summary_notes(results.scored),
+            notes + more + summaries.failed_summary_notes(results.scored),
         ),
-        track_tables.learning_section(tracks.learning_rows(results.path.parent / SUMMARIES_DIR)),
+        summary_tables.learning_section(
+            summaries.learning_rows(results.path.parent / SUMMARIES_DIR)
+        ),
     ]
     if meta is not None:
         sections += [
-            track_tables.transfer_section(tracks.transfer_comparisons(cells, meta)),
-            track_tables.long_horizon_section(tracks.long_horizon(results.scored, meta)),
+            suite_tables.transfer_section(suites.transfer_comparisons(cells, meta)),
+            suite_tables.long_horizon_section(suites.long_horizon(results.scored, meta)),
         ]
     return [s for s in sections if s is not None]
 

@@ -25,15 +25,19 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
+from typing import TypeVar
 
-from vabench.agent.records import EpisodeResult
+from vabench.agent.records import EpisodeResult, TokenTotals
 from vabench.report.load import Record, ReportError
 
 SUBSETS = ("single", "dual", "all")
 SUBSET_TITLES = {"single": "Single-arm", "dual": "Dual-arm", "all": "All"}
+TOKEN_FIELDS = tuple(TokenTotals.model_fields)
+"""The token counts of a record (`EpisodeResult.tokens`), in the order the tables show them."""
+K = TypeVar("K")
 
 
 def is_skipped(result: EpisodeResult) -> bool:
@@ -72,6 +76,10 @@ class Cell:
     @property
     def rate(self) -> Fraction:
         return Fraction(self.successes, self.total)
+
+    @property
+    def all_skipped(self) -> bool:
+        return self.skipped == self.total
 
 
 @dataclass(frozen=True)
@@ -160,18 +168,26 @@ def subset_of(task: str, arms: Mapping[str, int]) -> str:
     return "dual" if arms[task] > 1 else "single"
 
 
-def task_cells(records: Iterable[Record]) -> list[Cell]:
-    """Successes and scored totals per (model, track, task, run), sorted by those keys."""
-    counts: dict[tuple[str, str, str, int], list[int]] = defaultdict(lambda: [0, 0, 0])
+def tally(records: Iterable[Record], key: Callable[[Record], K]) -> dict[K, tuple[int, int, int]]:
+    """Successes, scored episodes and skipped episodes (`is_skipped`) per key, over the scored
+    records, sorted by key."""
+    counts: dict[K, list[int]] = defaultdict(lambda: [0, 0, 0])
     for rec in records:
         r = rec.result
-        if not r.scored:
-            continue
-        c = counts[(r.model, rec.track, r.task, r.run)]
-        c[0] += int(r.success)
-        c[1] += 1
-        c[2] += int(is_skipped(r))
-    return [Cell(*k, successes=s, total=t, skipped=n) for k, (s, t, n) in sorted(counts.items())]
+        if r.scored:
+            c = counts[key(rec)]
+            c[0] += int(r.success)
+            c[1] += 1
+            c[2] += int(is_skipped(r))
+    return {k: (s, t, n) for k, (s, t, n) in sorted(counts.items())}
+
+
+def task_cells(records: Iterable[Record]) -> list[Cell]:
+    """Successes and scored totals per (model, track, task, run), sorted by those keys."""
+    counts = tally(
+        records, lambda rec: (rec.result.model, rec.track, rec.result.task, rec.result.run)
+    )
+    return [Cell(*k, successes=s, total=t, skipped=n) for k, (s, t, n) in counts.items()]
 
 
 def macro_averages(cells: Sequence[Cell], arms: Mapping[str, int]) -> list[Macro]:
@@ -183,10 +199,15 @@ def macro_averages(cells: Sequence[Cell], arms: Mapping[str, int]) -> list[Macro
     for (model, track, run), group in sorted(by_run.items()):
         for subset in SUBSETS:
             chosen = [c for c in group if subset == "all" or subset_of(c.task, arms) == subset]
-            rate = sum((c.rate for c in chosen), Fraction(0)) / len(chosen) if chosen else None
+            rate = average([c.rate for c in chosen]) if chosen else None
             families = tuple(sorted(c.task for c in chosen))
             out.append(Macro(model, track, run, subset, families, rate))
     return out
+
+
+def average(values: Sequence[Fraction]) -> Fraction:
+    """The unweighted mean of at least one value."""
+    return sum(values, Fraction(0)) / len(values)
 
 
 def mean_sd(values: Sequence[Fraction]) -> Spread:
@@ -194,11 +215,16 @@ def mean_sd(values: Sequence[Fraction]) -> Spread:
     if not values:
         raise ValueError("mean_sd of no values")
     vals = tuple(Fraction(v) for v in values)
-    mean = sum(vals, Fraction(0)) / len(vals)
+    mean = average(vals)
     if len(vals) < 2:
         return Spread(vals, mean, None, None)
     variance = sum(((v - mean) ** 2 for v in vals), Fraction(0)) / (len(vals) - 1)
     return Spread(vals, mean, variance, math.sqrt(variance))
+
+
+def mean_sd_or_none(values: Sequence[Fraction]) -> Spread | None:
+    """`mean_sd`, or None for no values."""
+    return mean_sd(values) if values else None
 
 
 def macro_spread(macros: Sequence[Macro]) -> dict[tuple[str, str, str], Spread]:
@@ -243,7 +269,7 @@ def usage(records: Iterable[Record]) -> list[Usage]:
     out = []
     for (model, track), recs in sorted(groups.items()):
         rs = [r.result for r in recs]
-        tokens = {name: sum(getattr(r.tokens, name) for r in rs) for name in _TOKEN_FIELDS}
+        tokens = {name: sum(getattr(r.tokens, name) for r in rs) for name in TOKEN_FIELDS}
         out.append(
             Usage(
                 model=model,
@@ -260,9 +286,6 @@ def usage(records: Iterable[Record]) -> list[Usage]:
             )
         )
     return out
-
-
-_TOKEN_FIELDS = ("input", "cached_input", "cache_write", "output", "reasoning")
 
 
 def unscored_counts(records: Iterable[Record]) -> dict[tuple[str, str, str], tuple[int, float]]:
