@@ -53,7 +53,7 @@ def is_skipped(result: EpisodeResult) -> bool:
 def skipped_side(
     first: bool, second: bool, sides: tuple[str, str] = ("active", "passive")
 ) -> str | None:
-    """The side of `sides` whose episodes were all skipped (`first`, `second`), "both" or
+    """Which of the two `sides` had every episode skipped (`first`, `second`), "both" or
     None."""
     if first and second:
         return "both"

@@ -1,10 +1,6 @@
-"""Sections of the report on the suites beyond the base evaluation: controlled transfer and
-long-horizon composition (statistics: `suites`).
-
-Each builder returns None when the sweep holds no data for it, so a base sweep's report keeps
-exactly its base sections. Display tables show percentages with two decimals and differences
-as signed points ("-10.00"); CSV files keep raw counts and rates in [0, 1].
-"""
+"""Sections on the suites beyond the base evaluation, controlled transfer and long-horizon
+composition (statistics: `suites`; number formats: `tables`); None for a suite the sweep did
+not run."""
 
 from __future__ import annotations
 

@@ -1,10 +1,6 @@
-"""Sections of the report on demonstration summaries: summary source and learning stage
-(statistics: `summaries`).
-
-Each builder returns None when the sweep holds no data for it, so a base sweep's report keeps
-exactly its base sections. Display tables show percentages with two decimals and differences
-as signed points ("-10.00"); CSV files keep raw counts and rates in [0, 1].
-"""
+"""Sections on demonstration summaries: summary source and learning stage (statistics:
+`summaries`; number formats: `tables`). A builder returns None when the sweep holds no such
+data, so a base sweep's report keeps exactly its base sections."""
 
 from __future__ import annotations
 
