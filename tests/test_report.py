@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from vabench.report import ReportError, load_results, make_report
+from vabench.report import active_passive as AP
 from vabench.report import stats as S
 from vabench.report.__main__ import main
 from vabench.report.load import Record, parse_record
@@ -135,11 +136,11 @@ def test_one_run_has_no_sd():
 
 
 def test_sign_test_values():
-    assert S.sign_test(0, 0) == 1
-    assert S.sign_test(1, 5) == Fraction(2 * (1 + 5), 32)
-    assert S.sign_test(4, 5) == Fraction(2 * (1 + 5), 32)
-    assert S.sign_test(3, 6) == 1  # 2 * 42/64 > 1 is capped
-    assert S.sign_test(0, 3) == Fraction(2, 8)
+    assert AP.sign_test(0, 0) == 1
+    assert AP.sign_test(1, 5) == Fraction(2 * (1 + 5), 32)
+    assert AP.sign_test(4, 5) == Fraction(2 * (1 + 5), 32)
+    assert AP.sign_test(3, 6) == 1  # 2 * 42/64 > 1 is capped
+    assert AP.sign_test(0, 3) == Fraction(2, 8)
 
 
 # tab:multiview-per-task (paper.tex): per-family successes out of 20 seeds, active / passive,
@@ -204,7 +205,7 @@ def test_sign_test_reproduces_paper(model):
         for track, counts in (("active", active), ("passive", passive))
         for task, n in zip(PAPER_FAMILIES, counts, strict=True)
     ]
-    (cmp,) = S.track_comparisons(cells)
+    (cmp,) = AP.track_comparisons(cells)
     worse, non_tied, printed, digits = PAPER_SIGN[model]
     assert (cmp.passive_worse, cmp.non_tied, cmp.runs) == (worse, non_tied, (1,))
     assert f"{round(float(cmp.p_value), digits):.{digits}f}".rstrip("0") == printed.rstrip("0")
@@ -218,7 +219,7 @@ def test_active_passive_pairs_matched_runs_and_pools():
     lines += pattern("m", "passive", 1, {CUBE: 1, BELL: 2, POT: 1})
     # run 2: cube 0/4 (worse), bell 0/4 (worse), pot 0/4 (worse)
     lines += pattern("m", "passive", 2, {CUBE: 0, BELL: 0, POT: 0})
-    comparisons = S.track_comparisons(S.task_cells(records(lines)))
+    comparisons = AP.track_comparisons(S.task_cells(records(lines)))
     assert [c.runs for c in comparisons] == [(1,), (2,), (1, 2)]
     run1, run2, pooled = comparisons
     pairs = {p.task: p for p in run1.families}
@@ -432,7 +433,7 @@ def test_all_skipped_family_is_left_out_of_the_sign_test(tmp_path):
     lines = pattern("m", "active", 1, {CUBE: 4, BELL: 2})
     lines += [skipped("m", "active", POT, seed, 1) for seed in range(4)]
     lines += pattern("m", "passive", 1, {CUBE: 1, BELL: 2, POT: 0})
-    (cmp,) = S.track_comparisons(S.task_cells(records(lines)))
+    (cmp,) = AP.track_comparisons(S.task_cells(records(lines)))
     pairs = {p.task: p for p in cmp.families}
     assert (pairs[POT].active_skipped, pairs[POT].skipped_side) == (4, "active")
     assert pairs[CUBE].skipped_side is None and pairs[BELL].skipped_side is None
@@ -442,7 +443,7 @@ def test_all_skipped_family_is_left_out_of_the_sign_test(tmp_path):
     # an attempted family with some skipped episodes stays in
     part = [x for x in lines if x["task"] != POT or x["track"] == "passive"]
     part += [skipped("m", "active", POT, 0, 1)] + pattern("m", "active", 1, {POT: 0})[1:]
-    (cmp2,) = S.track_comparisons(S.task_cells(records(part)))
+    (cmp2,) = AP.track_comparisons(S.task_cells(records(part)))
     assert (cmp2.skipped, cmp2.ties) == ((), 2)
 
     out = make_report(write(tmp_path, lines))
@@ -457,7 +458,7 @@ def test_all_skipped_family_is_left_out_of_the_sign_test(tmp_path):
 def test_no_sign_test_when_every_family_is_skipped(tmp_path):
     lines = pattern("m", "active", 1, {CUBE: 3})
     lines += [skipped("m", "passive", CUBE, seed, 1) for seed in range(4)]
-    (cmp,) = S.track_comparisons(S.task_cells(records(lines)))
+    (cmp,) = AP.track_comparisons(S.task_cells(records(lines)))
     assert (cmp.skipped, cmp.p_value, cmp.non_tied) == ((CUBE,), None, 0)
     out = make_report(write(tmp_path, lines))
     md = (out / "report.md").read_text()

@@ -16,9 +16,11 @@ from pathlib import Path
 import pytest
 
 from vabench.report import ReportError, load_results
-from vabench.report import tracks as T
 from vabench.report.build import write_report
+from vabench.report.conditions import TaskMeta, condition_cells
 from vabench.report.load import Record, parse_record
+from vabench.report.suites import long_horizon, transfer_comparisons
+from vabench.report.summaries import SummaryComparison, cross_model, summary_comparisons
 
 A1, A2, D, X = "task_a1", "task_a2", "task_dual", "task_x"
 B1, B2, B3, H1, H2, H3 = "base_1", "base_2", "base_3", "base_1_heldout", "base_2_heldout", "h3"
@@ -26,7 +28,7 @@ L = "basket"
 ARMS = {A1: 1, A2: 1, D: 2, X: 1, B1: 1, B2: 1, B3: 1, H1: 1, H2: 1, H3: 1, L: 2}
 ORDER = [A1, A2, D, X, B1, B2, B3, H1, H2, H3, L]
 BASE = (A1, A2, D, X, B1, B2, B3)
-META = T.TaskMeta(
+META = TaskMeta(
     suite={
         **dict.fromkeys(BASE, "base"),
         H1: "transfer",
@@ -86,7 +88,7 @@ def write(run_dir: Path, lines: list[dict]) -> Path:
     return run_dir
 
 
-def report(run_dir: Path, meta: T.TaskMeta | None = META) -> Path:
+def report(run_dir: Path, meta: TaskMeta | None = META) -> Path:
     write_report(run_dir / "report", load_results(run_dir), ARMS, ORDER, BASE, meta)
     return run_dir / "report"
 
@@ -135,10 +137,10 @@ def summary_sweep() -> list[dict]:
     return out
 
 
-def comparisons() -> dict[str, T.SummaryComparison]:
-    cells, notes = T.condition_cells(records(summary_sweep()))
+def comparisons() -> dict[str, SummaryComparison]:
+    cells, notes = condition_cells(records(summary_sweep()))
     assert notes == []
-    found, notes = T.summary_comparisons(cells, ARMS)
+    found, notes = summary_comparisons(cells, ARMS)
     assert notes == []
     return {c.model: c for c in found}
 
@@ -170,7 +172,7 @@ def test_summary_source_ablation_over_matched_tasks():
 
 
 def test_cross_model_avg_row_leaves_out_the_author():
-    (cm,) = T.cross_model(list(comparisons().values()))
+    (cm,) = cross_model(list(comparisons().values()))
     assert (cm.protocol, cm.sources) == ("active", ("w",))
     rows = {row.model: row for row in cm.rows}
     assert rows["r"].delta("w") == Fraction(-1, 3)
@@ -183,7 +185,7 @@ def test_cross_model_avg_row_leaves_out_the_author():
 
 def test_same_condition_under_two_tracks_counts_once():
     lines = pattern("m", "active", 1, {A1: 4}) + pattern("m", "active_copy", 1, {A1: 0})
-    cells, notes = T.condition_cells(records(lines))
+    cells, notes = condition_cells(records(lines))
     assert [(c.track, c.successes, c.total) for c in cells] == [("active", 4, 4)]
     assert notes == [
         f"m / active / summaries own / {A1}: run by tracks ['active', 'active_copy'] alike; "
@@ -196,22 +198,22 @@ def test_summary_modes_are_compared_within_a_suite():
     # shared:w: two comparisons, neither listing the other suite's tasks as left out
     lines = pattern("m", "active", 1, {A1: 2}) + pattern("m", "active_none", 1, {A1: 1}, "none")
     lines += pattern("m", "transfer", 1, {H1: 1}) + pattern("m", "t_w", 1, {H1: 3}, "shared:w")
-    cells, _ = T.condition_cells(records(lines))
-    found, notes = T.summary_comparisons(cells, ARMS, META.suite)
+    cells, _ = condition_cells(records(lines))
+    found, notes = summary_comparisons(cells, ARMS, META.suite)
     got = [(c.suite, c.modes, c.tasks, c.left_out) for c in found]
     assert got == [
         ("base", ("own", "none"), (A1,), ()),
         ("transfer", ("own", "shared:w"), (H1,), ()),
     ]
-    (cm,) = [c for c in T.cross_model(found)]
+    (cm,) = [c for c in cross_model(found)]
     assert (cm.suite, cm.rows[0].delta("w")) == ("transfer", Fraction(1, 2))
     assert notes == []
 
 
 def test_modes_without_a_common_task_are_noted():
     lines = pattern("m", "active", 1, {A1: 1}) + pattern("m", "active_none", 1, {A2: 1}, "none")
-    cells, _ = T.condition_cells(records(lines))
-    found, notes = T.summary_comparisons(cells, ARMS)
+    cells, _ = condition_cells(records(lines))
+    found, notes = summary_comparisons(cells, ARMS)
     assert found == [] and notes == ["m / active: summary modes ['own', 'none'] share no task"]
 
 
@@ -304,8 +306,8 @@ def transfer_sweep() -> list[dict]:
 
 
 def test_transfer_pairs_held_out_with_base_family():
-    cells, _ = T.condition_cells(records(transfer_sweep()))
-    (cmp,) = T.transfer_comparisons(cells, META)
+    cells, _ = condition_cells(records(transfer_sweep()))
+    (cmp,) = transfer_comparisons(cells, META)
     assert (cmp.model, cmp.protocol, cmp.mode, cmp.runs) == ("m", "active", "own", (1, 2))
     assert cmp.unmatched == (H3,)
     fams = {f.heldout: f for f in cmp.families}
@@ -317,22 +319,22 @@ def test_transfer_pairs_held_out_with_base_family():
     assert cmp.heldout.mean == Fraction(3, 8)
     assert (cmp.delta.mean, cmp.delta.variance) == (Fraction(-1, 4), Fraction(1, 8))
     # the same records have one summary mode per protocol: no summary-source comparison
-    assert T.summary_comparisons(cells, ARMS) == ([], [])
+    assert summary_comparisons(cells, ARMS) == ([], [])
 
 
 def test_transfer_base_falls_back_to_own_summary_runs():
     lines = pattern("m", "active", 1, {B1: 2}) + pattern("m", "t_none", 1, {H1: 1}, "none")
-    cells, _ = T.condition_cells(records(lines))
-    (cmp,) = T.transfer_comparisons(cells, META)
+    cells, _ = condition_cells(records(lines))
+    (cmp,) = transfer_comparisons(cells, META)
     (fam,) = cmp.families
     assert (cmp.mode, fam.base_mode, fam.delta) == ("none", "own", Fraction(-1, 4))
 
 
 def test_transfer_task_without_base_family_is_named():
-    cells, _ = T.condition_cells(records(pattern("m", "transfer", 1, {H1: 1})))
-    meta = T.TaskMeta(suite=META.suite, base_family={})
+    cells, _ = condition_cells(records(pattern("m", "transfer", 1, {H1: 1})))
+    meta = TaskMeta(suite=META.suite, base_family={})
     with pytest.raises(ReportError, match=f"task '{H1}': .*field 'base_family'"):
-        T.transfer_comparisons(cells, meta)
+        transfer_comparisons(cells, meta)
 
 
 def test_transfer_section_written(tmp_path):
@@ -366,7 +368,7 @@ def long_sweep() -> list[dict]:
 
 
 def test_long_horizon_objects_and_strict_success(tmp_path):
-    (lh,) = T.long_horizon(records(long_sweep()), META)
+    (lh,) = long_horizon(records(long_sweep()), META)
     assert [(r.run, r.placed, r.possible, r.successes, r.episodes) for r in lh.runs] == [
         (1, 10, 20, 1, 4),
         (2, 2, 20, 0, 4),
@@ -518,8 +520,8 @@ def test_transfer_pair_with_an_all_skipped_side_gets_no_delta(tmp_path):
         line("m", "transfer", H2, seed, 1, False, stop_reason="model_stop", steps_used=0)
         for seed in range(4)
     ]
-    cells, _ = T.condition_cells(records(lines))
-    (cmp,) = T.transfer_comparisons(cells, META)
+    cells, _ = condition_cells(records(lines))
+    (cmp,) = transfer_comparisons(cells, META)
     fams = {f.heldout: f for f in cmp.families}
     h2 = fams[H2]
     assert (h2.heldout_skipped, h2.skipped_side, h2.delta) == (4, "held-out", None)

@@ -23,9 +23,21 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from vabench.report import figures, html, spend, stats, tables, track_tables, tracks
+from vabench.report import (
+    active_passive,
+    base_tables,
+    figures,
+    html,
+    spend,
+    stats,
+    suite_tables,
+    suites,
+    summaries,
+    summary_tables,
+    tables,
+)
+from vabench.report.conditions import TaskMeta, condition_cells
 from vabench.report.load import Results, load_results
-from vabench.report.tracks import TaskMeta
 
 REPORT_DIR = "report"
 SUMMARIES_DIR = "summaries"
@@ -83,7 +95,7 @@ def write_report(
     task_spreads = stats.task_spread(cells)
     macros = stats.macro_averages(cells, arms)
     macro_spreads = stats.macro_spread(macros)
-    comparisons = stats.track_comparisons(cells)
+    comparisons = active_passive.track_comparisons(cells)
     unscored = stats.unscored_counts(results.unscored)
     unresolved = stats.unresolved(results.scored, results.unscored)
 
@@ -99,13 +111,13 @@ def write_report(
             f"{results.path.name}: a truncated last line (a crash mid-write) was ignored"
         )
     sections = [
-        tables.macro_section(macros, macro_spreads, macro_notes),
-        tables.per_task_section(cells, task_spreads, arms, order),
-        tables.active_passive_section(comparisons, order),
+        base_tables.macro_section(macros, macro_spreads, macro_notes),
+        base_tables.per_task_section(cells, task_spreads, arms, order),
+        base_tables.active_passive_section(comparisons, order),
         *track_sections(results, arms, meta),
-        tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
+        base_tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
         *diagnostic_sections(results.path.parent),
-        tables.usage_section(
+        base_tables.usage_section(
             stats.usage(results.scored), unscored, len(unresolved), results.retried
         ),
     ]
@@ -130,7 +142,7 @@ def write_report(
                 figures.task_success_figure(cells, task_spreads, model, track, order),
             )
         )
-    shown: dict[str, stats.TrackComparison] = {}
+    shown: dict[str, active_passive.TrackComparison] = {}
     for cmp in comparisons:  # the pooled comparison, when there is one, comes last per model
         shown[cmp.model] = cmp
     for model, cmp in shown.items():
@@ -171,22 +183,25 @@ def track_sections(
     results: Results, arms: Mapping[str, int], meta: TaskMeta | None
 ) -> list[tables.Section]:
     """Summary source, learning stage, transfer and long horizon: those with data only."""
-    cells, notes = tracks.condition_cells(results.scored)
-    suites = None if meta is None else meta.suite
-    comparisons, more = tracks.summary_comparisons(cells, arms, suites)
+    cells, notes = condition_cells(results.scored)
+    comparisons, more = summaries.summary_comparisons(
+        cells, arms, None if meta is None else meta.suite
+    )
     sections = [
-        track_tables.summary_section(
+        summary_tables.summary_section(
             comparisons,
-            tracks.cross_model(comparisons),
+            summaries.cross_model(comparisons),
             arms,
-            notes + more + tracks.failed_summary_notes(results.scored),
+            notes + more + summaries.failed_summary_notes(results.scored),
         ),
-        track_tables.learning_section(tracks.learning_rows(results.path.parent / SUMMARIES_DIR)),
+        summary_tables.learning_section(
+            summaries.learning_rows(results.path.parent / SUMMARIES_DIR)
+        ),
     ]
     if meta is not None:
         sections += [
-            track_tables.transfer_section(tracks.transfer_comparisons(cells, meta)),
-            track_tables.long_horizon_section(tracks.long_horizon(results.scored, meta)),
+            suite_tables.transfer_section(suites.transfer_comparisons(cells, meta)),
+            suite_tables.long_horizon_section(suites.long_horizon(results.scored, meta)),
         ]
     return [s for s in sections if s is not None]
 
@@ -205,7 +220,7 @@ def diagnostic_sections(run_dir: Path) -> list[tables.Section]:
 def _summary(
     results: Results,
     spreads: Mapping[tuple[str, str, str], stats.Spread],
-    comparisons: Sequence[stats.TrackComparison],
+    comparisons: Sequence[active_passive.TrackComparison],
     n_unresolved: int,
 ) -> list[str]:
     lines = [
@@ -233,7 +248,7 @@ def _summary(
         lines.append(
             f"{cmp.model} active vs passive ({tables.runs_label(cmp.runs)}): passive worse on "
             f"{cmp.passive_worse} of {cmp.non_tied} non-tied families, sign test "
-            f"p = {float(cmp.p_value):.4g}{left_out}"
+            f"p = {tables.p_value_text(cmp.p_value)}{left_out}"
         )
     return lines
 

@@ -13,14 +13,8 @@ from collections.abc import Mapping, Sequence
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from vabench.report.stats import (
-    SUBSET_TITLES,
-    SUBSETS,
-    Cell,
-    Spread,
-    TrackComparison,
-)
-from vabench.report.tables import in_order
+from vabench.report.active_passive import TrackComparison, in_order
+from vabench.report.stats import SUBSET_TITLES, SUBSETS, Cell, Spread
 
 _DPI = 110
 

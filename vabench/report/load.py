@@ -16,6 +16,7 @@ the sweep, one line per finished episode). Rules:
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -82,10 +83,7 @@ def parse_record(obj: Any, where: str, line: int) -> Record:
     try:
         result = EpisodeResult.model_validate(known)
     except ValidationError as exc:
-        problems = "; ".join(
-            f"field '{'.'.join(str(p) for p in e['loc'])}': {e['msg']}" for e in exc.errors()
-        )
-        raise ReportError(f"{where}: {problems}") from None
+        raise ReportError(f"{where}: {validation_problems(exc)}") from None
     if result.success != (result.status == "success"):
         raise ReportError(
             f"{where}: field 'success': {result.success} contradicts status {result.status!r}"
@@ -96,6 +94,13 @@ def parse_record(obj: Any, where: str, line: int) -> Record:
             f"[0, n_checkpoints={result.n_checkpoints}]"
         )
     return Record(track=track, result=result, line=line, episode_dir=str(episode_dir))
+
+
+def validation_problems(exc: ValidationError) -> str:
+    """Pydantic's errors as one line: "field 'a.b': problem; field 'c': problem"."""
+    return "; ".join(
+        f"field '{'.'.join(str(p) for p in e['loc'])}': {e['msg']}" for e in exc.errors()
+    )
 
 
 def load_results(run_dir: Path | str) -> Results:
@@ -153,13 +158,23 @@ def count_retried(path: Path) -> dict[tuple[str, str], int]:
     skipped rather than failing the report over a file that does not feed any statistic.
     """
     counts: dict[tuple[str, str], int] = {}
-    if not path.is_file():
-        return counts
-    for raw in path.read_text(encoding="utf-8").splitlines():
-        try:
-            obj = json.loads(raw)
+    for obj in jsonl_objects(path):
+        if "model" in obj and "track" in obj:
             key = (str(obj["model"]), str(obj["track"]))
-        except (json.JSONDecodeError, KeyError, TypeError):
-            continue
-        counts[key] = counts.get(key, 0) + 1
+            counts[key] = counts.get(key, 0) + 1
     return dict(sorted(counts.items()))
+
+
+def jsonl_objects(path: Path) -> Iterator[dict[str, Any]]:
+    """The JSON objects of a JSONL file that is counted or billed, never scored: a line that
+    does not parse (cut by a crash) or is not an object is skipped; nothing when the file does
+    not exist."""
+    if not path.is_file():
+        return
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(obj, dict):
+            yield obj

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from vabench.report.load import jsonl_objects
+from vabench.report.stats import TOKEN_FIELDS
 from vabench.report.tables import Csv, Section, Table
 
 SOURCES = (
@@ -36,7 +38,6 @@ SOURCES = (
     "duplicate records collapsed",
     "learning sessions",
 )
-_TOKEN_FIELDS = ("input", "cached_input", "cache_write", "output", "reasoning")
 _USAGE_KEYS = {
     "input": "input_tokens",
     "cached_input": "cached_input_tokens",
@@ -56,7 +57,7 @@ class Spend:
     source: str
     items: int = 0
     cost_usd: float = 0.0
-    tokens: dict[str, int] = field(default_factory=lambda: dict.fromkeys(_TOKEN_FIELDS, 0))
+    tokens: dict[str, int] = field(default_factory=lambda: dict.fromkeys(TOKEN_FIELDS, 0))
 
 
 @dataclass
@@ -69,23 +70,11 @@ class Bill:
         return math.fsum(r.cost_usd for r in self.rows if r.model == model)
 
 
-def _jsonl(path: Path) -> Iterator[dict[str, Any]]:
-    if not path.is_file():
-        return
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            obj = json.loads(line)
-        except json.JSONDecodeError:  # a line cut by a crash: nothing to bill from it
-            continue
-        if isinstance(obj, dict):
-            yield obj
-
-
 def _add_record(s: Spend, record: dict[str, Any]) -> None:
     s.items += 1
     s.cost_usd += float(record.get("cost_usd") or 0.0)
     tokens = record.get("tokens") or {}
-    for name in _TOKEN_FIELDS:
+    for name in TOKEN_FIELDS:
         s.tokens[name] += int(tokens.get(name) or 0)
 
 
@@ -139,12 +128,12 @@ def bill(run_dir: Path | str) -> Bill:
     def row(model: str, source: str) -> Spend:
         return rows.setdefault((model, source), Spend(model, source))
 
-    for record in _jsonl(run_dir / "results.jsonl"):
+    for record in jsonl_objects(run_dir / "results.jsonl"):
         scored = record.get("status") in ("success", "failure")
         _add_record(row(str(record.get("model")), SOURCES[0 if scored else 1]), record)
-    for record in _jsonl(run_dir / "infrastructure.jsonl"):
+    for record in jsonl_objects(run_dir / "infrastructure.jsonl"):
         _add_record(row(str(record.get("model")), SOURCES[2]), record)
-    for record in _jsonl(run_dir / "results.duplicates.jsonl"):
+    for record in jsonl_objects(run_dir / "results.duplicates.jsonl"):
         _add_record(row(str(record.get("model")), SOURCES[4]), record)
     for path in sorted((run_dir / "summaries").glob("*/*.json")):
         try:
@@ -153,14 +142,14 @@ def bill(run_dir: Path | str) -> Bill:
             continue
         _add_record(row(str(learned.get("model") or path.parent.name), SOURCES[5]), learned)
     for events_file in sorted(_interrupted_logs(run_dir)):
-        events = list(_jsonl(events_file))
+        events = list(jsonl_objects(events_file))
         model = _model_of(run_dir, events_file, events)
         if model is None:
             continue
         learning = events_file.relative_to(run_dir).parts[0] == "summaries"
         _add_calls(row(model, SOURCES[5] if learning else SOURCES[3]), events)
     for events_file in run_dir.rglob("events.jsonl"):
-        events = list(_jsonl(events_file))
+        events = list(jsonl_objects(events_file))
         if (n := _no_usage_failures(events)) and (m := _model_of(run_dir, events_file, events)):
             unknown[m] += n
     order = {s: i for i, s in enumerate(SOURCES)}
@@ -180,7 +169,7 @@ def spend_section(b: Bill) -> Section | None:
             tokens = sum(r.tokens.values()) - r.tokens["reasoning"]  # reasoning is in output
             rows.append([model, r.source, str(r.items), f"{tokens:,}", f"{r.cost_usd:.4f}"])
             csv_rows.append(
-                [model, r.source, r.items, *(r.tokens[n] for n in _TOKEN_FIELDS), r.cost_usd]
+                [model, r.source, r.items, *(r.tokens[n] for n in TOKEN_FIELDS), r.cost_usd]
             )
         rows.append([model, "total", "", "", f"{b.total(model):.4f}"])
     notes = [
@@ -199,7 +188,7 @@ def spend_section(b: Bill) -> Section | None:
         [
             Csv(
                 "spend",
-                ["model", "source", "items", *(f"tokens_{n}" for n in _TOKEN_FIELDS), "cost_usd"],
+                ["model", "source", "items", *(f"tokens_{n}" for n in TOKEN_FIELDS), "cost_usd"],
                 csv_rows,
             )
         ],

@@ -1,6 +1,6 @@
-"""The paper's aggregation, as pure functions over scored records.
+"""The paper's base aggregation, as pure functions over scored records.
 
-Definitions (paper, "Base evaluation protocol" and "Active evidence acquisition"):
+Definitions (paper, "Base evaluation protocol"):
 
 - Per-task success of model m, track t, run r, task τ: successes / scored episodes (20 seeds in
   the paper; infrastructure failures are re-run and never scored, so the total is whatever was
@@ -10,16 +10,10 @@ Definitions (paper, "Base evaluation protocol" and "Active evidence acquisition"
   task uses more than one arm (`arms[task] > 1`).
 - Across runs: mean and SAMPLE standard deviation (n - 1) of the run-level macro-averages; the
   SD of a single run is undefined (None).
-- Active vs passive: per family, success counts of both tracks and Δ = passive − active; the
-  two-sided exact sign test over the non-tied families:
-  p = min(1, 2 · P[X ≤ min(k, n − k)]), X ~ Bin(n, 1/2), n non-tied families, k of them worse
-  under passive. Ties and the sign compare rates, which equal counts when totals match.
 - Skipped episodes: an episode the model stopped before taking any step (stop reason
-  model_stop, no step used) says nothing about the protocol it ran under. A family whose
-  episodes under one of the two tracks are all skipped is left out of the sign test and gets
-  no Δ (`FamilyPair.skipped_side` names the side); its counts are still shown, and the
-  macro-averages still count those episodes as failures. With no family left to compare there
-  is no sign test at all (`p_value` None).
+  model_stop, no step used) is a failure here, and is counted apart (`Cell.skipped`) so that
+  comparisons between two sides (`active_passive`, `suites`) can leave out a side that
+  attempted nothing.
 - Subtask progress: a micro-average, checkpoints reached / checkpoints possible over every
   scored episode of a model and track (each episode contributes `progress` of `n_checkpoints`).
 
@@ -31,15 +25,19 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
+from typing import TypeVar
 
-from vabench.agent.records import EpisodeResult
+from vabench.agent.records import EpisodeResult, TokenTotals
 from vabench.report.load import Record, ReportError
 
 SUBSETS = ("single", "dual", "all")
 SUBSET_TITLES = {"single": "Single-arm", "dual": "Dual-arm", "all": "All"}
+TOKEN_FIELDS = tuple(TokenTotals.model_fields)
+"""The token counts of a record (`EpisodeResult.tokens`), in the order the tables show them."""
+K = TypeVar("K")
 
 
 def is_skipped(result: EpisodeResult) -> bool:
@@ -52,11 +50,14 @@ def is_skipped(result: EpisodeResult) -> bool:
     )
 
 
-def skipped_side(active_skipped: bool, passive_skipped: bool) -> str | None:
-    """ "active", "passive", "both" or None: the side(s) whose episodes were all skipped."""
-    if active_skipped and passive_skipped:
+def skipped_side(
+    first: bool, second: bool, sides: tuple[str, str] = ("active", "passive")
+) -> str | None:
+    """Which of the two `sides` had every episode skipped (`first`, `second`), "both" or
+    None."""
+    if first and second:
         return "both"
-    return "active" if active_skipped else ("passive" if passive_skipped else None)
+    return sides[0] if first else (sides[1] if second else None)
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,10 @@ class Cell:
     @property
     def rate(self) -> Fraction:
         return Fraction(self.successes, self.total)
+
+    @property
+    def all_skipped(self) -> bool:
+        return self.skipped == self.total
 
 
 @dataclass(frozen=True)
@@ -101,60 +106,6 @@ class Spread:
     @property
     def n(self) -> int:
         return len(self.values)
-
-
-@dataclass(frozen=True)
-class FamilyPair:
-    """One family under both tracks: counts and Δ = passive − active."""
-
-    task: str
-    active: int
-    active_total: int
-    passive: int
-    passive_total: int
-    active_skipped: int = 0
-    passive_skipped: int = 0
-
-    @property
-    def delta(self) -> Fraction:
-        """Passive minus active success rate."""
-        return Fraction(self.passive, self.passive_total) - Fraction(self.active, self.active_total)
-
-    @property
-    def skipped_side(self) -> str | None:
-        """The track(s) under which every episode of this family was skipped: then the pair
-        compares nothing and stays out of the sign test."""
-        return skipped_side(
-            self.active_skipped == self.active_total, self.passive_skipped == self.passive_total
-        )
-
-
-@dataclass(frozen=True)
-class TrackComparison:
-    """Active vs passive for one model over the given runs (one run, or several pooled)."""
-
-    model: str
-    runs: tuple[int, ...]
-    families: tuple[FamilyPair, ...]
-    passive_worse: int
-    passive_better: int
-    ties: int
-    p_value: Fraction | None
-    """None when every family was left out (`skipped`): no test was made."""
-    only_one_track: tuple[str, ...]
-    """Families run under one of the two tracks only: left out of the comparison."""
-    skipped: tuple[str, ...] = ()
-    """Families whose episodes were all skipped under one track (or both): left out of the
-    sign test, shown without a Δ."""
-
-    @property
-    def non_tied(self) -> int:
-        return self.passive_worse + self.passive_better
-
-    @property
-    def compared(self) -> int:
-        """Families in the sign test (non-tied and tied)."""
-        return len(self.families) - len(self.skipped)
 
 
 @dataclass(frozen=True)
@@ -217,18 +168,26 @@ def subset_of(task: str, arms: Mapping[str, int]) -> str:
     return "dual" if arms[task] > 1 else "single"
 
 
-def task_cells(records: Iterable[Record]) -> list[Cell]:
-    """Successes and scored totals per (model, track, task, run), sorted by those keys."""
-    counts: dict[tuple[str, str, str, int], list[int]] = defaultdict(lambda: [0, 0, 0])
+def tally(records: Iterable[Record], key: Callable[[Record], K]) -> dict[K, tuple[int, int, int]]:
+    """Successes, scored episodes and skipped episodes (`is_skipped`) per key, over the scored
+    records, sorted by key."""
+    counts: dict[K, list[int]] = defaultdict(lambda: [0, 0, 0])
     for rec in records:
         r = rec.result
-        if not r.scored:
-            continue
-        c = counts[(r.model, rec.track, r.task, r.run)]
-        c[0] += int(r.success)
-        c[1] += 1
-        c[2] += int(is_skipped(r))
-    return [Cell(*k, successes=s, total=t, skipped=n) for k, (s, t, n) in sorted(counts.items())]
+        if r.scored:
+            c = counts[key(rec)]
+            c[0] += int(r.success)
+            c[1] += 1
+            c[2] += int(is_skipped(r))
+    return {k: (s, t, n) for k, (s, t, n) in sorted(counts.items())}
+
+
+def task_cells(records: Iterable[Record]) -> list[Cell]:
+    """Successes and scored totals per (model, track, task, run), sorted by those keys."""
+    counts = tally(
+        records, lambda rec: (rec.result.model, rec.track, rec.result.task, rec.result.run)
+    )
+    return [Cell(*k, successes=s, total=t, skipped=n) for k, (s, t, n) in counts.items()]
 
 
 def macro_averages(cells: Sequence[Cell], arms: Mapping[str, int]) -> list[Macro]:
@@ -240,10 +199,15 @@ def macro_averages(cells: Sequence[Cell], arms: Mapping[str, int]) -> list[Macro
     for (model, track, run), group in sorted(by_run.items()):
         for subset in SUBSETS:
             chosen = [c for c in group if subset == "all" or subset_of(c.task, arms) == subset]
-            rate = sum((c.rate for c in chosen), Fraction(0)) / len(chosen) if chosen else None
+            rate = average([c.rate for c in chosen]) if chosen else None
             families = tuple(sorted(c.task for c in chosen))
             out.append(Macro(model, track, run, subset, families, rate))
     return out
+
+
+def average(values: Sequence[Fraction]) -> Fraction:
+    """The unweighted mean of at least one value."""
+    return sum(values, Fraction(0)) / len(values)
 
 
 def mean_sd(values: Sequence[Fraction]) -> Spread:
@@ -251,11 +215,16 @@ def mean_sd(values: Sequence[Fraction]) -> Spread:
     if not values:
         raise ValueError("mean_sd of no values")
     vals = tuple(Fraction(v) for v in values)
-    mean = sum(vals, Fraction(0)) / len(vals)
+    mean = average(vals)
     if len(vals) < 2:
         return Spread(vals, mean, None, None)
     variance = sum(((v - mean) ** 2 for v in vals), Fraction(0)) / (len(vals) - 1)
     return Spread(vals, mean, variance, math.sqrt(variance))
+
+
+def mean_sd_or_none(values: Sequence[Fraction]) -> Spread | None:
+    """`mean_sd`, or None for no values."""
+    return mean_sd(values) if values else None
 
 
 def macro_spread(macros: Sequence[Macro]) -> dict[tuple[str, str, str], Spread]:
@@ -273,78 +242,6 @@ def task_spread(cells: Sequence[Cell]) -> dict[tuple[str, str, str], Spread]:
     for c in sorted(cells, key=lambda c: (c.model, c.track, c.task, c.run)):
         values[(c.model, c.track, c.task)].append(c.rate)
     return {k: mean_sd(v) for k, v in sorted(values.items())}
-
-
-def sign_test(k: int, n: int) -> Fraction:
-    """Two-sided exact sign test: min(1, 2 P[X <= min(k, n-k)]), X ~ Bin(n, 1/2); 1 if n = 0."""
-    if not 0 <= k <= n:
-        raise ValueError(f"sign_test needs 0 <= k <= n, got k={k}, n={n}")
-    if n == 0:
-        return Fraction(1)
-    tail = sum(math.comb(n, i) for i in range(min(k, n - k) + 1))
-    return min(Fraction(1), Fraction(2 * tail, 2**n))
-
-
-def compare_tracks(
-    cells: Sequence[Cell],
-    model: str,
-    runs: Sequence[int],
-    active: str = "active",
-    passive: str = "passive",
-) -> TrackComparison:
-    """Active vs passive for `model`, counts summed over `runs`, families in both tracks."""
-    sums: dict[str, dict[str, list[int]]] = {active: {}, passive: {}}
-    for c in cells:
-        if c.model == model and c.run in runs and c.track in sums:
-            s = sums[c.track].setdefault(c.task, [0, 0, 0])
-            s[0] += c.successes
-            s[1] += c.total
-            s[2] += c.skipped
-    both = sorted(set(sums[active]) & set(sums[passive]))
-    one = sorted(set(sums[active]) ^ set(sums[passive]))
-    pairs = tuple(
-        FamilyPair(
-            t,
-            *sums[active][t][:2],
-            *sums[passive][t][:2],
-            active_skipped=sums[active][t][2],
-            passive_skipped=sums[passive][t][2],
-        )
-        for t in both
-    )
-    tested = [p for p in pairs if p.skipped_side is None]
-    worse = sum(1 for p in tested if p.delta < 0)
-    better = sum(1 for p in tested if p.delta > 0)
-    return TrackComparison(
-        model=model,
-        runs=tuple(sorted(runs)),
-        families=pairs,
-        passive_worse=worse,
-        passive_better=better,
-        ties=len(tested) - worse - better,
-        p_value=sign_test(worse, worse + better) if tested else None,
-        only_one_track=tuple(one),
-        skipped=tuple(p.task for p in pairs if p.skipped_side is not None),
-    )
-
-
-def track_comparisons(
-    cells: Sequence[Cell], active: str = "active", passive: str = "passive"
-) -> list[TrackComparison]:
-    """For each model run under both tracks: one comparison per run present in both (matched
-    run numbers, as the paper pairs a passive run with its active run), plus one over all those
-    runs pooled when there are several."""
-    runs: dict[tuple[str, str], set[int]] = defaultdict(set)
-    for c in cells:
-        runs[(c.model, c.track)].add(c.run)
-    out = []
-    for model in sorted({c.model for c in cells}):
-        common = sorted(runs.get((model, active), set()) & runs.get((model, passive), set()))
-        for run in common:
-            out.append(compare_tracks(cells, model, [run], active, passive))
-        if len(common) > 1:
-            out.append(compare_tracks(cells, model, common, active, passive))
-    return out
 
 
 def checkpoint_micro(records: Iterable[Record], arms: Mapping[str, int]) -> list[Checkpoints]:
@@ -372,7 +269,7 @@ def usage(records: Iterable[Record]) -> list[Usage]:
     out = []
     for (model, track), recs in sorted(groups.items()):
         rs = [r.result for r in recs]
-        tokens = {name: sum(getattr(r.tokens, name) for r in rs) for name in _TOKEN_FIELDS}
+        tokens = {name: sum(getattr(r.tokens, name) for r in rs) for name in TOKEN_FIELDS}
         out.append(
             Usage(
                 model=model,
@@ -389,9 +286,6 @@ def usage(records: Iterable[Record]) -> list[Usage]:
             )
         )
     return out
-
-
-_TOKEN_FIELDS = ("input", "cached_input", "cache_write", "output", "reasoning")
 
 
 def unscored_counts(records: Iterable[Record]) -> dict[tuple[str, str, str], tuple[int, float]]:

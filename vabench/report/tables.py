@@ -1,30 +1,22 @@
-"""Tables of the report: display tables (Markdown, HTML) and machine-readable CSV.
+"""The report's table model and its text: display tables and CSV files grouped in sections,
+number formatting, Markdown and CSV.
 
-Display tables show percentages with two decimals, as the paper does ("53.93 ± 3.17"); CSV
-files keep raw numbers (counts, rates in [0, 1]) in long format, one row per value.
+Display tables show percentages with two decimals, as the paper does ("53.93 ± 3.17"), and
+differences as signed points ("-10.00"); CSV files keep raw numbers (counts, rates in [0, 1])
+in long format, one row per value. The sections themselves are built in `base_tables`,
+`summary_tables`, `suite_tables`, `diagnostics` and `spend`.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Any
 
-from vabench.report.stats import (
-    SUBSET_TITLES,
-    SUBSETS,
-    Cell,
-    Checkpoints,
-    FamilyPair,
-    Macro,
-    Spread,
-    TrackComparison,
-    Usage,
-    subset_of,
-)
+from vabench.report.stats import Spread
 
 
 @dataclass
@@ -52,20 +44,35 @@ class Section:
     notes: list[str] = field(default_factory=list)
 
 
-def pct(x: Fraction | float | None) -> str:
-    return "—" if x is None else f"{100 * float(x):.2f}"
+def pct(x: Fraction | float | None, sign: bool = False) -> str:
+    """A share in percent, two decimals; `sign`: signed points ("+12.50")."""
+    return "—" if x is None else f"{100 * float(x):{'+' if sign else ''}.2f}"
 
 
-def mean_sd_text(s: Spread | None) -> str:
+def signed(x: Fraction | None) -> str:
+    return pct(x, sign=True)
+
+
+def mean_sd_text(s: Spread | None, sign: bool = False) -> str:
+    """ "mean ± SD" in percent ("mean (1 run)" without an SD); `sign`: a signed mean."""
     if s is None:
         return "—"
     if s.sd is None:
-        return f"{pct(s.mean)} (1 run)"
-    return f"{pct(s.mean)} ± {pct(s.sd)}"
+        return f"{pct(s.mean, sign)} (1 run)"
+    return f"{pct(s.mean, sign)} ± {pct(s.sd)}"
 
 
 def runs_label(runs: Sequence[int]) -> str:
     return f"run {runs[0]}" if len(runs) == 1 else "runs " + ",".join(map(str, runs)) + " pooled"
+
+
+def runs_text(runs: Sequence[int]) -> str:
+    return ",".join(map(str, runs)) if runs else "—"
+
+
+def p_value_text(p: Fraction | None) -> str:
+    """The sign test's p, or a dash where no family could be compared."""
+    return "—" if p is None else f"{float(p):.4g}"
 
 
 def to_markdown(table: Table) -> str:
@@ -93,361 +100,3 @@ def to_csv(table: Csv) -> str:
     for row in table.rows:
         writer.writerow([float(v) if isinstance(v, Fraction) else v for v in row])
     return buf.getvalue()
-
-
-def per_task_section(
-    cells: Sequence[Cell],
-    spreads: Mapping[tuple[str, str, str], Spread],
-    arms: Mapping[str, int],
-    order: Sequence[str],
-) -> Section:
-    rank = {t: i for i, t in enumerate(order)}
-    tables = []
-    for model, track in sorted({(c.model, c.track) for c in cells}):
-        mine = [c for c in cells if (c.model, c.track) == (model, track)]
-        runs = sorted({c.run for c in mine})
-        tasks = sorted({c.task for c in mine}, key=lambda t: (rank.get(t, len(rank)), t))
-        by = {(c.task, c.run): c for c in mine}
-        rows = []
-        for task in tasks:
-            counts = [
-                f"{by[(task, r)].successes}/{by[(task, r)].total}" if (task, r) in by else "—"
-                for r in runs
-            ]
-            rows.append(
-                [task, subset_of(task, arms), *counts, mean_sd_text(spreads[(model, track, task)])]
-            )
-        header = ["task", "arms", *[f"run {r}" for r in runs], "success % (mean ± SD)"]
-        tables.append(Table(f"{model} — {track}", header, rows))
-    csv_rows = [
-        [c.model, c.track, c.task, subset_of(c.task, arms), c.run, c.successes, c.total, c.rate]
-        for c in cells
-    ]
-    header = ["model", "track", "task", "arms", "run", "successes", "total", "rate"]
-    return Section(
-        "success_per_task",
-        "Per-task success per run",
-        tables,
-        [Csv("success_per_task", header, csv_rows)],
-    )
-
-
-def macro_section(
-    macros: Sequence[Macro], spreads: Mapping[tuple[str, str, str], Spread], notes: list[str]
-) -> Section:
-    pairs = sorted({(m.model, m.track) for m in macros})
-    summary = []
-    for model, track in pairs:
-        n_runs = len({m.run for m in macros if (m.model, m.track) == (model, track)})
-        summary.append(
-            [model, track, str(n_runs)]
-            + [mean_sd_text(spreads.get((model, track, s))) for s in SUBSETS]
-        )
-    by = {(m.model, m.track, m.run, m.subset): m for m in macros}
-    per_run = []
-    for model, track, run in sorted({(m.model, m.track, m.run) for m in macros}):
-        ms = [by[(model, track, run, s)] for s in SUBSETS]
-        per_run.append(
-            [model, track, str(run)]
-            + [pct(m.rate) for m in ms]
-            + [f"{len(ms[0].families)}+{len(ms[1].families)}"]
-        )
-    subset_cols = [f"{SUBSET_TITLES[s]} %" for s in SUBSETS]
-    tables = [
-        Table(
-            "Macro-average success (mean ± sample SD across runs)",
-            ["model", "track", "runs"] + subset_cols,
-            summary,
-        ),
-        Table(
-            "Run-level macro-averages",
-            ["model", "track", "run", *subset_cols, "families (single+dual)"],
-            per_run,
-        ),
-    ]
-    run_rows = [[m.model, m.track, m.run, m.subset, len(m.families), m.rate] for m in macros]
-    summary_rows = [
-        [model, track, subset, s.n, s.mean, s.sd] for (model, track, subset), s in spreads.items()
-    ]
-    return Section(
-        "macro_average",
-        "Macro-average success",
-        tables,
-        [
-            Csv("macro_average", ["model", "track", "subset", "runs", "mean", "sd"], summary_rows),
-            Csv(
-                "macro_average_runs",
-                ["model", "track", "run", "subset", "families", "rate"],
-                run_rows,
-            ),
-        ],
-        notes,
-    )
-
-
-def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequence[str]) -> Section:
-    summary, tables, fam_rows, test_rows, notes = [], [], [], [], []
-    for cmp in comparisons:
-        families = in_order(cmp.families, order)
-        label = runs_label(cmp.runs)
-        summary.append(
-            [
-                cmp.model,
-                label,
-                str(len(cmp.families)),
-                str(cmp.non_tied),
-                str(cmp.passive_worse),
-                str(cmp.passive_better),
-                str(cmp.ties),
-                p_value_text(cmp.p_value),
-            ]
-        )
-        rows = [
-            [
-                p.task,
-                f"{p.active}/{p.active_total}",
-                f"{p.passive}/{p.passive_total}",
-                _delta_text(p.passive - p.active, p.delta, p.active_total == p.passive_total)
-                if p.skipped_side is None
-                else f"— (all skipped under {p.skipped_side})",
-            ]
-            for p in families
-        ]
-        tables.append(
-            Table(f"{cmp.model} — {label}", ["task", "active", "passive", "Δ (P − A)"], rows)
-        )
-        for p in families:
-            fam_rows.append(
-                [
-                    cmp.model,
-                    label,
-                    p.task,
-                    p.active,
-                    p.active_total,
-                    p.passive,
-                    p.passive_total,
-                    p.delta if p.skipped_side is None else None,
-                    p.active_skipped,
-                    p.passive_skipped,
-                ]
-            )
-        test_rows.append(
-            [
-                cmp.model,
-                label,
-                len(cmp.families),
-                cmp.non_tied,
-                cmp.passive_worse,
-                cmp.passive_better,
-                cmp.ties,
-                cmp.p_value,
-            ]
-        )
-        if cmp.skipped:
-            notes.append(
-                f"{cmp.model} ({label}): left out of the sign test and shown without a Δ, "
-                "every episode skipped (the model stopped before its first step) under one "
-                f"protocol, so the pair compares nothing: {list(cmp.skipped)}"
-                + ("" if cmp.p_value is not None else "; no family is left: no sign test")
-            )
-        if cmp.only_one_track:
-            notes.append(
-                f"{cmp.model} ({label}): left out, run under one track only: "
-                f"{list(cmp.only_one_track)}"
-            )
-    head = [
-        "model",
-        "runs",
-        "families",
-        "non-tied",
-        "passive worse",
-        "passive better",
-        "ties",
-        "sign test p (two-sided)",
-    ]
-    tables.insert(0, Table("Sign test over non-tied families", head, summary))
-    return Section(
-        "active_passive",
-        "Active vs passive camera protocol",
-        tables if comparisons else [],
-        [
-            Csv(
-                "active_passive",
-                [
-                    "model",
-                    "runs",
-                    "task",
-                    "active",
-                    "active_total",
-                    "passive",
-                    "passive_total",
-                    "delta_rate",
-                    "active_skipped",
-                    "passive_skipped",
-                ],
-                fam_rows,
-            ),
-            Csv(
-                "sign_test",
-                [
-                    "model",
-                    "runs",
-                    "families",
-                    "non_tied",
-                    "passive_worse",
-                    "passive_better",
-                    "ties",
-                    "p_value",
-                ],
-                test_rows,
-            ),
-        ],
-        notes or ([] if comparisons else ["no model was run under both active and passive"]),
-    )
-
-
-def in_order(pairs: Sequence[FamilyPair], order: Sequence[str]) -> list[FamilyPair]:
-    """Families in `order` (the registry's: the paper's), unknown ones last by name."""
-    rank = {t: i for i, t in enumerate(order)}
-    return sorted(pairs, key=lambda p: (rank.get(p.task, len(rank)), p.task))
-
-
-def p_value_text(p: Fraction | None) -> str:
-    """The sign test's p, or a dash where no family could be compared."""
-    return "—" if p is None else f"{float(p):.4g}"
-
-
-def _delta_text(count: int, rate: Fraction, same_totals: bool) -> str:
-    pp = f"{100 * float(rate):+.2f} pp"
-    return f"{count:+d} ({pp})" if same_totals else pp
-
-
-def checkpoint_section(points: Sequence[Checkpoints]) -> Section:
-    by = {(c.model, c.track, c.subset): c for c in points}
-    rows = []
-    for model, track in sorted({(c.model, c.track) for c in points}):
-        cells = []
-        for s in SUBSETS:
-            c = by.get((model, track, s))
-            cells.append("—" if c is None else f"{c.reached}/{c.possible} ({pct(c.rate)})")
-        rows.append([model, track, *cells])
-    header = ["model", "track", *[f"{SUBSET_TITLES[s]} reached/possible (%)" for s in SUBSETS]]
-    csv_rows = [[c.model, c.track, c.subset, c.reached, c.possible, c.rate] for c in points]
-    return Section(
-        "checkpoints",
-        "Subtask checkpoints (micro-average over scored episodes)",
-        [Table("Checkpoints reached / possible", header, rows)],
-        [Csv("checkpoints", ["model", "track", "subset", "reached", "possible", "rate"], csv_rows)],
-    )
-
-
-def usage_section(
-    usages: Sequence[Usage],
-    unscored: Mapping[tuple[str, str, str], tuple[int, float]],
-    unresolved_count: int,
-    retried: Mapping[tuple[str, str], int],
-) -> Section:
-    def share(x: float | None) -> str:
-        return "—" if x is None else f"{100 * x:.1f}%"
-
-    rows = [
-        [
-            u.model,
-            u.track,
-            str(u.episodes),
-            f"{u.mean_steps:.1f}",
-            share(u.camera_share),
-            share(u.invalid_output_share),
-            share(u.invalid_action_share),
-            f"{u.total_tokens:,}",
-            f"{u.total_tokens / u.episodes:,.0f}",
-            f"{u.cost_usd:.2f}",
-            f"{u.cost_usd / u.episodes:.4f}",
-        ]
-        for u in usages
-    ]
-    header = [
-        "model",
-        "track",
-        "episodes",
-        "mean steps",
-        "camera actions / steps",
-        "invalid outputs / calls",
-        "invalid actions / robot actions",
-        "tokens",
-        "tokens / episode",
-        "cost USD",
-        "cost USD / episode",
-    ]
-    tables = [Table("Usage over scored episodes", header, rows)]
-    if unscored:
-        tables.append(
-            Table(
-                "Unscored records (not counted in any statistic)",
-                ["model", "track", "status", "records", "cost USD"],
-                [[m, t, s, str(n), f"{c:.2f}"] for (m, t, s), (n, c) in unscored.items()],
-            )
-        )
-    token_names = list(usages[0].tokens) if usages else []
-    csv_rows = [
-        [
-            u.model,
-            u.track,
-            u.episodes,
-            u.steps_used,
-            u.mean_steps,
-            u.robot_actions,
-            u.camera_actions,
-            u.camera_share,
-            u.model_calls,
-            u.invalid_outputs,
-            u.invalid_output_share,
-            u.invalid_actions,
-            u.invalid_action_share,
-            *[u.tokens[n] for n in token_names],
-            u.cost_usd,
-            u.cost_usd / u.episodes,
-        ]
-        for u in usages
-    ]
-    csv_header = [
-        "model",
-        "track",
-        "episodes",
-        "steps_used",
-        "mean_steps",
-        "robot_actions",
-        "camera_actions",
-        "camera_share",
-        "model_calls",
-        "invalid_outputs",
-        "invalid_output_share",
-        "invalid_actions",
-        "invalid_action_share",
-        *[f"tokens_{n}" for n in token_names],
-        "cost_usd",
-        "cost_usd_per_episode",
-    ]
-    notes = []
-    if unresolved_count:
-        notes.append(
-            f"{unresolved_count} planned episode(s) have only unscored records "
-            "(never scored; not in any statistic)"
-        )
-    if retried:
-        runs_again = "; ".join(f"{m} / {t}: {n}" for (m, t), n in retried.items())
-        notes.append(f"infrastructure failures run again (infrastructure.jsonl): {runs_again}")
-    return Section(
-        "usage",
-        "Steps, actions, tokens and cost",
-        tables,
-        [
-            Csv("usage", csv_header, csv_rows),
-            Csv(
-                "unscored",
-                ["model", "track", "status", "records", "cost_usd"],
-                [[m, t, s, n, c] for (m, t, s), (n, c) in unscored.items()],
-            ),
-        ],
-        notes,
-    )
