@@ -12,6 +12,7 @@ import pytest
 from diag_util import ACTIVE, PASSIVE, copy_run
 
 from vabench.agent.visibility import episode_secrets, find_leaks
+from vabench.diagnostics import sections as report_diagnostics
 from vabench.diagnostics.__main__ import main
 from vabench.diagnostics.criteria import CRITERION_CODES, GATE_CODES
 from vabench.diagnostics.episodes import RunIndex
@@ -19,7 +20,6 @@ from vabench.diagnostics.judge import run_judges, system_prompt
 from vabench.diagnostics.store import AnnotationStore
 from vabench.llm_pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
-from vabench.report import diagnostics as report_diagnostics
 from vabench.tasks import get_task
 
 

@@ -14,7 +14,7 @@ from vabench.diagnostics import aggregate as agg
 from vabench.diagnostics import stats
 from vabench.diagnostics.episodes import EpisodeRef, RunIndex
 from vabench.diagnostics.store import Judgment, current
-from vabench.report.load import Record
+from vabench.run_records import Record
 
 
 def counts(rows, categories):

@@ -20,7 +20,7 @@ from vabench.report import ReportError, load_results, make_report
 from vabench.report import active_passive as AP
 from vabench.report import stats as S
 from vabench.report.__main__ import main
-from vabench.report.load import Record, parse_record
+from vabench.run_records import Record, parse_record
 
 CUBE, BELL, POT = "grasp_single_cube", "click_bell_right", "lift_pot"
 ARMS = {CUBE: 1, BELL: 1, POT: 2}

@@ -18,9 +18,9 @@ import pytest
 from vabench.report import ReportError, load_results
 from vabench.report.build import write_report
 from vabench.report.conditions import TaskMeta, condition_cells
-from vabench.report.load import Record, parse_record
 from vabench.report.suites import long_horizon, transfer_comparisons
 from vabench.report.summaries import SummaryComparison, cross_model, summary_comparisons
+from vabench.run_records import Record, parse_record
 
 A1, A2, D, X = "task_a1", "task_a2", "task_dual", "task_x"
 B1, B2, B3, H1, H2, H3 = "base_1", "base_2", "base_3", "base_1_heldout", "base_2_heldout", "h3"

@@ -30,7 +30,7 @@ import asyncio
 import dataclasses
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -77,13 +77,14 @@ class EpisodeSpec:
 
 @dataclass
 class _Counts:
-    steps: int = 0
-    robot: int = 0
-    camera: int = 0
+    """What the episode did, under the names of `EpisodeResult`'s fields."""
+
+    steps_used: int = 0
+    robot_actions: int = 0
+    camera_actions: int = 0
     invalid_outputs: int = 0
     invalid_actions: int = 0
-    tools: int = 0
-    spend: Spend = field(default_factory=Spend)
+    tool_calls: int = 0
 
 
 class Episode:
@@ -113,6 +114,7 @@ class Episode:
         )
         self.rec = EpisodeRecorder(spec.out_dir)
         self.counts = _Counts()
+        self.spend = Spend()  # every model call, compaction summaries included
         self.kinds: list[str] = []  # decision kinds executed, for the camera-chain rule
         self.executed: list[str] = []  # labels shown to the model
         self.frames: dict[int, Image] = {}  # observation step -> the image the model saw
@@ -140,7 +142,7 @@ class Episode:
         slot = self.svc.sim.acquire()
         try:
             await self._reset(slot)
-            while self.counts.steps < self.budget:
+            while self.counts.steps_used < self.budget:
                 started = time.monotonic()
                 await self._decide_and_act(slot)
                 if self.svc.on_decision is not None:
@@ -151,7 +153,7 @@ class Episode:
         except InfrastructureError as err:
             self.rec.event(
                 "llm_failure",
-                step=self.counts.steps + 1,
+                step=self.counts.steps_used + 1,
                 attempts=err.attempts,
                 elapsed_s=round(err.elapsed_s, 3),
                 failures=list(err.failures),
@@ -161,7 +163,7 @@ class Episode:
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:
             if err.fatal:  # the endpoint's refusal, not this episode's: no result; sweep stops
-                step = self.counts.steps + 1
+                step = self.counts.steps_used + 1
                 self.rec.event("endpoint_refused", step=step, status=err.status, error=str(err))
                 raise
             return self._finish("error", "request_rejected", f"{err.kind}: {err}")
@@ -192,7 +194,7 @@ class Episode:
             self.camera = cam.head_view(reply.snapshot.gcs, self.arms)
 
     async def _decide_and_act(self, slot: int) -> None:
-        step = self.counts.steps + 1
+        step = self.counts.steps_used + 1
         text, images = await self._observe(step)
         self.conv.add_observation(text, images, step)
         decision = await self._decide(step, text, images)
@@ -207,7 +209,7 @@ class Episode:
         )
         if isinstance(decision, P.Stop):
             raise SessionEnd("failure", "model_stop")
-        self.counts.steps += 1
+        self.counts.steps_used += 1
         self.kinds.append(decision.kind)
         self.executed.append(label)
         if isinstance(decision, P.CameraAction):
@@ -283,7 +285,7 @@ class Episode:
             est_tokens=self.conv.estimate_tokens(),
         )
         result = await self.svc.llm.complete(self.spec.model, request)
-        self.counts.spend.add(result)
+        self.spend.add(result)
         self.conv.add_reply(result.text)
         self.rec.event(
             "reply",
@@ -296,7 +298,7 @@ class Episode:
 
     async def _summarize(self, request: ChatRequest) -> str:
         result = await self.svc.llm.complete(self.spec.model, request)
-        self.counts.spend.add(result)
+        self.spend.add(result)
         self._last_summary = result
         return result.text
 
@@ -330,7 +332,7 @@ class Episode:
         )
 
     def _tool(self, step: int, call: P.ToolCall) -> None:
-        self.counts.tools += 1
+        self.counts.tool_calls += 1
         if call.name == "geometry.verify":
             result = geometry_result(self.arms)
         elif call.name == "camera.history":
@@ -353,7 +355,7 @@ class Episode:
         self.camera = cam.apply_camera_action(
             self.camera, action.action, self.snapshot.gcs, self.arms
         )
-        self.counts.camera += 1
+        self.counts.camera_actions += 1
         self.feedback = ActionFeedback(valid=True, planner_success=None)
         self.rec.event(
             "camera", step=step, label=action.action, reason=action.reason, view=self.camera.label
@@ -365,7 +367,7 @@ class Episode:
         assert out is not None
         res = out.result
         self.snapshot = reply.snapshot
-        self.counts.robot += 1
+        self.counts.robot_actions += 1
         if not (res.valid and res.planner_success):
             self.counts.invalid_actions += 1
         self.feedback = ActionFeedback(valid=res.valid, planner_success=res.planner_success)
@@ -394,7 +396,6 @@ class Episode:
 
     # -- ending -------------------------------------------------------------------------------
     def _finish(self, status: str, stop_reason: str, error: str | None) -> EpisodeResult:
-        c = self.counts
         progress = self.snapshot.progress if self.snapshot is not None else 0
         result = EpisodeResult(
             task=self.spec.task,
@@ -406,20 +407,15 @@ class Episode:
             success=status == "success",
             stop_reason=stop_reason,
             error=error,
-            steps_used=c.steps,
+            **dataclasses.asdict(self.counts),
             step_budget=self.budget,
-            robot_actions=c.robot,
-            camera_actions=c.camera,
-            invalid_outputs=c.invalid_outputs,
-            invalid_actions=c.invalid_actions,
-            tool_calls=c.tools,
-            model_calls=c.spend.calls,
+            model_calls=self.spend.calls,
             compactions=len(self.conv.compactions),
             checkpoints_reached=list(self.task.checkpoints[:progress]),
             progress=progress,
             n_checkpoints=len(self.task.checkpoints),
-            tokens=c.spend.tokens(),
-            cost_usd=round(c.spend.cost, 6),
+            tokens=self.spend.tokens(),
+            cost_usd=round(self.spend.cost, 6),
             wall_s=round(time.time() - self.t0, 3),
             started_at=round(self.t0, 3),
             summary_mode=self.spec.summary_mode,

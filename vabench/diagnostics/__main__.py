@@ -40,8 +40,8 @@ def _summary(argv: Sequence[str]) -> int:
     )
     parser.add_argument("run_dir", type=Path)
     args = parser.parse_args(argv)
-    from vabench.report import diagnostics
-    from vabench.report.tables import section_markdown
+    from vabench.diagnostics import sections as diagnostics
+    from vabench.tables import section_markdown
 
     index = RunIndex.load(args.run_dir)
     data = diagnostics.load(args.run_dir, index)

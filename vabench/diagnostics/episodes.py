@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.agent.records import read_events
-from vabench.report.load import Record, ReportError, load_results
+from vabench.run_records import Record, ReportError, load_results
 
 EPISODES_DIR = "episodes"
 

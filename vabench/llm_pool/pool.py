@@ -26,7 +26,7 @@ import os
 import random
 import sys
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from pydantic import SecretStr
@@ -58,36 +58,34 @@ else:
 log = logging.getLogger("vabench.llm_pool")
 
 
-@dataclass(frozen=True)
-class EndpointStats:
-    """A snapshot of one endpoint's counters (for progress displays and reports)."""
+@dataclass
+class CallCounts:
+    """What one endpoint's calls have come to (`EndpointStats` adds its live state)."""
 
-    name: str
-    in_flight: int
-    queued: int
-    concurrency_limit: int
-    started: int
-    succeeded: int
-    failed: int
-    rejected: int
-    cancelled: int
-    attempts: int
-    rate_limited: int
-    usage: Usage
-    cost_usd: float
+    started: int = 0
+    """Calls admitted past the endpoint's limits."""
+    succeeded: int = 0
+    failed: int = 0
+    """Calls that ended in an infrastructure error once their retries were spent."""
+    rejected: int = 0
+    """Calls the provider refused (a non-retryable 4xx), or that could never be sent."""
+    cancelled: int = 0
+    attempts: int = 0
+    """HTTP attempts of every call, retries included."""
+    rate_limited: int = 0
+    """Attempts the provider turned away with a rate limit (retried after its wait)."""
+    usage: Usage = field(default_factory=Usage)
+    cost_usd: float = 0.0
 
 
 @dataclass
-class _Counters:
-    started: int = 0
-    succeeded: int = 0
-    failed: int = 0
-    rejected: int = 0
-    cancelled: int = 0
-    attempts: int = 0
-    rate_limited: int = 0
-    usage: Usage = field(default_factory=Usage)
-    cost_usd: float = 0.0
+class EndpointStats(CallCounts):
+    """A snapshot of one endpoint's counters and state (for progress displays and reports)."""
+
+    name: str = ""
+    in_flight: int = 0
+    queued: int = 0
+    concurrency_limit: int = 0
 
 
 @dataclass
@@ -120,7 +118,7 @@ class EndpointClient:
         self.rate = RateLimiter(
             limits.rpm, limits.tpm, period_s=limits.period_s, burst_s=limits.burst_s
         )
-        self._counters = _Counters()
+        self._counters = CallCounts()
         self._paused_until = 0.0
         self._closed = False
         self._warned_no_usage = False
@@ -135,19 +133,11 @@ class EndpointClient:
     def stats(self) -> EndpointStats:
         c = self._counters
         return EndpointStats(
+            **{f.name: getattr(c, f.name) for f in fields(c)},
             name=self.name,
             in_flight=self.concurrency.in_flight,
             queued=self.concurrency.queued,
             concurrency_limit=self.concurrency.bound,
-            started=c.started,
-            succeeded=c.succeeded,
-            failed=c.failed,
-            rejected=c.rejected,
-            cancelled=c.cancelled,
-            attempts=c.attempts,
-            rate_limited=c.rate_limited,
-            usage=c.usage,
-            cost_usd=c.cost_usd,
         )
 
     async def complete(self, request: ChatRequest) -> CompletionResult:

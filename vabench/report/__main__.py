@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from vabench.report.build import generate
-from vabench.report.load import ReportError
+from vabench.run_records import ReportError
 
 
 def main(argv: list[str] | None = None) -> int:

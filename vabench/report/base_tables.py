@@ -17,7 +17,7 @@ from vabench.report.stats import (
     Usage,
     subset_of,
 )
-from vabench.report.tables import (
+from vabench.tables import (
     Csv,
     Section,
     Table,

@@ -23,6 +23,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from vabench import tables
 from vabench.report import (
     active_passive,
     base_tables,
@@ -34,10 +35,9 @@ from vabench.report import (
     suites,
     summaries,
     summary_tables,
-    tables,
 )
 from vabench.report.conditions import TaskMeta, condition_cells
-from vabench.report.load import Results, load_results
+from vabench.run_records import Results, load_results
 
 REPORT_DIR = "report"
 SUMMARIES_DIR = "summaries"
@@ -209,7 +209,7 @@ def track_sections(
 def diagnostic_sections(run_dir: Path) -> list[tables.Section]:
     """The nine behavioural diagnostics, agreement and vote-rule sensitivity, when the run holds
     annotations (RUN_DIR/annotations/, written by `python -m vabench.view` and the judge)."""
-    from vabench.report import diagnostics
+    from vabench.diagnostics import sections as diagnostics
 
     if not (run_dir / diagnostics.ANNOTATIONS_DIR).is_dir():
         return []

@@ -16,8 +16,8 @@ from collections import defaultdict
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from vabench.report.load import Record
 from vabench.report.stats import Cell, tally
+from vabench.run_records import Record
 
 OWN = "own"
 """The summary mode of a model reading its own demonstration summary."""

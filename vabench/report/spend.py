@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from vabench.report.load import jsonl_objects
 from vabench.report.stats import TOKEN_FIELDS
-from vabench.report.tables import Csv, Section, Table
+from vabench.run_records import jsonl_objects
+from vabench.tables import Csv, Section, Table
 
 SOURCES = (
     "scored episodes",

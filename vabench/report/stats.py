@@ -31,7 +31,7 @@ from fractions import Fraction
 from typing import TypeVar
 
 from vabench.agent.records import EpisodeResult, TokenTotals
-from vabench.report.load import Record, ReportError
+from vabench.run_records import Record, ReportError
 
 SUBSETS = ("single", "dual", "all")
 SUBSET_TITLES = {"single": "Single-arm", "dual": "Dual-arm", "all": "All"}

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from vabench.report.suites import LongHorizon, TransferComparison
-from vabench.report.tables import (
+from vabench.tables import (
     Csv,
     Section,
     Table,

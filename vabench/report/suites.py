@@ -22,8 +22,8 @@ from dataclasses import dataclass
 from fractions import Fraction
 
 from vabench.report.conditions import OWN, CondCell, TaskMeta
-from vabench.report.load import Record, ReportError
 from vabench.report.stats import Spread, average, mean_sd, mean_sd_or_none, skipped_side
+from vabench.run_records import Record, ReportError
 
 # -- controlled transfer -------------------------------------------------------------------------
 

@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from vabench.report.conditions import OWN, CondCell
-from vabench.report.load import Record, ReportError, validation_problems
 from vabench.report.stats import SUBSETS, Spread, average, mean_sd_or_none, subset_of
+from vabench.run_records import Record, ReportError, validation_problems
 
 
 def mode_rank(mode: str) -> tuple[int, str]:

@@ -16,7 +16,7 @@ from vabench.report.summaries import (
     SummaryComparison,
     suite_label,
 )
-from vabench.report.tables import (
+from vabench.tables import (
     Csv,
     Section,
     Table,

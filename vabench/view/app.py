@@ -244,7 +244,7 @@ class Viewer:
 
     # -- diagnostics ------------------------------------------------------------------------
     async def diagnostics_page(self, request: web.Request) -> web.Response:
-        from vabench.report import diagnostics
+        from vabench.diagnostics import sections as diagnostics
 
         data = diagnostics.load(self.run_dir, self.index)
         parts = [

@@ -1,4 +1,5 @@
-"""The report's diagnostics sections, from RUN_DIR/annotations/ (vabench.diagnostics).
+"""The diagnostics sections of the report (and of `python -m vabench.diagnostics RUN_DIR`),
+from RUN_DIR/annotations/.
 
 Three sections, present only when the run holds annotations:
     diagnostics   the nine criteria and three module means per condition (model x track) and
@@ -20,7 +21,7 @@ from vabench.diagnostics.criteria import CRITERION_CODES, MODULE_CRITERIA, MODUL
 from vabench.diagnostics.episodes import RunIndex
 from vabench.diagnostics.stats import VOTE_RULES
 from vabench.diagnostics.store import ANNOTATIONS_DIR, AnnotationStore, current
-from vabench.report.tables import Csv, Section, Table, pct
+from vabench.tables import Csv, Section, Table, pct
 
 MAX_PROBLEMS_SHOWN = 10
 __all__ = ["ANNOTATIONS_DIR", "load", "sections"]

@@ -1,10 +1,10 @@
-"""The report's table model and its text: display tables and CSV files grouped in sections,
-number formatting, Markdown and CSV.
+"""The table model of the report and the diagnostics, and its text: display tables and CSV
+files grouped in sections, number formatting, Markdown and CSV.
 
 Display tables show percentages with two decimals, as the paper does ("53.93 ± 3.17"), and
 differences as signed points ("-10.00"); CSV files keep raw numbers (counts, rates in [0, 1])
-in long format, one row per value. The sections themselves are built in `base_tables`,
-`summary_tables`, `suite_tables`, `diagnostics` and `spend`.
+in long format, one row per value. The sections themselves are built in `vabench.report`
+(`base_tables`, `summary_tables`, `suite_tables`, `spend`) and `vabench.diagnostics.sections`.
 """
 
 from __future__ import annotations
@@ -14,9 +14,7 @@ import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
-from typing import Any
-
-from vabench.report.stats import Spread
+from typing import Any, Protocol
 
 
 @dataclass
@@ -53,7 +51,16 @@ def signed(x: Fraction | None) -> str:
     return pct(x, sign=True)
 
 
-def mean_sd_text(s: Spread | None, sign: bool = False) -> str:
+class MeanSd(Protocol):
+    """A mean and its sample SD (None for one value), as `report.stats.Spread` holds them."""
+
+    @property
+    def mean(self) -> Fraction: ...
+    @property
+    def sd(self) -> float | None: ...
+
+
+def mean_sd_text(s: MeanSd | None, sign: bool = False) -> str:
     """ "mean ± SD" in percent ("mean (1 run)" without an SD); `sign`: a signed mean."""
     if s is None:
         return "—"
