@@ -45,7 +45,8 @@ _USAGE_KEYS = {
     "output": "output_tokens",
     "reasoning": "reasoning_tokens",
 }
-# Failure lines of attempts whose usage never came back (see vabench.llm_pool.transport.Transport.post).
+# Failure lines of attempts whose usage never came back
+# (see vabench.llm_pool.transport.Transport.post).
 _NO_USAGE = ("timeout", "ClientError", "ServerDisconnected", "ClientPayloadError", "Connection")
 
 
