@@ -31,22 +31,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
-from vabench.llm_pool.apis.base import (
-    Answer,
-    ApiAdapter,
-    ContentPart,
-    IncomingRequest,
-    InlineImage,
-    LooseModel,
-    Prompt,
-    RequestBody,
-    RequestShapeError,
-    ResponseBody,
-    ServerReply,
-    StrictModel,
-    UsageBody,
-    base64_image,
-)
+from vabench.llm_pool.apis import base
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 from vabench.llm_pool.tokens import anthropic_image_tokens
@@ -58,12 +43,12 @@ _EPHEMERAL = {"type": "ephemeral"}
 # -- request shape ----------------------------------------------------------------------------
 
 
-class _CacheControl(StrictModel):
+class _CacheControl(base.StrictModel):
     type: Literal["ephemeral"]
     ttl: Literal["5m", "1h"] | None = None
 
 
-class _TextBlock(ContentPart):
+class _TextBlock(base.ContentPart):
     type: Literal["text"]
     text: str
     cache_control: _CacheControl | None = None
@@ -72,41 +57,41 @@ class _TextBlock(ContentPart):
         return self.text
 
 
-class _Base64Source(StrictModel):
+class _Base64Source(base.StrictModel):
     type: Literal["base64"]
     media_type: Literal["image/jpeg", "image/png", "image/gif", "image/webp"]
     data: str
 
 
-class _ImageBlock(ContentPart):
+class _ImageBlock(base.ContentPart):
     type: Literal["image"]
     source: _Base64Source
     cache_control: _CacheControl | None = None
 
     def part(self, field: str) -> Part:
-        return base64_image(self.source.data, self.source.media_type, f"{field}.source.data")
+        return base.base64_image(self.source.data, self.source.media_type, f"{field}.source.data")
 
 
 _Block = Annotated[_TextBlock | _ImageBlock, Field(discriminator="type")]
 
 
-class _Message(StrictModel):
+class _Message(base.StrictModel):
     role: Literal["user", "assistant"]
     content: str | list[_Block] = Field(min_length=1)
 
 
-class _ThinkingEnabled(StrictModel):
+class _ThinkingEnabled(base.StrictModel):
     type: Literal["enabled"]
     budget_tokens: int = Field(ge=1024)
     display: Literal["summarized", "omitted"] | None = None
 
 
-class _ThinkingAdaptive(StrictModel):
+class _ThinkingAdaptive(base.StrictModel):
     type: Literal["adaptive"]
     display: Literal["summarized", "omitted"] | None = None
 
 
-class _ThinkingDisabled(StrictModel):
+class _ThinkingDisabled(base.StrictModel):
     type: Literal["disabled"]
 
 
@@ -115,11 +100,11 @@ _Thinking = Annotated[
 ]
 
 
-class _Metadata(StrictModel):
+class _Metadata(base.StrictModel):
     user_id: str | None = None
 
 
-class MessagesRequest(RequestBody):
+class MessagesRequest(base.RequestBody):
     """What the embedded server takes: the parameters a text-and-image call uses (no tools,
     containers or streaming: vabench sends none of them). `temperature`, `top_p` and `top_k`
     are still taken from clients of earlier API versions."""
@@ -140,17 +125,17 @@ class MessagesRequest(RequestBody):
 # -- response shape ---------------------------------------------------------------------------
 
 
-class _ContentBlock(LooseModel):
+class _ContentBlock(base.LooseModel):
     type: str
     text: str | None = None
     thinking: str | None = None
 
 
-class _OutputDetails(LooseModel):
+class _OutputDetails(base.LooseModel):
     thinking_tokens: int | None = None
 
 
-class _Usage(UsageBody):
+class _Usage(base.UsageBody):
     input_tokens: int
     output_tokens: int
     cache_creation_input_tokens: int | None = None
@@ -168,7 +153,7 @@ class _Usage(UsageBody):
         )
 
 
-class MessagesResponse(ResponseBody):
+class MessagesResponse(base.ResponseBody):
     content: list[_ContentBlock]
     stop_reason: str | None = None
     usage: _Usage | None = None
@@ -204,7 +189,7 @@ def rfc3339_in(seconds: float) -> str:
     return when.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
-class Anthropic(ApiAdapter[MessagesRequest, MessagesResponse]):
+class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
     name = "anthropic"
     route = "/v1/messages"
     request_model = MessagesRequest
@@ -250,14 +235,14 @@ class Anthropic(ApiAdapter[MessagesRequest, MessagesResponse]):
         source = {
             "type": "base64",
             "media_type": part.media_type,
-            "data": InlineImage(part, data_url=False),
+            "data": base.InlineImage(part, data_url=False),
         }
         return {"type": "image", "source": source}
 
-    def read_answer(self, body: MessagesResponse) -> Answer:
+    def read_answer(self, body: MessagesResponse) -> base.Answer:
         texts = [b.text for b in body.content if b.type == "text" and b.text is not None]
         thoughts = [b.thinking for b in body.content if b.type == "thinking" and b.thinking]
-        return Answer(
+        return base.Answer(
             text="".join(texts),
             finish_reason=_FINISH.get(body.stop_reason or "", "other"),
             raw_finish_reason=body.stop_reason,
@@ -265,19 +250,21 @@ class Anthropic(ApiAdapter[MessagesRequest, MessagesResponse]):
             reasoning="\n".join(thoughts) or None,
         )
 
-    def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:
+    def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> base.IncomingRequest:
         if not headers.get("anthropic-version"):
-            raise RequestShapeError("anthropic-version", "header is required")
+            raise base.RequestShapeError("anthropic-version", "header is required")
         return super().parse_request(raw, headers)
 
-    def read_request(self, body: MessagesRequest) -> Prompt:
+    def read_request(self, body: MessagesRequest) -> base.Prompt:
         budget: int | None = None
         if isinstance(body.thinking, _ThinkingEnabled):
             budget = body.thinking.budget_tokens
             if budget >= body.max_tokens:
-                raise RequestShapeError("thinking.budget_tokens", "must be less than max_tokens")
+                raise base.RequestShapeError(
+                    "thinking.budget_tokens", "must be less than max_tokens"
+                )
             if body.temperature not in (None, 1.0):
-                raise RequestShapeError(
+                raise base.RequestShapeError(
                     "temperature", "may only be set to 1 when thinking is enabled"
                 )
         breakpoints: list[int] = []
@@ -299,22 +286,22 @@ class Anthropic(ApiAdapter[MessagesRequest, MessagesResponse]):
             for j, b in enumerate(blocks):
                 field = f"messages.{i}.content.{j}"
                 if isinstance(b, _ImageBlock) and m.role == "assistant":
-                    raise RequestShapeError(field, "images in assistant turn")
+                    raise base.RequestShapeError(field, "images in assistant turn")
                 parts.append(b.part(field))
                 if b.cache_control is not None:
                     breakpoints.append(index)
                 index += 1
             turns.append(Turn(m.role, tuple(parts)))
         if len(breakpoints) > 4:
-            raise RequestShapeError("cache_control", "at most 4 blocks may have cache_control")
+            raise base.RequestShapeError("cache_control", "at most 4 blocks may have cache_control")
         options = GenerationOptions(
             max_output_tokens=body.max_tokens,
             temperature=body.temperature,
             thinking_budget=budget,
         )
-        return Prompt(turns, system, options, tuple(breakpoints))
+        return base.Prompt(turns, system, options, tuple(breakpoints))
 
-    def build_response(self, reply: ServerReply) -> dict[str, Any]:
+    def build_response(self, reply: base.ServerReply) -> dict[str, Any]:
         content: list[dict[str, Any]] = []
         if reply.reasoning:
             signature = uuid.uuid4().hex

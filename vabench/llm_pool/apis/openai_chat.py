@@ -20,36 +20,15 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
-from vabench.llm_pool.apis.base import (
-    Answer,
-    ContentPart,
-    InlineImage,
-    LooseModel,
-    Prompt,
-    RequestBody,
-    RequestShapeError,
-    ResponseBody,
-    ServerReply,
-    StrictModel,
-    UsageBody,
-    parse_data_url,
-    parts_of,
-)
-from vabench.llm_pool.apis.openai_common import (
-    OpenAIApi,
-    OutputDetails,
-    PromptDetails,
-    output_details,
-    prompt_details,
-    usage_of,
-)
+from vabench.llm_pool.apis import base
+from vabench.llm_pool.apis import openai_common as common
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint, ReasoningEffort
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 
 # -- request shape (as documented; the embedded server validates against it) ----------------
 
 
-class _TextPart(ContentPart):
+class _TextPart(base.ContentPart):
     type: Literal["text"]
     text: str
 
@@ -57,34 +36,34 @@ class _TextPart(ContentPart):
         return self.text
 
 
-class _ImageURL(StrictModel):
+class _ImageURL(base.StrictModel):
     url: str
     detail: Literal["auto", "low", "high"] | None = None
 
 
-class _ImagePart(ContentPart):
+class _ImagePart(base.ContentPart):
     type: Literal["image_url"]
     image_url: _ImageURL
 
     def part(self, field: str) -> Part:
-        return parse_data_url(self.image_url.url, f"{field}.image_url.url")
+        return base.parse_data_url(self.image_url.url, f"{field}.image_url.url")
 
 
 _ContentPart = Annotated[_TextPart | _ImagePart, Field(discriminator="type")]
 
 
-class _Message(StrictModel):
+class _Message(base.StrictModel):
     role: Literal["system", "developer", "user", "assistant"]
     content: str | list[_ContentPart]
     name: str | None = None
 
 
-class _ResponseFormat(StrictModel):
+class _ResponseFormat(base.StrictModel):
     type: Literal["text", "json_object", "json_schema"]
     json_schema: dict[str, Any] | None = None
 
 
-class ChatCompletionsRequest(RequestBody):
+class ChatCompletionsRequest(base.RequestBody):
     """What the embedded server takes: the parameters a text-and-image call uses (no tools,
     audio, logprobs or streaming: vabench sends none of them, and none is served)."""
 
@@ -111,14 +90,14 @@ class ChatCompletionsRequest(RequestBody):
 # -- response shape (lenient: unknown fields are ignored, required ones are checked) ---------
 
 
-class _Usage(UsageBody):
+class _Usage(base.UsageBody):
     prompt_tokens: int
     completion_tokens: int
-    prompt_tokens_details: PromptDetails | None = None
-    completion_tokens_details: OutputDetails | None = None
+    prompt_tokens_details: common.PromptDetails | None = None
+    completion_tokens_details: common.OutputDetails | None = None
 
     def to_usage(self) -> Usage:
-        return usage_of(
+        return common.usage_of(
             self.prompt_tokens,
             self.prompt_tokens_details,
             self.completion_tokens,
@@ -126,18 +105,18 @@ class _Usage(UsageBody):
         )
 
 
-class _AnswerMessage(LooseModel):
+class _AnswerMessage(base.LooseModel):
     content: str | None = None
     refusal: str | None = None
     reasoning_content: str | None = None
 
 
-class _Choice(LooseModel):
+class _Choice(base.LooseModel):
     message: _AnswerMessage
     finish_reason: str | None = None
 
 
-class ChatCompletionsResponse(ResponseBody):
+class ChatCompletionsResponse(base.ResponseBody):
     choices: list[_Choice] = Field(min_length=1)
     usage: _Usage | None = None
 
@@ -160,12 +139,12 @@ def _text_of(content: str | list[_ContentPart], field: str) -> str:
     texts = []
     for i, p in enumerate(content):
         if not isinstance(p, _TextPart):
-            raise RequestShapeError(f"{field}.{i}", "only text parts are allowed in this role")
+            raise base.RequestShapeError(f"{field}.{i}", "only text parts are allowed in this role")
         texts.append(p.text)
     return "\n".join(texts)
 
 
-class OpenAIChat(OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
+class OpenAIChat(common.OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
     name = "openai_chat"
     route = "/v1/chat/completions"
     request_model = ChatCompletionsRequest
@@ -190,15 +169,15 @@ class OpenAIChat(OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
     def part(self, part: Part) -> dict[str, Any]:
         if isinstance(part, str):
             return {"type": "text", "text": part}
-        return {"type": "image_url", "image_url": {"url": InlineImage(part, data_url=True)}}
+        return {"type": "image_url", "image_url": {"url": base.InlineImage(part, data_url=True)}}
 
-    def read_answer(self, body: ChatCompletionsResponse) -> Answer:
+    def read_answer(self, body: ChatCompletionsResponse) -> base.Answer:
         choice = body.choices[0]
         message = choice.message
         finish: FinishReason = _FINISH.get(choice.finish_reason or "", "other")
         if message.refusal:
             finish = "refusal"
-        return Answer(
+        return base.Answer(
             text=message.content or message.refusal or "",
             finish_reason=finish,
             raw_finish_reason=choice.finish_reason,
@@ -206,9 +185,9 @@ class OpenAIChat(OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
             reasoning=message.reasoning_content,
         )
 
-    def read_request(self, body: ChatCompletionsRequest) -> Prompt:
+    def read_request(self, body: ChatCompletionsRequest) -> base.Prompt:
         if body.max_tokens is not None and body.max_completion_tokens is not None:
-            raise RequestShapeError(
+            raise base.RequestShapeError(
                 "max_tokens", "set max_tokens or max_completion_tokens, not both"
             )
         system: list[str] = []
@@ -220,15 +199,15 @@ class OpenAIChat(OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
             elif m.role == "assistant":
                 turns.append(Turn.assistant(_text_of(m.content, field)))
             else:
-                turns.append(Turn.user(*parts_of(m.content, field)))
+                turns.append(Turn.user(*base.parts_of(m.content, field)))
         options = GenerationOptions(
             max_output_tokens=body.max_completion_tokens or body.max_tokens,
             temperature=body.temperature,
             reasoning_effort=body.reasoning_effort,
         )
-        return Prompt(turns, "\n".join(system) or None, options)
+        return base.Prompt(turns, "\n".join(system) or None, options)
 
-    def build_response(self, reply: ServerReply) -> dict[str, Any]:
+    def build_response(self, reply: base.ServerReply) -> dict[str, Any]:
         u = reply.usage
         message: dict[str, Any] = {"role": "assistant", "content": reply.text, "refusal": None}
         if reply.finish_reason == "refusal":
@@ -250,7 +229,7 @@ class OpenAIChat(OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
                 "prompt_tokens": u.prompt_tokens,
                 "completion_tokens": u.output_tokens,
                 "total_tokens": u.total_tokens,
-                "prompt_tokens_details": prompt_details(u),
-                "completion_tokens_details": output_details(u),
+                "prompt_tokens_details": common.prompt_details(u),
+                "completion_tokens_details": common.output_details(u),
             },
         }

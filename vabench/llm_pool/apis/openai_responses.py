@@ -21,29 +21,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
-from vabench.llm_pool.apis.base import (
-    Answer,
-    ContentPart,
-    InlineImage,
-    LooseModel,
-    Prompt,
-    RequestBody,
-    RequestShapeError,
-    ResponseBody,
-    ServerReply,
-    StrictModel,
-    UsageBody,
-    parse_data_url,
-    parts_of,
-)
-from vabench.llm_pool.apis.openai_common import (
-    OpenAIApi,
-    OutputDetails,
-    PromptDetails,
-    output_details,
-    prompt_details,
-    usage_of,
-)
+from vabench.llm_pool.apis import base
+from vabench.llm_pool.apis import openai_common as common
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint, ReasoningEffort
 from vabench.llm_pool.errors import ResponseFormatError
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
@@ -51,7 +30,7 @@ from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usa
 # -- request shape ----------------------------------------------------------------------------
 
 
-class _InputText(ContentPart):
+class _InputText(base.ContentPart):
     type: Literal["input_text"]
     text: str
 
@@ -59,16 +38,16 @@ class _InputText(ContentPart):
         return self.text
 
 
-class _InputImage(ContentPart):
+class _InputImage(base.ContentPart):
     type: Literal["input_image"]
     image_url: str
     detail: Literal["auto", "low", "high"] = "auto"
 
     def part(self, field: str) -> Part:
-        return parse_data_url(self.image_url, f"{field}.image_url")
+        return base.parse_data_url(self.image_url, f"{field}.image_url")
 
 
-class _OutputText(StrictModel):
+class _OutputText(base.StrictModel):
     type: Literal["output_text"]
     text: str
     annotations: list[Any] = Field(default_factory=list)
@@ -77,13 +56,13 @@ class _OutputText(StrictModel):
 _InputPart = Annotated[_InputText | _InputImage, Field(discriminator="type")]
 
 
-class _UserMessage(StrictModel):
+class _UserMessage(base.StrictModel):
     type: Literal["message"] | None = None
     role: Literal["user", "system", "developer"]
     content: str | list[_InputPart]
 
 
-class _AssistantMessage(StrictModel):
+class _AssistantMessage(base.StrictModel):
     type: Literal["message"] | None = None
     role: Literal["assistant"]
     content: str | list[_OutputText]
@@ -95,12 +74,12 @@ class _AssistantMessage(StrictModel):
         )
 
 
-class _Reasoning(StrictModel):
+class _Reasoning(base.StrictModel):
     effort: ReasoningEffort | None = None
     summary: Literal["auto", "concise", "detailed"] | None = None
 
 
-class _TextFormat(StrictModel):
+class _TextFormat(base.StrictModel):
     type: Literal["text", "json_object", "json_schema"]
     name: str | None = None
     schema_: dict[str, Any] | None = Field(default=None, alias="schema")
@@ -108,12 +87,12 @@ class _TextFormat(StrictModel):
     description: str | None = None
 
 
-class _Text(StrictModel):
+class _Text(base.StrictModel):
     format: _TextFormat | None = None
     verbosity: Literal["low", "medium", "high"] | None = None
 
 
-class ResponsesRequest(RequestBody):
+class ResponsesRequest(base.RequestBody):
     """What the embedded server takes: the parameters a text-and-image call uses (no tools,
     background runs, stored conversations or streaming: vabench sends none of them)."""
 
@@ -137,30 +116,30 @@ class ResponsesRequest(RequestBody):
 # -- response shape ---------------------------------------------------------------------------
 
 
-class _Content(LooseModel):
+class _Content(base.LooseModel):
     type: str
     text: str | None = None
     refusal: str | None = None
 
 
-class _Summary(LooseModel):
+class _Summary(base.LooseModel):
     text: str = ""
 
 
-class _OutputItem(LooseModel):
+class _OutputItem(base.LooseModel):
     type: str
     content: list[_Content] | None = None
     summary: list[_Summary] | None = None
 
 
-class _Usage(UsageBody):
+class _Usage(base.UsageBody):
     input_tokens: int
     output_tokens: int
-    input_tokens_details: PromptDetails | None = None
-    output_tokens_details: OutputDetails | None = None
+    input_tokens_details: common.PromptDetails | None = None
+    output_tokens_details: common.OutputDetails | None = None
 
     def to_usage(self) -> Usage:
-        return usage_of(
+        return common.usage_of(
             self.input_tokens,
             self.input_tokens_details,
             self.output_tokens,
@@ -168,16 +147,16 @@ class _Usage(UsageBody):
         )
 
 
-class _Incomplete(LooseModel):
+class _Incomplete(base.LooseModel):
     reason: str | None = None
 
 
-class _Error(LooseModel):
+class _Error(base.LooseModel):
     code: str | None = None
     message: str | None = None
 
 
-class ResponsesResponse(ResponseBody):
+class ResponsesResponse(base.ResponseBody):
     status: str | None = None
     output: list[_OutputItem]
     incomplete_details: _Incomplete | None = None
@@ -202,7 +181,7 @@ def _finish_of(body: ResponsesResponse, refused: bool) -> tuple[FinishReason, st
     return "other", body.status
 
 
-class OpenAIResponses(OpenAIApi[ResponsesRequest, ResponsesResponse]):
+class OpenAIResponses(common.OpenAIApi[ResponsesRequest, ResponsesResponse]):
     name = "openai_responses"
     route = "/v1/responses"
     request_model = ResponsesRequest
@@ -230,10 +209,10 @@ class OpenAIResponses(OpenAIApi[ResponsesRequest, ResponsesResponse]):
     def part(self, part: Part) -> dict[str, Any]:
         if isinstance(part, str):
             return {"type": "input_text", "text": part}
-        image_url = InlineImage(part, data_url=True)
+        image_url = base.InlineImage(part, data_url=True)
         return {"type": "input_image", "image_url": image_url, "detail": "auto"}
 
-    def read_answer(self, body: ResponsesResponse) -> Answer:
+    def read_answer(self, body: ResponsesResponse) -> base.Answer:
         if body.status == "failed":
             error = body.error or _Error()
             raise ResponseFormatError(
@@ -253,7 +232,7 @@ class OpenAIResponses(OpenAIApi[ResponsesRequest, ResponsesResponse]):
             elif item.type == "reasoning":
                 summaries.extend(s.text for s in item.summary or [])
         finish, raw_finish = _finish_of(body, refused)
-        return Answer(
+        return base.Answer(
             text="".join(texts),
             finish_reason=finish,
             raw_finish_reason=raw_finish,
@@ -261,7 +240,7 @@ class OpenAIResponses(OpenAIApi[ResponsesRequest, ResponsesResponse]):
             reasoning="\n".join(summaries) or None,
         )
 
-    def read_request(self, body: ResponsesRequest) -> Prompt:
+    def read_request(self, body: ResponsesRequest) -> base.Prompt:
         system = [body.instructions] if body.instructions else []
         turns: list[Turn] = []
         items = (
@@ -274,21 +253,21 @@ class OpenAIResponses(OpenAIApi[ResponsesRequest, ResponsesResponse]):
             if isinstance(item, _AssistantMessage):
                 turns.append(Turn.assistant(item.text))
                 continue
-            parts = parts_of(item.content, field)
+            parts = base.parts_of(item.content, field)
             if item.role == "user":
                 turns.append(Turn.user(*parts))
             elif all(isinstance(p, str) for p in parts):
                 system.append("\n".join(p for p in parts if isinstance(p, str)))
             else:
-                raise RequestShapeError(field, "images are not allowed in system messages")
+                raise base.RequestShapeError(field, "images are not allowed in system messages")
         options = GenerationOptions(
             max_output_tokens=body.max_output_tokens,
             temperature=body.temperature,
             reasoning_effort=body.reasoning.effort if body.reasoning else None,
         )
-        return Prompt(turns, "\n".join(system) or None, options)
+        return base.Prompt(turns, "\n".join(system) or None, options)
 
-    def build_response(self, reply: ServerReply) -> dict[str, Any]:
+    def build_response(self, reply: base.ServerReply) -> dict[str, Any]:
         u = reply.usage
         output: list[dict[str, Any]] = []
         if u.reasoning_tokens:
@@ -325,9 +304,9 @@ class OpenAIResponses(OpenAIApi[ResponsesRequest, ResponsesResponse]):
             "tools": [],
             "usage": {
                 "input_tokens": u.prompt_tokens,
-                "input_tokens_details": prompt_details(u),
+                "input_tokens_details": common.prompt_details(u),
                 "output_tokens": u.output_tokens,
-                "output_tokens_details": output_details(u),
+                "output_tokens_details": common.output_details(u),
                 "total_tokens": u.total_tokens,
             },
         }
