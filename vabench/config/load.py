@@ -107,7 +107,10 @@ def _check(
     if problems or parsed is None:
         return None, problems
     name = parsed.name or stem
+    # The sections checked by the schema alone go over as they are; the rest was resolved here.
+    as_written = ("learning", "runs", "step_budget", "simulator", "render", "executor", "retries")
     config = SweepConfig(
+        **{key: getattr(parsed, key) for key in as_written},
         name=name,
         out=parsed.out or f"runs/{name}",
         models=tuple(parsed.models),
@@ -115,14 +118,7 @@ def _check(
         embedded_server=parsed.embedded_server or ServerConfig(),
         tracks=tuple(tracks),
         tasks=tuple(tasks),
-        learning=parsed.learning,
         seeds=seeds,
-        runs=parsed.runs,
-        step_budget=parsed.step_budget,
-        simulator=parsed.simulator,
-        render=parsed.render,
-        executor=parsed.executor,
-        retries=parsed.retries,
     )
     return config, []
 
