@@ -105,8 +105,8 @@ def test_auto_runs_worker_processes_on_a_cuda_like_host_and_loses_nothing(
     tmp_path, monkeypatch, caplog
 ):
     """A host with 4 cores and two (fake) GPUs: `executor: auto` runs worker processes, each
-    with JAX kept off the GPU (no CUDA physics here), no preallocation and one of the GPUs;
-    every planned episode is recorded exactly once."""
+    with JAX kept off the GPU (no CUDA physics here), no preallocation, one of the GPUs and its
+    share of the cores; every planned episode is recorded exactly once."""
     monkeypatch.setenv("VABENCH_CORES", "4")
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1")
     monkeypatch.delenv("JAX_PLATFORMS", raising=False)
@@ -125,6 +125,7 @@ def test_auto_runs_worker_processes_on_a_cuda_like_host_and_loses_nothing(
         env = summary["environment"]
         assert env["JAX_PLATFORMS"] == "cpu" and env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
         assert env["CUDA_VISIBLE_DEVICES"] in ("0", "1")
+        assert env["VABENCH_CORES"] == "2"  # 4 cores, 2 workers: each sizes its pools to 2
     lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     keys = {(r["task"], r["seed"]) for r in lines}
     assert len(lines) == len(keys) == 4

@@ -1,4 +1,5 @@
-"""Child processes never see the terminal's Ctrl-C; their parent ends them.
+"""Child processes never see the terminal's Ctrl-C; their parent ends them; and they size
+their pools to their share of the cores.
 
 A terminal sends SIGINT to its whole foreground process group: every render worker, cell
 worker and policy worker along with the command. One interrupted mid-call prints a traceback
@@ -7,6 +8,13 @@ and leaves its parent waiting for an answer, so vabench starts its children with
 before the child's first line) and each child ignores it from its first line
 (`ignore_sigint`). The command decides what Ctrl-C means (`vabench.sweep.interrupt`) and stops
 its children itself.
+
+Cores: `usable_cores()` is what a process sizes its thread and process pools for (policy
+workers, JPEG threads, worker processes). `VABENCH_CORES` overrides it: the sweep sets it in
+each of its worker processes to that worker's share of the host (`executor: processes`), so
+that 16 workers on 16 cores do not each start pools sized for all 16 (on an H100 host, 16
+cell workers each started 8 policy processes of the embedded server: 128 processes on 16
+cores); the test suite pins it so that its sweeps run the same way on any machine.
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 
 
 @contextlib.contextmanager
@@ -36,6 +44,24 @@ def ignore_sigint() -> None:
     it was blocked is discarded, not delivered)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+CORES_VARIABLE = "VABENCH_CORES"
+
+
+def usable_cores(environ: Mapping[str, str] = os.environ) -> int:
+    """The cores this process sizes its pools for: `VABENCH_CORES` when set (its share, given by
+    the sweep, or pinned by the user), else the CPUs it may run on."""
+    pinned = environ.get(CORES_VARIABLE)
+    if not pinned:
+        return len(os.sched_getaffinity(0))
+    try:
+        cores = int(pinned)
+    except ValueError:
+        raise ValueError(f"{CORES_VARIABLE} must be a whole number, got {pinned!r}") from None
+    if cores < 1:
+        raise ValueError(f"{CORES_VARIABLE} must be >= 1, got {cores}")
+    return cores
 
 
 PARENT_CHECK_S = 0.2

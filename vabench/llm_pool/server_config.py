@@ -5,11 +5,11 @@ latency, faults, rate limits, an API key, prompt caching, the request log.
 
 from __future__ import annotations
 
-import os
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 
+from vabench.children import usable_cores
 from vabench.llm_pool.faults import FaultConfig
 from vabench.llm_pool.simulate import LatencyModel
 
@@ -21,12 +21,11 @@ class PolicySpec(BaseModel):
 
 
 def policy_workers(setting: int | str) -> int:
-    """The policy worker processes of `ServerConfig.policy_processes` on this machine
-    (`VABENCH_CORES` pins the core count, as for the sweep's choices)."""
+    """The policy worker processes of `ServerConfig.policy_processes` on this process's cores
+    (`children.usable_cores`: a sweep worker's share of the host)."""
     if setting != "auto":
         return int(setting)
-    pinned = os.environ.get("VABENCH_CORES")
-    cores = int(pinned) if pinned and pinned.isdigit() else len(os.sched_getaffinity(0))
+    cores = usable_cores()
     return cores // 2 if cores >= 4 else 0
 
 

@@ -14,7 +14,6 @@ with nvImageCodec instead, `gpu_jpeg`.)
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -24,6 +23,7 @@ from typing import Literal
 import numpy as np
 import simplejpeg
 
+from vabench.children import usable_cores
 from vabench.render.camera import CameraPose
 
 Subsampling = Literal["444", "422", "420"]
@@ -104,11 +104,11 @@ def packed_to_rgb(packed: np.ndarray) -> np.ndarray:
 
 
 class JpegThreads:
-    """Encodes batches of frames on `threads` threads (default: half the cores, at least 1;
-    the physics and the model-call pool need the rest)."""
+    """Encodes batches of frames on `threads` threads (default: half of this process's cores,
+    `children.usable_cores`, at least 1; the physics and the model-call pool need the rest)."""
 
     def __init__(self, threads: int | None = None):
-        self.threads = threads or max(1, (os.cpu_count() or 2) // 2)
+        self.threads = threads or max(1, usable_cores() // 2)
         self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="jpeg")
 
     def encode(

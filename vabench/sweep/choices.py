@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from vabench.children import CORES_VARIABLE, usable_cores
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
 from vabench.sweep.inflight import BATCHED
@@ -72,16 +73,10 @@ def visible_gpus(environ: Mapping[str, str] = os.environ) -> tuple[str, ...]:
 
 
 def this_machine(environ: Mapping[str, str] = os.environ) -> Machine:
-    pinned = environ.get("VABENCH_CORES")
-    if pinned:
-        try:
-            cores = int(pinned)
-        except ValueError:
-            raise ValueError(f"VABENCH_CORES must be a whole number, got {pinned!r}") from None
-        if cores < 1:
-            raise ValueError(f"VABENCH_CORES must be >= 1, got {cores}")
-        return Machine(cores, visible_gpus(environ), "VABENCH_CORES")
-    return Machine(len(os.sched_getaffinity(0)), visible_gpus(environ))
+    cores = usable_cores(environ)
+    if environ.get(CORES_VARIABLE):
+        return Machine(cores, visible_gpus(environ), CORES_VARIABLE)
+    return Machine(cores, visible_gpus(environ))
 
 
 @dataclass(frozen=True)

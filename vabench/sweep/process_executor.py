@@ -15,7 +15,9 @@ down, up to `MAX_POOL_RESTARTS` times (an H100 run lost 46 of 72 chunks to one n
 before this).
 
 The workers' environment (`choices.child_environment`): JAX never preallocates GPU memory and
-stays on the CPU unless the physics is MJX on JAX; with several GPUs each worker gets one.
+stays on the CPU unless the physics is MJX on JAX; with several GPUs each worker gets one; each
+worker's `VABENCH_CORES` is its share of the host's cores, which its pools are sized to
+(`children.usable_cores`: policy processes of its embedded server, JPEG threads).
 
 One writer, and no orphans: a worker never writes the ledger or the infrastructure log. It
 writes its episodes' directories (result.json atomically, as always) and sends each log line to
@@ -42,7 +44,12 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
+from vabench.children import (
+    CORES_VARIABLE,
+    children_ignore_sigint,
+    exit_with_parent,
+    ignore_sigint,
+)
 from vabench.config import SweepConfig
 from vabench.sim_mjx.backends import GPU_SHARE, resolve
 from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
@@ -230,8 +237,10 @@ def run_processes(
     parts = chunks(cells, workers, lambda t: config.budget(t) if t in REGISTRY else 1)
     workers = min(workers, len(parts))
     env = child_environment(resolve(config.simulator.backend, config.simulator.impl))
-    # Workers that share a GPU size their GPU buffers (render passes) to their share of it.
+    # Workers that share a GPU size their GPU buffers (render passes) to their share of it,
+    # and every worker sizes its pools (policy processes, JPEG threads) to its share of cores.
     env[GPU_SHARE] = str(math.ceil(workers / max(1, len(machine.gpus))))
+    env[CORES_VARIABLE] = str(max(1, machine.cores // workers))
     seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
         "processes: %d cells (%d episodes) in %d chunks, %d at once; workers run with %s%s",
