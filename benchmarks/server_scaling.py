@@ -1,19 +1,22 @@
 """Calls per second of the embedded server answering with the reference agent, against the
-number of policy worker processes (and so the cores it can use).
+processes it runs in (and so the cores it can use): policy worker processes behind one serving
+process, or several serving processes on one port.
 
-    python benchmarks/server_scaling.py [--processes 0,1,2] [--concurrency 32] [--seconds 20]
-        [--tasks a,b] [--json FILE]
+    python benchmarks/server_scaling.py [--processes 0,1,2] [--server-processes 1,2]
+        [--concurrency 32] [--seconds 20] [--tasks a,b] [--json FILE]
 
 1. Capture: one reference-servo episode per task (first verified seed, C backend, 1280x960 JPEG
    q95: the sweep's requests) through the engine and an embedded server that keeps every raw
    request body.
-2. Replay: for each setting of `--processes`, a fresh server process
-   (`python -m vabench.llm_pool.serve --policy reference_servo --policy-processes N`, no
-   simulated latency) gets the captured bodies from `--concurrency` closed-loop callers over
-   real HTTP on loopback for `--seconds` (after a 3 s warm-up). Every reply must be a 200 with
-   a decision.
+2. Replay: for each setting of `--processes` (`--policy-processes N`: one process serves, N
+   compute the replies) and then of `--server-processes` (`--server-processes N`: N processes
+   serve on one port, each computing its replies in threads), a fresh
+   `python -m vabench.llm_pool.serve --policy reference_servo` (no simulated latency) gets the
+   captured bodies from `--concurrency` closed-loop callers over real HTTP on loopback for
+   `--seconds` (after a 3 s warm-up). Every reply must be a 200 with a decision.
 
-Prints per setting: calls per second, the ratio to the in-process policy (0 processes), and
+Prints per setting: calls per second, the ratio to the first setting (one process, the policy
+in it), and
 the CPU each side used (cores: CPU seconds per wall second, the server's including its policy
 workers). The load average before and after is printed too: on a shared machine it decides
 how many cores were really there.
@@ -119,10 +122,12 @@ async def load(url: str, bodies: list[bytes], callers: int, seconds: float) -> t
     return done, errors
 
 
-def measure(bodies: list[bytes], processes: int, callers: int, seconds: float) -> dict:
+def measure(bodies: list[bytes], setting: tuple[str, int], callers: int, seconds: float) -> dict:
+    """One setting: ("policy", N) for N policy processes, ("server", N) for N serving ones."""
+    kind, processes = setting
     server = subprocess.Popen(
         [sys.executable, "-m", "vabench.llm_pool.serve", "--port", "0"]
-        + ["--policy", "reference_servo", "--policy-processes", str(processes)],
+        + ["--policy", "reference_servo", f"--{kind}-processes", str(processes)],
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -142,7 +147,8 @@ def measure(bodies: list[bytes], processes: int, callers: int, seconds: float) -
         server.terminate()
         server.wait(timeout=30)
     return {
-        "policy_processes": processes,
+        f"{kind}_processes": processes,
+        "setting": f"{kind} processes {processes}",
         "calls_per_s": calls / wall,
         "errors": errors,
         "server_cores": server_cpu / wall,
@@ -152,7 +158,8 @@ def measure(bodies: list[bytes], processes: int, callers: int, seconds: float) -
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--processes", default="0,1,2")
+    p.add_argument("--processes", default="0,1,2", help="policy worker processes")
+    p.add_argument("--server-processes", default="1,2", help="serving processes on one port")
     p.add_argument("--concurrency", type=int, default=32)
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--tasks", default=",".join(DEFAULT_TASKS))
@@ -173,16 +180,19 @@ def main() -> int:
         f"{os.cpu_count()} CPUs, load average {load_before:.1f} before"
     )
     print(
-        f"{'processes':>9} {'calls/s':>8} {'x 0':>6} {'server cores':>12} {'client cores':>12} "
-        f"{'errors':>6}"
+        f"{'setting':>20} {'calls/s':>8} {'x first':>7} {'server cores':>12} "
+        f"{'client cores':>12} {'errors':>6}"
     )
+    settings = [("policy", int(x)) for x in args.processes.split(",") if x] + [
+        ("server", int(x)) for x in args.server_processes.split(",") if x
+    ]
     rows = []
-    for n in (int(x) for x in args.processes.split(",")):
-        row = measure(bodies, n, args.concurrency, args.seconds)
+    for setting in settings:
+        row = measure(bodies, setting, args.concurrency, args.seconds)
         rows.append(row)
         base = rows[0]["calls_per_s"]
         print(
-            f"{n:>9} {row['calls_per_s']:>8.1f} {row['calls_per_s'] / base:>6.2f} "
+            f"{row['setting']:>20} {row['calls_per_s']:>8.1f} {row['calls_per_s'] / base:>7.2f} "
             f"{row['server_cores']:>12.2f} {row['client_cores']:>12.2f} {row['errors']:>6}",
             flush=True,
         )

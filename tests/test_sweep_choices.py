@@ -157,3 +157,33 @@ def test_policy_workers_take_half_the_cores_from_four_on(monkeypatch):
     assert ServerConfig(policy_processes="auto").policy_processes == "auto"
     with pytest.raises(ValueError, match="policy_processes"):
         ServerConfig(policy_processes="many")
+
+
+@pytest.mark.parametrize(
+    ("cores", "executor", "line"),
+    [
+        (2, "{kind: local}", "embedded, in the engine's process (the sweep's process has 2 cores)"),
+        (16, "{kind: local}", "embedded, 8 processes on one port, each computing its replies"),
+        (16, "{kind: processes}", "embedded, in the engine's process (each worker has 1 core)"),
+        (
+            16,
+            "{kind: processes, max_tasks: 2}",
+            "embedded, 4 processes on one port, each computing its replies (each worker has 8",
+        ),
+    ],
+)
+def test_the_embedded_server_is_sized_to_the_engine_process_share(tmp_path, cores, executor, line):
+    """configs/all.yaml's server: a sweep process sizes its embedded server to its cores; a
+    worker process of `processes` to its share (16 workers on 16 cores serve in-process)."""
+    from vabench.config import load_config
+    from vabench.sweep.choices import choose
+
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(
+        CONFIG.format(extra="").replace(
+            "{policy: conversation_hash}", "{policy: reference_servo, server_processes: auto}"
+        )
+        + f"executor: {executor}\n"
+    )
+    text = "\n".join(choose(load_config(cfg), Machine(cores, ())).lines())
+    assert f"server:    {line}" in text

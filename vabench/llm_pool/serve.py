@@ -64,6 +64,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="worker processes computing the replies of a stateless policy (reference_servo, "
         "conversation_hash); default 0: in this process",
     )
+    p.add_argument(
+        "--server-processes",
+        type=int,
+        help="processes serving the routes on one port (each with its policy in threads); "
+        "default 0: this process serves",
+    )
     return p
 
 
@@ -99,6 +105,7 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
         ("log_path", args.log),
         ("seed", args.seed),
         ("policy_processes", args.policy_processes),
+        ("server_processes", args.server_processes),
     ):
         if value is not None:
             data[key] = value
@@ -113,7 +120,11 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
 async def serve(config: ServerConfig, host: str, port: int) -> None:
     server = LocalServer(config)
     await server.start(host, port)
-    print(f"vabench llm server on {server.url} (policy {config.policy}); Ctrl-C stops", flush=True)
+    served = f", {server.processes} processes" if server.processes else ""
+    print(
+        f"vabench llm server on {server.url} (policy {config.policy}{served}); Ctrl-C stops",
+        flush=True,
+    )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -29,6 +29,7 @@ import os
 import random
 import socket
 from collections import Counter, deque
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from typing import IO, Any
 
@@ -58,7 +59,13 @@ from vabench.llm_pool.policies import (
     pure_function,
     pure_reply,
 )
-from vabench.llm_pool.server_config import PolicySpec, ServerConfig, policy_workers
+from vabench.llm_pool.server_config import (
+    PolicySpec,
+    ServerConfig,
+    policy_workers,
+    serving_processes,
+)
+from vabench.llm_pool.server_processes import ServingProcesses
 from vabench.llm_pool.simulate import PromptCache, simulate_usage
 from vabench.llm_pool.tokens import CHARS_PER_TOKEN, block_tokens, text_tokens
 
@@ -70,6 +77,8 @@ class RequestRecord:
     id: int
     api: str
     received_s: float
+    process: int = 0
+    """Which of the server's processes answered (`ServerConfig.server_processes`; 0 for one)."""
     body_bytes: int = 0
     model: str | None = None
     images: int = 0
@@ -93,6 +102,13 @@ class LocalServer:
         capture_bodies: bool = False,
     ):
         self.config = config or ServerConfig()
+        self.processes = serving_processes(self.config)
+        """Processes serving the routes (0: this event loop; see `server_processes`)."""
+        if self.processes and (policy is not None or capture_bodies):
+            raise ValueError(
+                "server_processes: a policy object or captured bodies need the server in this "
+                "process; set server_processes: 0"
+            )
         self.bodies: list[tuple[str, bytes]] | None = [] if capture_bodies else None
         """With `capture_bodies`: (api, raw body) of every request, for tests that inspect
         exactly what a model would receive (the privilege-boundary test)."""
@@ -118,9 +134,14 @@ class LocalServer:
         self._tokens = self._budget(self.config.tpm)
         self.log: deque[RequestRecord] = deque(maxlen=self.config.log_size)
         self.counts: Counter[str] = Counter()
+        self.process_index = 0
+        """This process's index among the serving processes (0: the only one)."""
+        self.on_record: Callable[[RequestRecord], None] | None = None
+        """Told every finished request (a serving process sends its records to its parent)."""
         self._next_id = 0
         self._runner: web.AppRunner | None = None
         self._log_file: IO[str] | None = None
+        self._processes: ServingProcesses | None = None
         self.host = "127.0.0.1"
         self.port = 0
 
@@ -140,17 +161,26 @@ class LocalServer:
         app.router.add_get("/stats", self._stats)
         return app
 
-    async def start(self, host: str = "127.0.0.1", port: int = 0) -> LocalServer:
-        """Listen on host:port (port 0: a free port, see `.port`)."""
-        await self._start_workers()
+    async def start(
+        self, host: str = "127.0.0.1", port: int = 0, *, reuse_port: bool = False
+    ) -> LocalServer:
+        """Listen on host:port (port 0: a free port, see `.port`); `reuse_port`: share the port
+        with other processes (SO_REUSEPORT)."""
         if self.config.log_path:
             self._log_file = open(self.config.log_path, "a", encoding="utf-8")  # noqa: SIM115
+        if self.processes:
+            self._processes = ServingProcesses(self.config, self.processes, self._note)
+            self.host, self.port = await asyncio.to_thread(self._processes.start, host, port)
+            return self
+        await self._start_workers()
         # handler_cancellation: a client that gives up (timeout) cancels our sleeping handler
         # instead of leaving it to finish for nobody.
         self._runner = web.AppRunner(self.app(), handler_cancellation=True, access_log=None)
         await self._runner.setup()
         sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if reuse_port:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         sock.bind((host, port))
         site = web.SockSite(self._runner, sock, backlog=4096)
         await site.start()
@@ -158,6 +188,9 @@ class LocalServer:
         return self
 
     async def stop(self) -> None:
+        if self._processes is not None:
+            processes, self._processes = self._processes, None
+            await asyncio.to_thread(processes.stop)
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
@@ -188,7 +221,9 @@ class LocalServer:
 
     @property
     def open_connections(self) -> int:
-        """Client connections currently open to this server."""
+        """Client connections currently open to this server (served in this process only)."""
+        if self.processes:
+            raise RuntimeError("open_connections: known only with server_processes: 0")
         if self._runner is None or self._runner.server is None:
             return 0
         return len(self._runner.server.connections)
@@ -236,7 +271,7 @@ class LocalServer:
         async def handle(request: web.Request) -> web.StreamResponse:
             loop = asyncio.get_running_loop()
             self._next_id += 1
-            record = RequestRecord(self._next_id, adapter.name, loop.time())
+            record = RequestRecord(self._next_id, adapter.name, loop.time(), self.process_index)
             self.log.append(record)
             try:
                 response = await self._respond(request, adapter, record)
@@ -249,14 +284,25 @@ class LocalServer:
                 raise
             finally:
                 record.finished_s = loop.time()
-                self.counts[f"status:{record.status}"] += 1
-                if record.fault:
-                    self.counts[f"fault:{record.fault}"] += 1
-                if self._log_file is not None:  # flushed: the log outlives a killed process
-                    self._log_file.write(json.dumps(dataclasses.asdict(record)) + "\n")
-                    self._log_file.flush()
+                self._note(record, logged=True)
 
         return handle
+
+    def _note(self, record: RequestRecord, logged: bool = False) -> None:
+        """Count a finished request and append it to the JSONL log; `logged`: it is in `log`
+        already (a request of a serving process is numbered and logged here when it ends)."""
+        if not logged:
+            self._next_id += 1
+            record.id = self._next_id
+            self.log.append(record)
+        self.counts[f"status:{record.status}"] += 1
+        if record.fault:
+            self.counts[f"fault:{record.fault}"] += 1
+        if self.on_record is not None:
+            self.on_record(record)
+        if self._log_file is not None:  # flushed: the log outlives a killed process
+            self._log_file.write(json.dumps(dataclasses.asdict(record)) + "\n")
+            self._log_file.flush()
 
     def _error(
         self, adapter: ApiAdapter, status: int, message: str, headers: dict[str, str] | None = None

@@ -1,16 +1,18 @@
 """The embedded server's settings: which policy answers which model (and in how many worker
-processes the stateless ones compute their replies), and what it simulates around the policy:
-latency, faults, rate limits, an API key, prompt caching, the request log.
+processes the stateless ones compute their replies), in how many processes it serves, and what
+it simulates around the policy: latency, faults, rate limits, an API key, prompt caching, the
+request log.
 """
 
 from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
 from vabench.children import usable_cores
 from vabench.llm_pool.faults import FaultConfig
+from vabench.llm_pool.policies import PURE_REPLIES
 from vabench.llm_pool.simulate import LatencyModel
 
 
@@ -20,12 +22,12 @@ class PolicySpec(BaseModel):
     options: dict[str, Any] = Field(default_factory=dict)
 
 
-def policy_workers(setting: int | str) -> int:
-    """The policy worker processes of `ServerConfig.policy_processes` on this process's cores
-    (`children.usable_cores`: a sweep worker's share of the host)."""
+def policy_workers(setting: int | str, cores: int | None = None) -> int:
+    """The policy worker processes of `ServerConfig.policy_processes` on `cores` (default: this
+    process's, `children.usable_cores`: a sweep worker's share of the host)."""
     if setting != "auto":
         return int(setting)
-    cores = usable_cores()
+    cores = usable_cores() if cores is None else cores
     return cores // 2 if cores >= 4 else 0
 
 
@@ -59,10 +61,61 @@ class ServerConfig(BaseModel):
     computed here, in a thread. "auto": half the cores from 4 cores on (the other half runs the
     sweep's own processes), else 0 (`policy_workers`). Other policies ignore it."""
 
-    @field_validator("policy_processes", mode="plain")
+    server_processes: int | Literal["auto"] = 0
+    """Processes that serve the API routes on one port (SO_REUSEPORT: the kernel spreads the
+    connections over them). 0: the server runs in the caller's event loop. n >= 1: the caller
+    does no HTTP work at all; its `LocalServer` starts n processes, each answering in its own
+    threads, and collects their request records (`log`, `counts`, `log_path`). Each process has
+    its own policy state, simulated prompt cache, fault plan and latency draws (seeded from
+    `seed` and its index), so rate limits (`rpm`, `tpm`), which must see every request, need 0.
+    "auto": half the cores (`children.usable_cores`) from 4 cores on when every policy is
+    stateless (`policies.PURE_REPLIES`) and no rate limit is set, else 0
+    (`serving_processes`)."""
+
+    @field_validator("policy_processes", "server_processes", mode="plain")
     @classmethod
-    def _policy_processes(cls, value: Any) -> int | Literal["auto"]:
+    def _processes(cls, value: Any) -> int | Literal["auto"]:
         whole = isinstance(value, int) and not isinstance(value, bool)
         if value == "auto" or (whole and value >= 0):
             return value
         raise ValueError(f"expected 'auto' or a whole number >= 0, got {value!r}")
+
+    @model_validator(mode="after")
+    def _limits_in_one_process(self) -> ServerConfig:
+        if isinstance(self.server_processes, int) and self.server_processes > 0:
+            limits = [name for name in ("rpm", "tpm") if getattr(self, name) is not None]
+            if limits:
+                verb = "is" if len(limits) == 1 else "are"
+                raise ValueError(
+                    f"server_processes: {' and '.join(limits)} {verb} enforced by one process, "
+                    "which must see every request; set server_processes: 0"
+                )
+        return self
+
+    @property
+    def policies(self) -> tuple[str, ...]:
+        """Every policy that answers some model."""
+        return (self.policy, *(spec.policy for spec in self.model_policies.values()))
+
+
+def serving_processes(config: ServerConfig, cores: int | None = None) -> int:
+    """How many processes serve `config` on `cores` (default: this process's)
+    (`ServerConfig.server_processes`; 0: in the caller's event loop)."""
+    if config.server_processes != "auto":
+        return config.server_processes
+    cores = usable_cores() if cores is None else cores
+    stateless = all(name in PURE_REPLIES for name in config.policies)
+    limited = config.rpm is not None or config.tpm is not None
+    return cores // 2 if cores >= 4 and stateless and not limited else 0
+
+
+def serving_description(config: ServerConfig, cores: int) -> str:
+    """Where a server of `config` started by a process of `cores` cores does its work."""
+    served = serving_processes(config, cores)
+    if served:
+        return f"{served} processes on one port, each computing its replies"
+    workers = policy_workers(config.policy_processes, cores)
+    stateless = any(name in PURE_REPLIES for name in config.policies)
+    if workers and stateless:
+        return f"in the engine's process, the replies in {workers} policy worker processes"
+    return "in the engine's process"

@@ -45,7 +45,9 @@ def decode(jpeg: bytes) -> np.ndarray:
     if im.width > MAX_WORK_WIDTH:
         scale = math.ceil(im.width / MAX_WORK_WIDTH)
         im.draft("RGB", (im.width // scale, im.height // scale))
-    return np.asarray(im.convert("RGB").convert("HSV"))
+    if im.mode != "RGB":  # a JPEG decodes to RGB: converting it again would only copy it
+        im = im.convert("RGB")
+    return np.asarray(im.convert("HSV"))
 
 
 def colour_mask(hsv: np.ndarray, colour: str) -> np.ndarray:
@@ -60,7 +62,7 @@ def colour_mask(hsv: np.ndarray, colour: str) -> np.ndarray:
 def table_fraction(hsv: np.ndarray) -> float:
     """Share of pixels that look like the beige table top: a real topdown image of the scene
     has plenty; noise or a view of something else has almost none."""
-    h, s, v = (hsv[..., i].astype(int) for i in range(3))
+    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]  # uint8: every bound lies in 0..255
     table = (h >= 14) & (h <= 40) & (s >= 25) & (s <= 85) & (v >= 90) & (v <= 215)
     return float(table.mean())
 

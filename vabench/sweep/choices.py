@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.children import CORES_VARIABLE, usable_cores
+from vabench.llm_pool.server_config import serving_description
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
 from vabench.sweep.inflight import BATCHED
@@ -118,6 +119,8 @@ class Choices:
     renderer: RenderChoice
     executor: ExecutorChoice
     in_flight: str
+    model_server: str | None = None
+    """Where the embedded server works, when a model uses it."""
 
     def lines(self) -> list[str]:
         physics = {"c": "C MuJoCo", "mjx/warp": "MuJoCo Warp", "mjx/jax": "MJX on JAX"}
@@ -128,6 +131,7 @@ class Choices:
             f"renderer:  {renderer[self.renderer.backend]} ({self.renderer.reason})",
             f"executor:  {self.executor.label} ({self.executor.reason})",
             f"in flight: {self.in_flight}",
+            *([f"server:    {self.model_server}"] if self.model_server else []),
         ]
 
 
@@ -147,12 +151,19 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
         )
     else:
         in_flight = f"{min(ex.in_flight, ex.max_episodes)} episodes per process (asked for)"
+    executor = resolve_executor(ex, machine)
+    server = None
+    if config.embedded_models:
+        # a worker process of `processes` sizes its server to its share of the cores
+        share = machine.cores if executor.kind == "local" else machine.cores // executor.max_tasks
+        share = max(1, share)
+        where = "the sweep's process has" if executor.kind == "local" else "each worker has"
+        server = (
+            f"embedded, {serving_description(config.embedded_server, share)} ({where} "
+            f"{share} core{'s' if share != 1 else ''})"
+        )
     return Choices(
-        machine,
-        physics,
-        resolve_renderer(config.render.backend),
-        resolve_executor(ex, machine),
-        in_flight,
+        machine, physics, resolve_renderer(config.render.backend), executor, in_flight, server
     )
 
 

@@ -156,6 +156,11 @@ class LocalSweep:
             if cfg.embedded_models:
                 server = await stack.enter_async_context(LocalServer(cfg.embedded_server))
                 endpoints = cfg.endpoints(server.base_url)
+                log.info(
+                    "embedded server on %s, served %s",
+                    server.url,
+                    f"by {server.processes} processes" if server.processes else "in this process",
+                )
             llm = await stack.enter_async_context(LLMPool(endpoints))
             self.progress.pool = llm
             self.summaries = SummaryStage(
