@@ -14,8 +14,9 @@ episodes would finish in that time: the ideal. Printed per C: measured wall time
 per hour, their ratio to the ideal, the harness overhead per decision (wall / steps - latency),
 and where the time went: simulator busy seconds per decision (resets + batched actions), render
 busy seconds per observation, mean simulator and render batch sizes, and the CPU time of this
-process per decision (engine, model client and the embedded server, which runs in it; render
-workers excluded): 1 / that is the most decisions per second one engine process can drive.
+process per decision (engine, model client and, unless `--server-processes N` serves it in
+processes of its own, the embedded server; render workers excluded): 1 / that is the most
+decisions per second one engine process can drive.
 
 `--shared-batch` runs every C on one batch of max(C) slots (one MJX compile; idle slots
 frozen), as a sweep does; otherwise each C gets a batch of exactly C slots. Compilation and
@@ -102,10 +103,12 @@ async def main_async(args) -> list[dict]:
     levels = [int(c) for c in args.concurrency.split(",")]
     width, height = (int(v) for v in args.size.split("x"))
     image = ImageSettings(width, height, 95)
+    # random_action keeps a seeded state: served by processes it gets one per process
     config = ServerConfig(
         policy="random_action",
         policy_options={"seed": 1},
         latency={"mean_s": args.latency, "dist": "fixed"},
+        server_processes=args.server_processes,
     )
     batch_kwargs: dict = {"lanes": args.lanes} if args.lanes else {}
     if args.backend == "mjx":
@@ -121,7 +124,8 @@ async def main_async(args) -> list[dict]:
         physics = args.backend + (f"/{args.impl}" if args.backend == "mjx" else "")
         print(
             f"renderer: {described}; backend {physics}; "
-            f"latency {args.latency} s; {args.steps} decisions per episode; {args.size}"
+            f"latency {args.latency} s; {args.steps} decisions per episode; {args.size}; "
+            f"model server {args.server_processes or 'in this'} process(es)"
         )
         async with LocalServer(config) as server:
             endpoint = server.endpoint_config(
@@ -198,6 +202,13 @@ def main() -> None:
     p.add_argument("--render-workers", type=int, default=2)
     p.add_argument("--platform", default="auto", choices=("auto", "egl", "osmesa"))
     p.add_argument("--shared-batch", action="store_true")
+    p.add_argument(
+        "--server-processes",
+        type=int,
+        default=0,
+        help="serve the model in N processes of its own (default 0: in this process, so the "
+        "CPU per decision counts the server's work too)",
+    )
     p.add_argument("--lanes", type=int, help="MJX: physics lanes (default: the batch's)")
     p.add_argument("--json")
     args = p.parse_args()
