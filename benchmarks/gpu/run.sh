@@ -62,16 +62,17 @@ PY
     ;;
   engine)
     # Issue 20's engine and server targets: episodes in flight against the ideal C/L (Warp
-    # physics + Warp images, then C MuJoCo + GL as the CPU path's figure on the same host), and
-    # the embedded server's calls/s against its policy worker processes.
+    # physics + Warp images, the model served by 4 processes of its own, then C MuJoCo + GL as
+    # the CPU path's figure on the same host), and the embedded server's calls/s against its
+    # policy worker processes and its serving processes.
     timeout 240 python3 benchmarks/engine.py --backend mjx --impl warp --renderer warp \
-      --concurrency 1,100,1000 --latency 2 --steps 5 --size 640x480 \
+      --concurrency 1,100,1000 --latency 2 --steps 5 --size 640x480 --server-processes 4 \
       --json "$out/engine_warp.json" 2>&1 | tee "$out/engine.log"
     timeout 120 python3 benchmarks/engine.py --backend c --renderer gl --render-workers 8 \
       --concurrency 1000 --latency 2 --steps 5 --size 640x480 \
       --json "$out/engine_c.json" 2>&1 | tee -a "$out/engine.log"
-    timeout 200 python3 benchmarks/server_scaling.py --processes 0,4,8,15 --concurrency 64 \
-      --seconds 15 --json "$out/server.json" 2>&1 | tee "$out/server.log"
+    timeout 200 python3 benchmarks/server_scaling.py --processes 0,8 --server-processes 4,8,15 \
+      --concurrency 64 --seconds 15 --json "$out/server.json" 2>&1 | tee "$out/server.log"
     ;;
   main)
     # The product's front door as shipped, timed; the report is made from results.jsonl
