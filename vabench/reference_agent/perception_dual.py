@@ -88,7 +88,8 @@ def locate_shoe(hsv: np.ndarray, cam: TopdownCamera, gcs: dict[str, np.ndarray])
     if not mats:
         return None
     mat_pts = _world(cam, mats[0], 0.001)
-    mat = Seen(*(float(v) for v in mat_pts.mean(axis=0)), axis_heading(mat_pts, mat_pts.mean(0)))
+    x, y = (float(v) for v in mat_pts.mean(axis=0))  # to_world: (n, 2) points
+    mat = Seen(x, y, axis_heading(mat_pts, mat_pts.mean(0)))
     mask = without_grippers(foreground(hsv) & ~mat_mask, cam, gcs)
     px_area = cam.metres_per_pixel(TABLE_Z + SHOE_TOP_Z) ** 2
     shoes = components(mask, int(MIN_OBJECT_M2 / px_area))

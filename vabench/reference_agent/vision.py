@@ -41,7 +41,7 @@ COLOURS: dict[str, tuple[tuple[tuple[int, int], ...], int, int, int]] = {
 
 def decode(jpeg: bytes) -> np.ndarray:
     """HSV pixels (rows, cols, 3) of an image, decoded at most `MAX_WORK_WIDTH` wide."""
-    im = Image.open(io.BytesIO(jpeg))
+    im: Image.Image = Image.open(io.BytesIO(jpeg))
     if im.width > MAX_WORK_WIDTH:
         scale = math.ceil(im.width / MAX_WORK_WIDTH)
         im.draft("RGB", (im.width // scale, im.height // scale))

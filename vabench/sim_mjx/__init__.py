@@ -26,7 +26,7 @@ with contextlib.redirect_stdout(io.StringIO()):
 
 
 def _enable_compilation_cache() -> None:
-    if jax.config.jax_compilation_cache_dir:
+    if jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
         return
     path = os.environ.get("VABENCH_JAX_CACHE") or str(Path.home() / ".cache" / "vabench" / "jax")
     if path.lower() in ("", "0", "off", "none"):

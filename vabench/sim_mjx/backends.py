@@ -87,7 +87,7 @@ def warp_problem(device: str | None = None) -> str | None:
     device = device or warp_device()
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.quiet = True  # type: ignore[attr-defined]  # not in warp's stubs
     wp.config.log_level = wp.LOG_WARNING  # no 'Module ... load' line per kernel module
     wp.init()
     if device.startswith("cuda"):

@@ -23,13 +23,13 @@ import jax.numpy as jnp
 
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx import robot_constants as rc
-from vabench.sim_mjx.pytree import pytree_dataclass
+from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 
 GRIP_KEEP, GRIP_CLOSE, GRIP_OPEN = -1, 0, 1
 
 
 @pytree_dataclass
-class ArmCommand:
+class ArmCommand(PyTree):
     """One action for one slot (batched: a leading slot axis on every field)."""
 
     active: jax.Array  # () bool: the slot has an action this call
@@ -39,7 +39,7 @@ class ArmCommand:
 
 
 @pytree_dataclass
-class Plan:
+class Plan(PyTree):
     waypoints: jax.Array  # (A, W, 6) joint waypoints (all equal to q when the arm stays)
     hold: jax.Array  # (A, 6) arm reference before the action (the previous control)
     moves: jax.Array  # (A,) bool: the arm follows its waypoints

@@ -32,7 +32,7 @@ from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx.actions import CommandRows, encode
 from vabench.sim_mjx.layout import ArmLayout, Proprio, proprio_slot
-from vabench.sim_mjx.pytree import pytree_dataclass
+from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 from vabench.sim_mjx.scene import free_objects
 
 STATE_FIELDS = ("time", "qpos", "qvel", "act", "ctrl", "warmstart", "grip_open")
@@ -47,7 +47,7 @@ class SimulationError(RuntimeError):
 
 
 @pytree_dataclass
-class StepInfo:
+class StepInfo(PyTree):
     executed: jax.Array  # (N,) bool: the slot's physics advanced
     planner_success: jax.Array  # (N,) bool
     clipped: jax.Array  # (N, A) bool
@@ -224,14 +224,19 @@ class BatchBase:
 
     # -- shared -----------------------------------------------------------------------------
     def set_state(
-        self, slots: Sequence[int], state: dict[str, np.ndarray], variants: Sequence[int]
+        self,
+        slots: Sequence[int],
+        state: dict[str, np.ndarray],
+        variants: Sequence[int] | np.ndarray,
     ) -> None:
         """Put `slots` in the given state (from `get_state` of the same backend and scene)."""
         slots = list(slots)
         self._check_state(slots, state)
         self._write_state(slots, state, self._check_variants(slots, variants))
 
-    def _check_variants(self, slots: Sequence[int], variants: Sequence[int] | None) -> np.ndarray:
+    def _check_variants(
+        self, slots: Sequence[int], variants: Sequence[int] | np.ndarray | None
+    ) -> np.ndarray:
         if variants is None:
             return np.zeros(len(slots), np.int32)
         v = np.asarray(variants, np.int32)

@@ -19,14 +19,14 @@ import mujoco
 import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
-from vabench.sim_mjx.pytree import pytree_dataclass
+from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 
 _TWO_PI = 2.0 * np.pi
 _LIMIT_TOL = 1e-6
 
 
 @pytree_dataclass
-class ArmGeometry:
+class ArmGeometry(PyTree):
     """Kinematic parameters of one arm, read from the compiled model."""
 
     base_pos: jax.Array  # (3,) world position of the base frame

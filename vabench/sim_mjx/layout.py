@@ -21,7 +21,7 @@ import numpy as np
 from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx import robot_constants as rc
-from vabench.sim_mjx.pytree import pytree_dataclass
+from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 
 
 @dataclass(frozen=True)
@@ -67,15 +67,19 @@ class ArmLayout:
         return out
 
 
+Arrays = jax.Array | np.ndarray
+"""Proprioception is computed under jit (MJX-JAX) or on the host (C MuJoCo, Warp)."""
+
+
 @pytree_dataclass
-class Proprio:
-    gc: jax.Array  # (..., A, 3) finger midpoint
-    ee: jax.Array  # (..., A, 3) control end effector
-    rot: jax.Array  # (..., A, 3, 3) columns: rx, ry, rz in the world frame
-    quat: jax.Array  # (..., A, 4) wxyz
-    rpy: jax.Array  # (..., A, 3) rad
-    fingers: jax.Array  # (..., A, 2) finger openings
-    is_open: jax.Array  # (..., A) bool
+class Proprio(PyTree):
+    gc: Arrays  # (..., A, 3) finger midpoint
+    ee: Arrays  # (..., A, 3) control end effector
+    rot: Arrays  # (..., A, 3, 3) columns: rx, ry, rz in the world frame
+    quat: Arrays  # (..., A, 4) wxyz
+    rpy: Arrays  # (..., A, 3) rad
+    fingers: Arrays  # (..., A, 2) finger openings
+    is_open: Arrays  # (..., A) bool
 
 
 def proprio_slot(

@@ -27,13 +27,13 @@ from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import BatchBase, StepInfo, hold_chunks, in_lanes
 from vabench.sim_mjx.layout import ArmLayout, plan_from, with_refs
-from vabench.sim_mjx.pytree import pytree_dataclass
+from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import ModelVariants
 
 
 @pytree_dataclass
-class SimState:
+class SimState(PyTree):
     data: mjx.Data  # batched over slots
     grip_open: jax.Array  # (N, A) bool: last aperture command (True = open)
     init_qpos: jax.Array  # (N, nq) qpos at the slot's last reset, for task predicates

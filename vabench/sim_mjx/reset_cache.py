@@ -106,7 +106,8 @@ class SettledCache:
             arrays = {f"s_{k}": v for k, v in value.state.items()}
             fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
             with os.fdopen(fd, "wb") as f:
-                np.savez(f, finite=value.finite, drift_deg=value.drift_deg, **arrays)
+                # numpy's stubs read the keyword arrays as its `allow_pickle` flag
+                np.savez(f, finite=value.finite, drift_deg=value.drift_deg, **arrays)  # type: ignore[arg-type]
             os.replace(tmp, path)
         except OSError:
             pass  # a read-only or full disk costs speed, never a result

@@ -32,7 +32,7 @@ class CtrlC:
 
     def __init__(self) -> None:
         self.pressed = 0
-        self._on_first: Callable[[], None] | None = None
+        self._on_first: Callable[[], object] | None = None
         self._previous: object = None
 
     def install(self) -> None:
@@ -44,7 +44,7 @@ class CtrlC:
             self._previous = None
 
     @contextlib.contextmanager
-    def on_first(self, callback: Callable[[], None]) -> Iterator[None]:
+    def on_first(self, callback: Callable[[], object]) -> Iterator[None]:
         """Within the block, the first press calls `callback` (from the signal handler: it
         must only schedule the stop, e.g. `loop.call_soon_threadsafe(task.cancel)`) instead
         of raising `Interrupted`."""

@@ -34,7 +34,7 @@ import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx import scene
-from vabench.sim_mjx.pytree import pytree_dataclass
+from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 from vabench.tasks.objects import attach_object
 
 if TYPE_CHECKING:
@@ -104,7 +104,7 @@ class Sample:
 
 
 @pytree_dataclass
-class SlotState:
+class SlotState(PyTree):
     """What a predicate reads of one slot (all evaluator-side)."""
 
     qpos: jax.Array  # (nq,)
@@ -121,7 +121,7 @@ class SlotState:
 
 
 @pytree_dataclass
-class Evaluation:
+class Evaluation(PyTree):
     checks: dict[str, jax.Array]  # named sub-checks of the predicate (bool)
     latched: jax.Array  # (L,) bool
     subgoals: jax.Array  # (K - 1,) bool: checkpoint flags before "completed"

@@ -29,7 +29,7 @@ import numpy as np
 
 from vabench.tasks import common
 from vabench.tasks.base import Evaluation, ObjectIndex, OnTable, Sample, Script, SlotState, Task
-from vabench.tasks.expert import ExpertContext, View, nearest, topdown, yaw_of
+from vabench.tasks.expert import ExpertContext, Target, View, nearest, topdown, yaw_of
 
 POT_FILES = ("pot_a.xml", "pot_b.xml")
 POT_AT = OnTable(x=(-0.05, 0.05), y=(-0.05, 0.05), yaw_deg=(-22.5, 22.5))
@@ -93,7 +93,9 @@ class LiftPot(Task):
                 break
             yield {"action": "dual_gripper.open"}  # a handle slipped out: open and try again
             yield from ctx.dual_move_to({arm: handle(arm, HOVER) for arm in self.arms})
-        lifted = {arm: ctx.view.arms[arm].gc + [0.0, 0.0, LIFT_BY] for arm in self.arms}
+        lifted: dict[str, Target] = {
+            arm: ctx.view.arms[arm].gc + [0.0, 0.0, LIFT_BY] for arm in self.arms
+        }
         yield from ctx.dual_move_to(lifted)
 
 

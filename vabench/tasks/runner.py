@@ -180,7 +180,9 @@ class TaskBatch:
         if len(slots) != len(seeds):
             raise ValueError(f"{len(slots)} slots but {len(seeds)} seeds")
         entries = [self._seed(s) for s in seeds]
-        settled = {s: self.cache.get(self._seed(s)[2]) for s in dict.fromkeys(seeds)}
+        settled: dict[int, Settled | None] = {
+            s: self.cache.get(self._seed(s)[2]) for s in dict.fromkeys(seeds)
+        }
         hit = [r for r, s in enumerate(seeds) if settled[s] is not None]
         miss = [r for r, s in enumerate(seeds) if settled[s] is None]
         if hit:
@@ -216,10 +218,10 @@ class TaskBatch:
         missed = set(miss)
         reports = []
         for row, (slot, seed) in enumerate(zip(slots, seeds, strict=True)):
-            st = settled[seed]
-            assert st is not None
+            got = settled[seed]
+            assert got is not None
             error = failures[slot] if row in missed else None
-            reports.append(SettleReport(seed, st.finite, st.drift_deg, error, row not in missed))
+            reports.append(SettleReport(seed, got.finite, got.drift_deg, error, row not in missed))
             self.samples[slot], self.seeds[slot] = entries[row][0], seed
         self.init_qpos[slots] = self.batch.qpos()[slots]
         self.latched[slots] = False

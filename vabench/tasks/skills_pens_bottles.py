@@ -13,7 +13,7 @@ Objects (assets/objects/):
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -33,7 +33,7 @@ BLOCK_HALF = 0.04
 TOPDOWN_MIN_GC_Z = rc.TABLE_Z + rc.TABLE_CLEARANCE + 0.015
 
 
-def axis_angle_quat(axis: np.ndarray, angle: float) -> np.ndarray:
+def axis_angle_quat(axis: np.ndarray | Sequence[float], angle: float) -> np.ndarray:
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     return np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis]
 
