@@ -39,7 +39,8 @@ PROCESSES_FROM_CORES = 4
 parent, one cell process and its render workers would share too few cores to gain."""
 LOCAL_MAX_TASKS = 4
 """Task batches at once in one process (`executor: local`)."""
-RAY_MAX_TASKS = 4
+RAY_MAX_TASKS = 16
+"""Chunks at once in one engine actor of a Ray sweep (the in-flight rule binds first)."""
 
 
 @dataclass(frozen=True)
@@ -92,8 +93,8 @@ class ExecutorChoice:
 
     @property
     def label(self) -> str:
-        unit = "task batches" if self.kind == "local" else "cells"
-        return f"{self.kind}, {self.max_tasks} {unit} at once"
+        unit = {"local": "task batches", "processes": "cells", "ray": "chunks per engine"}
+        return f"{self.kind}, {self.max_tasks} {unit[self.kind]} at once"
 
 
 def resolve_executor(options: Any, machine: Machine) -> ExecutorChoice:
