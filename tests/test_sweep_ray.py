@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import ray
 
-from vabench.config import load_config
+from vabench.config import SweepConfigError, load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.ray_executor import run_ray
@@ -223,3 +223,11 @@ def test_appends_from_several_processes_stay_whole_lines_while_others_open(tmp_p
     got = Ledger.open(tmp_path).records
     planned = [("m", "active", "t", s, w) for w in range(writers) for s in range(n)]
     assert sorted(got) == sorted(planned)
+
+
+def test_ray_client_addresses_are_refused_naming_the_field(tmp_path):
+    """Ray Client cannot carry the engines' streamed records: say so before anything runs."""
+    path = write(tmp_path / "ray.yaml", "{kind: ray, address: 'ray://head:10001'}")
+    with pytest.raises(SweepConfigError) as err:
+        load_config(path)
+    assert "executor.address" in str(err.value) and "address: auto" in str(err.value)

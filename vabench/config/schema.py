@@ -127,8 +127,9 @@ class ExecutorOptions(_Strict):
     of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy embedded policies);
     ray: engine actors over a Ray cluster, one per GPU (README, "Multi-machine sweeps")."""
     address: str | None = None
-    """`ray.init(address=...)`: "auto" (the cluster this node belongs to), "HOST:PORT" or
-    "ray://HOST:10001"; unset starts or joins a local Ray instance (ray only)."""
+    """`ray.init(address=...)`: "auto" (the cluster this node belongs to) or "HOST:PORT" (its
+    head); unset starts or joins a local Ray instance (ray only). Ray Client ("ray://") is
+    refused: it does not carry the streamed calls the engines report through."""
     actors: int | None = Field(default=None, ge=1)
     """Engine actors of a Ray sweep (ray only); default: one per GPU of the cluster when the
     physics runs on GPUs, else one per `1 + render.workers` CPUs of the cluster."""
@@ -145,6 +146,17 @@ class ExecutorOptions(_Strict):
     slots_per_task: int | None = Field(default=None, ge=1)
     """Simulator slots of one task batch; default: the task's planned episodes, at most
     `max_episodes`."""
+
+    @field_validator("address")
+    @classmethod
+    def _address(cls, value: str | None) -> str | None:
+        if value is not None and value.startswith("ray://"):
+            raise ValueError(
+                "Ray Client (ray://) cannot carry the records the engines stream to the driver; "
+                "run the sweep on a node of the cluster with address: auto (README, "
+                '"Multi-machine sweeps")'
+            )
+        return value
 
     @field_validator("in_flight", mode="plain")
     @classmethod

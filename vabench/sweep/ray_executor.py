@@ -7,9 +7,9 @@ writer of the ledger.
    task), and cut into chunks (`cells.chunks`, about `CHUNKS_PER_ENGINE` per engine, costliest
    first); when none is left nothing starts;
 2. `ray.init(address=executor.address)` joins the cluster (`None`: the running local one if
-   there is one, else a new local one; `"auto"`: the running one; `"HOST:PORT"` or
-   `"ray://HOST:10001"`: that head node); a driver that already called `ray.init` keeps its
-   connection;
+   there is one, else a new local one; `"auto"`: the running one; `"HOST:PORT"`: that head
+   node; Ray Client's `ray://` is refused by the config, as it cannot carry streaming actor
+   calls); a driver that already called `ray.init` keeps its connection;
 3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes): by default
    one per GPU of the cluster when the physics runs on GPUs (`simulator.backend` mjx, or auto
    on a cluster with GPUs), each claiming `num_gpus=1` and running MuJoCo Warp and Warp's

@@ -1,7 +1,9 @@
 """Running a planned sweep in one process: every task batch of the plan concurrently, resumable.
 
 One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
-it, one render pool, and up to `executor.max_tasks` task batches at once; each batch serves
+it, one render pool (together, with the in-flight gate below: the `Engine` that `open_engine`
+opens, which a Ray engine actor keeps open for every chunk it runs), and up to
+`executor.max_tasks` task batches at once; each batch serves
 every model and track of its task (the simulator does not care who decides). Episodes in
 flight are bounded per batch by its slots and overall by the `inflight.InFlight` gate: a limit
 that adapts to what the simulator, renderer and endpoints sustain (`executor.in_flight: auto`),
