@@ -280,7 +280,6 @@ class ClusterSweep:
             self._end(gracefully=finished)
 
     def _loop(self) -> None:
-        ray = self.ray
         last_log = time.monotonic()
         idle_since = time.monotonic()
         while self.queue or any(e.chunks for e in self.engines):
@@ -295,9 +294,7 @@ class ClusterSweep:
                     waiting[stream] = (e, chunk)
             ready: list[Any] = []
             if waiting:
-                ready, _ = ray.wait(list(waiting), num_returns=1, timeout=TICK_S)
-                if ready:
-                    ready, _ = ray.wait(list(waiting), num_returns=len(waiting), timeout=0)
+                ready = self._wait(list(waiting))
             else:
                 time.sleep(TICK_S)
             for ref in ready:
@@ -319,6 +316,18 @@ class ClusterSweep:
             if self._changed or time.monotonic() - last_log >= PROGRESS_EVERY_S:
                 last_log, self._changed = time.monotonic(), False
                 self._log_progress()
+
+    def _wait(self, refs: list[Any]) -> list[Any]:
+        """The references of `refs` ready within `TICK_S` (all that are, once one is)."""
+        try:
+            ready, _ = self.ray.wait(refs, num_returns=1, timeout=TICK_S)
+            if ready:
+                ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=0)
+        except SystemError as err:  # Ctrl-C's `Interrupted`, raised inside Ray's own code
+            if isinstance(err.__cause__, Exception):
+                raise err.__cause__ from None
+            raise
+        return ready
 
     def _log_progress(self) -> None:
         log.info(
