@@ -25,7 +25,7 @@ import ray
 from vabench.config import SweepConfigError, load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.plan import EpisodeKey, plan
-from vabench.sweep.ray_executor import run_ray
+from vabench.sweep.ray_executor import engine_plan, run_ray
 from vabench.sweep.results import Ledger
 
 CONFIG = """\
@@ -231,3 +231,16 @@ def test_ray_client_addresses_are_refused_naming_the_field(tmp_path):
     with pytest.raises(SweepConfigError) as err:
         load_config(path)
     assert "executor.address" in str(err.value) and "address: auto" in str(err.value)
+
+
+def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
+    config = load_config(write(tmp_path / "ray.yaml", "{kind: ray}"))  # backend c
+    cpu_engine = {"num_cpus": 2.0, "num_gpus": 0.0}  # 1 + render.workers
+    assert engine_plan(config, {"CPU": 16.0, "GPU": 8.0}) == (8, cpu_engine)
+    auto = config.model_copy(
+        update={"simulator": config.simulator.model_copy(update={"backend": "auto"})}
+    )
+    assert engine_plan(auto, {"CPU": 128.0, "GPU": 8.0}) == (8, {"num_cpus": 1.0, "num_gpus": 1.0})
+    assert engine_plan(auto, {"CPU": 5.0}) == (2, cpu_engine)  # no GPU: C MuJoCo engines
+    three = auto.model_copy(update={"executor": auto.executor.model_copy(update={"actors": 3})})
+    assert engine_plan(three, {"CPU": 128.0, "GPU": 8.0})[0] == 3

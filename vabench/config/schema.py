@@ -147,17 +147,6 @@ class ExecutorOptions(_Strict):
     """Simulator slots of one task batch; default: the task's planned episodes, at most
     `max_episodes`."""
 
-    @field_validator("address")
-    @classmethod
-    def _address(cls, value: str | None) -> str | None:
-        if value is not None and value.startswith("ray://"):
-            raise ValueError(
-                "Ray Client (ray://) cannot carry the records the engines stream to the driver; "
-                "run the sweep on a node of the cluster with address: auto (README, "
-                '"Multi-machine sweeps")'
-            )
-        return value
-
     @field_validator("in_flight", mode="plain")
     @classmethod
     def _in_flight(cls, value: Any) -> Literal["auto"] | int:

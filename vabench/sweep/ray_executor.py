@@ -269,6 +269,10 @@ class ClusterSweep:
 
     # -- the loop ------------------------------------------------------------------------------
     def run(self) -> None:
+        if not self._fits_a_node():
+            self.failures.extend(self.queue)
+            self.queue.clear()
+            return
         finished = False
         try:
             self._start_limiter()
@@ -361,6 +365,21 @@ class ClusterSweep:
             )
             .remote(limits)
         )
+
+    def _fits_a_node(self) -> bool:
+        """Whether some node of the cluster has what one engine claims (else say so: the
+        engines would wait for resources that never come)."""
+        wanted = {"CPU": self.resources["num_cpus"], "GPU": self.resources["num_gpus"]}
+        nodes = [n["Resources"] for n in self.ray.nodes() if n.get("Alive")]
+        if any(all(node.get(k, 0) >= v for k, v in wanted.items() if v) for node in nodes):
+            return True
+        log.error(
+            "ray: no node of the cluster has what one engine claims (%s; nodes: %s): lower "
+            "render.workers (a CPU engine claims 1 + render.workers CPUs) or add such a node",
+            self.resources,
+            [{k: v for k, v in node.items() if k in ("CPU", "GPU")} for node in nodes],
+        )
+        return False
 
     def _start_engine(self) -> None:
         index = len(self.engines)
