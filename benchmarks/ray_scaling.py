@@ -3,7 +3,7 @@ host, episodes per second and the ratio to perfect scaling, side by side.
 
     python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|mjx] [--seeds 20]
         [--runs 3] [--tracks active,passive,transfer,long_horizon] [--tasks base]
-        [--steps N] [--size 1280x960] [--policy reference_servo] [--json FILE]
+        [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--json FILE]
 
 The defaults are `configs/all.yaml` as shipped (2,160 episodes of the reference-servo agent
 on every track); the options shrink it (the test of this script runs it at a tiny size on CPU
@@ -79,6 +79,8 @@ def make_config(args: argparse.Namespace, engines: int, out: Path) -> Path:
     doc["simulator"] = {"backend": args.backend}
     doc["render"] |= {"width": width, "height": height, "workers": args.render_workers}
     doc["embedded_server"]["policy"] = args.policy
+    if args.latency:
+        doc["embedded_server"]["latency"] = {"mean_s": args.latency}
     doc["executor"] = {"kind": "ray", "actors": engines}
     path = out.with_suffix(".yaml")
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
@@ -131,6 +133,7 @@ def main() -> None:
     p.add_argument("--size", default="1280x960")
     p.add_argument("--render-workers", type=int, default=2)
     p.add_argument("--policy", default="reference_servo")
+    p.add_argument("--latency", type=float, default=0.0, help="the model's reply time, seconds")
     p.add_argument("--json", type=Path)
     args = p.parse_args()
 
