@@ -431,12 +431,14 @@ class ClusterSweep:
             self.ray.kill(engine.actor, no_restart=True)
         if self.limiter is not None:
             self.limiter.forget.remote(engine.holder)
-        restart = self.restarts < MAX_ENGINE_RESTARTS
+        # an engine that could not even be created (its config does not load on that node, no
+        # run directory there) would fail the same way again: not replaced
+        restart = self.restarts < MAX_ENGINE_RESTARTS and not _in_creation(err)
         log.warning(
             "ray: engine %d (%s) is gone: %s; %d unfinished episodes go back to the queue%s",
             engine.index,
             engine.info.get("host", "not started"),
-            _first_line(err),
+            _why(err),
             requeued,
             "; starting another engine" if restart else "; no engine is started in its place",
         )
@@ -584,6 +586,14 @@ def _host(engine: EngineHandle) -> str:
     return f"engine {engine.index} ({engine.info.get('host', '?')})"
 
 
-def _first_line(err: BaseException) -> str:
-    text = str(err).strip()
-    return f"{type(err).__name__}: {text.splitlines()[0] if text else ''}"
+def _in_creation(err: BaseException) -> bool:
+    return "error raised in its creation task" in str(err)
+
+
+def _why(err: BaseException) -> str:
+    """One line: the error an engine's creation raised (the last line of Ray's report), else
+    the first line of Ray's."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    if not lines:
+        return type(err).__name__
+    return lines[-1] if _in_creation(err) else f"{type(err).__name__}: {lines[0]}"
