@@ -449,9 +449,10 @@ class ClusterSweep:
     def _give_up(self) -> None:
         """No engine runs and none will: what is left is not run this time."""
         log.error(
-            "ray: no engine is running and none has started for %.0f s (resources: %s); "
-            "%d chunks not run",
-            ENGINE_START_TIMEOUT_S if self._can_start() else 0,
+            "ray: no engine is running and %s (each claims %s); %d chunks not run",
+            f"none has started in {ENGINE_START_TIMEOUT_S:.0f} s"
+            if self._can_start()
+            else "none is starting",
             self.resources,
             len(self.queue),
         )
