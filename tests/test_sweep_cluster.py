@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import threading
 import time
 from pathlib import Path
@@ -70,13 +71,25 @@ def ledger_keys(run_dir: Path) -> list[tuple]:
     ]
 
 
-def engine_nodes(caplog) -> list[str]:
-    """The nodes of the engines started so far, as the driver logged them."""
+def driver_lines(caplog, start: str) -> list[tuple]:
+    """The arguments of the driver's log lines whose format starts with `start`."""
     return [
-        r.args[1]["node"]
+        r.args
         for r in caplog.records
-        if r.name == "vabench.sweep.ray_executor" and r.msg.startswith("ray: engine %d started")
+        if r.name == "vabench.sweep.ray_executor" and r.msg.startswith(start)
     ]
+
+
+def busy_engines(caplog) -> set[str]:
+    """The nodes of the engines that were handed a chunk they have not finished."""
+    nodes = {i: info["node"] for i, info in driver_lines(caplog, "ray: engine %d started")}
+    given = {
+        name: engine for name, _, engine in driver_lines(caplog, "ray: chunk %s (%d episodes)")
+    }
+    for name, *_ in driver_lines(caplog, "ray: chunk %s done on"):
+        given.pop(name, None)
+    busy = {int(re.match(r"engine (\d+)", engine).group(1)) for engine in given.values()}
+    return {nodes[i] for i in busy if i in nodes}
 
 
 def test_a_node_killed_mid_sweep_costs_only_its_unfinished_episodes(cluster, tmp_path, caplog):
@@ -101,13 +114,15 @@ def test_a_node_killed_mid_sweep_costs_only_its_unfinished_episodes(cluster, tmp
     with caplog.at_level(logging.INFO, logger="vabench.sweep.ray_executor"):
         thread = threading.Thread(target=driver, daemon=True)
         thread.start()
-        # every node runs an engine, and some episodes are done: kill a worker node
+        # some episodes are done, and a worker node's engine is in the middle of a chunk: kill
+        # that node
         deadline = time.monotonic() + 150
-        while not (len(engine_nodes(caplog)) == 3 and ledger_keys(run_dir)):
+        while not (
+            ledger_keys(run_dir) and any(w.node_id in busy_engines(caplog) for w in workers)
+        ):
             assert thread.is_alive() and time.monotonic() < deadline, outcome
-            time.sleep(0.2)
-        victim = workers[0]
-        assert engine_nodes(caplog).count(victim.node_id) == 1
+            time.sleep(0.1)
+        victim = next(w for w in workers if w.node_id in busy_engines(caplog))
         recorded_at_kill = len(ledger_keys(run_dir))
         cluster.remove_node(victim)
         thread.join(timeout=240)

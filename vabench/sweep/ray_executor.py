@@ -483,6 +483,7 @@ class ClusterSweep:
                 return
             chunk = self.queue.popleft()
             best.chunks[best.actor.run_chunk.remote(chunk.name, chunk.keys)] = chunk
+            log.info("ray: chunk %s (%d episodes) to %s", chunk.name, len(chunk.keys), _host(best))
 
     def _next_item(self, engine: EngineHandle, stream: Any, chunk: Chunk) -> None:
         ray = self.ray
