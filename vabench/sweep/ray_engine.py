@@ -122,7 +122,7 @@ class EngineActor:
             while not lines.empty():
                 yield (LINE, *lines.get_nowait())
             progress = running.result()  # raises the chunk's error
-            records = [sweep.ledger.records.get(tuple(k)) for k in keys]
+            records = [sweep.ledger.records.get(k) for k in keys]
             yield (
                 DONE,
                 {

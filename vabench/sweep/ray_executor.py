@@ -294,8 +294,8 @@ class ClusterSweep:
                     continue
                 if e.starting is not None:
                     waiting[e.starting] = (e, None)
-                for stream, chunk in e.chunks.items():
-                    waiting[stream] = (e, chunk)
+                for stream, running in e.chunks.items():
+                    waiting[stream] = (e, running)
             ready: list[Any] = []
             if waiting:
                 ready = self._wait(list(waiting))
