@@ -38,7 +38,12 @@ PROGRESS_EVERY_S = 10.0
 STATUS = "status"
 """The name of a cell's status lines in its sink (`executor: processes`)."""
 STATUS_EVERY_S = 1.0
-WORKER_ENVIRONMENT = ("JAX_PLATFORMS", "XLA_PYTHON_CLIENT_PREALLOCATE", "CUDA_VISIBLE_DEVICES")
+WORKER_ENVIRONMENT = (
+    "JAX_PLATFORMS",
+    "XLA_PYTHON_CLIENT_PREALLOCATE",
+    "CUDA_VISIBLE_DEVICES",
+    "VABENCH_CORES",
+)
 """What a worker reports of its environment (the choices made for processes started on a GPU
 host, `sweep.choices`)."""
 MIN_CHUNK = 10
