@@ -33,7 +33,7 @@ from vabench.sweep.choices import (
         ({"max_tasks": 6}, 16, "processes", 6),
         ({"kind": "local"}, 16, "local", 4),
         ({"kind": "processes"}, 8, "processes", 8),
-        ({"kind": "ray"}, 8, "ray", 4),
+        ({"kind": "ray"}, 8, "ray", 16),  # chunks at once per engine actor
     ],
 )
 def test_the_executor_is_sized_from_the_cores(options, cores, kind, max_tasks):

@@ -1,6 +1,7 @@
-"""`executor: ray` on a local Ray cluster: the same sweep as the local executor, cell by cell in
-Ray workers, ends with the same records; a rerun runs nothing; a failing cell is reported
-while the other cells finish.
+"""`executor: ray` on a local Ray cluster: the same sweep as the local executor, chunk by chunk
+in engine actors, ends with the same records; a rerun runs nothing; a failing chunk is reported
+while the others finish; a driver killed mid-sweep takes its engines with it, and the same
+command resumes to one record per episode. (A node killed mid-sweep: test_sweep_cluster.py.)
 
 The model is the embedded server's `conversation_hash` policy: each episode's decisions are a
 function of its own conversation, so where and in which order episodes run cannot change them.
@@ -11,17 +12,20 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import ray
 
-from vabench.config import load_config
+from vabench.config import SweepConfigError, load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.plan import EpisodeKey, plan
-from vabench.sweep.ray_executor import run_ray
+from vabench.sweep.ray_executor import engine_plan, run_ray
 from vabench.sweep.results import Ledger
 
 CONFIG = """\
@@ -46,9 +50,10 @@ TIMING = {"wall_s", "started_at"}
 
 @pytest.fixture(scope="module")
 def cluster() -> str:
-    """A local Ray cluster for this module; its GCS address."""
+    """A local Ray cluster for this module (4 CPUs: two engines of 1 + render.workers CPUs);
+    its GCS address."""
     try:
-        context = ray.init(num_cpus=2, include_dashboard=False)
+        context = ray.init(num_cpus=4, include_dashboard=False)
     except Exception as err:  # say why, never skip: this module is the ray executor's test
         pytest.fail(f"a local Ray cluster does not start here: {type(err).__name__}: {err}")
     yield context.address_info["gcs_address"]
@@ -91,7 +96,12 @@ def test_ray_sweep_equals_the_local_one_and_a_rerun_runs_nothing(cluster, tmp_pa
     out = tmp_path / "ray"
 
     log = ray_sweep(ray_cfg, out)
-    assert "ray: cells 4/4 done (0 failed), 0 running | episodes recorded 8/8" in log, log[-4000:]
+    assert re.search(
+        r"ray: chunks 4/4 done \(0 failed\), 0 running on \d engines \| episodes "
+        r"recorded 8/8",
+        log,
+    ), log[-4000:]
+    assert "Pushing file package" in log  # the driver shipped this checkout to the engines
     mine, local = records(out), records(tmp_path / "local")
     assert len(mine) == len(local) == PLANNED
     assert mine == local
@@ -105,7 +115,7 @@ def test_ray_sweep_equals_the_local_one_and_a_rerun_runs_nothing(cluster, tmp_pa
     assert {p: p.stat().st_mtime_ns for p in out.glob("episodes/**/result.json")} == results
 
 
-def test_a_failing_cell_is_reported_and_the_other_cells_finish(cluster, tmp_path, caplog):
+def test_a_failing_chunk_is_reported_and_the_others_finish(cluster, tmp_path, caplog):
     config = load_config(
         write(tmp_path / "ray.yaml", "{kind: ray, max_tasks: 2}", tracks="[active]"),
         overrides={"tasks": ["grasp_single_cube"], "out": str(tmp_path / "out")},
@@ -120,9 +130,71 @@ def test_a_failing_cell_is_reported_and_the_other_cells_finish(cluster, tmp_path
         (k.model, k.track, k.task, k.seed, k.run) for k in keys if k.task != "no_such_task"
     )
     text = caplog.text
-    assert "cell local/active/no_such_task failed" in text and "no_such_task" in text
-    assert "1 of 2 cells failed (1 episodes not run): local/active/no_such_task" in text
+    assert "chunk local/active/no_such_task failed" in text and "no_such_task" in text
+    assert "1 chunks failed (1 episodes not run): local/active/no_such_task" in text
     assert ray.is_initialized()  # a connection the caller made is the caller's to close
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_a_killed_driver_takes_its_engines_and_the_rerun_records_each_episode_once(
+    cluster, tmp_path
+):
+    """SIGKILL of the driver mid-sweep: its engines end (Ray ends the actors a driver owns),
+    nothing is appended after it, and the same command finishes the plan, one record each."""
+    path = tmp_path / "ray.yaml"
+    path.write_text(
+        CONFIG.format(
+            tracks="[active]",
+            tasks="[grasp_single_cube]",
+            executor=f"{{kind: ray, address: '{cluster}'}}",
+        )
+        .replace("mean_s: 0.02", "mean_s: 0.4")
+        .replace("verified: 2", "verified: 6")
+    )
+    out = tmp_path / "out"
+    log = tmp_path / "driver.log"
+    command = [sys.executable, "-m", "vabench.sweep", str(path), "--out", str(out), "--plain"]
+    with open(log, "w") as f:
+        proc = subprocess.Popen(
+            [*command, "--no-report"],
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
+    try:
+        deadline = time.monotonic() + 180
+        while not (out / "results.jsonl").exists() or not (out / "results.jsonl").read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+            time.sleep(0.1)
+        engines = [
+            int(p) for p in re.findall(r"engine \d+ started: .*?'pid': (\d+)", log.read_text())
+        ]
+        assert engines
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        at_kill = (out / "results.jsonl").read_bytes()
+        deadline = time.monotonic() + 60
+        while any(alive(pid) for pid in engines):
+            assert time.monotonic() < deadline, "an engine outlived its driver"
+            time.sleep(0.2)
+        assert (out / "results.jsonl").read_bytes() == at_kill
+        assert at_kill.count(b"\n") < 6, "the sweep ended before the kill"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    ray_sweep(path, out)
+    keys = [
+        (r["task"], r["seed"])
+        for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())
+    ]
+    assert len(keys) == len(set(keys)) == 6
 
 
 WRITER = """
@@ -151,3 +223,24 @@ def test_appends_from_several_processes_stay_whole_lines_while_others_open(tmp_p
     got = Ledger.open(tmp_path).records
     planned = [("m", "active", "t", s, w) for w in range(writers) for s in range(n)]
     assert sorted(got) == sorted(planned)
+
+
+def test_ray_client_addresses_are_refused_naming_the_field(tmp_path):
+    """Ray Client cannot carry the engines' streamed records: say so before anything runs."""
+    path = write(tmp_path / "ray.yaml", "{kind: ray, address: 'ray://head:10001'}")
+    with pytest.raises(SweepConfigError) as err:
+        load_config(path)
+    assert "executor.address" in str(err.value) and "address: auto" in str(err.value)
+
+
+def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
+    config = load_config(write(tmp_path / "ray.yaml", "{kind: ray}"))  # backend c
+    cpu_engine = {"num_cpus": 2.0, "num_gpus": 0.0}  # 1 + render.workers
+    assert engine_plan(config, {"CPU": 16.0, "GPU": 8.0}) == (8, cpu_engine)
+    auto = config.model_copy(
+        update={"simulator": config.simulator.model_copy(update={"backend": "auto"})}
+    )
+    assert engine_plan(auto, {"CPU": 128.0, "GPU": 8.0}) == (8, {"num_cpus": 1.0, "num_gpus": 1.0})
+    assert engine_plan(auto, {"CPU": 5.0}) == (2, cpu_engine)  # no GPU: C MuJoCo engines
+    three = auto.model_copy(update={"executor": auto.executor.model_copy(update={"actors": 3})})
+    assert engine_plan(three, {"CPU": 128.0, "GPU": 8.0})[0] == 3

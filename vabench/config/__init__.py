@@ -20,8 +20,8 @@
     simulator: {backend: auto, impl: auto, lanes: null, window_s: 0.01}  # backend: auto | mjx | c
     render: {backend: auto, width: 1280, height: 960, quality: 95, subsampling: "420",
              workers: 2, platform: auto}   # backend: auto | warp (GPU) | gl
-    executor: {kind: auto, address: null, max_tasks: null, max_episodes: 256, in_flight: auto,
-               slots_per_task: null}       # kind: auto | local | processes | ray
+    executor: {kind: auto, address: null, actors: null, max_tasks: null, max_episodes: 256,
+               in_flight: auto, slots_per_task: null}  # kind: auto | local | processes | ray
     retries: {infrastructure_rounds: 3}
 
 `load_config` reads and checks the whole file before anything is called: unknown keys (typos),

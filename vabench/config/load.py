@@ -104,6 +104,17 @@ def _check(
     executor = doc.get("executor")
     if isinstance(executor, dict) and executor.get("address") and executor.get("kind") != "ray":
         problems.append(Problem("executor.address", "only used with kind: ray"))
+    elif isinstance(executor, dict) and str(executor.get("address")).startswith("ray://"):
+        problems.append(
+            Problem(
+                "executor.address",
+                "Ray Client (ray://) cannot carry the records the engines stream to the "
+                "driver; run the sweep on a node of the cluster with address: auto (README, "
+                '"Multi-machine sweeps")',
+            )
+        )
+    if isinstance(executor, dict) and executor.get("actors") and executor.get("kind") != "ray":
+        problems.append(Problem("executor.actors", "only used with kind: ray"))
     if problems or parsed is None:
         return None, problems
     name = parsed.name or stem

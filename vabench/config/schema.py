@@ -125,12 +125,17 @@ class ExecutorOptions(_Strict):
     """auto: `processes` on a host of 4 or more cores, else `local` (`sweep.choices`; `--dry-run`
     says which and why); local: one process; processes: cells of the plan as worker processes
     of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy embedded policies);
-    ray: cells as Ray tasks over a cluster."""
+    ray: engine actors over a Ray cluster, one per GPU (README, "Multi-machine sweeps")."""
     address: str | None = None
-    """`ray.init(address=...)`; unset starts or joins a local Ray instance (ray only)."""
+    """`ray.init(address=...)`: "auto" (the cluster this node belongs to) or "HOST:PORT" (its
+    head); unset starts or joins a local Ray instance (ray only). Ray Client ("ray://") is
+    refused: it does not carry the streamed calls the engines report through."""
+    actors: int | None = Field(default=None, ge=1)
+    """Engine actors of a Ray sweep (ray only); default: one per GPU of the cluster when the
+    physics runs on GPUs, else one per `1 + render.workers` CPUs of the cluster."""
     max_tasks: int | None = Field(default=None, ge=1)
-    """Task batches run at once in one process (local; default 4), or cells at once
-    (processes: default one per core; ray: default 4)."""
+    """Task batches run at once in one process (local; default 4), cells at once (processes:
+    default one per core), or chunks at once in one engine actor (ray: default 16)."""
     max_episodes: int = Field(default=256, ge=1)
     """The most episodes in flight at once in one process (and simulator slots per task
     batch)."""

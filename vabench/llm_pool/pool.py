@@ -25,7 +25,7 @@ import logging
 import os
 import random
 import sys
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -41,7 +41,7 @@ from vabench.llm_pool.config import (
     load_endpoints,
 )
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
-from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
+from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter, SharedLimits
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
 from vabench.llm_pool.retry import RetryDecision, backoff_delay
 from vabench.llm_pool.tokens import estimate_input_tokens
@@ -105,19 +105,30 @@ class _Call:
 class EndpointClient:
     """Calls to one endpoint; created by `LLMPool`, shared by every episode using it."""
 
-    def __init__(self, config: ModelEndpoint, api_key: SecretStr | None, rng: random.Random):
+    def __init__(
+        self,
+        config: ModelEndpoint,
+        api_key: SecretStr | None,
+        rng: random.Random,
+        shared: SharedLimits | None = None,
+    ):
         self.config = config
         self.adapter = get_adapter(config.api)
         self._transport = Transport(config, self.adapter, api_key)
         self.url = self._transport.url
         self._rng = rng
         limits = config.limits
-        self.concurrency = ConcurrencyLimiter(
-            limits.max_concurrency, adaptive=limits.adaptive, floor=limits.min_concurrency
-        )
-        self.rate = RateLimiter(
-            limits.rpm, limits.tpm, period_s=limits.period_s, burst_s=limits.burst_s
-        )
+        self._shared = shared
+        if shared is not None:  # one set of limits for several processes (limits.py)
+            self.concurrency: ConcurrencyLimiter | Any = shared.concurrency
+            self.rate: RateLimiter | Any = shared.rate
+        else:
+            self.concurrency = ConcurrencyLimiter(
+                limits.max_concurrency, adaptive=limits.adaptive, floor=limits.min_concurrency
+            )
+            self.rate = RateLimiter(
+                limits.rpm, limits.tpm, period_s=limits.period_s, burst_s=limits.burst_s
+            )
         self._counters = CallCounts()
         self._paused_until = 0.0
         self._closed = False
@@ -244,6 +255,8 @@ class EndpointClient:
             self.concurrency.on_overload(loop.time())
             if decision.retry_after is not None:  # the endpoint, not just this call, waits
                 self._paused_until = max(self._paused_until, loop.time() + decision.retry_after)
+                if self._shared is not None:  # and so does every process sharing its limits
+                    self._shared.pause(decision.retry_after)
         return decision
 
     def _refusal(self, status: int) -> tuple[bool, str]:
@@ -343,7 +356,10 @@ class LLMPool:
         *,
         environ: Mapping[str, str] | None = None,
         seed: int | None = None,
+        shared_limits: Callable[[ModelEndpoint], SharedLimits | None] | None = None,
     ):
+        """`shared_limits(endpoint)`: the limits an endpoint shares with other processes, or
+        None for its own (the default for every endpoint)."""
         environ = os.environ if environ is None else environ
         rng = random.Random(seed)
         self._clients: dict[str, EndpointClient] = {}
@@ -357,7 +373,8 @@ class LLMPool:
                         f"environment variable {ep.api_key_env} is not set (endpoint {ep.name!r})",
                     )
                 key = SecretStr(value)
-            self._clients[ep.name] = EndpointClient(ep, key, random.Random(rng.random()))
+            shared = shared_limits(ep) if shared_limits is not None else None
+            self._clients[ep.name] = EndpointClient(ep, key, random.Random(rng.random()), shared)
 
     @property
     def names(self) -> list[str]:

@@ -4,6 +4,8 @@
 
 `vabench.config` validates the YAML; `plan` lists every episode (models x tracks x tasks x
 seeds x runs) deterministically and estimates calls, tokens and cost; `runner` runs them in
-one process with every task batch concurrent, resumable from `results.jsonl`; `display`
-shows progress; at the end `vabench.report` writes the paper's tables.
+one process with every task batch concurrent, resumable from `results.jsonl`
+(`process_executor`: cells in worker processes of one host; `ray_executor`: engine actors on a
+Ray cluster, one per GPU); `display` shows progress; at the end `vabench.report` writes the
+paper's tables.
 """

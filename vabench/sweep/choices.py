@@ -41,7 +41,8 @@ PROCESSES_FROM_CORES = 4
 parent, one cell process and its render workers would share too few cores to gain."""
 LOCAL_MAX_TASKS = 4
 """Task batches at once in one process (`executor: local`)."""
-RAY_MAX_TASKS = 4
+RAY_MAX_TASKS = 16
+"""Chunks at once in one engine actor of a Ray sweep (the in-flight rule binds first)."""
 
 
 @dataclass(frozen=True)
@@ -88,8 +89,8 @@ class ExecutorChoice:
 
     @property
     def label(self) -> str:
-        unit = "task batches" if self.kind == "local" else "cells"
-        return f"{self.kind}, {self.max_tasks} {unit} at once"
+        unit = {"local": "task batches", "processes": "cells", "ray": "chunks per engine"}
+        return f"{self.kind}, {self.max_tasks} {unit[self.kind]} at once"
 
 
 def resolve_executor(options: Any, machine: Machine) -> ExecutorChoice:
@@ -153,7 +154,9 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
         in_flight = f"{min(ex.in_flight, ex.max_episodes)} episodes per process (asked for)"
     executor = resolve_executor(ex, machine)
     server = None
-    if config.embedded_models:
+    if config.embedded_models and executor.kind == "ray":
+        server = "embedded, in each engine, sized to the engine's share of its node's cores"
+    elif config.embedded_models:
         # a worker process of `processes` sizes its server to its share of the cores
         share = machine.cores if executor.kind == "local" else machine.cores // executor.max_tasks
         share = max(1, share)

@@ -1,7 +1,7 @@
 """Ctrl-C in the sweep: the first press stops it cleanly, the second at once.
 
 First press: the running executor stops (the local one cancels its episodes at their next
-await, the processes one ends its worker processes, the Ray one cancels its tasks). What was
+await, the processes one ends its worker processes, the Ray one its engine actors). What was
 recorded stays whole: a ledger line is one write of a whole line, a result.json is renamed into
 place, and an episode cut short leaves only its partial events.jsonl, which the next run sets
 aside before running it again. The command prints one line and exits with status 130. A second

@@ -2,11 +2,11 @@
 
 For many-core hosts where one sweep process is CPU-bound: C MuJoCo rollouts (one core per
 process), a CPU-heavy embedded policy (the reference servo decodes and segments every image),
-the learning stage's demonstration builds. The cells are those of `executor: ray`
-(`ray_executor.pending_cells`, one per (model, track, task)), cut into chunks so that the last
-processes to finish do not leave the others' cores idle (`chunks`); each chunk runs exactly as
-a Ray cell does (`run_cell`: a `LocalSweep` restricted to it, with its own LLM pool, embedded
-server, render workers and simulator batch), so the records equal those of the local executor.
+the learning stage's demonstration builds. The cells
+(`cells.pending_cells`, one per (model, track, task)) are cut into chunks so that the last
+processes to finish do not leave the others' cores idle (`cells.chunks`); each chunk runs in
+`cells.run_cell` (a `LocalSweep` restricted to it, with its own LLM pool, embedded server,
+render workers and simulator batch), so the records equal those of the local executor.
 At most `executor.max_tasks` run at once, each in a spawned process (never forked: the parent
 holds JAX and thread pools). A chunk that raises is logged with its traceback while the others
 run on; its episodes are listed as missing and a rerun resumes them. A worker that dies (out of
@@ -52,17 +52,18 @@ from vabench.children import (
 )
 from vabench.config import SweepConfig
 from vabench.sim_mjx.backends import GPU_SHARE, resolve
-from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
-from vabench.sweep.display import Status, Tally
-from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.ray_executor import (
+from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
     STATUS,
     WORKER_ENVIRONMENT,
     KeyTuple,
+    chunks,
     pending_cells,
     run_cell,
 )
+from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
+from vabench.sweep.display import Status, Tally
+from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import LEDGER, Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import SweepStopped
 from vabench.tasks import REGISTRY
@@ -74,9 +75,6 @@ MAX_POOL_RESTARTS = 3
 """Times the workers are started again after one of them died (each death takes down every
 chunk the pool was running: concurrent.futures marks the whole pool broken)."""
 """How often the parent redraws the display."""
-MIN_CHUNK = 10
-"""The fewest episodes a cell is cut down to: each chunk pays its own start-up."""
-CHUNKS_PER_WORKER = 3
 
 _lines: Any = None
 """In a worker: the pipe to the parent's `LedgerWriter` (set by `_init_worker`)."""
@@ -172,25 +170,6 @@ def _run_cell_in_worker(
     document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]
 ) -> dict[str, Any]:
     return run_cell(document, run_dir, keys, sink=_send)
-
-
-def chunks(
-    cells: dict[tuple[str, str, str], list[EpisodeKey]], workers: int, cost: Callable[[str], int]
-) -> list[tuple[str, list[EpisodeKey]]]:
-    """The cells cut into named chunks of nearly equal size, at least `CHUNKS_PER_WORKER` per
-    worker where the cells are large enough (never below `MIN_CHUNK` episodes), costliest
-    first (`cost(task)`: the task's step budget), so the processes finish close together. A
-    chunk is named after its cell ("model/track/task", "... part i/n" when cut)."""
-    total = sum(len(v) for v in cells.values())
-    size = max(MIN_CHUNK, math.ceil(total / (workers * CHUNKS_PER_WORKER)))
-    out = []
-    for cell, keys in cells.items():
-        parts = math.ceil(len(keys) / size)
-        step = math.ceil(len(keys) / parts)
-        for i, start in enumerate(range(0, len(keys), step), 1):
-            name = "/".join(cell) + (f" part {i}/{parts}" if parts > 1 else "")
-            out.append((name, keys[start : start + step]))
-    return sorted(out, key=lambda c: -len(c[1]) * cost(c[1][0].task))
 
 
 @contextlib.contextmanager

@@ -1,187 +1,176 @@
-"""`executor: ray`: the sweep's (model, track, task) cells as Ray tasks over a cluster.
+"""`executor: ray`: a sweep over a Ray cluster, one engine actor per GPU, the driver the only
+writer of the ledger.
 
 `run_ray(config, keys, run_dir)` is what `python -m vabench.sweep` calls for `kind: ray`:
 
-1. the planned episodes not yet in the ledger (`results.jsonl`) are grouped into cells, one per
-   (model, track, task), in plan order (`pending_cells`); when none is left nothing starts;
+1. the planned episodes not yet in results.jsonl are grouped into cells, one per (model, track,
+   task), and cut into chunks (`cells.chunks`, about `CHUNKS_PER_ENGINE` per engine, costliest
+   first); when none is left nothing starts;
 2. `ray.init(address=executor.address)` joins the cluster (`None`: the running local one if
    there is one, else a new local one; `"auto"`: the running one; `"HOST:PORT"`: that head
-   node); a driver that already called `ray.init` keeps its connection;
-3. each cell is one Ray task (`run_cell`): a worker process loads the config from its
-   `document()`, builds a `LocalSweep` restricted to the cell's episodes and runs it with
-   asyncio: its own LLM pool, embedded server (when a model uses one), render pool and
-   simulator batch, writing episode directories and ledger lines into the shared run
-   directory. Cells are disjoint, so no episode runs twice; the ledger's appends are whole
-   lines under a file lock (`vabench.sweep.results`), so several writers never mix lines;
-4. at most `executor.max_tasks` cells (default 4) are in flight at once; each claims 1 CPU
-   from Ray's scheduler (its render workers, `render.workers` processes, are not counted)
-   and, for the `mjx` or `auto` backend on a cluster with GPUs, 1 GPU;
-5. the driver logs a progress line when a cell ends and every `PROGRESS_EVERY_S` seconds
-   (cells done / total, episodes in `results.jsonl` / planned); a cell that raises is logged
-   with its cell, host and remote traceback, and the other cells still run to the end;
-6. the ledger is read again and its records returned, `{(model, track, task, seed, run):
-   record}`; episodes of failed cells are simply missing (the command lists them, and running
-   it again resumes them).
+   node; Ray Client's `ray://` is refused by the config, as it cannot carry streaming actor
+   calls); a driver that already called `ray.init` keeps its connection;
+3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes): by default
+   one per GPU of the cluster when the physics runs on GPUs (`simulator.backend` mjx, or auto
+   on a cluster with GPUs), each claiming `num_gpus=1` and running MuJoCo Warp and Warp's
+   renderer for its chunks; otherwise one per `1 + render.workers` CPUs of the cluster, each
+   claiming that many CPUs (C MuJoCo and the GL render workers: CPU-only nodes take these).
+   `executor.actors` sets the number. When a model is not served by the embedded server, a
+   limit board (`sweep.limiter.LimiterActor`, on the driver's node) keeps its RPM, TPM,
+   concurrency and Retry-After pause for every engine at once;
+4. the driver hands out chunks as engines have room (pull): a started engine is given the next
+   chunk, the least loaded first, while its unfinished episodes are fewer than twice the
+   in-flight limit it last reported (and it runs fewer than `executor.max_tasks` chunks), so a
+   slow GPU or node is given less and holds nobody up;
+5. each engine streams a chunk's ledger lines back as its episodes end; the driver appends them
+   (`Ledger.append_line`, the only writer of results.jsonl and infrastructure.jsonl); a second
+   record of an episode is refused and kept in results.duplicates.jsonl;
+6. an engine that dies (its node lost, killed, out of memory) costs only its unfinished
+   episodes: those of its chunks without a record go back to the front of the queue, the limit
+   board frees its slots, and another engine is started in its place (at most
+   `MAX_ENGINE_RESTARTS` in a sweep); an episode it finished without reporting it is adopted
+   from its result.json where its chunk runs again;
+7. a chunk that raises is logged with its traceback and the others run on (its episodes are
+   listed as missing; the next invocation resumes them); a chunk stopped by an endpoint that
+   refuses the sweep's requests (`LocalSweep.stopped`) ends the handing out: chunks in flight
+   finish, and `run_ray` raises `SweepStopped`;
+8. the driver logs a line when an engine starts or dies, when a chunk ends and every
+   `PROGRESS_EVERY_S`; Ctrl-C ends every engine at once (no episode goes on calling a model);
+9. the ledger's records are returned, `{(model, track, task, seed, run): record}`.
 
-The run directory must be one directory that every node sees at the same absolute path (an
-NFS or other shared mount): `run_cell` refuses to start where it cannot see the plan the
-driver wrote there. API-key variables are read on the worker's node (they must be set in the
-environment of each node's Ray processes); a config that does not load there fails the cell,
-naming the node.
+A killed driver takes its engines with it (Ray ends the actors a driver owns when the driver
+exits): nothing writes the ledger after it, and the same command resumes from results.jsonl,
+adopting the result.json of episodes that finished in the instant before.
 
-Ray retries a cell whose worker process died (Ray's default `max_retries`); the retry resumes
-from the ledger like a rerun of the command does. Application errors are not retried. A cell
-stopped by an endpoint that refuses the sweep's requests (`LocalSweep.stopped`) ends the
-submitting: the cells in flight finish, none starts, and `run_ray` raises `SweepStopped`.
+The run directory must be one that every node sees at the same absolute path (a shared mount):
+engines write the episodes' directories and the learning stage's summaries there, and refuse
+to start where they cannot see the plan. The project is shipped from the driver's checkout
+when `run_ray` connects to the cluster itself (`project_runtime_env`: the job's `working_dir`,
+i.e. vabench, assets and configs, without run directories or caches); the nodes need the same
+Python packages. API keys travel from the
+driver's environment to the engines' in memory (`ray_engine`), never in a file.
 """
 
 from __future__ import annotations
 
-import asyncio
+import collections
+import contextlib
 import logging
 import os
-import socket
-import tempfile
 import time
-from collections.abc import Callable, Iterable, Sequence
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from vabench.config import SweepConfig, SweepConfigError, load_config
+import vabench
+from vabench.config import SweepConfig
+from vabench.sweep.cells import PROGRESS_EVERY_S, KeyTuple, chunks, pending_cells
 from vabench.sweep.choices import RAY_MAX_TASKS
-from vabench.sweep.display import Status, Tally, status_of
+from vabench.sweep.display import Status, Tally
+from vabench.sweep.limiter import shared_endpoints
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.results import LEDGER, Ledger, Sink, ledger_key
-from vabench.sweep.runner import LocalSweep, SweepProgress, SweepStopped
+from vabench.sweep.ray_engine import DONE, LINE
+from vabench.sweep.results import LEDGER, Ledger, LedgerError, ledger_key
+from vabench.sweep.runner import SweepStopped
+from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
 
-Cell = tuple[str, str, str]
-"""(model, track, task)."""
-KeyTuple = tuple[str, str, str, int, int]
-"""(model, track, task, seed, run), as the ledger keys its records."""
-
-PROGRESS_EVERY_S = 10.0
-"""Seconds between log lines while no cell ends."""
 TICK_S = 1.0
-"""Seconds between display updates."""
-STATUS = "status"
-"""The name of a cell's status lines in its sink (`executor: processes`)."""
-STATUS_EVERY_S = 1.0
-WORKER_ENVIRONMENT = (
-    "JAX_PLATFORMS",
-    "XLA_PYTHON_CLIENT_PREALLOCATE",
-    "CUDA_VISIBLE_DEVICES",
-    "VABENCH_CORES",
-)
-"""What a cell reports of its environment (the choices made for processes started on a GPU
-host, `sweep.choices`)."""
+"""Seconds between display updates (and the longest the driver waits for an engine)."""
+CHUNKS_PER_ENGINE = 8
+"""Chunks per engine the plan is cut into: enough that engines finish close together."""
+MAX_ENGINE_RESTARTS = 16
+"""Engines started in place of dead ones, in one invocation."""
+ENGINE_START_TIMEOUT_S = 900.0
+"""How long the driver waits for an engine while none runs (a node may download the project,
+compile, build demonstrations) before it gives up, listing what did not run."""
+SHIP_EXCLUDES = [
+    ".git",
+    ".venv",
+    "runs",
+    ".cache",
+    "__pycache__",
+    "*.egg-info",
+    ".pytest_cache",
+    ".ruff_cache",
+    ".mypy_cache",
+]
 
 
-def pending_cells(
-    keys: Iterable[EpisodeKey], finished: Iterable[KeyTuple]
-) -> dict[Cell, list[EpisodeKey]]:
-    """The planned episodes without a ledger record, grouped by (model, track, task), cells
-    and episodes in plan order. Cells with nothing left are absent."""
-    done = set(finished)
-    cells: dict[Cell, list[EpisodeKey]] = {}
-    for k in keys:
-        if ledger_key(k) not in done:
-            cells.setdefault((k.model, k.track, k.task), []).append(k)
-    return cells
+def project_runtime_env() -> dict[str, Any]:
+    """Ray's runtime environment that ships this checkout to the engines (vabench, assets,
+    configs), or nothing for an installed vabench (then every node has its own)."""
+    root = Path(vabench.__file__).resolve().parents[1]
+    if not ((root / "pyproject.toml").is_file() and (root / "assets").is_dir()):
+        return {}
+    return {"working_dir": str(root), "excludes": SHIP_EXCLUDES}
 
 
-def cell_resources(config: SweepConfig, cluster_gpus: float) -> dict[str, float]:
-    """What one cell asks Ray's scheduler for (see the module docstring, 4)."""
-    # backend auto picks Warp on a node with a GPU: claim one there as mjx does
-    gpus = 1.0 if config.simulator.backend != "c" and cluster_gpus >= 1 else 0.0
-    return {"num_cpus": 1.0, "num_gpus": gpus}
-
-
-def run_cell(
-    document: dict[str, Any],
-    run_dir: str,
-    keys: Sequence[KeyTuple],
-    sink: Sink | None = None,
-) -> dict[str, Any]:
-    """One cell, in a Ray worker: the episodes `keys` (all of one (model, track, task)) of the
-    config `document` (a `SweepConfig.document()`) run by a `LocalSweep` into `run_dir`.
-    Returns counts for the driver's log: host, episodes (run here), recorded (the cell's
-    records in the ledger now), unscored, retried, and the environment it ran in (JAX's
-    platform, the variables of `WORKER_ENVIRONMENT`). With `sink`, ledger lines go there
-    instead of the files (`executor: processes`: the parent writes them), with a `STATUS` line
-    every second for the parent's display."""
-    host = socket.gethostname()
-    run = Path(run_dir)
-    if not (run / "plan.json").exists():
-        raise RuntimeError(
-            f"{run}: no plan.json here on {host}: executor: ray needs a run directory that "
-            "every node sees at the same path (a shared mount)"
-        )
-    with tempfile.TemporaryDirectory(prefix="vabench-cell-") as tmp:
-        path = Path(tmp) / "sweep.yaml"
-        path.write_text(yaml.safe_dump(document, sort_keys=False), encoding="utf-8")
-        try:
-            config = load_config(path)
-        except SweepConfigError as err:
-            raise RuntimeError(
-                f"the sweep config does not load on {host}:\n"
-                + str(err).replace(str(path), str(run / "sweep.yaml"))
-            ) from None
-    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, ledger_sink=sink)
-    model, track, task = keys[0][:3]
-    cell = f"{model}/{track}/{task}"
-    report = None if sink is None else (lambda status: sink(STATUS, {"cell": cell, **status}))
-    counts = asyncio.run(_run_reporting(sweep, report)).cells[(model, track, task)]
-    import jax
-
-    return {
-        "host": host,
-        "episodes": len(keys),
-        "recorded": counts.done,
-        "unscored": counts.unscored,
-        "retried": counts.retried,
-        "stopped": sweep.stopped,
-        "jax": jax.default_backend(),
-        "environment": {k: os.environ.get(k) for k in WORKER_ENVIRONMENT},
+def engine_plan(config: SweepConfig, cluster: Mapping[str, float]) -> tuple[int, dict[str, float]]:
+    """(how many engines, what each claims from Ray's scheduler) on a cluster of `cluster`
+    resources (see the module docstring, 3)."""
+    asked = config.executor.actors
+    gpus = int(cluster.get("GPU", 0))
+    if config.simulator.backend != "c" and gpus >= 1:
+        return asked or gpus, {"num_cpus": 1.0, "num_gpus": 1.0}
+    cpus = 1 + config.render.workers
+    return asked or max(1, int(cluster.get("CPU", 1)) // cpus), {
+        "num_cpus": float(cpus),
+        "num_gpus": 0.0,
     }
 
 
-async def _run_reporting(
-    sweep: LocalSweep, report: Callable[[dict[str, Any]], None] | None
-) -> SweepProgress:
-    """`sweep.run()`, with `report(status)` every `STATUS_EVERY_S` and once at the end."""
-    if report is None:
-        return await sweep.run()
-
-    async def every_second() -> None:
-        while True:
-            report(_cell_status(sweep.progress, finished=False))
-            await asyncio.sleep(STATUS_EVERY_S)
-
-    ticker = asyncio.create_task(every_second())
-    try:
-        return await sweep.run()
-    finally:
-        ticker.cancel()
-        report(_cell_status(sweep.progress, finished=True))
+def engine_environment(config: SweepConfig, cores: int) -> dict[str, str]:
+    """What an engine's process is started with: the config's API keys from this process's
+    environment, and `VABENCH_CORES` (the engine's share of its node, which sizes the embedded
+    server's policy processes)."""
+    env = {"VABENCH_CORES": str(max(1, cores))}
+    for model in config.models:
+        name = model.api_key_env
+        if name and os.environ.get(name):
+            env[name] = os.environ[name]
+    return env
 
 
-def _cell_status(progress: SweepProgress, finished: bool) -> dict[str, Any]:
-    status = status_of(progress)
-    return {
-        "finished": finished,
-        "running": status.total().running,
-        "in_flight": status.in_flight or 0,
-        "limit": status.limit or 0,
-        "reason": status.reason or "",
-        "calls": status.calls,
-        "tokens": status.tokens,
-        "cost": status.cost,
-        "calls_in_flight": status.calls_in_flight,
-    }
+@dataclass
+class Chunk:
+    name: str
+    keys: list[KeyTuple]
+    cost: int
+    """Of one episode (the task's step budget)."""
+
+
+@dataclass
+class EngineHandle:
+    """The driver's view of one engine actor."""
+
+    index: int
+    actor: Any
+    holder: str
+    starting: Any
+    """The `start()` reference until the engine has started."""
+    info: dict[str, Any] = field(default_factory=dict)
+    chunks: dict[Any, Chunk] = field(default_factory=dict)
+    """Chunks running there, by their stream."""
+    status: dict[str, Any] = field(default_factory=dict)
+    status_ref: Any = None
+    dead: bool = False
+
+    @property
+    def ready(self) -> bool:
+        return self.starting is None and not self.dead
+
+    def unfinished(self, records: Mapping[KeyTuple, Any]) -> tuple[int, int]:
+        """(episodes given and not recorded, their cost)."""
+        n = cost = 0
+        for chunk in self.chunks.values():
+            left = sum(k not in records for k in chunk.keys)
+            n += left
+            cost += left * chunk.cost
+        return n, cost
 
 
 def run_ray(
@@ -190,10 +179,10 @@ def run_ray(
     run_dir: Path,
     on_status: Callable[[Status], None] | None = None,
 ) -> dict[KeyTuple, dict[str, Any]]:
-    """Run the pending episodes of `keys` as Ray tasks, one per cell, and return the ledger's
-    records afterwards (see the module docstring). `on_status` is called about once a second
-    with the ledger's counts, read as it grows."""
-    run_dir = Path(run_dir).resolve()  # workers may start elsewhere: send an absolute path
+    """Run the pending episodes of `keys` on the engines of a Ray cluster and return the
+    ledger's records afterwards (see the module docstring). `on_status` is called about once a
+    second."""
+    run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
         log.info("ray: every planned episode is already in %s; nothing to run", LEDGER)
@@ -202,107 +191,411 @@ def run_ray(
     import ray  # the `ray` extra; only this executor needs it
 
     started_here = not ray.is_initialized()
-    if started_here:
-        ray.init(address=config.executor.address)
-    stopped: list[str] = []
+    if started_here:  # (a connection made by the caller keeps its own runtime environment)
+        ray.init(address=config.executor.address, runtime_env=project_runtime_env() or None)
     try:
-        tally = Tally(run_dir, keys)
-        failures = _run_cells(ray, config, cells, tally, run_dir, stopped, on_status)
+        sweep = ClusterSweep(ray, config, keys, run_dir, cells, on_status)
+        sweep.run()
     finally:
         if started_here:
             ray.shutdown()
-    if failures:
-        lost = sum(len(cells[c]) for c in failures)
+    if sweep.failures:
+        lost = sum(len(c.keys) for c in sweep.failures)
         log.error(
-            "ray: %d of %d cells failed (%d episodes not run): %s",
-            len(failures),
-            len(cells),
+            "ray: %d chunks failed (%d episodes not run): %s",
+            len(sweep.failures),
             lost,
-            ", ".join("/".join(c) for c in failures),
+            ", ".join(c.name for c in sweep.failures),
         )
-    if stopped:
-        raise SweepStopped(stopped[0])
+    if sweep.stopped:
+        raise SweepStopped(sweep.stopped[0])
     return Ledger.open(run_dir).records
 
 
-def _run_cells(
-    ray: Any,
-    config: SweepConfig,
-    cells: dict[Cell, list[EpisodeKey]],
-    tally: Tally,
-    run_dir: Path,
-    stopped: list[str],
-    on_status: Callable[[Status], None] | None,
-) -> dict[Cell, BaseException]:
-    """Submit the cells, at most `executor.max_tasks` in flight, and wait for all of them;
-    returns the failed cells with their errors. A cell stopped by a refusing endpoint
-    (appended to `stopped`) ends the submitting: cells in flight finish, no new one starts.
-    Interrupted (Ctrl-C), the cells in flight are cancelled, their workers ended."""
-    resources = cell_resources(config, ray.cluster_resources().get("GPU", 0))
-    remote = ray.remote(run_cell).options(**resources)
-    document = config.document()
-    limit = config.executor.max_tasks or RAY_MAX_TASKS
-    log.info(
-        "ray: %d cells (%d episodes) on a cluster of %s; %d cells at once, each %s",
-        len(cells),
-        sum(len(v) for v in cells.values()),
-        {k: v for k, v in ray.cluster_resources().items() if k in ("CPU", "GPU")},
-        limit,
-        resources,
-    )
-    queue = list(cells)
-    in_flight: dict[Any, Cell] = {}
-    failures: dict[Cell, BaseException] = {}
-    done = 0
-    last_log = time.monotonic()
-    try:
-        while queue or in_flight:
-            while queue and len(in_flight) < limit and not stopped:
-                cell = queue.pop(0)
-                keys = [ledger_key(k) for k in cells[cell]]
-                in_flight[remote.remote(document, str(run_dir), keys)] = cell
-            ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=TICK_S)
-            done += _collect(ray, ready, in_flight, failures, stopped, queue)
-            tally.refresh()
-            if on_status is not None:
-                on_status(tally.status())
-            if ready or time.monotonic() - last_log >= PROGRESS_EVERY_S:
-                last_log = time.monotonic()
-                log.info(
-                    "ray: cells %d/%d done (%d failed), %d running | episodes recorded %d/%d",
-                    done,
-                    len(cells),
-                    len(failures),
-                    len(in_flight),
-                    tally.status().total().done,
-                    len(tally.planned),
-                )
-    except BaseException:  # Ctrl-C: no cell of this sweep goes on calling the model
-        for ref in in_flight:
-            ray.cancel(ref, force=True)
-        raise
-    return failures
+class ClusterSweep:
+    """The driver's loop (see the module docstring, 3-8)."""
 
+    def __init__(
+        self,
+        ray: Any,
+        config: SweepConfig,
+        keys: Sequence[EpisodeKey],
+        run_dir: Path,
+        cells: dict[tuple[str, str, str], list[EpisodeKey]],
+        on_status: Callable[[Status], None] | None,
+    ):
+        from vabench.sweep.ray_engine import EngineActor
 
-def _collect(
-    ray: Any,
-    ready: list[Any],
-    in_flight: dict[Any, Cell],
-    failures: dict[Cell, BaseException],
-    stopped: list[str],
-    queue: list[Cell],
-) -> int:
-    """Take the results of the `ready` cells; returns how many ended."""
-    for ref in ready:
-        cell = in_flight.pop(ref)
+        self.ray = ray
+        self.config = config
+        self.run_dir = run_dir
+        self.on_status = on_status
+        self.ledger = Ledger.open(run_dir)  # the only writer
+        self.tally = Tally(run_dir, keys)
+        cluster = ray.cluster_resources()
+        self.engines_wanted, self.resources = engine_plan(config, cluster)
+        cores = int(self.resources["num_cpus"])
+        if self.resources["num_gpus"]:
+            cores = max(1, int(cluster.get("CPU", 1)) // max(1, int(cluster.get("GPU", 1))))
+        self.environ = engine_environment(config, cores)
+        # a task the registry lacks fails in its chunk
+        cost = lambda task: config.budget(task) if task in REGISTRY else 1  # noqa: E731
+        parts = chunks(cells, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
+        self.queue: collections.deque[Chunk] = collections.deque(
+            Chunk(name, [ledger_key(k) for k in part], cost(part[0].task)) for name, part in parts
+        )
+        self.total = len(self.queue)
+        self.done = 0
+        self.failures: list[Chunk] = []
+        self.stopped: list[str] = []
+        self.engines: list[EngineHandle] = []
+        self.restarts = 0
+        self.remote = ray.remote(EngineActor)
+        self.document = config.document()
+        self.shared = sorted(shared_endpoints(config.models, config.embedded_models))
+        self.limiter: Any = None
+        self.max_chunks = config.executor.max_tasks or RAY_MAX_TASKS
+        self._changed = False
+        """A chunk ended or an engine came or went since the last progress line."""
+        log.info(
+            "ray: %d chunks (%d episodes) on a cluster of %s: %d engines, each %s%s",
+            self.total,
+            sum(len(c.keys) for c in self.queue),
+            {k: v for k, v in cluster.items() if k in ("CPU", "GPU")},
+            self.engines_wanted,
+            self.resources,
+            f"; limits of {', '.join(self.shared)} kept by one board" if self.shared else "",
+        )
+
+    # -- the loop ------------------------------------------------------------------------------
+    def run(self) -> None:
+        if not self._fits_a_node():
+            self.failures.extend(self.queue)
+            self.queue.clear()
+            return
+        finished = False
         try:
-            summary = ray.get(ref)
-        except Exception as err:  # the cell's own error, wrapped by Ray with its traceback
-            failures[cell] = err
-            log.error("ray: cell %s failed:\n%s", "/".join(cell), err)
-        else:
-            log.info("ray: cell %s done on %s: %s", "/".join(cell), summary["host"], summary)
-            if summary.get("stopped"):
-                stopped.append(summary["stopped"])
-                queue.clear()
-    return len(ready)
+            self._start_limiter()
+            for _ in range(self.engines_wanted):
+                self._start_engine()
+            self._loop()
+            finished = True
+        finally:
+            self._end(gracefully=finished)
+
+    def _loop(self) -> None:
+        last_log = time.monotonic()
+        idle_since = time.monotonic()
+        while self.queue or any(e.chunks for e in self.engines):
+            self._hand_out()
+            waiting: dict[Any, tuple[EngineHandle, Chunk | None]] = {}
+            for e in self.engines:
+                if e.dead:
+                    continue
+                if e.starting is not None:
+                    waiting[e.starting] = (e, None)
+                for stream, running in e.chunks.items():
+                    waiting[stream] = (e, running)
+            ready: list[Any] = []
+            if waiting:
+                ready = self._wait(list(waiting))
+            else:
+                time.sleep(TICK_S)
+            for ref in ready:
+                engine, chunk = waiting[ref]
+                if engine.dead:  # died while handling an earlier one of this batch
+                    continue
+                if chunk is None:
+                    self._started(engine)
+                else:
+                    self._next_item(engine, ref, chunk)
+            self._poll_statuses()
+            if any(e.ready for e in self.engines):
+                idle_since = time.monotonic()
+            elif not self._can_start() or time.monotonic() - idle_since > ENGINE_START_TIMEOUT_S:
+                self._give_up()
+            self.tally.refresh()
+            if self.on_status is not None:
+                self.on_status(self.status())
+            if self._changed or time.monotonic() - last_log >= PROGRESS_EVERY_S:
+                last_log, self._changed = time.monotonic(), False
+                self._log_progress()
+
+    def _wait(self, refs: list[Any]) -> list[Any]:
+        """The references of `refs` ready within `TICK_S` (all that are, once one is)."""
+        try:
+            ready, _ = self.ray.wait(refs, num_returns=1, timeout=TICK_S)
+            if ready:
+                ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=0)
+        except SystemError as err:  # Ctrl-C's `Interrupted`, raised inside Ray's own code
+            if isinstance(err.__cause__, Exception):
+                raise err.__cause__ from None
+            raise
+        return ready
+
+    def _log_progress(self) -> None:
+        log.info(
+            "ray: chunks %d/%d done (%d failed), %d running on %d engines | episodes recorded "
+            "%d/%d",
+            self.done,
+            self.total,
+            len(self.failures),
+            sum(len(e.chunks) for e in self.engines),
+            sum(e.ready for e in self.engines),
+            self.tally.status().total().done,
+            len(self.tally.planned),
+        )
+
+    # -- engines -------------------------------------------------------------------------------
+    def _start_limiter(self) -> None:
+        if not self.shared:
+            return
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        from vabench.sweep.limiter import LimiterActor
+
+        here = self.ray.get_runtime_context().get_node_id()
+        limits = shared_endpoints(self.config.models, self.config.embedded_models)
+        self.limiter = (
+            self.ray.remote(LimiterActor)
+            .options(
+                num_cpus=0,
+                max_concurrency=10_000,
+                scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=False),
+            )
+            .remote(limits)
+        )
+
+    def _fits_a_node(self) -> bool:
+        """Whether some node of the cluster has what one engine claims (else say so: the
+        engines would wait for resources that never come)."""
+        wanted = {"CPU": self.resources["num_cpus"], "GPU": self.resources["num_gpus"]}
+        nodes = [n["Resources"] for n in self.ray.nodes() if n.get("Alive")]
+        if any(all(node.get(k, 0) >= v for k, v in wanted.items() if v) for node in nodes):
+            return True
+        log.error(
+            "ray: no node of the cluster has what one engine claims (%s; nodes: %s): lower "
+            "render.workers (a CPU engine claims 1 + render.workers CPUs) or add such a node",
+            self.resources,
+            [{k: v for k, v in node.items() if k in ("CPU", "GPU")} for node in nodes],
+        )
+        return False
+
+    def _start_engine(self) -> None:
+        index = len(self.engines)
+        holder = f"engine-{index}-{uuid.uuid4().hex[:8]}"
+        actor = self.remote.options(
+            **self.resources,
+            scheduling_strategy="SPREAD",
+            max_restarts=0,
+        ).remote(
+            self.document,
+            str(self.run_dir),
+            self.environ,
+            self.limiter,
+            self.shared,
+            holder,
+        )
+        self.engines.append(EngineHandle(index, actor, holder, actor.start.remote()))
+
+    def _can_start(self) -> bool:
+        return any(e.starting is not None and not e.dead for e in self.engines)
+
+    def _started(self, engine: EngineHandle) -> None:
+        try:
+            engine.info = self.ray.get(engine.starting)
+        except Exception as err:  # its config does not load there, or it died starting
+            self._lost(engine, err)
+            return
+        engine.starting = None
+        engine.status = {"limit": engine.info.get("limit", 1)}
+        self._changed = True
+        log.info("ray: engine %d started: %s", engine.index, engine.info)
+
+    def _lost(self, engine: EngineHandle, err: BaseException) -> None:
+        """`engine` died: its chunks' episodes without a record go back to the queue's front,
+        the limit board frees what it held, and another engine takes its place."""
+        engine.dead = True
+        self._changed = True
+        requeued = 0
+        for chunk in reversed(list(engine.chunks.values())):
+            left = [k for k in chunk.keys if k not in self.ledger.records]
+            if left:
+                name = chunk.name if chunk.name.endswith(" (again)") else f"{chunk.name} (again)"
+                self.queue.appendleft(Chunk(name, left, chunk.cost))
+                self.total += 1
+                requeued += len(left)
+            self.done += 1  # this try of the chunk has ended
+        engine.chunks.clear()
+        with contextlib.suppress(Exception):
+            self.ray.kill(engine.actor, no_restart=True)
+        if self.limiter is not None:
+            self.limiter.forget.remote(engine.holder)
+        # an engine that could not even be created (its config does not load on that node, no
+        # run directory there) would fail the same way again: not replaced
+        restart = self.restarts < MAX_ENGINE_RESTARTS and not _in_creation(err)
+        log.warning(
+            "ray: engine %d (%s) is gone: %s; %d unfinished episodes go back to the queue%s",
+            engine.index,
+            engine.info.get("host", "not started"),
+            _why(err),
+            requeued,
+            "; starting another engine" if restart else "; no engine is started in its place",
+        )
+        if restart:
+            self.restarts += 1
+            self._start_engine()
+
+    def _give_up(self) -> None:
+        """No engine runs and none will: what is left is not run this time."""
+        log.error(
+            "ray: no engine is running and %s (each claims %s); %d chunks not run",
+            f"none has started in {ENGINE_START_TIMEOUT_S:.0f} s"
+            if self._can_start()
+            else "none is starting",
+            self.resources,
+            len(self.queue),
+        )
+        self.failures.extend(self.queue)
+        self.queue.clear()
+        for e in self.engines:
+            if not e.dead and e.starting is not None:
+                e.dead = True
+                with contextlib.suppress(Exception):
+                    self.ray.kill(e.actor, no_restart=True)
+
+    # -- chunks --------------------------------------------------------------------------------
+    def _hand_out(self) -> None:
+        """Give the queue's chunks to engines with room, the least loaded first."""
+        records = self.ledger.records
+        while self.queue and not self.stopped:
+            best, best_cost = None, 0
+            for e in self.engines:
+                if not e.ready or len(e.chunks) >= self.max_chunks:
+                    continue
+                left, cost = e.unfinished(records)
+                room = 2 * max(1, int(e.status.get("limit", 1)))
+                if e.chunks and left >= room:
+                    continue
+                if best is None or cost < best_cost:
+                    best, best_cost = e, cost
+            if best is None:
+                return
+            chunk = self.queue.popleft()
+            best.chunks[best.actor.run_chunk.remote(chunk.name, chunk.keys)] = chunk
+            log.info("ray: chunk %s (%d episodes) to %s", chunk.name, len(chunk.keys), _host(best))
+
+    def _next_item(self, engine: EngineHandle, stream: Any, chunk: Chunk) -> None:
+        ray = self.ray
+        try:
+            ref = next(stream)
+            item = ray.get(ref)
+        except StopIteration:  # ended without its summary (never, but not a reason to hang)
+            engine.chunks.pop(stream, None)
+            self.done += 1
+            self._changed = True
+            return
+        except ray.exceptions.RayTaskError as err:  # the chunk's own error
+            engine.chunks.pop(stream, None)
+            self.done += 1
+            self._changed = True
+            self.failures.append(chunk)
+            log.error("ray: chunk %s failed on %s:\n%s", chunk.name, _host(engine), err)
+            return
+        except ray.exceptions.RayError as err:  # the engine (or its node) is gone
+            self._lost(engine, err)
+            return
+        if item[0] == LINE:
+            self._append(item[1], item[2])
+        elif item[0] == DONE:
+            engine.chunks.pop(stream, None)
+            self.done += 1
+            self._changed = True
+            summary = item[1]
+            log.info("ray: chunk %s done on %s: %s", chunk.name, _host(engine), summary)
+            if summary.get("stopped") and not self.stopped:
+                self.stopped.append(summary["stopped"])
+                self.queue.clear()
+
+    def _append(self, name: str, record: dict[str, Any]) -> None:
+        try:
+            self.ledger.append_line(name, record)
+        except LedgerError as err:  # an episode reported twice (an engine taken for dead)
+            log.warning("ray: %s; kept in results.duplicates.jsonl", err)
+            self.ledger.add_duplicate(record)
+
+    # -- status --------------------------------------------------------------------------------
+    def _poll_statuses(self) -> None:
+        ray = self.ray
+        for e in self.engines:
+            if not e.ready:
+                continue
+            if e.status_ref is None:
+                e.status_ref = e.actor.status.remote()
+                continue
+            done, _ = ray.wait([e.status_ref], timeout=0)
+            if not done:
+                continue
+            ref, e.status_ref = e.status_ref, None
+            try:
+                e.status = ray.get(ref)
+            except ray.exceptions.RayError as err:
+                self._lost(e, err)
+
+    def status(self) -> Status:
+        """The ledger's counts with what the engines report (running, in flight, spend)."""
+        status = self.tally.status()
+        reports = [e.status for e in self.engines if "calls" in e.status]
+        live = [e.status for e in self.engines if e.ready and "calls" in e.status]
+        for r in live:
+            for name, n in r["running"].items():
+                model, track = name.split("/")
+                if (model, track) in status.tracks:
+                    status.tracks[(model, track)].running += n
+        if reports:
+            status.calls = sum(r["calls"] for r in reports)
+            status.tokens = sum(r["tokens"] for r in reports)
+            status.cost = sum(r["cost"] for r in reports)
+        if live:
+            status.calls_in_flight = sum(r["calls_in_flight"] for r in live)
+            status.in_flight = sum(r["in_flight"] for r in live)
+            status.limit = sum(r["limit"] for r in live)
+            status.reason = (
+                live[0]["reason"]
+                if len(live) == 1
+                else f"{len(live)} engines, e.g. {live[0]['reason']}"
+            )
+        return status
+
+    # -- the end -------------------------------------------------------------------------------
+    def _end(self, gracefully: bool) -> None:
+        """Close the engines (or, interrupted, end them at once) and the limit board."""
+        ray = self.ray
+        live = [e for e in self.engines if not e.dead]
+        if gracefully:
+            closing = [e.actor.close.remote() for e in live if e.starting is None]
+            with contextlib.suppress(Exception):
+                ray.wait(closing, num_returns=len(closing), timeout=60)
+        for e in live:
+            with contextlib.suppress(Exception):
+                ray.kill(e.actor, no_restart=True)
+        if self.limiter is not None:
+            with contextlib.suppress(Exception):
+                ray.kill(self.limiter, no_restart=True)
+
+
+def _host(engine: EngineHandle) -> str:
+    return f"engine {engine.index} ({engine.info.get('host', '?')})"
+
+
+def _in_creation(err: BaseException) -> bool:
+    return "error raised in its creation task" in str(err)
+
+
+def _why(err: BaseException) -> str:
+    """One line: the error an engine's creation raised (the last line of Ray's report), else
+    the first line of Ray's."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    if not lines:
+        return type(err).__name__
+    return lines[-1] if _in_creation(err) else f"{type(err).__name__}: {lines[0]}"

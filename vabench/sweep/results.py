@@ -14,13 +14,14 @@ it on resume instead of running the episode again. A kill during 2 leaves a trun
 line: `open()` cuts it off (and the result.json adopts it again). So every planned episode ends
 with exactly one line, never zero, never two.
 
-Several processes, on several machines (`executor: ray`), append to the same logs: each append
+Several processes may append to the same logs: each append
 is one `write()` of the whole line on an `O_APPEND` descriptor, under an exclusive POSIX record
 lock on the file (fcntl, which NFS honours across clients, unlike `O_APPEND` alone), and
 `open()` reads and cuts under the same lock, so a line another process is writing is never
-taken for a cut one. With `executor: processes` there is one writer: the cell workers hand
-their lines to the parent (`Ledger(sink=...)`), which appends them (`append_line`), so a worker
-that outlives a killed parent cannot add a line.
+taken for a cut one. With `executor: processes` and `executor: ray` there is one writer: the
+cell workers (engine actors) hand their lines to the parent (the driver) through
+`Ledger(sink=...)`, which appends them (`append_line`), so a worker that outlives a killed
+parent cannot add a line.
 
 A second line for an episode already in the ledger (two writers raced: a worker of a killed
 sweep and its resumption) is not fatal: `open()` keeps the first, moves the others to
@@ -127,6 +128,11 @@ class Ledger:
             self.infra_attempts[key_of(record)] += 1
         else:
             raise ValueError(f"unknown log {name!r}")
+
+    def add_duplicate(self, record: dict[str, Any]) -> None:
+        """Keep a second record of an episode out of the ledger: in results.duplicates.jsonl,
+        whose spend the report still bills (`executor: ray`, whose driver refuses it)."""
+        self._append(DUPLICATES, record)
 
     def add(self, track: str, episode_dir: str, result: EpisodeResult) -> dict[str, Any]:
         record = {

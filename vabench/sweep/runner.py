@@ -1,7 +1,9 @@
 """Running a planned sweep in one process: every task batch of the plan concurrently, resumable.
 
 One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
-it, one render pool, and up to `executor.max_tasks` task batches at once; each batch serves
+it, one render pool (together, with the in-flight gate below: the `Engine` that `open_engine`
+opens, which a Ray engine actor keeps open for every chunk it runs), and up to
+`executor.max_tasks` task batches at once; each batch serves
 every model and track of its task (the simulator does not care who decides). Episodes in
 flight are bounded per batch by its slots and overall by the `inflight.InFlight` gate: a limit
 that adapts to what the simulator, renderer and endpoints sustain (`executor.in_flight: auto`),
@@ -30,7 +32,7 @@ import asyncio
 import contextlib
 import logging
 from collections import defaultdict
-from collections.abc import Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -71,6 +73,62 @@ class SweepProgress:
 
     def total(self) -> Counts:
         return Counts.total(self.cells.values())
+
+
+@dataclass
+class Engine:
+    """What one sweep process holds while it runs episodes, shared by every task batch it
+    runs: the resolved physics, the LLM pool (and the embedded server behind it), the learning
+    stage, the renderer and the in-flight gate. `open_engine` opens one."""
+
+    physics: Choice
+    llm: LLMPool
+    summaries: SummaryStage
+    renderer: Renderer
+    image: ImageSettings
+    gate: InFlight
+
+
+@contextlib.asynccontextmanager
+async def open_engine(
+    config: Any, run_dir: Path, *, shared_limits: Callable[[Any], Any] | None = None
+) -> AsyncIterator[Engine]:
+    """The engine of `config` for episodes of `run_dir`, open for the block.
+    `shared_limits`: `LLMPool(shared_limits=...)` (limits kept for several processes)."""
+    cfg, ex = config, config.executor
+    physics = resolve(cfg.simulator.backend, cfg.simulator.impl)
+    if ex.in_flight == "auto" and physics.backend == "mjx":
+        gate = InFlight(ex.max_episodes, ex.max_episodes, why=BATCHED)
+    else:
+        gate = InFlight(ex.max_episodes, None if ex.in_flight == "auto" else ex.in_flight)
+    async with contextlib.AsyncExitStack() as stack:
+        endpoints = list(cfg.models)
+        if cfg.embedded_models:
+            server = await stack.enter_async_context(LocalServer(cfg.embedded_server))
+            endpoints = cfg.endpoints(server.base_url)
+            log.info(
+                "embedded server on %s, served %s",
+                server.url,
+                f"by {server.processes} processes" if server.processes else "in this process",
+            )
+        llm = await stack.enter_async_context(LLMPool(endpoints, shared_limits=shared_limits))
+        summaries = SummaryStage(
+            run_dir,
+            llm,
+            demo_cache=Path(cfg.learning.demo_cache),
+            limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
+        )
+        render = cfg.render
+        renderer, choice = make_renderer(
+            render.backend,
+            workers=render.workers,
+            platform=render.platform,
+            max_size=(render.width, render.height),
+        )
+        info = await asyncio.to_thread(renderer.start)
+        stack.callback(renderer.close)
+        log.info("renderer: %s (%s)", info, choice.reason)
+        yield Engine(physics, llm, summaries, renderer, render.image_settings(), gate)
 
 
 class LocalSweep:
@@ -143,55 +201,31 @@ class LocalSweep:
         ]
 
     # -- running -------------------------------------------------------------------------------
-    async def run(self) -> SweepProgress:
+    async def run(self, engine: Engine | None = None) -> SweepProgress:
+        """Run the planned episodes, in `engine` (kept open by the caller, shared with other
+        sweeps: a Ray engine actor) or in one opened for this run."""
         self._adopt_orphans()
-        cfg = self.config
-        self.physics = resolve(cfg.simulator.backend, cfg.simulator.impl)
-        ex = cfg.executor
-        if ex.in_flight == "auto" and self.physics.backend == "mjx":
-            self.gate = InFlight(ex.max_episodes, ex.max_episodes, why=BATCHED)
-            self.progress.gate = self.gate
-        async with contextlib.AsyncExitStack() as stack:
-            endpoints = list(cfg.models)
-            if cfg.embedded_models:
-                server = await stack.enter_async_context(LocalServer(cfg.embedded_server))
-                endpoints = cfg.endpoints(server.base_url)
-                log.info(
-                    "embedded server on %s, served %s",
-                    server.url,
-                    f"by {server.processes} processes" if server.processes else "in this process",
-                )
-            llm = await stack.enter_async_context(LLMPool(endpoints))
-            self.progress.pool = llm
-            self.summaries = SummaryStage(
-                self.run_dir,
-                llm,
-                demo_cache=Path(cfg.learning.demo_cache),
-                limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
-            )
-            render = cfg.render
-            pool, choice = make_renderer(
-                render.backend,
-                workers=render.workers,
-                platform=render.platform,
-                max_size=(render.width, render.height),
-            )
-            info = await asyncio.to_thread(pool.start)
-            stack.callback(pool.close)
-            log.info("renderer: %s (%s)", info, choice.reason)
-            image = render.image_settings()
-            round_no = 0
-            while (pending := self._pending()) and self.stopped is None:
-                if round_no:
-                    self.summaries.forget_failures()
-                    log.warning(
-                        "retry round %d: %d episodes after infrastructure errors",
-                        round_no,
-                        len(pending),
-                    )
-                await self._run_round(pending, llm, pool, image)
-                round_no += 1
+        if engine is not None:
+            await self._run_in(engine)
+        else:
+            async with open_engine(self.config, self.run_dir) as own:
+                await self._run_in(own)
         return self.progress
+
+    async def _run_in(self, engine: Engine) -> None:
+        self.physics, self.gate, self.summaries = engine.physics, engine.gate, engine.summaries
+        self.progress.pool, self.progress.gate = engine.llm, engine.gate
+        round_no = 0
+        while (pending := self._pending()) and self.stopped is None:
+            if round_no:
+                self.summaries.forget_failures()
+                log.warning(
+                    "retry round %d: %d episodes after infrastructure errors",
+                    round_no,
+                    len(pending),
+                )
+            await self._run_round(pending, engine.llm, engine.renderer, engine.image)
+            round_no += 1
 
     async def _run_round(
         self, keys: list[Any], llm: LLMPool, pool: Renderer, image: ImageSettings

@@ -1,0 +1,201 @@
+"""Scaling of a Ray sweep with its engines: the same work on 1, 2, 4, 8 engine actors of one
+host, episodes per second and the ratio to perfect scaling, side by side.
+
+    python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|mjx] [--seeds 20]
+        [--runs 3] [--tracks active,passive,transfer,long_horizon] [--tasks base]
+        [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--json FILE]
+
+The defaults are `configs/all.yaml` as shipped (2,160 episodes of the reference-servo agent
+on every track); the options shrink it (the test of this script runs it at a tiny size on CPU
+engines). Each engine count runs the whole plan into a fresh run directory, one after the
+other, on one local Ray instance started here:
+
+- on a host with GPUs (backend auto or mjx), one engine per GPU (`num_gpus=1`): counts above
+  the GPUs present are skipped;
+- without (backend c), engines of `1 + render.workers` CPUs each; Ray is told the host has as
+  many CPUs as the largest count needs (more than it has, on a small machine: the engines then
+  share its cores, which the printed core count shows).
+
+Printed per count: wall time of the sweep (engine start-up included), the steady rate
+(episodes / the span from the first episode's start to the last one's end, from the records),
+and the scaling ratio rate(N) / (N x rate(1)) on both. Whether every count recorded every
+planned episode once is checked, and the outcomes (success per episode) are compared with the
+first count's: with the deterministic agent and C MuJoCo they must agree; on GPUs Warp's
+contact ordering may differ unless `simulator.deterministic` is set, so they are only shown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def device() -> str:
+    """What this host is, in words (GPUs by name, CPU model and cores)."""
+    try:
+        names = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=20,
+        ).stdout.split("\n")
+        gpus = [n.strip() for n in names if n.strip()]
+    except (OSError, subprocess.SubprocessError):
+        gpus = []
+    cpu = platform.processor() or "CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0))
+    gpu_text = f"{len(gpus)} x {gpus[0]}" if gpus else "no GPU"
+    return f"{gpu_text}; {cpu}, {cores} cores"
+
+
+def make_config(args: argparse.Namespace, engines: int, out: Path) -> Path:
+    doc = yaml.safe_load((ROOT / "configs/all.yaml").read_text())
+    width, height = (int(v) for v in args.size.split("x"))
+    doc["tracks"] = args.tracks.split(",")
+    doc["tasks"] = args.tasks if args.tasks == "base" else args.tasks.split(",")
+    doc["seeds"] = {"verified": args.seeds}
+    doc["runs"] = args.runs
+    if args.steps:
+        doc["step_budget"] = args.steps
+    doc["simulator"] = {"backend": args.backend}
+    doc["render"] |= {"width": width, "height": height, "workers": args.render_workers}
+    doc["embedded_server"]["policy"] = args.policy
+    if args.latency:
+        doc["embedded_server"]["latency"] = {"mean_s": args.latency}
+    doc["executor"] = {"kind": "ray", "actors": engines}
+    path = out.with_suffix(".yaml")
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
+    """Run the plan on `engines` engines; returns its figures and outcomes."""
+    from vabench.config import load_config
+    from vabench.sweep.plan import plan
+    from vabench.sweep.ray_executor import run_ray
+    from vabench.sweep.rundir import check_run_dir
+
+    out = tmp / f"engines_{engines}"
+    config = load_config(make_config(args, engines, out), overrides={"out": str(out)})
+    keys = plan(config)
+    check_run_dir(out, config, keys, config.document())
+    t0 = time.perf_counter()
+    records = run_ray(config, keys, out)
+    wall = time.perf_counter() - t0
+    lines = (out / "results.jsonl").read_text().splitlines()
+    recs = [json.loads(x) for x in lines]
+    first = min(r["started_at"] for r in recs)
+    last = max(r["started_at"] + r["wall_s"] for r in recs)
+    return {
+        "engines": engines,
+        "episodes": len(keys),
+        "recorded_once": len(recs) == len(records) == len(keys),
+        "wall_s": wall,
+        "span_s": last - first,
+        "episodes_per_s": len(recs) / wall,
+        "steady_episodes_per_s": len(recs) / (last - first),
+        "success": sum(r["success"] for r in recs),
+        "outcomes": {
+            f"{r['model']}/{r['track']}/{r['task']}/{r['seed']}/{r['run']}": r["success"]
+            for r in recs
+        },
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--engines", default="1,2,4,8")
+    p.add_argument("--backend", choices=("auto", "c", "mjx"), default="auto")
+    p.add_argument("--seeds", type=int, default=20)
+    p.add_argument("--runs", type=int, default=3)
+    p.add_argument("--tracks", default="active,passive,transfer,long_horizon")
+    p.add_argument("--tasks", default="base", help="base, or a comma-separated list")
+    p.add_argument("--steps", type=int, default=0, help="step budget cap (0: the tasks' own)")
+    p.add_argument("--size", default="1280x960")
+    p.add_argument("--render-workers", type=int, default=2)
+    p.add_argument("--policy", default="reference_servo")
+    p.add_argument("--latency", type=float, default=0.0, help="the model's reply time, seconds")
+    p.add_argument("--json", type=Path)
+    args = p.parse_args()
+
+    import ray
+
+    from vabench.sim_mjx.backends import resolve
+
+    counts = [int(n) for n in args.engines.split(",")]
+    on_gpus = resolve(args.backend, "auto").backend == "mjx"
+    if on_gpus:
+        ray.init(include_dashboard=False)
+        gpus = int(ray.cluster_resources().get("GPU", 0))
+        skipped = [n for n in counts if n > gpus]
+        counts = [n for n in counts if n <= gpus]
+        if skipped:
+            print(f"skipped (only {gpus} GPUs here): {skipped}", flush=True)
+    else:
+        cpus = max(counts) * (1 + args.render_workers)
+        ray.init(num_cpus=max(cpus, len(os.sched_getaffinity(0))), include_dashboard=False)
+    host = device()
+    print(f"device: {host}; Ray {ray.__version__}; {datetime.date.today()}", flush=True)
+    results = []
+    with tempfile.TemporaryDirectory(prefix="vabench-ray-scaling-") as tmp:
+        for n in counts:
+            result = one_count(args, n, Path(tmp))
+            results.append(result)
+            print(
+                f"{n} engines: {result['episodes']} episodes in {result['wall_s']:.1f} s "
+                f"({result['episodes_per_s']:.3f}/s; steady {result['steady_episodes_per_s']:.3f}"
+                f"/s over {result['span_s']:.1f} s)",
+                flush=True,
+            )
+    ray.shutdown()
+    base = results[0]
+    print(
+        f"\n{'engines':>7} {'episodes/s':>11} {'ratio':>6} {'steady/s':>9} {'ratio':>6} "
+        f"{'once':>5} {'outcomes':>9}"
+    )
+    for r in results:
+        n = r["engines"] / base["engines"]
+        r["ratio"] = r["episodes_per_s"] / (n * base["episodes_per_s"])
+        r["steady_ratio"] = r["steady_episodes_per_s"] / (n * base["steady_episodes_per_s"])
+        r["same_outcomes"] = r["outcomes"] == base["outcomes"]
+        print(
+            f"{r['engines']:>7} {r['episodes_per_s']:>11.3f} {r['ratio']:>6.2f} "
+            f"{r['steady_episodes_per_s']:>9.3f} {r['steady_ratio']:>6.2f} "
+            f"{'yes' if r['recorded_once'] else 'NO':>5} "
+            f"{'same' if r['same_outcomes'] else 'differ':>9}"
+        )
+    if args.json:
+        summary = {
+            "device": host,
+            "date": str(datetime.date.today()),
+            "ray": ray.__version__,
+            "args": {k: str(v) for k, v in vars(args).items()},
+            "results": [{k: v for k, v in r.items() if k != "outcomes"} for r in results],
+        }
+        args.json.write_text(json.dumps(summary, indent=2))
+        print(f"\nwritten: {args.json}")
+    if not all(r["recorded_once"] for r in results):
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

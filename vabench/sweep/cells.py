@@ -1,0 +1,177 @@
+"""The sweep's plan cut into cells and chunks, and one cell run by itself.
+
+A cell is the planned episodes of one (model, track, task) not yet in the ledger
+(`pending_cells`); `chunks` cuts cells into pieces of nearly equal size so that the last
+workers to finish do not leave the others idle. `executor: processes` runs each chunk in a
+worker process with `run_cell` (a `LocalSweep` restricted to it, with its own LLM pool,
+embedded server, render workers and simulator batch); `executor: ray` hands chunks to its
+engine actors (`ray_engine`). `load_document` loads a config sent as a document
+(`SweepConfig.document()`) in another process, naming the host when it does not load there.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import socket
+import tempfile
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from vabench.config import SweepConfig, SweepConfigError, load_config
+from vabench.sweep.display import status_of
+from vabench.sweep.plan import EpisodeKey
+from vabench.sweep.results import Sink, ledger_key
+from vabench.sweep.runner import LocalSweep, SweepProgress
+
+Cell = tuple[str, str, str]
+"""(model, track, task)."""
+KeyTuple = tuple[str, str, str, int, int]
+"""(model, track, task, seed, run), as the ledger keys its records."""
+
+PROGRESS_EVERY_S = 10.0
+"""Seconds between an executor's log lines while no cell ends."""
+STATUS = "status"
+"""The name of a cell's status lines in its sink (`executor: processes`)."""
+STATUS_EVERY_S = 1.0
+WORKER_ENVIRONMENT = (
+    "JAX_PLATFORMS",
+    "XLA_PYTHON_CLIENT_PREALLOCATE",
+    "CUDA_VISIBLE_DEVICES",
+    "VABENCH_CORES",
+)
+"""What a worker reports of its environment (the choices made for processes started on a GPU
+host, `sweep.choices`)."""
+MIN_CHUNK = 10
+"""The fewest episodes a cell is cut down to: each chunk pays its own start-up."""
+CHUNKS_PER_WORKER = 3
+
+
+def pending_cells(
+    keys: Iterable[EpisodeKey], finished: Iterable[KeyTuple]
+) -> dict[Cell, list[EpisodeKey]]:
+    """The planned episodes without a ledger record, grouped by (model, track, task), cells
+    and episodes in plan order. Cells with nothing left are absent."""
+    done = set(finished)
+    cells: dict[Cell, list[EpisodeKey]] = {}
+    for k in keys:
+        if ledger_key(k) not in done:
+            cells.setdefault((k.model, k.track, k.task), []).append(k)
+    return cells
+
+
+def chunks(
+    cells: dict[Cell, list[EpisodeKey]],
+    workers: int,
+    cost: Callable[[str], int],
+    per_worker: int = CHUNKS_PER_WORKER,
+) -> list[tuple[str, list[EpisodeKey]]]:
+    """The cells cut into named chunks of nearly equal size, at least `per_worker` per worker
+    where the cells are large enough (never below `MIN_CHUNK` episodes), costliest first
+    (`cost(task)`: the task's step budget), so the workers finish close together. A chunk is
+    named after its cell ("model/track/task", "... part i/n" when cut)."""
+    total = sum(len(v) for v in cells.values())
+    size = max(MIN_CHUNK, math.ceil(total / (workers * per_worker)))
+    out = []
+    for cell, keys in cells.items():
+        parts = math.ceil(len(keys) / size)
+        step = math.ceil(len(keys) / parts)
+        for i, start in enumerate(range(0, len(keys), step), 1):
+            name = "/".join(cell) + (f" part {i}/{parts}" if parts > 1 else "")
+            out.append((name, keys[start : start + step]))
+    return sorted(out, key=lambda c: -len(c[1]) * cost(c[1][0].task))
+
+
+def load_document(document: dict[str, Any], run_dir: Path) -> SweepConfig:
+    """The config `document` (a `SweepConfig.document()`) loaded in this process, for the run
+    directory `run_dir`, which must be the one the driver wrote its plan into (a shared mount
+    on a cluster). Raises RuntimeError naming this host when either fails."""
+    host = socket.gethostname()
+    if not (run_dir / "plan.json").exists():
+        raise RuntimeError(
+            f"{run_dir}: no plan.json here on {host}: executor: ray needs a run directory that "
+            "every node sees at the same path (a shared mount)"
+        )
+    with tempfile.TemporaryDirectory(prefix="vabench-cell-") as tmp:
+        path = Path(tmp) / "sweep.yaml"
+        path.write_text(yaml.safe_dump(document, sort_keys=False), encoding="utf-8")
+        try:
+            return load_config(path)
+        except SweepConfigError as err:
+            raise RuntimeError(
+                f"the sweep config does not load on {host}:\n"
+                + str(err).replace(str(path), str(run_dir / "sweep.yaml"))
+            ) from None
+
+
+def run_cell(
+    document: dict[str, Any],
+    run_dir: str,
+    keys: Sequence[KeyTuple],
+    sink: Sink | None = None,
+) -> dict[str, Any]:
+    """One cell, in a worker process: the episodes `keys` (all of one (model, track, task)) of
+    the config `document` run by a `LocalSweep` into `run_dir`. Returns counts for the log:
+    host, episodes (run here), recorded (the cell's records in the ledger now), unscored,
+    retried, and the environment it ran in (JAX's platform, the variables of
+    `WORKER_ENVIRONMENT`). With `sink`, ledger lines go there instead of the files (the parent
+    writes them), with a `STATUS` line every second for the parent's display."""
+    run = Path(run_dir)
+    config = load_document(document, run)
+    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, ledger_sink=sink)
+    model, track, task = keys[0][:3]
+    cell = f"{model}/{track}/{task}"
+    report = None if sink is None else (lambda status: sink(STATUS, {"cell": cell, **status}))
+    counts = asyncio.run(_run_reporting(sweep, report)).cells[(model, track, task)]
+    import jax
+
+    return {
+        "host": socket.gethostname(),
+        "episodes": len(keys),
+        "recorded": counts.done,
+        "unscored": counts.unscored,
+        "retried": counts.retried,
+        "stopped": sweep.stopped,
+        "jax": jax.default_backend(),
+        "environment": {k: os.environ.get(k) for k in WORKER_ENVIRONMENT},
+    }
+
+
+async def _run_reporting(
+    sweep: LocalSweep, report: Callable[[dict[str, Any]], None] | None
+) -> SweepProgress:
+    """`sweep.run()`, with `report(status)` every `STATUS_EVERY_S` and once at the end."""
+    if report is None:
+        return await sweep.run()
+
+    async def every_second() -> None:
+        while True:
+            report(cell_status(sweep.progress, finished=False))
+            await asyncio.sleep(STATUS_EVERY_S)
+
+    ticker = asyncio.create_task(every_second())
+    try:
+        return await sweep.run()
+    finally:
+        ticker.cancel()
+        report(cell_status(sweep.progress, finished=True))
+
+
+def cell_status(progress: SweepProgress, finished: bool) -> dict[str, Any]:
+    """What a worker reports of its sweep each second (`executor: processes`)."""
+    status = status_of(progress)
+    return {
+        "finished": finished,
+        "running": status.total().running,
+        "in_flight": status.in_flight or 0,
+        "limit": status.limit or 0,
+        "reason": status.reason or "",
+        "calls": status.calls,
+        "tokens": status.tokens,
+        "cost": status.cost,
+        "calls_in_flight": status.calls_in_flight,
+    }

@@ -1,0 +1,171 @@
+"""The engine actor of a Ray sweep: one long-lived process per GPU (or per CPU share) that runs
+the chunks of the plan the driver hands it, and streams their ledger lines back.
+
+An `EngineActor` holds one engine (`runner.open_engine`) for its whole life: the LLM pool (for
+endpoints that are not embedded, with the limits of the sweep's limit board,
+`sweep.limiter`), the embedded server when a model uses one, the renderer and the in-flight
+gate. On a GPU node it claims one GPU (Ray sets CUDA_VISIBLE_DEVICES to it) and owns the GPU
+work of its chunks: MuJoCo Warp physics and Warp's renderer; on a CPU node it runs C MuJoCo and
+the GL render workers. Each chunk it is given (`run_chunk`, several at once) runs as a
+`LocalSweep` restricted to the chunk, inside that one engine, so its episodes share the
+actor's pool, renderer and in-flight limit.
+
+The actor never writes results.jsonl or infrastructure.jsonl: `run_chunk` is a streaming
+generator that yields each ledger line (`LINE`) as its episode ends, and a summary (`DONE`)
+last; the driver appends the lines. It writes the episodes' own directories (events,
+frames, result.json, in the run directory every node sees at the same path), so an episode it
+finished but had not reported when it died is adopted from its result.json by the actor that
+runs the chunk again.
+
+The process starts with the variables the driver sends it (`environ`): the API keys named by
+the config's `api_key_env` (they travel in the actor's creation arguments, in memory, and are
+put in this process's environment only), and the environment `sweep.choices` picks for worker
+processes (JAX on the CPU unless the physics is MJX on JAX, no GPU memory preallocation).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import socket
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document
+from vabench.sweep.choices import configure_jax
+from vabench.sweep.plan import EpisodeKey
+from vabench.sweep.runner import Engine, LocalSweep, open_engine
+
+LINE = "line"
+"""A ledger line of `run_chunk`: (LINE, log name, record)."""
+DONE = "done"
+"""The last item of `run_chunk`: (DONE, summary)."""
+
+
+class EngineActor:
+    """One engine of a Ray sweep (see the module docstring). Created by the driver with
+    `ray.remote(...)(EngineActor)`: an async actor, every method runs in its one event loop."""
+
+    def __init__(
+        self,
+        document: dict[str, Any],
+        run_dir: str,
+        environ: dict[str, str],
+        limiter: Any = None,
+        shared: list[str] | None = None,
+        holder: str = "",
+    ):
+        os.environ.update(environ)
+        self.run_dir = Path(run_dir)
+        self.config = load_document(document, self.run_dir)
+        self.limiter = limiter
+        self.shared = list(shared or [])
+        self.holder = holder
+        self.engine: Engine | None = None
+        self._stack: contextlib.AsyncExitStack | None = None
+        self._sweeps: dict[str, LocalSweep] = {}
+
+    async def start(self) -> dict[str, Any]:
+        """Open the engine; returns where and how it runs, for the driver's log."""
+        from vabench.sim_mjx.backends import resolve
+
+        cfg = self.config
+        configure_jax(resolve(cfg.simulator.backend, cfg.simulator.impl))
+        stack = contextlib.AsyncExitStack()
+        limits = None
+        if self.limiter is not None and self.shared:
+            from vabench.sweep.limiter import BoardLimits, RayChannel
+
+            limits = BoardLimits(RayChannel(self.limiter), self.holder, self.shared)
+            stack.push_async_callback(limits.close)  # after the pool has closed
+        self.engine = await stack.enter_async_context(
+            open_engine(cfg, self.run_dir, shared_limits=limits)
+        )
+        self._stack = stack
+        import jax
+        import ray
+
+        return {
+            "host": socket.gethostname(),
+            "node": ray.get_runtime_context().get_node_id(),
+            "pid": os.getpid(),
+            "physics": self.engine.physics.label,
+            "jax": jax.default_backend(),
+            "limit": self.engine.gate.limit,
+            "environment": {k: os.environ.get(k) for k in WORKER_ENVIRONMENT},
+        }
+
+    async def run_chunk(self, name: str, keys: list[KeyTuple]) -> AsyncIterator[tuple[Any, ...]]:
+        """Run the episodes `keys` in this engine; yields (LINE, log, record) as each ledger
+        line is written, then (DONE, summary). An error of the chunk itself is raised after its
+        lines."""
+        assert self.engine is not None, "start() first"
+        lines: asyncio.Queue[tuple[str, dict[str, Any]]] = asyncio.Queue()
+        sweep = LocalSweep(
+            self.config,
+            [EpisodeKey(*k) for k in keys],
+            self.run_dir,
+            ledger_sink=lambda log, record: lines.put_nowait((log, record)),
+        )
+        self._sweeps[name] = sweep
+        running = asyncio.create_task(sweep.run(self.engine))
+        try:
+            while not running.done():
+                line = asyncio.ensure_future(lines.get())
+                await asyncio.wait({line, running}, return_when=asyncio.FIRST_COMPLETED)
+                if line.done():
+                    yield (LINE, *line.result())
+                else:
+                    line.cancel()
+            while not lines.empty():
+                yield (LINE, *lines.get_nowait())
+            progress = running.result()  # raises the chunk's error
+            records = [sweep.ledger.records.get(k) for k in keys]
+            yield (
+                DONE,
+                {
+                    "episodes": len(keys),
+                    "recorded": sum(r is not None for r in records),
+                    "unscored": sum(
+                        r is not None and r["status"] not in ("success", "failure") for r in records
+                    ),
+                    "retried": progress.total().retried,
+                    "stopped": sweep.stopped,
+                },
+            )
+        finally:
+            self._sweeps.pop(name, None)
+            if not running.done():
+                running.cancel()
+
+    async def status(self) -> dict[str, Any]:
+        """The engine's state for the driver's display: episodes running per model/track,
+        the in-flight gate, and the model calls, tokens and cost of its pool so far."""
+        running: dict[str, int] = {}
+        for sweep in list(self._sweeps.values()):
+            for (model, track, _task), counts in sweep.progress.cells.items():
+                if counts.running:
+                    key = f"{model}/{track}"
+                    running[key] = running.get(key, 0) + counts.running
+        out: dict[str, Any] = {"running": running, "chunks": len(self._sweeps)}
+        if self.engine is not None:
+            stats = list(self.engine.llm.stats().values())
+            gate = self.engine.gate
+            out |= {
+                "in_flight": gate.in_flight,
+                "limit": gate.limit,
+                "reason": gate.reason,
+                "calls": sum(s.succeeded for s in stats),
+                "tokens": sum(s.usage.total_tokens for s in stats),
+                "cost": sum(s.cost_usd for s in stats),
+                "calls_in_flight": sum(s.in_flight for s in stats),
+            }
+        return out
+
+    async def close(self) -> None:
+        """Close the engine (the driver calls this once no chunk is left)."""
+        if self._stack is not None:
+            stack, self._stack = self._stack, None
+            await stack.aclose()
