@@ -1,4 +1,4 @@
-"""Limits shared by several processes (`llm_pool.limits.SharedLimits` against the board of
+"""Limits shared by several processes (`llm_pool.shared_limits.SharedLimits` against the board of
 `sweep.limiter`), here in one loop with the board reached through `LocalChannel`: what crosses
 a process boundary in a Ray sweep is the same calls. The Ray version is
 tests/test_ray_limiter.py. Windows are 1 s instead of a minute: the code is the same."""

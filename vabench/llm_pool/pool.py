@@ -41,9 +41,10 @@ from vabench.llm_pool.config import (
     load_endpoints,
 )
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
-from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter, SharedLimits
+from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
 from vabench.llm_pool.retry import RetryDecision, backoff_delay
+from vabench.llm_pool.shared_limits import SharedLimits
 from vabench.llm_pool.tokens import estimate_input_tokens
 from vabench.llm_pool.transport import Failure, Transport
 

@@ -11,7 +11,7 @@ the embedded server (each actor runs its own embedded server, whose limits are i
   admission settled to the reported usage);
 - a pause: a Retry-After seen by any actor holds every actor's next admission.
 
-The pools reach the board through `llm_pool.limits.SharedLimits` (the client side, which
+The pools reach the board through `llm_pool.shared_limits.SharedLimits` (the client side, which
 batches the waiting calls of one process into one request); `LimiterActor` is the board as a
 Ray actor (one per sweep, on the driver's node, owned by the driver and gone with it), and
 `RayChannel` the client's way to it. `forget(holder)` frees what a dead actor held: the driver
@@ -30,7 +30,8 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from vabench.llm_pool.config import Limits, ModelEndpoint
-from vabench.llm_pool.limits import ConcurrencyLimiter, RateBudget, SharedLimits
+from vabench.llm_pool.limits import ConcurrencyLimiter, RateBudget
+from vabench.llm_pool.shared_limits import SharedLimits
 
 
 class _Endpoint:
@@ -225,7 +226,7 @@ class LimiterActor:
 
 
 class RayChannel:
-    """`llm_pool.limits.LimitChannel` to a `LimiterActor` (an actor handle)."""
+    """`llm_pool.shared_limits.LimitChannel` to a `LimiterActor` (an actor handle)."""
 
     def __init__(self, handle: Any):
         self.handle = handle
@@ -238,7 +239,7 @@ class RayChannel:
 
 
 class LocalChannel:
-    """`llm_pool.limits.LimitChannel` to a `LimitBoard` in this process's loop (tests)."""
+    """`llm_pool.shared_limits.LimitChannel` to a `LimitBoard` in this process's loop (tests)."""
 
     def __init__(self, board: LimitBoard):
         self.board = board
