@@ -1,17 +1,19 @@
 #!/usr/bin/env bash
 # One phase of the GPU measurements on the lent device machine; each phase fits one call
 # (< 10 minutes) and writes its results under $OUT. The order of calls (device tool):
-#   1. carry .wp1:  mkdir -p /tmp/wp && cp .wp1/* /tmp/wp/
-#   2. carry .wp2 .dep:  mkdir -p /tmp/wp /tmp/dep && cp .wp2/* /tmp/wp/ && cp .dep/* /tmp/dep/
-#   3. carry .wp3 .whl .gl .nvj:  bash benchmarks/gpu/run.sh setup
+#   1. carry .wp1 .ray1:  mkdir -p /tmp/wp /tmp/ray && cp .wp1/* /tmp/wp/ && cp .ray1/* /tmp/ray/
+#   2. carry .wp2 .dep .ray2:  mkdir -p /tmp/wp /tmp/dep /tmp/ray && cp .wp2/* /tmp/wp/ &&
+#        cp .dep/* /tmp/dep/ && cp .ray2/* /tmp/ray/
+#   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main
+#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main | ray
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
-# benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh (all run once
-# here, from the project root). `main` runs configs/all.yaml as shipped; a call that ends before
+# benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh, .ray1-3 (Ray
+# for the `ray` phase, optional) from benchmarks/gpu/make_ray_part.sh (all run once here, from
+# the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main}
+phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -26,9 +28,12 @@ case "$phase" in
     source .wp3/gpu_env.sh || exit 1
     tar -xJf .nvj/nvj.tar.xz -C /tmp/site && python3 -m pip install -q --no-index --no-deps \
       --no-compile --target /tmp/site .nvj/*.whl || exit 1
-    if ! python3 -c "import aiohttp, rich, yaml, PIL" 2>/dev/null; then
+    if ! python3 -c "import aiohttp, rich, yaml, PIL, pytest" 2>/dev/null; then
       python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site /tmp/dep/*.whl \
         || exit 1
+    fi
+    if [ -d .ray3 ] && ls /tmp/ray/rp.* >/dev/null 2>&1; then
+      cat /tmp/ray/rp.* .ray3/rp.* | tar -xJf - -C /tmp/site || exit 1
     fi
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/gpu.txt"
     python3 - <<'PY' 2>&1 | tee "$out/setup.log"
@@ -51,7 +56,7 @@ PY
       --json "$out/render.json" 2>&1 | tee "$out/render.log"
     ;;
   fidelity)
-    timeout 570 python3 benchmarks/warp_fidelity.py --tasks "${FIDELITY_TASKS:-all}" --n 20 --budget-s 420 \
+    timeout 570 python3 benchmarks/warp_fidelity.py --tasks "${FIDELITY_TASKS:-all}" --n 20 --budget-s "${FIDELITY_BUDGET_S:-420}" \
       --json "$out/fidelity.json" --md "$out/fidelity.md" 2>&1 | tee "$out/fidelity.log"
     ;;
   tests)
@@ -80,12 +85,18 @@ PY
     run=/tmp/run_all
     python3 -m vabench.sweep configs/all.yaml --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
     start=$EPOCHREALTIME
-    timeout 520 python3 -m vabench.sweep configs/all.yaml --out "$run" --plain \
+    timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep configs/all.yaml --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
     rc=${PIPESTATUS[0]}
     echo "rc $rc wall_s $(python3 -c "print(round($EPOCHREALTIME - $start, 1))")" | tee -a "$out/main_wall.txt"
     cp "$run"/results.jsonl "$run"/infrastructure.jsonl "$run"/*.json "$out/" 2>/dev/null
     nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
+    ;;
+  ray)
+    # Issue 25: the same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local
+    # Ray instance; RAY_RUNS shrinks the plan (configs/all.yaml has 3 runs).
+    timeout 560 python3 benchmarks/ray_scaling.py --engines "${RAY_ENGINES:-1,2}" \
+      --runs "${RAY_RUNS:-3}" --json "$out/ray.json" 2>&1 | tee "$out/ray.log"
     ;;
   *) echo "unknown phase $phase"; exit 2 ;;
 esac
