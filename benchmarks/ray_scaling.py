@@ -3,7 +3,8 @@ host, episodes per second and the ratio to perfect scaling, side by side.
 
     python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|mjx] [--seeds 20]
         [--runs 3] [--tracks active,passive,transfer,long_horizon] [--tasks base]
-        [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--json FILE]
+        [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--warmup]
+        [--json FILE]
 
 The defaults are `configs/all.yaml` as shipped (2,160 episodes of the reference-servo agent
 on every track); the options shrink it (the test of this script runs it at a tiny size on CPU
@@ -15,6 +16,10 @@ other, on one local Ray instance started here:
 - without (backend c), engines of `1 + render.workers` CPUs each; Ray is told the host has as
   many CPUs as the largest count needs (more than it has, on a small machine: the engines then
   share its cores, which the printed core count shows).
+
+`--warmup` first runs every planned (task, seed) for one step on the most engines, untimed:
+on a fresh GPU machine that compiles Warp's kernels and fills the settled-state cache
+(`VABENCH_STATE_CACHE`), which the first count would otherwise pay alone.
 
 Printed per count: wall time of the sweep (engine start-up included), the steady rate
 (episodes / the span from the first episode's start to the last one's end, from the records),
@@ -134,6 +139,7 @@ def main() -> None:
     p.add_argument("--render-workers", type=int, default=2)
     p.add_argument("--policy", default="reference_servo")
     p.add_argument("--latency", type=float, default=0.0, help="the model's reply time, seconds")
+    p.add_argument("--warmup", action="store_true", help="one untimed step of every seed first")
     p.add_argument("--json", type=Path)
     args = p.parse_args()
 
@@ -157,6 +163,12 @@ def main() -> None:
     print(f"device: {host}; Ray {ray.__version__}; {datetime.date.today()}", flush=True)
     results = []
     with tempfile.TemporaryDirectory(prefix="vabench-ray-scaling-") as tmp:
+        if args.warmup and counts:
+            warm = argparse.Namespace(**{**vars(args), "tracks": "active", "runs": 1, "steps": 1})
+            t0 = time.perf_counter()
+            (Path(tmp) / "warmup").mkdir()
+            one_count(warm, max(counts), Path(tmp) / "warmup")
+            print(f"warm-up (untimed): {time.perf_counter() - t0:.1f} s", flush=True)
         for n in counts:
             result = one_count(args, n, Path(tmp))
             results.append(result)

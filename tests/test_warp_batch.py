@@ -152,6 +152,43 @@ def test_proprio_equals_the_jax_proprio(cube):
         np.testing.assert_allclose(getattr(warp_p, field), getattr(jax_p, field), atol=2e-5)
 
 
+def test_every_device_operation_holds_the_device_lock(cube, monkeypatch):
+    """Construction, actions, holds, host reads and contact flags all run holding the device's
+    lock: on a GPU another thread's CUDA graph capture (global mode) turns any allocation or
+    synchronous copy made beside it into an error (an H100 showed "illegal memory access" when
+    an engine built two task batches while a third captured its graphs)."""
+    import warp as wp
+
+    _, model, q0 = cube
+    lock = backends.device_lock("cpu")
+    seen: list[str] = []
+
+    def checked(name, fn):
+        def call(*args, **kwargs):
+            seen.append(name)
+            assert lock._is_owned(), f"{name} outside the device lock"  # type: ignore[attr-defined]
+            return fn(*args, **kwargs)
+
+        return call
+
+    for name in ("launch", "zeros", "full", "ones", "empty", "copy"):  # wp.array(data) copies
+        monkeypatch.setattr(wp, name, checked(f"wp.{name}", getattr(wp, name)))
+    for name in ("numpy", "assign", "zero_", "fill_"):
+        monkeypatch.setattr(wp.array, name, checked(f"array.{name}", getattr(wp.array, name)))
+    batch = WarpBatch(model, 2, device="cpu")
+    _reset(batch, q0)
+    batch.step([DOWN, None])
+    batch.hold(3, [1])
+    batch.get_state([0, 1])
+    batch.qpos()
+    batch.proprio()
+    side_a, side_b = np.zeros((2, model.ngeom), bool), np.zeros((2, model.ngeom), bool)
+    side_a[:, 0], side_b[:, 1:] = True, True  # masks over the geoms: pair p joins a[p], b[p]
+    batch.contact_flags(side_a, side_b)
+    batch.close()
+    assert {"wp.launch", "wp.copy", "wp.zeros", "array.numpy", "array.assign"} <= set(seen)
+
+
 def _expert_replay_gc_deviation(task_name: str, n_seeds: int) -> float:
     """Run the expert on C, replay its actions on Warp (CPU) in lockstep; the largest finger
     centre distance between the two after any action."""

@@ -32,6 +32,7 @@ On the CPU (`VABENCH_WARP_DEVICE=cpu`, tests) the same kernels run on Warp's CPU
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
 import time
@@ -92,6 +93,9 @@ class WarpRenderPool:
         self._host_jpeg: JpegThreads | None = None
         self._device_jpeg: gpu_jpeg.DeviceJpeg | None = None
         self._lock = threading.Lock()  # one request at a time from this pool
+        # The device's lock (shared with the physics batches of this process): every allocation
+        # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
+        self._lock_device: threading.RLock | contextlib.nullcontext = contextlib.nullcontext()
         self.info: str | None = None
 
     # -- life cycle ----------------------------------------------------------------------
@@ -120,7 +124,8 @@ class WarpRenderPool:
                 f"JPEG on the device needs a GPU and nvImageCodec: {gpu_jpeg.PACKAGE_HINT}"
             )
         if self.jpeg != "host" and on_gpu and gpu_jpeg.available():
-            self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+            with self._lock_device:
+                self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
         else:
             self._host_jpeg = JpegThreads(self.jpeg_threads)
         encoder = "nvImageCodec" if self._device_jpeg else f"{self._host_jpeg.threads} threads"  # type: ignore[union-attr]
@@ -129,7 +134,7 @@ class WarpRenderPool:
         return self.info
 
     def close(self) -> None:
-        with self._lock:
+        with self._lock, self._lock_device:  # freeing device memory is device work too
             self._passes.clear()
             self._sources.clear()
             if self._host_jpeg is not None:

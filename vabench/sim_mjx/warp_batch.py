@@ -14,6 +14,13 @@ every thread of a launch in order, so a slot's trajectory does not depend on the
 its index or its neighbours. On a GPU, MuJoCo Warp's contact and constraint ordering uses
 atomics unless `deterministic` asks for its stable orderings (slower; see docs/PERFORMANCE.md).
 
+Threads: every method that touches the device runs holding the device's lock with the device
+current (`on_device`), construction and host reads included. Warp captures CUDA graphs in
+CUDA's global capture mode, in which an allocation or a synchronous copy by any other thread of
+the process is an error (seen on an H100 as "invalid argument" and then "illegal memory
+access" when two task batches of one engine were built while a third captured its graphs); and
+Warp's current device and stream are the process's, not the thread's.
+
 Buffers (contacts, constraint rows) are sized from the scene (`warp_model.capacity`); a slot
 whose world overflows them gets an infrastructure error (`failure_text`), never silent wrong
 physics.
@@ -21,7 +28,9 @@ physics.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 import mujoco
 import mujoco_warp as mjw
@@ -40,6 +49,21 @@ from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import check_same_structure
 from vabench.sim_mjx.warp_graphs import Graphs
 from vabench.sim_mjx.warp_model import FAILURE_BITS, WarpModel, capacity, failure_texts
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def on_device(method: F) -> F:
+    """Run a WarpBatch method holding its device's lock, with the device current (see the
+    module docstring: Threads). The lock is re-entrant, so methods may call each other."""
+
+    @functools.wraps(method)
+    def locked(self: WarpBatch, *args: Any, **kwargs: Any) -> Any:
+        with self.lock, wp.ScopedDevice(self.device):
+            return method(self, *args, **kwargs)
+
+    return locked  # type: ignore[return-value]
+
 
 HOLD_CHUNK = 100  # physics steps per settle graph (see interface.hold_chunks)
 PREDICATE_LANES = 32  # width of the JAX predicate and proprio vmaps (see interface.in_lanes)
@@ -76,43 +100,48 @@ class WarpBatch(BatchBase):
         self._graphs = Graphs(self.device, graphs and self.device.is_cuda, loop)
         self.loop = loop
         n, arms = n_slots, len(self.arms)
-        with wp.ScopedDevice(self.device):
-            self._wm = WarpModel(self.models, n)
-            if deterministic:
-                self._wm.model.opt.deterministic = int(mjw.DeterminismType.ALL)
-            self._m = self._wm.model
-            d0 = mujoco.MjData(m0)  # no contacts yet: every slot is reset (and observed) below
-            d0.qpos[:] = home_qpos(m0)
-            self._d = mjw.put_data(
-                m0, d0, nworld=n, nconmax=self.capacity.nconmax, njmax=self.capacity.njmax
-            )
-            self._idx = wl.layout_arrays(self.layout, self.device)
-            self._geoms = wk.arm_geometries(self.geoms, self.device)
-            self._cmd_active = wp.zeros(n, dtype=int)
-            self._cmd_delta = wp.zeros((n, arms), dtype=wp.vec3)
-            self._cmd_rotvec = wp.zeros((n, arms), dtype=wp.vec3)
-            self._cmd_grip = wp.full((n, arms), -1, dtype=int)
-            self._plan = wc.PlanBuffers.allocate(n, arms, self.device)
-            self._go = wp.zeros(n, dtype=int)
-            self._ok = wp.zeros(n, dtype=int)
-            self._mask = wp.zeros(n, dtype=int)
-            self._failed = wp.zeros(n, dtype=int)
-            self._k = wp.zeros(1, dtype=int)  # substeps done in the current loop
-            self._grip_open = wp.ones((n, arms), dtype=int)
-            self._obs = wl.ProprioBuffers.allocate(n, arms, self.device)
-            self._flags: wp.array | None = None
-            self._sides: tuple[bytes, wp.array, wp.array] | None = None
-            d = self._d
-            # The (N, k) device arrays of STATE_FIELDS, in the order set_state writes them;
-            # the merge saves and restores the same rows.
-            self._rows = {
-                "qpos": d.qpos,
-                "qvel": d.qvel,
-                "ctrl": d.ctrl,
-                "warmstart": d.qacc_warmstart,
-                "act": d.act,
-            }
-            self._snapshot = wr.Snapshot(list(self._rows.values()), d.time)
+        with self.lock, wp.ScopedDevice(self.device):
+            self._build(n, arms, deterministic)
+
+    def _build(self, n: int, arms: int, deterministic: bool) -> None:
+        """The device arrays and the first reset (the caller holds the lock)."""
+        m0 = self.model
+        self._wm = WarpModel(self.models, n)
+        if deterministic:
+            self._wm.model.opt.deterministic = int(mjw.DeterminismType.ALL)
+        self._m = self._wm.model
+        d0 = mujoco.MjData(m0)  # no contacts yet: every slot is reset (and observed) below
+        d0.qpos[:] = home_qpos(m0)
+        self._d = mjw.put_data(
+            m0, d0, nworld=n, nconmax=self.capacity.nconmax, njmax=self.capacity.njmax
+        )
+        self._idx = wl.layout_arrays(self.layout, self.device)
+        self._geoms = wk.arm_geometries(self.geoms, self.device)
+        self._cmd_active = wp.zeros(n, dtype=int)
+        self._cmd_delta = wp.zeros((n, arms), dtype=wp.vec3)
+        self._cmd_rotvec = wp.zeros((n, arms), dtype=wp.vec3)
+        self._cmd_grip = wp.full((n, arms), -1, dtype=int)
+        self._plan = wc.PlanBuffers.allocate(n, arms, self.device)
+        self._go = wp.zeros(n, dtype=int)
+        self._ok = wp.zeros(n, dtype=int)
+        self._mask = wp.zeros(n, dtype=int)
+        self._failed = wp.zeros(n, dtype=int)
+        self._k = wp.zeros(1, dtype=int)  # substeps done in the current loop
+        self._grip_open = wp.ones((n, arms), dtype=int)
+        self._obs = wl.ProprioBuffers.allocate(n, arms, self.device)
+        self._flags: wp.array | None = None
+        self._sides: tuple[bytes, wp.array, wp.array] | None = None
+        d = self._d
+        # The (N, k) device arrays of STATE_FIELDS, in the order set_state writes them;
+        # the merge saves and restores the same rows.
+        self._rows = {
+            "qpos": d.qpos,
+            "qvel": d.qvel,
+            "ctrl": d.ctrl,
+            "warmstart": d.qacc_warmstart,
+            "act": d.act,
+        }
+        self._snapshot = wr.Snapshot(list(self._rows.values()), d.time)
         self._variant = np.zeros(n, np.int32)
         self._init_qpos = np.zeros((n, m0.nq))
         self._host: dict[str, np.ndarray] = {}
@@ -122,7 +151,7 @@ class WarpBatch(BatchBase):
     def _physics(self, name: str, pre: Callable, substep: Callable, post: Callable, n: int) -> None:
         """pre, n x substep, post (see `Graphs.run_loop`)."""
         self._host.clear()
-        with self.lock, wp.ScopedDevice(self.device):
+        with self.lock, wp.ScopedDevice(self.device):  # re-entrant: the callers hold it too
             self._graphs.run_loop(name, pre, substep, post, n)
 
     def _start_loop(self) -> None:
@@ -188,6 +217,7 @@ class WarpBatch(BatchBase):
         self._observe()
 
     # -- the interface ----------------------------------------------------------------------
+    @on_device
     def _execute(self, rows: CommandRows) -> StepInfo:
         self._cmd_active.assign(rows.active.astype(np.int32))
         self._cmd_delta.assign(rows.delta.astype(np.float32))
@@ -211,6 +241,7 @@ class WarpBatch(BatchBase):
             failure=failure if failed.any() else None,
         )
 
+    @on_device
     def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
         mask = np.zeros(self.n_slots, np.int32)
         mask[list(range(self.n_slots)) if slots is None else list(slots)] = 1
@@ -249,6 +280,7 @@ class WarpBatch(BatchBase):
         with self.lock, wp.ScopedDevice(self.device):
             self._graphs.run("observe", self._observe)
 
+    @on_device
     def get_state(self, slots: Sequence[int]) -> dict[str, np.ndarray]:
         slots = list(slots)
         d = self._d
@@ -273,6 +305,7 @@ class WarpBatch(BatchBase):
                 inputs=[slots, self._d.qpos, dst],
             )
 
+    @on_device
     def _fetch(self, name: str, array: wp.array) -> np.ndarray:
         if name not in self._host:
             self._host[name] = array.numpy()
@@ -302,6 +335,7 @@ class WarpBatch(BatchBase):
             is_open=self.grip_open(),
         )
 
+    @on_device
     def contact_flags(
         self, side_a: np.ndarray, side_b: np.ndarray, slots: np.ndarray | None = None
     ) -> np.ndarray:
@@ -342,5 +376,6 @@ class WarpBatch(BatchBase):
         add(self._d)
         return total
 
+    @on_device
     def close(self) -> None:
         self._graphs.clear()

@@ -124,8 +124,7 @@ def run_cell(
     config = load_document(document, run)
     sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, ledger_sink=sink)
     model, track, task = keys[0][:3]
-    cell = f"{model}/{track}/{task}"
-    report = None if sink is None else (lambda status: sink(STATUS, {"cell": cell, **status}))
+    report = None if sink is None else (lambda status: sink(STATUS, status_line(keys, status)))
     counts = asyncio.run(_run_reporting(sweep, report)).cells[(model, track, task)]
     import jax
 
@@ -159,6 +158,15 @@ async def _run_reporting(
     finally:
         ticker.cancel()
         report(cell_status(sweep.progress, finished=True))
+
+
+def status_line(keys: Sequence[KeyTuple], status: dict[str, Any]) -> dict[str, Any]:
+    """A worker's `STATUS` line for the chunk `keys` of one cell: the cell's name, and the
+    chunk's (a cell may be cut into several chunks that run at once; the parent keeps the
+    latest line of each chunk)."""
+    model, track, task = keys[0][:3]
+    cell = f"{model}/{track}/{task}"
+    return {"cell": cell, "chunk": f"{cell}@{'/'.join(map(str, keys[0][3:]))}", **status}
 
 
 def cell_status(progress: SweepProgress, finished: bool) -> dict[str, Any]:

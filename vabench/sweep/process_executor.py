@@ -71,10 +71,10 @@ from vabench.tasks import REGISTRY
 log = logging.getLogger(__name__)
 
 TICK_S = 1.0
+"""How often the parent redraws the display."""
 MAX_POOL_RESTARTS = 3
 """Times the workers are started again after one of them died (each death takes down every
 chunk the pool was running: concurrent.futures marks the whole pool broken)."""
-"""How often the parent redraws the display."""
 
 _lines: Any = None
 """In a worker: the pipe to the parent's `LedgerWriter` (set by `_init_worker`)."""
@@ -104,7 +104,7 @@ class LedgerWriter:
                 return
             name, record = item
             if name == STATUS:
-                self.statuses[record["cell"]] = record
+                self.statuses[record["chunk"]] = record
                 continue
             try:
                 self.ledger.append_line(name, record)
