@@ -13,7 +13,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray}
+phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray|precompile}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -92,11 +92,24 @@ PY
     cp "$run"/results.jsonl "$run"/infrastructure.jsonl "$run"/*.json "$out/" 2>/dev/null
     nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
     ;;
+  precompile)
+    # Warp compiles its kernels per scene shape (1-2 min each on a fresh machine, then cached in
+    # ~/.cache/warp): one process per base family, spread over the GPUs, all at once.
+    n=$(nvidia-smi -L | wc -l); i=0
+    for t in $(python3 -c "from vabench.tasks import base_tasks as b; print(*[t.name for t in b()])"); do
+      CUDA_VISIBLE_DEVICES=$((i % n)) JAX_PLATFORMS=cpu timeout "${PRECOMPILE_S:-300}" \
+        python3 benchmarks/warp_fidelity.py --tasks "$t" --n 1 > "/tmp/precompile_$t.log" 2>&1 &
+      i=$((i + 1))
+    done
+    wait
+    echo "precompiled $i families: $(grep -l "solved\|GC" /tmp/precompile_*.log | wc -l) finished"
+    ;;
   ray)
     # Issue 25: the same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local
     # Ray instance; RAY_RUNS shrinks the plan (configs/all.yaml has 3 runs).
     timeout 560 python3 benchmarks/ray_scaling.py --engines "${RAY_ENGINES:-1,2}" \
-      --runs "${RAY_RUNS:-3}" --json "$out/ray.json" 2>&1 | tee "$out/ray.log"
+      --runs "${RAY_RUNS:-3}" ${RAY_ARGS:-} --json "$out/ray.json" 2>&1 | grep -av "^Module " \
+      | tee "$out/ray.log"
     ;;
   *) echo "unknown phase $phase"; exit 2 ;;
 esac
