@@ -108,7 +108,7 @@ PY
     # Issue 25: the same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local
     # Ray instance; RAY_RUNS shrinks the plan (configs/all.yaml has 3 runs).
     timeout 560 python3 benchmarks/ray_scaling.py --engines "${RAY_ENGINES:-1,2}" \
-      --runs "${RAY_RUNS:-3}" ${RAY_ARGS:-} --json "$out/ray.json" 2>&1 | grep -av "^Module " \
+      --runs "${RAY_RUNS:-3}" ${RAY_ARGS:-} --json "$out/ray.json" 2>&1 | grep --line-buffered -av "^Module " \
       | tee "$out/ray.log"
     ;;
   *) echo "unknown phase $phase"; exit 2 ;;
