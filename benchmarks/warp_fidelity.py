@@ -63,16 +63,25 @@ def replay_lockstep(
     return {"gc_mm": worst_gc, "object_mm": worst_obj, "step": at_step}
 
 
+def stage(name: str, what: str, t0: float) -> None:
+    """A progress line: a family of many actions (the basket) runs for minutes."""
+    print(f"  {name}: {what} done at {time.perf_counter() - t0:.0f} s", flush=True)
+
+
 def family_row(name: str, n: int, cache: SettledCache) -> dict:
     t0 = time.perf_counter()
     task = get_task(name)
     seeds = verified_seeds(name)[:n]
     c = TaskBatch(task, len(seeds), backend="c", cache=cache)
     w = TaskBatch(task, len(seeds), backend="mjx", impl="warp", cache=cache)
+    stage(name, "built both batches", t0)
     on_c = run_experts(c, seeds)
+    stage(name, f"C experts ({sum(ep.steps for ep in on_c)} actions)", t0)
     on_w = run_experts(w, seeds)
+    stage(name, f"Warp experts ({sum(ep.steps for ep in on_w)} actions)", t0)
     scripts = [[a["action"] for a in ep.actions] for ep in on_c]
     dev = replay_lockstep({"c": c, "warp": w}, seeds, scripts)
+    stage(name, "lockstep replay", t0)
     worst = int(np.argmax(dev["gc_mm"]))
     failed = [ep.seed for ep in on_w if not ep.success]
     row = {

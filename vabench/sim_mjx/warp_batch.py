@@ -75,8 +75,9 @@ class WarpBatch(BatchBase):
     `device`: a Warp device ("cuda:0" by default; "cpu" runs the same kernels on the CPU, for
     tests). `nconmax` / `njmax`: per-world contact and constraint-row capacity (default: sized
     from the scene). `deterministic`: MuJoCo Warp's stable contact and constraint orderings on
-    GPUs (slower; closer run to run, but measured not bit-identical on an H100). `graphs`: capture CUDA graphs (GPU only; off = launch
-    kernel by kernel, for debugging). `loop`: see `warp_graphs.LOOPS`.
+    GPUs (slower; closer run to run, but measured not bit-identical on an H100). `graphs`:
+    capture CUDA graphs (GPU only; off = launch kernel by kernel, for debugging). `loop`: see
+    `warp_graphs.LOOPS`.
     """
 
     def __init__(
