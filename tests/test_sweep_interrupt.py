@@ -173,3 +173,20 @@ def test_two_quick_presses_end_the_sweep_and_its_workers_and_lose_nothing(tmp_pa
     check_whole(out)
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     assert len(check_whole(out)) == 6
+
+
+def test_ctrl_c_while_the_command_loads_exits_130_without_a_traceback(tmp_path):
+    """A press in the first second, while Python imports JAX, MuJoCo and the rest (about 3 s
+    on a 2-core machine), before the sweep's own handler exists: one line, status 130, no run
+    directory written."""
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(executor="{kind: local}"))
+    out = tmp_path / "out"
+    proc = start(cfg, out)
+    time.sleep(1.0)
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, (stdout, stderr)
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    assert "stopped" in stderr
+    assert not (out / LEDGER).exists()

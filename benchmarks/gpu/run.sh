@@ -82,10 +82,19 @@ PY
   main)
     # The product's front door as shipped, timed; the report is made from results.jsonl
     # afterwards (matplotlib is not on the device image).
-    run=/tmp/run_all
-    python3 -m vabench.sweep configs/all.yaml --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
+    # MAIN_EXECUTOR=local|processes|ray (and MAIN_MAX_TASKS=n) times another layout of the same
+    # plan (a copy of the config with only the executor changed); a run directory per layout.
+    run=/tmp/run_all${MAIN_EXECUTOR:+_$MAIN_EXECUTOR}
+    config=configs/all.yaml
+    if [ -n "${MAIN_EXECUTOR:-}" ]; then
+      config=/tmp/all_$MAIN_EXECUTOR.yaml
+      python3 -c "import sys, yaml; d = yaml.safe_load(open('configs/all.yaml'));
+n = int(sys.argv[3]); d['executor'] = {**(d.get('executor') or {}), 'kind': sys.argv[1]} | ({'max_tasks': n} if n else {});
+yaml.safe_dump(d, open(sys.argv[2], 'w'))" "$MAIN_EXECUTOR" "$config" "${MAIN_MAX_TASKS:-0}" || exit 1
+    fi
+    python3 -m vabench.sweep "$config" --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
     start=$EPOCHREALTIME
-    timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep configs/all.yaml --out "$run" --plain \
+    timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep "$config" --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
     rc=${PIPESTATUS[0]}
     echo "rc $rc wall_s $(python3 -c "print(round($EPOCHREALTIME - $start, 1))")" | tee -a "$out/main_wall.txt"

@@ -16,23 +16,37 @@ the sweep stops at once, naming the model and what to check), 130 after Ctrl-C.
 
 from __future__ import annotations
 
-import argparse
-import asyncio
-import logging
+import os
+import signal
 import sys
-from collections.abc import Callable, Sequence
-from pathlib import Path
-from typing import Any
 
-from vabench.config import SweepConfigError, load_config
-from vabench.sim_mjx.backends import BackendUnavailable
-from vabench.sweep.choices import choose, configure_jax, with_executor
-from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of
-from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted
-from vabench.sweep.plan import estimate, format_estimate, plan
-from vabench.sweep.results import Ledger, LedgerError, ledger_key
-from vabench.sweep.rundir import RunDirMismatch, check_run_dir
-from vabench.sweep.runner import LocalSweep, SweepStopped
+
+def _stopped_while_loading(signum: int, frame: object) -> None:
+    """Ctrl-C while the modules below load (seconds on a small machine, before the sweep's own
+    handler is installed): the same short exit as later; nothing was started or written."""
+    print("stopped before the sweep started; nothing recorded", file=sys.stderr)
+    os._exit(130)
+
+
+if __name__ == "__main__":
+    signal.signal(signal.SIGINT, _stopped_while_loading)
+
+import argparse  # noqa: E402  (after the handler above: these imports take seconds)
+import asyncio  # noqa: E402
+import logging  # noqa: E402
+from collections.abc import Callable, Sequence  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+from vabench.config import SweepConfigError, load_config  # noqa: E402
+from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
+from vabench.sweep.choices import choose, configure_jax, with_executor  # noqa: E402
+from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
+from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
+from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
+from vabench.sweep.results import Ledger, LedgerError, ledger_key  # noqa: E402
+from vabench.sweep.rundir import RunDirMismatch, check_run_dir  # noqa: E402
+from vabench.sweep.runner import LocalSweep, SweepStopped  # noqa: E402
 
 log = logging.getLogger("vabench.sweep")
 
