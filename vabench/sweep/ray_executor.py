@@ -49,128 +49,56 @@ when `run_ray` connects to the cluster itself (`project_runtime_env`: the job's 
 i.e. vabench, assets and configs, without run directories or caches); the nodes need the same
 Python packages. API keys travel from the
 driver's environment to the engines' in memory (`ray_engine`), never in a file.
+
+`ray_plan` holds the engines' plan and the driver's bookkeeping, `ray_driver` the driver's
+loop (`ClusterSweep`); their names are importable from here too.
 """
 
 from __future__ import annotations
 
-import collections
-import contextlib
 import logging
-import os
-import time
-import uuid
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import vabench
 from vabench.config import SweepConfig
-from vabench.sweep.cells import PROGRESS_EVERY_S, KeyTuple, chunks, pending_cells
-from vabench.sweep.choices import RAY_MAX_TASKS
-from vabench.sweep.display import Status, Tally
-from vabench.sweep.limiter import shared_endpoints
+from vabench.sweep.cells import KeyTuple, pending_cells
+from vabench.sweep.display import Status
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.ray_engine import DONE, LINE
-from vabench.sweep.results import LEDGER, Ledger, LedgerError, ledger_key
+from vabench.sweep.ray_driver import (
+    ENGINE_START_TIMEOUT_S,
+    MAX_ENGINE_RESTARTS,
+    TICK_S,
+    ClusterSweep,
+)
+from vabench.sweep.ray_plan import (
+    CHUNKS_PER_ENGINE,
+    SHIP_EXCLUDES,
+    Chunk,
+    EngineHandle,
+    engine_environment,
+    engine_plan,
+    project_runtime_env,
+)
+from vabench.sweep.results import LEDGER, Ledger
 from vabench.sweep.runner import SweepStopped
-from vabench.tasks import REGISTRY
 
-log = logging.getLogger(__name__)
-
-TICK_S = 1.0
-"""Seconds between display updates (and the longest the driver waits for an engine)."""
-CHUNKS_PER_ENGINE = 8
-"""Chunks per engine the plan is cut into: enough that engines finish close together."""
-MAX_ENGINE_RESTARTS = 16
-"""Engines started in place of dead ones, in one invocation."""
-ENGINE_START_TIMEOUT_S = 900.0
-"""How long the driver waits for an engine while none runs (a node may download the project,
-compile, build demonstrations) before it gives up, listing what did not run."""
-SHIP_EXCLUDES = [
-    ".git",
-    ".venv",
-    "runs",
-    ".cache",
-    "__pycache__",
-    "*.egg-info",
-    ".pytest_cache",
-    ".ruff_cache",
-    ".mypy_cache",
+__all__ = [
+    "CHUNKS_PER_ENGINE",
+    "ENGINE_START_TIMEOUT_S",
+    "MAX_ENGINE_RESTARTS",
+    "SHIP_EXCLUDES",
+    "TICK_S",
+    "Chunk",
+    "ClusterSweep",
+    "EngineHandle",
+    "engine_environment",
+    "engine_plan",
+    "project_runtime_env",
+    "run_ray",
 ]
 
-
-def project_runtime_env() -> dict[str, Any]:
-    """Ray's runtime environment that ships this checkout to the engines (vabench, assets,
-    configs), or nothing for an installed vabench (then every node has its own)."""
-    root = Path(vabench.__file__).resolve().parents[1]
-    if not ((root / "pyproject.toml").is_file() and (root / "assets").is_dir()):
-        return {}
-    return {"working_dir": str(root), "excludes": SHIP_EXCLUDES}
-
-
-def engine_plan(config: SweepConfig, cluster: Mapping[str, float]) -> tuple[int, dict[str, float]]:
-    """(how many engines, what each claims from Ray's scheduler) on a cluster of `cluster`
-    resources (see the module docstring, 3)."""
-    asked = config.executor.actors
-    gpus = int(cluster.get("GPU", 0))
-    if config.simulator.backend != "c" and gpus >= 1:
-        return asked or gpus, {"num_cpus": 1.0, "num_gpus": 1.0}
-    cpus = 1 + config.render.workers
-    return asked or max(1, int(cluster.get("CPU", 1)) // cpus), {
-        "num_cpus": float(cpus),
-        "num_gpus": 0.0,
-    }
-
-
-def engine_environment(config: SweepConfig, cores: int) -> dict[str, str]:
-    """What an engine's process is started with: the config's API keys from this process's
-    environment, and `VABENCH_CORES` (the engine's share of its node, which sizes the embedded
-    server's policy processes)."""
-    env = {"VABENCH_CORES": str(max(1, cores))}
-    for model in config.models:
-        name = model.api_key_env
-        if name and os.environ.get(name):
-            env[name] = os.environ[name]
-    return env
-
-
-@dataclass
-class Chunk:
-    name: str
-    keys: list[KeyTuple]
-    cost: int
-    """Of one episode (the task's step budget)."""
-
-
-@dataclass
-class EngineHandle:
-    """The driver's view of one engine actor."""
-
-    index: int
-    actor: Any
-    holder: str
-    starting: Any
-    """The `start()` reference until the engine has started."""
-    info: dict[str, Any] = field(default_factory=dict)
-    chunks: dict[Any, Chunk] = field(default_factory=dict)
-    """Chunks running there, by their stream."""
-    status: dict[str, Any] = field(default_factory=dict)
-    status_ref: Any = None
-    dead: bool = False
-
-    @property
-    def ready(self) -> bool:
-        return self.starting is None and not self.dead
-
-    def unfinished(self, records: Mapping[KeyTuple, Any]) -> tuple[int, int]:
-        """(episodes given and not recorded, their cost)."""
-        n = cost = 0
-        for chunk in self.chunks.values():
-            left = sum(k not in records for k in chunk.keys)
-            n += left
-            cost += left * chunk.cost
-        return n, cost
+log = logging.getLogger(__name__)
 
 
 def run_ray(
@@ -210,392 +138,3 @@ def run_ray(
     if sweep.stopped:
         raise SweepStopped(sweep.stopped[0])
     return Ledger.open(run_dir).records
-
-
-class ClusterSweep:
-    """The driver's loop (see the module docstring, 3-8)."""
-
-    def __init__(
-        self,
-        ray: Any,
-        config: SweepConfig,
-        keys: Sequence[EpisodeKey],
-        run_dir: Path,
-        cells: dict[tuple[str, str, str], list[EpisodeKey]],
-        on_status: Callable[[Status], None] | None,
-    ):
-        from vabench.sweep.ray_engine import EngineActor
-
-        self.ray = ray
-        self.config = config
-        self.run_dir = run_dir
-        self.on_status = on_status
-        self.ledger = Ledger.open(run_dir)  # the only writer
-        self.tally = Tally(run_dir, keys)
-        cluster = ray.cluster_resources()
-        self.engines_wanted, self.resources = engine_plan(config, cluster)
-        cores = int(self.resources["num_cpus"])
-        if self.resources["num_gpus"]:
-            cores = max(1, int(cluster.get("CPU", 1)) // max(1, int(cluster.get("GPU", 1))))
-        self.environ = engine_environment(config, cores)
-        # a task the registry lacks fails in its chunk
-        cost = lambda task: config.budget(task) if task in REGISTRY else 1  # noqa: E731
-        parts = chunks(cells, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
-        self.queue: collections.deque[Chunk] = collections.deque(
-            Chunk(name, [ledger_key(k) for k in part], cost(part[0].task)) for name, part in parts
-        )
-        self.total = len(self.queue)
-        self.done = 0
-        self.failures: list[Chunk] = []
-        self.stopped: list[str] = []
-        self.engines: list[EngineHandle] = []
-        self.restarts = 0
-        self.remote = ray.remote(EngineActor)
-        self.document = config.document()
-        self.shared = sorted(shared_endpoints(config.models, config.embedded_models))
-        self.limiter: Any = None
-        self.max_chunks = config.executor.max_tasks or RAY_MAX_TASKS
-        self._changed = False
-        """A chunk ended or an engine came or went since the last progress line."""
-        log.info(
-            "ray: %d chunks (%d episodes) on a cluster of %s: %d engines, each %s%s",
-            self.total,
-            sum(len(c.keys) for c in self.queue),
-            {k: v for k, v in cluster.items() if k in ("CPU", "GPU")},
-            self.engines_wanted,
-            self.resources,
-            f"; limits of {', '.join(self.shared)} kept by one board" if self.shared else "",
-        )
-
-    # -- the loop ------------------------------------------------------------------------------
-    def run(self) -> None:
-        if not self._fits_a_node():
-            self.failures.extend(self.queue)
-            self.queue.clear()
-            return
-        finished = False
-        try:
-            self._start_limiter()
-            for _ in range(self.engines_wanted):
-                self._start_engine()
-            self._loop()
-            finished = True
-        finally:
-            self._end(gracefully=finished)
-
-    def _loop(self) -> None:
-        last_log = time.monotonic()
-        idle_since = time.monotonic()
-        while self.queue or any(e.chunks for e in self.engines):
-            self._hand_out()
-            waiting: dict[Any, tuple[EngineHandle, Chunk | None]] = {}
-            for e in self.engines:
-                if e.dead:
-                    continue
-                if e.starting is not None:
-                    waiting[e.starting] = (e, None)
-                for stream, running in e.chunks.items():
-                    waiting[stream] = (e, running)
-            ready: list[Any] = []
-            if waiting:
-                ready = self._wait(list(waiting))
-            else:
-                time.sleep(TICK_S)
-            for ref in ready:
-                engine, chunk = waiting[ref]
-                if engine.dead:  # died while handling an earlier one of this batch
-                    continue
-                if chunk is None:
-                    self._started(engine)
-                else:
-                    self._next_item(engine, ref, chunk)
-            self._poll_statuses()
-            if any(e.ready for e in self.engines):
-                idle_since = time.monotonic()
-            elif not self._can_start() or time.monotonic() - idle_since > ENGINE_START_TIMEOUT_S:
-                self._give_up()
-            self.tally.refresh()
-            if self.on_status is not None:
-                self.on_status(self.status())
-            if self._changed or time.monotonic() - last_log >= PROGRESS_EVERY_S:
-                last_log, self._changed = time.monotonic(), False
-                self._log_progress()
-
-    def _wait(self, refs: list[Any]) -> list[Any]:
-        """The references of `refs` ready within `TICK_S` (all that are, once one is)."""
-        try:
-            ready, _ = self.ray.wait(refs, num_returns=1, timeout=TICK_S)
-            if ready:
-                ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=0)
-        except SystemError as err:  # Ctrl-C's `Interrupted`, raised inside Ray's own code
-            if isinstance(err.__cause__, Exception):
-                raise err.__cause__ from None
-            raise
-        return ready
-
-    def _log_progress(self) -> None:
-        log.info(
-            "ray: chunks %d/%d done (%d failed), %d running on %d engines | episodes recorded "
-            "%d/%d",
-            self.done,
-            self.total,
-            len(self.failures),
-            sum(len(e.chunks) for e in self.engines),
-            sum(e.ready for e in self.engines),
-            self.tally.status().total().done,
-            len(self.tally.planned),
-        )
-
-    # -- engines -------------------------------------------------------------------------------
-    def _start_limiter(self) -> None:
-        if not self.shared:
-            return
-        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
-        from vabench.sweep.limiter import LimiterActor
-
-        here = self.ray.get_runtime_context().get_node_id()
-        limits = shared_endpoints(self.config.models, self.config.embedded_models)
-        self.limiter = (
-            self.ray.remote(LimiterActor)
-            .options(
-                num_cpus=0,
-                max_concurrency=10_000,
-                scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=False),
-            )
-            .remote(limits)
-        )
-
-    def _fits_a_node(self) -> bool:
-        """Whether some node of the cluster has what one engine claims (else say so: the
-        engines would wait for resources that never come)."""
-        wanted = {"CPU": self.resources["num_cpus"], "GPU": self.resources["num_gpus"]}
-        nodes = [n["Resources"] for n in self.ray.nodes() if n.get("Alive")]
-        if any(all(node.get(k, 0) >= v for k, v in wanted.items() if v) for node in nodes):
-            return True
-        log.error(
-            "ray: no node of the cluster has what one engine claims (%s; nodes: %s): lower "
-            "render.workers (a CPU engine claims 1 + render.workers CPUs) or add such a node",
-            self.resources,
-            [{k: v for k, v in node.items() if k in ("CPU", "GPU")} for node in nodes],
-        )
-        return False
-
-    def _start_engine(self) -> None:
-        index = len(self.engines)
-        holder = f"engine-{index}-{uuid.uuid4().hex[:8]}"
-        actor = self.remote.options(
-            **self.resources,
-            scheduling_strategy="SPREAD",
-            max_restarts=0,
-        ).remote(
-            self.document,
-            str(self.run_dir),
-            self.environ,
-            self.limiter,
-            self.shared,
-            holder,
-        )
-        self.engines.append(EngineHandle(index, actor, holder, actor.start.remote()))
-
-    def _can_start(self) -> bool:
-        return any(e.starting is not None and not e.dead for e in self.engines)
-
-    def _started(self, engine: EngineHandle) -> None:
-        try:
-            engine.info = self.ray.get(engine.starting)
-        except Exception as err:  # its config does not load there, or it died starting
-            self._lost(engine, err)
-            return
-        engine.starting = None
-        engine.status = {"limit": engine.info.get("limit", 1)}
-        self._changed = True
-        log.info("ray: engine %d started: %s", engine.index, engine.info)
-
-    def _lost(self, engine: EngineHandle, err: BaseException) -> None:
-        """`engine` died: its chunks' episodes without a record go back to the queue's front,
-        the limit board frees what it held, and another engine takes its place."""
-        engine.dead = True
-        self._changed = True
-        requeued = 0
-        for chunk in reversed(list(engine.chunks.values())):
-            left = [k for k in chunk.keys if k not in self.ledger.records]
-            if left:
-                name = chunk.name if chunk.name.endswith(" (again)") else f"{chunk.name} (again)"
-                self.queue.appendleft(Chunk(name, left, chunk.cost))
-                self.total += 1
-                requeued += len(left)
-            self.done += 1  # this try of the chunk has ended
-        engine.chunks.clear()
-        with contextlib.suppress(Exception):
-            self.ray.kill(engine.actor, no_restart=True)
-        if self.limiter is not None:
-            self.limiter.forget.remote(engine.holder)
-        # an engine that could not even be created (its config does not load on that node, no
-        # run directory there) would fail the same way again: not replaced
-        restart = self.restarts < MAX_ENGINE_RESTARTS and not _in_creation(err)
-        log.warning(
-            "ray: engine %d (%s) is gone: %s; %d unfinished episodes go back to the queue%s",
-            engine.index,
-            engine.info.get("host", "not started"),
-            _why(err),
-            requeued,
-            "; starting another engine" if restart else "; no engine is started in its place",
-        )
-        if restart:
-            self.restarts += 1
-            self._start_engine()
-
-    def _give_up(self) -> None:
-        """No engine runs and none will: what is left is not run this time."""
-        log.error(
-            "ray: no engine is running and %s (each claims %s); %d chunks not run",
-            f"none has started in {ENGINE_START_TIMEOUT_S:.0f} s"
-            if self._can_start()
-            else "none is starting",
-            self.resources,
-            len(self.queue),
-        )
-        self.failures.extend(self.queue)
-        self.queue.clear()
-        for e in self.engines:
-            if not e.dead and e.starting is not None:
-                e.dead = True
-                with contextlib.suppress(Exception):
-                    self.ray.kill(e.actor, no_restart=True)
-
-    # -- chunks --------------------------------------------------------------------------------
-    def _hand_out(self) -> None:
-        """Give the queue's chunks to engines with room, the least loaded first."""
-        records = self.ledger.records
-        while self.queue and not self.stopped:
-            best, best_cost = None, 0
-            for e in self.engines:
-                if not e.ready or len(e.chunks) >= self.max_chunks:
-                    continue
-                left, cost = e.unfinished(records)
-                room = 2 * max(1, int(e.status.get("limit", 1)))
-                if e.chunks and left >= room:
-                    continue
-                if best is None or cost < best_cost:
-                    best, best_cost = e, cost
-            if best is None:
-                return
-            chunk = self.queue.popleft()
-            best.chunks[best.actor.run_chunk.remote(chunk.name, chunk.keys)] = chunk
-            log.info("ray: chunk %s (%d episodes) to %s", chunk.name, len(chunk.keys), _host(best))
-
-    def _next_item(self, engine: EngineHandle, stream: Any, chunk: Chunk) -> None:
-        ray = self.ray
-        try:
-            ref = next(stream)
-            item = ray.get(ref)
-        except StopIteration:  # ended without its summary (never, but not a reason to hang)
-            engine.chunks.pop(stream, None)
-            self.done += 1
-            self._changed = True
-            return
-        except ray.exceptions.RayTaskError as err:  # the chunk's own error
-            engine.chunks.pop(stream, None)
-            self.done += 1
-            self._changed = True
-            self.failures.append(chunk)
-            log.error("ray: chunk %s failed on %s:\n%s", chunk.name, _host(engine), err)
-            return
-        except ray.exceptions.RayError as err:  # the engine (or its node) is gone
-            self._lost(engine, err)
-            return
-        if item[0] == LINE:
-            self._append(item[1], item[2])
-        elif item[0] == DONE:
-            engine.chunks.pop(stream, None)
-            self.done += 1
-            self._changed = True
-            summary = item[1]
-            log.info("ray: chunk %s done on %s: %s", chunk.name, _host(engine), summary)
-            if summary.get("stopped") and not self.stopped:
-                self.stopped.append(summary["stopped"])
-                self.queue.clear()
-
-    def _append(self, name: str, record: dict[str, Any]) -> None:
-        try:
-            self.ledger.append_line(name, record)
-        except LedgerError as err:  # an episode reported twice (an engine taken for dead)
-            log.warning("ray: %s; kept in results.duplicates.jsonl", err)
-            self.ledger.add_duplicate(record)
-
-    # -- status --------------------------------------------------------------------------------
-    def _poll_statuses(self) -> None:
-        ray = self.ray
-        for e in self.engines:
-            if not e.ready:
-                continue
-            if e.status_ref is None:
-                e.status_ref = e.actor.status.remote()
-                continue
-            done, _ = ray.wait([e.status_ref], timeout=0)
-            if not done:
-                continue
-            ref, e.status_ref = e.status_ref, None
-            try:
-                e.status = ray.get(ref)
-            except ray.exceptions.RayError as err:
-                self._lost(e, err)
-
-    def status(self) -> Status:
-        """The ledger's counts with what the engines report (running, in flight, spend)."""
-        status = self.tally.status()
-        reports = [e.status for e in self.engines if "calls" in e.status]
-        live = [e.status for e in self.engines if e.ready and "calls" in e.status]
-        for r in live:
-            for name, n in r["running"].items():
-                model, track = name.split("/")
-                if (model, track) in status.tracks:
-                    status.tracks[(model, track)].running += n
-        if reports:
-            status.calls = sum(r["calls"] for r in reports)
-            status.tokens = sum(r["tokens"] for r in reports)
-            status.cost = sum(r["cost"] for r in reports)
-        if live:
-            status.calls_in_flight = sum(r["calls_in_flight"] for r in live)
-            status.in_flight = sum(r["in_flight"] for r in live)
-            status.limit = sum(r["limit"] for r in live)
-            status.reason = (
-                live[0]["reason"]
-                if len(live) == 1
-                else f"{len(live)} engines, e.g. {live[0]['reason']}"
-            )
-        return status
-
-    # -- the end -------------------------------------------------------------------------------
-    def _end(self, gracefully: bool) -> None:
-        """Close the engines (or, interrupted, end them at once) and the limit board."""
-        ray = self.ray
-        live = [e for e in self.engines if not e.dead]
-        if gracefully:
-            closing = [e.actor.close.remote() for e in live if e.starting is None]
-            with contextlib.suppress(Exception):
-                ray.wait(closing, num_returns=len(closing), timeout=60)
-        for e in live:
-            with contextlib.suppress(Exception):
-                ray.kill(e.actor, no_restart=True)
-        if self.limiter is not None:
-            with contextlib.suppress(Exception):
-                ray.kill(self.limiter, no_restart=True)
-
-
-def _host(engine: EngineHandle) -> str:
-    return f"engine {engine.index} ({engine.info.get('host', '?')})"
-
-
-def _in_creation(err: BaseException) -> bool:
-    return "error raised in its creation task" in str(err)
-
-
-def _why(err: BaseException) -> str:
-    """One line: the error an engine's creation raised (the last line of Ray's report), else
-    the first line of Ray's."""
-    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-    if not lines:
-        return type(err).__name__
-    return lines[-1] if _in_creation(err) else f"{type(err).__name__}: {lines[0]}"

@@ -1,0 +1,105 @@
+"""The plan of a Ray sweep's engines and the driver's bookkeeping (`ray_executor` runs the sweep,
+`ray_driver.ClusterSweep` is its loop): how many engines and what each claims from Ray's
+scheduler (`engine_plan`), what an engine's process is started with (`engine_environment`),
+the checkout shipped to the cluster (`project_runtime_env`), and the driver's records of a
+chunk (`Chunk`) and of an engine (`EngineHandle`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import vabench
+from vabench.config import SweepConfig
+from vabench.sweep.cells import KeyTuple
+
+CHUNKS_PER_ENGINE = 8
+"""Chunks per engine the plan is cut into: enough that engines finish close together."""
+SHIP_EXCLUDES = [
+    ".git",
+    ".venv",
+    "runs",
+    ".cache",
+    "__pycache__",
+    "*.egg-info",
+    ".pytest_cache",
+    ".ruff_cache",
+    ".mypy_cache",
+]
+
+
+def project_runtime_env() -> dict[str, Any]:
+    """Ray's runtime environment that ships this checkout to the engines (vabench, assets,
+    configs), or nothing for an installed vabench (then every node has its own)."""
+    root = Path(vabench.__file__).resolve().parents[1]
+    if not ((root / "pyproject.toml").is_file() and (root / "assets").is_dir()):
+        return {}
+    return {"working_dir": str(root), "excludes": SHIP_EXCLUDES}
+
+
+def engine_plan(config: SweepConfig, cluster: Mapping[str, float]) -> tuple[int, dict[str, float]]:
+    """(how many engines, what each claims from Ray's scheduler) on a cluster of `cluster`
+    resources (see `ray_executor`'s docstring, 3)."""
+    asked = config.executor.actors
+    gpus = int(cluster.get("GPU", 0))
+    if config.simulator.backend != "c" and gpus >= 1:
+        return asked or gpus, {"num_cpus": 1.0, "num_gpus": 1.0}
+    cpus = 1 + config.render.workers
+    return asked or max(1, int(cluster.get("CPU", 1)) // cpus), {
+        "num_cpus": float(cpus),
+        "num_gpus": 0.0,
+    }
+
+
+def engine_environment(config: SweepConfig, cores: int) -> dict[str, str]:
+    """What an engine's process is started with: the config's API keys from this process's
+    environment, and `VABENCH_CORES` (the engine's share of its node, which sizes the embedded
+    server's policy processes)."""
+    env = {"VABENCH_CORES": str(max(1, cores))}
+    for model in config.models:
+        name = model.api_key_env
+        if name and os.environ.get(name):
+            env[name] = os.environ[name]
+    return env
+
+
+@dataclass
+class Chunk:
+    name: str
+    keys: list[KeyTuple]
+    cost: int
+    """Of one episode (the task's step budget)."""
+
+
+@dataclass
+class EngineHandle:
+    """The driver's view of one engine actor."""
+
+    index: int
+    actor: Any
+    holder: str
+    starting: Any
+    """The `start()` reference until the engine has started."""
+    info: dict[str, Any] = field(default_factory=dict)
+    chunks: dict[Any, Chunk] = field(default_factory=dict)
+    """Chunks running there, by their stream."""
+    status: dict[str, Any] = field(default_factory=dict)
+    status_ref: Any = None
+    dead: bool = False
+
+    @property
+    def ready(self) -> bool:
+        return self.starting is None and not self.dead
+
+    def unfinished(self, records: Mapping[KeyTuple, Any]) -> tuple[int, int]:
+        """(episodes given and not recorded, their cost)."""
+        n = cost = 0
+        for chunk in self.chunks.values():
+            left = sum(k not in records for k in chunk.keys)
+            n += left
+            cost += left * chunk.cost
+        return n, cost
