@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import json
 import logging
+import pstats
 
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.plan import EpisodeKey, plan
-from vabench.sweep.process_executor import run_processes
+from vabench.sweep.process_executor import PROFILE_VARIABLE, run_processes
 
 CONFIG = """\
 name: processes
@@ -79,3 +80,21 @@ def test_a_failing_cell_is_reported_and_the_others_finish(tmp_path, caplog):
     )
     assert "cell local/active/no_such_task failed" in caplog.text
     assert "1 of 2 cells failed: local/active/no_such_task" in caplog.text
+
+
+def test_workers_write_a_profile_of_each_chunk_when_asked(tmp_path, monkeypatch):
+    """VABENCH_PROFILE_DIR: each worker leaves a cProfile of its chunk (how a GPU host without
+    a sampling profiler shows where a worker's time goes)."""
+    path = tmp_path / "processes.yaml"
+    path.write_text(CONFIG.format(executor="{kind: processes, max_tasks: 1}"))
+    run_dir, folder = tmp_path / "out", tmp_path / "profiles"
+    config = load_config(path, overrides={"tasks": ["grasp_single_cube"], "out": str(run_dir)})
+    keys = plan(config)
+    run_dir.mkdir()
+    (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
+    monkeypatch.setenv(PROFILE_VARIABLE, str(folder))
+    assert len(run_processes(config, keys, run_dir)) == len(keys)
+    (profile,) = folder.glob("*.prof")
+    assert "local-active-grasp_single_cube" in profile.name
+    functions = {name for _, _, name in pstats.Stats(str(profile)).stats}  # type: ignore[attr-defined]
+    assert {"_run_reporting", "open_engine", "_run_task"} <= functions  # the chunk's engine

@@ -93,11 +93,24 @@ n = int(sys.argv[3]); d['executor'] = {**(d.get('executor') or {}), 'kind': sys.
 yaml.safe_dump(d, open(sys.argv[2], 'w'))" "$MAIN_EXECUTOR" "$config" "${MAIN_MAX_TASKS:-0}" || exit 1
     fi
     python3 -m vabench.sweep "$config" --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
+    # MAIN_PROFILE=1: each worker writes a cProfile of its chunks (summed into main_profile.txt);
+    # always: GPU and CPU use every 5 s (main_util.txt: time, GPU %, GPU MiB, /proc/stat cpu)
+    [ -n "${MAIN_PROFILE:-}" ] && export VABENCH_PROFILE_DIR=/tmp/prof && rm -rf /tmp/prof
+    (while :; do echo "$(date +%s) $(nvidia-smi --query-gpu=utilization.gpu,memory.used \
+      --format=csv,noheader,nounits | tr '\n' ' ') $(head -1 /proc/stat)"; sleep 5; done \
+      > "$out/main_util.txt") &
+    sampler=$!
     start=$EPOCHREALTIME
     timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep "$config" --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
     rc=${PIPESTATUS[0]}
     echo "rc $rc wall_s $(python3 -c "print(round($EPOCHREALTIME - $start, 1))")" | tee -a "$out/main_wall.txt"
+    kill $sampler 2>/dev/null
+    if [ -n "${MAIN_PROFILE:-}" ]; then
+      python3 -c "import glob, pstats; s = pstats.Stats(*glob.glob('/tmp/prof/*.prof'));
+s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)" \
+        > "$out/main_profile.txt" 2>&1
+    fi
     cp "$run"/results.jsonl "$run"/infrastructure.jsonl "$run"/*.json "$out/" 2>/dev/null
     nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
     ;;

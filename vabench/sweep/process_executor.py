@@ -34,10 +34,12 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import cProfile
 import logging
 import math
 import multiprocessing
 import os
+import re
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -75,6 +77,12 @@ TICK_S = 1.0
 MAX_POOL_RESTARTS = 3
 """Times the workers are started again after one of them died (each death takes down every
 chunk the pool was running: concurrent.futures marks the whole pool broken)."""
+
+PROFILE_VARIABLE = "VABENCH_PROFILE_DIR"
+"""Set to a folder: every worker writes there a cProfile of each chunk it runs
+(`<pid>-<first episode>.prof`), of its event loop's thread: the engine, the model client, an
+embedded server in its process, the agent's decisions. For hosts with no sampling profiler,
+such as the lent GPU machines (`MAIN_PROFILE=1 bash benchmarks/gpu/run.sh main`)."""
 
 _lines: Any = None
 """In a worker: the pipe to the parent's `LedgerWriter` (set by `_init_worker`)."""
@@ -169,7 +177,18 @@ def _send(name: str, record: dict[str, Any]) -> None:
 def _run_cell_in_worker(
     document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]
 ) -> dict[str, Any]:
-    return run_cell(document, run_dir, keys, sink=_send)
+    folder = os.environ.get(PROFILE_VARIABLE)
+    if not folder:
+        return run_cell(document, run_dir, keys, sink=_send)
+    profile = cProfile.Profile()
+    profile.enable()
+    try:
+        return run_cell(document, run_dir, keys, sink=_send)
+    finally:
+        profile.disable()
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        first = re.sub(r"[^\w.-]+", "_", "-".join(map(str, keys[0])))
+        profile.dump_stats(Path(folder) / f"{os.getpid()}-{first}.prof")
 
 
 @contextlib.contextmanager
