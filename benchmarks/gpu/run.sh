@@ -2,8 +2,9 @@
 # One phase of the GPU measurements on the lent device machine; each phase fits one call
 # (< 10 minutes) and writes its results under $OUT. The order of calls (device tool):
 #   1. carry .wp1 .ray1:  mkdir -p /tmp/wp /tmp/ray && cp .wp1/* /tmp/wp/ && cp .ray1/* /tmp/ray/
-#   2. carry .wp2 .dep .ray2:  mkdir -p /tmp/wp /tmp/dep /tmp/ray && cp .wp2/* /tmp/wp/ &&
-#        cp .dep/* /tmp/dep/ && cp .ray2/* /tmp/ray/
+#   2. carry .wp2 .ray2:  mkdir -p /tmp/wp /tmp/ray && cp .wp2/* /tmp/wp/ && cp .ray2/* /tmp/ray/
+#      (the image had aiohttp, rich, yaml, PIL and pytest on 2026-11-25; if `setup` says one is
+#      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
 #        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main | ray
@@ -29,6 +30,7 @@ case "$phase" in
     tar -xJf .nvj/nvj.tar.xz -C /tmp/site && python3 -m pip install -q --no-index --no-deps \
       --no-compile --target /tmp/site .nvj/*.whl || exit 1
     if ! python3 -c "import aiohttp, rich, yaml, PIL, pytest" 2>/dev/null; then
+      ls /tmp/dep/*.whl >/dev/null 2>&1 || { echo "setup: the image lacks aiohttp, rich, yaml, PIL or pytest: carry .dep (see the top of run.sh)"; exit 1; }
       python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site /tmp/dep/*.whl \
         || exit 1
     fi
