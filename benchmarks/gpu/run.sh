@@ -7,7 +7,8 @@
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main | ray
+#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main | ray |
+#        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
 # benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh, .ray1-3 (Ray
 # for the `ray` phase, optional) from benchmarks/gpu/make_ray_part.sh (all run once here, from
