@@ -25,6 +25,7 @@ from typing import Any
 
 import mujoco
 
+from vabench.sim_mjx.cuda_sync import prefer_blocking_sync
 from vabench.sim_mjx.interface import BatchBase
 
 BACKENDS = ("auto", "mjx", "c")
@@ -85,6 +86,7 @@ def warp_problem(device: str | None = None) -> str | None:
         if importlib.util.find_spec(module) is None:
             return f"the Warp backend needs the package {package} ({GPU_EXTRA})"
     device = device or warp_device()
+    prefer_blocking_sync()  # before wp.init makes the GPUs' contexts active
     import warp as wp
 
     wp.config.quiet = True  # type: ignore[attr-defined]  # not in warp's stubs
