@@ -183,7 +183,27 @@ def check_fits(tokens: float, tpm: float | None, period_s: float) -> None:
         )
 
 
-class ConcurrencyLimiter:
+class Slots:
+    """What the pool holds a call's concurrency slot through: `acquire`, `release` and the
+    `slot` context around them (this process's `ConcurrencyLimiter`, or the slots several
+    processes lease from one board, `shared_limits.LeasedSlots`)."""
+
+    async def acquire(self, *, priority: bool = False) -> None:
+        raise NotImplementedError
+
+    def release(self) -> None:
+        raise NotImplementedError
+
+    @asynccontextmanager
+    async def slot(self, *, priority: bool = False) -> AsyncIterator[None]:
+        await self.acquire(priority=priority)
+        try:
+            yield
+        finally:
+            self.release()
+
+
+class ConcurrencyLimiter(Slots):
     """A semaphore whose bound can move (adaptive concurrency) and that lets retries jump the
     queue (a call that already waited once should not queue behind thousands of new ones)."""
 
@@ -243,14 +263,6 @@ class ConcurrencyLimiter:
             if not waiter.done():
                 self.in_flight += 1
                 waiter.set_result(None)
-
-    @asynccontextmanager
-    async def slot(self, *, priority: bool = False) -> AsyncIterator[None]:
-        await self.acquire(priority=priority)
-        try:
-            yield
-        finally:
-            self.release()
 
     def on_overload(self, now: float) -> None:
         """The endpoint said 429/529: multiplicative decrease, once per cooldown."""

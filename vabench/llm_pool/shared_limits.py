@@ -17,12 +17,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections import deque
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from vabench.llm_pool.limits import Admission, check_fits
+from vabench.llm_pool.limits import Admission, Slots, check_fits
 
 
 class LimitChannel(Protocol):
@@ -142,7 +140,7 @@ class _Fetcher:
                 await self._task
 
 
-class LeasedSlots(_Fetcher):
+class LeasedSlots(_Fetcher, Slots):
     """The concurrency slots of one endpoint, granted by the board one attempt at a time: the
     pool's `ConcurrencyLimiter` interface (`slot`, `in_flight`, `queued`, `bound`,
     `on_success`, `on_overload`)."""
@@ -189,14 +187,6 @@ class LeasedSlots(_Fetcher):
     def release(self) -> None:
         self.in_flight -= 1
         self._owner.note(returned=1)
-
-    @asynccontextmanager
-    async def slot(self, *, priority: bool = False) -> AsyncIterator[None]:
-        await self.acquire(priority=priority)
-        try:
-            yield
-        finally:
-            self.release()
 
     async def _fetch(self) -> None:
         owner = self._owner

@@ -73,6 +73,24 @@ class Status:
         return Counts.total(self.tracks.values())
 
 
+def with_reports(status: Status, reports: list[dict], live: list[dict], unit: str) -> Status:
+    """`status` (the ledger's counts) with what the sweep's processes report (each a
+    `cells.cell_status`-shaped dict): the spend of every report, finished ones included, and
+    the in-flight counts, limits and reason of the `live` ones. `unit` names the reporters in
+    the reason ("worker processes", "engines"). Their running episodes are the caller's."""
+    status.calls = sum(r["calls"] for r in reports)
+    status.tokens = sum(r["tokens"] for r in reports)
+    status.cost = sum(r["cost"] for r in reports)
+    status.calls_in_flight = sum(r["calls_in_flight"] for r in live)
+    if live:
+        status.in_flight = sum(r["in_flight"] for r in live)
+        status.limit = sum(r["limit"] for r in live)
+        status.reason = (
+            live[0]["reason"] if len(live) == 1 else f"{len(live)} {unit}, e.g. {live[0]['reason']}"
+        )
+    return status
+
+
 def status_of(progress: Any) -> Status:
     """The status of a `runner.LocalSweep`'s `SweepProgress` (per-task counters, its LLM pool,
     its in-flight gate)."""

@@ -64,7 +64,7 @@ from vabench.sweep.cells import (
     run_cell,
 )
 from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
-from vabench.sweep.display import Status, Tally
+from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import LEDGER, Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import SweepStopped
@@ -141,19 +141,7 @@ class LedgerWriter:
             model, track = r["cell"].split("/")[:2]
             if (model, track) in status.tracks:
                 status.tracks[(model, track)].running += r["running"]
-        status.calls = sum(r["calls"] for r in reports)
-        status.tokens = sum(r["tokens"] for r in reports)
-        status.cost = sum(r["cost"] for r in reports)
-        status.calls_in_flight = sum(r["calls_in_flight"] for r in live)
-        if live:
-            status.in_flight = sum(r["in_flight"] for r in live)
-            status.limit = sum(r["limit"] for r in live)
-            status.reason = (
-                live[0]["reason"]
-                if len(live) == 1
-                else f"{len(live)} worker processes, e.g. {live[0]['reason']}"
-            )
-        return status
+        return with_reports(status, reports, live, "worker processes")
 
 
 def _init_worker(parent_pid: int, lines: Any, counter: Any, gpus: tuple[str, ...]) -> None:

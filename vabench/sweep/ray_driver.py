@@ -19,7 +19,7 @@ from typing import Any
 from vabench.config import SweepConfig
 from vabench.sweep.cells import PROGRESS_EVERY_S, chunks
 from vabench.sweep.choices import RAY_MAX_TASKS
-from vabench.sweep.display import Status, Tally
+from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.limiter import shared_endpoints
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_engine import DONE, LINE
@@ -386,20 +386,7 @@ class ClusterSweep:
                 model, track = name.split("/")
                 if (model, track) in status.tracks:
                     status.tracks[(model, track)].running += n
-        if reports:
-            status.calls = sum(r["calls"] for r in reports)
-            status.tokens = sum(r["tokens"] for r in reports)
-            status.cost = sum(r["cost"] for r in reports)
-        if live:
-            status.calls_in_flight = sum(r["calls_in_flight"] for r in live)
-            status.in_flight = sum(r["in_flight"] for r in live)
-            status.limit = sum(r["limit"] for r in live)
-            status.reason = (
-                live[0]["reason"]
-                if len(live) == 1
-                else f"{len(live)} engines, e.g. {live[0]['reason']}"
-            )
-        return status
+        return with_reports(status, reports, live, "engines")
 
     # -- the end -------------------------------------------------------------------------------
     def _end(self, gracefully: bool) -> None:
