@@ -4,7 +4,8 @@ What is checked: the backend choice and its messages; images that match the GL r
 (same framing, same look within a few grey levels); every image independent of the batch it is
 rendered in, of its position and of its neighbours' variants and cameras; passes split by size
 without changing a pixel; the state read on the device from a Warp physics batch equal to its
-host copy; JPEG with the same settings as the GL path. Throughput is measured on a GPU by
+host copy, for each of two batches of one task; passes kept within their memory budget; JPEG
+with the same settings as the GL path. Throughput is measured on a GPU by
 benchmarks/render_throughput.py (docs/PERFORMANCE.md), never here.
 """
 
@@ -227,31 +228,66 @@ def test_bad_requests_fail_at_once(warp_pool, cube_items):
 
 # -- sharing device memory with Warp physics ---------------------------------------------
 def test_states_read_on_the_device_equal_the_host_copies(warp_pool):
+    """Two Warp physics batches of one task in one process (a Ray engine runs several cells at
+    once): each request reads the slots of the batch it names, equal to the host copies."""
     from vabench.tasks import get_task
     from vabench.tasks.runner import TaskBatch
 
     os.environ["VABENCH_WARP_DEVICE"] = "cpu"
     try:
-        tb = TaskBatch(get_task(CUBE), 3, backend="mjx", impl="warp")
-        seeds = verified_seeds(CUBE)[:3]
-        assert all(r.ok for r in tb.reset(range(3), seeds))
+        seeds = verified_seeds(CUBE)[:4]
+        first = TaskBatch(get_task(CUBE), 3, backend="mjx", impl="warp")
+        second = TaskBatch(get_task(CUBE), 2, backend="mjx", impl="warp")
+        assert all(r.ok for r in first.reset(range(3), seeds[:3]))
+        assert all(r.ok for r in second.reset(range(2), seeds[3:1:-1]))  # other states, slot 0
         down = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 30}
-        tb.step([down, None, down])  # slot 1 idles: frozen, its state still the reset's
-        qpos, p = tb.observe()
-        variants = tb.batch.variant()
-        items = []
-        for slot in (2, 0, 1, 0):
-            pose = cam.head_view({"right": p.gc[slot, 0]}, ("right",))
-            items.append(RenderItem(qpos[slot], int(variants[slot]), pose, slot=slot))
-        assert warp_pool.attach(CUBE, tb.batch)
-        shared = warp_pool.render_rgb(CUBE, items, SIZE)
-        warp_pool.detach(CUBE)
-        from_host = warp_pool.render_rgb(CUBE, items, SIZE)
+        first.step([down, None, down])  # slot 1 idles: frozen, its state still the reset's
+
+        def items(tb, slots):
+            qpos, p = tb.observe()
+            variants = tb.batch.variant()
+            out = []
+            for slot in slots:
+                pose = cam.head_view({"right": p.gc[slot, 0]}, ("right",))
+                out.append(RenderItem(qpos[slot], int(variants[slot]), pose, slot=slot))
+            return out
+
+        a, b = items(first, (2, 0, 1, 0)), items(second, (0, 1))
+        assert warp_pool.shares(first.batch) and warp_pool.shares(second.batch)
+        before = warp_pool.stats.shared_state
+        shared_a = warp_pool.render_rgb(CUBE, a, SIZE, source=first.batch)
+        shared_b = warp_pool.render_rgb(CUBE, b, SIZE, source=second.batch)
+        assert warp_pool.stats.shared_state - before == 6
+        host_a, host_b = warp_pool.render_rgb(CUBE, a, SIZE), warp_pool.render_rgb(CUBE, b, SIZE)
     finally:
         os.environ.pop("VABENCH_WARP_DEVICE", None)
-    assert np.array_equal(shared, from_host)
-    assert not np.array_equal(shared[0], shared[1])  # the slots differ
-    assert not warp_pool.attach(CUBE, object())  # not a Warp batch: host copies
+    assert np.array_equal(shared_a, host_a) and np.array_equal(shared_b, host_b)
+    assert not np.array_equal(shared_a[1], shared_b[0])  # slot 0 of each batch: its own state
+    assert not np.array_equal(shared_a[0], shared_a[1])  # the slots differ
+    assert not warp_pool.shares(object())  # not a Warp batch: host copies
+
+
+def test_passes_kept_stay_within_the_memory_budget(cube_items, shoe_items, warp_pool):
+    """Every task family and request size makes a pass; a sweep meets dozens. The passes kept
+    never take more than the budget (least recently used ones go), and an evicted pass rebuilt
+    later draws the same pixels."""
+    from vabench.render.warp_pass import pass_bytes
+
+    budget = pass_bytes(SIZE.width, SIZE.height, 6, device_jpeg=False)
+    os.environ["VABENCH_WARP_DEVICE"] = "cpu"
+    try:
+        with WarpRenderPool(max_size=(320, 240), max_pass=4, memory_budget=budget) as small:
+            first = small.render_rgb(CUBE, cube_items[:3], SIZE)
+            for n in (1, 2, 4, 3):
+                small.render_rgb(SHOE, shoe_items[:n], SIZE)
+                assert small.bytes_kept() <= budget
+            assert small.stats.evicted >= 2
+            again = small.render_rgb(CUBE, cube_items[:3], SIZE)  # its pass was evicted
+            assert small.bytes_kept() <= budget
+    finally:
+        os.environ.pop("VABENCH_WARP_DEVICE", None)
+    assert np.array_equal(first, again)
+    assert np.array_equal(first, warp_pool.render_rgb(CUBE, cube_items[:3], SIZE))
 
 
 # -- in the engine -----------------------------------------------------------------------

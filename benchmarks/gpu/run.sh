@@ -120,10 +120,12 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
   precompile)
     # Warp compiles its kernels per scene shape (1-2 min each on a fresh machine, then cached in
     # ~/.cache/warp): one process per base family, spread over the GPUs, all at once.
-    n=$(nvidia-smi -L | wc -l); i=0
+    # PRECOMPILE_GPUS="1" and PRECOMPILE_CPUS=16-31 keep it beside a measurement on GPU 0.
+    read -ra gpus <<< "${PRECOMPILE_GPUS:-$(seq -s ' ' 0 $(($(nvidia-smi -L | wc -l) - 1)))}"
+    i=0
     for t in $(python3 -c "from vabench.tasks import base_tasks as b; print(*[t.name for t in b()])"); do
-      CUDA_VISIBLE_DEVICES=$((i % n)) JAX_PLATFORMS=cpu timeout "${PRECOMPILE_S:-300}" \
-        python3 benchmarks/warp_fidelity.py --tasks "$t" --n 1 > "/tmp/precompile_$t.log" 2>&1 &
+      CUDA_VISIBLE_DEVICES=${gpus[$((i % ${#gpus[@]}))]} JAX_PLATFORMS=cpu timeout "${PRECOMPILE_S:-300}" \
+        taskset -c "${PRECOMPILE_CPUS:-0-$(($(nproc) - 1))}" python3 benchmarks/warp_fidelity.py --tasks "$t" --n 1 > "/tmp/precompile_$t.log" 2>&1 &
       i=$((i + 1))
     done
     wait

@@ -63,16 +63,14 @@ async def task_services(
             SimService, task, n_slots, backend=backend, window_s=sim_window_s, **batch_kwargs
         )
     )
-    render = RenderService(
-        render_pool, task.name, image or ImageSettings(), window_s=render_window_s
-    )
     # Warp physics and the Warp renderer on one GPU: images read the state on the device.
-    attach = getattr(render_pool, "attach", None)
-    shared = bool(attach and attach(task.name, sim.batch.batch))
+    shares = getattr(render_pool, "shares", None)
+    source = sim.batch.batch if shares and shares(sim.batch.batch) else None
+    render = RenderService(
+        render_pool, task.name, image or ImageSettings(), window_s=render_window_s, source=source
+    )
     try:
         yield TaskServices(sim, render, llm, settings or EngineSettings(), on_decision)
     finally:
-        await sim.close()
         await render.close()
-        if shared:
-            render_pool.detach(task.name)  # type: ignore[attr-defined]
+        await sim.close()

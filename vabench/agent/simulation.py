@@ -18,6 +18,7 @@ model-visible robot state (the fields of FACTS, via `proprio_fields`); `qpos`, `
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -115,7 +116,10 @@ class SimService:
         return self._batcher.stats
 
     async def close(self) -> None:
+        """Finish the queued requests, then release the batch's threads or device memory at
+        once (not when the collector gets to it: a sweep builds a batch per task)."""
         await self._batcher.close()
+        await asyncio.to_thread(self.batch.batch.close)
 
     # -- the worker-thread side ------------------------------------------------------------
     def _run(self, requests: Sequence[SimRequest]) -> list[SimReply]:
@@ -183,10 +187,12 @@ class RenderService:
         settings: ImageSettings,
         *,
         window_s: float = 0.005,
+        source: Any = None,
     ):
         self.pool = pool
         self.task_name = task_name
         self.settings = settings
+        self.source = source  # the physics batch the pool reads states from (see Renderer)
         self._batcher: MicroBatcher[list[RenderItem], list[bytes]] = MicroBatcher(
             self._run, window_s=window_s, name=f"render-{task_name}"
         )
@@ -200,7 +206,7 @@ class RenderService:
 
     def _run(self, requests: Sequence[list[RenderItem]]) -> list[list[bytes]]:
         flat = [item for req in requests for item in req]
-        images = self.pool.render(self.task_name, flat, self.settings)
+        images = self.pool.render(self.task_name, flat, self.settings, source=self.source)
         out, i = [], 0
         for req in requests:
             out.append(images[i : i + len(req)])

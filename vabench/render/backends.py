@@ -30,8 +30,15 @@ class Renderer(Protocol):
     def start(self) -> Any: ...
 
     def render(
-        self, task: str, items: list[RenderItem], settings: ImageSettings | None = None
-    ) -> list[bytes]: ...
+        self,
+        task: str,
+        items: list[RenderItem],
+        settings: ImageSettings | None = None,
+        source: Any = None,
+    ) -> list[bytes]:
+        """`source`: the physics batch whose slots the items name; a renderer that `shares` it
+        reads their states there (Warp on the physics' GPU), any other draws `item.qpos`."""
+        ...
 
     def close(self) -> None: ...
 

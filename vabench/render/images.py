@@ -78,6 +78,7 @@ class RenderStats:
     retries: int = 0
     passes: int = 0  # Warp: render passes (a request larger than the GPU holds takes several)
     shared_state: int = 0  # Warp: images whose state was read on the device from Warp physics
+    evicted: int = 0  # Warp: passes dropped to keep the passes kept within their memory budget
     render_s: float = 0.0  # drawing and reading pixels (GL: inside workers)
     encode_s: float = 0.0  # JPEG encoding
     wall_s: float = 0.0  # around whole requests, in the caller

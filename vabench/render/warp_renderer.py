@@ -19,7 +19,15 @@ Render batches ("passes", `warp_pass.RenderPass`) are made per task family, imag
 world count (1, 2, 3, 4, 6, 8, 12, ...: `pass_size`), when first needed, and then reused: a
 render context (BVHs, textures, buffers) and a model whose per-world fields hold each world's
 object variant and FOV. A request larger than the largest pass the GPU's memory allows is
-split into several passes, with a log message, never an out-of-memory crash.
+split into several passes, with a log message, never an out-of-memory crash. The passes kept
+share one memory budget (`MEMORY_SHARE` of the GPU's free memory when the first is sized): a
+pass that would not fit evicts the least recently used ones. Without it a sweep's memory grew
+with every task family and request size it met until the GPU ran out (measured on an H100:
+14 GB to 81 GB in four minutes, then CUDA out-of-memory errors; docs/PERFORMANCE.md).
+
+The physics batch to read states from is named per request (`source`), not registered per
+task: one process may run two batches of one task at once (a Ray engine runs several cells),
+and each request's slots index its own batch.
 
 Scene look: the same render model as the GL path (`renderer.render_spec`: visual geom groups
 0-2, the scene's lights, materials and skybox; near and far planes as GL's), so images match
@@ -36,6 +44,7 @@ import contextlib
 import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -63,7 +72,8 @@ log = logging.getLogger(__name__)
 MIN_PASS = 8  # the smallest largest-pass a GPU must hold (else: memory too full to render)
 MAX_PASS = 1024  # largest render batch on a GPU (memory permitting)
 CPU_MAX_PASS = 64
-MEMORY_SHARE = 0.4  # of the GPU memory free when a pass is sized; physics and JAX need the rest
+MEMORY_SHARE = 0.4  # of the GPU memory free when the first pass is sized: all passes kept
+CPU_BUDGET_WORLDS = 2 * CPU_MAX_PASS  # the pass budget on the CPU, in worlds of the largest size
 
 
 @dataclass
@@ -73,6 +83,8 @@ class WarpRenderPool:
     `device`: "cuda:N" or "cpu" (default: VABENCH_WARP_DEVICE, else cuda:0). `max_pass`: the
     most worlds one pass holds (default: from free GPU memory, at most MAX_PASS). `jpeg`:
     "auto" (nvImageCodec on a GPU where installed, else threads), "device" or "host".
+    `memory_budget`: bytes all passes kept may take (default: MEMORY_SHARE of the GPU memory
+    free when the first pass is sized; on the CPU, CPU_BUDGET_WORLDS worlds of the largest size).
     """
 
     device: str | None = None
@@ -80,15 +92,17 @@ class WarpRenderPool:
     max_pass: int | None = None
     jpeg: str = "auto"
     jpeg_threads: int | None = None
+    memory_budget: int | None = None
     stats: RenderStats = field(default_factory=RenderStats)
 
     def __post_init__(self) -> None:
         if self.jpeg not in ("auto", "device", "host"):
             raise ValueError(f"jpeg must be 'auto', 'device' or 'host', got {self.jpeg!r}")
         self._device: Any = None
-        self._passes: dict[tuple[str, int, int, int], RenderPass] = {}
+        # Passes kept, least recently used first, with the bytes each was charged.
+        self._passes: OrderedDict[tuple[str, int, int, int], tuple[RenderPass, int]] = OrderedDict()
+        self._budget = self.memory_budget  # bytes for all passes kept (else set with the first)
         self._models: dict[str, list[mujoco.MjModel]] = {}
-        self._sources: dict[str, Any] = {}
         self._largest: dict[tuple[int, int], int] = {}
         self._host_jpeg: JpegThreads | None = None
         self._device_jpeg: gpu_jpeg.DeviceJpeg | None = None
@@ -136,47 +150,53 @@ class WarpRenderPool:
     def close(self) -> None:
         with self._lock, self._lock_device:  # freeing device memory is device work too
             self._passes.clear()
-            self._sources.clear()
             if self._host_jpeg is not None:
                 self._host_jpeg.close()
                 self._host_jpeg = None
 
     # -- sharing the physics batch's memory -----------------------------------------------
-    def attach(self, task: str, batch: Any) -> bool:
-        """Read the states of `task`'s items with a slot from `batch` (a WarpBatch) on the
-        device. Returns False (and renders from the items' host copies) when the batch is on
-        another device or is not a Warp batch."""
+    def shares(self, batch: Any) -> bool:
+        """Whether this pool can read states from `batch` on the device (a Warp physics batch
+        on the same device): then pass it as `source` with the requests of its slots."""
         if self.info is None:
             self.start()
-        if not hasattr(batch, "copy_qpos") or str(getattr(batch, "device", "")) != str(
+        return hasattr(batch, "copy_qpos") and str(getattr(batch, "device", "")) == str(
             self._device
-        ):
-            return False
-        self._sources[task] = batch
-        return True
-
-    def detach(self, task: str) -> None:
-        self._sources.pop(task, None)
+        )
 
     # -- requests --------------------------------------------------------------------------
     def render(
-        self, task: str, items: Sequence[RenderItem], settings: ImageSettings | None = None
+        self,
+        task: str,
+        items: Sequence[RenderItem],
+        settings: ImageSettings | None = None,
+        source: Any = None,
     ) -> list[bytes]:
-        """The model images: JPEG bytes for every item, in order (blocking; thread-safe)."""
+        """The model images: JPEG bytes for every item, in order (blocking; thread-safe).
+        `source`: the physics batch the items' slots index, read on the device where this pool
+        `shares` it (else, or without it, the items' host copies are drawn)."""
         settings = settings or ImageSettings()
-        return self._request(task, list(items), settings, encode=True)
+        return self._request(task, list(items), settings, True, source)
 
     async def render_async(
-        self, task: str, items: Sequence[RenderItem], settings: ImageSettings | None = None
+        self,
+        task: str,
+        items: Sequence[RenderItem],
+        settings: ImageSettings | None = None,
+        source: Any = None,
     ) -> list[bytes]:
-        return await asyncio.to_thread(self.render, task, items, settings)
+        return await asyncio.to_thread(self.render, task, items, settings, source)
 
     def render_rgb(
-        self, task: str, items: Sequence[RenderItem], settings: ImageSettings | None = None
+        self,
+        task: str,
+        items: Sequence[RenderItem],
+        settings: ImageSettings | None = None,
+        source: Any = None,
     ) -> np.ndarray:
         """The same images as (n, H, W, 3) uint8 RGB arrays (parity checks, contact sheets)."""
         settings = settings or ImageSettings()
-        frames = self._request(task, list(items), settings, encode=False)
+        frames = self._request(task, list(items), settings, False, source)
         return (
             np.concatenate(frames)
             if frames
@@ -190,7 +210,7 @@ class WarpRenderPool:
         )
 
     def _request(
-        self, task: str, items: list[RenderItem], settings: ImageSettings, encode: bool
+        self, task: str, items: list[RenderItem], settings: ImageSettings, encode: bool, source: Any
     ) -> list[Any]:
         if settings.width > self.max_size[0] or settings.height > self.max_size[1]:
             raise RenderError(
@@ -210,9 +230,8 @@ class WarpRenderPool:
                 )
             if np.shape(it.qpos) != (nq,):
                 raise RenderError(f"qpos has shape {np.shape(it.qpos)}; {task} needs ({nq},)")
-        source = self._sources.get(task)
-        if source is not None and any(it.slot is None for it in items):
-            source = None  # some items carry only their host state: use the host copies
+        if source is not None and (not self.shares(source) or any(it.slot is None for it in items)):
+            source = None  # another device, or items with only their host state: host copies
         with self._lock:
             t0 = time.perf_counter()
             largest = self._largest_pass(settings)
@@ -302,9 +321,41 @@ class WarpRenderPool:
         return largest
 
     def _pass(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
+        """The pass of this key, built if needed within the memory budget (the caller holds
+        both locks, so no pass kept is in use by another request)."""
         key = (task, n_worlds, settings.width, settings.height)
-        if key not in self._passes:
-            self._passes[key] = RenderPass(
-                models, n_worlds, settings.width, settings.height, device_jpeg
-            )
-        return self._passes[key]
+        if key in self._passes:
+            self._passes.move_to_end(key)
+            return self._passes[key][0]
+        need = pass_bytes(settings.width, settings.height, n_worlds, device_jpeg)
+        budget = self._pass_budget(settings)
+        while self._passes and self.bytes_kept() + need > budget:
+            old, _ = self._passes.popitem(last=False)  # freed here: Warp returns its memory
+            self.stats.evicted += 1
+            log.debug("render pass %s evicted for %s (budget %d MiB)", old, key, budget >> 20)
+        self._passes[key] = (
+            RenderPass(models, n_worlds, settings.width, settings.height, device_jpeg),
+            need,
+        )
+        return self._passes[key][0]
+
+    def bytes_kept(self) -> int:
+        """Device memory charged to the passes kept (their pixels and per-world margin)."""
+        return sum(charged for _, charged in self._passes.values())
+
+    def _pass_budget(self, settings: ImageSettings) -> int:
+        """Bytes all passes kept may take: decided with the first pass (from the memory free
+        then, like the largest pass), and never less than the largest pass of any size."""
+        largest = pass_bytes(
+            settings.width,
+            settings.height,
+            self._largest_pass(settings),
+            self._device_jpeg is not None,
+        )
+        if self._budget is None:
+            if self._device.is_cuda:
+                self._budget = int(self._device.free_memory // gpu_share() * MEMORY_SHARE)
+            else:
+                self._budget = largest * CPU_BUDGET_WORLDS // max(1, self._largest_pass(settings))
+        self._budget = max(self._budget, largest)
+        return self._budget

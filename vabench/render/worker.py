@@ -257,9 +257,14 @@ class RenderPool:
 
     # -- requests --------------------------------------------------------------------------
     def render(
-        self, task: str, items: Sequence[RenderItem], settings: ImageSettings | None = None
+        self,
+        task: str,
+        items: Sequence[RenderItem],
+        settings: ImageSettings | None = None,
+        source: Any = None,
     ) -> list[bytes]:
-        """The model images: JPEG bytes for every item, in order (blocking; thread-safe)."""
+        """The model images: JPEG bytes for every item, in order (blocking; thread-safe).
+        `source` is ignored: GL workers draw the items' host states."""
         return self._request(task, items, settings or ImageSettings(), None)
 
     def render_debug(
