@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -72,7 +73,10 @@ def family_row(name: str, n: int, cache: SettledCache) -> dict:
     t0 = time.perf_counter()
     task = get_task(name)
     seeds = verified_seeds(name)[:n]
-    c = TaskBatch(task, len(seeds), backend="c", cache=cache)
+    # C slots on threads (one per seed, up to the cores): the basket's 20 experts took 107 s
+    # on one thread of the H100 host, more than half of the call's budget.
+    threads = min(len(seeds), len(os.sched_getaffinity(0)))
+    c = TaskBatch(task, len(seeds), backend="c", cache=cache, threads=threads)
     w = TaskBatch(task, len(seeds), backend="mjx", impl="warp", cache=cache)
     stage(name, "built both batches", t0)
     on_c = run_experts(c, seeds)

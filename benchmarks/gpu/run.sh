@@ -8,6 +8,7 @@
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
 #        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main | ray |
+#        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
 # benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh, .ray1-3 (Ray
@@ -15,7 +16,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray|precompile}
+phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray|streams|precompile}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -116,6 +117,12 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     fi
     cp "$run"/results.jsonl "$run"/infrastructure.jsonl "$run"/*.json "$out/" 2>/dev/null
     nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
+    ;;
+  streams)
+    # Issue 20: what a CUDA stream per task batch would gain over today's one stream per device
+    # (the same substep graphs, batch after batch vs interleaved on their own streams).
+    timeout 500 python3 benchmarks/warp_streams.py --json "$out/streams.json" 2>&1 \
+      | tee "$out/streams.log"
     ;;
   precompile)
     # Warp compiles its kernels per scene shape (1-2 min each on a fresh machine, then cached in
