@@ -42,6 +42,26 @@ def test_the_executor_is_sized_from_the_cores(options, cores, kind, max_tasks):
     assert choice.reason.startswith("auto: ") == ("kind" not in options)
 
 
+@pytest.mark.parametrize(
+    ("options", "gpus", "kind", "max_tasks"),
+    [
+        ({}, ("0",), "local", 64),  # one process steps every task batch on the GPU
+        ({}, (), "local", 64),  # Warp on the CPU (tests): one process as well
+        ({"max_tasks": 8}, ("0",), "local", 8),
+        ({}, ("0", "1"), "processes", 16),  # several GPUs: workers spread over them
+        ({"kind": "processes"}, ("0",), "processes", 16),  # asked for: kept
+    ],
+)
+def test_warp_physics_on_one_gpu_runs_in_one_process(options, gpus, kind, max_tasks):
+    warp, c = Choice("mjx", "warp", ""), Choice("c", "-", "")
+    choice = resolve_executor(ExecutorOptions(**options), Machine(16, gpus), warp)
+    assert (choice.kind, choice.max_tasks) == (kind, max_tasks)
+    if kind == "local" and "kind" not in options:
+        assert "one GPU" in choice.reason
+    # C physics on the same machine: a worker per core, as before
+    assert resolve_executor(ExecutorOptions(), Machine(16, gpus), c).kind == "processes"
+
+
 def test_the_machine_is_read_from_the_environment():
     assert this_machine({"VABENCH_CORES": "12"}).cores == 12
     with pytest.raises(ValueError, match="VABENCH_CORES must be a whole number, got 'many'"):
