@@ -86,15 +86,19 @@ PY
   main)
     # The product's front door as shipped, timed; the report is made from results.jsonl
     # afterwards (matplotlib is not on the device image).
-    # MAIN_EXECUTOR=local|processes|ray (and MAIN_MAX_TASKS=n) times another layout of the same
-    # plan (a copy of the config with only the executor changed); a run directory per layout.
-    run=/tmp/run_all${MAIN_EXECUTOR:+_$MAIN_EXECUTOR}
+    # MAIN_EXECUTOR=local|processes|ray (and MAIN_MAX_TASKS=n, MAIN_MAX_EPISODES=n) times
+    # another layout of the same plan (a copy of the config with only the executor changed); a
+    # run directory per layout.
+    layout=${MAIN_EXECUTOR:-}${MAIN_MAX_EPISODES:+_$MAIN_MAX_EPISODES}
+    run=/tmp/run_all${layout:+_$layout}
     config=configs/all.yaml
-    if [ -n "${MAIN_EXECUTOR:-}" ]; then
-      config=/tmp/all_$MAIN_EXECUTOR.yaml
+    if [ -n "$layout" ]; then
+      config=/tmp/all_$layout.yaml
       python3 -c "import sys, yaml; d = yaml.safe_load(open('configs/all.yaml'));
-n = int(sys.argv[3]); d['executor'] = {**(d.get('executor') or {}), 'kind': sys.argv[1]} | ({'max_tasks': n} if n else {});
-yaml.safe_dump(d, open(sys.argv[2], 'w'))" "$MAIN_EXECUTOR" "$config" "${MAIN_MAX_TASKS:-0}" || exit 1
+kind, n, e = sys.argv[1], int(sys.argv[3]), int(sys.argv[4]);
+d['executor'] = {**(d.get('executor') or {})} | ({'kind': kind} if kind else {}) | ({'max_tasks': n} if n else {}) | ({'max_episodes': e} if e else {});
+yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAIN_MAX_TASKS:-0}" \
+        "${MAIN_MAX_EPISODES:-0}" || exit 1
     fi
     python3 -m vabench.sweep "$config" --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
     # MAIN_PROFILE=1: each worker writes a cProfile of its chunks (summed into main_profile.txt);
