@@ -282,6 +282,7 @@ def test_passes_kept_stay_within_the_memory_budget(cube_items, shoe_items, warp_
                 small.render_rgb(SHOE, shoe_items[:n], SIZE)
                 assert small.bytes_kept() <= budget
             assert small.stats.evicted >= 2
+            assert small.stats.built == 4  # 3 images drawn in the kept pass of 4 worlds
             again = small.render_rgb(CUBE, cube_items[:3], SIZE)  # its pass was evicted
             assert small.bytes_kept() <= budget
     finally:

@@ -78,6 +78,7 @@ class RenderStats:
     retries: int = 0
     passes: int = 0  # Warp: render passes (a request larger than the GPU holds takes several)
     shared_state: int = 0  # Warp: images whose state was read on the device from Warp physics
+    built: int = 0  # Warp: render passes built (one kept serves later requests of up to its size)
     evicted: int = 0  # Warp: passes dropped to keep the passes kept within their memory budget
     render_s: float = 0.0  # drawing and reading pixels (GL: inside workers)
     encode_s: float = 0.0  # JPEG encoding

@@ -324,9 +324,17 @@ class WarpRenderPool:
         """The pass of this key, built if needed within the memory budget (the caller holds
         both locks, so no pass kept is in use by another request)."""
         key = (task, n_worlds, settings.width, settings.height)
-        if key in self._passes:
-            self._passes.move_to_end(key)
-            return self._passes[key][0]
+        # A kept pass of up to twice the worlds serves too (the extra worlds are traced for
+        # nothing): under a tight budget, building a pass per request size would churn.
+        kept = [
+            k
+            for k in self._passes
+            if k[0] == task and k[2:] == key[2:] and n_worlds <= k[1] <= 2 * n_worlds
+        ]
+        if kept:
+            best = min(kept, key=lambda k: k[1])
+            self._passes.move_to_end(best)
+            return self._passes[best][0]
         need = pass_bytes(settings.width, settings.height, n_worlds, device_jpeg)
         budget = self._pass_budget(settings)
         while self._passes and self.bytes_kept() + need > budget:
@@ -337,6 +345,7 @@ class WarpRenderPool:
             RenderPass(models, n_worlds, settings.width, settings.height, device_jpeg),
             need,
         )
+        self.stats.built += 1
         return self._passes[key][0]
 
     def bytes_kept(self) -> int:
