@@ -26,7 +26,7 @@ from vabench.config import SweepConfigError, load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.ray_executor import engine_plan, run_ray
-from vabench.sweep.results import Ledger
+from vabench.sweep.results import Ledger, ledger_key
 
 CONFIG = """\
 name: ray
@@ -244,3 +244,31 @@ def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
     assert engine_plan(auto, {"CPU": 5.0}) == (2, cpu_engine)  # no GPU: C MuJoCo engines
     three = auto.model_copy(update={"executor": auto.executor.model_copy(update={"actors": 3})})
     assert engine_plan(three, {"CPU": 128.0, "GPU": 8.0})[0] == 3
+
+
+def test_batched_engines_get_a_chunk_per_task_across_tracks_and_models():
+    """Engines on GPUs step one simulator batch per task of a chunk: chunks of whole tasks
+    (every track and model) keep those batches large; nothing is lost or doubled on the way."""
+    from vabench.sweep.cells import chunks, pending_cells, task_groups
+
+    keys = [
+        EpisodeKey(model, track, task, seed, 1)
+        for model in ("a", "b")
+        for track in ("active", "passive")
+        for task in ("t1", "t2")
+        for seed in range(6)
+    ]
+    done = {("a", "active", "t1", 0, 1)}  # already in the ledger
+    cells = pending_cells(keys, done)
+    groups = task_groups(cells)
+    assert sorted(groups) == [("t1",), ("t2",)]
+    assert len(groups[("t1",)]) == 23 and len(groups[("t2",)]) == 24
+    parts = chunks(groups, workers=1, cost=lambda task: 1, per_worker=1)
+    assert [name for name, _ in parts] == ["t2", "t1"]  # whole tasks, the larger first
+    assert {(k.model, k.track) for k in parts[1][1]} == {
+        (m, t) for m in ("a", "b") for t in ("active", "passive")
+    }
+    cut = chunks(groups, workers=2, cost=lambda task: 1, per_worker=2)  # 47 / 4 -> parts of 12
+    assert {name for name, _ in cut} == {"t1 part 1/2", "t1 part 2/2", "t2 part 1/2", "t2 part 2/2"}
+    flat = [ledger_key(k) for _, part in cut for k in part]
+    assert len(flat) == len(set(flat)) == len(keys) - 1

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
-from vabench.sweep.cells import PROGRESS_EVERY_S, chunks
+from vabench.sweep.cells import PROGRESS_EVERY_S, chunks, task_groups
 from vabench.sweep.choices import RAY_MAX_TASKS
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.limiter import shared_endpoints
@@ -74,7 +74,12 @@ class ClusterSweep:
         self.environ = engine_environment(config, cores)
         # a task the registry lacks fails in its chunk
         cost = lambda task: config.budget(task) if task in REGISTRY else 1  # noqa: E731
-        parts = chunks(cells, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
+        # Engines on GPUs batch their physics: a chunk per task (every track and model of it)
+        # is one batch per action instead of one per cell (measured on 2 x H100: 16 batches of
+        # <= 10 slots per engine, stepped one after the other, made 1.1 episodes/s).
+        self.batched = bool(self.resources["num_gpus"]) or config.simulator.backend == "mjx"
+        units = task_groups(cells) if self.batched else cells
+        parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
         self.queue: collections.deque[Chunk] = collections.deque(
             Chunk(name, [ledger_key(k) for k in part], cost(part[0].task)) for name, part in parts
         )
@@ -92,9 +97,10 @@ class ClusterSweep:
         self._changed = False
         """A chunk ended or an engine came or went since the last progress line."""
         log.info(
-            "ray: %d chunks (%d episodes) on a cluster of %s: %d engines, each %s%s",
+            "ray: %d chunks (%d episodes; %s) on a cluster of %s: %d engines, each %s%s",
             self.total,
             sum(len(c.keys) for c in self.queue),
+            "a chunk per task: batched physics" if self.batched else "a chunk per cell",
             {k: v for k, v in cluster.items() if k in ("CPU", "GPU")},
             self.engines_wanted,
             self.resources,

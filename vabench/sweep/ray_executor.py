@@ -4,8 +4,10 @@ writer of the ledger.
 `run_ray(config, keys, run_dir)` is what `python -m vabench.sweep` calls for `kind: ray`:
 
 1. the planned episodes not yet in results.jsonl are grouped into cells, one per (model, track,
-   task), and cut into chunks (`cells.chunks`, about `CHUNKS_PER_ENGINE` per engine, costliest
-   first); when none is left nothing starts;
+   task), or, where engines batch their physics (GPUs, or `simulator.backend: mjx`), one per
+   task (`cells.task_groups`: every track and model of a task in one simulator batch), and
+   cut into chunks (`cells.chunks`, about `CHUNKS_PER_ENGINE` per engine, costliest first);
+   when none is left nothing starts;
 2. `ray.init(address=executor.address)` joins the cluster (`None`: the running local one if
    there is one, else a new local one; `"auto"`: the running one; `"HOST:PORT"`: that head
    node; Ray Client's `ray://` is refused by the config, as it cannot carry streaming actor
