@@ -355,16 +355,11 @@ class WarpRenderPool:
     def _pass_budget(self, settings: ImageSettings) -> int:
         """Bytes all passes kept may take: decided with the first pass (from the memory free
         then, like the largest pass), and never less than the largest pass of any size."""
-        largest = pass_bytes(
-            settings.width,
-            settings.height,
-            self._largest_pass(settings),
-            self._device_jpeg is not None,
-        )
+        w, h, jpeg = settings.width, settings.height, self._device_jpeg is not None
         if self._budget is None:
-            if self._device.is_cuda:
-                self._budget = int(self._device.free_memory // gpu_share() * MEMORY_SHARE)
-            else:
-                self._budget = largest * CPU_BUDGET_WORLDS // max(1, self._largest_pass(settings))
-        self._budget = max(self._budget, largest)
-        return self._budget
+            self._budget = (
+                int(self._device.free_memory // gpu_share() * MEMORY_SHARE)
+                if self._device.is_cuda
+                else pass_bytes(w, h, CPU_BUDGET_WORLDS, jpeg)
+            )
+        return max(self._budget, pass_bytes(w, h, self._largest_pass(settings), jpeg))
