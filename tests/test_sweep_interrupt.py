@@ -6,6 +6,7 @@ the plan, each episode once."""
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import signal
@@ -190,3 +191,33 @@ def test_ctrl_c_while_the_command_loads_exits_130_without_a_traceback(tmp_path):
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
     assert "stopped" in stderr
     assert not (out / LEDGER).exists()
+
+
+SPAWN_PROBE = """
+import runpy, signal, subprocess, sys
+started = []
+original = subprocess.Popen.__init__
+def recording(self, *args, **kwargs):
+    blocked = signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    started.append((str(args[0] if args else kwargs.get("args"))[:60], blocked))
+    original(self, *args, **kwargs)
+subprocess.Popen.__init__ = recording
+sys.argv = ["vabench.sweep", "--help"]
+try:
+    runpy.run_module("vabench.sweep.__main__", run_name="__main__")
+except SystemExit:
+    pass
+print(repr(started), file=sys.stderr)
+"""
+
+
+def test_processes_started_while_the_command_loads_never_see_a_press():
+    """What the test above caught once in CI: importing mujoco runs `python -c` (glfw asks its
+    library's version); a press reaching that child mid-start printed "Fatal Python error".
+    Every process started while the command loads starts with SIGINT blocked."""
+    done = subprocess.run(
+        [sys.executable, "-c", SPAWN_PROBE], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    started = ast.literal_eval(done.stderr.strip().splitlines()[-1])
+    assert all(blocked for _, blocked in started), started

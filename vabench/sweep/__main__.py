@@ -30,6 +30,14 @@ def _stopped_while_loading(signum: int, frame: object) -> None:
 
 if __name__ == "__main__":
     signal.signal(signal.SIGINT, _stopped_while_loading)
+    from vabench.children import children_ignore_sigint
+
+    # Importing mujoco starts a Python child (the glfw package asks its library's version in a
+    # `python -c` subprocess); a press reaching that child while it starts prints "Fatal Python
+    # error" beside our one line. It starts with SIGINT blocked; a press meanwhile lands here
+    # once the import is done (~0.2 s).
+    with children_ignore_sigint():
+        import mujoco  # noqa: F401
 
 import argparse  # noqa: E402  (after the handler above: these imports take seconds)
 import asyncio  # noqa: E402
