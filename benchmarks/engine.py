@@ -15,8 +15,10 @@ per hour, their ratio to the ideal, the harness overhead per decision (wall / st
 and where the time went: simulator busy seconds per decision (resets + batched actions), render
 busy seconds per observation, mean simulator and render batch sizes, and the CPU time of this
 process per decision (engine, model client and, unless `--server-processes N` serves it in
-processes of its own, the embedded server; render workers excluded): 1 / that is the most
-decisions per second one engine process can drive.
+processes of its own, the embedded server; render workers excluded) and of its event loop's
+thread alone ("loop ms/dec": the engine, the model client, the agent's bookkeeping, everything
+that holds the GIL on that thread; physics and JPEG threads excluded): 1 / the larger of the two
+bounds the decisions per second one engine process can drive.
 
 `--shared-batch` runs every C on one batch of max(C) slots (one MJX compile; idle slots
 frozen), as a sweep does; otherwise each C gets a batch of exactly C slots. Compilation and
@@ -47,9 +49,10 @@ async def run_level(task, n_episodes, steps, latency, svc_factory, seeds):
             EpisodeSpec(task.name, seeds[i % len(seeds)], "local", step_budget=steps)
             for i in range(n_episodes)
         ]
-        t0, cpu0 = time.perf_counter(), time.process_time()
+        t0, cpu0, loop0 = time.perf_counter(), time.process_time(), time.thread_time()
         results = await run_episodes(specs, svc)
         wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+        loop_cpu = time.thread_time() - loop0  # this coroutine runs on the event loop's thread
         sim = [
             a - b
             for a, b in zip(
@@ -76,6 +79,7 @@ async def run_level(task, n_episodes, steps, latency, svc_factory, seeds):
         ratio=steps * latency / wall,
         overhead_per_decision_s=wall / steps - latency,
         engine_cpu_per_decision_s=cpu / max(decisions, 1),
+        loop_cpu_per_decision_s=loop_cpu / max(decisions, 1),
         sim_busy_per_decision_s=sim[0] / max(decisions, 1),
         sim_calls=sim[1],
         sim_mean_batch=sim[2] / max(sim[1], 1),
@@ -149,7 +153,7 @@ async def main_async(args) -> list[dict]:
                 print(
                     f"{'C':>5} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} {'ep/h':>9} "
                     f"{'ovh/dec s':>9} {'sim s/dec':>9} {'sim bat':>7} {'ren s/img':>9} "
-                    f"{'ren bat':>7} {'cpu ms/dec':>10} {'err':>4}"
+                    f"{'ren bat':>7} {'cpu ms/dec':>10} {'loop ms/dec':>11} {'err':>4}"
                 )
                 for c in levels:
 
@@ -183,7 +187,8 @@ async def main_async(args) -> list[dict]:
                         f"{row['sim_busy_per_decision_s']:>9.4f} {row['sim_mean_batch']:>7.1f} "
                         f"{row['render_busy_per_image_s']:>9.4f} "
                         f"{row['render_mean_batch']:>7.1f} "
-                        f"{row['engine_cpu_per_decision_s'] * 1000:>10.2f} {row['errors']:>4}",
+                        f"{row['engine_cpu_per_decision_s'] * 1000:>10.2f} "
+                        f"{row['loop_cpu_per_decision_s'] * 1000:>11.2f} {row['errors']:>4}",
                         flush=True,
                     )
     return rows
