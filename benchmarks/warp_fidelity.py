@@ -10,7 +10,10 @@ For every family and its first `--n` verified seeds (one batch per backend):
    positions. The target is GC within 2 mm after every action.
 
 Prints a Markdown table (solved on C / on Warp, worst GC and object deviation with the seed and
-step where it happened) and writes JSON rows. Long: run it on a GPU host.
+step where it happened) and writes JSON rows. Long: run it on a GPU host. The Warp device is
+`VABENCH_WARP_DEVICE` (default the first GPU); `VABENCH_WARP_DEVICE=cpu` runs the same MuJoCo Warp
+kernels on Warp's CPU backend, one thread (the basket's 20 seeds: about N minutes on a 2-core
+machine), for a family the GPU's time did not reach; every row names its device.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vabench.sim_mjx.backends import warp_device
 from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.tasks import benchmark_tasks, get_task
 from vabench.tasks.manifests import verified_seeds
@@ -90,6 +94,7 @@ def family_row(name: str, n: int, cache: SettledCache) -> dict:
     failed = [ep.seed for ep in on_w if not ep.success]
     row = {
         "task": name,
+        "warp_device": warp_device(),
         "seeds": len(seeds),
         "solved_c": sum(ep.success for ep in on_c),
         "solved_warp": sum(ep.success for ep in on_w),
@@ -127,6 +132,8 @@ def markdown(rows: list[dict]) -> str:
         )
     solved = sum(r["solved_warp"] == r["seeds"] for r in rows)
     lines.append(f"\nFamilies whose every seed the Warp expert solves: {solved}/{len(rows)}")
+    devices = sorted({str(r.get("warp_device", "?")) for r in rows})
+    lines.append(f"Warp device: {', '.join(devices)}")
     return "\n".join(lines)
 
 
