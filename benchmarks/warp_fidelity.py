@@ -12,7 +12,7 @@ For every family and its first `--n` verified seeds (one batch per backend):
 Prints a Markdown table (solved on C / on Warp, worst GC and object deviation with the seed and
 step where it happened) and writes JSON rows. Long: run it on a GPU host. The Warp device is
 `VABENCH_WARP_DEVICE` (default the first GPU); `VABENCH_WARP_DEVICE=cpu` runs the same MuJoCo Warp
-kernels on Warp's CPU backend, one thread (the basket's 20 seeds: about N minutes on a 2-core
+kernels on Warp's CPU backend, one thread (the basket's 20 seeds: 15 minutes on a 2-core
 machine), for a family the GPU's time did not reach; every row names its device.
 """
 
