@@ -70,6 +70,36 @@ def test_plain_lines_come_on_the_clock_with_every_count():
     assert "ETA done" in out.getvalue().splitlines()[-1]
 
 
+def _seconds(eta: str) -> int:
+    """'1h03m' / '4m05s' / '12s' -> seconds."""
+    m = re.fullmatch(r"(?:(\d+)h)?(?:(\d+)m)?(?:(\d+)s)?", eta)
+    assert m and eta, eta
+    h, mins, secs = (int(g) if g else 0 for g in m.groups())
+    return 3600 * h + 60 * mins + secs
+
+
+def test_the_eta_holds_steady_when_episodes_finish_in_bursts():
+    """A small machine finishes a few episodes a minute, several at once (a batch's slots end
+    together): 10 every 50 s here, a true pace of 0.2 episodes/s. Over one minute that is 10 or
+    20 episodes, an ETA that doubles and halves; it reaches back to the last 30 episodes."""
+    clock, out = Clock(), io.StringIO()
+    display = Display("all", live=False, every_s=15, out=out, clock=clock)
+    for t in range(0, 1_000, 5):
+        clock.now = t
+        display.update(status(10 * (t // 50), planned=2_000))
+    later = []  # (ETA, episodes left) from the fourth minute on
+    for line in out.getvalue().splitlines():
+        m = re.search(r"episodes (\d+)/(\d+).* elapsed (\S+), ETA (\S+) \|", line)
+        assert m, line
+        done, planned, elapsed, eta = m.groups()
+        if _seconds(elapsed) >= 240:
+            later.append((_seconds(eta), int(planned) - int(done)))
+    assert len(later) > 40
+    ratios = [eta * 0.2 / left for eta, left in later]  # 1.0: the true pace
+    assert max(ratios) <= 1.5 * min(ratios), ratios
+    assert all(0.7 < r < 1.5 for r in ratios), ratios
+
+
 def ledger_line(key: EpisodeKey, status: str = "success") -> str:
     record = {
         "model": key.model,

@@ -11,8 +11,10 @@ flight, their limit and why) and hands it to `Display.update` once a second:
 
 On a terminal a rich table is redrawn every second (a bar per model and track); without one
 (`--plain`, logs, CI) a line is printed every `every_s` seconds (default 15) with the same
-counts, and once more at the end. Rates (calls per second, the ETA) are taken over the last
-minute, so they follow the sweep's current pace.
+counts, and once more at the end. Rates follow the sweep's current pace: calls per second over
+the last minute; the ETA's episodes per second over the last minute too, widened back to the
+last `ETA_MIN_EPISODES` finished episodes where the minute holds fewer (a small machine
+finishes a few per minute, in bursts, and over one minute its ETA swung between 1 and 7 hours).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from vabench.sweep.results import INFRA_LOG, LEDGER, key_of
 
 PLAIN_EVERY_S = 15.0
 RATE_WINDOW_S = 60.0
+ETA_MIN_EPISODES = 30
 
 
 @dataclass
@@ -194,6 +197,8 @@ class Display:
         self.t0 = clock()
         self._last_print: float | None = None
         self._history: collections.deque[tuple[float, int, int]] = collections.deque()
+        self._done_at: collections.deque[tuple[float, int]] = collections.deque()
+        """(time, episodes done) where the count rose: the ETA's last ETA_MIN_EPISODES."""
         self._live: Any = None
         if self.live_mode:
             from rich.console import Console
@@ -204,16 +209,24 @@ class Display:
 
     # -- rates -----------------------------------------------------------------------------
     def _rates(self, done: int, calls: int) -> tuple[float, float]:
-        """(episodes per second, calls per second) over the last `RATE_WINDOW_S`."""
+        """(episodes per second, calls per second) over the last `RATE_WINDOW_S`; the episodes'
+        window reaches back to the last `ETA_MIN_EPISODES` episodes where it holds fewer."""
         now = self.clock()
         self._history.append((now, done, calls))
         while len(self._history) > 2 and now - self._history[1][0] >= RATE_WINDOW_S:
             self._history.popleft()
+        if not self._done_at or done > self._done_at[-1][1]:
+            self._done_at.append((now, done))
+        while len(self._done_at) > 2 and done - self._done_at[1][1] >= ETA_MIN_EPISODES:
+            self._done_at.popleft()
         t0, done0, calls0 = self._history[0]
-        span = now - t0
-        if span <= 0:
-            return 0.0, 0.0
-        return (done - done0) / span, (calls - calls0) / span
+        if done - done0 < ETA_MIN_EPISODES and self._done_at[0][0] < t0:
+            t_eps, done_eps = self._done_at[0]
+        else:
+            t_eps, done_eps = t0, done0
+        span, span_eps = now - t0, now - t_eps
+        episodes_per_s = max(done - done_eps, 0) / span_eps if span_eps > 0 else 0.0
+        return episodes_per_s, (calls - calls0) / span if span > 0 else 0.0
 
     def _eta(self, total: Counts, episodes_per_s: float) -> str:
         left = total.planned - total.done
