@@ -70,6 +70,18 @@ def test_plain_lines_come_on_the_clock_with_every_count():
     assert "ETA done" in out.getvalue().splitlines()[-1]
 
 
+def test_a_limit_lowered_below_the_running_episodes_says_it_only_holds_back_new_ones():
+    clock, out = Clock(), io.StringIO()
+    display = Display("all", live=False, out=out, clock=clock)
+    lowered = status(5)
+    lowered.in_flight, lowered.limit = 6, 3
+    display.update(lowered)
+    assert "in flight 6 (limit 3: " in out.getvalue()
+    assert "; no new episode until fewer run)" in out.getvalue()
+    display.update(status(6), force=True)  # 3 in flight under a limit of 4: nothing added
+    assert "no new episode" not in out.getvalue().splitlines()[-1]
+
+
 def _seconds(eta: str) -> int:
     """'1h03m' / '4m05s' / '12s' -> seconds."""
     m = re.fullmatch(r"(?:(\d+)h)?(?:(\d+)m)?(?:(\d+)s)?", eta)

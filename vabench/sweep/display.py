@@ -245,7 +245,12 @@ class Display:
             f"{total.unscored} unscored, {total.retried} retried, {total.running} running",
         ]
         if status.limit is not None:
-            parts.append(f"in flight {status.in_flight} (limit {status.limit}: {status.reason})")
+            # a limit lowered below the episodes already running ends none of them: it only
+            # holds back new ones, which reads as a bug unless said
+            held = "; no new episode until fewer run" if status.in_flight > status.limit else ""
+            parts.append(
+                f"in flight {status.in_flight} (limit {status.limit}: {status.reason}{held})"
+            )
         parts.append(
             f"calls {calls_per_s:.1f}/s, {status.calls_in_flight} in flight, "
             f"{status.tokens:,} tokens, ${status.cost:.2f}"
