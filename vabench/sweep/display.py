@@ -247,7 +247,8 @@ class Display:
         if status.limit is not None:
             # a limit lowered below the episodes already running ends none of them: it only
             # holds back new ones, which reads as a bug unless said
-            held = "; no new episode until fewer run" if status.in_flight > status.limit else ""
+            running = status.in_flight or 0
+            held = "; no new episode until fewer run" if running > status.limit else ""
             parts.append(
                 f"in flight {status.in_flight} (limit {status.limit}: {status.reason}{held})"
             )
