@@ -1,0 +1,72 @@
+"""The GPU host's path end to end, on Warp's CPU device: what `auto` picks where MuJoCo Warp
+runs (Warp physics, Warp's ray-traced images read from the physics batch on the device, one
+process stepping every task's batch) through the real sweep, engine, embedded server and
+ledger. The unit tests of tests/test_warp_batch.py and tests/test_render_warp.py check the
+parts; this checks they hold together as the product runs them: every planned episode recorded
+once, none lost to an infrastructure error, the images as asked for. Speed is measured on a GPU
+(docs/PERFORMANCE.md), never here."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import pytest
+from PIL import Image
+
+from vabench.sweep.__main__ import main
+from vabench.sweep.results import LEDGER
+
+CONFIG = """\
+name: warp-cpu
+models:
+  - name: local
+    api: openai_chat
+    base_url: embedded
+embedded_server: {policy: random_action}
+tracks: [active, passive]
+tasks: [grasp_single_cube, lift_pot]
+seeds: {verified: 1}
+runs: 1
+step_budget: 2
+render: {width: 96, height: 72}
+executor: {kind: auto}
+"""
+
+
+@pytest.fixture
+def warp_on_cpu(monkeypatch):
+    """What `auto` sees on a GPU host, with the CPU standing in for the GPU."""
+    monkeypatch.setenv("VABENCH_WARP_DEVICE", "cpu")
+
+
+def test_auto_picks_warp_physics_and_images_in_one_process_where_warp_runs(
+    tmp_path, warp_on_cpu, capsys
+):
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG)
+    assert main([str(cfg), "--dry-run"]) == 0
+    section = capsys.readouterr().out.split("Runs with:")[1]
+    assert "physics:   MuJoCo Warp (auto: MuJoCo Warp on cpu)" in section
+    assert "renderer:  MuJoCo Warp's ray tracer" in section
+    assert "executor:  local" in section
+
+
+def test_a_sweep_on_warp_physics_and_warp_images_records_every_episode_once(tmp_path, warp_on_cpu):
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG)
+    out = tmp_path / "out"
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    records = [json.loads(line) for line in (out / LEDGER).read_text().splitlines()]
+    keys = {(r["model"], r["track"], r["task"], r["seed"], r["run"]) for r in records}
+    assert len(records) == len(keys) == 4  # 2 tasks x 2 tracks x 1 seed x 1 run
+    assert all(r["error"] is None and r["status"] in ("success", "failure") for r in records)
+    assert all(r["steps_used"] == 2 for r in records)
+    for r in records:
+        frames = sorted((out / r["episode_dir"] / "frames").glob("*.jpg"))
+        assert frames, r["episode_dir"]
+        with Image.open(io.BytesIO(frames[0].read_bytes())) as image:
+            assert image.format == "JPEG" and image.size == (96, 72)
+    # nothing left to do: the same command resumes to no work
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    assert len((out / LEDGER).read_text().splitlines()) == 4
