@@ -19,6 +19,7 @@ import pytest
 
 from tests.test_sweep_reliability import alive, descendants
 from vabench.sweep.__main__ import main
+from vabench.sweep.interrupt import STOP_NOTICE
 from vabench.sweep.results import LEDGER
 
 CONFIG = """\
@@ -174,6 +175,42 @@ def test_two_quick_presses_end_the_sweep_and_its_workers_and_lose_nothing(tmp_pa
     check_whole(out)
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     assert len(check_whole(out)) == 6
+
+
+SLOW_STOP_NOTICE = """
+import sys, time
+from vabench.sweep.interrupt import CtrlC
+handler = CtrlC(notice_after_s=0.5)
+handler.install()
+with handler.on_first(lambda: print("stopping", flush=True)):
+    print("ready", flush=True)
+    time.sleep(float(sys.argv[1]))  # the stop's own work: 0 s, or longer than the notice
+handler.stopped()
+print("done", flush=True)
+time.sleep(1.0)  # a notice due after the stop must not come now
+"""
+
+
+@pytest.mark.parametrize("stop_s", [0.0, 2.0])
+def test_a_slow_first_stop_says_it_is_waiting_and_a_quick_one_says_nothing_more(stop_s):
+    """A first press whose stop outlasts the notice delay (work queued on a slow device) prints
+    the notice once, naming what a second press does; a quick stop prints nothing extra."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SLOW_STOP_NOTICE, str(stop_s)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    assert proc.stdout.readline() == "ready\n"
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=30)
+    assert stdout == "stopping\ndone\n"
+    if stop_s:
+        assert stderr.splitlines() == [STOP_NOTICE], stderr
+        assert "Ctrl-C again exits at once" in stderr
+    else:
+        assert stderr == "", stderr
 
 
 def test_ctrl_c_while_the_command_loads_exits_130_without_a_traceback(tmp_path):

@@ -139,6 +139,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         display.close(last[0])
         return _conclude(records, keys, run_dir, args.no_report)
     except Interrupted:
+        ctrl_c.stopped()
         display.close(last[0])
         done = Tally(run_dir, keys).status().total().done
         print(

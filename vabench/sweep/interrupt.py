@@ -8,6 +8,12 @@ aside before running it again. The command prints one line and exits with status
 press exits at once, with the same status and the same guarantees (nothing the sweep writes is
 ever half a record).
 
+Work already queued on the simulator or the renderer cannot be cancelled, only waited for: a
+second on a GPU, minutes where a slow device renders a large request (Warp on the CPU: 10
+minutes for configs/all.yaml's first images, during which the display went on printing as if
+nothing had been pressed). A stop still under way after `STOP_NOTICE_S` says so, once, with
+what a second press does.
+
 The processes the sweep starts never see SIGINT (`vabench.children`); the sweep ends them.
 """
 
@@ -16,11 +22,18 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import threading
 from collections.abc import Callable, Iterator
 from types import FrameType
 
 EXIT_INTERRUPTED = 130
 """128 + SIGINT, what a shell reports for a command ended by Ctrl-C."""
+STOP_NOTICE_S = 3.0
+"""A first press's stop still under way after this long prints `STOP_NOTICE`."""
+STOP_NOTICE = (
+    "stopping: episodes cancelled; waiting for the simulator and renderer to finish the work "
+    "already queued (Ctrl-C again exits at once; every recorded episode is kept)"
+)
 
 
 class Interrupted(Exception):
@@ -30,15 +43,18 @@ class Interrupted(Exception):
 class CtrlC:
     """The sweep's SIGINT handler (main thread only)."""
 
-    def __init__(self) -> None:
+    def __init__(self, notice_after_s: float = STOP_NOTICE_S) -> None:
         self.pressed = 0
+        self.notice_after_s = notice_after_s
         self._on_first: Callable[[], object] | None = None
         self._previous: object = None
+        self._notice: threading.Timer | None = None
 
     def install(self) -> None:
         self._previous = signal.signal(signal.SIGINT, self._handle)
 
     def restore(self) -> None:
+        self.stopped()
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)  # type: ignore[arg-type]
             self._previous = None
@@ -61,5 +77,15 @@ class CtrlC:
             os._exit(EXIT_INTERRUPTED)
         if self._on_first is not None:
             self._on_first()
+            self._notice = threading.Timer(
+                self.notice_after_s, os.write, (2, f"{STOP_NOTICE}\n".encode())
+            )
+            self._notice.daemon = True
+            self._notice.start()
             return
         raise Interrupted()
+
+    def stopped(self) -> None:
+        """The first press's stop is done (before its last line): no notice after it."""
+        if self._notice is not None:
+            self._notice.cancel()
