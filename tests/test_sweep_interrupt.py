@@ -182,8 +182,11 @@ import sys, time
 from vabench.sweep.interrupt import CtrlC
 handler = CtrlC(notice_after_s=0.5)
 handler.install()
-with handler.on_first(lambda: print("stopping", flush=True)):
+pressed = []
+with handler.on_first(lambda: (print("stopping", flush=True), pressed.append(1))):
     print("ready", flush=True)
+    while not pressed:  # the press lands inside the block, however late it is delivered
+        time.sleep(0.01)
     time.sleep(float(sys.argv[1]))  # the stop's own work: 0 s, or longer than the notice
 handler.stopped()
 print("done", flush=True)
