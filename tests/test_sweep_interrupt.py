@@ -124,6 +124,19 @@ def test_ctrl_c_stops_with_one_line_and_the_same_command_resumes(tmp_path, execu
     assert len(check_whole(out)) == 6
 
 
+def start_script(source: str, *args: str) -> subprocess.Popen:
+    """`python -c source args` in a process group of its own, once it has printed "ready"."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", source, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    assert proc.stdout.readline() == "ready\n"
+    return proc
+
+
 SLOW_STOP = """
 import sys, time
 from vabench.sweep.interrupt import CtrlC
@@ -137,14 +150,7 @@ sys.exit(0)
 
 
 def test_a_second_ctrl_c_exits_at_once_while_the_first_is_still_stopping():
-    proc = subprocess.Popen(
-        [sys.executable, "-c", SLOW_STOP],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    assert proc.stdout.readline() == "ready\n"
+    proc = start_script(SLOW_STOP)
     os.killpg(proc.pid, signal.SIGINT)
     assert proc.stdout.readline() == "stopping\n"
     t0 = time.monotonic()
@@ -198,14 +204,7 @@ time.sleep(1.0)  # a notice due after the stop must not come now
 def test_a_slow_first_stop_says_it_is_waiting_and_a_quick_one_says_nothing_more(stop_s):
     """A first press whose stop outlasts the notice delay (work queued on a slow device) prints
     the notice once, naming what a second press does; a quick stop prints nothing extra."""
-    proc = subprocess.Popen(
-        [sys.executable, "-c", SLOW_STOP_NOTICE, str(stop_s)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    assert proc.stdout.readline() == "ready\n"
+    proc = start_script(SLOW_STOP_NOTICE, str(stop_s))
     os.killpg(proc.pid, signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=30)
     assert stdout == "stopping\ndone\n"
