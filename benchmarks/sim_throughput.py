@@ -30,9 +30,10 @@ import numpy as np
 
 from vabench.protocol import parse_robot_action
 from vabench.sim_mjx.actions import CommandRows, encode
-from vabench.sim_mjx.backends import make_batch, warp_problem
+from vabench.sim_mjx.backends import make_batch
 from vabench.sim_mjx.interface import BatchBase
 from vabench.sim_mjx.reset_cache import SettledCache
+from vabench.sim_mjx.warp.device import warp_problem
 from vabench.tasks import get_task
 from vabench.tasks.manifests import manifest_path, verified_seeds
 from vabench.tasks.runner import TaskBatch

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vabench.sim_mjx.backends import warp_device
 from vabench.sim_mjx.reset_cache import SettledCache
+from vabench.sim_mjx.warp.device import warp_device
 from vabench.tasks import benchmark_tasks, get_task
 from vabench.tasks.manifests import verified_seeds
 from vabench.tasks.runner import TaskBatch, run_experts

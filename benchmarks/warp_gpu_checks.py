@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from vabench.sim_mjx.interface import STATE_FIELDS
-from vabench.sim_mjx.warp_batch import WarpBatch
+from vabench.sim_mjx.warp.batch import WarpBatch
 from vabench.tasks import get_task
 from vabench.tasks.manifests import verified_seeds
 from vabench.tasks.runner import TaskBatch, run_experts

@@ -42,7 +42,7 @@ def build(task, worlds: int, settle: int = 200):
     import mujoco_warp as mjw
     import warp as wp
 
-    from vabench.sim_mjx.warp_model import capacity
+    from vabench.sim_mjx.warp.model import capacity
 
     m0 = task.build_models()[0]
     cap = capacity(m0)
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import warp as wp
 
-    from vabench.sim_mjx.backends import warp_problem
+    from vabench.sim_mjx.warp.device import warp_problem
 
     problem = warp_problem(args.device)
     if problem is not None:

@@ -1,4 +1,4 @@
-"""Waiting for the GPU blocks instead of spinning (vabench.sim_mjx.cuda_sync): the flag goes to
+"""Waiting for the GPU blocks instead of spinning (vabench.sim_mjx.warp.cuda_sync): the flag goes to
 every GPU's primary context through the driver API, a refusal is reported, the variable is
 checked, and a machine without a driver just says so. The driver is a stand-in here (CI has no
 GPU); the effect on a GPU host is measured by the runbook (docs/PERFORMANCE.md)."""
@@ -9,7 +9,7 @@ import ctypes
 
 import pytest
 
-from vabench.sim_mjx import cuda_sync
+from vabench.sim_mjx.warp import cuda_sync
 
 
 class FakeDriver:

@@ -24,7 +24,8 @@ from vabench.sim_mjx import backends
 from vabench.sim_mjx.backends import BackendUnavailable
 from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase
 from vabench.sim_mjx.reset_cache import SettledCache
-from vabench.sim_mjx.warp_batch import WarpBatch
+from vabench.sim_mjx.warp import device
+from vabench.sim_mjx.warp.batch import WarpBatch
 from vabench.tasks import get_task
 from vabench.tasks.manifests import verified_seeds
 from vabench.tasks.runner import TaskBatch, run_experts
@@ -160,7 +161,7 @@ def test_every_device_operation_holds_the_device_lock(cube, monkeypatch):
     import warp as wp
 
     _, model, q0 = cube
-    lock = backends.device_lock("cpu")
+    lock = device.device_lock("cpu")
     seen: list[str] = []
 
     def checked(name, fn):
@@ -254,7 +255,7 @@ def test_missing_package_is_named(monkeypatch):
         return None if name == "mujoco_warp" else real(name, *args, **kwargs)
 
     monkeypatch.setattr(importlib.util, "find_spec", find_spec)
-    problem = backends.warp_problem("cuda:0")
+    problem = device.warp_problem("cuda:0")
     assert problem is not None
     assert "mujoco-warp" in problem and "pip install 'vabench[gpu]'" in problem
     with pytest.raises(BackendUnavailable, match="mujoco-warp"):

@@ -1,4 +1,4 @@
-"""The Warp port of the executor (`warp_kinematics`, `warp_layout`, `warp_control`) against its
+"""The Warp port of the executor (`warp.fk_ik`, `warp.arm_indices`, `warp.control`) against its
 JAX original, on Warp's CPU device.
 
 The JAX kinematics and planner are the oracle here (they are themselves tested against C MuJoCo
@@ -25,9 +25,9 @@ from vabench.sim_mjx import kinematics as kin  # noqa: E402
 from vabench.sim_mjx import layout as lay  # noqa: E402
 from vabench.sim_mjx import robot_constants as rc  # noqa: E402
 from vabench.sim_mjx import scene  # noqa: E402
-from vabench.sim_mjx import warp_control as wc  # noqa: E402
-from vabench.sim_mjx import warp_kinematics as wk  # noqa: E402
-from vabench.sim_mjx import warp_layout as wl  # noqa: E402
+from vabench.sim_mjx.warp import arm_indices as wl  # noqa: E402
+from vabench.sim_mjx.warp import control as wc  # noqa: E402
+from vabench.sim_mjx.warp import fk_ik as wk  # noqa: E402
 
 wp.config.quiet = True  # Warp < 1.10
 wp.config.log_level = getattr(wp, "LOG_WARNING", 30)  # Warp >= 1.10: no "Module ... load" lines

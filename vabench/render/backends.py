@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from vabench.render.images import ImageSettings, RenderItem, RenderStats
-from vabench.sim_mjx.backends import BackendUnavailable, warp_device, warp_problem
+from vabench.sim_mjx.backends import BackendUnavailable
+from vabench.sim_mjx.warp.device import warp_device, warp_problem
 
 RENDER_BACKENDS = ("auto", "warp", "gl")
 

@@ -22,7 +22,7 @@ import warp as wp
 from vabench.render.camera import FAR, NEAR
 from vabench.render.images import RenderItem
 from vabench.render.renderer import VIEW_CAMERA, render_spec
-from vabench.sim_mjx.warp_model import RENDER_IGNORED, WarpModel
+from vabench.sim_mjx.warp.model import RENDER_IGNORED, WarpModel
 from vabench.tasks.base import Task
 
 

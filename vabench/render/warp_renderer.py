@@ -64,7 +64,7 @@ from vabench.render.images import (
     packed_to_rgb,
 )
 from vabench.render.warp_pass import RenderPass, pass_bytes, pass_size, render_models
-from vabench.sim_mjx.backends import device_lock, gpu_share, warp_device
+from vabench.sim_mjx.warp.device import device_lock, gpu_share, warp_device
 from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)

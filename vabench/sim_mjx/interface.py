@@ -4,7 +4,7 @@ A batch holds N episodes ("slots") of one scene and executes one agent action pe
 `step` call. Three implementations:
 
 - `mjx_batch.SimBatch`: MJX on JAX (CPU JAX for tests, TPUs), plan + substeps in one jit;
-- `warp_batch.WarpBatch`: MuJoCo Warp on a GPU, plan + substeps + observation in one captured
+- `warp.batch.WarpBatch`: MuJoCo Warp on a GPU, plan + substeps + observation in one captured
   CUDA graph;
 - `cpu.CpuBatch`: C MuJoCo slot by slot (the oracle, and the fastest path on a laptop).
 

@@ -4,7 +4,8 @@
 the model-visible proprioception of a slot (`proprio_slot`, formatted by `proprio_fields` in the
 fields of FACTS.md) and the joint references of an action (`with_refs`, `ctrl_sequence_slot`).
 The three physics backends share these: MJX-JAX traces them, C MuJoCo calls them jitted on the
-host, and the Warp backend has a Warp port of the same formulas (`warp_layout`, `warp_control`).
+host, and the Warp backend has a Warp port of the same formulas (`warp.arm_indices`,
+`warp.control`).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Inside: pure jitted functions over the batch state (`SimState`). At the edge: `SimBatch`, which
 owns the device buffers (validation, encoding and results come from `interface.BatchBase`).
-For CPU JAX (tests) and TPUs; on NVIDIA GPUs the Warp backend (`warp_batch`) is far faster.
+For CPU JAX (tests) and TPUs; on NVIDIA GPUs the Warp backend (`warp.batch`) is far faster.
 
 One call of `SimBatch.step` executes one action per slot, each slot with its own kind, in a
 single jitted call: plan (closed-form IK over the waypoints) -> ACTION_SECONDS of physics

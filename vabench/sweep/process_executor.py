@@ -53,7 +53,8 @@ from vabench.children import (
     ignore_sigint,
 )
 from vabench.config import SweepConfig
-from vabench.sim_mjx.backends import GPU_SHARE, resolve
+from vabench.sim_mjx.backends import resolve
+from vabench.sim_mjx.warp.device import GPU_SHARE
 from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
     STATUS,

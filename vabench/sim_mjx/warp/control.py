@@ -3,10 +3,10 @@
 The port exists so that one CUDA graph per agent action holds everything the Warp backend
 does for that action: the plan of every slot (`plan_kernel`: closed-form IK at each waypoint
 with the reach, limit, wrist-flip and table checks), the joint references of every physics
-substep (`ctrl_kernel`), and the proprioception after it (`warp_layout.proprio_kernel`), all on
+substep (`ctrl_kernel`), and the proprioception after it (`arm_indices.proprio_kernel`), all on
 device arrays with no host round trip. The formulas, branch choices and tolerances are those of
 the JAX originals (which the C and MJX-JAX backends use), line for line; the kinematics they
-call are in `warp_kinematics.py`; tests/test_warp_control.py holds the port to them.
+call are in `fk_ik.py`; tests/test_warp_control.py holds the port to them.
 
 Arrays are indexed [slot, arm] (and [slot, arm, waypoint] for the waypoints).
 """
@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import warp as wp
 
 from vabench.sim_mjx import robot_constants as rc
-from vabench.sim_mjx.warp_kinematics import (
+from vabench.sim_mjx.warp.arm_indices import Indices, arm_q, pair
+from vabench.sim_mjx.warp.fk_ik import (
     ArmGeometryW,
     axis_angle,
     gripper_points,
@@ -26,7 +27,6 @@ from vabench.sim_mjx.warp_kinematics import (
     lowest_gripper_z,
     vec6,
 )
-from vabench.sim_mjx.warp_layout import Indices, arm_q, pair
 
 W = rc.N_WAYPOINTS
 _TABLE_LIMIT = wp.constant(rc.TABLE_Z + rc.TABLE_CLEARANCE)

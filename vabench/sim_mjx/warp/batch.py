@@ -1,13 +1,13 @@
 """The Warp backend: N slots of one scene on MuJoCo Warp, one captured CUDA graph per action.
 
 One agent action for the whole batch is one graph launch: plan every slot (closed-form IK over
-the waypoints, `warp_control.plan_kernel`), then ACTION_SECONDS of physics substeps (joint
+the waypoints, `control.plan_kernel`), then ACTION_SECONDS of physics substeps (joint
 references of substep k written by `ctrl_kernel`, then `mujoco_warp.step`), then the merge
 (slots that were idle, invalid or whose plan failed get their saved state back bit for bit,
-`warp_rows.Snapshot`), then the observation (kinematics and collision at the final state for the
+`rows.Snapshot`), then the observation (kinematics and collision at the final state for the
 predicates' contact flags, and the proprioception). Nothing returns to the host until the graph
 ends. Settling (`hold`) is a graph of HOLD_CHUNK steps with the same merge. How the graphs hold
-the substeps: `warp_graphs`.
+the substeps: `graphs`.
 
 On the CPU device (tests) the same kernels run without a graph: Warp's CPU backend executes
 every thread of a launch in order, so a slot's trajectory does not depend on the batch size,
@@ -21,7 +21,7 @@ the process is an error (seen on an H100 as "invalid argument" and then "illegal
 access" when two task batches of one engine were built while a third captured its graphs); and
 Warp's current device and stream are the process's, not the thread's.
 
-Buffers (contacts, constraint rows) are sized from the scene (`warp_model.capacity`); a slot
+Buffers (contacts, constraint rows) are sized from the scene (`model.capacity`); a slot
 whose world overflows them gets an infrastructure error (`failure_text`), never silent wrong
 physics.
 """
@@ -37,18 +37,18 @@ import mujoco_warp as mjw
 import numpy as np
 import warp as wp
 
-from vabench.sim_mjx import warp_control as wc
-from vabench.sim_mjx import warp_kinematics as wk
-from vabench.sim_mjx import warp_layout as wl
-from vabench.sim_mjx import warp_rows as wr
 from vabench.sim_mjx.actions import CommandRows
-from vabench.sim_mjx.backends import device_lock
 from vabench.sim_mjx.interface import BatchBase, StepInfo, hold_chunks
 from vabench.sim_mjx.layout import Proprio
 from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import check_same_structure
-from vabench.sim_mjx.warp_graphs import Graphs
-from vabench.sim_mjx.warp_model import FAILURE_BITS, WarpModel, capacity, failure_texts
+from vabench.sim_mjx.warp import arm_indices as wl
+from vabench.sim_mjx.warp import control as wc
+from vabench.sim_mjx.warp import fk_ik as wk
+from vabench.sim_mjx.warp import rows as wr
+from vabench.sim_mjx.warp.device import device_lock
+from vabench.sim_mjx.warp.graphs import Graphs
+from vabench.sim_mjx.warp.model import FAILURE_BITS, WarpModel, capacity, failure_texts
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -77,7 +77,7 @@ class WarpBatch(BatchBase):
     from the scene). `deterministic`: MuJoCo Warp's stable contact and constraint orderings on
     GPUs (slower; closer run to run, but measured not bit-identical on an H100). `graphs`:
     capture CUDA graphs (GPU only; off = launch kernel by kernel, for debugging). `loop`: see
-    `warp_graphs.LOOPS`.
+    `graphs.LOOPS`.
     """
 
     def __init__(
@@ -148,7 +148,7 @@ class WarpBatch(BatchBase):
         self._host: dict[str, np.ndarray] = {}
         self.reset(range(n), np.broadcast_to(home_qpos(m0), (n, m0.nq)))
 
-    # -- device work, queued only (see warp_graphs) -----------------------------------------
+    # -- device work, queued only (see graphs) -----------------------------------------
     def _physics(self, name: str, pre: Callable, substep: Callable, post: Callable, n: int) -> None:
         """pre, n x substep, post (see `Graphs.run_loop`)."""
         self._host.clear()

@@ -3,7 +3,7 @@
 Forward kinematics, gripper points, the IK with its branch choice, the gripper's lowest point
 and the rotation conversions: the formulas, branch choices and tolerances of the JAX originals,
 line for line (tests/test_warp_control.py holds the port to them). The kernels that call these
-live in `warp_control.py` (the plan and the joint references) and `warp_layout.py` (the
+live in `control.py` (the plan and the joint references) and `arm_indices.py` (the
 proprioception).
 
 Conventions as in `kinematics.py`: joint vectors are `vec6`, the gripper rotation has columns

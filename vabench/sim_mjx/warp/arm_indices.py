@@ -3,8 +3,8 @@ proprioception kernel that reads the joints through them.
 
 `Indices` holds `ArmLayout`'s qpos addresses and actuator ids; `arm_q` and `pair` read an arm's
 joints (or references) of one slot through them, for these kernels and the plan's
-(`warp_control`). `proprio_kernel` is `layout.proprio_slot` over every slot and arm, with the
-kinematics of `warp_kinematics`; tests/test_warp_control.py holds it to the JAX original.
+(`control`). `proprio_kernel` is `layout.proprio_slot` over every slot and arm, with the
+kinematics of `fk_ik`; tests/test_warp_control.py holds it to the JAX original.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import warp as wp
 
 from vabench.sim_mjx.layout import ArmLayout
-from vabench.sim_mjx.warp_kinematics import (
+from vabench.sim_mjx.warp.fk_ik import (
     ArmGeometryW,
     gripper_points,
     mat_to_quat,
