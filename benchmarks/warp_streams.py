@@ -14,8 +14,14 @@ would gain by giving each batch its own CUDA stream: the same captured substep g
 - streams: each batch on its own stream, the launches interleaved substep by substep, one
   synchronisation at the end (what a stream per WarpBatch would do);
 
-and prints agent actions per second (worlds x batches per round / seconds per round), the
-ratio, and the host time spent queueing the launches (the lock would be held that long).
+- threads: each batch on its own stream AND its own host thread (what a batch whose lock is
+  held only while it queues would allow: do launches of several threads overlap?);
+
+each with graphs of K substeps (`--chunks`: 1 is today's graph per substep; a graph per
+waypoint or per action queues fewer, longer graphs: what does capturing them cost, and does
+the host queue them faster?), and prints agent actions per second (worlds x batches per round /
+seconds per round), the ratio to serial with K = 1, the host time spent queueing the launches
+(the lock would be held that long) and the capture time of each K.
 Each batch is the scene of one base family (variant 0) at its home pose; objects settle onto
 the table during the warm-up, so contacts are present as in an episode. GPU only: on the CPU
 Warp has no streams and the script says so.
@@ -37,8 +43,9 @@ from vabench.sim_mjx.scene import home_qpos
 from vabench.tasks import base_tasks
 
 
-def build(task, worlds: int, settle: int = 200):
-    """(model, data, step graph, stream) of one family's scene on the GPU."""
+def build(task, worlds: int, settle: int = 200, chunks: tuple[int, ...] = (1,)):
+    """(model, data, {K: graph of K steps}, stream, {K: capture seconds}) of one family's scene
+    on the GPU."""
     import mujoco_warp as mjw
     import warp as wp
 
@@ -52,57 +59,99 @@ def build(task, worlds: int, settle: int = 200):
     d = mjw.put_data(m0, d0, nworld=worlds, nconmax=cap.nconmax, njmax=cap.njmax)
     device = wp.get_device()
     stream = wp.Stream(device) if device.is_cuda else None
+    graphs, capture_s = {}, {}
     with wp.ScopedStream(stream) if stream else contextlib.nullcontext():
         mjw.step(m, d)  # loads the modules before capture
-        with wp.ScopedCapture(stream=stream) as capture:
-            mjw.step(m, d)
+        for k in chunks:
+            t0 = time.perf_counter()
+            with wp.ScopedCapture(stream=stream) as capture:
+                for _ in range(k):
+                    mjw.step(m, d)
+            graphs[k] = capture.graph
+            wp.capture_launch(graphs[k], stream=stream)  # instantiates it
+            wp.synchronize_device()
+            capture_s[k] = time.perf_counter() - t0
         for _ in range(settle):  # contacts as in an episode
-            wp.capture_launch(capture.graph, stream=stream)
+            wp.capture_launch(graphs[1] if 1 in graphs else graphs[chunks[0]], stream=stream)
     wp.synchronize_device()
-    return m, d, capture.graph, stream
+    return m, d, graphs, stream, capture_s
 
 
-def round_serial(batches, substeps: int) -> tuple[float, float]:
+def round_serial(batches, substeps: int, k: int) -> tuple[float, float]:
     import warp as wp
 
     one = batches[0][3]
     t0 = time.perf_counter()
-    for _, _, graph, _ in batches:
-        for _ in range(substeps):
-            wp.capture_launch(graph, stream=one)
+    for _, _, graphs, _, _ in batches:
+        for _ in range(substeps // k):
+            wp.capture_launch(graphs[k], stream=one)
     queued = time.perf_counter() - t0
     wp.synchronize_device()
     return time.perf_counter() - t0, queued
 
 
-def round_streams(batches, substeps: int) -> tuple[float, float]:
+def round_streams(batches, substeps: int, k: int) -> tuple[float, float]:
     import warp as wp
 
     t0 = time.perf_counter()
-    for _ in range(substeps):
-        for _, _, graph, stream in batches:
-            wp.capture_launch(graph, stream=stream)
+    for _ in range(substeps // k):
+        for _, _, graphs, _, stream in batches:
+            wp.capture_launch(graphs[k], stream=stream)
     queued = time.perf_counter() - t0
     wp.synchronize_device()
     return time.perf_counter() - t0, queued
 
 
-def measure(batches, worlds: int, substeps: int, repeats: int) -> dict:
-    out = {"batches": len(batches), "worlds": worlds}
-    modes = [("serial", round_serial)]
-    if batches[0][3] is not None:  # streams exist on CUDA devices only
-        modes.append(("streams", round_streams))
-    for name, fn in modes:
-        fn(batches, substeps)  # warm
-        times = [fn(batches, substeps) for _ in range(repeats)]
-        wall = float(np.median([t for t, _ in times]))
-        out[name] = {
-            "round_s": wall,
-            "queue_s": float(np.median([q for _, q in times])),
-            "actions_per_s": len(batches) * worlds / wall,
-        }
-    if "streams" in out:
-        out["ratio"] = out["streams"]["actions_per_s"] / out["serial"]["actions_per_s"]
+def round_threads(batches, substeps: int, k: int) -> tuple[float, float]:
+    """Each batch queued and waited for by a thread of its own (Warp's launches and waits
+    release the GIL); queue_s is the longest any thread spent queueing."""
+    import threading
+
+    import warp as wp
+
+    queued = [0.0] * len(batches)
+    start = threading.Barrier(len(batches) + 1)
+
+    def one(i: int) -> None:
+        _, _, graphs, _, stream = batches[i]
+        start.wait()
+        t = time.perf_counter()
+        for _ in range(substeps // k):
+            wp.capture_launch(graphs[k], stream=stream)
+        queued[i] = time.perf_counter() - t
+        wp.synchronize_stream(stream)
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(len(batches))]
+    for t in threads:
+        t.start()
+    start.wait()
+    t0 = time.perf_counter()
+    for t in threads:
+        t.join()
+    return time.perf_counter() - t0, max(queued)
+
+
+MODES = {"serial": round_serial, "streams": round_streams, "threads": round_threads}
+
+
+def measure(batches, worlds: int, substeps: int, repeats: int, chunks) -> dict:
+    out: dict = {"batches": len(batches), "worlds": worlds, "modes": {}}
+    on_gpu = batches[0][3] is not None  # streams exist on CUDA devices only
+    for k in chunks:
+        for name, fn in MODES.items():
+            if name != "serial" and not on_gpu:
+                continue
+            fn(batches, substeps, k)  # warm
+            times = [fn(batches, substeps, k) for _ in range(repeats)]
+            wall = float(np.median([t for t, _ in times]))
+            out["modes"][f"{name}/k{k}"] = {
+                "round_s": wall,
+                "queue_s": float(np.median([q for _, q in times])),
+                "actions_per_s": len(batches) * worlds / wall,
+            }
+    base = out["modes"][f"serial/k{chunks[0]}"]["actions_per_s"]
+    for r in out["modes"].values():
+        r["ratio"] = r["actions_per_s"] / base
     return out
 
 
@@ -114,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--substeps", type=int, default=200, help="physics steps of one action")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--settle", type=int, default=200, help="steps before timing")
+    ap.add_argument("--chunks", default="1,10,50,200", help="substeps per captured graph")
     ap.add_argument("--device", default="cuda:0", help="cpu: a smoke run (serial only)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
@@ -131,25 +181,29 @@ def main(argv: list[str] | None = None) -> int:
     tasks = list(base_tasks())[: args.tasks]
     counts = sorted({min(int(c), len(tasks)) for c in args.counts.split(",")})
     print(f"device: {device.name}; {len(tasks)} families; substeps per action {args.substeps}")
+    chunks = tuple(int(c) for c in args.chunks.split(","))
+    if any(args.substeps % k for k in chunks):
+        ap.error(f"every chunk must divide --substeps {args.substeps}")
     results = []
     for worlds in (int(w) for w in args.worlds.split(",")):
         t0 = time.perf_counter()
-        batches = [build(t, worlds, args.settle) for t in tasks]
+        batches = [build(t, worlds, args.settle, chunks) for t in tasks]
         print(f"{worlds} worlds: {len(batches)} batches built in {time.perf_counter() - t0:.1f} s")
+        capture = {k: float(np.median([b[4][k] for b in batches])) for k in chunks}
+        print(
+            "  capture + first launch per graph: "
+            + ", ".join(f"K={k} {capture[k]:.2f} s" for k in chunks)
+        )
         for n in counts:
-            r = measure(batches[:n], worlds, args.substeps, args.repeats)
+            r = measure(batches[:n], worlds, args.substeps, args.repeats, chunks)
+            r["capture_s"] = capture
             results.append(r)
-            s, c = r["serial"], r.get("streams")
-            line = (
-                f"  {n:3d} batches x {worlds:4d} worlds: serial {s['actions_per_s']:8.0f} "
-                f"actions/s ({s['round_s'] * 1000:6.1f} ms/round)"
-            )
-            if c is not None:
-                line += (
-                    f", streams {c['actions_per_s']:8.0f} ({c['round_s'] * 1000:6.1f} ms), "
-                    f"x{r['ratio']:.2f}; host queueing {c['queue_s'] * 1000:.1f} ms"
+            for mode, m in r["modes"].items():
+                print(
+                    f"  {n:3d} batches x {worlds:4d} worlds {mode:12s} {m['actions_per_s']:8.0f} "
+                    f"actions/s ({m['round_s'] * 1000:7.1f} ms/round, host queueing "
+                    f"{m['queue_s'] * 1000:7.1f} ms) x{m['ratio']:.2f}"
                 )
-            print(line)
         del batches
     if args.json:
         args.json.write_text(json.dumps({"device": device.name, "results": results}, indent=1))

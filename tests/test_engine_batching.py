@@ -89,7 +89,7 @@ def test_sixty_four_episodes_share_simulator_calls_and_match_replays_alone(rende
     # The episodes ran concurrently on one batch: robot actions were executed in far fewer
     # simulator calls than there were actions.
     assert counters.actions == sum(r.robot_actions for r, _ in runs) >= 64 * 4
-    assert counters.step_calls * 4 <= counters.actions, (counters, stats.sizes)
+    assert counters.step_calls * 4 <= counters.actions, (counters, stats)
     assert counters.reset_calls < 64
     check_against_replays(task, runs, batch, "c")
 

@@ -105,9 +105,20 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     # always: GPU and CPU use every 5 s (main_util.txt: time, GPU %, GPU MiB, /proc/stat cpu)
     [ -n "${MAIN_PROFILE:-}" ] && export VABENCH_PROFILE_DIR=/tmp/prof && rm -rf /tmp/prof
     (while :; do echo "$(date +%s) $(nvidia-smi --query-gpu=utilization.gpu,memory.used \
-      --format=csv,noheader,nounits | tr '\n' ' ') $(head -1 /proc/stat)"; sleep 5; done \
+      --format=csv,noheader,nounits | tr '\n' ' ') $(head -1 /proc/stat)"; sleep "${MAIN_SAMPLE_S:-2}"; done \
       > "$out/main_util.txt") &
     sampler=$!
+    # MAIN_PYSPY=1: py-spy samples the sweep process and its children (every thread, idle ones
+    # too: where they wait is the point) for MAIN_PYSPY_S seconds from MAIN_PYSPY_AT s after the
+    # start, as collapsed stacks (benchmarks/profile_summary.py reads them), plus three dumps.
+    if [ -n "${MAIN_PYSPY:-}" ]; then
+      (sleep "${MAIN_PYSPY_AT:-40}"; pid=$(pgrep -of "vabench.sweep $config --out") || exit 0
+       for i in 1 2 3; do (sleep $((i * 30)); /tmp/site/bin/py-spy dump --pid "$pid" \
+         --subprocesses >> "$out/pyspy_dump.txt" 2>&1) & done
+       /tmp/site/bin/py-spy record --pid "$pid" --subprocesses --threads --idle --rate 20 \
+         --nonblocking --format raw --duration "${MAIN_PYSPY_S:-120}" -o "$out/pyspy.raw" \
+         > "$out/pyspy.log" 2>&1) &
+    fi
     start=$EPOCHREALTIME
     timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep "$config" --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
@@ -123,10 +134,11 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
     ;;
   streams)
-    # Issue 20: what a CUDA stream per task batch would gain over today's one stream per device
-    # (the same substep graphs, batch after batch vs interleaved on their own streams).
-    timeout 500 python3 benchmarks/warp_streams.py --json "$out/streams.json" 2>&1 \
-      | tee "$out/streams.log"
+    # Issue 33: what a CUDA stream (and a host thread) per task batch gains over one stream per
+    # device, with graphs of 1, 10, 50 and 200 substeps (STREAMS_ARGS replaces the defaults).
+    timeout "${STREAMS_TIMEOUT_S:-500}" python3 benchmarks/warp_streams.py \
+      ${STREAMS_ARGS:---worlds 120 --counts 1,14 --chunks 1,10,50,200} --json "$out/streams.json" \
+      2>&1 | tee "$out/streams.log"
     ;;
   precompile)
     # Warp compiles its kernels per scene shape (1-2 min each on a fresh machine, then cached in

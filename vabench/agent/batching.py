@@ -17,7 +17,7 @@ import asyncio
 import contextlib
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -30,7 +30,6 @@ class BatchStats:
     items: int = 0
     busy_s: float = 0.0  # inside `run`
     max_batch: int = 0
-    sizes: list[int] = field(default_factory=list)
 
     @property
     def mean_batch(self) -> float:
@@ -114,7 +113,6 @@ class MicroBatcher(Generic[T, R]):
             self.stats.items += len(items)
             self.stats.busy_s += dt
             self.stats.max_batch = max(self.stats.max_batch, len(items))
-            self.stats.sizes.append(len(items))
         for (_, fut), result in zip(batch, results, strict=True):
             if not fut.done():
                 fut.set_result(result)

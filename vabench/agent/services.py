@@ -6,10 +6,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import logging
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from vabench.agent.batching import BatchStats
 from vabench.agent.conversation import ContextLimits
 from vabench.agent.simulation import RenderService, SimService
 from vabench.llm_pool.config import GenerationOptions
@@ -20,6 +22,8 @@ from vabench.tasks.base import Task
 
 if TYPE_CHECKING:
     from vabench.agent.engine import EpisodeSpec
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -74,3 +78,16 @@ async def task_services(
     finally:
         await render.close()
         await sim.close()
+        log.info("%s: %s", task.name, stage_line(sim.stats, render.stats))
+
+
+def stage_line(sim: BatchStats, render: BatchStats) -> str:
+    """Where a task's services spent their time: simulator and renderer calls, the items they
+    served at once, and the seconds inside them (the profile's per-stage figures)."""
+    parts = []
+    for name, s in (("physics", sim), ("images", render)):
+        parts.append(
+            f"{name} {s.calls} calls, {s.items} items ({s.mean_batch:.1f} a call, at most "
+            f"{s.max_batch}), {s.busy_s:.1f} s busy"
+        )
+    return "; ".join(parts)

@@ -148,6 +148,14 @@ class WarpRenderPool:
         return self.info
 
     def close(self) -> None:
+        st = self.stats
+        if st.requests:
+            log.info(
+                "renderer: %d requests, %d images in %d passes (%d built, %d evicted); %.1f s "
+                "drawing, %.1f s JPEG, %.1f s in requests",
+                st.requests, st.images, st.passes, st.built, st.evicted, st.render_s,
+                st.encode_s, st.wall_s,
+            )
         with self._lock, self._lock_device:  # freeing device memory is device work too
             self._passes.clear()
             if self._host_jpeg is not None:
