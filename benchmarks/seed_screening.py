@@ -22,7 +22,7 @@ import time
 import jax
 
 from vabench.tasks import base_tasks, get_task
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 FIRST = 1000
 

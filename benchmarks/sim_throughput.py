@@ -36,7 +36,7 @@ from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.sim_mjx.warp.device import warp_problem
 from vabench.tasks import get_task
 from vabench.tasks.manifests import manifest_path, verified_seeds
-from vabench.tasks.runner import TaskBatch
+from vabench.tasks.task_batch import TaskBatch
 
 # Each pair returns the arm near where it started, so a long stream stays in the workspace.
 STREAM = [

@@ -31,7 +31,7 @@ from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.sim_mjx.warp.device import warp_device
 from vabench.tasks import benchmark_tasks, get_task
 from vabench.tasks.manifests import verified_seeds
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 GC_TOLERANCE_MM = 2.0
 

@@ -25,7 +25,7 @@ from vabench.sim_mjx.interface import STATE_FIELDS
 from vabench.sim_mjx.warp.batch import WarpBatch
 from vabench.tasks import get_task
 from vabench.tasks.manifests import verified_seeds
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 ACTIONS = [
     {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 40},

@@ -25,7 +25,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from vabench.tasks.runner import TaskBatch
+from vabench.tasks.task_batch import TaskBatch
 
 
 @dataclass
@@ -198,7 +198,7 @@ class HoldMonitor:
 def watch_experts(tb: TaskBatch, seeds: Sequence[int]) -> tuple[list[Any], dict[int, SlotTrace]]:
     """Run the family's expert on `seeds` (slots 0..) under a HoldMonitor; return the
     episodes and each seed's trace."""
-    from vabench.tasks.runner import run_experts
+    from vabench.tasks.task_batch import run_experts
 
     mon = HoldMonitor(tb)
     try:

@@ -13,7 +13,7 @@ from PIL import Image
 from vabench.demos import build, store
 from vabench.render.worker import ImageSettings
 from vabench.tasks import BASE_FAMILIES, get_task
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 SMALL = ImageSettings(160, 120, 80)
 FAMILIES = ("click_bell_right", "grasp_single_bottle_upright")  # the two shortest experts

@@ -20,7 +20,7 @@ from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.worker import ImageSettings, RenderPool
 from vabench.tasks import get_task
 from vabench.tasks.manifests import verified_seeds
-from vabench.tasks.runner import TaskBatch
+from vabench.tasks.task_batch import TaskBatch
 
 TASK = "grasp_single_cube"
 TINY = ImageSettings(64, 48, 90)

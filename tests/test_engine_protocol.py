@@ -27,7 +27,7 @@ from engine_util import (
 from vabench import protocol as P
 from vabench.render.worker import RenderPool
 from vabench.tasks import get_task
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 TASK = "grasp_single_cube"
 SEED = 1000

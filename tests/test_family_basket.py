@@ -18,7 +18,7 @@ from tests.task_states import StateBuilder
 from vabench.tasks import BASKET_DEMONSTRATIONS, get_task
 from vabench.tasks.base import advance_progress
 from vabench.tasks.manifests import load_manifest
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 NAME = "put_everything_in_basket"
 TABLE_Z = 0.741

@@ -21,7 +21,7 @@ from vabench.sim_mjx.variants import ModelVariants
 from vabench.tasks import get_task
 from vabench.tasks.base import Evaluation, ObjectIndex, Task, quat_mul, yaw_quat
 from vabench.tasks.expert import topdown
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 TABLE = 0.741
 SEEDS = range(1000, 1200)

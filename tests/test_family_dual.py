@@ -13,7 +13,7 @@ import pytest
 from tests.task_states import StateBuilder
 from vabench.tasks import get_task
 from vabench.tasks.base import quat_to_mat, yaw_quat
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 SEEDS = range(1000, 1200)
 TABLE_Z = 0.741

@@ -14,7 +14,7 @@ import pytest
 
 from tests.task_states import StateBuilder
 from vabench.tasks import get_task
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 TABLE_Z = 0.741
 SEEDS = range(1000, 1200)

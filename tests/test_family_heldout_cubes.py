@@ -12,7 +12,7 @@ import pytest
 
 from tests.task_states import StateBuilder
 from vabench.tasks import get_task
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 TABLE_Z = 0.741
 SEEDS = range(1000, 1200)
@@ -320,7 +320,7 @@ def test_place_heldout_wall_stops_the_base_expert():
     the wall on the variant's scenes: the obstacle changes what a solution must do."""
     import dataclasses
 
-    from vabench.tasks.place_single_cube import PlaceSingleCube
+    from vabench.tasks.families.place_single_cube import PlaceSingleCube
 
     var = get_task(PSC)
 

@@ -24,7 +24,7 @@ import pytest
 from tests.hold_monitor import HoldMonitor, SlotTrace, watch_experts
 from vabench.tasks import benchmark_tasks, get_task
 from vabench.tasks.manifests import load_manifest
-from vabench.tasks.runner import TaskBatch
+from vabench.tasks.task_batch import TaskBatch
 
 HOLD_MM = 10.0
 # The executor moves the gripper at most 100 mm per 0.8 s action along a minimum-jerk profile

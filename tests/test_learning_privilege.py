@@ -20,7 +20,7 @@ from vabench.render.camera import head_view
 from vabench.sweep.summaries import load_demo_frames
 from vabench.tasks import get_task
 from vabench.tasks.base import Task
-from vabench.tasks.runner import TaskBatch
+from vabench.tasks.task_batch import TaskBatch
 
 FAMILIES = ("grasp_single_cube", "place_single_cube")
 

@@ -231,7 +231,7 @@ def test_states_read_on_the_device_equal_the_host_copies(warp_pool):
     """Two Warp physics batches of one task in one process (a Ray engine runs several cells at
     once): each request reads the slots of the batch it names, equal to the host copies."""
     from vabench.tasks import get_task
-    from vabench.tasks.runner import TaskBatch
+    from vabench.tasks.task_batch import TaskBatch
 
     os.environ["VABENCH_WARP_DEVICE"] = "cpu"
     try:

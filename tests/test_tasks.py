@@ -4,18 +4,21 @@ gate; checkpoints; model variants per slot; the task, replay and seeds CLIs."""
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import os
+import pkgutil
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
+from vabench import tasks
 from vabench.sim_mjx import scene
-from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, REGISTRY, SUITES, get_task
+from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, REGISTRY, SUITES, families, get_task
 from vabench.tasks.manifests import load_manifest
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 # FACTS.md, "Tasks, budgets, evaluation seeds" (transcribed independently of the modules).
 PAPER_BUDGETS = {
@@ -46,6 +49,47 @@ def test_all_fourteen_families_are_registered():
     assert set(PAPER_BUDGETS) == set(BASE_FAMILIES)
     missing = [n for n in BASE_FAMILIES if n not in REGISTRY]
     assert not missing, f"families without a module: {missing}"
+
+
+def test_the_registry_is_the_families_folder_and_nothing_else():
+    """Each module of tasks/families/ is one family named as its file; the machinery beside the
+    folder exports no TASK (so nothing needs a list of modules that are not tasks)."""
+    in_folder = [m.name for m in pkgutil.iter_modules(families.__path__)]
+    assert sorted(REGISTRY) == sorted(in_folder)
+    for name in in_folder:
+        assert importlib.import_module(f"vabench.tasks.families.{name}").TASK is REGISTRY[name]
+    beside = [m.name for m in pkgutil.iter_modules(tasks.__path__) if m.name != "families"]
+    assert beside and "task_batch" in beside
+    for name in beside:
+        assert not hasattr(importlib.import_module(f"vabench.tasks.{name}"), "TASK"), name
+    benchmark = [n for n in REGISTRY if n in BENCHMARK_FAMILIES]
+    assert list(REGISTRY)[: len(benchmark)] == [n for n in BENCHMARK_FAMILIES if n in REGISTRY]
+    assert list(REGISTRY)[len(benchmark) :] == sorted(set(REGISTRY) - set(BENCHMARK_FAMILIES))
+
+
+@pytest.mark.parametrize(
+    ("files", "error", "match"),
+    [
+        ({"not_a_family": "X = 1\n"}, TypeError, "exports no TASK"),
+        (
+            {f"twin_{i}": "from vabench.tasks.families.empty import TASK\n" for i in (1, 2)},
+            ValueError,
+            "'empty' is taken twice",
+        ),
+    ],
+)
+def test_discovery_refuses_a_stray_module_in_the_families_folder(
+    tmp_path, monkeypatch, files, error, match
+):
+    for name, text in files.items():
+        (tmp_path / f"{name}.py").write_text(text)
+    monkeypatch.setattr(families, "__path__", [str(tmp_path)])
+    try:
+        with pytest.raises(error, match=match):
+            tasks._discover()
+    finally:
+        for name in files:
+            sys.modules.pop(f"vabench.tasks.families.{name}", None)
 
 
 @pytest.mark.parametrize("name", PRESENT)

@@ -24,7 +24,7 @@ from vabench.sim_mjx.cli import add_physics_arguments
 from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks import REGISTRY, get_task
 from vabench.tasks.expert import ExpertContext, ExpertFailed
-from vabench.tasks.runner import StepOutcome, TaskBatch
+from vabench.tasks.task_batch import StepOutcome, TaskBatch
 
 
 def _observe(tb: TaskBatch) -> dict[str, Any]:

@@ -31,7 +31,7 @@ from vabench.sim_mjx.cli import add_physics_arguments, physics_kwargs
 from vabench.tasks import BENCHMARK_FAMILIES, REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
 from vabench.tasks.manifests import MANIFEST_DIR, MANIFEST_VERSION, load_manifest, manifest_path
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 FIRST_CANDIDATE = 1000
 N_RETAINED = 20

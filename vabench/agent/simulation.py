@@ -30,7 +30,7 @@ from vabench.render.backends import Renderer
 from vabench.render.images import ImageSettings, RenderItem
 from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks.base import Task
-from vabench.tasks.runner import SettleReport, StepOutcome, TaskBatch
+from vabench.tasks.task_batch import SettleReport, StepOutcome, TaskBatch
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.cpu import CpuBatch
 from vabench.tasks import REGISTRY
 from vabench.tasks import manifests as seed_manifests
-from vabench.tasks.runner import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch, run_experts
 
 log = logging.getLogger(__name__)
 

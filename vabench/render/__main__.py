@@ -39,7 +39,7 @@ from vabench.sim_mjx.backends import BackendUnavailable
 def reset_state(task_name: str, seed: int, backend: str) -> tuple[np.ndarray, int, dict]:
     """qpos, object model id and per-arm GC of one seed right after its reset."""
     from vabench.tasks import REGISTRY
-    from vabench.tasks.runner import TaskBatch
+    from vabench.tasks.task_batch import TaskBatch
 
     task = REGISTRY[task_name]
     tb = TaskBatch(task, 1, backend=backend)

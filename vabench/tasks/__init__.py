@@ -1,8 +1,11 @@
-"""The task registry: one module per family, each exporting TASK.
+"""The task registry: one module per family in `families/`, each exporting TASK.
 
-`BASE_FAMILIES` lists the paper's 14 base families in the paper's order; `REGISTRY` holds every
-task module found in this package (the base families plus development tasks such as `empty` and
-`probe_cube`, whose `suite` is "dev").
+`BASE_FAMILIES` lists the paper's 14 base families in the paper's order; `REGISTRY` holds the
+TASK of every module in `families/` (the benchmark families plus development tasks such as
+`empty` and `probe_cube`, whose `suite` is "dev"). Every module of that folder is a family, and
+nothing outside it is: the machinery the families share (`base`, `common`, `expert`,
+`grasp_place`, `heldout`, `objects`, the `skills_*` modules) and the machinery that runs them
+(`task_batch`, `manifests`) sit beside the folder, so no list of exceptions is needed.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
+from vabench.tasks import families
 from vabench.tasks.base import Task
 
 BASE_FAMILIES = (
@@ -56,28 +60,20 @@ SUITES = {
 """Benchmark families per suite, in the paper's order."""
 BENCHMARK_FAMILIES = BASE_FAMILIES + TRANSFER_FAMILIES + LONG_HORIZON_FAMILIES
 
-_NOT_TASKS = {
-    "base",
-    "common",
-    "expert",
-    "families",
-    "heldout",
-    "manifests",
-    "objects",
-    "runner",
-    "__main__",
-}
-
 
 def _discover() -> dict[str, Task]:
+    """The TASK of every module in `families/`, benchmark families in the paper's order first,
+    then the others by name. A module without TASK, or a name taken twice, is a mistake in the
+    folder and raises rather than being skipped."""
     found: dict[str, Task] = {}
-    for info in pkgutil.iter_modules(__path__):
-        if info.name in _NOT_TASKS or info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
+    for info in pkgutil.iter_modules(families.__path__):
+        module = importlib.import_module(f"{families.__name__}.{info.name}")
         task = getattr(module, "TASK", None)
-        if isinstance(task, Task):
-            found[task.name] = task
+        if not isinstance(task, Task):
+            raise TypeError(f"{module.__name__} is in tasks/families/ but exports no TASK")
+        if task.name in found:
+            raise ValueError(f"{module.__name__}: task name {task.name!r} is taken twice")
+        found[task.name] = task
     order = {name: i for i, name in enumerate(BENCHMARK_FAMILIES)}
     return dict(sorted(found.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
 

@@ -1,6 +1,6 @@
 """Held-out containers, their poses and the seed stream shared by the bottle transfer variants
 (grasp_single_bottle_heldout, grasp_single_bottle_upright_heldout,
-place_single_bottle_upright_heldout). No TASK here: the registry skips this module.
+place_single_bottle_upright_heldout). No TASK here: not a family, so not in `families/`.
 
 Objects (assets/objects/):
 - bottle_shampoo.xml: a flat shampoo bottle with a pump, rounded-rectangle section 56 x 38 mm,

@@ -1,6 +1,6 @@
 """Objects, poses and expert skills shared by the pen and bottle families
 (grasp_single_pen, grasp_single_bottle, grasp_single_bottle_upright, grasp_pen_leaning_cube,
-place_single_bottle_upright). No TASK here: the registry skips this module.
+place_single_bottle_upright). No TASK here: not a family, so not in `families/`.
 
 Objects (assets/objects/):
 - pen_marker.xml: a marker 14 mm thick, 140 mm long; origin at its centre, long axis = local x,

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import OnTable, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import GraspFamily
+from vabench.tasks.grasp_place import GraspFamily
 
 BOTTLE_AT = OnTable(x=(0.20, 0.28), y=(-0.16, -0.04), half_h=sk.BOTTLE_HALF_H)
 """The upright bottle (its origin, the body's centre, above the table) of this family and of

@@ -36,7 +36,7 @@ import numpy as np
 from vabench.tasks import common
 from vabench.tasks.base import ObjectIndex, OnTable, Sample, Script, SlotState
 from vabench.tasks.expert import ExpertContext, yaw_of
-from vabench.tasks.families import Check, PlaceFamily
+from vabench.tasks.grasp_place import Check, PlaceFamily
 
 HALF = 0.025  # both cubes
 YAW_DEG = (-45.0, 45.0)

@@ -26,10 +26,10 @@ from __future__ import annotations
 import dataclasses
 
 from vabench.tasks import skills_heldout_bottles as hb
-from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
+from vabench.tasks.families.grasp_single_bottle_upright import BOTTLE_AT
+from vabench.tasks.families.place_single_bottle_upright import PAD_AT, PAD_HALF_THICK
+from vabench.tasks.families.place_single_bottle_upright import TASK as BASE
 from vabench.tasks.heldout import variant
-from vabench.tasks.place_single_bottle_upright import PAD_AT, PAD_HALF_THICK
-from vabench.tasks.place_single_bottle_upright import TASK as BASE
 
 TASK = variant(
     BASE,

@@ -24,7 +24,7 @@ import numpy as np
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import Sample, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import GraspFamily
+from vabench.tasks.grasp_place import GraspFamily
 
 X_RANGE, Y_RANGE, YAW_DEG = (0.20, 0.28), (-0.16, -0.04), (-22.5, 22.5)
 

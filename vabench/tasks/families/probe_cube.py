@@ -8,6 +8,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from vabench.tasks.grasp_single_cube import TASK as GRASP
+from vabench.tasks.families.grasp_single_cube import TASK as GRASP
 
 TASK = replace(GRASP, name="probe_cube", settle_steps=50, observe_steps=200, suite="dev")

@@ -23,8 +23,8 @@ from __future__ import annotations
 import dataclasses
 
 from vabench.tasks import skills_heldout_bottles as hb
-from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
-from vabench.tasks.grasp_single_bottle_upright import TASK as BASE
+from vabench.tasks.families.grasp_single_bottle_upright import BOTTLE_AT
+from vabench.tasks.families.grasp_single_bottle_upright import TASK as BASE
 from vabench.tasks.heldout import variant
 
 TASK = variant(

@@ -34,7 +34,7 @@ import numpy as np
 from vabench.tasks import common
 from vabench.tasks.base import ObjectIndex, OnTable, Sample, Script, SlotState
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import Check, PlaceFamily
+from vabench.tasks.grasp_place import Check, PlaceFamily
 
 CUBE_HALF = 0.02
 BOWL_FLOOR = 0.008  # floor slab thickness: a cube on the floor sits at BOWL_FLOOR + CUBE_HALF

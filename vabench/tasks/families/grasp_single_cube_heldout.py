@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from vabench.tasks.grasp_single_cube import CUBE_AT
-from vabench.tasks.grasp_single_cube import TASK as BASE
+from vabench.tasks.families.grasp_single_cube import CUBE_AT
+from vabench.tasks.families.grasp_single_cube import TASK as BASE
 from vabench.tasks.heldout import Distractors, salted, variant
 
 SALT = 0x6C5A1  # variant seeds draw from rng([seed, SALT]): other scenes than the base's seeds

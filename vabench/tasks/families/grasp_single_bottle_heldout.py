@@ -27,8 +27,8 @@ from vabench.tasks import skills_heldout_bottles as hb
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import Script
 from vabench.tasks.expert import ExpertContext, View
-from vabench.tasks.grasp_single_bottle import TASK as BASE
-from vabench.tasks.grasp_single_bottle import GraspSingleBottle
+from vabench.tasks.families.grasp_single_bottle import TASK as BASE
+from vabench.tasks.families.grasp_single_bottle import GraspSingleBottle
 from vabench.tasks.heldout import variant
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from vabench.tasks import common
 from vabench.tasks.base import ObjectPoses, OnTable, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import GraspFamily
+from vabench.tasks.grasp_place import GraspFamily
 from vabench.tasks.heldout import NO_DISTRACTORS, Distractors
 
 CUBE_HALF = 0.025

@@ -42,8 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vabench.tasks import place_cube_in_bowl as base
 from vabench.tasks.base import ObjectIndex, OnTable, SlotState
+from vabench.tasks.families import place_cube_in_bowl as base
 from vabench.tasks.heldout import salted, variant
 
 SALT = 0x6C5A3

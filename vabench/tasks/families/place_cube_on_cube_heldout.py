@@ -44,8 +44,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vabench.tasks import place_cube_on_cube as base
 from vabench.tasks.base import OnTable
+from vabench.tasks.families import place_cube_on_cube as base
 from vabench.tasks.heldout import salted, variant
 
 SALT = 0x6C5A4

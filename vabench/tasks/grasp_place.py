@@ -1,4 +1,5 @@
-"""The shapes of family that several families share. No TASK here: the registry skips this module.
+"""The shapes of family that several families share (the grasp and the place families). No TASK
+here: not a family, so not in `families/`.
 
 - `GraspFamily`: one object picked up by the right arm (tab:seed-spec-grasp: grasp_single_*,
   grasp_pen_leaning_cube and their held-out variants): the grasp predicate on `target` (the

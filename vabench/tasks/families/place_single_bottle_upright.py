@@ -3,7 +3,7 @@
 Scene (paper Table tab:seed-spec-place): the bottle as in grasp_single_bottle_upright
 (bottle_water.xml, upright, x in [0.20, 0.28], y in [-0.16, -0.04]); a green pad (half-size
 0.065 m, FACTS; 3 mm half-thick) at x in [0.03, 0.09], y in [0.07, 0.13], axis-aligned.
-Success (all now, plus one latch; the pad predicate of `families.PadPlaceFamily`, as
+Success (all now, plus one latch; the pad predicate of `grasp_place.PadPlaceFamily`, as
 place_single_cube's): the bottle was lifted >= 50 mm at some point (latched); the x and y errors
 of its body centre to the pad centre each <= 40 mm; its height error to the resting height on
 the pad (pad half-thickness + 60 mm) <= 35 mm; the pad displaced <= 2 mm; bottle-pad contact;
@@ -24,8 +24,8 @@ from vabench.tasks import common
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import OnTable, Sample, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import PadPlaceFamily
-from vabench.tasks.grasp_single_bottle_upright import BOTTLE_AT
+from vabench.tasks.families.grasp_single_bottle_upright import BOTTLE_AT
+from vabench.tasks.grasp_place import PadPlaceFamily
 
 PAD_HALF_THICK = 0.003
 PAD_AT = OnTable(x=(0.03, 0.09), y=(0.07, 0.13), half_h=PAD_HALF_THICK)

@@ -23,7 +23,7 @@ from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import OnTable, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import GraspFamily
+from vabench.tasks.grasp_place import GraspFamily
 
 # yaw: the heading of the pen's long axis (its local x)
 PEN_AT = OnTable(x=(0.18, 0.26), y=(-0.20, -0.10), half_h=sk.PEN_RADIUS, yaw_deg=(-30.0, 30.0))

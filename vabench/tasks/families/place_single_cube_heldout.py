@@ -39,10 +39,10 @@ import numpy as np
 
 from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import common
-from vabench.tasks import place_single_cube as base
 from vabench.tasks.base import ObjectPoses, OnTable, Sample, Script, yaw_quat
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.grasp_single_cube import CUBE_HALF
+from vabench.tasks.families import place_single_cube as base
+from vabench.tasks.families.grasp_single_cube import CUBE_HALF
 from vabench.tasks.heldout import salted, variant
 
 SALT = 0x6C5A2

@@ -27,7 +27,7 @@ import numpy as np
 from vabench.tasks import skills_pens_bottles as sk
 from vabench.tasks.base import Sample, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import GraspFamily
+from vabench.tasks.grasp_place import GraspFamily
 
 X_RANGE, Y_RANGE, YAW_DEG = (0.16, 0.22), (-0.24, -0.20), (-15.0, 15.0)
 LEAN_DEG = 30.0

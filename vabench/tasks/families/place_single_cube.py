@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from vabench.tasks import common
 from vabench.tasks.base import OnTable, Sample, Script
 from vabench.tasks.expert import ExpertContext
-from vabench.tasks.families import PadPlaceFamily
-from vabench.tasks.grasp_single_cube import CUBE_AT, CUBE_HALF
+from vabench.tasks.families.grasp_single_cube import CUBE_AT, CUBE_HALF
+from vabench.tasks.grasp_place import PadPlaceFamily
 
 PAD_HALF_THICK = 0.003
 PAD_AT = OnTable(x=(0.10, 0.14), y=(0.0, 0.04), half_h=PAD_HALF_THICK)
