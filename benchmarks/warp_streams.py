@@ -95,7 +95,7 @@ def round_streams(batches, substeps: int, k: int) -> tuple[float, float]:
 
     t0 = time.perf_counter()
     for _ in range(substeps // k):
-        for _, _, graphs, _, stream in batches:
+        for _, _, graphs, stream, _ in batches:
             wp.capture_launch(graphs[k], stream=stream)
     queued = time.perf_counter() - t0
     wp.synchronize_device()
@@ -113,7 +113,7 @@ def round_threads(batches, substeps: int, k: int) -> tuple[float, float]:
     start = threading.Barrier(len(batches) + 1)
 
     def one(i: int) -> None:
-        _, _, graphs, _, stream = batches[i]
+        _, _, graphs, stream, _ = batches[i]
         start.wait()
         t = time.perf_counter()
         for _ in range(substeps // k):

@@ -80,5 +80,3 @@ def warp_problem(device: str | None = None) -> str | None:
             f"install matching releases ({GPU_EXTRA})"
         )
     return None
-
-
