@@ -8,7 +8,7 @@ and injects `--fault-rate` faults spread evenly over every kind it knows (`fault
 429 with Retry-After, 529, 503, 500, a reply slower than the attempt timeout, a malformed body,
 a truncated body, a dropped connection). Through one `LLMPool`:
 
-- `--callers` loops (split over the three APIs, one endpoint each) keep that many calls in
+- `--callers` loops (split over the registered APIs, one endpoint each) keep that many calls in
   flight: each call carries a unique id, the server's `echo` policy answers with it, and the
   caller checks the reply is its own;
 - `--episodes` engine episodes at a time (C MuJoCo, 64x48 images, `--steps` decisions each,
@@ -44,7 +44,6 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-APIS = ("openai_chat", "openai_responses", "anthropic")
 RETRY = {"max_attempts": 6, "total_timeout_s": 300.0, "backoff_base_s": 0.2, "backoff_max_s": 2.0}
 
 
@@ -209,6 +208,7 @@ def check_episodes(out: Path, results: Counter) -> tuple[Counter, int, Counter]:
 
 async def soak(args) -> dict:
     from vabench.llm_pool import LLMPool
+    from vabench.llm_pool.apis import ADAPTERS
     from vabench.llm_pool.faults import FAULT_KINDS
     from vabench.llm_pool.server import LocalServer, ServerConfig
     from vabench.render.worker import RenderPool
@@ -236,11 +236,12 @@ async def soak(args) -> dict:
     books = Books()
     stop = asyncio.Event()
     rss: list[tuple[float, float]] = []
-    per_api = -(-args.callers // len(APIS))
+    apis = tuple(ADAPTERS)
+    per_api = -(-args.callers // len(apis))
     async with LocalServer(config) as server:
         endpoints = [
             server.endpoint_config(api, api, retry=retry, limits={"max_concurrency": per_api + 16})
-            for api in APIS
+            for api in apis
         ]
         endpoints.append(server.endpoint_config("engine", "openai_chat", retry=retry))
         with RenderPool(workers=1, max_size=(64, 48)) as render:
@@ -248,7 +249,7 @@ async def soak(args) -> dict:
                 ids = itertools.count()
                 t0 = time.monotonic()
                 tasks = [
-                    asyncio.create_task(caller(pool, APIS[i % len(APIS)], ids, books, stop))
+                    asyncio.create_task(caller(pool, apis[i % len(apis)], ids, books, stop))
                     for i in range(args.callers)
                 ]
                 engine = asyncio.create_task(

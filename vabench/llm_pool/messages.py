@@ -18,7 +18,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
-from vabench.llm_pool.config import GenerationOptions, Prices
+from vabench.llm_pool.settings import GenerationOptions, Prices
 
 FinishReason = Literal["stop", "length", "content_filter", "refusal", "other"]
 MediaType = Literal["image/jpeg", "image/png", "image/gif", "image/webp"]

@@ -37,7 +37,6 @@ from vabench.llm_pool.config import (
     ConfigError,
     GenerationOptions,
     ModelEndpoint,
-    check_options_for_api,
     load_endpoints,
 )
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
@@ -157,7 +156,7 @@ class EndpointClient:
         if self._closed:
             raise RuntimeError(f"{self.name}: the pool is closed")
         options = self.config.generation.merge(request.options)
-        check_options_for_api(self.config.api, options)
+        self.adapter.check_options(options)
         estimate = estimate_input_tokens(request, self.adapter.image_tokens)
         estimate += options.resolved_max_output_tokens
         try:

@@ -1,4 +1,4 @@
-"""The embedded server: the three provider APIs on a local port, answered by a policy.
+"""The embedded server: the registered provider APIs on a local port, answered by a policy.
 
 Tests, benchmarks and network-free sweeps talk to it exactly as they would to a provider:
 
@@ -6,9 +6,10 @@ Tests, benchmarks and network-free sweeps talk to it exactly as they would to a 
         pool = LLMPool([server.endpoint_config("random", "anthropic")])
         ...
 
-Routes: `POST /v1/chat/completions`, `POST /v1/responses`, `POST /v1/messages` (each request
-validated against the documented shape; a mismatch is a 400 naming the field, in the API's
-own error format), `GET /v1/models`, `GET /health`, `GET /stats`.
+Routes: a `POST` at each registered API's `route` (`apis.ADAPTERS`: `/v1/chat/completions`,
+`/v1/responses`, `/v1/messages`; each request validated against the documented shape, a
+mismatch is a 400 naming the field, in the API's own error format), `GET /v1/models`,
+`GET /health`, `GET /stats`.
 
 Around the policy it simulates a provider: latency drawn from a distribution, usage with
 prompt caching (`simulate.py`), injected faults (`faults.py`), optional RPM/TPM enforcement
@@ -36,9 +37,15 @@ from typing import IO, Any
 from aiohttp import web
 
 from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
-from vabench.llm_pool.apis import ADAPTERS, ApiAdapter, IncomingRequest, LimitState, ServerReply
+from vabench.llm_pool.apis import (
+    ADAPTERS,
+    ApiAdapter,
+    IncomingRequest,
+    LimitState,
+    ServerReply,
+    get_adapter,
+)
 from vabench.llm_pool.apis.base import RequestShapeError
-from vabench.llm_pool.config import DEFAULT_MAX_OUTPUT_TOKENS
 from vabench.llm_pool.faults import (
     IMMEDIATE_FAULTS,
     FaultPlan,
@@ -66,6 +73,7 @@ from vabench.llm_pool.server_config import (
     serving_processes,
 )
 from vabench.llm_pool.server_processes import ServingProcesses
+from vabench.llm_pool.settings import DEFAULT_MAX_OUTPUT_TOKENS
 from vabench.llm_pool.simulate import PromptCache, simulate_usage
 from vabench.llm_pool.tokens import CHARS_PER_TOKEN, block_tokens, text_tokens
 
@@ -213,7 +221,7 @@ class LocalServer:
 
     def base_url(self, api: str) -> str:
         """The `base_url` a `ModelEndpoint` of this API uses to reach this server."""
-        return self.url if api == "anthropic" else f"{self.url}/v1"
+        return get_adapter(api).base_url_for(self.url)
 
     def endpoint_config(self, name: str, api: str, **fields: Any) -> dict[str, Any]:
         """A `models:` entry pointing at this server (extra fields are passed through)."""
@@ -354,7 +362,7 @@ class LocalServer:
             return self._error(adapter, 500, "injected fault: server_error")
 
         try:
-            reply = await self._reply(incoming, counts, max_output)
+            reply = await self._reply(adapter, incoming, counts, max_output)
         except PolicyError as err:
             record.error = str(err)
             return self._error(adapter, err.status, str(err))
@@ -370,7 +378,7 @@ class LocalServer:
         return web.json_response(body, headers=self._limit_headers(adapter))
 
     async def _reply(
-        self, incoming: IncomingRequest, counts: list[int], max_output: int
+        self, adapter: ApiAdapter, incoming: IncomingRequest, counts: list[int], max_output: int
     ) -> ServerReply:
         spec = self._specs.get(incoming.model, self._specs[None])
         if self._workers is not None and spec is not None and spec.policy in PURE_REPLIES:
@@ -381,7 +389,9 @@ class LocalServer:
             policy = self._model_policies.get(incoming.model, self.policy)
             answer = await policy.respond(incoming)
         reply = answer if isinstance(answer, PolicyReply) else PolicyReply(answer)
-        usage, reasoning = simulate_usage(incoming, reply.text, counts, self.cache)
+        usage, reasoning = simulate_usage(
+            incoming, reply.text, counts, self.cache, adapter.prompt_caching
+        )
         text, finish = reply.text, reply.finish_reason
         if usage.output_tokens > max_output:  # cut the reply where max tokens would have
             reasoning_part = usage.output_tokens - text_tokens(text)

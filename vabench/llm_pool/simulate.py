@@ -2,12 +2,12 @@
 
 Usage is counted with the same estimator the client uses for its TPM limiter
 (`tokens.block_tokens`), so a client that settles to the reported usage and a server that
-enforces TPM agree on every number. Prompt caching follows each provider's rule closely
-enough to exercise the accounting:
+enforces TPM agree on every number. Prompt caching follows the provider's rule (the API's
+`ApiAdapter.prompt_caching`) closely enough to exercise the accounting:
 
-- OpenAI (automatic): a prompt prefix that ends at a turn boundary, was seen before and is at
-  least 1,024 tokens long is read from the cache, in 128-token increments.
-- Anthropic (explicit): only prefixes ending at a `cache_control` marker are cached; the
+- "automatic" (OpenAI): a prompt prefix that ends at a turn boundary, was seen before and is
+  at least 1,024 tokens long is read from the cache, in 128-token increments.
+- "explicit" (Anthropic): only prefixes ending at a `cache_control` marker are cached; the
   longest one seen before is read, and the prefix up to the last marker, if new, is written.
 """
 
@@ -20,7 +20,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from vabench.llm_pool.apis.base import IncomingRequest
+from vabench.llm_pool.apis.base import IncomingRequest, PromptCaching
 from vabench.llm_pool.messages import Usage
 from vabench.llm_pool.tokens import text_tokens
 
@@ -73,10 +73,12 @@ class PromptCache:
         while len(self._entries) > self.max_entries:
             self._entries.popitem(last=False)
 
-    def split(self, request: IncomingRequest, counts: list[int]) -> tuple[int, int]:
+    def split(
+        self, request: IncomingRequest, counts: list[int], caching: PromptCaching
+    ) -> tuple[int, int]:
         """(cache-read tokens, cache-write tokens) of a request's prompt."""
         blocks = request.chat.blocks
-        ends = self._candidate_ends(request)
+        ends = self._candidate_ends(request, caching)
         if not ends:
             return 0, 0
         prefix_tokens = _prefix_sums(counts)
@@ -88,7 +90,7 @@ class PromptCache:
                 read = prefix_tokens[end]
                 break
         write = 0
-        if request.api == "anthropic":
+        if caching == "explicit":
             last = ends[-1]
             if prefix_tokens[last] >= MIN_CACHED_PREFIX and prefix_tokens[last] > read:
                 write = prefix_tokens[last] - read
@@ -100,9 +102,9 @@ class PromptCache:
         return read, write
 
     @staticmethod
-    def _candidate_ends(request: IncomingRequest) -> list[int]:
+    def _candidate_ends(request: IncomingRequest, caching: PromptCaching) -> list[int]:
         """Block indexes where a cacheable prefix may end."""
-        if request.api == "anthropic":
+        if caching == "explicit":
             return sorted(set(request.cache_breakpoints))
         ends, index = [], 0
         if request.chat.system:
@@ -141,11 +143,14 @@ def simulate_usage(
     reply_text: str,
     counts: list[int],
     cache: PromptCache | None,
+    caching: PromptCaching,
 ) -> tuple[Usage, str | None]:
     """The usage a provider would report for `reply_text`, and simulated reasoning text;
-    `counts` are the request's `tokens.block_tokens` under the API's image rule."""
+    `counts` are the request's `tokens.block_tokens` under the API's image rule, `caching`
+    its API's prompt caching. Reasoning tokens are None unless reasoning was asked for (an
+    adapter writes them as its API does: OpenAI's as 0, Anthropic's not at all)."""
     prompt = sum(counts)
-    read, write = cache.split(request, counts) if cache is not None else (0, 0)
+    read, write = cache.split(request, counts, caching) if cache is not None else (0, 0)
     options = request.chat.options
     reasoning_tokens: int | None = None
     reasoning_text: str | None = None
@@ -155,14 +160,12 @@ def simulate_usage(
         thinking = min(options.thinking_budget, THINKING_TOKENS)
         reasoning_text = "thinking " * (thinking // 2)  # ~2 tokens per word of it
         reasoning_tokens = thinking
-    if request.api != "anthropic" and reasoning_tokens is None:
-        reasoning_tokens = 0  # OpenAI reports 0 for non-reasoning calls
     output = text_tokens(reply_text) + (reasoning_tokens or 0)
     usage = Usage(
         input_tokens=prompt - read - write,
         cached_input_tokens=read,
         cache_write_tokens=write,
         output_tokens=output,
-        reasoning_tokens=reasoning_tokens,  # Anthropic: None unless thinking was asked for
+        reasoning_tokens=reasoning_tokens,
     )
     return usage, reasoning_text

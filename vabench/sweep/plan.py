@@ -19,9 +19,9 @@ estimate of model calls, tokens and cost, under these assumptions (`Assumptions`
   observation texts (made by the real prompt code, with a typical robot state and one typical
   executed-action line per step so far), the replies so far, and the images the conversation
   retains (the last 4 in the active protocol, the current five-view bundle in the passive one)
-  at the configured resolution, priced in tokens by the API's image rule
-  (`vabench.llm_pool.tokens`); the conversation compacts as the engine's does, and each
-  compaction is one more call;
+  at the configured resolution, priced in tokens by the API's image rule (its registered
+  adapter's `image_tokens`, which the pool's TPM estimate uses too); the conversation
+  compacts as the engine's does, and each compaction is one more call;
 - every reply is `output_tokens` long (default 150), a compaction summary `summary_tokens`;
 - a `cached_input_share` of the input tokens is billed at the model's cached-input price
   (default 0: no caching, an upper bound for providers that cache prompt prefixes).
@@ -49,15 +49,10 @@ from vabench.agent.observation import (
 )
 from vabench.agent.prompts import system_prompt
 from vabench.config import SweepConfig, Track
+from vabench.llm_pool.apis import get_adapter
 from vabench.llm_pool.config import ApiName, Prices
 from vabench.llm_pool.messages import ChatRequest, Image
-from vabench.llm_pool.tokens import (
-    CHARS_PER_TOKEN,
-    ImageTokenRule,
-    anthropic_image_tokens,
-    estimate_input_tokens,
-    openai_image_tokens,
-)
+from vabench.llm_pool.tokens import CHARS_PER_TOKEN, ImageTokenRule, estimate_input_tokens
 from vabench.tasks import get_task
 
 FIRST_RUN = 1
@@ -182,13 +177,6 @@ class Estimate:
         return sum(m.cost_usd for m in self.models)
 
 
-IMAGE_RULES: dict[ApiName, ImageTokenRule] = {
-    "openai_chat": openai_image_tokens,
-    "openai_responses": openai_image_tokens,
-    "anthropic": anthropic_image_tokens,
-}
-
-
 def estimate(
     config: SweepConfig, keys: list[EpisodeKey], assumptions: Assumptions | None = None
 ) -> Estimate:
@@ -237,7 +225,8 @@ def episode_usage(
 ) -> Usage:
     """Estimated usage of one episode of `task` under `track` that runs `budget` steps (see the
     module docstring): replays the engine's conversation with stand-in images and replies."""
-    return _run_without_loop(_replay(task, track, budget, image_size, IMAGE_RULES[api], a))
+    rule = get_adapter(api).image_tokens
+    return _run_without_loop(_replay(task, track, budget, image_size, rule, a))
 
 
 def _run_without_loop(coro: Coroutine[Any, Any, Usage]) -> Usage:

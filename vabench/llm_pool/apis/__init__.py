@@ -1,7 +1,16 @@
-"""Provider API adapters, one module per API, registered by their config name (`base` holds
-the steps they share, `openai_common` what the two OpenAI APIs share)."""
+"""The model APIs vabench speaks, one module per API, and their registry (`base` holds the
+contract and the steps they share, `openai_common` what the two OpenAI APIs share).
+
+`ADAPTERS` is the one place an API is registered; everything else that differs per API is
+derived from it: the config schema's `ApiName`, default base URLs and option checks
+(`config.py`), the embedded server's routes (`server.py`) and its prompt-cache simulation
+(`simulate.py`), and the dry-run's cost estimate (`sweep/plan.py`). docs/LLM_POOL.md, "Adding
+a model API", says how to add one.
+"""
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING, Literal
 
 from vabench.llm_pool.apis.anthropic import Anthropic
 from vabench.llm_pool.apis.base import (
@@ -18,6 +27,13 @@ ADAPTERS: dict[str, ApiAdapter] = {
     a.name: a for a in (OpenAIChat(), OpenAIResponses(), Anthropic())
 }
 
+if TYPE_CHECKING:  # a type checker cannot read a Literal built at run time
+    ApiName = str
+else:
+    ApiName = Literal[tuple(ADAPTERS)]
+"""The name of a registered API: the type of `ModelEndpoint.api`, so that a config naming
+another fails validation with the list of valid names."""
+
 
 def get_adapter(api: str) -> ApiAdapter:
     try:
@@ -29,6 +45,7 @@ def get_adapter(api: str) -> ApiAdapter:
 __all__ = [
     "ADAPTERS",
     "ApiAdapter",
+    "ApiName",
     "IncomingRequest",
     "LimitState",
     "RequestShapeError",

@@ -7,7 +7,7 @@ user content is a list of `{"type":"text"}` and
 `max_tokens` is required; extended thinking is `thinking: {"type":"enabled","budget_tokens":N}`
 (N >= 1024 and below max_tokens). This API version takes no `temperature` (the SDK's message
 parameters have none), so vabench never sends one and refuses it in an anthropic model's
-`generation` (`config.check_options_for_api`).
+`generation` (`Anthropic.check_options`).
 
 Prompt caching is opt-in through `cache_control: {"type":"ephemeral"}` markers. vabench puts
 one on the system prompt (the prefix that never changes within a task) and one on the last
@@ -27,14 +27,17 @@ from __future__ import annotations
 import uuid
 from collections.abc import Mapping
 from datetime import datetime, timedelta, timezone
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import Field
 
 from vabench.llm_pool.apis import base
-from vabench.llm_pool.config import GenerationOptions, ModelEndpoint
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
+from vabench.llm_pool.settings import ConfigError, GenerationOptions
 from vabench.llm_pool.tokens import anthropic_image_tokens
+
+if TYPE_CHECKING:
+    from vabench.llm_pool.config import ModelEndpoint
 
 ANTHROPIC_VERSION = "2026-10-21"
 """The `anthropic-version` the official SDK (anthropic 2.13) sends."""
@@ -192,6 +195,9 @@ def rfc3339_in(seconds: float) -> str:
 class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
     name = "anthropic"
     route = "/v1/messages"
+    default_host = "https://api.anthropic.com"
+    base_path = ""
+    prompt_caching = "explicit"
     request_model = MessagesRequest
     response_model = MessagesResponse
     response_label = "messages"
@@ -200,6 +206,24 @@ class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
 
     def image_tokens(self, width: int, height: int) -> int:
         return anthropic_image_tokens(width, height)
+
+    def check_options(self, options: GenerationOptions) -> None:
+        if options.temperature is not None:
+            raise ConfigError(
+                "generation.temperature",
+                "the Anthropic Messages API (version 2026-10-21, the official SDK's) takes no "
+                "temperature; remove it (it applies to the OpenAI APIs only)",
+            )
+        if options.reasoning_effort is not None:
+            raise ConfigError(
+                "generation.reasoning_effort", "OpenAI only; use thinking_budget for anthropic"
+            )
+        budget = options.thinking_budget
+        if budget is not None and budget >= options.resolved_max_output_tokens:
+            raise ConfigError(
+                "generation.thinking_budget",
+                f"must be below max_output_tokens ({options.resolved_max_output_tokens})",
+            )
 
     def url(self, base_url: str) -> str:
         return f"{base_url}/messages" if base_url.endswith("/v1") else f"{base_url}/v1/messages"

@@ -1,11 +1,16 @@
 """The contract every provider API module fulfils, on both sides of the wire, and the steps
 the APIs share.
 
-An `ApiAdapter` knows one API's shapes: the client half builds request bodies and parses
-responses; the server half (used by the embedded server) validates request bodies against the
-documented shape and writes responses and errors the way the provider does. Keeping both
-halves of one API in one module is what lets the tests check that what the client sends is
-what the API documents: the server parses it with the strict models written from the docs.
+An `ApiAdapter` is everything vabench knows about one API, and its registration in
+`apis.ADAPTERS` is the only place an API is named: its config name, where its endpoints are
+(default host, base URL path), which generation options it takes (`check_options`), its image
+token rule (the pool's TPM estimate, the server's usage and the dry-run's cost estimate all
+use it), the client half that builds request bodies and parses responses, and the server half
+(used by the embedded server) that serves its route, validates request bodies against the
+documented shape, writes responses and errors the way the provider does, and says how the
+provider caches prompts. Keeping both halves of one API in one module is what lets the tests
+check that what the client sends is what the API documents: the server parses it with the
+strict models written from the docs.
 
 The steps are written once, here: turns into messages, a 2xx body into a `ParsedResponse`, a
 request body into an `IncomingRequest`, rate-limit and request-id headers. An API module
@@ -22,12 +27,11 @@ import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar
 
 import pydantic_core
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from vabench.llm_pool.config import ApiName, GenerationOptions, ModelEndpoint
 from vabench.llm_pool.errors import ResponseFormatError
 from vabench.llm_pool.messages import (
     ChatRequest,
@@ -38,9 +42,17 @@ from vabench.llm_pool.messages import (
     Turn,
     Usage,
 )
+from vabench.llm_pool.settings import GenerationOptions
+
+if TYPE_CHECKING:  # config.py sits above the registry: it derives `ApiName` from it
+    from vabench.llm_pool.config import ModelEndpoint
 
 M = TypeVar("M", bound=BaseModel)
 DATA_URL_MEDIA_TYPES = ("image/jpeg", "image/png", "image/gif", "image/webp")
+PromptCaching = Literal["automatic", "explicit"]
+"""How a provider caches prompt prefixes, which the embedded server simulates
+(`simulate.PromptCache`): "automatic" (OpenAI: every prefix ending at a turn boundary) or
+"explicit" (Anthropic: only prefixes ending at a client's cache_control marker)."""
 
 
 class RequestShapeError(ValueError):
@@ -61,7 +73,8 @@ class IncomingRequest:
     prefixes automatically.
     """
 
-    api: ApiName
+    api: str
+    """The registered name of the API it came through (`ApiAdapter.name`)."""
     model: str
     chat: ChatRequest
     cache_breakpoints: tuple[int, ...] = ()
@@ -298,15 +311,25 @@ ResponseT = TypeVar("ResponseT", bound=ResponseBody)
 
 
 class ApiAdapter(ABC, Generic[RequestT, ResponseT]):
-    """One provider API. Subclasses are stateless singletons registered in `apis.ADAPTERS`.
+    """One provider API. Subclasses are stateless singletons registered in `apis.ADAPTERS`,
+    the one list of the APIs there are (see the module docstring for what that registration
+    decides).
 
     The steps every API shares are written here once; a subclass supplies its shapes (the
     request and response models), the way its parts and answers read, and its header names.
     """
 
-    name: ClassVar[ApiName]
+    name: ClassVar[str]
+    """The name a config's `api:` field gives (`config.ApiName` is the registry's names)."""
     route: ClassVar[str]
     """The path the embedded server serves, e.g. `/v1/chat/completions`."""
+    default_host: ClassVar[str]
+    """Where an endpoint without a `base_url` goes, e.g. `https://api.openai.com`."""
+    base_path: ClassVar[str]
+    """The part of `route` that a configured base URL includes (`ModelEndpoint.base_url`):
+    `/v1` for OpenAI (`https://api.openai.com/v1`), nothing for Anthropic (the host)."""
+    prompt_caching: ClassVar[PromptCaching]
+    """How the provider caches prompt prefixes (the embedded server simulates it)."""
     request_model: type[RequestT]
     """The request shape as documented (the embedded server validates against it)."""
     response_model: type[ResponseT]
@@ -325,6 +348,20 @@ class ApiAdapter(ABC, Generic[RequestT, ResponseT]):
     @abstractmethod
     def image_tokens(self, width: int, height: int) -> int:
         """Estimated tokens of one image of this size under this API's rule."""
+
+    @abstractmethod
+    def check_options(self, options: GenerationOptions) -> None:
+        """Reject option combinations this API would answer with a 400: a `ConfigError`
+        naming the field (`generation.<option>`)."""
+
+    def base_url_for(self, host: str) -> str:
+        """The `base_url` an endpoint of this API gives to reach the API at `host` (a provider,
+        or the embedded server's `http://127.0.0.1:<port>`)."""
+        return host + self.base_path
+
+    @property
+    def default_base_url(self) -> str:
+        return self.base_url_for(self.default_host)
 
     # -- client half -------------------------------------------------------------------------
     @abstractmethod

@@ -1,5 +1,6 @@
 """What the two OpenAI APIs (Chat Completions and Responses) share: base URLs up to `/v1`,
-the key as a bearer token, the image token rule, error bodies at `error.{message,type}`,
+the key as a bearer token, the options they take (`reasoning_effort`, not `thinking_budget`),
+the image token rule, automatic prompt caching, error bodies at `error.{message,type}`,
 `x-ratelimit-*` headers with Go-duration resets, and usage that counts cache reads and writes
 *inside* the prompt tokens and reasoning inside the output tokens (each API names the fields
 its own way, so each keeps its usage model and reads it with `usage_of`).
@@ -17,6 +18,7 @@ from vabench.llm_pool.apis.base import (
     ResponseT,
 )
 from vabench.llm_pool.messages import Usage
+from vabench.llm_pool.settings import ConfigError, GenerationOptions
 from vabench.llm_pool.tokens import openai_image_tokens
 
 _ERROR_TYPES = {
@@ -68,6 +70,7 @@ def prompt_details(usage: Usage) -> dict[str, int]:
 
 
 def output_details(usage: Usage) -> dict[str, int]:
+    """OpenAI reports 0 reasoning tokens for a call that did not reason."""
     return {"reasoning_tokens": usage.reasoning_tokens or 0}
 
 
@@ -83,14 +86,23 @@ def go_duration(seconds: float) -> str:
 class OpenAIApi(ApiAdapter[RequestT, ResponseT]):
     """The parts of an adapter both OpenAI APIs write the same way."""
 
+    default_host = "https://api.openai.com"
+    base_path = "/v1"
+    prompt_caching = "automatic"
     rate_limit_header = "x-ratelimit-{field}-{limit}"
 
     def image_tokens(self, width: int, height: int) -> int:
         return openai_image_tokens(width, height)
 
+    def check_options(self, options: GenerationOptions) -> None:
+        if options.thinking_budget is not None:
+            raise ConfigError(
+                "generation.thinking_budget", "anthropic only; use reasoning_effort for OpenAI"
+            )
+
     def url(self, base_url: str) -> str:
         # an OpenAI base URL ends in /v1 (`ModelEndpoint.base_url`), the route starts with it
-        return base_url + self.route.removeprefix("/v1")
+        return base_url + self.route.removeprefix(self.base_path)
 
     def error_body(self, status: int, message: str) -> dict[str, Any]:
         error_type = _ERROR_TYPES.get(status, "server_error")

@@ -17,15 +17,18 @@ from __future__ import annotations
 
 import time
 import uuid
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import Field
 
 from vabench.llm_pool.apis import base
 from vabench.llm_pool.apis import openai_common as common
-from vabench.llm_pool.config import GenerationOptions, ModelEndpoint, ReasoningEffort
 from vabench.llm_pool.errors import ResponseFormatError
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
+from vabench.llm_pool.settings import GenerationOptions, ReasoningEffort
+
+if TYPE_CHECKING:
+    from vabench.llm_pool.config import ModelEndpoint
 
 # -- request shape ----------------------------------------------------------------------------
 
