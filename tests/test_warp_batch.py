@@ -190,6 +190,38 @@ def test_every_device_operation_holds_the_device_lock(cube, monkeypatch):
     assert {"wp.launch", "wp.copy", "wp.zeros", "array.numpy", "array.assign"} <= set(seen)
 
 
+def test_waits_for_the_gpu_with_the_device_lock_released(cube, monkeypatch):
+    """An action, a hold, a reset and the first watch of contact pairs queue their work under
+    the device lock and wait for it without the lock (`streams.wait`): while one batch's GPU
+    work runs, the threads of the other batches queue theirs. Holding the lock across the wait
+    ran the GPU one batch at a time (a third busy on an H100)."""
+    from vabench.sim_mjx.warp import streams
+
+    _, model, q0 = cube
+    batch = WarpBatch(model, 2, device="cpu")
+    lock = device.device_lock("cpu")
+    waits: list[bool] = []
+    real = streams.wait
+
+    def wait(event):
+        waits.append(lock._is_owned())  # type: ignore[attr-defined]
+        real(event)
+
+    monkeypatch.setattr(streams, "wait", wait)
+    _reset(batch, q0)
+    batch.step([DOWN, None])
+    batch.hold(3, [1])
+    side_a, side_b = np.zeros((1, model.ngeom), bool), np.zeros((1, model.ngeom), bool)
+    side_a[0, 0], side_b[0, 1:] = True, True
+    first = batch.contact_flags(side_a, side_b)
+    batch.step([None, DOWN])
+    assert len(waits) >= 4 and not any(waits), waits
+    n = len(waits)
+    again = batch.contact_flags(side_a, side_b)  # watched: read with the step's results
+    assert len(waits) == n and again.shape == first.shape
+    batch.close()
+
+
 def _expert_replay_gc_deviation(task_name: str, n_seeds: int) -> float:
     """Run the expert on C, replay its actions on Warp (CPU) in lockstep; the largest finger
     centre distance between the two after any action."""

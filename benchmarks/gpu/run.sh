@@ -88,9 +88,11 @@ PY
     # afterwards (matplotlib is not on the device image).
     # MAIN_EXECUTOR=local|processes|ray (and MAIN_MAX_TASKS=n, MAIN_MAX_EPISODES=n) times
     # another layout of the same plan (a copy of the config with only the executor changed); a
-    # run directory per layout.
+    # run directory per layout (MAIN_RUN_DIR names another). Another commit's tree (`git
+    # archive COMMIT vabench benchmarks configs assets pyproject.toml` into an ignored folder,
+    # carried) runs from that folder: `cd FOLDER && bash ../benchmarks/gpu/run.sh main`.
     layout=${MAIN_EXECUTOR:-}${MAIN_MAX_EPISODES:+_$MAIN_MAX_EPISODES}
-    run=/tmp/run_all${layout:+_$layout}
+    run=${MAIN_RUN_DIR:-/tmp/run_all${layout:+_$layout}}
     config=configs/all.yaml
     if [ -n "$layout" ]; then
       config=/tmp/all_$layout.yaml

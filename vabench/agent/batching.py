@@ -3,9 +3,12 @@
 Each episode awaits `submit(item)`. The first item of a batch opens a short window
 (`window_s`); when it closes, or as soon as `max_batch` items are waiting, everything waiting
 goes to `run(items)` in one call on a worker thread, and each episode gets its own result.
-Only one call runs at a time (the simulator batch and the render pool are single resources);
-items that arrive meanwhile form the next batch, so under load the window costs nothing: the
-next batch is already waiting when the previous call returns.
+Only one call runs at a time (the simulator batch and the render pool are single resources),
+on a thread of the batcher's own: a sweep runs dozens of batchers at once, and on asyncio's
+shared default pool (cores + 4 threads) their calls queued for a thread, so that on a 16-core
+GPU host some tasks never started while others held every thread (measured on an H100,
+2026-11-26). Items that arrive meanwhile form the next batch, so under load the window costs
+nothing: the next batch is already waiting when the previous call returns.
 
 A call that raises fails every item of its batch with the same exception: each episode
 decides what that means for it (the engine records an infrastructure error).
@@ -17,6 +20,7 @@ import asyncio
 import contextlib
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -60,6 +64,7 @@ class MicroBatcher(Generic[T, R]):
         self._wake: asyncio.Event | None = None
         self._full: asyncio.Event | None = None
         self._task: asyncio.Task[None] | None = None
+        self._thread: ThreadPoolExecutor | None = None
 
     async def submit(self, item: T) -> R:
         loop = asyncio.get_running_loop()
@@ -97,7 +102,10 @@ class MicroBatcher(Generic[T, R]):
         items = [item for item, _ in batch]
         t0 = time.perf_counter()
         try:
-            results = await asyncio.to_thread(self._run, items)
+            if self._thread is None:
+                self._thread = ThreadPoolExecutor(1, thread_name_prefix=self.name)
+            loop = asyncio.get_running_loop()
+            results = await loop.run_in_executor(self._thread, self._run, items)
             if len(results) != len(items):
                 raise RuntimeError(
                     f"{self.name}: run returned {len(results)} results for {len(items)} items"
@@ -127,3 +135,6 @@ class MicroBatcher(Generic[T, R]):
             if not fut.done():
                 fut.cancel()
         self._pending = []
+        if self._thread is not None:
+            self._thread.shutdown(wait=False)  # a call in flight finishes on its own
+            self._thread = None

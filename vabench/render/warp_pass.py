@@ -11,6 +11,7 @@ the pixels to the host, `rgb_on_device` unpacks them for the device JPEG encoder
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from typing import Any
 
@@ -22,6 +23,7 @@ import warp as wp
 from vabench.render.camera import FAR, NEAR
 from vabench.render.images import RenderItem
 from vabench.render.renderer import VIEW_CAMERA, render_spec
+from vabench.sim_mjx.warp import streams
 from vabench.sim_mjx.warp.model import RENDER_IGNORED, WarpModel
 from vabench.tasks.base import Task
 
@@ -121,6 +123,15 @@ class RenderPass:
         self.fovy = wp.zeros(n_worlds, dtype=float)
         self.rgb = wp.zeros((n_worlds, height, width, 3), dtype=wp.uint8) if device_jpeg else None
         self._variants = np.zeros(n_worlds, np.int32)
+        # Its own stream (the renderer queues a pass there and waits for it with the device's
+        # lock released: sim_mjx.warp.streams), and who is using it: one request at a time,
+        # from queueing to the last JPEG; a pass in use is never evicted.
+        self.stream = streams.new_stream(self.d.qpos.device)
+        if self.stream is not None:  # the arrays above were made on the device's current stream
+            self.stream.wait_stream(wp.get_stream(self.d.qpos.device))
+        self.lock = threading.Lock()
+        self.evicted = False
+        self._host: wp.array | None = None
 
     def draw(self, items: Sequence[RenderItem], source: Any | None) -> None:
         """Ray trace `items` into worlds 0..len(items)-1 (queued on the device; the caller
@@ -155,12 +166,20 @@ class RenderPass:
         mjw.refit_bvh(self.m, self.d, self.rc)
         mjw.render(self.m, self.d, self.rc)
 
+    def queue_packed(self) -> None:
+        """Queue the copy of every world's packed pixels to pinned host memory (GPU; the
+        caller holds the device lock with this pass's stream current). `packed` reads them once
+        the pass's event has passed."""
+        if self.rc.rgb_data.device.is_cuda:
+            if self._host is None:
+                self._host = wp.empty_like(self.rc.rgb_data, device="cpu", pinned=True)
+            wp.copy(self._host, self.rc.rgb_data)
+
     def packed(self, n: int) -> np.ndarray:
         """(n, H, W) uint32 pixels of the first n worlds, a host copy of their own (the next
         pass reuses the buffer while these are still being encoded)."""
-        rows = self.rc.rgb_data[:n]
-        host = rows.numpy() if rows.device.is_cuda else rows.numpy().copy()  # CPU: a view
-        return host.reshape(n, self.height, self.width)
+        rows = self._host if self._host is not None else self.rc.rgb_data
+        return rows.numpy()[:n].copy().reshape(n, self.height, self.width)
 
     def rgb_on_device(self) -> wp.array:
         assert self.rgb is not None

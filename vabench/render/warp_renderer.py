@@ -64,6 +64,7 @@ from vabench.render.images import (
     packed_to_rgb,
 )
 from vabench.render.warp_pass import RenderPass, pass_bytes, pass_size, render_models
+from vabench.sim_mjx.warp import streams
 from vabench.sim_mjx.warp.device import device_lock, gpu_share, warp_device
 from vabench.tasks import REGISTRY
 
@@ -71,6 +72,10 @@ log = logging.getLogger(__name__)
 
 MIN_PASS = 8  # the smallest largest-pass a GPU must hold (else: memory too full to render)
 MAX_PASS = 1024  # largest render batch on a GPU (memory permitting)
+MAX_PASS_PIXELS = 128 * 1280 * 960
+"""Largest render batch on a GPU in pixels (128 worlds at 1280x960, ~1.1 GB): the passes of
+many tasks are in use at once (each on its own stream), so they must fit the budget together;
+larger requests take several passes, which the GPU traces beside other tasks' passes."""
 CPU_MAX_PASS = 64
 MEMORY_SHARE = 0.4  # of the GPU memory free when the first pass is sized: all passes kept
 CPU_BUDGET_WORLDS = 2 * CPU_MAX_PASS  # the pass budget on the CPU, in worlds of the largest size
@@ -106,7 +111,8 @@ class WarpRenderPool:
         self._largest: dict[tuple[int, int], int] = {}
         self._host_jpeg: JpegThreads | None = None
         self._device_jpeg: gpu_jpeg.DeviceJpeg | None = None
-        self._lock = threading.Lock()  # one request at a time from this pool
+        self._lock = threading.Lock()  # the passes kept, their budget and the stats
+        self._encoders = threading.local()
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
         self._lock_device: threading.RLock | contextlib.nullcontext = contextlib.nullcontext()
@@ -157,6 +163,8 @@ class WarpRenderPool:
                 st.encode_s, st.wall_s,
             )
         with self._lock, self._lock_device:  # freeing device memory is device work too
+            for p, _ in self._passes.values():
+                p.evicted = True
             self._passes.clear()
             if self._host_jpeg is not None:
                 self._host_jpeg.close()
@@ -240,22 +248,23 @@ class WarpRenderPool:
                 raise RenderError(f"qpos has shape {np.shape(it.qpos)}; {task} needs ({nq},)")
         if source is not None and (not self.shares(source) or any(it.slot is None for it in items)):
             source = None  # another device, or items with only their host state: host copies
+        t0 = time.perf_counter()
         with self._lock:
-            t0 = time.perf_counter()
             largest = self._largest_pass(settings)
-            chunks = [items[i : i + largest] for i in range(0, len(items), largest)]
-            if len(chunks) > 1:
-                log.info(
-                    "render request of %d images of %s split into %d passes of at most %d (%s)",
-                    len(items),
-                    task,
-                    len(chunks),
-                    largest,
-                    "GPU memory" if self._device.is_cuda else "CPU",
-                )
-            out: list[Any] = []
-            for chunk in chunks:
-                out.extend(self._one_pass(task, models, chunk, settings, source, encode))
+        chunks = [items[i : i + largest] for i in range(0, len(items), largest)]
+        if len(chunks) > 1:
+            log.info(
+                "render request of %d images of %s split into %d passes of at most %d (%s)",
+                len(items),
+                task,
+                len(chunks),
+                largest,
+                "GPU memory" if self._device.is_cuda else "CPU",
+            )
+        out: list[Any] = []
+        for chunk in chunks:
+            out.extend(self._one_pass(task, models, chunk, settings, source, encode))
+        with self._lock:
             self.stats.requests += 1
             self.stats.images += len(items)
         # JPEG off the critical path: host encodes run on the thread pool while the next
@@ -263,37 +272,59 @@ class WarpRenderPool:
         if out and isinstance(out[0], Future):
             done = [f.result() for f in out]
             out = [jpeg for jpeg, _ in done]
-            self.stats.encode_s += sum(seconds for _, seconds in done)
-        self.stats.wall_s += time.perf_counter() - t0
+            with self._lock:
+                self.stats.encode_s += sum(seconds for _, seconds in done)
+        with self._lock:
+            self.stats.wall_s += time.perf_counter() - t0
         return out
 
     def _one_pass(self, task, models, chunk, settings, source, encode) -> list[Any]:
+        """One pass of up to `largest` images: queued on the pass's stream under the device
+        lock, waited for without it, then encoded (nvImageCodec on the device, or the host's
+        threads): the GPU traces other tasks' passes and steps the physics meanwhile."""
         n = len(chunk)
-        size = pass_size(n)
         device_jpeg = self._device_jpeg is not None
-        with self._lock_device, wp.ScopedDevice(self._device):
-            p = self._pass(
-                task, models, min(size, self._largest_pass(settings)), settings, device_jpeg
-            )
+        p = self._checkout(task, models, pass_size(n), settings, device_jpeg)
+        try:
             t0 = time.perf_counter()
-            p.draw(chunk, source)
-            self.stats.passes += 1
-            self.stats.shared_state += n if source is not None else 0
-            if encode and self._device_jpeg is not None:
-                rgb = p.rgb_on_device()
-                stream = wp.get_stream(self._device).cuda_stream if self._device.is_cuda else 0
-                t1 = time.perf_counter()
-                images = self._device_jpeg.encode(rgb[:n], settings, stream)
-                self.stats.render_s += t1 - t0
-                self.stats.encode_s += time.perf_counter() - t1
+            with streams.queueing(self._lock_device, self._device, p.stream):
+                p.draw(chunk, source)
+                rgb = p.rgb_on_device() if encode and device_jpeg else None
+                if rgb is None:
+                    p.queue_packed()
+                done = streams.record(p.stream)
+            streams.wait(done)
+            t1 = time.perf_counter()
+            if rgb is not None:
+                stream = p.stream.cuda_stream if p.stream is not None else 0
+                images = self._jpeg_encoder().encode(rgb[:n], settings, stream)
+                self._count(n, source, t1 - t0, time.perf_counter() - t1)
                 return images
-            packed = p.packed(n)  # waits for the pass
-        self.stats.render_s += time.perf_counter() - t0
+            packed = p.packed(n)
+        finally:
+            p.lock.release()
+        self._count(n, source, t1 - t0, 0.0)
         if not encode:
             return [packed_to_rgb(packed)]
         assert self._host_jpeg is not None
         bgrx = packed.view(np.uint8).reshape(n, settings.height, settings.width, 4)
         return self._host_jpeg.submit(bgrx, settings, colorspace="BGRX")
+
+    def _count(self, n: int, source: Any, render_s: float, encode_s: float) -> None:
+        with self._lock:
+            self.stats.passes += 1
+            self.stats.shared_state += n if source is not None else 0
+            self.stats.render_s += render_s
+            self.stats.encode_s += encode_s
+
+    def _jpeg_encoder(self) -> gpu_jpeg.DeviceJpeg:
+        """This thread's nvImageCodec encoder (one per thread: passes of several tasks encode
+        at once, and an encoder is not shared between threads)."""
+        encoder = getattr(self._encoders, "jpeg", None)
+        if encoder is None:
+            with self._lock_device:
+                encoder = self._encoders.jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+        return encoder
 
     # -- passes ----------------------------------------------------------------------------
     def _task_models(self, task: str) -> list[mujoco.MjModel]:
@@ -320,7 +351,8 @@ class WarpRenderPool:
         fit = int(free * MEMORY_SHARE) // pass_bytes(
             settings.width, settings.height, 1, self._device_jpeg is not None
         )
-        largest = 1 << max(0, min(MAX_PASS, fit).bit_length() - 1)  # a power of two
+        cap = min(MAX_PASS, MAX_PASS_PIXELS // (settings.width * settings.height))
+        largest = 1 << max(0, min(cap, fit).bit_length() - 1)  # a power of two
         if largest < MIN_PASS:
             raise RenderError(
                 f"GPU memory is too full for a render pass of {settings.width}x{settings.height} "
@@ -328,9 +360,23 @@ class WarpRenderPool:
             )
         return largest
 
+    def _checkout(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
+        """A pass for `n_worlds` images of `task`, locked for the caller (who releases
+        `pass.lock`): a kept pass of this key, waited for if another request uses it, else one
+        built within the memory budget."""
+        while True:
+            with self._lock:
+                n_worlds = min(n_worlds, self._largest_pass(settings))
+                p = self._pass(task, models, n_worlds, settings, device_jpeg)
+                if p.lock.acquire(blocking=False):
+                    return p
+            with p.lock:  # in use by another request: wait for it, outside the pool's lock
+                pass
+            # then look again: it may have been evicted meanwhile
+
     def _pass(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
         """The pass of this key, built if needed within the memory budget (the caller holds
-        both locks, so no pass kept is in use by another request)."""
+        the pool's lock; passes in use are never evicted)."""
         key = (task, n_worlds, settings.width, settings.height)
         # A kept pass of up to twice the worlds serves too (the extra worlds are traced for
         # nothing): under a tight budget, building a pass per request size would churn.
@@ -345,14 +391,22 @@ class WarpRenderPool:
             return self._passes[best][0]
         need = pass_bytes(settings.width, settings.height, n_worlds, device_jpeg)
         budget = self._pass_budget(settings)
-        while self._passes and self.bytes_kept() + need > budget:
-            old, _ = self._passes.popitem(last=False)  # freed here: Warp returns its memory
-            self.stats.evicted += 1
-            log.debug("render pass %s evicted for %s (budget %d MiB)", old, key, budget >> 20)
-        self._passes[key] = (
-            RenderPass(models, n_worlds, settings.width, settings.height, device_jpeg),
-            need,
-        )
+        with self._lock_device, wp.ScopedDevice(self._device):
+            for old in list(self._passes):
+                if self.bytes_kept() + need <= budget:
+                    break
+                victim = self._passes[old][0]
+                if not victim.lock.acquire(blocking=False):
+                    continue  # in use: try the next least recently used
+                victim.evicted = True
+                del self._passes[old]  # freed here: Warp returns its memory
+                victim.lock.release()
+                self.stats.evicted += 1
+                log.debug("render pass %s evicted for %s (budget %d MiB)", old, key, budget >> 20)
+            self._passes[key] = (
+                RenderPass(models, n_worlds, settings.width, settings.height, device_jpeg),
+                need,
+            )
         self.stats.built += 1
         return self._passes[key][0]
 

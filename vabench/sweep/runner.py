@@ -239,7 +239,10 @@ class LocalSweep:
             async with task_gate:
                 await self._run_task(name, task_keys, llm, pool, image)
 
-        await asyncio.gather(*(one_task(n, ks) for n, ks in by_task.items()))
+        # Longest episodes first (the basket's 250-step budget before the base families'):
+        # they start as soon as there is room, instead of running alone at the end.
+        longest_first = sorted(by_task.items(), key=lambda kv: -self.config.budget(kv[0]))
+        await asyncio.gather(*(one_task(n, ks) for n, ks in longest_first))
 
     async def _run_task(
         self,

@@ -14,12 +14,15 @@ every thread of a launch in order, so a slot's trajectory does not depend on the
 its index or its neighbours. On a GPU, MuJoCo Warp's contact and constraint ordering uses
 atomics unless `deterministic` asks for its stable orderings (slower; see docs/PERFORMANCE.md).
 
-Threads: every method that touches the device runs holding the device's lock with the device
-current (`on_device`), construction and host reads included. Warp captures CUDA graphs in
-CUDA's global capture mode, in which an allocation or a synchronous copy by any other thread of
-the process is an error (seen on an H100 as "invalid argument" and then "illegal memory
-access" when two task batches of one engine were built while a third captured its graphs); and
-Warp's current device and stream are the process's, not the thread's.
+Threads and streams (`streams`): every batch has a CUDA stream of its own. A method queues its
+device work holding the device's lock with that stream current (Warp's current stream is the
+process's, not the thread's), queues the copies of everything the host reads next into pinned
+buffers (`streams.Readback`: the step's flags, qpos, proprioception, grip state and the
+predicates' contact flags), records an event, and waits for it with the lock released: the GPU
+runs the actions of many batches side by side while their threads queue the next ones. Host
+reads (`qpos`, `proprio`, `contact_flags` of the watched pairs, ...) then come from those copies,
+with no device work. Allocations and frees of device memory happen under the lock with the
+batch's stream current, so that a free is ordered behind the work that used the memory.
 
 Buffers (contacts, constraint rows) are sized from the scene (`model.capacity`); a slot
 whose world overflows them gets an infrastructure error (`failure_text`), never silent wrong
@@ -28,6 +31,7 @@ physics.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
@@ -46,6 +50,7 @@ from vabench.sim_mjx.warp import arm_indices as wl
 from vabench.sim_mjx.warp import control as wc
 from vabench.sim_mjx.warp import fk_ik as wk
 from vabench.sim_mjx.warp import rows as wr
+from vabench.sim_mjx.warp import streams
 from vabench.sim_mjx.warp.device import device_lock
 from vabench.sim_mjx.warp.graphs import Graphs
 from vabench.sim_mjx.warp.model import FAILURE_BITS, WarpModel, capacity, failure_texts
@@ -54,12 +59,13 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def on_device(method: F) -> F:
-    """Run a WarpBatch method holding its device's lock, with the device current (see the
-    module docstring: Threads). The lock is re-entrant, so methods may call each other."""
+    """Run a WarpBatch method holding its device's lock, with the device current and the
+    batch's stream current (see the module docstring: Threads and streams). The lock is
+    re-entrant, so methods may call each other."""
 
     @functools.wraps(method)
     def locked(self: WarpBatch, *args: Any, **kwargs: Any) -> Any:
-        with self.lock, wp.ScopedDevice(self.device):
+        with self._queued():
             return method(self, *args, **kwargs)
 
     return locked  # type: ignore[return-value]
@@ -101,8 +107,15 @@ class WarpBatch(BatchBase):
         self._graphs = Graphs(self.device, graphs and self.device.is_cuda, loop)
         self.loop = loop
         n, arms = n_slots, len(self.arms)
+        self._event: wp.Event | None = None
         with self.lock, wp.ScopedDevice(self.device):
+            self.stream = streams.new_stream(self.device)
+        with self._queued():
             self._build(n, arms, deterministic)
+
+    def _queued(self) -> contextlib.AbstractContextManager[None]:
+        """The device's lock, with the device and this batch's stream current."""
+        return streams.queueing(self.lock, self.device, self.stream)
 
     def _build(self, n: int, arms: int, deterministic: bool) -> None:
         """The device arrays and the first reset (the caller holds the lock)."""
@@ -133,6 +146,24 @@ class WarpBatch(BatchBase):
         self._flags: wp.array | None = None
         self._sides: tuple[bytes, wp.array, wp.array] | None = None
         d = self._d
+        self._readback = streams.Readback(self.device)
+        o = self._obs
+        for name, array in (
+            ("go", self._go),
+            ("ok", self._ok),
+            ("clipped", self._plan.clipped),
+            ("executed_m", self._plan.executed_m),
+            ("failed", self._failed),
+            ("qpos", d.qpos),
+            ("grip_open", self._grip_open),
+            ("gc", o.gc),
+            ("ee", o.ee),
+            ("rot", o.rot),
+            ("quat", o.quat),
+            ("rpy", o.rpy),
+            ("fingers", o.fingers),
+        ):
+            self._readback.add(name, array)
         # The (N, k) device arrays of STATE_FIELDS, in the order set_state writes them;
         # the merge saves and restores the same rows.
         self._rows = {
@@ -150,10 +181,23 @@ class WarpBatch(BatchBase):
 
     # -- device work, queued only (see graphs) -----------------------------------------
     def _physics(self, name: str, pre: Callable, substep: Callable, post: Callable, n: int) -> None:
-        """pre, n x substep, post (see `Graphs.run_loop`)."""
+        """pre, n x substep, post (see `Graphs.run_loop`); the caller is `_queued`."""
         self._host.clear()
-        with self.lock, wp.ScopedDevice(self.device):  # re-entrant: the callers hold it too
-            self._graphs.run_loop(name, pre, substep, post, n)
+        self._graphs.run_loop(name, pre, substep, post, n)
+
+    def _finish_queue(self) -> None:
+        """After the work of a call (the caller is `_queued`): the watched contact flags at the
+        new state, the copies of what the host reads, and the event that says they are done."""
+        if self._sides is not None:
+            self._launch_contact_flags()
+        self._readback.queue()
+        self._event = streams.record(self.stream)
+
+    def _wait(self) -> None:
+        """Wait (the lock released) for the last call's work, then take the host copies."""
+        streams.wait(self._event)
+        self._event = None
+        self._host = self._readback.values()
 
     def _start_loop(self) -> None:
         self._k.zero_()
@@ -218,41 +262,44 @@ class WarpBatch(BatchBase):
         self._observe()
 
     # -- the interface ----------------------------------------------------------------------
-    @on_device
     def _execute(self, rows: CommandRows) -> StepInfo:
-        self._cmd_active.assign(rows.active.astype(np.int32))
-        self._cmd_delta.assign(rows.delta.astype(np.float32))
-        self._cmd_rotvec.assign(rows.rotvec.astype(np.float32))
-        self._cmd_grip.assign(rows.grip.astype(np.int32))
-        self._failed.zero_()
-        self._physics(
-            "action",
-            self._action_pre,
-            self._step_physics(True),
-            self._action_post,
-            self.n_substeps,
-        )
-        failed = self._failed.numpy()
+        with self._queued():
+            self._cmd_active.assign(rows.active.astype(np.int32))
+            self._cmd_delta.assign(rows.delta.astype(np.float32))
+            self._cmd_rotvec.assign(rows.rotvec.astype(np.float32))
+            self._cmd_grip.assign(rows.grip.astype(np.int32))
+            self._failed.zero_()
+            self._physics(
+                "action",
+                self._action_pre,
+                self._step_physics(True),
+                self._action_post,
+                self.n_substeps,
+            )
+            self._finish_queue()
+        self._wait()
+        h: dict[str, Any] = self._host
+        failed = h["failed"]
         failure = failure_texts(failed, self.capacity)
         return StepInfo(
-            executed=self._go.numpy().astype(bool),
-            planner_success=self._ok.numpy().astype(bool),
-            clipped=self._plan.clipped.numpy().astype(bool),
-            executed_m=self._plan.executed_m.numpy(),
+            executed=h["go"].astype(bool),
+            planner_success=h["ok"].astype(bool),
+            clipped=h["clipped"].astype(bool),
+            executed_m=h["executed_m"],
             failure=failure if failed.any() else None,
         )
 
-    @on_device
     def hold(self, n_steps: int, slots: Sequence[int] | None = None) -> None:
         mask = np.zeros(self.n_slots, np.int32)
         mask[list(range(self.n_slots)) if slots is None else list(slots)] = 1
-        self._mask.assign(mask)
-        self._failed.zero_()
-        failed = np.zeros(self.n_slots, np.int32)
-        for k in hold_chunks(n_steps, HOLD_CHUNK):
-            self._physics("hold", self._hold_pre, self._step_physics(False), self._hold_post, k)
-            failed |= self._failed.numpy()
-        self._hold_failed = failed
+        with self._queued():
+            self._mask.assign(mask)
+            self._failed.zero_()  # finish_hold ORs each chunk's overflow bits into it
+            for k in hold_chunks(n_steps, HOLD_CHUNK):
+                self._physics("hold", self._hold_pre, self._step_physics(False), self._hold_post, k)
+            self._finish_queue()
+        self._wait()
+        self._hold_failed = self._host["failed"].copy()
 
     def failures(self) -> list[str | None]:
         """Slots whose last hold (reset settling) overflowed a buffer."""
@@ -264,22 +311,31 @@ class WarpBatch(BatchBase):
     ) -> None:
         if not slots:
             return
-        with self.lock, wp.ScopedDevice(self.device):
-            idx = wp.array(np.asarray(slots, np.int32), dtype=int)
+        with self._queued():
+            # Every upload stays referenced in `uploads` until the scatters are queued, and is
+            # freed at its end, in this scope: the free is ordered behind them on this stream.
+            uploads = [idx := wp.array(np.asarray(slots, np.int32), dtype=int)]
             for name, dst in self._rows.items():
                 if dst.shape[1]:
-                    rows = wp.array(np.asarray(state[name], np.float32), dtype=float)
-                    wp.launch(wr.scatter_rows, dim=rows.shape, inputs=[idx, rows, dst])
-            times = wp.array(np.asarray(state["time"], np.float32), dtype=float)
-            wp.launch(wr.scatter, dim=len(slots), inputs=[idx, times, self._d.time])
-            grips = wp.array(np.asarray(state["grip_open"], np.int32), dtype=int)
-            wp.launch(wr.scatter_rows, dim=grips.shape, inputs=[idx, grips, self._grip_open])
+                    uploads.append(wp.array(np.asarray(state[name], np.float32), dtype=float))
+                    wp.launch(
+                        wr.scatter_rows, dim=uploads[-1].shape, inputs=[idx, uploads[-1], dst]
+                    )
+            uploads.append(wp.array(np.asarray(state["time"], np.float32), dtype=float))
+            wp.launch(wr.scatter, dim=len(slots), inputs=[idx, uploads[-1], self._d.time])
+            uploads.append(wp.array(np.asarray(state["grip_open"], np.int32), dtype=int))
+            wp.launch(
+                wr.scatter_rows, dim=uploads[-1].shape, inputs=[idx, uploads[-1], self._grip_open]
+            )
             self._variant[slots] = variants
             self._wm.assign(self._variant)
-        self._init_qpos[slots] = state["qpos"]
-        self._host.clear()
-        with self.lock, wp.ScopedDevice(self.device):
+            self._host.clear()
             self._graphs.run("observe", self._observe)
+            self._finish_queue()
+            del idx
+            uploads.clear()
+        self._init_qpos[slots] = state["qpos"]
+        self._wait()
 
     @on_device
     def get_state(self, slots: Sequence[int]) -> dict[str, np.ndarray]:
@@ -297,14 +353,23 @@ class WarpBatch(BatchBase):
 
     def copy_qpos(self, slots: wp.array, dst: wp.array) -> None:
         """Rows `slots` of the device qpos into rows 0.. of `dst` (a device array on this
-        batch's device), queued behind every action already queued: the renderer reads the
-        state where the physics left it, without a trip through the host."""
-        with self.lock, wp.ScopedDevice(self.device):
+        batch's device), for the caller's current stream: the gather runs on this batch's
+        stream after the caller's queued work (which wrote `slots`) and after every action
+        already queued here, never during one (an action moves idle slots and restores them at
+        its end); the caller's stream then waits for it. The renderer reads the state where the
+        physics left it, without a trip through the host."""
+        caller = wp.get_stream(self.device) if self.device.is_cuda else None
+        with self._queued():
+            if caller is not None and self.stream is not None:
+                self.stream.wait_stream(caller)
             wp.launch(
                 wr.gather_rows,
                 dim=(slots.shape[0], dst.shape[1]),
                 inputs=[slots, self._d.qpos, dst],
             )
+            gathered = streams.record(self.stream)
+        if caller is not None and gathered is not None:
+            caller.wait_event(gathered)
 
     @on_device
     def _fetch(self, name: str, array: wp.array) -> np.ndarray:
@@ -336,28 +401,36 @@ class WarpBatch(BatchBase):
             is_open=self.grip_open(),
         )
 
-    @on_device
     def contact_flags(
         self, side_a: np.ndarray, side_b: np.ndarray, slots: np.ndarray | None = None
     ) -> np.ndarray:
+        """See `BatchBase.contact_flags`. The first call watches these pairs: from then on
+        every call that moves the batch computes their flags on the device and copies them
+        back with the rest (a task's predicate watches the same pairs after every action)."""
         key = side_a.tobytes() + side_b.tobytes()
-        with wp.ScopedDevice(self.device):
-            if self._sides is None or self._sides[0] != key:
-                a = wp.array(side_a.astype(np.int32), dtype=int)
-                b = wp.array(side_b.astype(np.int32), dtype=int)
-                self._sides = (key, a, b)
-                self._flags = wp.zeros((self.n_slots, len(side_a)), dtype=int)
-            _, a, b = self._sides
-            assert self._flags is not None
-            self._flags.zero_()
-            c = self._d.contact
-            wp.launch(
-                wr.contact_flags,
-                dim=self._d.naconmax,
-                inputs=[self._d.nacon, c.geom, c.dist, c.worldid, a, b],
-                outputs=[self._flags],
-            )
-            return self._flags.numpy().astype(bool)
+        if self._sides is not None and self._sides[0] == key and "flags" in self._host:
+            return self._host["flags"].astype(bool)
+        with self._queued():
+            a = wp.array(side_a.astype(np.int32), dtype=int)
+            b = wp.array(side_b.astype(np.int32), dtype=int)
+            self._sides = (key, a, b)
+            self._flags = wp.zeros((self.n_slots, len(side_a)), dtype=int)
+            self._readback.add("flags", self._flags)
+            self._finish_queue()
+        self._wait()
+        return self._host["flags"].astype(bool)
+
+    def _launch_contact_flags(self) -> None:
+        assert self._sides is not None and self._flags is not None
+        _, a, b = self._sides
+        self._flags.zero_()
+        c = self._d.contact
+        wp.launch(
+            wr.contact_flags,
+            dim=self._d.naconmax,
+            inputs=[self._d.nacon, c.geom, c.dist, c.worldid, a, b],
+            outputs=[self._flags],
+        )
 
     def memory_bytes(self) -> int:
         """Device memory held by the batch's model and data arrays."""

@@ -97,7 +97,7 @@ def finish_hold(
 ):
     w = wp.tid()
     if mask[w] != 0:
-        failed[w] = overflow[w] & failure_bits
+        failed[w] = failed[w] | (overflow[w] & failure_bits)  # ORed over the chunks of a hold
 
 
 @wp.kernel

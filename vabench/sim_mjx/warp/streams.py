@@ -1,0 +1,108 @@
+"""How a thread queues work on the GPU and then waits for it without holding up the others.
+
+Warp keeps one current stream per device for the whole process, not per thread, so whoever
+queues device work holds the device's lock (`device.device_lock`) with its own stream current
+(`queueing`). What it then waits for is the GPU, and it waits with the lock released: each
+physics batch and each render pass has a CUDA stream of its own, queues its work there under
+the lock (a batch action is ~20 ms of host time on an H100, its GPU time ~65 ms), records an
+event, lets go of the lock and sleeps on the event (`wait`). The GPU then runs the batches'
+actions and the renderer's passes side by side, on their streams, while the host queues the
+next ones. Before this, every action held the lock until its results were on the host, so the
+GPU ran one batch at a time and the threads of 21 other batches queued behind the lock
+(measured on an H100 on 2026-11-26: a third of the GPU busy, half of the threads' time spent
+waiting for the lock; docs/PERFORMANCE.md).
+
+Results reach the host through `Readback`: device arrays mirrored into pinned host buffers by
+copies queued behind the work, so that the host reads them once the event has passed, with no
+synchronous copy under the lock.
+
+On Warp's CPU device there are no streams or events: work runs when it is queued, and every
+function here degrades to that.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+
+@contextlib.contextmanager
+def queueing(
+    lock: contextlib.AbstractContextManager[Any],
+    device: wp.context.Device,
+    stream: wp.Stream | None,
+) -> Iterator[None]:
+    """Hold `lock` with `device` current and `stream` its current stream (CUDA). The stream
+    does not wait for the one it replaces (`sync_enter=False`): batches and passes are
+    independent, and a false dependency would serialise them again."""
+    with lock, wp.ScopedDevice(device):
+        if stream is None:
+            yield
+        else:
+            with wp.ScopedStream(stream, sync_enter=False):
+                yield
+
+
+def new_stream(device: wp.context.Device) -> wp.Stream | None:
+    """A stream of its own on a CUDA device (None on the CPU)."""
+    return wp.Stream(device) if device.is_cuda else None
+
+
+def record(stream: wp.Stream | None) -> wp.Event | None:
+    """An event at the end of the work queued so far on `stream` (None on the CPU)."""
+    return stream.record_event() if stream is not None else None
+
+
+def wait(event: wp.Event | None) -> None:
+    """Block this thread (without the GIL, asleep: see cuda_sync) until `event` has passed.
+
+    `wp.synchronize_event` refuses while any graph capture is open on the device, another
+    thread's included; Warp captures in CUDA's thread-local mode, in which other threads may
+    wait on events, so this calls the same runtime function without that check."""
+    if event is None:
+        return
+    from warp._src import context  # the check-free call; public API otherwise
+
+    runtime: Any = context.runtime
+    core = getattr(runtime, "core", None)
+    if core is None or not hasattr(core, "wp_cuda_event_synchronize"):
+        wp.synchronize_event(event)
+        return
+    if not core.wp_cuda_event_synchronize(event.cuda_event):
+        raise RuntimeError(
+            f"CUDA reported an error waiting for the GPU: {runtime.get_error_string()}"
+        )
+
+
+class Readback:
+    """Named device arrays copied to host buffers behind the work that fills them.
+
+    `queue()` (under `queueing`) adds the copies to the current stream: into pinned host
+    memory on a GPU (asynchronous), into plain host arrays on Warp's CPU device (done at once).
+    Once the caller has waited for an event recorded after them, `values()` returns copies of
+    the host buffers, read through NumPy's array interface: host memory, no device work, so
+    no lock."""
+
+    def __init__(self, device: wp.context.Device):
+        self.device = device
+        self._pairs: dict[str, tuple[wp.array, wp.array]] = {}
+
+    def add(self, name: str, array: wp.array) -> None:
+        """Mirror `array` (call under `queueing`: the host buffer is allocated here)."""
+        pinned = self.device.is_cuda
+        host = wp.empty(array.shape, dtype=array.dtype, device="cpu", pinned=pinned)
+        self._pairs[name] = (array, host)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._pairs
+
+    def queue(self) -> None:
+        for array, host in self._pairs.values():
+            wp.copy(host, array)
+
+    def values(self) -> dict[str, np.ndarray]:
+        return {name: np.array(host) for name, (_, host) in self._pairs.items()}
