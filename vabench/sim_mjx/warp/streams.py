@@ -23,11 +23,15 @@ function here degrades to that.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import logging
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import warp as wp
+
+log = logging.getLogger(__name__)
 
 
 @contextlib.contextmanager
@@ -47,9 +51,44 @@ def queueing(
                 yield
 
 
+CU_STREAM_NON_BLOCKING = 0x1
+
+
 def new_stream(device: wp.context.Device) -> wp.Stream | None:
-    """A stream of its own on a CUDA device (None on the CPU)."""
-    return wp.Stream(device) if device.is_cuda else None
+    """A non-blocking stream of its own on a CUDA device (None on the CPU).
+
+    Non-blocking: work on CUDA's legacy default stream does not wait for it, nor it for that
+    work. Warp makes blocking streams, and with them nvImageCodec's encodes (which synchronise
+    through the legacy stream) broke the graph capture of any batch capturing at that moment
+    ("operation would make the legacy stream depend on a capturing blocking stream", then
+    CUDA error 901 in every launch of that capture: 729 episodes lost their harness on an
+    H100, 2026-11-26). Made through the driver API and handed to Warp as an external stream;
+    where the driver refuses, a blocking Warp stream (logged)."""
+    if not device.is_cuda:
+        return None
+    handle = _nonblocking_stream(device.context)
+    if handle is None:
+        log.warning("streams: the CUDA driver made no non-blocking stream; using a blocking one")
+        return wp.Stream(device)
+    return wp.Stream(device, cuda_stream=handle)
+
+
+def _nonblocking_stream(context: Any) -> int | None:
+    """cuStreamCreate(CU_STREAM_NON_BLOCKING) in `context` (Warp's primary context of the
+    device); never destroyed: a process makes a few dozen (one per batch and render pass)."""
+    try:
+        cuda = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return None
+    if cuda.cuCtxPushCurrent_v2(ctypes.c_void_p(context)) != 0:
+        return None
+    try:
+        stream = ctypes.c_void_p()
+        if cuda.cuStreamCreate(ctypes.byref(stream), CU_STREAM_NON_BLOCKING) != 0:
+            return None
+        return stream.value
+    finally:
+        cuda.cuCtxPopCurrent_v2(ctypes.byref(ctypes.c_void_p()))
 
 
 def record(stream: wp.Stream | None) -> wp.Event | None:
