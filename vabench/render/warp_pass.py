@@ -137,9 +137,20 @@ class RenderPass:
         """Ray trace `items` into worlds 0..len(items)-1 (queued on the device; the caller
         holds the device lock). `source`: a physics batch to gather the states from."""
         n, nq = len(items), self.d.qpos.shape[1]
+        # Every upload first, while the pass's stream is idle: a copy from pageable host memory
+        # waits for the stream's queued work, and after the gather that is the source batch's
+        # action in flight, waited for with the device lock held (measured on an H100).
         variants = self._variants.copy()
         variants[:n] = [it.variant for it in items]
         self.wm.assign(variants)
+        pos = np.zeros((self.n_worlds, 3), np.float32)
+        rot = np.tile(np.eye(3, dtype=np.float32), (self.n_worlds, 1, 1))
+        fovy = np.full(self.n_worlds, 45.0, np.float32)
+        for i, it in enumerate(items):
+            pos[i], rot[i], fovy[i] = it.camera.pos, it.camera.rot, it.camera.fovy
+        self.pos.assign(pos)
+        self.rot.assign(rot)
+        self.fovy.assign(fovy)
         if source is not None:
             self.slots.assign(np.array([it.slot for it in items] + [0] * (self.n_worlds - n)))
             source.copy_qpos(self.slots, self.d.qpos)
@@ -149,14 +160,6 @@ class RenderPass:
             self.d.qpos.assign(qpos)
         mjw.kinematics(self.m, self.d)
         mjw.camlight(self.m, self.d)
-        pos = np.zeros((self.n_worlds, 3), np.float32)
-        rot = np.tile(np.eye(3, dtype=np.float32), (self.n_worlds, 1, 1))
-        fovy = np.full(self.n_worlds, 45.0, np.float32)
-        for i, it in enumerate(items):
-            pos[i], rot[i], fovy[i] = it.camera.pos, it.camera.rot, it.camera.fovy
-        self.pos.assign(pos)
-        self.rot.assign(rot)
-        self.fovy.assign(fovy)
         wp.launch(
             _place_cameras,
             dim=self.n_worlds,
