@@ -58,6 +58,7 @@ from vabench.llm_pool.tokens import (
     estimate_input_tokens,
     openai_image_tokens,
 )
+from vabench.run_layout import episode_rel
 from vabench.tasks import get_task
 
 FIRST_RUN = 1
@@ -76,7 +77,7 @@ class EpisodeKey:
     @property
     def rel_dir(self) -> str:
         """The episode's directory under the run directory."""
-        return f"episodes/{self.model}/{self.track}/{self.task}/seed_{self.seed}/run_{self.run}"
+        return episode_rel(self.model, self.track, self.task, self.seed, self.run)
 
     def as_id(self) -> str:
         """A one-line id for logs and progress: `model/track/task/seed/run`."""
