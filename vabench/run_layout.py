@@ -35,8 +35,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 # The public str constants below are the names of the run directory (the layering test reads
-# them from this module): file names, folder names, and prefixes of numbered folders (ending
-# in "_"). Suffixes of names made from values (<family>.json) live in the functions.
+# them from this module): file names, folder names, and prefixes of numbered folders and files
+# (ending in "_"). Suffixes of names made from values (<family>.json) live in the functions.
 
 CONFIG = "sweep.yaml"
 PLAN = "plan.json"
