@@ -95,6 +95,7 @@ def make_config(args: argparse.Namespace, engines: int, out: Path) -> Path:
 def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     """Run the plan on `engines` engines; returns its figures and outcomes."""
     from vabench.config import load_config
+    from vabench.run_layout import RunDir
     from vabench.sweep.plan import plan
     from vabench.sweep.ray_executor import run_ray
     from vabench.sweep.rundir import check_run_dir
@@ -106,7 +107,7 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     t0 = time.perf_counter()
     records = run_ray(config, keys, out)
     wall = time.perf_counter() - t0
-    lines = (out / "results.jsonl").read_text().splitlines()
+    lines = RunDir(out).results.read_text().splitlines()
     recs = [json.loads(x) for x in lines]
     first = min(r["started_at"] for r in recs)
     last = max(r["started_at"] + r["wall_s"] for r in recs)

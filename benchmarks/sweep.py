@@ -71,6 +71,7 @@ def main() -> None:
             rows.append({"sweep": "smoke", "wall_s": wall})
 
         sys.path.insert(0, str(ROOT))
+        from vabench.run_layout import RunDir
         from vabench.tasks.manifests import verified_seeds
 
         seeds_per_task = len(verified_seeds(TASKS[0]))
@@ -105,9 +106,8 @@ def main() -> None:
         n = per_run * runs
         ideal = math.ceil(n / args.concurrency) * args.steps * args.latency
         wall = run_sweep(path, tmp_path / "bench", report=False, log=args.log)
-        results = [
-            json.loads(x) for x in (tmp_path / "bench/results.jsonl").read_text().splitlines()
-        ]
+        lines = RunDir(tmp_path / "bench").results.read_text().splitlines()
+        results = [json.loads(x) for x in lines]
         scored = sum(r["status"] in ("success", "failure") for r in results)
         t0 = time.perf_counter()
         subprocess.run(

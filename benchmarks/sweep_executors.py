@@ -27,6 +27,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sweep import run_sweep  # benchmarks/sweep.py: one timed sweep command
 
+from vabench.run_layout import RunDir
 from vabench.tasks import BASE_FAMILIES, get_task
 
 SINGLE_ARM = [n for n in BASE_FAMILIES if len(get_task(n).arms) == 1]
@@ -39,7 +40,7 @@ def records(run_dir: Path) -> dict[tuple, dict]:
     an episode's input depends on which requests came before it (another process, another
     order), while the tokens sent do not."""
     out = {}
-    for line in (run_dir / "results.jsonl").read_text().splitlines():
+    for line in RunDir(run_dir).results.read_text().splitlines():
         r = json.loads(line)
         t = r.pop("tokens")
         r["tokens"] = (t["input"] + t["cached_input"] + t["cache_write"], t["output"])

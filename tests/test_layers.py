@@ -10,6 +10,7 @@ way around a layer is a name resolved at run time (the embedded server's plugged
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import vabench
@@ -19,7 +20,7 @@ ROOT = Path(vabench.__file__).parent
 LAYERS: tuple[frozenset[str], ...] = tuple(
     frozenset(layer.split())
     for layer in (
-        "field_errors children tables",  # no vabench imports
+        "field_errors children tables run_layout",  # no vabench imports
         "protocol",  # the model-facing decisions
         "sim_mjx",  # physics backends and the executor
         "tasks",  # task families over the simulator
@@ -84,3 +85,169 @@ def test_the_checker_sees_lazy_imports(tmp_path):
     module = tmp_path / "m.py"
     module.write_text("def f():\n    from vabench.sweep import runner\n    return runner\n")
     assert imports_of(module) == [(2, "sweep")]
+
+
+# -- the run directory's names, spelled in one module (issue 32) ----------------------------------
+
+RUN_LAYOUT = "run_layout.py"
+NOT_IN_A_RUN_DIR = {
+    ("demos/store.py", "frames"): "the demonstration cache's <cache_dir>/<task>/frames/",
+}
+"""(module, name) pairs that spell a name of another directory, which happens to match."""
+PATH_CALLS = frozenset(
+    {"Path", "PurePath", "PurePosixPath", "joinpath", "join", "glob", "rglob"}
+    | {"with_name", "with_stem", "with_suffix"}
+)
+PATH_PARTS = frozenset({"parts", "name", "stem", "parent"})
+
+
+def run_dir_names() -> dict[str, str]:
+    """The names the run directory is made of: `vabench.run_layout`'s public str constants."""
+    from vabench import run_layout
+
+    return {
+        const: value
+        for const, value in vars(run_layout).items()
+        if const.isupper() and not const.startswith("_") and isinstance(value, str)
+    }
+
+
+def _path_literals(tree: ast.AST) -> set[int]:
+    """ids of the str constants used as a path: operands of `/`, arguments of a path call,
+    values of an UPPER_CASE constant, compared with a path's parts or name."""
+    found: set[int] = set()
+
+    def mentions_path_part(node: ast.AST) -> bool:
+        return any(
+            (isinstance(n, ast.Attribute) and n.attr in PATH_PARTS)
+            or (isinstance(n, ast.Name) and n.id in PATH_PARTS)
+            for n in ast.walk(node)
+        )
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
+            found |= {id(node.left), id(node.right)}
+        elif isinstance(node, ast.Call):
+            func = node.func
+            called = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+            if called in PATH_CALLS:
+                found |= {id(arg) for arg in node.args}
+        elif isinstance(node, ast.Assign | ast.AnnAssign) and node.value is not None:
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(isinstance(t, ast.Name) and t.id.isupper() for t in targets):
+                found.add(id(node.value))
+        elif isinstance(node, ast.Compare):
+            operands = [node.left, *node.comparators]
+            if any(mentions_path_part(o) for o in operands):
+                for o in operands:
+                    found |= {id(n) for n in ast.walk(o) if isinstance(n, ast.Constant)}
+    return found
+
+
+def _spells(text: str, name: str, used_as_path: bool) -> bool:
+    """Whether the literal `text` spells the run directory name `name` (rules: the test)."""
+    word = re.escape(name)
+    if name.endswith("_"):  # a prefix of numbered folders and files: seed_<s>, step_<NNN>
+        return text == name or re.search(rf"(?<![\w.-]){word}(?=\{{\}}|\d)", text) is not None
+    if "." in name:  # a file name: distinctive wherever it stands
+        return re.search(rf"(?<![\w.-]){word}(?![\w-])", text) is not None
+    if used_as_path and text == name:
+        return True
+    if text.startswith("/"):  # an absolute path or a URL route: never inside a run directory
+        return False
+    after_slash = rf"(?<=/){word}(?![\w.-])"
+    before_slash = rf"(?<![\w.-]){word}/(?=\{{\}}|$|[^\w.-])"
+    return re.search(f"{after_slash}|{before_slash}", text) is not None
+
+
+def spelled_run_dir_names(path: Path, names: dict[str, str]) -> list[tuple[int, str, str]]:
+    """(line, name, literal) of every string literal of `path` that spells a run directory
+    name; an f-string is read whole, each replacement field as `{}`."""
+    tree = ast.parse(path.read_text(), str(path))
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            skip.add(id(node.value))  # docstrings: prose about the layout
+        elif isinstance(node, ast.JoinedStr):
+            skip |= {id(v) for v in node.values}  # read with their f-string
+    as_path = _path_literals(tree)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr):
+            text = "".join(v.value if isinstance(v, ast.Constant) else "{}" for v in node.values)
+        elif isinstance(node, ast.Constant) and type(node.value) is str and id(node) not in skip:
+            text = node.value
+        else:
+            continue
+        found += [
+            (node.lineno, name, text)
+            for name in names.values()
+            if _spells(text, name, id(node) in as_path)
+        ]
+    return sorted(found)
+
+
+def test_run_directory_names_are_spelled_only_by_run_layout():
+    """Every file and folder name of a sweep's run directory is `vabench.run_layout`'s: no
+    other vabench module spells one in a string literal (docstrings aside: they are prose).
+
+    The names are run_layout's public str constants, read from the module. A literal spells
+    one (an f-string read whole, each replacement field as `{}`) when it holds
+    - a file name (a name with a dot: results.jsonl, result.json) anywhere, as a whole word:
+      such a name is unmistakable, even in a message or a help text;
+    - a numbered prefix (a name ending in "_": seed_, step_) equal to the literal or followed by
+      a number or a field (`seed_{}`), so `step_budget` and `run_ray` are not names;
+    - a folder name (episodes, frames, summaries, report, ...) as a segment of a relative
+      path: after a "/" (`runs/episodes`) or before a "/" that ends the path or precedes a field
+      (`frames/{}`); "5.7 episodes/s" is prose and "/api/annotations" a URL route;
+    - a folder name equal to the whole literal where the literal is used as a path: an operand
+      of `/`, an argument of a path call (Path, joinpath, glob, rglob, with_name, ...), the
+      value of an UPPER_CASE constant (a second definition), or compared with a path's parts
+      or name. A dict key, a JSON field or a column header named "episodes" or "summaries" is
+      not a path, and is left alone.
+    `NOT_IN_A_RUN_DIR` lists the names of other directories that match, with their reason.
+    """
+    names = run_dir_names()
+    assert {"results.jsonl", "events.jsonl", "seed_", "episodes"} <= set(names.values())
+    problems = []
+    for path in sorted(ROOT.rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        if rel == RUN_LAYOUT:
+            continue
+        for line, name, text in spelled_run_dir_names(path, names):
+            if (rel, name) not in NOT_IN_A_RUN_DIR:
+                problems.append(f"vabench/{rel}:{line}: {name!r} spelled in {text!r}")
+    assert not problems, "use vabench.run_layout:\n" + "\n".join(problems)
+
+
+def test_the_name_checker_tells_paths_from_prose(tmp_path):
+    """The rules of the test above, on the literals they were made for: it can fail."""
+    module = tmp_path / "m.py"
+    module.write_text(
+        '''"""Docstrings may say results.jsonl and episodes/."""
+LEDGER = "results.jsonl"
+SUMMARIES_DIR = "summaries"
+def f(run_dir, d, k, m, n, seed, step, parts, row):
+    a = run_dir / "episodes" / f"seed_{seed}"
+    b = d / f"step_{step:03d}.jpg"
+    c = f"frames/{step}"
+    e = f"not in {run_dir}/results.jsonl"
+    g = parts[0] in ("episodes", "summaries")
+    h = d.name.startswith("partial_")
+    ok = {"episodes": n, "report": 1}, row["summaries"], "5.7 episodes/s", "/api/annotations"
+    ok2 = "step_budget", "run_ray", "result.jsonl", "report", k.get("summaries")
+'''
+    )
+    found = {(line, name) for line, name, _ in spelled_run_dir_names(module, run_dir_names())}
+    assert found == {
+        (2, "results.jsonl"),
+        (3, "summaries"),
+        (5, "episodes"),
+        (5, "seed_"),
+        (6, "step_"),
+        (7, "frames"),
+        (8, "results.jsonl"),
+        (9, "episodes"),
+        (9, "summaries"),
+        (10, "partial_"),
+    }

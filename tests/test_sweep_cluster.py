@@ -22,9 +22,9 @@ import ray
 from ray.cluster_utils import Cluster
 
 from vabench.config import load_config
+from vabench.run_layout import RESULTS
 from vabench.sweep.plan import plan
 from vabench.sweep.ray_executor import run_ray
-from vabench.sweep.results import LEDGER
 
 CONFIG = """\
 name: cluster
@@ -62,7 +62,7 @@ def cluster():
 
 
 def ledger_keys(run_dir: Path) -> list[tuple]:
-    path = run_dir / LEDGER
+    path = run_dir / RESULTS
     if not path.exists():
         return []
     return [
@@ -140,5 +140,5 @@ def test_a_node_killed_mid_sweep_costs_only_its_unfinished_episodes(cluster, tmp
         == sorted((k.model, k.track, k.task, k.seed, k.run) for k in keys)
     )
     assert not (run_dir / "results.duplicates.jsonl").exists()
-    statuses = {json.loads(x)["status"] for x in (run_dir / LEDGER).read_text().splitlines()}
+    statuses = {json.loads(x)["status"] for x in (run_dir / RESULTS).read_text().splitlines()}
     assert statuses <= {"success", "failure"}

@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 
 from tests.test_sweep_reliability import alive, descendants
+from vabench.run_layout import RESULTS
 from vabench.sweep.__main__ import main
 from vabench.sweep.interrupt import STOP_NOTICE
-from vabench.sweep.results import LEDGER
 
 CONFIG = """\
 name: interrupt
@@ -63,7 +63,7 @@ def replied(out: Path) -> bool:
 
 
 def recorded(out: Path) -> int:
-    path = out / LEDGER
+    path = out / RESULTS
     return len(path.read_text().splitlines()) if path.exists() else 0
 
 
@@ -87,7 +87,7 @@ def interrupt(
 
 def check_whole(out: Path) -> list[dict]:
     """Every ledger line is a whole record, once per episode; every result.json parses."""
-    lines = (out / LEDGER).read_bytes() if (out / LEDGER).exists() else b""
+    lines = (out / RESULTS).read_bytes() if (out / RESULTS).exists() else b""
     assert lines == b"" or lines.endswith(b"\n")
     records = [json.loads(x) for x in lines.decode().splitlines()]
     keys = [(r["task"], r["seed"]) for r in records]
@@ -229,7 +229,7 @@ def test_ctrl_c_while_the_command_loads_exits_130_without_a_traceback(tmp_path):
     assert proc.returncode == 130, (stdout, stderr)
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
     assert "stopped" in stderr
-    assert not (out / LEDGER).exists()
+    assert not (out / RESULTS).exists()
 
 
 SPAWN_PROBE = """

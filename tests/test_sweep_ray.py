@@ -200,12 +200,13 @@ def test_a_killed_driver_takes_its_engines_and_the_rerun_records_each_episode_on
 WRITER = """
 import sys
 from pathlib import Path
-from vabench.sweep.results import LEDGER, Ledger
+from vabench.run_layout import RESULTS
+from vabench.sweep.results import Ledger
 run_dir, writer, n = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 ledger = Ledger(run_dir)  # no open(): the test process does the reading
 for seed in range(n):
     record = {"model": "m", "track": "active", "task": "t", "seed": seed, "run": writer}
-    ledger._append(LEDGER, record | {"pad": "x" * 1_000_000})
+    ledger._append(RESULTS, record | {"pad": "x" * 1_000_000})
 """
 
 

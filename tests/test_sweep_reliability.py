@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from vabench.run_layout import RESULTS
 from vabench.sweep.__main__ import main
-from vabench.sweep.results import LEDGER
 
 CONFIG = """\
 name: reliability
@@ -53,7 +53,7 @@ def write(
 
 
 def ledger_lines(run_dir: Path) -> list[dict]:
-    path = run_dir / LEDGER
+    path = run_dir / RESULTS
     return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
 
 
@@ -61,7 +61,7 @@ def test_resuming_with_another_plan_is_refused_naming_the_fields(tmp_path, capsy
     out = tmp_path / "out"
     cfg = write(tmp_path / "a.yaml", budget=2)
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
-    before = (out / LEDGER).read_bytes()
+    before = (out / RESULTS).read_bytes()
     assert len(ledger_lines(out)) == 2
     capsys.readouterr()
 
@@ -69,13 +69,13 @@ def test_resuming_with_another_plan_is_refused_naming_the_fields(tmp_path, capsy
     assert main([str(changed), "--out", str(out), "--plain", "--no-report"]) == 2
     err = capsys.readouterr().err
     assert "step_budget: 2 -> 3" in err and "--out" in err
-    assert (out / LEDGER).read_bytes() == before  # nothing ran, nothing was written
+    assert (out / RESULTS).read_bytes() == before  # nothing ran, nothing was written
 
     # what does not decide the plan (retries, render workers) may change
     same = tmp_path / "c.yaml"
     same.write_text(cfg.read_text().replace("max_attempts: 2", "max_attempts: 3"))
     assert main([str(same), "--out", str(out), "--plain", "--no-report"]) == 0
-    assert (out / LEDGER).read_bytes() == before
+    assert (out / RESULTS).read_bytes() == before
 
 
 PROCESSES = """\
@@ -156,12 +156,12 @@ def test_processes_workers_die_with_a_killed_parent_and_never_write_the_ledger(t
         assert workers
         os.kill(proc.pid, signal.SIGKILL)  # the main process only
         proc.wait()
-        ledger_at_kill = (out / LEDGER).read_bytes() if (out / LEDGER).exists() else b""
+        ledger_at_kill = (out / RESULTS).read_bytes() if (out / RESULTS).exists() else b""
         deadline = time.monotonic() + 120
         while any(alive(p) for p in workers):
             assert time.monotonic() < deadline, "the workers outlived their parent"
             time.sleep(0.1)
-        ledger_after = (out / LEDGER).read_bytes() if (out / LEDGER).exists() else b""
+        ledger_after = (out / RESULTS).read_bytes() if (out / RESULTS).exists() else b""
         assert ledger_after == ledger_at_kill, "a worker wrote the ledger after its parent died"
     finally:
         for pid in [proc.pid, *workers]:

@@ -10,9 +10,10 @@ import json
 from pathlib import Path
 
 from vabench.config import load_config
+from vabench.run_layout import DUPLICATES, INFRASTRUCTURE, RESULTS
 from vabench.sweep.__main__ import main
 from vabench.sweep.plan import plan
-from vabench.sweep.results import DUPLICATES, INFRA_LOG, LEDGER, Ledger, key_of
+from vabench.sweep.results import Ledger, key_of
 from vabench.sweep.runner import LocalSweep
 
 BASE = """\
@@ -54,7 +55,7 @@ def test_infrastructure_failures_are_retried_then_listed_unscored(tmp_path):
     assert len(records) == 2
     assert all(r["status"] == "infrastructure_error" and not r["success"] for r in records.values())
     # 1 + 2 rounds = 3 attempts each: 2 logged as retried, the third recorded in the ledger
-    infra = (tmp_path / "out" / INFRA_LOG).read_text().splitlines()
+    infra = (tmp_path / "out" / INFRASTRUCTURE).read_text().splitlines()
     assert len(infra) == 2 * 2
     episode = tmp_path / "out" / next(iter(records.values()))["episode_dir"]
     assert (episode / "result.json").exists()
@@ -69,7 +70,7 @@ def test_orphaned_result_is_adopted_and_a_cut_line_dropped(tmp_path):
     cfg = write_config(tmp_path, "{policy: conversation_hash}")
     out = tmp_path / "out"
     first = run(cfg, out)
-    ledger = out / LEDGER
+    ledger = out / RESULTS
     lines = ledger.read_text().splitlines(keepends=True)
     assert len(lines) == 2
     # Lose the second record as a kill would: half of its line written, result.json on disk.
@@ -89,19 +90,19 @@ def test_a_second_record_for_one_episode_is_collapsed_and_reported(tmp_path):
     cfg = write_config(tmp_path, "{policy: conversation_hash}")
     out = tmp_path / "out"
     first = run(cfg, out)
-    original = (out / LEDGER).read_bytes()
+    original = (out / RESULTS).read_bytes()
     line = original.decode().splitlines()[0]
     second = json.loads(line) | {"cost_usd": 1.5, "wall_s": 99.0}
-    with open(out / LEDGER, "a") as f:
+    with open(out / RESULTS, "a") as f:
         f.write(json.dumps(second) + "\n")
     for _ in range(2):
         ledger = Ledger.open(out)
         assert ledger.records == first.ledger.records
-        assert (out / LEDGER).read_bytes() == original
+        assert (out / RESULTS).read_bytes() == original
         assert [json.loads(x) for x in (out / DUPLICATES).read_text().splitlines()] == [second]
     key = "/".join(map(str, key_of(second)))
     assert len(ledger.collapsed) == 0  # the second open found nothing left to collapse
-    with open(out / LEDGER, "a") as f:
+    with open(out / RESULTS, "a") as f:
         f.write(json.dumps(second) + "\n")
     again = run(cfg, out)  # a resume reports it and runs nothing
     assert again.ledger.collapsed and key in again.ledger.collapsed[0]

@@ -18,9 +18,9 @@ from vabench.agent.learning import read_result
 from vabench.config import load_config
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.report import make_report
+from vabench.run_layout import RunDir
 from vabench.sweep.plan import plan
 from vabench.sweep.runner import LocalSweep
-from vabench.sweep.summaries import summary_path
 
 TASK = "grasp_single_cube"
 LEARNING_CALLS = 3  # the stand-in learner: retrieve, frame, learn
@@ -98,7 +98,9 @@ def test_one_learning_per_model_and_family_for_three_runs_of_twenty_seeds(tmp_pa
             assert len(sweep.ledger.records) == 2 * 20 * 3
             assert learning_sessions(out) == {("m1", TASK): 1, ("m2", TASK): 1}
             assert learning_calls(server) == {"m1": LEARNING_CALLS, "m2": LEARNING_CALLS}
-            texts = {m: read_result(summary_path(out, m, TASK)).summary_text for m in ("m1", "m2")}
+            texts = {
+                m: read_result(RunDir(out).summary(m, TASK)).summary_text for m in ("m1", "m2")
+            }
             assert all(texts.values())
             # every evaluation request of a model carries that model's own summary
             evaluation = [(m, t) for m, s, t in requests(server) if P.LEARNING_STAGE_MARK not in s]
@@ -134,7 +136,7 @@ def test_own_shared_and_none_tracks_show_whose_summary(tmp_path):
             out = tmp_path / "out"
             sweep = await run_sweep(sweep_doc(server, ["m1", "m2"], tracks=tracks), tmp_path, out)
             records = {(r["model"], r["track"]): r for r in sweep.ledger.records.values()}
-            text = {m: read_result(summary_path(out, m, TASK)).summary_text for m in ("m1", "m2")}
+            text = {m: read_result(RunDir(out).summary(m, TASK)).summary_text for m in ("m1", "m2")}
             assert text["m1"] and text["m2"] and text["m1"] != text["m2"]
             expected = {
                 ("m1", "active"): ("own", "m1", "learned"),
@@ -174,9 +176,9 @@ def test_a_failed_session_is_final_and_an_infrastructure_failure_is_retried(tmp_
             doc["models"][1]["base_url"] = "http://127.0.0.1:9/v1"  # nothing listens there
             out = tmp_path / "out"
             sweep = await run_sweep(doc, tmp_path, out)
-            failed = read_result(summary_path(out, "m1", TASK))
+            failed = read_result(RunDir(out).summary("m1", TASK))
             assert failed.status == "failed" and failed.stop_reason == "invalid_output"
-            assert not summary_path(out, "m2", TASK).exists()
+            assert not RunDir(out).summary("m2", TASK).exists()
             assert len(sweep.ledger.records) == 2 * 3
             records = {r["model"]: r for r in sweep.ledger.records.values()}  # any one per model
             assert (
@@ -227,7 +229,7 @@ def test_a_held_out_variant_reads_its_base_familys_summary(tmp_path):
             tasks = {r["task"]: r for r in sweep.ledger.records.values()}
             assert set(tasks) == {TASK, f"{TASK}_heldout"}
             assert learning_sessions(out) == {("m1", TASK): 1}
-            text = read_result(summary_path(out, "m1", TASK)).summary_text
+            text = read_result(RunDir(out).summary("m1", TASK)).summary_text
             shown = [t for _, s, t in requests(server) if P.LEARNING_STAGE_MARK not in s]
             assert len(shown) == 2 and all(text in t for t in shown)
             assert tasks[f"{TASK}_heldout"]["summary_status"] == "learned"

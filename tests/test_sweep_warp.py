@@ -14,8 +14,8 @@ import json
 import pytest
 from PIL import Image
 
+from vabench.run_layout import RESULTS
 from vabench.sweep.__main__ import main
-from vabench.sweep.results import LEDGER
 
 CONFIG = """\
 name: warp-cpu
@@ -57,7 +57,7 @@ def test_a_sweep_on_warp_physics_and_warp_images_records_every_episode_once(tmp_
     cfg.write_text(CONFIG)
     out = tmp_path / "out"
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
-    records = [json.loads(line) for line in (out / LEDGER).read_text().splitlines()]
+    records = [json.loads(line) for line in (out / RESULTS).read_text().splitlines()]
     keys = {(r["model"], r["track"], r["task"], r["seed"], r["run"]) for r in records}
     assert len(records) == len(keys) == 4  # 2 tasks x 2 tracks x 1 seed x 1 run
     assert all(r["error"] is None and r["status"] in ("success", "failure") for r in records)
@@ -69,4 +69,4 @@ def test_a_sweep_on_warp_physics_and_warp_images_records_every_episode_once(tmp_
             assert image.format == "JPEG" and image.size == (96, 72)
     # nothing left to do: the same command resumes to no work
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
-    assert len((out / LEDGER).read_text().splitlines()) == 4
+    assert len((out / RESULTS).read_text().splitlines()) == 4

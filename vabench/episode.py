@@ -36,6 +36,7 @@ from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.backends import make_renderer
 from vabench.render.images import ImageSettings
+from vabench.run_layout import RESULT, RunDir
 from vabench.sim_mjx.backends import BackendUnavailable
 from vabench.sim_mjx.cli import add_physics_arguments, physics_kwargs
 
@@ -98,14 +99,9 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
         config = ServerConfig(policy=args.policy, seed=args.seed)
         server = await LocalServer(config).start()
         endpoints = load_endpoints([server.endpoint_config(args.model, "openai_chat")])
-    out = (
-        Path(args.out)
-        if args.out
-        else Path("runs/episodes")
-        / args.model
-        / args.protocol
-        / (f"{args.task}/seed_{args.seed}/run_{args.run}")
-    )
+    # Without --out: the episode's place in a run directory "runs" whose track is the protocol.
+    where = (args.model, args.protocol, args.task, args.seed, args.run)
+    out = Path(args.out) if args.out else RunDir(Path("runs")).episode(*where).path
     spec = EpisodeSpec(
         args.task, args.seed, args.model, args.protocol, args.run, out, step_budget=args.max_steps
     )
@@ -165,7 +161,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=960)
     p.add_argument("--quality", type=int, default=95)
     p.add_argument("--max-steps", type=int, help="cap the step budget (smoke runs)")
-    p.add_argument("--json", action="store_true", help="print result.json instead of the text")
+    p.add_argument("--json", action="store_true", help=f"print {RESULT} instead of the text")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     try:

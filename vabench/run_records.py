@@ -24,10 +24,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from vabench.agent.records import RECORD_VERSION, EpisodeResult
-
-RESULTS_FILE = "results.jsonl"
-INFRA_FILE = "infrastructure.jsonl"
-"""The sweep's log of infrastructure failures that were run again (one line per attempt)."""
+from vabench.run_layout import RunDir
 
 Key = tuple[str, str, str, int, int]
 """(model, track, task, seed, run): one planned episode."""
@@ -60,7 +57,8 @@ class Results:
     truncated_tail: bool = False
     """True when a crash-truncated final line was dropped."""
     retried: dict[tuple[str, str], int] = field(default_factory=dict)
-    """(model, track) -> infrastructure failures that were run again (from INFRA_FILE)."""
+    """(model, track) -> infrastructure failures that were run again (from the sweep's
+    infrastructure log, `run_layout.INFRASTRUCTURE`: one line per attempt)."""
 
 
 _ENVELOPE = ("track", "episode_dir")
@@ -105,7 +103,8 @@ def validation_problems(exc: ValidationError) -> str:
 
 def load_results(run_dir: Path | str) -> Results:
     """Read and validate RUN_DIR/results.jsonl (see the module docstring for the rules)."""
-    path = Path(run_dir) / RESULTS_FILE
+    files = RunDir(Path(run_dir))
+    path = files.results
     if not path.is_file():
         raise ReportError(f"{path}: not found (is {run_dir} a sweep run directory?)")
     text = path.read_text(encoding="utf-8")
@@ -139,7 +138,7 @@ def load_results(run_dir: Path | str) -> Results:
             )
         first_scored[record.key] = i + 1
         out.scored.append(record)
-    out.retried = count_retried(Path(run_dir) / INFRA_FILE)
+    out.retried = count_retried(files.infrastructure)
     if not out.scored and not out.unscored:
         raise ReportError(f"{path}: no records (empty file)")
     if not out.scored:

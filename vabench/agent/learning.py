@@ -68,6 +68,7 @@ from vabench.agent.tools import ToolResult, tool_text
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.pool import LLMPool
+from vabench.run_layout import EpisodeDir
 
 LearningStatus = Literal["learned", "failed", "infrastructure_error", "error"]
 StopReason = Literal[
@@ -325,7 +326,7 @@ async def learn_summary(
     )
     session.event("learning_end", status=status, stop_reason=reason, error=error)
     if recorder is not None and recorder.directory is not None:
-        write_result(recorder.directory / "learning.json", result)
+        write_result(EpisodeDir(recorder.directory).learning_result, result)
     return result
 
 

@@ -1,6 +1,7 @@
 """Episode records: the append-only event log, the frames the model saw, and the result.
 
-Layout (docs/DESIGN.md, "Run directory"), under the episode's directory:
+Layout (docs/DESIGN.md, "Run directory"; the names are `vabench.run_layout`'s), under the
+episode's directory:
 
     events.jsonl          one JSON object per line, appended and flushed as it happens
     frames/step_NNN.jpg   the clean image the model saw with the observation of step NNN
@@ -28,6 +29,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from vabench.run_layout import EpisodeDir, frame_path
 
 RECORD_VERSION = 1
 
@@ -101,29 +104,26 @@ class EpisodeRecorder:
         self._file = None
         self._seq = 0
         if self.directory is not None:
-            if (self.directory / "result.json").exists():
+            files = EpisodeDir(self.directory)
+            if files.result.exists():
                 raise FileExistsError(
                     f"{self.directory} already holds a finished episode; refusing to overwrite"
                 )
-            self._set_aside_partial()
-            (self.directory / "frames").mkdir(parents=True, exist_ok=True)
-            self._file = open(self.directory / "events.jsonl", "a", encoding="utf-8")  # noqa: SIM115
+            self._set_aside_partial(files)
+            files.frames.mkdir(parents=True, exist_ok=True)
+            self._file = open(files.events, "a", encoding="utf-8")  # noqa: SIM115
 
-    def _set_aside_partial(self) -> None:
+    @staticmethod
+    def _set_aside_partial(files: EpisodeDir) -> None:
         """An interrupted earlier attempt (events but no result) is kept, renamed, never
         appended to: a re-run starts a clean log."""
-        assert self.directory is not None
-        events = self.directory / "events.jsonl"
-        if not events.exists():
+        if not files.events.exists():
             return
-        n = 1
-        while (self.directory / f"partial_{n}").exists():
-            n += 1
-        aside = self.directory / f"partial_{n}"
+        aside = files.next_partial()
         aside.mkdir()
-        events.rename(aside / "events.jsonl")
-        if (self.directory / "frames").exists():
-            (self.directory / "frames").rename(aside / "frames")
+        files.events.rename(aside / files.events.name)
+        if files.frames.exists():
+            files.frames.rename(aside / files.frames.name)
 
     def event(self, type_: str, **fields: Any) -> dict[str, Any]:
         record = {
@@ -144,8 +144,7 @@ class EpisodeRecorder:
         self, step: int, jpeg: bytes, view: str | None = None, index: int | None = None
     ) -> str:
         """Store one model image; returns its path relative to the episode directory."""
-        name = f"step_{step:03d}.jpg" if index is None else f"step_{step:03d}_{index}_{view}.jpg"
-        rel = f"frames/{name}"
+        rel = frame_path(step, view, index)
         if self.directory is not None:
             (self.directory / rel).write_bytes(jpeg)
         return rel
@@ -159,9 +158,10 @@ class EpisodeRecorder:
             error=result.error,
         )
         if self.directory is not None:
-            tmp = self.directory / "result.json.tmp"
+            path = EpisodeDir(self.directory).result
+            tmp = path.with_name(f"{path.name}.tmp")
             tmp.write_text(result.model_dump_json(indent=1), encoding="utf-8")
-            os.replace(tmp, self.directory / "result.json")
+            os.replace(tmp, path)
         self.close()
         return result
 
@@ -184,7 +184,7 @@ def _json_default(value: Any) -> Any:
 def read_events(directory: Path | str) -> list[dict[str, Any]]:
     """The events of one episode (a truncated last line, from a crash mid-write, is dropped)."""
     events = []
-    with open(Path(directory) / "events.jsonl", encoding="utf-8") as f:
+    with open(EpisodeDir(Path(directory)).events, encoding="utf-8") as f:
         for line in f:
             try:
                 events.append(json.loads(line))
@@ -194,7 +194,7 @@ def read_events(directory: Path | str) -> list[dict[str, Any]]:
 
 
 def read_result(directory: Path | str) -> EpisodeResult | None:
-    path = Path(directory) / "result.json"
+    path = EpisodeDir(Path(directory)).result
     if not path.exists():
         return None
     return EpisodeResult.model_validate_json(path.read_text(encoding="utf-8"))

@@ -27,6 +27,7 @@ from typing import Any
 import yaml
 
 from vabench.diagnostics.episodes import RunDirError, RunIndex
+from vabench.run_layout import RunDir
 
 COMMANDS = ("judge", "export", "import")
 
@@ -47,7 +48,7 @@ def _summary(argv: Sequence[str]) -> int:
     data = diagnostics.load(args.run_dir, index)
     if data is None:
         print(
-            f"no annotations in {index.run_dir / 'annotations'}: annotate with "
+            f"no annotations in {RunDir(index.run_dir).annotations}: annotate with "
             f"`python -m vabench.view {args.run_dir}` or run the judge",
             file=sys.stderr,
         )
@@ -86,7 +87,7 @@ async def _judge(args: argparse.Namespace, index: RunIndex) -> int:
     from vabench.llm_pool import LLMPool
     from vabench.llm_pool.server import LocalServer, ServerConfig
 
-    config = args.config or index.run_dir / "sweep.yaml"
+    config = args.config or RunDir(index.run_dir).config
     if not Path(config).is_file():
         print(
             f"error: --config: {config} not found (give a YAML file with a models: list)",
@@ -121,7 +122,7 @@ async def _judge(args: argparse.Namespace, index: RunIndex) -> int:
         )
     print(
         f"{report.judged} episode judgments by {args.judges} judge(s) of {args.model}: "
-        f"{report.written} labels written to {index.run_dir / 'annotations'}; "
+        f"{report.written} labels written to {RunDir(index.run_dir).annotations}; "
         f"{report.skipped} already judged (--redo judges them again)"
     )
     for failure in report.failures:

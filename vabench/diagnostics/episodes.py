@@ -12,9 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from vabench.agent.records import read_events
+from vabench.run_layout import EpisodeDir, RunDir, episode_id, episode_rel
 from vabench.run_records import Record, ReportError, load_results
-
-EPISODES_DIR = "episodes"
 
 
 class RunDirError(ValueError):
@@ -24,7 +23,7 @@ class RunDirError(ValueError):
 class UnknownEpisode(KeyError):
     def __init__(self, episode: str, run_dir: Path):
         super().__init__(episode)
-        self.message = f"unknown episode {episode!r}: not in {run_dir}/results.jsonl"
+        self.message = f"unknown episode {episode!r}: not in {RunDir(run_dir).results}"
 
     def __str__(self) -> str:
         return self.message
@@ -84,11 +83,9 @@ class RunIndex:
         episodes: dict[str, EpisodeRef] = {}
         for record in results.scored + results.unscored:
             r = record.result
-            rel = record.episode_dir or (
-                f"{EPISODES_DIR}/{r.model}/{record.track}/{r.task}/seed_{r.seed}/run_{r.run}"
-            )
-            episode_id = rel.removeprefix(f"{EPISODES_DIR}/")
-            episodes[episode_id] = EpisodeRef(episode_id, record.track, record)
+            rel = record.episode_dir or episode_rel(r.model, record.track, r.task, r.seed, r.run)
+            ref = EpisodeRef(episode_id(rel), record.track, record)
+            episodes[ref.id] = ref
         ordered = dict(sorted(episodes.items(), key=lambda kv: _order(kv[1])))
         return cls(run_dir.resolve(), ordered)
 
@@ -99,11 +96,11 @@ class RunIndex:
             raise UnknownEpisode(episode, self.run_dir) from None
 
     def directory(self, episode: str) -> Path:
-        return self.run_dir / EPISODES_DIR / self.get(episode).id
+        return RunDir(self.run_dir).episodes / self.get(episode).id
 
     def events(self, episode: str) -> list[dict[str, Any]]:
         path = self.directory(episode)
-        if not (path / "events.jsonl").is_file():
+        if not EpisodeDir(path).events.is_file():
             return []
         return read_events(path)
 

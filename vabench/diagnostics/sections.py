@@ -20,11 +20,11 @@ from vabench.diagnostics import aggregate as agg
 from vabench.diagnostics.criteria import CRITERION_CODES, MODULE_CRITERIA, MODULES
 from vabench.diagnostics.episodes import RunIndex
 from vabench.diagnostics.stats import VOTE_RULES
-from vabench.diagnostics.store import ANNOTATIONS_DIR, AnnotationStore, current
+from vabench.diagnostics.store import AnnotationStore, current
 from vabench.tables import Csv, Section, Table, pct
 
 MAX_PROBLEMS_SHOWN = 10
-__all__ = ["ANNOTATIONS_DIR", "load", "sections"]
+__all__ = ["load", "sections"]
 
 
 @dataclass

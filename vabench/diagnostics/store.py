@@ -31,8 +31,8 @@ from typing import Any
 
 from vabench.diagnostics.criteria import GATES, ITEMS, RUBRIC_VERSION, gate_of
 from vabench.diagnostics.episodes import RunIndex, UnknownEpisode
+from vabench.run_layout import RunDir, annotation_name
 
-ANNOTATIONS_DIR = "annotations"
 JUDGMENT_VERSION = 1
 ANNOTATOR_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 """Plain names only: they become file names and appear in HTML."""
@@ -191,18 +191,19 @@ class AnnotationStore:
 
     def __init__(self, index: RunIndex):
         self.index = index
-        self.directory = index.run_dir / ANNOTATIONS_DIR
+        self._run = RunDir(index.run_dir)
+        self.directory = self._run.annotations
         self._cache: dict[Path, tuple[tuple[int, int], Loaded]] = {}
 
     def path(self, annotator: str) -> Path:
-        return self.directory / f"{check_annotator(annotator)}.jsonl"
+        return self._run.annotation_file(check_annotator(annotator))
 
     # -- reading ------------------------------------------------------------------------------
     def load(self) -> Loaded:
         out = Loaded()
         if not self.directory.is_dir():
             return out
-        for path in sorted(self.directory.glob("*.jsonl")):
+        for path in self._run.annotation_files():
             part = self._load_file(path)
             out.judgments += part.judgments
             out.problems += part.problems
@@ -232,7 +233,7 @@ class AnnotationStore:
             except AnnotationError as err:
                 out.problems.append(f"{where}: {err}; line skipped")
                 continue
-            if f"{j.annotator}.jsonl" != path.name:
+            if annotation_name(j.annotator) != path.name:
                 out.problems.append(
                     f"{where}: annotator: {j.annotator!r} in the file of {path.stem!r}; skipped"
                 )

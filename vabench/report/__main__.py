@@ -7,13 +7,14 @@ import sys
 from pathlib import Path
 
 from vabench.report.build import generate
+from vabench.run_layout import REPORT_HTML, RESULTS
 from vabench.run_records import ReportError
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m vabench.report",
-        description="Tables, figures and report.html from a sweep's results.jsonl.",
+        description=f"Tables, figures and {REPORT_HTML} from a sweep's {RESULTS}.",
     )
     parser.add_argument("run_dir", type=Path, help="the sweep's run directory")
     args = parser.parse_args(argv)
@@ -22,7 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     except ReportError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"wrote {len(out.files)} files to {out.directory} (open report.html)")
+    print(f"wrote {len(out.files)} files to {out.directory} (open {REPORT_HTML})")
     for line in out.summary:
         print(f"  {line}")
     return 0

@@ -17,6 +17,7 @@ from vabench.report.stats import (
     Usage,
     subset_of,
 )
+from vabench.run_layout import INFRASTRUCTURE
 from vabench.tables import (
     Csv,
     Section,
@@ -359,7 +360,7 @@ def usage_section(
         )
     if retried:
         runs_again = "; ".join(f"{m} / {t}: {n}" for (m, t), n in retried.items())
-        notes.append(f"infrastructure failures run again (infrastructure.jsonl): {runs_again}")
+        notes.append(f"infrastructure failures run again ({INFRASTRUCTURE}): {runs_again}")
     return Section(
         "usage",
         "Steps, actions, tokens and cost",

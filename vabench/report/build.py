@@ -37,11 +37,8 @@ from vabench.report import (
     summary_tables,
 )
 from vabench.report.conditions import TaskMeta, condition_cells
+from vabench.run_layout import FIGURES, REPORT_HTML, REPORT_MD, RunDir
 from vabench.run_records import Results, load_results
-
-REPORT_DIR = "report"
-SUMMARIES_DIR = "summaries"
-"""RUN_DIR/summaries/<model>/<family>.json: the sweep's learning stage (`sweep.summaries`)."""
 
 
 @dataclass
@@ -73,7 +70,7 @@ def generate(run_dir: Path | str) -> ReportOutput:
     run_dir = Path(run_dir)
     results = load_results(run_dir)
     arms, order, base = task_arms()
-    return write_report(run_dir / REPORT_DIR, results, arms, order, base, task_meta())
+    return write_report(RunDir(run_dir).report, results, arms, order, base, task_meta())
 
 
 def make_report(run_dir: Path) -> Path:
@@ -157,7 +154,7 @@ def write_report(
 
     summary = _summary(results, macro_spreads, comparisons, len(unresolved))
     written: list[Path] = []
-    fig_dir = out_dir / "figures"
+    fig_dir = out_dir / FIGURES
     fig_dir.mkdir(parents=True, exist_ok=True)
     for _, name, _, png in pngs:
         written.append(_write(fig_dir / name, png))
@@ -169,13 +166,13 @@ def write_report(
     for section in sections:
         text = tables.section_markdown(section)
         written.append(_write(out_dir / f"{section.name}.md", text.encode()))
-        links = [f"![{t}](figures/{n})\n" for s, n, t, _ in pngs if s == section.name]
+        links = [f"![{t}]({FIGURES}/{n})\n" for s, n, t, _ in pngs if s == section.name]
         md_parts += [text, *links]
         for table in section.csvs:
             written.append(_write(out_dir / f"{table.name}.csv", tables.to_csv(table).encode()))
-    written.append(_write(out_dir / "report.md", "\n".join(md_parts).encode()))
+    written.append(_write(out_dir / REPORT_MD, "\n".join(md_parts).encode()))
     page = html.render("VA-Bench report", summary, sections, [(s, t, png) for s, _, t, png in pngs])
-    written.append(_write(out_dir / "report.html", page.encode()))
+    written.append(_write(out_dir / REPORT_HTML, page.encode()))
     return ReportOutput(out_dir, written, summary)
 
 
@@ -195,7 +192,7 @@ def track_sections(
             notes + more + summaries.failed_summary_notes(results.scored),
         ),
         summary_tables.learning_section(
-            summaries.learning_rows(results.path.parent / SUMMARIES_DIR)
+            summaries.learning_rows(RunDir(results.path.parent).summaries)
         ),
     ]
     if meta is not None:
@@ -211,7 +208,7 @@ def diagnostic_sections(run_dir: Path) -> list[tables.Section]:
     annotations (RUN_DIR/annotations/, written by `python -m vabench.view` and the judge)."""
     from vabench.diagnostics import sections as diagnostics
 
-    if not (run_dir / diagnostics.ANNOTATIONS_DIR).is_dir():
+    if not RunDir(run_dir).annotations.is_dir():
         return []
     data = diagnostics.load(run_dir)
     return [] if data is None else diagnostics.sections(data)

@@ -27,6 +27,15 @@ from pathlib import Path
 from typing import Any
 
 from vabench.report.stats import TOKEN_FIELDS
+from vabench.run_layout import (
+    ATTEMPT_PREFIX,
+    EPISODES,
+    EVENTS,
+    PARTIAL_PREFIX,
+    SUMMARIES,
+    EpisodeDir,
+    RunDir,
+)
 from vabench.run_records import jsonl_objects
 from vabench.tables import Csv, Section, Table
 
@@ -101,12 +110,11 @@ def _no_usage_failures(events: list[dict[str, Any]]) -> int:
 def _interrupted_logs(run_dir: Path) -> Iterator[Path]:
     """events.jsonl of attempts that ended without a result: set-aside `partial_N/` logs,
     and episode or learning directories holding events but no result."""
-    for events in run_dir.rglob("events.jsonl"):
+    for events in run_dir.rglob(EVENTS):
         d = events.parent
-        if d.name.startswith("attempt_"):
+        if d.name.startswith(ATTEMPT_PREFIX):
             continue  # a finished attempt: its result is in infrastructure.jsonl
-        finished = (d / "result.json").exists() or (d / "learning.json").exists()
-        if d.name.startswith("partial_") or not finished:
+        if d.name.startswith(PARTIAL_PREFIX) or not EpisodeDir(d).finished():
             yield events
 
 
@@ -115,7 +123,7 @@ def _model_of(run_dir: Path, events_file: Path, events: list[dict[str, Any]]) ->
         if e.get("type") in ("episode_start", "learning_start") and e.get("model"):
             return str(e["model"])
     parts = events_file.relative_to(run_dir).parts
-    if len(parts) > 1 and parts[0] in ("episodes", "summaries"):
+    if len(parts) > 1 and parts[0] in (EPISODES, SUMMARIES):
         return parts[1]
     return None
 
@@ -123,20 +131,21 @@ def _model_of(run_dir: Path, events_file: Path, events: list[dict[str, Any]]) ->
 def bill(run_dir: Path | str) -> Bill:
     """Every source of the module docstring, per model."""
     run_dir = Path(run_dir)
+    files = RunDir(run_dir)
     rows: dict[tuple[str, str], Spend] = {}
     unknown: dict[str, int] = defaultdict(int)
 
     def row(model: str, source: str) -> Spend:
         return rows.setdefault((model, source), Spend(model, source))
 
-    for record in jsonl_objects(run_dir / "results.jsonl"):
+    for record in jsonl_objects(files.results):
         scored = record.get("status") in ("success", "failure")
         _add_record(row(str(record.get("model")), SOURCES[0 if scored else 1]), record)
-    for record in jsonl_objects(run_dir / "infrastructure.jsonl"):
+    for record in jsonl_objects(files.infrastructure):
         _add_record(row(str(record.get("model")), SOURCES[2]), record)
-    for record in jsonl_objects(run_dir / "results.duplicates.jsonl"):
+    for record in jsonl_objects(files.duplicates):
         _add_record(row(str(record.get("model")), SOURCES[4]), record)
-    for path in sorted((run_dir / "summaries").glob("*/*.json")):
+    for path in files.summary_files():
         try:
             learned = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError):
@@ -147,9 +156,9 @@ def bill(run_dir: Path | str) -> Bill:
         model = _model_of(run_dir, events_file, events)
         if model is None:
             continue
-        learning = events_file.relative_to(run_dir).parts[0] == "summaries"
+        learning = events_file.relative_to(run_dir).parts[0] == SUMMARIES
         _add_calls(row(model, SOURCES[5] if learning else SOURCES[3]), events)
-    for events_file in run_dir.rglob("events.jsonl"):
+    for events_file in run_dir.rglob(EVENTS):
         events = list(jsonl_objects(events_file))
         if (n := _no_usage_failures(events)) and (m := _model_of(run_dir, events_file, events)):
             unknown[m] += n

@@ -16,6 +16,7 @@ from vabench.report.summaries import (
     SummaryComparison,
     suite_label,
 )
+from vabench.run_layout import SUMMARIES
 from vabench.tables import (
     Csv,
     Section,
@@ -263,7 +264,7 @@ def learning_section(rows: Sequence[LearningRow]) -> Section | None:
     return Section(
         "learning_stage",
         "Learning stage",
-        [Table("Demonstration-summary sessions (RUN_DIR/summaries/)", header, display)],
+        [Table(f"Demonstration-summary sessions (RUN_DIR/{SUMMARIES}/)", header, display)],
         [
             Csv(
                 "learning_stage",

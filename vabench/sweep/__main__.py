@@ -47,6 +47,7 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 from vabench.config import SweepConfigError, load_config  # noqa: E402
+from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
 from vabench.sweep.choices import choose, configure_jax, with_executor  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
@@ -100,7 +101,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     if args.dry_run:
         print(format_estimate(estimate(config, keys)))
         print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
-        if (run_dir / "results.jsonl").exists():
+        if RunDir(run_dir).results.exists():
             done = len(Ledger.open(run_dir).records)
             print(f"{run_dir}: {done} of {len(keys)} episodes already finished")
         return 0

@@ -23,6 +23,7 @@ from typing import Any
 import yaml
 
 from vabench.config import SweepConfig, SweepConfigError, load_config
+from vabench.run_layout import CONFIG, PLAN, RunDir
 from vabench.sweep.display import status_of
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Sink, ledger_key
@@ -103,20 +104,20 @@ def load_document(document: dict[str, Any], run_dir: Path) -> SweepConfig:
     directory `run_dir`, which must be the one the driver wrote its plan into (a shared mount
     on a cluster). Raises RuntimeError naming this host when either fails."""
     host = socket.gethostname()
-    if not (run_dir / "plan.json").exists():
+    if not RunDir(run_dir).plan.exists():
         raise RuntimeError(
-            f"{run_dir}: no plan.json here on {host}: executor: ray needs a run directory that "
+            f"{run_dir}: no {PLAN} here on {host}: executor: ray needs a run directory that "
             "every node sees at the same path (a shared mount)"
         )
     with tempfile.TemporaryDirectory(prefix="vabench-cell-") as tmp:
-        path = Path(tmp) / "sweep.yaml"
+        path = Path(tmp) / CONFIG
         path.write_text(yaml.safe_dump(document, sort_keys=False), encoding="utf-8")
         try:
             return load_config(path)
         except SweepConfigError as err:
             raise RuntimeError(
                 f"the sweep config does not load on {host}:\n"
-                + str(err).replace(str(path), str(run_dir / "sweep.yaml"))
+                + str(err).replace(str(path), str(RunDir(run_dir).config))
             ) from None
 
 

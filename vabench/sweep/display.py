@@ -28,7 +28,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, TextIO
 
-from vabench.sweep.results import INFRA_LOG, LEDGER, key_of
+from vabench.run_layout import INFRASTRUCTURE, RESULTS
+from vabench.sweep.results import key_of
 
 PLAIN_EVERY_S = 15.0
 RATE_WINDOW_S = 60.0
@@ -126,7 +127,7 @@ class Tally:
         self.calls = self.tokens = 0
         self.cost = 0.0
         self._seen: set[tuple[Any, ...]] = set()
-        self._offsets = {LEDGER: 0, INFRA_LOG: 0}
+        self._offsets = {RESULTS: 0, INFRASTRUCTURE: 0}
         self.refresh()
         self.calls = self.tokens = 0  # this invocation's spend only, as the local display
         self.cost = 0.0
@@ -143,7 +144,7 @@ class Tally:
         return [line for line in whole.decode("utf-8").splitlines() if line.strip()]
 
     def refresh(self) -> None:
-        for line in self._new_lines(LEDGER):
+        for line in self._new_lines(RESULTS):
             record = json.loads(line)
             key = key_of(record)
             if key in self._seen or key not in self.planned:
@@ -157,7 +158,7 @@ class Tally:
             self.calls += int(record.get("model_calls") or 0)
             self.tokens += int(tokens.get("input", 0)) + int(tokens.get("output", 0))
             self.cost += float(record.get("cost_usd") or 0.0)
-        for line in self._new_lines(INFRA_LOG):
+        for line in self._new_lines(INFRASTRUCTURE):
             key = key_of(json.loads(line))
             if key in self.planned:
                 self.tracks[key[:2]].retried += 1

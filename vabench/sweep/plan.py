@@ -53,6 +53,7 @@ from vabench.llm_pool.apis import get_adapter
 from vabench.llm_pool.config import ApiName, Prices
 from vabench.llm_pool.messages import ChatRequest, Image
 from vabench.llm_pool.tokens import CHARS_PER_TOKEN, ImageTokenRule, estimate_input_tokens
+from vabench.run_layout import episode_rel
 from vabench.tasks import get_task
 
 FIRST_RUN = 1
@@ -71,7 +72,7 @@ class EpisodeKey:
     @property
     def rel_dir(self) -> str:
         """The episode's directory under the run directory."""
-        return f"episodes/{self.model}/{self.track}/{self.task}/seed_{self.seed}/run_{self.run}"
+        return episode_rel(self.model, self.track, self.task, self.seed, self.run)
 
     def as_id(self) -> str:
         """A one-line id for logs and progress: `model/track/task/seed/run`."""

@@ -53,6 +53,7 @@ from vabench.children import (
     ignore_sigint,
 )
 from vabench.config import SweepConfig
+from vabench.run_layout import RESULTS
 from vabench.sim_mjx.backends import resolve
 from vabench.sim_mjx.warp.device import GPU_SHARE
 from vabench.sweep.cells import (
@@ -67,7 +68,7 @@ from vabench.sweep.cells import (
 from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.results import LEDGER, Ledger, LedgerError, ledger_key
+from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import SweepStopped
 from vabench.tasks import REGISTRY
 
@@ -216,7 +217,7 @@ def run_processes(
     run_dir = Path(run_dir).resolve()
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
-        log.info("processes: every planned episode is already in %s; nothing to run", LEDGER)
+        log.info("processes: every planned episode is already in %s; nothing to run", RESULTS)
         return Ledger.open(run_dir).records
     machine = this_machine()
     workers = min(config.executor.max_tasks or machine.cores, len(cells))

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.run_layout import DUPLICATES
 from vabench.sweep.cells import PROGRESS_EVERY_S, chunks, task_groups
 from vabench.sweep.choices import RAY_MAX_TASKS
 from vabench.sweep.display import Status, Tally, with_reports
@@ -361,7 +362,7 @@ class ClusterSweep:
         try:
             self.ledger.append_line(name, record)
         except LedgerError as err:  # an episode reported twice (an engine taken for dead)
-            log.warning("ray: %s; kept in results.duplicates.jsonl", err)
+            log.warning("ray: %s; kept in %s", err, DUPLICATES)
             self.ledger.add_duplicate(record)
 
     # -- status --------------------------------------------------------------------------------

@@ -64,6 +64,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.run_layout import RESULTS
 from vabench.sweep.cells import KeyTuple, pending_cells
 from vabench.sweep.display import Status
 from vabench.sweep.plan import EpisodeKey
@@ -82,7 +83,7 @@ from vabench.sweep.ray_plan import (
     engine_plan,
     project_runtime_env,
 )
-from vabench.sweep.results import LEDGER, Ledger
+from vabench.sweep.results import Ledger
 from vabench.sweep.runner import SweepStopped
 
 __all__ = [
@@ -115,7 +116,7 @@ def run_ray(
     run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
-        log.info("ray: every planned episode is already in %s; nothing to run", LEDGER)
+        log.info("ray: every planned episode is already in %s; nothing to run", RESULTS)
         return Ledger.open(run_dir).records
 
     import ray  # the `ray` extra; only this executor needs it

@@ -42,15 +42,12 @@ from pathlib import Path
 from typing import Any
 
 from vabench.agent.records import RECORD_VERSION, EpisodeResult, read_result
-
-LEDGER = "results.jsonl"
-INFRA_LOG = "infrastructure.jsonl"
-DUPLICATES = "results.duplicates.jsonl"
-"""Records collapsed out of the ledger as second records of an episode (kept for the bill)."""
+from vabench.run_layout import DUPLICATES, INFRASTRUCTURE, RESULTS, EpisodeDir, RunDir
 
 Key = tuple[str, str, str, int, int]
 Sink = Callable[[str, dict[str, Any]], None]
-"""Where a ledger's appends go instead of its files: (log name, record)."""
+"""Where a ledger's appends go instead of its files: (log name, record); the log names are
+`run_layout.RESULTS` and `run_layout.INFRASTRUCTURE`."""
 
 
 def key_of(record: dict[str, Any]) -> Key:
@@ -88,13 +85,13 @@ class Ledger:
     def open(cls, run_dir: Path, sink: Sink | None = None) -> Ledger:
         run_dir.mkdir(parents=True, exist_ok=True)
         ledger = cls(run_dir, sink=sink)
-        path = run_dir / LEDGER
-        if path.exists():
+        files = RunDir(run_dir)
+        if files.results.exists():
             # A worker (sink set) never writes: it collapses in memory, its parent on disk.
             ledger.records, ledger.collapsed = _load_collapsing(
-                path, run_dir / DUPLICATES, rewrite=sink is None
+                files.results, files.duplicates, rewrite=sink is None
             )
-        infra = run_dir / INFRA_LOG
+        infra = files.infrastructure
         if infra.exists():
             for line in _read_whole_lines(infra):
                 if line.strip():
@@ -117,14 +114,14 @@ class Ledger:
     def append_line(self, name: str, record: dict[str, Any]) -> None:
         """Append a line a worker built (`add`/`add_infrastructure_failure` through a sink);
         a second ledger record of an episode is refused (`LedgerError`)."""
-        if name == LEDGER:
+        if name == RESULTS:
             key = key_of(record)
             if key in self.records:
                 raise LedgerError(f"refusing a second record for {key}")
-            self._append(LEDGER, record)
+            self._append(RESULTS, record)
             self.records[key] = record
-        elif name == INFRA_LOG:
-            self._append(INFRA_LOG, record)
+        elif name == INFRASTRUCTURE:
+            self._append(INFRASTRUCTURE, record)
             self.infra_attempts[key_of(record)] += 1
         else:
             raise ValueError(f"unknown log {name!r}")
@@ -144,7 +141,7 @@ class Ledger:
         key = key_of(record)
         if key in self.records:
             raise LedgerError(f"refusing a second record for {key}")
-        self._append(LEDGER, record)
+        self._append(RESULTS, record)
         self.records[key] = record
         return record
 
@@ -157,7 +154,7 @@ class Ledger:
             "episode_dir": episode_dir,
             **result.model_dump(),
         }
-        self._append(INFRA_LOG, record)
+        self._append(INFRASTRUCTURE, record)
         self.infra_attempts[key_of(record)] += 1
 
 
@@ -244,14 +241,12 @@ def _whole_lines(fd: int) -> list[str]:
 def set_aside(episode_dir: Path) -> None:
     """Move a finished-but-unusable attempt (an infrastructure error adopted on resume) out of
     the way, keeping it, so the episode can run again in the same directory."""
-    n = 1
-    while (episode_dir / f"attempt_{n}").exists():
-        n += 1
-    aside = episode_dir / f"attempt_{n}"
+    files = EpisodeDir(episode_dir)
+    aside = files.next_attempt()
     aside.mkdir()
-    for name in ("result.json", "events.jsonl", "frames"):
-        if (episode_dir / name).exists():
-            (episode_dir / name).rename(aside / name)
+    for path in files.attempt_files:
+        if path.exists():
+            path.rename(aside / path.name)
 
 
 def recover(run_dir: Path, episode_dir: str) -> EpisodeResult | None:

@@ -26,9 +26,9 @@ from typing import Any
 import yaml
 
 from vabench.config import SweepConfig
+from vabench.run_layout import RunDir
 from vabench.sweep.plan import EpisodeKey
 
-PLAN_FILE = "plan.json"
 PLAN_VERSION = 2
 PLAN_FIELDS = ("models", "tracks", "tasks", "seeds", "runs", "step_budget")
 """The config fields that decide the plan (see the module docstring)."""
@@ -95,7 +95,8 @@ def check_run_dir(
 ) -> None:
     """Store the plan's identity in a new run directory, or refuse one made by another plan
     (`RunDirMismatch` naming the differing fields); then write the resolved config."""
-    path = run_dir / PLAN_FILE
+    files = RunDir(run_dir)
+    path = files.plan
     ids = [k.as_id() for k in keys]
     fields = plan_identity(config)
     if path.exists():
@@ -109,18 +110,14 @@ def check_run_dir(
                 diff = [f"episodes: {len(before.get('episodes', []))} -> {len(ids)}"]
             if diff:
                 raise RunDirMismatch(_refusal(run_dir, diff))
-            (run_dir / "sweep.yaml").write_text(
-                yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8"
-            )
+            files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
             return
     run_dir.mkdir(parents=True, exist_ok=True)
     record = {"v": PLAN_VERSION, "fields": fields, "episodes": ids}
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(record), encoding="utf-8")
     tmp.replace(path)
-    (run_dir / "sweep.yaml").write_text(
-        yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8"
-    )
+    files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
 
 
 def _refusal(run_dir: Path, diff: list[str]) -> str:

@@ -48,12 +48,11 @@ from vabench.agent.learning import (
 from vabench.agent.records import EpisodeRecorder, SummaryStatus
 from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.pool import LLMPool
+from vabench.run_layout import RunDir
 from vabench.tasks import get_task
 from vabench.tasks.base import Task
 
 log = logging.getLogger(__name__)
-
-SUMMARIES_DIR = "summaries"
 
 
 @dataclass(frozen=True)
@@ -69,10 +68,6 @@ class SummaryUse:
     unavailable: str | None = None
     """Set when the summary could not be had for an infrastructure reason (the episode is not
     run: it ends as an infrastructure error and is retried)."""
-
-
-def summary_path(run_dir: Path, model: str, family: str) -> Path:
-    return run_dir / SUMMARIES_DIR / model / f"{family}.json"
 
 
 def load_demo_frames(task: Task, cache_dir: Path) -> DemoFrames:
@@ -154,8 +149,9 @@ class SummaryStage:
         }
 
     async def _learn_once(self, model: str, task: Task) -> LearningResult:
-        path = summary_path(self.run_dir, model, task.name)
-        lock = path.with_suffix(".lock")
+        files = RunDir(self.run_dir)
+        path = files.summary(model, task.name)
+        lock = files.summary_lock(model, task.name)
         # Another process (a Ray cell of the same model) may be learning this family: the file
         # lock makes it learn once; waiting for it must not block the event loop.
         fd = await asyncio.to_thread(_acquire, lock)
@@ -174,7 +170,7 @@ class SummaryStage:
                 len(demo),
                 ", ".join(task.demo_families),
             )
-            recorder = EpisodeRecorder(path.with_suffix(""))
+            recorder = EpisodeRecorder(files.learning_session(model, task.name).path)
             try:
                 result = await learn_summary(
                     task, demo, self.llm, model, recorder=recorder, limits=self.limits

@@ -40,6 +40,7 @@ from vabench.diagnostics.store import (
     gate_votes,
     majority,
 )
+from vabench.run_layout import EpisodeDir, RunDir
 from vabench.view.timeline import build_timeline
 
 STATIC = Path(__file__).parent / "static"
@@ -71,7 +72,7 @@ class Viewer:
         self.store = AnnotationStore(self._index)
 
     def _results_stamp(self) -> int:
-        return (self.run_dir / "results.jsonl").stat().st_mtime_ns
+        return RunDir(self.run_dir).results.stat().st_mtime_ns
 
     @property
     def index(self) -> RunIndex:
@@ -149,7 +150,7 @@ class Viewer:
 
     async def frame(self, request: web.Request) -> web.StreamResponse:
         episode = self._episode_id(request, "episode")
-        frames = (self.index.directory(episode) / "frames").resolve()
+        frames = EpisodeDir(self.index.directory(episode)).frames.resolve()
         name = request.query.get("file", "")
         path = (frames.parent / name).resolve()
         if not path.is_relative_to(frames) or path.suffix.lower() not in IMAGE_TYPES:
