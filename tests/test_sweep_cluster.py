@@ -22,6 +22,7 @@ import ray
 from ray.cluster_utils import Cluster
 
 from vabench.config import load_config
+from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.ray_executor import run_ray
 from vabench.sweep.results import LEDGER
@@ -107,7 +108,7 @@ def test_a_node_killed_mid_sweep_costs_only_its_unfinished_episodes(cluster, tmp
 
     def driver() -> None:
         try:
-            outcome["records"] = run_ray(config, keys, run_dir)
+            outcome["records"] = run_ray(config, keys, run_dir, choose(config))
         except BaseException as err:  # reported by the assertions below
             outcome["error"] = err
 
