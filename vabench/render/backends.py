@@ -49,6 +49,11 @@ class RenderChoice:
     backend: str  # "warp" or "gl"
     reason: str
 
+    @property
+    def title(self) -> str:
+        """How `--dry-run` names it."""
+        return {"gl": "GL worker processes", "warp": "MuJoCo Warp's ray tracer"}[self.backend]
+
 
 def renderer_problem(device: str) -> str | None:
     """Why the Warp renderer cannot run on `device` (None when it can)."""

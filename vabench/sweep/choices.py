@@ -143,11 +143,10 @@ class Choices:
     """Where the embedded server works, when a model uses it."""
 
     def lines(self) -> list[str]:
-        renderer = {"gl": "GL worker processes", "warp": "MuJoCo Warp's ray tracer"}
         return [
             f"machine:   {self.machine.describe()}",
             f"physics:   {self.physics.title} ({self.physics.reason})",
-            f"renderer:  {renderer[self.renderer.backend]} ({self.renderer.reason})",
+            f"renderer:  {self.renderer.title} ({self.renderer.reason})",
             f"executor:  {self.executor.label} ({self.executor.reason})",
             f"in flight: {self.in_flight.describe()}",
             *([f"server:    {self.model_server}"] if self.model_server else []),
