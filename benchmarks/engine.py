@@ -1,11 +1,12 @@
 """Episode engine throughput against the ideal set by model latency alone.
 
-    python benchmarks/engine.py [--backend c|mjx] [--impl jax|warp] [--renderer gl|warp]
+    python benchmarks/engine.py [--backend c|warp|mjx] [--renderer gl|warp]
         [--concurrency 1,10,100,1000] [--latency 2] [--steps 5] [--size 640x480]
         [--render-workers 2] [--task grasp_single_cube] [--shared-batch] [--json FILE]
 
-On a GPU host the product's path is `--backend mjx --impl warp --renderer warp` (MuJoCo Warp
-physics, Warp's ray tracer reading the batch's state on the device).
+On a GPU host the product's path is `--backend warp --renderer warp` (MuJoCo Warp physics,
+Warp's ray tracer reading the batch's state on the device; the old `--backend mjx --impl warp`
+says the same).
 
 For each concurrency C, C episodes of one task run at once against the embedded server (random
 valid robot actions, every reply after exactly `--latency` seconds), each for `--steps`
@@ -115,8 +116,7 @@ async def main_async(args) -> list[dict]:
         server_processes=args.server_processes,
     )
     batch_kwargs: dict = {"lanes": args.lanes} if args.lanes else {}
-    if args.backend == "mjx":
-        batch_kwargs["impl"] = args.impl
+    batch_kwargs["backend"] = args.physics.value
     rows = []
     renderer, choice = make_renderer(
         args.renderer, workers=args.render_workers, platform=args.platform, max_size=(width, height)
@@ -125,9 +125,8 @@ async def main_async(args) -> list[dict]:
         described = (
             f"{args.render_workers} x {rp.gl_info}" if choice.backend == "gl" else "Warp ray tracer"
         )
-        physics = args.backend + (f"/{args.impl}" if args.backend == "mjx" else "")
         print(
-            f"renderer: {described}; backend {physics}; "
+            f"renderer: {described}; backend {args.physics.label}; "
             f"latency {args.latency} s; {args.steps} decisions per episode; {args.size}; "
             f"model server {args.server_processes or 'in this'} process(es)"
         )
@@ -144,7 +143,6 @@ async def main_async(args) -> list[dict]:
                             max(levels),
                             llm,
                             rp,
-                            backend=args.backend,
                             image=image,
                             **batch_kwargs,
                         )
@@ -165,14 +163,12 @@ async def main_async(args) -> list[dict]:
                                 yield shared
 
                             return reuse()
-                        return task_services(
-                            task, c, llm, rp, backend=args.backend, image=image, **batch_kwargs
-                        )
+                        return task_services(task, c, llm, rp, image=image, **batch_kwargs)
 
                     row = await run_level(task, c, args.steps, args.latency, factory, seeds)
                     row.update(
                         concurrency=c,
-                        backend=args.backend,
+                        backend=args.physics.backend,
                         lanes=args.lanes,
                         shared_batch=args.shared_batch,
                         size=args.size,
@@ -195,10 +191,11 @@ async def main_async(args) -> list[dict]:
 
 
 def main() -> None:
+    from vabench.sim_mjx.cli import add_physics_arguments, physics_of
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--task", default="grasp_single_cube")
-    p.add_argument("--backend", choices=("c", "mjx"), default="c")
-    p.add_argument("--impl", choices=("jax", "warp"), default="jax", help="mjx only")
+    add_physics_arguments(p, backend="c")
     p.add_argument("--renderer", choices=("gl", "warp"), default="gl")
     p.add_argument("--concurrency", default="1,10,100,1000")
     p.add_argument("--latency", type=float, default=2.0)
@@ -217,6 +214,7 @@ def main() -> None:
     p.add_argument("--lanes", type=int, help="MJX: physics lanes (default: the batch's)")
     p.add_argument("--json")
     args = p.parse_args()
+    args.physics = physics_of(p, args)
     rows = asyncio.run(main_async(args))
     if args.json:
         with open(args.json, "w") as f:

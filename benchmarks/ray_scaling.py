@@ -1,7 +1,7 @@
 """Scaling of a Ray sweep with its engines: the same work on 1, 2, 4, 8 engine actors of one
 host, episodes per second and the ratio to perfect scaling, side by side.
 
-    python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|mjx] [--seeds 20]
+    python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|warp|mjx] [--seeds 20]
         [--runs 3] [--tracks active,passive,transfer,long_horizon] [--tasks base]
         [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--warmup]
         [--json FILE]
@@ -11,7 +11,7 @@ on every track); the options shrink it (the test of this script runs it at a tin
 engines). Each engine count runs the whole plan into a fresh run directory, one after the
 other, on one local Ray instance started here:
 
-- on a host with GPUs (backend auto or mjx), one engine per GPU (`num_gpus=1`): counts above
+- on a host with GPUs (backend auto, warp or mjx), one engine per GPU (`num_gpus=1`): counts above
   the GPUs present are skipped;
 - without (backend c), engines of `1 + render.workers` CPUs each; Ray is told the host has as
   many CPUs as the largest count needs (more than it has, on a small machine: the engines then
@@ -96,6 +96,7 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     """Run the plan on `engines` engines; returns its figures and outcomes."""
     from vabench.config import load_config
     from vabench.run_layout import RunDir
+    from vabench.sweep.choices import choose
     from vabench.sweep.plan import plan
     from vabench.sweep.ray_executor import run_ray
     from vabench.sweep.rundir import check_run_dir
@@ -105,7 +106,7 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     keys = plan(config)
     check_run_dir(out, config, keys, config.document())
     t0 = time.perf_counter()
-    records = run_ray(config, keys, out)
+    records = run_ray(config, keys, out, choose(config))
     wall = time.perf_counter() - t0
     lines = RunDir(out).results.read_text().splitlines()
     recs = [json.loads(x) for x in lines]
@@ -130,7 +131,7 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--engines", default="1,2,4,8")
-    p.add_argument("--backend", choices=("auto", "c", "mjx"), default="auto")
+    p.add_argument("--backend", choices=("auto", "c", "warp", "mjx"), default="auto")
     p.add_argument("--seeds", type=int, default=20)
     p.add_argument("--runs", type=int, default=3)
     p.add_argument("--tracks", default="active,passive,transfer,long_horizon")
@@ -149,7 +150,7 @@ def main() -> None:
     from vabench.sim_mjx.backends import resolve
 
     counts = [int(n) for n in args.engines.split(",")]
-    on_gpus = resolve(args.backend, "auto").backend == "mjx"
+    on_gpus = resolve(args.backend).batched
     if on_gpus:
         ray.init(include_dashboard=False)
         gpus = int(ray.cluster_resources().get("GPU", 0))

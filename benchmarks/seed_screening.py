@@ -1,7 +1,7 @@
 """Seed screening time: 20 seeds of a family in one batch against one seed at a time, measured
 side by side in one run, per family.
 
-    python benchmarks/seed_screening.py [--backend mjx|c] [--tasks a,b,...] [--n 20]
+    python benchmarks/seed_screening.py [--backend mjx|warp|c] [--tasks a,b,...] [--n 20]
                                         [--single K] [--json OUT]
 
 For each family: build the batch (and compile: the first reset and step, timed separately),
@@ -77,7 +77,7 @@ def measure(name: str, backend: str, n: int, single: int, **kw) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--backend", choices=("mjx", "c"), default="mjx")
+    parser.add_argument("--backend", choices=("mjx", "warp", "c"), default="mjx")
     parser.add_argument("--tasks", default="all", help="comma-separated families or 'all'")
     parser.add_argument("--n", type=int, default=20)
     parser.add_argument("--single", type=int, default=20, help="seeds measured one at a time")

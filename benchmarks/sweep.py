@@ -1,7 +1,7 @@
 """Sweep wall time against the ideal set by model latency and the concurrency limit.
 
     python benchmarks/sweep.py [--episodes 1000] [--latency 1] [--steps 5] [--concurrency 200]
-        [--backend c|mjx] [--size 320x240] [--render-workers 2] [--skip-smoke] [--json FILE]
+        [--backend c|warp|mjx] [--size 320x240] [--render-workers 2] [--skip-smoke] [--json FILE]
 
 1. `configs/smoke.yaml` as a user runs it (a subprocess, report included): wall time.
 2. A sweep of `--episodes` episodes (one embedded model, both tracks, 5 tasks, their verified
@@ -55,7 +55,7 @@ def main() -> None:
     p.add_argument("--latency", type=float, default=1.0)
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--concurrency", type=int, default=200)
-    p.add_argument("--backend", choices=("c", "mjx"), default="c")
+    p.add_argument("--backend", choices=("c", "warp", "mjx"), default="c")
     p.add_argument("--size", default="320x240")
     p.add_argument("--render-workers", type=int, default=2)
     p.add_argument("--skip-smoke", action="store_true")

@@ -3,12 +3,16 @@ once, each naming the file and the field."""
 
 from __future__ import annotations
 
+import logging
+import typing
 from pathlib import Path
 
 import pytest
 import yaml
 
 from vabench.config import EMBEDDED_PLACEHOLDER_URL, SweepConfigError, load_config
+from vabench.config.schema import SimulatorOptions
+from vabench.sim_mjx.backends import BACKENDS
 from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, get_task
 from vabench.tasks.manifests import verified_seeds
 
@@ -46,7 +50,7 @@ def test_minimal_config_gets_the_documented_defaults(tmp_path):
     assert config.tasks == BASE_FAMILIES  # every base family is registered
     assert config.seeds == {t: tuple(verified_seeds(t)) for t in BASE_FAMILIES}
     assert config.runs == 3 and config.step_budget is None
-    assert config.simulator.backend == "auto" and config.simulator.impl == "auto"
+    assert config.simulator.backend == "auto"
     assert config.simulator.window_s == 0.01
     assert (config.render.width, config.render.height, config.render.quality) == (1280, 960, 95)
     assert config.render.workers == 2 and config.render.platform == "auto"
@@ -134,6 +138,43 @@ def test_document_reads_back_to_the_same_config(tmp_path):
     assert again == config
 
 
+@pytest.mark.parametrize(
+    ("impl", "backend"),
+    [("warp", "warp"), ("jax", "mjx"), ("auto", "warp")],  # impl auto: Warp where it runs
+)
+def test_the_old_physics_spelling_is_read_with_one_warning(tmp_path, caplog, impl, backend):
+    """`backend: mjx, impl: warp` (before `backend: warp`) still loads, to the same config as
+    the new spelling, with one warning that names the file, the field and what to write; the
+    resolved config (a run directory's sweep.yaml) has the new spelling and loads silently."""
+    path = write(tmp_path, minimal(simulator={"backend": "mjx", "impl": impl}), "old.yaml")
+    with caplog.at_level(logging.INFO):
+        config = load_config(path, environ={})
+    (warning,) = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    text = warning.getMessage()
+    assert text.startswith(f"{path}: simulator.impl is deprecated: write simulator: ")
+    assert f"{{backend: {backend}}} instead of {{backend: mjx, impl: {impl}}}" in text
+    new = write(tmp_path, minimal(simulator={"backend": backend}), "old.yaml")  # same stem
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert load_config(new, environ={}) == config
+        assert "impl" not in config.document()["simulator"]
+        load_config(write(tmp_path, config.document(), "resolved.yaml"), environ={})
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_an_impl_that_contradicts_the_backend_is_a_problem_of_that_field(tmp_path):
+    (line,) = problems_of(write(tmp_path, minimal(simulator={"backend": "warp", "impl": "jax"})))
+    assert "simulator.impl: impl jax contradicts backend warp" in line
+    (line,) = problems_of(write(tmp_path, minimal(simulator={"backend": "mjx", "impl": "gpu"})))
+    assert "simulator.impl: impl must be one of" in line and "'gpu'" in line
+
+
+def test_the_schema_lists_the_spellings_the_backends_module_accepts():
+    """The schema's `Literal` is the one place outside `sim_mjx.backends` that writes the
+    backend names (tests/test_layers.py lets declarations be): it must be that module's list."""
+    assert typing.get_args(SimulatorOptions.model_fields["backend"].annotation) == BACKENDS
+
+
 def test_overrides_replace_values_before_checking(tmp_path):
     path = write(tmp_path, minimal(out="runs/a"))
     config = load_config(path, environ={}, overrides={"out": "elsewhere", "executor.kind": "ray"})
@@ -190,7 +231,11 @@ def test_overrides_replace_values_before_checking(tmp_path):
         (minimal(tracks=["active", "active"]), "tracks[1]", "duplicate"),
         (minimal(tracks=[]), "tracks", "at least 1"),
         (minimal(models=[]), "models", "at least 1"),
-        (minimal(simulator={"backend": "gpu"}), "simulator.backend", "'auto', 'mjx' or 'c'"),
+        (
+            minimal(simulator={"backend": "gpu"}),
+            "simulator.backend",
+            "'auto', 'warp', 'mjx' or 'c'",
+        ),
         (minimal(render={"width": 4000}), "render.width", "less than or equal to 1280"),
         (
             minimal(executor={"kind": "k8s"}),

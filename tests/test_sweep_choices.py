@@ -7,15 +7,19 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
+from dataclasses import replace
 
 import pytest
 
 from vabench.config import ExecutorOptions
-from vabench.sim_mjx.backends import Choice
+from vabench.sim_mjx.backends import Choice, Physics
 from vabench.sweep.__main__ import main
 from vabench.sweep.choices import (
+    Choices,
     Machine,
     child_environment,
+    choose,
     gpu_for_worker,
     resolve_executor,
     this_machine,
@@ -53,7 +57,7 @@ def test_the_executor_is_sized_from_the_cores(options, cores, kind, max_tasks):
     ],
 )
 def test_warp_physics_on_one_gpu_runs_in_one_process(options, gpus, kind, max_tasks):
-    warp, c = Choice("mjx", "warp", ""), Choice("c", "-", "")
+    warp, c = Choice(Physics.WARP, ""), Choice(Physics.C, "")
     choice = resolve_executor(ExecutorOptions(**options), Machine(16, gpus), warp)
     assert (choice.kind, choice.max_tasks) == (kind, max_tasks)
     if kind == "local" and "kind" not in options:
@@ -73,7 +77,7 @@ def test_the_machine_is_read_from_the_environment():
 
 
 def test_workers_never_preallocate_and_keep_jax_off_the_gpu_unless_it_simulates():
-    c, warp, jax = Choice("c", "-", ""), Choice("mjx", "warp", ""), Choice("mjx", "jax", "")
+    c, warp, jax = Choice(Physics.C, ""), Choice(Physics.WARP, ""), Choice(Physics.MJX_JAX, "")
     cpu_jax = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", "JAX_PLATFORMS": "cpu"}
     assert child_environment(c, {}) == cpu_jax
     assert child_environment(warp, {}) == cpu_jax  # Warp's physics uses JAX on the host only
@@ -115,7 +119,7 @@ def test_dry_run_says_what_was_picked_and_why(tmp_path, capsys):
 
 def test_an_explicit_backend_that_cannot_run_here_is_one_clear_error(tmp_path, capsys):
     cfg = tmp_path / "sweep.yaml"
-    cfg.write_text(CONFIG.format(extra="simulator: {backend: mjx, impl: warp}"))
+    cfg.write_text(CONFIG.format(extra="simulator: {backend: warp}"))
     assert main([str(cfg), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "the Warp backend needs" in err[0] and str(cfg) in err[0]
@@ -158,7 +162,7 @@ def test_batched_physics_fills_its_batch_instead_of_adapting(tmp_path, capsys):
     from vabench.sweep.inflight import BATCHED, InFlight
 
     cfg = tmp_path / "mjx.yaml"
-    cfg.write_text(CONFIG.format(extra="simulator: {backend: mjx, impl: jax}"))
+    cfg.write_text(CONFIG.format(extra="simulator: {backend: mjx}"))
     assert main([str(cfg), "--dry-run"]) == 0
     assert f"in flight: 256 episodes per process at most ({BATCHED})" in capsys.readouterr().out
     gate = InFlight(256, 256, why=BATCHED)
@@ -207,3 +211,91 @@ def test_the_embedded_server_is_sized_to_the_engine_process_share(tmp_path, core
     )
     text = "\n".join(choose(load_config(cfg), Machine(cores, ())).lines())
     assert f"server:    {line}" in text
+
+
+def count_resolutions(monkeypatch) -> dict[str, int]:
+    """Count the calls of `resolve` (physics) and `resolve_renderer`, under every name a loaded
+    vabench module holds them by (a module that imports one later gets the counted one)."""
+    from vabench.render import backends as render
+    from vabench.sim_mjx import backends as physics
+
+    counts = {"physics": 0, "renderer": 0}
+    for key, original in (("physics", physics.resolve), ("renderer", render.resolve_renderer)):
+
+        def counted(*args, _key=key, _original=original, **kwargs):
+            counts[_key] += 1
+            return _original(*args, **kwargs)
+
+        for name, module in list(sys.modules.items()):
+            if name.startswith("vabench"):
+                for attr, value in list(vars(module).items()):
+                    if value is original:
+                        monkeypatch.setattr(module, attr, counted)
+    return counts
+
+
+def test_one_resolution_per_command_and_the_local_executor_runs_what_the_dry_run_says(
+    tmp_path, monkeypatch, capsys
+):
+    """`--dry-run` and the run are one `choose` each; the sweep it runs receives that very
+    `Choices` (physics, renderer, task batches at once, the in-flight gate) and decides none of
+    it again: a rule it received that the config alone would not give (3 episodes in flight
+    where the config says auto) is the rule its gate holds."""
+    import vabench.sweep.__main__ as command
+    from vabench.sweep.inflight import InFlightRule
+    from vabench.sweep.runner import LocalSweep
+
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(extra="executor: {kind: local}"))
+    counts = count_resolutions(monkeypatch)
+    assert main([str(cfg), "--dry-run"]) == 0
+    dry_run = capsys.readouterr().out.split("Runs with:\n")[1].splitlines()[:5]
+    assert counts == {"physics": 1, "renderer": 1}
+
+    chosen: list[Choices] = []
+    sweeps: list[LocalSweep] = []
+
+    def choose_three(config):
+        chosen.append(replace(choose(config), in_flight=InFlightRule(256, 3)))
+        return chosen[-1]
+
+    class Recorded(LocalSweep):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            sweeps.append(self)
+
+    monkeypatch.setattr(command, "choose", choose_three)
+    monkeypatch.setattr(command, "LocalSweep", Recorded)
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--plain", "--no-report"]) == 0
+    assert counts == {"physics": 2, "renderer": 2}  # the run's own choose, nothing after it
+    ((choices,), (sweep,)) = chosen, sweeps
+    assert [f"  {line}" for line in choices.lines()[:4]] == dry_run[:4]
+    assert sweep.choices is choices and sweep.physics is choices.physics
+    assert sweep.gate is not None
+    assert (sweep.gate.limit, sweep.gate.reason) == (3, "executor.in_flight = 3")
+
+
+def test_worker_processes_run_on_the_choices_they_are_sent(tmp_path, monkeypatch, caplog):
+    """The processes executor resolves nothing (the command did) and its workers run on the
+    `Choices` they are sent: the in-flight rule they report is the one sent, not one derived
+    from the config again."""
+    from vabench.config import load_config
+    from vabench.sweep.inflight import InFlightRule
+    from vabench.sweep.plan import plan
+    from vabench.sweep.process_executor import run_processes
+
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(extra="executor: {kind: processes, max_tasks: 1}"))
+    run_dir = tmp_path / "out"
+    config = load_config(cfg, overrides={"tasks": ["grasp_single_cube"], "out": str(run_dir)})
+    keys = plan(config)
+    run_dir.mkdir()
+    (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
+    sent = replace(choose(config), in_flight=InFlightRule(256, 3))
+    counts = count_resolutions(monkeypatch)
+    with caplog.at_level(logging.INFO, logger="vabench.sweep.process_executor"):
+        assert len(run_processes(config, keys, run_dir, sent)) == len(keys) == 2
+    assert counts == {"physics": 0, "renderer": 0}
+    ((_cell, summary),) = [r.args for r in caplog.records if "cell %s done: %s" in str(r.msg)]
+    assert summary["in_flight"] == "executor.in_flight = 3"
+    assert summary["physics"] == sent.physics.label

@@ -23,6 +23,7 @@ from ray.cluster_utils import Cluster
 
 from vabench.config import load_config
 from vabench.run_layout import RESULTS
+from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.ray_executor import run_ray
 
@@ -107,7 +108,7 @@ def test_a_node_killed_mid_sweep_costs_only_its_unfinished_episodes(cluster, tmp
 
     def driver() -> None:
         try:
-            outcome["records"] = run_ray(config, keys, run_dir)
+            outcome["records"] = run_ray(config, keys, run_dir, choose(config))
         except BaseException as err:  # reported by the assertions below
             outcome["error"] = err
 

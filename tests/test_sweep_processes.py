@@ -11,6 +11,7 @@ import pstats
 
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
+from vabench.sweep.choices import choose
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.process_executor import PROFILE_VARIABLE, run_processes
 
@@ -74,7 +75,7 @@ def test_a_failing_cell_is_reported_and_the_others_finish(tmp_path, caplog):
     run_dir.mkdir()
     (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
     with caplog.at_level(logging.INFO, logger="vabench.sweep.process_executor"):
-        got = run_processes(config, keys, run_dir)
+        got = run_processes(config, keys, run_dir, choose(config))
     assert sorted(got) == sorted(
         (k.model, k.track, k.task, k.seed, k.run) for k in keys if k.task != "no_such_task"
     )
@@ -93,7 +94,7 @@ def test_workers_write_a_profile_of_each_chunk_when_asked(tmp_path, monkeypatch)
     run_dir.mkdir()
     (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
     monkeypatch.setenv(PROFILE_VARIABLE, str(folder))
-    assert len(run_processes(config, keys, run_dir)) == len(keys)
+    assert len(run_processes(config, keys, run_dir, choose(config))) == len(keys)
     (profile,) = folder.glob("*.prof")
     assert "local-active-grasp_single_cube" in profile.name
     functions = {name for _, _, name in pstats.Stats(str(profile)).stats}  # type: ignore[attr-defined]

@@ -13,6 +13,7 @@ import re
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.cells import STATUS, status_line
+from vabench.sweep.choices import choose
 from vabench.sweep.display import Counts, Display, Status, Tally
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.process_executor import LedgerWriter, run_processes
@@ -188,7 +189,7 @@ def test_the_processes_executor_counts_each_episode_when_its_line_arrives(tmp_pa
     keys = plan(config)
     check_run_dir(out, config, keys, config.document())
     seen: list[Status] = []
-    records = run_processes(config, keys, out, on_status=seen.append)
+    records = run_processes(config, keys, out, choose(config), on_status=seen.append)
     assert len(records) == 5
     done = [s.total().done for s in seen]
     assert done == sorted(done) and done[-1] == 5

@@ -24,6 +24,7 @@ import ray
 
 from vabench.config import SweepConfigError, load_config
 from vabench.sweep.__main__ import main
+from vabench.sweep.choices import choose
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.ray_executor import engine_plan, run_ray
 from vabench.sweep.results import Ledger, ledger_key
@@ -125,7 +126,8 @@ def test_a_failing_chunk_is_reported_and_the_others_finish(cluster, tmp_path, ca
     run_dir.mkdir()
     (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
     with caplog.at_level(logging.INFO, logger="vabench.sweep.ray_executor"):
-        got = run_ray(config, keys, run_dir)  # joins the module's cluster (already connected)
+        # joins the module's cluster (already connected)
+        got = run_ray(config, keys, run_dir, choose(config))
     assert sorted(got) == sorted(
         (k.model, k.track, k.task, k.seed, k.run) for k in keys if k.task != "no_such_task"
     )
@@ -237,14 +239,24 @@ def test_ray_client_addresses_are_refused_naming_the_field(tmp_path):
 def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
     config = load_config(write(tmp_path / "ray.yaml", "{kind: ray}"))  # backend c
     cpu_engine = {"num_cpus": 2.0, "num_gpus": 0.0}  # 1 + render.workers
-    assert engine_plan(config, {"CPU": 16.0, "GPU": 8.0}) == (8, cpu_engine)
+    here = choose(config)
+    assert engine_plan(config, here, {"CPU": 16.0, "GPU": 8.0}) == (8, cpu_engine, here)
     auto = config.model_copy(
         update={"simulator": config.simulator.model_copy(update={"backend": "auto"})}
     )
-    assert engine_plan(auto, {"CPU": 128.0, "GPU": 8.0}) == (8, {"num_cpus": 1.0, "num_gpus": 1.0})
-    assert engine_plan(auto, {"CPU": 5.0}) == (2, cpu_engine)  # no GPU: C MuJoCo engines
+    here = choose(auto)  # what this machine runs (C MuJoCo and GL images without a GPU)
+    n, claim, engines = engine_plan(auto, here, {"CPU": 128.0, "GPU": 8.0})
+    assert (n, claim) == (8, {"num_cpus": 1.0, "num_gpus": 1.0})
+    # what the engines run is decided for their GPUs by the driver, never again by them
+    assert (
+        engines.physics.is_warp
+        and engines.physics.reason == "auto: MuJoCo Warp on each engine's GPU"
+    )
+    assert engines.renderer.backend == "warp" and engines.in_flight.fixed == 256  # batched
+    assert engines.executor == here.executor
+    assert engine_plan(auto, here, {"CPU": 5.0}) == (2, cpu_engine, here)  # C MuJoCo engines
     three = auto.model_copy(update={"executor": auto.executor.model_copy(update={"actors": 3})})
-    assert engine_plan(three, {"CPU": 128.0, "GPU": 8.0})[0] == 3
+    assert engine_plan(three, here, {"CPU": 128.0, "GPU": 8.0})[0] == 3
 
 
 def test_batched_engines_get_a_chunk_per_task_across_tracks_and_models():

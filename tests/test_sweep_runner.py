@@ -12,6 +12,7 @@ from pathlib import Path
 from vabench.config import load_config
 from vabench.run_layout import DUPLICATES, INFRASTRUCTURE, RESULTS
 from vabench.sweep.__main__ import main
+from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.results import Ledger, key_of
 from vabench.sweep.runner import LocalSweep
@@ -43,7 +44,7 @@ def write_config(tmp_path: Path, server: str) -> Path:
 
 def run(config_path: Path, out: Path) -> LocalSweep:
     config = load_config(config_path, overrides={"out": str(out)})
-    sweep = LocalSweep(config, plan(config), out)
+    sweep = LocalSweep(config, plan(config), out, choose(config))
     asyncio.run(sweep.run())
     return sweep
 

@@ -19,6 +19,7 @@ from vabench.config import load_config
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.report import make_report
 from vabench.run_layout import RunDir
+from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.runner import LocalSweep
 
@@ -50,7 +51,7 @@ async def run_sweep(doc: dict[str, Any], tmp_path: Path, out: Path) -> LocalSwee
     path = tmp_path / "sweep.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     config = load_config(path, overrides={"out": str(out)})
-    sweep = LocalSweep(config, plan(config), out)
+    sweep = LocalSweep(config, plan(config), out, choose(config))
     await sweep.run()
     return sweep
 

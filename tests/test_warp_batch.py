@@ -292,5 +292,5 @@ def test_missing_package_is_named(monkeypatch):
     assert "mujoco-warp" in problem and "pip install 'vabench[gpu]'" in problem
     with pytest.raises(BackendUnavailable, match="mujoco-warp"):
         backends.resolve("mjx", "warp")
-    auto = backends.resolve("auto", "auto")
-    assert auto.backend == "c" and "mujoco-warp" in auto.reason
+    auto = backends.resolve("auto")
+    assert auto.kind is backends.Physics.C and "mujoco-warp" in auto.reason

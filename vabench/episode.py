@@ -1,8 +1,8 @@
 """Run one episode against a configured model and print its trajectory.
 
     python -m vabench.episode --task place_single_cube --seed 1000 --model local \
-        [--config models.yaml] [--protocol active|passive] [--out DIR] [--backend mjx|c]
-        [--impl jax|warp]
+        [--config models.yaml] [--protocol active|passive] [--out DIR]
+        [--backend warp|mjx|c]
 
 Without `--config`, the model is the embedded server (started here, policy `--policy`,
 default a random valid actor), reached over real HTTP on loopback. With `--config`, the
@@ -38,7 +38,7 @@ from vabench.render.backends import make_renderer
 from vabench.render.images import ImageSettings
 from vabench.run_layout import RESULT, RunDir
 from vabench.sim_mjx.backends import BackendUnavailable
-from vabench.sim_mjx.cli import add_physics_arguments, physics_kwargs
+from vabench.sim_mjx.cli import add_physics_arguments, physics_of
 
 
 def load_models(path: Path) -> list[Any]:
@@ -106,7 +106,6 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
         args.task, args.seed, args.model, args.protocol, args.run, out, step_budget=args.max_steps
     )
     image = ImageSettings(args.width, args.height, args.quality)
-    impl = physics_kwargs(args)
     rp, choice = make_renderer(
         args.render, workers=1, platform=args.platform, max_size=(args.width, args.height)
     )
@@ -116,7 +115,7 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
             async with (
                 LLMPool(endpoints) as llm,
                 task_services(
-                    task, 1, llm, rp, backend=args.backend, image=image, **impl
+                    task, 1, llm, rp, backend=args.physics.value, image=image
                 ) as services,
             ):
                 episode = Episode(spec, services)
@@ -163,6 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--max-steps", type=int, help="cap the step budget (smoke runs)")
     p.add_argument("--json", action="store_true", help=f"print {RESULT} instead of the text")
     args = p.parse_args(argv)
+    args.physics = physics_of(p, args)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     try:
         result = asyncio.run(run(args))

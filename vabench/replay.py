@@ -5,7 +5,8 @@ print every step.
     python -m vabench.replay --task place_single_cube --seed 1000 --expert --backend c --json
 
 The actions file holds a JSON list of action objects exactly as the model emits them (FACTS.md).
-The output is one JSON document {"task", "seed", "backend", "steps": [...], "success"}; step 0 is
+The output is one JSON document {"task", "seed", "backend", "impl", "steps": [...], "success"}
+(`--backend warp` is backend "mjx", impl "warp", as records name it); step 0 is
 the initial state after the reset's settling; each later step holds the action, validity,
 planner result, clipping, proprioception, the evaluator-only object poses, the predicate's
 checks, success and the checkpoint reached. Evaluator-only: never show it to a model.
@@ -19,8 +20,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vabench.sim_mjx.backends import BackendUnavailable
-from vabench.sim_mjx.cli import add_physics_arguments
+from vabench.sim_mjx.backends import BackendUnavailable, Physics
+from vabench.sim_mjx.cli import add_physics_arguments, physics_flag, physics_of
 from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks import REGISTRY, get_task
 from vabench.tasks.expert import ExpertContext, ExpertFailed
@@ -66,8 +67,8 @@ def replay(
     task_name: str,
     seed: int,
     actions: list[Any] | None,
-    backend: str = "mjx",
-    impl: str = "jax",
+    backend: str | Physics = "mjx",
+    impl: str | None = None,
 ) -> dict[str, Any]:
     """Run `actions` (None: the expert) on one seed until success, the budget, or the end."""
     task = get_task(task_name)
@@ -106,7 +107,7 @@ def replay(
     return {
         "task": task_name,
         "seed": seed,
-        "backend": backend,
+        "backend": tb.backend,
         "impl": tb.impl,
         "source": "expert" if actions is None else "actions",
         "settle": {"finite": settle.finite, "max_drift_deg": round(settle.max_drift_deg, 4)},
@@ -141,9 +142,9 @@ def main(argv: list[str] | None = None) -> int:
         if not isinstance(actions, list):
             parser.error(f"--actions: {args.actions} must hold a JSON list of action objects")
     try:
-        doc = replay(args.task, args.seed, actions, args.backend, args.impl)
+        doc = replay(args.task, args.seed, actions, physics_of(parser, args))
     except BackendUnavailable as err:
-        parser.error(f"--impl {args.impl}: {err}")
+        parser.error(f"{physics_flag(args)}: {err}")
     json.dump(doc, sys.stdout, indent=1)
     sys.stdout.write("\n")
     return 0

@@ -1,6 +1,6 @@
 """Seed screening: which seeds of each family are verified solvable through the model interface.
 
-    python -m vabench.seeds verify [--task T ...] [--backend c|mjx] [--n 20]
+    python -m vabench.seeds verify [--task T ...] [--backend c|warp|mjx] [--n 20]
     python -m vabench.seeds table
 
 For each family, candidates 1000, 1001, ... are reset in one batch, settled (2,000 physics steps
@@ -26,8 +26,8 @@ from typing import Any
 
 import mujoco
 
-from vabench.sim_mjx.backends import BackendUnavailable
-from vabench.sim_mjx.cli import add_physics_arguments, physics_kwargs
+from vabench.sim_mjx.backends import BackendUnavailable, Physics
+from vabench.sim_mjx.cli import add_physics_arguments, physics_flag, physics_of
 from vabench.tasks import BENCHMARK_FAMILIES, REGISTRY, benchmark_tasks, get_task
 from vabench.tasks.base import Task
 from vabench.tasks.manifests import MANIFEST_DIR, MANIFEST_VERSION, load_manifest, manifest_path
@@ -70,7 +70,7 @@ class Manifest:
 def screen(
     task: Task,
     n: int = N_RETAINED,
-    backend: str = "c",
+    backend: str | Physics = "c",
     batch_size: int | None = None,
     max_candidates: int = 200,
     log: Any = None,
@@ -99,8 +99,9 @@ def screen(
                 rejected[ep.seed] = ep.end
         if log:
             log(f"{task.name}: {len(retained)}/{n} retained after {probed} probed")
-    label = backend if backend == "c" else f"{backend}/{tb.impl}"
-    return Manifest(task.name, retained, probed, rejected, label, steps, time.perf_counter() - t0)
+    return Manifest(
+        task.name, retained, probed, rejected, tb.physics.label, steps, time.perf_counter() - t0
+    )
 
 
 def yield_table(manifests: list[dict[str, Any]]) -> str:
@@ -150,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
         print(yield_table(docs))
         return 0
+    physics = physics_of(parser, args)
     names = args.task or [t.name for t in benchmark_tasks()]
     for name in names:
         if name not in REGISTRY:
@@ -163,14 +165,13 @@ def main(argv: list[str] | None = None) -> int:
             m = screen(
                 get_task(name),
                 args.n,
-                args.backend,
+                physics,
                 args.batch,
                 args.max_candidates,
                 log=lambda s: print(s, file=sys.stderr, flush=True),
-                **physics_kwargs(args),
             )
         except BackendUnavailable as err:
-            parser.error(f"--impl {args.impl}: {err}")
+            parser.error(f"{physics_flag(args)}: {err}")
         doc = m.to_json()
         manifest_path(name, args.out).write_text(json.dumps(doc, indent=1) + "\n")
         print(

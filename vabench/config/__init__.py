@@ -17,7 +17,7 @@
                                    # these seeds for every task; {task: [seeds]}: per task
     runs: 3
     step_budget: 5                 # optional cap on every task's budget (smoke runs)
-    simulator: {backend: auto, impl: auto, lanes: null, window_s: 0.01}  # backend: auto | mjx | c
+    simulator: {backend: auto, lanes: null, window_s: 0.01}  # backend: auto | warp | mjx | c
     render: {backend: auto, width: 1280, height: 960, quality: 95, subsampling: "420",
              workers: 2, platform: auto}   # backend: auto | warp (GPU) | gl
     executor: {kind: auto, address: null, actors: null, max_tasks: null, max_episodes: 256,

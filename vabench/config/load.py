@@ -1,8 +1,15 @@
 """Reading a sweep config file: YAML with positions, overrides from the command line, and
-one `SweepConfigError` listing every problem in the order the file reads."""
+one `SweepConfigError` listing every problem in the order the file reads.
+
+The old spelling of the physics backend, `simulator: {backend: mjx, impl: warp | jax}`, is read
+as the one-word name it means (`backend: warp | mjx`, `sim_mjx.backends.backend_name`), with one
+warning naming the file, the field and what to write instead; the resolved config, and so the
+run directory's sweep.yaml, holds the new spelling only.
+"""
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from collections.abc import Mapping
@@ -28,6 +35,9 @@ from vabench.config.schema import (
     suite_tasks,
 )
 from vabench.llm_pool.server_config import ServerConfig
+from vabench.sim_mjx.backends import BACKENDS, backend_name
+
+log = logging.getLogger(__name__)
 
 
 def load_config(
@@ -63,12 +73,46 @@ def load_config(
             file, [Problem("", f"expected a mapping of settings, got {type(doc).__name__}")]
         )
     doc = _apply_overrides(doc, overrides or {})
+    doc, old_spelling = _old_physics_spelling(doc, file)
     config, problems = _check(doc, path.stem, environ)
+    problems = old_spelling + problems
     if problems or config is None:
         order = {key: i for i, key in enumerate(doc)}  # report in the order the file reads
         problems.sort(key=lambda p: _position(p.path, order))
         raise SweepConfigError(file, problems)
     return config
+
+
+def _old_physics_spelling(doc: dict[str, Any], file: str) -> tuple[dict[str, Any], list[Problem]]:
+    """The document with `simulator.impl` (deprecated) folded into `simulator.backend`, logging
+    what to write instead; a problem when the two contradict or impl is no impl."""
+    sim = doc.get("simulator")
+    if not isinstance(sim, dict) or "impl" not in sim:
+        return doc, []
+    sim = dict(sim)
+    impl = sim.pop("impl")
+    backend = sim.get("backend", "auto")
+    doc = {**doc, "simulator": sim}
+    if not isinstance(backend, str) or backend not in BACKENDS:
+        return doc, []  # the schema names the bad backend
+    try:
+        name = backend_name(backend, impl)
+    except ValueError as err:
+        names = ", ".join(BACKENDS)
+        return doc, [Problem("simulator.impl", f"{err}; impl is deprecated: write {names} alone")]
+    sim["backend"] = name
+    log.warning(
+        "%s: simulator.impl is deprecated: write simulator: {backend: %s} instead of "
+        "{backend: %s, impl: %s}%s",
+        file,
+        name,
+        backend,
+        impl,
+        " (or backend: auto, which runs C MuJoCo where Warp cannot run)"
+        if impl == "auto" and name != backend
+        else "",
+    )
+    return doc, []
 
 
 def _position(path: str, order: Mapping[str, int]) -> tuple[int, int]:

@@ -17,6 +17,7 @@ from vabench.config.problems import is_int
 from vabench.llm_pool.config import ApiName, ModelEndpoint
 from vabench.llm_pool.server_config import ServerConfig
 from vabench.render.images import ImageSettings
+from vabench.sim_mjx.backends import Physics
 from vabench.tasks import REGISTRY, SUITES
 
 Track = Literal["active", "passive"]
@@ -62,37 +63,34 @@ class _Strict(BaseModel):
 
 
 class SimulatorOptions(_Strict):
-    backend: Literal["auto", "mjx", "c"] = "auto"
+    backend: Literal["auto", "warp", "mjx", "c"] = "auto"
     """"auto": MuJoCo Warp where a CUDA GPU and the [gpu] extra are present, else C MuJoCo
-    (`sim_mjx.backends.resolve`; `--dry-run` says which and why); "mjx": every slot of a task
-    in one GPU/TPU batch (impl below); "c": C MuJoCo slot by slot (the fastest path without an
-    NVIDIA GPU). See README, "Choosing a physics backend"."""
-    impl: Literal["auto", "jax", "warp"] = "auto"
-    """mjx only: "warp" (MuJoCo Warp, NVIDIA GPUs; the [gpu] extra), "jax" (MJX on JAX), or
-    "auto" (warp where it can run, else jax)."""
+    (`sim_mjx.backends.resolve`; `--dry-run` says which and why); "warp": MuJoCo Warp, every
+    slot of a task in one CUDA graph per action (NVIDIA GPUs; the [gpu] extra); "mjx": MJX on
+    JAX, every slot in one JAX batch (TPUs; CPU JAX for tests); "c": C MuJoCo slot by slot (the
+    fastest path without an NVIDIA GPU). The names are `sim_mjx.backends.BACKENDS`; the old
+    spelling `backend: mjx, impl: warp | jax` is read as warp | mjx, with a warning
+    (`config.load`). See README, "Choosing a physics backend"."""
     lanes: int | None = Field(default=None, ge=1)
-    """Width of the vectorised physics (impl jax only; see `sim_mjx.interface.in_lanes`)."""
+    """Width of the vectorised physics (backend mjx only; see `sim_mjx.interface.in_lanes`)."""
     nconmax: int | None = Field(default=None, ge=1)
-    """Contacts per slot the GPU buffers hold (impl warp only; default: sized from the scene).
-    A slot that overflows ends as an infrastructure error naming this field."""
+    """Contacts per slot the GPU buffers hold (backend warp only; default: sized from the
+    scene). A slot that overflows ends as an infrastructure error naming this field."""
     njmax: int | None = Field(default=None, ge=1)
-    """Constraint rows per slot (impl warp only; default: sized from the scene)."""
+    """Constraint rows per slot (backend warp only; default: sized from the scene)."""
     deterministic: bool = False
-    """impl warp only: MuJoCo Warp's stable contact and constraint orderings (bit-reproducible
-    runs on a GPU, slower)."""
+    """backend warp only: MuJoCo Warp's stable contact and constraint orderings
+    (bit-reproducible runs on a GPU, slower)."""
     window_s: float = Field(default=0.01, ge=0)
     """How long the simulator batch waits to gather actions before stepping."""
 
-    def batch_kwargs(self, backend: str, impl: str) -> dict[str, Any]:
-        """The TaskBatch arguments these options ask for, on the resolved `backend` and `impl`
+    def batch_kwargs(self, physics: Physics) -> dict[str, Any]:
+        """The TaskBatch arguments these options ask for, on the resolved `physics`
         (`sim_mjx.backends.resolve`)."""
-        out: dict[str, Any] = {"backend": backend}
-        if backend != "mjx":
-            return out
-        out["impl"] = impl
-        if impl == "jax" and self.lanes:
+        out: dict[str, Any] = {"backend": physics.value}
+        if physics is Physics.MJX_JAX and self.lanes:
             out["lanes"] = self.lanes
-        if impl == "warp":
+        if physics is Physics.WARP:
             extra = {"nconmax": self.nconmax, "njmax": self.njmax}
             out.update({k: v for k, v in extra.items() if v is not None})
             if self.deterministic:

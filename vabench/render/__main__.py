@@ -214,7 +214,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--backend", choices=("c", "mjx"), default="c", help="physics")
+        p.add_argument("--backend", choices=("c", "warp", "mjx"), default="c", help="physics")
         p.add_argument("--renderer", choices=("auto", "warp", "gl"), default="auto")
         p.add_argument("--platform", choices=("auto", "egl", "osmesa"), default="auto")
         p.add_argument("--width", type=int, default=1280)

@@ -49,6 +49,11 @@ class RenderChoice:
     backend: str  # "warp" or "gl"
     reason: str
 
+    @property
+    def title(self) -> str:
+        """How `--dry-run` names it."""
+        return {"gl": "GL worker processes", "warp": "MuJoCo Warp's ray tracer"}[self.backend]
+
 
 def renderer_problem(device: str) -> str | None:
     """Why the Warp renderer cannot run on `device` (None when it can)."""
@@ -60,15 +65,19 @@ def renderer_problem(device: str) -> str | None:
     )
 
 
-def resolve_renderer(backend: str = "auto", device: str | None = None) -> RenderChoice:
+def resolve_renderer(
+    backend: str = "auto", device: str | None = None, *, probe: bool = True
+) -> RenderChoice:
     """The renderer that runs, with the reason. Raises BackendUnavailable for an explicit
-    "warp" that cannot run here."""
+    "warp" that cannot run here. `probe=False`: decide for a device known to be an NVIDIA GPU
+    without looking at this machine (a Ray sweep's engines; the renderer checks when it
+    starts)."""
     if backend not in RENDER_BACKENDS:
         raise ValueError(f"render backend must be one of {RENDER_BACKENDS}, got {backend!r}")
     if backend == "gl":
         return RenderChoice("gl", "GL was asked for")
     device = device or warp_device()
-    problem = renderer_problem(device)
+    problem = renderer_problem(device) if probe else None
     if backend == "warp":
         if problem is not None:
             raise BackendUnavailable(problem)
@@ -78,17 +87,27 @@ def resolve_renderer(backend: str = "auto", device: str | None = None) -> Render
     return RenderChoice("gl", f"auto: GL worker processes ({problem})")
 
 
+def check_renderer(choice: RenderChoice, device: str | None = None) -> None:
+    """Raise BackendUnavailable when `choice`, made elsewhere, cannot run here (Warp's renderer
+    without its packages or its device); a check of a choice, never a new one."""
+    if choice.backend == "warp":
+        problem = renderer_problem(device or warp_device())
+        if problem is not None:
+            raise BackendUnavailable(problem)
+
+
 def make_renderer(
-    backend: str = "auto",
+    backend: str | RenderChoice = "auto",
     *,
     workers: int = 2,
     platform: str = "auto",
     max_size: tuple[int, int] = (1280, 960),
     device: str | None = None,
 ) -> tuple[Renderer, RenderChoice]:
-    """A renderer (not started) of the chosen backend, and why it was chosen. `workers` and
-    `platform` are the GL pool's."""
-    choice = resolve_renderer(backend, device)
+    """A renderer (not started) of the chosen backend, and why it was chosen: `backend` is a
+    name to resolve, or a choice made already (a sweep's, `sweep.choices`), taken as it is.
+    `workers` and `platform` are the GL pool's."""
+    choice = backend if isinstance(backend, RenderChoice) else resolve_renderer(backend, device)
     if choice.backend == "warp":
         from vabench.render.warp_renderer import WarpRenderPool
 

@@ -49,7 +49,7 @@ from typing import Any  # noqa: E402
 from vabench.config import SweepConfigError, load_config  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
-from vabench.sweep.choices import choose, configure_jax, with_executor  # noqa: E402
+from vabench.sweep.choices import Choices, choose, configure_jax  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
 from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
@@ -111,7 +111,6 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     configure_jax(choices.physics)
-    config = with_executor(config, choices.executor)
     for line in choices.lines():
         log.info(line)
     display = Display(
@@ -128,14 +127,14 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         display.update(status)
 
     try:
-        if config.executor.kind == "local":
-            records = _run_local(config, keys, run_dir, show, ctrl_c)
+        if choices.executor.kind == "local":
+            records = _run_local(config, choices, keys, run_dir, show, ctrl_c)
         else:
             from vabench.sweep.process_executor import run_processes
             from vabench.sweep.ray_executor import run_ray
 
-            run_cells = run_ray if config.executor.kind == "ray" else run_processes
-            records = run_cells(config, keys, run_dir, on_status=show)
+            run_cells = run_ray if choices.executor.kind == "ray" else run_processes
+            records = run_cells(config, keys, run_dir, choices, on_status=show)
             last[0] = Tally(run_dir, keys).status()
         display.close(last[0])
         return _conclude(records, keys, run_dir, args.no_report)
@@ -158,11 +157,16 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
 
 
 def _run_local(
-    config: Any, keys: Sequence[Any], run_dir: Path, show: Callable[[Status], None], ctrl_c: CtrlC
+    config: Any,
+    choices: Choices,
+    keys: Sequence[Any],
+    run_dir: Path,
+    show: Callable[[Status], None],
+    ctrl_c: CtrlC,
 ) -> dict[Any, dict[str, Any]]:
     """The local executor under the display's clock; Ctrl-C cancels it at the next await
     (raises `Interrupted` once it has cleaned up)."""
-    sweep = LocalSweep(config, keys, run_dir)
+    sweep = LocalSweep(config, keys, run_dir, choices)
 
     async def run() -> None:
         loop = asyncio.get_running_loop()

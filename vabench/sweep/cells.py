@@ -24,6 +24,7 @@ import yaml
 
 from vabench.config import SweepConfig, SweepConfigError, load_config
 from vabench.run_layout import CONFIG, PLAN, RunDir
+from vabench.sweep.choices import Choices
 from vabench.sweep.display import status_of
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Sink, ledger_key
@@ -123,19 +124,22 @@ def load_document(document: dict[str, Any], run_dir: Path) -> SweepConfig:
 
 def run_cell(
     document: dict[str, Any],
+    choices: Choices,
     run_dir: str,
     keys: Sequence[KeyTuple],
     sink: Sink | None = None,
 ) -> dict[str, Any]:
     """One cell, in a worker process: the episodes `keys` (all of one (model, track, task)) of
-    the config `document` run by a `LocalSweep` into `run_dir`. Returns counts for the log:
-    host, episodes (run here), recorded (the cell's records in the ledger now), unscored,
-    retried, and the environment it ran in (JAX's platform, the variables of
-    `WORKER_ENVIRONMENT`). With `sink`, ledger lines go there instead of the files (the parent
-    writes them), with a `STATUS` line every second for the parent's display."""
+    the config `document` run by a `LocalSweep` into `run_dir`, on the sweep's `choices` (made
+    by the parent, never again here). Returns counts for the log: host, episodes (run here),
+    recorded (the cell's records in the ledger now), unscored, retried, what it ran on (the
+    physics' label, the in-flight gate's reason) and the environment it ran in (JAX's
+    platform, the variables of `WORKER_ENVIRONMENT`). With `sink`, ledger lines go there
+    instead of the files (the parent writes them), with a `STATUS` line every second for the
+    parent's display."""
     run = Path(run_dir)
     config = load_document(document, run)
-    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, ledger_sink=sink)
+    sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, choices, ledger_sink=sink)
     model, track, task = keys[0][:3]
     report = None if sink is None else (lambda status: sink(STATUS, status_line(keys, status)))
     counts = asyncio.run(_run_reporting(sweep, report)).cells[(model, track, task)]
@@ -148,6 +152,8 @@ def run_cell(
         "unscored": counts.unscored,
         "retried": counts.retried,
         "stopped": sweep.stopped,
+        "physics": choices.physics.label,
+        "in_flight": sweep.gate.reason if sweep.gate is not None else None,
         "jax": jax.default_backend(),
         "environment": {k: os.environ.get(k) for k in WORKER_ENVIRONMENT},
     }

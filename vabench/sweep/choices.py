@@ -10,9 +10,12 @@
     in flight  executor.in_flight auto: adapts to what the machine and endpoints sustain
                (`sweep.inflight`)
 
-`--dry-run` prints these lines and the sweep logs them when it starts. `VABENCH_CORES` tells the
-choices how many cores to size for (default: the CPUs this process may run on); the test suite
-pins it so that its sweeps run the same way on any machine.
+`choose` makes them once per sweep command, into one `Choices`: `--dry-run` prints its lines,
+the sweep logs them when it starts, and every executor receives it (the local one, the worker
+processes of `processes`, pickled, and a Ray sweep's driver, which sends its engines the
+choices `for_engines` makes for the cluster's GPUs): nothing downstream resolves an `auto`
+again. `VABENCH_CORES` tells the choices how many cores to size for (default: the CPUs this
+process may run on); the test suite pins it so that its sweeps run the same way on any machine.
 
 Processes the sweep starts get an environment chosen here (`child_environment`, also applied
 to the sweep's own process by `configure_jax`): JAX never preallocates GPU memory
@@ -27,7 +30,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +38,7 @@ from vabench.children import CORES_VARIABLE, usable_cores
 from vabench.llm_pool.server_config import serving_description
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
-from vabench.sweep.inflight import BATCHED
+from vabench.sweep.inflight import InFlightRule, in_flight_rule
 
 PROCESSES_FROM_CORES = 4
 """From this many cores on, `executor: auto` runs cells in worker processes: below it the
@@ -107,7 +110,7 @@ def resolve_executor(
 ) -> ExecutorChoice:
     """`options` is the config's `ExecutorOptions`; `physics` the resolved simulator."""
     kind, max_tasks = options.kind, options.max_tasks
-    one_gpu = physics is not None and physics.label == "mjx/warp" and len(machine.gpus) <= 1
+    one_gpu = physics is not None and physics.is_warp and len(machine.gpus) <= 1
     if kind == "auto" and one_gpu:
         return ExecutorChoice("local", max_tasks or GPU_LOCAL_MAX_TASKS, ONE_GPU_REASON)
     if kind == "auto":
@@ -129,23 +132,23 @@ def resolve_executor(
 
 @dataclass(frozen=True)
 class Choices:
+    """What a sweep runs on, chosen once (`choose`) and passed to every executor."""
+
     machine: Machine
     physics: Choice
     renderer: RenderChoice
     executor: ExecutorChoice
-    in_flight: str
+    in_flight: InFlightRule
     model_server: str | None = None
     """Where the embedded server works, when a model uses it."""
 
     def lines(self) -> list[str]:
-        physics = {"c": "C MuJoCo", "mjx/warp": "MuJoCo Warp", "mjx/jax": "MJX on JAX"}
-        renderer = {"gl": "GL worker processes", "warp": "MuJoCo Warp's ray tracer"}
         return [
             f"machine:   {self.machine.describe()}",
-            f"physics:   {physics[self.physics.label]} ({self.physics.reason})",
-            f"renderer:  {renderer[self.renderer.backend]} ({self.renderer.reason})",
+            f"physics:   {self.physics.title} ({self.physics.reason})",
+            f"renderer:  {self.renderer.title} ({self.renderer.reason})",
             f"executor:  {self.executor.label} ({self.executor.reason})",
-            f"in flight: {self.in_flight}",
+            f"in flight: {self.in_flight.describe()}",
             *([f"server:    {self.model_server}"] if self.model_server else []),
         ]
 
@@ -155,17 +158,9 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
     `sim_mjx.backends.BackendUnavailable` (its message naming what is missing) when the config
     asks explicitly for a backend that cannot run here."""
     machine = machine or this_machine()
-    sim, ex = config.simulator, config.executor
-    physics = resolve(sim.backend, sim.impl)
-    if ex.in_flight == "auto" and physics.backend == "mjx":
-        in_flight = f"{ex.max_episodes} episodes per process at most ({BATCHED})"
-    elif ex.in_flight == "auto":
-        in_flight = (
-            f"adaptive, at most {ex.max_episodes} episodes per process (executor.in_flight: "
-            "enough to keep simulator, renderer and endpoints busy without queueing)"
-        )
-    else:
-        in_flight = f"{min(ex.in_flight, ex.max_episodes)} episodes per process (asked for)"
+    ex = config.executor
+    physics = resolve(config.simulator.backend)
+    in_flight = in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched)
     executor = resolve_executor(ex, machine, physics)
     server = None
     if config.embedded_models and executor.kind == "ray":
@@ -184,19 +179,36 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
     )
 
 
-def with_executor(config: Any, choice: ExecutorChoice) -> Any:
-    """`config` with its executor's kind and max_tasks as chosen."""
-    executor = config.executor.model_copy(
-        update={"kind": choice.kind, "max_tasks": choice.max_tasks}
+ENGINE_GPU = "each engine's GPU"
+"""The device a Ray sweep's GPU engines are decided for (each claims one; CUDA numbers it 0)."""
+
+
+def for_engines(choices: Choices, config: Any, gpus: int) -> Choices:
+    """The choices the engines of a Ray sweep run with, on a cluster of `gpus` GPUs (known once
+    the driver has joined it). Where the physics asked for batches (`auto`, `warp`, `mjx`) and
+    the cluster has GPUs, each engine claims one, and its physics, renderer and in-flight rule
+    are decided for that GPU by the rules that made `choices` (`probe=False`: the driver cannot
+    look at another node's GPU; an engine checks what it is given when it starts). Otherwise
+    the engines run on CPUs as `choices` says (every node has the driver's packages)."""
+    if gpus < 1:
+        return choices
+    physics = resolve(config.simulator.backend, device=ENGINE_GPU, probe=False)
+    if not physics.batched:  # C MuJoCo asked for: CPU engines
+        return choices
+    ex = config.executor
+    return replace(
+        choices,
+        physics=physics,
+        renderer=resolve_renderer(config.render.backend, ENGINE_GPU, probe=False),
+        in_flight=in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched),
     )
-    return config.model_copy(update={"executor": executor})
 
 
 def child_environment(physics: Choice, environ: Mapping[str, str] = os.environ) -> dict[str, str]:
     """The variables to add to the environment of processes the sweep starts (see the module
     docstring); variables already set in `environ` are left as they are."""
     wanted = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-    if physics.label != "mjx/jax":
+    if not physics.jax_simulates:
         wanted["JAX_PLATFORMS"] = "cpu"
     return {k: v for k, v in wanted.items() if k not in environ}
 

@@ -41,6 +41,7 @@ import contextlib
 import math
 import statistics
 from collections.abc import AsyncIterator, Hashable
+from dataclasses import dataclass
 
 MIN_WINDOW = 4
 """Fewest decisions a window needs before the limit moves."""
@@ -172,3 +173,39 @@ class InFlight:
             if not future.done():
                 self._enter()
                 future.set_result(None)
+
+
+@dataclass(frozen=True)
+class InFlightRule:
+    """How many episodes one sweep process keeps in flight: the ceiling
+    (`executor.max_episodes`), and either a number held (`fixed`, `why` it is held) or none
+    (adapt, `LimitController`). `in_flight_rule` makes it; `--dry-run` prints `describe()`
+    and every sweep process gates its episodes with `gate()`."""
+
+    ceiling: int
+    fixed: int | None = None
+    why: str | None = None
+    """Why `fixed` is held when the config did not ask for it (`BATCHED`)."""
+
+    def describe(self) -> str:
+        if self.fixed is None:
+            return (
+                f"adaptive, at most {self.ceiling} episodes per process (executor.in_flight: "
+                "enough to keep simulator, renderer and endpoints busy without queueing)"
+            )
+        if self.why is not None:
+            return f"{min(self.fixed, self.ceiling)} episodes per process at most ({self.why})"
+        return f"{min(self.fixed, self.ceiling)} episodes per process (asked for)"
+
+    def gate(self) -> InFlight:
+        return InFlight(self.ceiling, self.fixed, why=self.why)
+
+
+def in_flight_rule(in_flight: int | str, max_episodes: int, batched: bool) -> InFlightRule:
+    """The in-flight rule of `executor.in_flight` ("auto" or a number) and
+    `executor.max_episodes` for physics that is `batched` or not (see the module docstring)."""
+    if isinstance(in_flight, int):
+        return InFlightRule(max_episodes, in_flight)
+    if batched:
+        return InFlightRule(max_episodes, max_episodes, BATCHED)
+    return InFlightRule(max_episodes)

@@ -6,7 +6,8 @@ the learning stage's demonstration builds. The cells
 (`cells.pending_cells`, one per (model, track, task)) are cut into chunks so that the last
 processes to finish do not leave the others' cores idle (`cells.chunks`); each chunk runs in
 `cells.run_cell` (a `LocalSweep` restricted to it, with its own LLM pool, embedded server,
-render workers and simulator batch), so the records equal those of the local executor.
+render workers and simulator batch, on the sweep's `Choices`, sent to it as they are), so the
+records equal those of the local executor.
 At most `executor.max_tasks` run at once, each in a spawned process (never forked: the parent
 holds JAX and thread pools). A chunk that raises is logged with its traceback while the others
 run on; its episodes are listed as missing and a rerun resumes them. A worker that dies (out of
@@ -54,7 +55,6 @@ from vabench.children import (
 )
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS
-from vabench.sim_mjx.backends import resolve
 from vabench.sim_mjx.warp.device import GPU_SHARE
 from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
@@ -65,7 +65,7 @@ from vabench.sweep.cells import (
     pending_cells,
     run_cell,
 )
-from vabench.sweep.choices import child_environment, gpu_for_worker, this_machine
+from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
@@ -165,15 +165,15 @@ def _send(name: str, record: dict[str, Any]) -> None:
 
 
 def _run_cell_in_worker(
-    document: dict[str, Any], run_dir: str, keys: Sequence[KeyTuple]
+    document: dict[str, Any], choices: Choices, run_dir: str, keys: Sequence[KeyTuple]
 ) -> dict[str, Any]:
     folder = os.environ.get(PROFILE_VARIABLE)
     if not folder:
-        return run_cell(document, run_dir, keys, sink=_send)
+        return run_cell(document, choices, run_dir, keys, sink=_send)
     profile = cProfile.Profile()
     profile.enable()
     try:
-        return run_cell(document, run_dir, keys, sink=_send)
+        return run_cell(document, choices, run_dir, keys, sink=_send)
     finally:
         profile.disable()
         Path(folder).mkdir(parents=True, exist_ok=True)
@@ -210,21 +210,23 @@ def run_processes(
     config: SweepConfig,
     keys: Sequence[EpisodeKey],
     run_dir: Path,
+    choices: Choices,
     on_status: Callable[[Status], None] | None = None,
 ) -> dict[KeyTuple, dict[str, Any]]:
-    """Run the pending episodes of `keys` in worker processes, `executor.max_tasks` at once;
-    return the ledger's records afterwards. `on_status` is called about once a second."""
+    """Run the pending episodes of `keys` in worker processes, the chosen executor's
+    `max_tasks` at once, on `choices`; return the ledger's records afterwards. `on_status` is
+    called about once a second."""
     run_dir = Path(run_dir).resolve()
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
         log.info("processes: every planned episode is already in %s; nothing to run", RESULTS)
         return Ledger.open(run_dir).records
-    machine = this_machine()
-    workers = min(config.executor.max_tasks or machine.cores, len(cells))
+    machine = choices.machine
+    workers = min(choices.executor.max_tasks, len(cells))
     # the task's step budget ranks chunks by cost (a task the registry lacks fails in its cell)
     parts = chunks(cells, workers, lambda t: config.budget(t) if t in REGISTRY else 1)
     workers = min(workers, len(parts))
-    env = child_environment(resolve(config.simulator.backend, config.simulator.impl))
+    env = child_environment(choices.physics)
     # Workers that share a GPU size their GPU buffers (render passes) to their share of it,
     # and every worker sizes its pools (policy processes, JPEG threads) to its share of cores.
     env[GPU_SHARE] = str(math.ceil(workers / max(1, len(machine.gpus))))
@@ -261,7 +263,11 @@ def run_processes(
                 )
                 futures = {
                     pool.submit(
-                        _run_cell_in_worker, document, str(run_dir), [ledger_key(k) for k in part]
+                        _run_cell_in_worker,
+                        document,
+                        choices,
+                        str(run_dir),
+                        [ledger_key(k) for k in part],
                     ): (name, part)
                     for name, part in todo
                 }

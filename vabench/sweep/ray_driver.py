@@ -19,7 +19,7 @@ from typing import Any
 from vabench.config import SweepConfig
 from vabench.run_layout import DUPLICATES
 from vabench.sweep.cells import PROGRESS_EVERY_S, chunks, task_groups
-from vabench.sweep.choices import RAY_MAX_TASKS
+from vabench.sweep.choices import Choices
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.limiter import shared_endpoints
 from vabench.sweep.plan import EpisodeKey
@@ -54,6 +54,7 @@ class ClusterSweep:
         self,
         ray: Any,
         config: SweepConfig,
+        choices: Choices,
         keys: Sequence[EpisodeKey],
         run_dir: Path,
         cells: dict[tuple[str, str, str], list[EpisodeKey]],
@@ -68,7 +69,7 @@ class ClusterSweep:
         self.ledger = Ledger.open(run_dir)  # the only writer
         self.tally = Tally(run_dir, keys)
         cluster = ray.cluster_resources()
-        self.engines_wanted, self.resources = engine_plan(config, cluster)
+        self.engines_wanted, self.resources, self.choices = engine_plan(config, choices, cluster)
         cores = int(self.resources["num_cpus"])
         if self.resources["num_gpus"]:
             cores = max(1, int(cluster.get("CPU", 1)) // max(1, int(cluster.get("GPU", 1))))
@@ -78,7 +79,7 @@ class ClusterSweep:
         # Engines on GPUs batch their physics: a chunk per task (every track and model of it)
         # is one batch per action instead of one per cell (measured on 2 x H100: 16 batches of
         # <= 10 slots per engine, stepped one after the other, made 1.1 episodes/s).
-        self.batched = bool(self.resources["num_gpus"]) or config.simulator.backend == "mjx"
+        self.batched = self.choices.physics.batched
         units = task_groups(cells) if self.batched else cells
         parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
         self.queue: collections.deque[Chunk] = collections.deque(
@@ -94,7 +95,7 @@ class ClusterSweep:
         self.document = config.document()
         self.shared = sorted(shared_endpoints(config.models, config.embedded_models))
         self.limiter: Any = None
-        self.max_chunks = config.executor.max_tasks or RAY_MAX_TASKS
+        self.max_chunks = choices.executor.max_tasks
         self._changed = False
         """A chunk ended or an engine came or went since the last progress line."""
         log.info(
@@ -231,6 +232,7 @@ class ClusterSweep:
             max_restarts=0,
         ).remote(
             self.document,
+            self.choices,
             str(self.run_dir),
             self.environ,
             self.limiter,

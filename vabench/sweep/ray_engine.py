@@ -21,6 +21,9 @@ The process starts with the variables the driver sends it (`environ`): the API k
 the config's `api_key_env` (they travel in the actor's creation arguments, in memory, and are
 put in this process's environment only), and the environment `sweep.choices` picks for worker
 processes (JAX on the CPU unless the physics is MJX on JAX, no GPU memory preallocation).
+What it runs on is the driver's decision (`choices.for_engines`), sent with its creation
+arguments; the actor only checks that the Warp physics or renderer it was given can run on its
+GPU, and refuses to be created when not (the message names what is missing).
 """
 
 from __future__ import annotations
@@ -33,8 +36,10 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+from vabench.render.backends import check_renderer
+from vabench.sim_mjx.backends import check
 from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document
-from vabench.sweep.choices import configure_jax
+from vabench.sweep.choices import Choices, configure_jax
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.runner import Engine, LocalSweep, open_engine
 
@@ -51,6 +56,7 @@ class EngineActor:
     def __init__(
         self,
         document: dict[str, Any],
+        choices: Choices,
         run_dir: str,
         environ: dict[str, str],
         limiter: Any = None,
@@ -60,6 +66,10 @@ class EngineActor:
         os.environ.update(environ)
         self.run_dir = Path(run_dir)
         self.config = load_document(document, self.run_dir)
+        # in creation, so that a node that cannot run them is not given another engine
+        check(choices.physics.kind)
+        check_renderer(choices.renderer)
+        self.choices = choices
         self.limiter = limiter
         self.shared = list(shared or [])
         self.holder = holder
@@ -69,10 +79,8 @@ class EngineActor:
 
     async def start(self) -> dict[str, Any]:
         """Open the engine; returns where and how it runs, for the driver's log."""
-        from vabench.sim_mjx.backends import resolve
-
         cfg = self.config
-        configure_jax(resolve(cfg.simulator.backend, cfg.simulator.impl))
+        configure_jax(self.choices.physics)
         stack = contextlib.AsyncExitStack()
         limits = None
         if self.limiter is not None and self.shared:
@@ -81,7 +89,7 @@ class EngineActor:
             limits = BoardLimits(RayChannel(self.limiter), self.holder, self.shared)
             stack.push_async_callback(limits.close)  # after the pool has closed
         self.engine = await stack.enter_async_context(
-            open_engine(cfg, self.run_dir, shared_limits=limits)
+            open_engine(cfg, self.choices, self.run_dir, shared_limits=limits)
         )
         self._stack = stack
         import jax
@@ -107,6 +115,7 @@ class EngineActor:
             self.config,
             [EpisodeKey(*k) for k in keys],
             self.run_dir,
+            self.choices,
             ledger_sink=lambda log, record: lines.put_nowait((log, record)),
         )
         self._sweeps[name] = sweep

@@ -4,7 +4,7 @@ writer of the ledger.
 `run_ray(config, keys, run_dir)` is what `python -m vabench.sweep` calls for `kind: ray`:
 
 1. the planned episodes not yet in results.jsonl are grouped into cells, one per (model, track,
-   task), or, where engines batch their physics (GPUs, or `simulator.backend: mjx`), one per
+   task), or, where engines batch their physics (Warp or MJX, `Physics.batched`), one per
    task (`cells.task_groups`: every track and model of a task in one simulator batch), and
    cut into chunks (`cells.chunks`, about `CHUNKS_PER_ENGINE` per engine, costliest first);
    when none is left nothing starts;
@@ -13,10 +13,11 @@ writer of the ledger.
    node; Ray Client's `ray://` is refused by the config, as it cannot carry streaming actor
    calls); a driver that already called `ray.init` keeps its connection;
 3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes): by default
-   one per GPU of the cluster when the physics runs on GPUs (`simulator.backend` mjx, or auto
-   on a cluster with GPUs), each claiming `num_gpus=1` and running MuJoCo Warp and Warp's
-   renderer for its chunks; otherwise one per `1 + render.workers` CPUs of the cluster, each
-   claiming that many CPUs (C MuJoCo and the GL render workers: CPU-only nodes take these).
+   one per GPU of the cluster when the physics runs on GPUs (`simulator.backend` warp, mjx or
+   auto on a cluster with GPUs: `choices.for_engines` decides what they run), each claiming
+   `num_gpus=1` and running MuJoCo Warp and Warp's renderer for its chunks; otherwise one per
+   `1 + render.workers` CPUs of the cluster, each claiming that many CPUs (C MuJoCo and the GL
+   render workers: CPU-only nodes take these).
    `executor.actors` sets the number. When a model is not served by the embedded server, a
    limit board (`sweep.limiter.LimiterActor`, on the driver's node) keeps its RPM, TPM,
    concurrency and Retry-After pause for every engine at once;
@@ -66,6 +67,7 @@ from typing import Any
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS
 from vabench.sweep.cells import KeyTuple, pending_cells
+from vabench.sweep.choices import Choices
 from vabench.sweep.display import Status
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_driver import (
@@ -108,11 +110,12 @@ def run_ray(
     config: SweepConfig,
     keys: Sequence[EpisodeKey],
     run_dir: Path,
+    choices: Choices,
     on_status: Callable[[Status], None] | None = None,
 ) -> dict[KeyTuple, dict[str, Any]]:
-    """Run the pending episodes of `keys` on the engines of a Ray cluster and return the
-    ledger's records afterwards (see the module docstring). `on_status` is called about once a
-    second."""
+    """Run the pending episodes of `keys` on the engines of a Ray cluster, for a sweep whose
+    command chose `choices`, and return the ledger's records afterwards (see the module
+    docstring). `on_status` is called about once a second."""
     run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
@@ -125,7 +128,7 @@ def run_ray(
     if started_here:  # (a connection made by the caller keeps its own runtime environment)
         ray.init(address=config.executor.address, runtime_env=project_runtime_env() or None)
     try:
-        sweep = ClusterSweep(ray, config, keys, run_dir, cells, on_status)
+        sweep = ClusterSweep(ray, config, choices, keys, run_dir, cells, on_status)
         sweep.run()
     finally:
         if started_here:

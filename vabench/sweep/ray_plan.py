@@ -16,6 +16,7 @@ from typing import Any
 import vabench
 from vabench.config import SweepConfig
 from vabench.sweep.cells import KeyTuple
+from vabench.sweep.choices import Choices, for_engines
 
 CHUNKS_PER_ENGINE = 8
 """Chunks per engine the plan is cut into: enough that engines finish close together."""
@@ -41,18 +42,20 @@ def project_runtime_env() -> dict[str, Any]:
     return {"working_dir": str(root), "excludes": SHIP_EXCLUDES}
 
 
-def engine_plan(config: SweepConfig, cluster: Mapping[str, float]) -> tuple[int, dict[str, float]]:
-    """(how many engines, what each claims from Ray's scheduler) on a cluster of `cluster`
-    resources (see `ray_executor`'s docstring, 3)."""
+def engine_plan(
+    config: SweepConfig, choices: Choices, cluster: Mapping[str, float]
+) -> tuple[int, dict[str, float], Choices]:
+    """(how many engines, what each claims from Ray's scheduler, the choices they run with) on
+    a cluster of `cluster` resources, for a sweep whose command chose `choices` (see
+    `ray_executor`'s docstring, 3, and `choices.for_engines`)."""
     asked = config.executor.actors
     gpus = int(cluster.get("GPU", 0))
-    if config.simulator.backend != "c" and gpus >= 1:
-        return asked or gpus, {"num_cpus": 1.0, "num_gpus": 1.0}
+    engines = for_engines(choices, config, gpus)
+    if engines.physics.batched and gpus >= 1:
+        return asked or gpus, {"num_cpus": 1.0, "num_gpus": 1.0}, engines
     cpus = 1 + config.render.workers
-    return asked or max(1, int(cluster.get("CPU", 1)) // cpus), {
-        "num_cpus": float(cpus),
-        "num_gpus": 0.0,
-    }
+    resources = {"num_cpus": float(cpus), "num_gpus": 0.0}
+    return asked or max(1, int(cluster.get("CPU", 1)) // cpus), resources, engines
 
 
 def engine_environment(config: SweepConfig, cores: int) -> dict[str, str]:

@@ -7,7 +7,8 @@ opens, which a Ray engine actor keeps open for every chunk it runs), and up to
 every model and track of its task (the simulator does not care who decides). Episodes in
 flight are bounded per batch by its slots and overall by the `inflight.InFlight` gate: a limit
 that adapts to what the simulator, renderer and endpoints sustain (`executor.in_flight: auto`),
-at most `executor.max_episodes`.
+at most `executor.max_episodes`. Physics, renderer, task batches at once and the in-flight rule
+are the sweep's `choices.Choices`, made once by the command and received here.
 
 Resume (see `results.Ledger`): episodes already in results.jsonl are never run again; an
 episode whose result.json exists but never reached the ledger (killed in between) is adopted;
@@ -46,10 +47,10 @@ from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
 from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
-from vabench.sim_mjx.backends import Choice, resolve
-from vabench.sweep.choices import LOCAL_MAX_TASKS
+from vabench.sim_mjx.backends import Choice
+from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
-from vabench.sweep.inflight import BATCHED, InFlight
+from vabench.sweep.inflight import InFlight
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -91,16 +92,16 @@ class Engine:
 
 @contextlib.asynccontextmanager
 async def open_engine(
-    config: Any, run_dir: Path, *, shared_limits: Callable[[Any], Any] | None = None
+    config: Any,
+    choices: Choices,
+    run_dir: Path,
+    *,
+    shared_limits: Callable[[Any], Any] | None = None,
 ) -> AsyncIterator[Engine]:
-    """The engine of `config` for episodes of `run_dir`, open for the block.
+    """The engine of `config` on `choices` for episodes of `run_dir`, open for the block.
     `shared_limits`: `LLMPool(shared_limits=...)` (limits kept for several processes)."""
-    cfg, ex = config, config.executor
-    physics = resolve(cfg.simulator.backend, cfg.simulator.impl)
-    if ex.in_flight == "auto" and physics.backend == "mjx":
-        gate = InFlight(ex.max_episodes, ex.max_episodes, why=BATCHED)
-    else:
-        gate = InFlight(ex.max_episodes, None if ex.in_flight == "auto" else ex.in_flight)
+    cfg = config
+    gate = choices.in_flight.gate()
     async with contextlib.AsyncExitStack() as stack:
         endpoints = list(cfg.models)
         if cfg.embedded_models:
@@ -120,7 +121,7 @@ async def open_engine(
         )
         render = cfg.render
         renderer, choice = make_renderer(
-            render.backend,
+            choices.renderer,
             workers=render.workers,
             platform=render.platform,
             max_size=(render.width, render.height),
@@ -128,21 +129,23 @@ async def open_engine(
         info = await asyncio.to_thread(renderer.start)
         stack.callback(renderer.close)
         log.info("renderer: %s (%s)", info, choice.reason)
-        yield Engine(physics, llm, summaries, renderer, render.image_settings(), gate)
+        yield Engine(choices.physics, llm, summaries, renderer, render.image_settings(), gate)
 
 
 class LocalSweep:
-    """Runs `keys` of `config` into `run_dir` (see the module docstring)."""
+    """Runs `keys` of `config` into `run_dir` on `choices` (see the module docstring)."""
 
     def __init__(
         self,
         config: Any,
         keys: Sequence[Any],
         run_dir: Path,
+        choices: Choices,
         on_change: Callable[[SweepProgress], None] | None = None,
         ledger_sink: Sink | None = None,
     ):
         self.config = config
+        self.choices = choices
         self.keys = list(keys)
         self.run_dir = run_dir
         self.ledger = Ledger.open(run_dir, sink=ledger_sink)
@@ -154,10 +157,8 @@ class LocalSweep:
         """Why the sweep stopped early (an endpoint refused it), naming model and fix."""
         self.refused = 0
         """Episodes ended without a record by that refusal."""
-        ex = config.executor
-        fixed = None if ex.in_flight == "auto" else ex.in_flight
-        self.gate = InFlight(ex.max_episodes, fixed)
-        self.progress.gate = self.gate
+        self.gate: InFlight | None = None
+        """The engine's, once `run` has one."""
         self.physics: Choice | None = None
         for k in self.keys:
             self.progress.cells[(k.model, k.track, k.task)].planned += 1
@@ -208,7 +209,7 @@ class LocalSweep:
         if engine is not None:
             await self._run_in(engine)
         else:
-            async with open_engine(self.config, self.run_dir) as own:
+            async with open_engine(self.config, self.choices, self.run_dir) as own:
                 await self._run_in(own)
         return self.progress
 
@@ -233,7 +234,7 @@ class LocalSweep:
         by_task: dict[str, list[Any]] = defaultdict(list)
         for k in keys:
             by_task[k.task].append(k)
-        task_gate = asyncio.Semaphore(self.config.executor.max_tasks or LOCAL_MAX_TASKS)
+        task_gate = asyncio.Semaphore(self.choices.executor.max_tasks)
 
         async def one_task(name: str, task_keys: list[Any]) -> None:
             async with task_gate:
@@ -255,7 +256,7 @@ class LocalSweep:
         cfg, ex, sim = self.config, self.config.executor, self.config.simulator
         task = get_task(name)
         n_slots = ex.slots(len(keys))
-        assert self.physics is not None
+        assert self.physics is not None and self.gate is not None
         gate = self.gate
 
         def on_decision(spec: EpisodeSpec, seconds: float) -> None:
@@ -269,7 +270,7 @@ class LocalSweep:
             image=image,
             sim_window_s=sim.window_s,
             on_decision=on_decision,
-            **sim.batch_kwargs(self.physics.backend, self.physics.impl),
+            **sim.batch_kwargs(self.physics.kind),
         ) as svc:
             slots = asyncio.Semaphore(n_slots)
 

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from vabench.sim_mjx.backends import make_batch
+from vabench.sim_mjx.backends import Physics, as_physics, make_batch
 from vabench.sim_mjx.interface import ActionResult, BatchBase, in_lanes
 from vabench.sim_mjx.reset_cache import Settled, SettledCache, model_digest, settle_key
 from vabench.tasks.base import (
@@ -33,8 +33,6 @@ from vabench.tasks.base import (
 )
 from vabench.tasks.expert import ArmView, ExpertContext, ExpertFailed, View
 
-BACKENDS = ("mjx", "c")
-IMPLS = ("jax", "warp")
 DRIFT_WINDOW = 200  # FACTS: orientation drift measured over the last 200 observed steps
 MAX_DRIFT_DEG = 3.0
 
@@ -108,8 +106,9 @@ def _evaluate_slot(
 
 
 class TaskBatch:
-    """N episodes of one task family on a physics backend (`sim_mjx.backends`): "mjx" with
-    impl "jax" (MJX) or "warp" (MuJoCo Warp), or "c" (C MuJoCo).
+    """N episodes of one task family on a physics backend (`sim_mjx.backends.as_physics`): a
+    `Physics`, or its name: "warp" (MuJoCo Warp), "mjx" (MJX on JAX) or "c" (C MuJoCo); the
+    old "mjx" with impl "warp" or "jax" too.
 
     Resets read and fill the settled-state cache (`sim_mjx.reset_cache`; `cache=None` uses the
     default one, `SettledCache(None)` keeps it in memory only)."""
@@ -118,20 +117,17 @@ class TaskBatch:
         self,
         task: Task,
         n_slots: int,
-        backend: str = "mjx",
-        impl: str = "jax",
+        backend: str | Physics = "mjx",
+        impl: str | None = None,
         cache: SettledCache | None = None,
         **batch_kwargs: Any,
     ):
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if impl not in IMPLS:
-            raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
         self.task = task
-        self.backend = backend
-        self.impl = impl if backend == "mjx" else "-"
+        self.physics = as_physics(backend, impl)
+        # the two-part name records carry ("mjx", "warp"; "c", "-")
+        self.backend, self.impl = self.physics.backend, self.physics.impl
         self.models = task.build_models()
-        self.batch: BatchBase = make_batch(self.models, n_slots, backend, impl, **batch_kwargs)
+        self.batch: BatchBase = make_batch(self.models, n_slots, self.physics, **batch_kwargs)
         self.cache = cache if cache is not None else SettledCache.default()
         self._digests = [model_digest(m) for m in self.models]
         self._seeds: dict[int, tuple[Sample, np.ndarray, str]] = {}
