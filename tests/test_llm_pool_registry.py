@@ -181,7 +181,9 @@ def test_no_module_names_the_apis_by_hand():
     """The registry's own modules aside, vabench and the benchmarks derive every per-API
     choice from `apis.ADAPTERS`."""
     ours = [p for p in sorted(ROOT.rglob("*.py")) if REGISTRY_DIR not in p.parents]
-    paths = ours + sorted(BENCHMARKS.glob("*.py"))
+    # goldens.py records each API's exact wire body from a hand-written case per API, as the
+    # tests do: its per-API cases are the point, not a restated registry.
+    paths = ours + [p for p in sorted(BENCHMARKS.glob("*.py")) if p.name != "goldens.py"]
     problems = [line for path in paths for line in restated_api_names(path)]
     assert not problems, "derive these from apis.ADAPTERS:\n" + "\n".join(problems)
 
