@@ -112,6 +112,7 @@ class WarpRenderPool:
         self._host_jpeg: JpegThreads | None = None
         self._device_jpeg: gpu_jpeg.DeviceJpeg | None = None
         self._lock = threading.Lock()  # the passes kept, their budget and the stats
+        self._building = threading.Lock()  # one pass built at a time, outside `_lock`
         self._encoders = threading.local()
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
@@ -363,35 +364,51 @@ class WarpRenderPool:
     def _checkout(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
         """A pass for `n_worlds` images of `task`, locked for the caller (who releases
         `pass.lock`): a kept pass of this key, waited for if another request uses it, else one
-        built within the memory budget."""
+        built within the memory budget. The pool's lock is held only to look up and update the
+        passes kept: building a pass (a render context, seconds on a fresh GPU) happens outside
+        it, one build at a time, so that requests for passes already built go on meanwhile."""
         while True:
             with self._lock:
                 n_worlds = min(n_worlds, self._largest_pass(settings))
-                p = self._pass(task, models, n_worlds, settings, device_jpeg)
-                if p.lock.acquire(blocking=False):
+                p = self._kept(task, n_worlds, settings)
+                if p is not None and p.lock.acquire(blocking=False):
                     return p
-            with p.lock:  # in use by another request: wait for it, outside the pool's lock
-                pass
-            # then look again: it may have been evicted meanwhile
+            if p is not None:
+                with p.lock:  # in use by another request: wait for it, outside the pool's lock
+                    pass
+                continue  # then look again: it may have been evicted meanwhile
+            with self._building:
+                with self._lock:
+                    if self._kept(task, n_worlds, settings) is not None:
+                        continue  # built by another request while this one waited to build
+                built = self._build(task, models, n_worlds, settings, device_jpeg)
+                built.lock.acquire()
+                return built
 
-    def _pass(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
-        """The pass of this key, built if needed within the memory budget (the caller holds
-        the pool's lock; passes in use are never evicted)."""
-        key = (task, n_worlds, settings.width, settings.height)
-        # A kept pass of up to twice the worlds serves too (the extra worlds are traced for
-        # nothing): under a tight budget, building a pass per request size would churn.
+    def _kept(self, task, n_worlds, settings) -> RenderPass | None:
+        """A kept pass that serves `n_worlds` images of `task` (the caller holds the pool's
+        lock). One of up to twice the worlds serves too (the extra worlds are traced for
+        nothing): under a tight budget, building a pass per request size would churn."""
         kept = [
             k
             for k in self._passes
-            if k[0] == task and k[2:] == key[2:] and n_worlds <= k[1] <= 2 * n_worlds
+            if k[0] == task and k[2:] == (settings.width, settings.height)
+            and n_worlds <= k[1] <= 2 * n_worlds
         ]
-        if kept:
-            best = min(kept, key=lambda k: k[1])
-            self._passes.move_to_end(best)
-            return self._passes[best][0]
+        if not kept:
+            return None
+        best = min(kept, key=lambda k: k[1])
+        self._passes.move_to_end(best)
+        return self._passes[best][0]
+
+    def _build(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
+        """A new pass, kept, after evicting least recently used passes not in use until it fits
+        the memory budget (the caller holds `_building`)."""
+        key = (task, n_worlds, settings.width, settings.height)
         need = pass_bytes(settings.width, settings.height, n_worlds, device_jpeg)
-        budget = self._pass_budget(settings)
-        with self._lock_device, wp.ScopedDevice(self._device):
+        victims = []
+        with self._lock:
+            budget = self._pass_budget(settings)
             for old in list(self._passes):
                 if self.bytes_kept() + need <= budget:
                     break
@@ -399,16 +416,18 @@ class WarpRenderPool:
                 if not victim.lock.acquire(blocking=False):
                     continue  # in use: try the next least recently used
                 victim.evicted = True
-                del self._passes[old]  # freed here: Warp returns its memory
+                del self._passes[old]
                 victim.lock.release()
+                victims.append(victim)
                 self.stats.evicted += 1
                 log.debug("render pass %s evicted for %s (budget %d MiB)", old, key, budget >> 20)
-            self._passes[key] = (
-                RenderPass(models, n_worlds, settings.width, settings.height, device_jpeg),
-                need,
-            )
-        self.stats.built += 1
-        return self._passes[key][0]
+        with self._lock_device, wp.ScopedDevice(self._device):
+            victims.clear()  # their memory is freed here, with the device's lock held
+            built = RenderPass(models, n_worlds, settings.width, settings.height, device_jpeg)
+        with self._lock:
+            self._passes[key] = (built, need)
+            self.stats.built += 1
+        return built
 
     def bytes_kept(self) -> int:
         """Device memory charged to the passes kept (their pixels and per-world margin)."""
