@@ -25,6 +25,14 @@ pass that would not fit evicts the least recently used ones. Without it a sweep'
 with every task family and request size it met until the GPU ran out (measured on an H100:
 14 GB to 81 GB in four minutes, then CUDA out-of-memory errors; docs/PERFORMANCE.md).
 
+Threads and streams: requests of several tasks run at once (each task's render service has a
+thread of its own). A request takes a pass for itself (`RenderPass.lock`), queues the pass on
+the pass's CUDA stream holding the device's lock (the gather of the states runs on the physics
+batch's stream, ordered between its actions; `WarpBatch.copy_qpos`), waits for it with the lock
+released, and encodes its JPEGs on the thread's own nvImageCodec encoder while other passes
+trace and the physics steps (`sim_mjx.warp.streams`). The pool's own lock guards only the
+passes kept and the counters; a pass is built outside it, one at a time.
+
 The physics batch to read states from is named per request (`source`), not registered per
 task: one process may run two batches of one task at once (a Ray engine runs several cells),
 and each request's slots index its own batch.
