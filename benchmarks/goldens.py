@@ -20,7 +20,7 @@
   events.jsonl and result.json, the summaries, the report's md/csv/html), `demo_cache/` the
   demonstrations it built, `files.tsv` (in each) name, size and sha256 of every other file
   (JPEG frames, report PNGs, lock files; on this CPU path the images are byte-identical run to
-  run), and `log.txt` its exit status and output without the progress lines. The shipped
+  run), and `log.txt` its exit status and output without the progress and stage lines. The shipped
   smoke config's `random_action` policy is unseeded and draws in arrival order, so no two runs
   agree; the goldens run the config with `embedded_server.policy: conversation_hash` (the
   same random action, drawn from a hash of the conversation's text: the decisions follow the
@@ -109,7 +109,9 @@ grows, so which free slot one gets depends on timing; a slot's physics does not)
 _VARYING = re.compile(r'(?<!\\)"(' + "|".join(VARYING_KEYS) + r')": -?\d[\d.eE+-]*')
 _CLOCK = re.compile(r"^\d\d:\d\d:\d\d ", re.MULTILINE)
 _PORT = re.compile(r"(127\.0\.0\.1|localhost):\d+")
-_PROGRESS = re.compile(r": episodes \d+/\d+ \(")
+_PROGRESS = re.compile(r": episodes \d+/\d+ \(|: physics \d+ calls, \d+ items")
+"""Lines that depend on timing: the progress display, and each task's stage line (its calls
+and seconds follow how requests happened to batch)."""
 TEXT_SUFFIXES = (".json", ".jsonl", ".yaml", ".yml", ".md", ".csv", ".html", ".txt")
 
 
