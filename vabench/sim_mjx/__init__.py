@@ -1,49 +1,13 @@
-"""Batched simulation of the vabench dual-arm robot on MuJoCo MJX (and C MuJoCo as baseline).
+"""Batched simulation of the vabench dual-arm robot: C MuJoCo, MuJoCo Warp (`sim_mjx.warp`)
+and MJX on JAX behind one interface (`interface.BatchBase`), chosen in `backends`.
 
-Importing this package enables JAX's persistent compilation cache (unless the user configured
-one) so that each model shape compiles once per machine, not once per process, and asks for
-full float32 matrix products (see `_full_precision_matmuls`).
+    scene, robot_constants, variants   the scene and its object variants, as MuJoCo models
+    kinematics, controller, layout     closed-form FK/IK, the fixed executor, the arms' layout
+    actions                            model-facing actions as command rows
+    interface, backends                the batch interface, and the one place a backend is chosen
+    cpu, mjx_batch, warp/              the three backends
+    reset_cache                        settled initial states on disk
+    jax_setup                          JAX's configuration, imported by the modules that use it
+
+Nothing is imported here.
 """
-
-from __future__ import annotations
-
-import contextlib
-import io
-import os
-from pathlib import Path
-
-# JAX takes 75 % of a GPU's memory at its first GPU operation unless told otherwise; here it
-# shares the card with MuJoCo Warp (physics), the renderer and other sweep processes, and its
-# own arrays (predicates, MJX batches) are small. Set before JAX starts a backend.
-os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-
-import jax
-
-# mujoco.mjx prints "Failed to import warp" on stdout when MuJoCo Warp is absent; keep stdout
-# clean for the CLIs that print JSON.
-with contextlib.redirect_stdout(io.StringIO()):
-    from mujoco import mjx  # noqa: F401
-
-
-def _enable_compilation_cache() -> None:
-    if jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
-        return
-    path = os.environ.get("VABENCH_JAX_CACHE") or str(Path.home() / ".cache" / "vabench" / "jax")
-    if path.lower() in ("", "0", "off", "none"):
-        return
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-
-
-def _full_precision_matmuls() -> None:
-    """JAX computes float32 matmuls in TF32 on recent NVIDIA GPUs by default (10-bit mantissa).
-    Contact dynamics and the planner's IK are not neural networks and need float32 products
-    (measured on an H200: see docs/PERFORMANCE.md, "Seed screening"). VABENCH_MATMUL_PRECISION
-    overrides the choice ("default" restores JAX's)."""
-    value = os.environ.get("VABENCH_MATMUL_PRECISION", "highest")
-    if value != "default":
-        jax.config.update("jax_default_matmul_precision", value)
-
-
-_enable_compilation_cache()
-_full_precision_matmuls()

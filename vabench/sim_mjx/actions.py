@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vabench import protocol as P
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx.controller import GRIP_CLOSE, GRIP_KEEP, GRIP_OPEN, ArmCommand
 
 _WORLD_AXIS = {"x": 0, "y": 1, "z": 2}

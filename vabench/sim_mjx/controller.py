@@ -21,6 +21,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.pytree import PyTree, pytree_dataclass

@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase, StepInfo, in_lanes
 from vabench.sim_mjx.layout import ctrl_sequence_slot

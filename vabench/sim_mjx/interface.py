@@ -29,6 +29,7 @@ from pydantic import BaseModel
 
 from vabench import protocol as P
 from vabench.sim_mjx import controller as ctl
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx.actions import CommandRows, encode
 from vabench.sim_mjx.layout import ArmLayout, Proprio, proprio_slot

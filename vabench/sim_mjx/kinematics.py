@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 

@@ -20,6 +20,7 @@ import mujoco
 import numpy as np
 
 from vabench.sim_mjx import controller as ctl
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.pytree import PyTree, pytree_dataclass

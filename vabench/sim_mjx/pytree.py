@@ -14,6 +14,8 @@ from typing import Any, TypeVar
 import jax
 from typing_extensions import dataclass_transform
 
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
+
 T = TypeVar("T")
 
 

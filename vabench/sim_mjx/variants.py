@@ -19,6 +19,8 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
+
 # Static (numpy) MJX fields that may differ between variants because they only serve features
 # the variants do not use (height fields).
 _STATIC_MAY_DIFFER = {"geom_rbound_hfield"}
