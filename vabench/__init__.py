@@ -1,6 +1,6 @@
-"""vabench: VA-Bench on MuJoCo MJX, built for throughput.
+"""vabench: the VA-Bench benchmark built for throughput (MuJoCo Warp on GPUs, C MuJoCo on CPUs).
 
-See README.md for the set-up and ../shared/DESIGN.md (kept in docs/DESIGN.md) for the map.
+README.md is the front door; docs/DESIGN.md the map.
 """
 
 __version__ = "0.1.0"
