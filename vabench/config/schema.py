@@ -122,8 +122,9 @@ class ExecutorOptions(_Strict):
     kind: Literal["auto", "local", "processes", "ray"] = "auto"
     """auto: `local` when the physics is MuJoCo Warp on one GPU (every task batch in one
     process), else `processes` on a host of 4 or more cores, else `local` (`sweep.choices`;
-    `--dry-run` says which and why); local: one process; processes: cells of the plan as worker processes
-    of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy embedded policies);
+    `--dry-run` says which and why); local: one process; processes: cells of the plan as
+    worker processes of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy
+    embedded policies);
     ray: engine actors over a Ray cluster, one per GPU (README, "Multi-machine sweeps")."""
     address: str | None = None
     """`ray.init(address=...)`: "auto" (the cluster this node belongs to) or "HOST:PORT" (its
