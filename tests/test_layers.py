@@ -10,6 +10,7 @@ way around a layer is a name resolved at run time (the embedded server's plugged
 from __future__ import annotations
 
 import ast
+import itertools
 import re
 from pathlib import Path
 
@@ -322,4 +323,145 @@ def test_the_backend_checker_sees_every_spelling_of_a_test(tmp_path):
         (2, "warp"),
         (3, "mjx/warp"),
         (5, "mjx"),
+    ]
+
+
+# -- no import cycle between modules, inside a package too (issue 32) ----------------------------
+
+
+def module_name(path: Path, root: Path = ROOT) -> str:
+    """The dotted name of the module at `path` (a package's `__init__.py` is the package)."""
+    parts = path.relative_to(root.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def module_imports(path: Path, modules: frozenset[str], root: Path = ROOT) -> list[tuple[int, str]]:
+    """(line, imported module) of every import of a module of `modules` in `path`, at any
+    depth: in functions and under `if TYPE_CHECKING:` too.
+
+    Relative imports are resolved against the module's package. `from p import n` imports the
+    submodule `p.n` where there is one, else a name of `p` (the module `p`, or its
+    `__init__.py` for a package); `import p.m` imports `p.m`. The packages above an imported
+    module are not counted, though Python runs their `__init__.py` first: a package that
+    re-exports its modules would otherwise be in a cycle with every module that imports a
+    sibling, which is no dependency of the importer on the package's names."""
+    own = module_name(path, root)
+    package = own if path.name == "__init__.py" else own.rpartition(".")[0]
+
+    def known(name: str) -> str | None:  # the module `name` is, or the one defining it
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [known(alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*up, *([base] if base else [])])
+            targets = [
+                f"{base}.{alias.name}" if f"{base}.{alias.name}" in modules else known(base)
+                for alias in node.names
+            ]
+        else:
+            continue
+        found += [(node.lineno, t) for t in targets if t is not None and t != own]
+    return sorted(set(found))
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every elementary cycle of `graph` (module -> the modules it imports), each once, as the
+    path from its smallest module back to it."""
+    importers: dict[str, set[str]] = {m: set() for m in graph}
+    for module, imported in graph.items():
+        for other in imported:
+            importers.setdefault(other, set()).add(module)
+    cycles = []
+    for start in sorted(graph):
+        # the modules after `start` from which `start` can be reached: the only ways back
+        back, todo = {start}, [start]
+        while todo:
+            for m in importers.get(todo.pop(), ()):
+                if m > start and m not in back:
+                    back.add(m)
+                    todo.append(m)
+        paths = [[start]]
+        while paths:
+            path = paths.pop()
+            for nxt in sorted(graph.get(path[-1], set()) & back, reverse=True):
+                if nxt == start:
+                    cycles.append([*path, start])
+                elif nxt not in path:
+                    paths.append([*path, nxt])
+    return sorted(cycles)
+
+
+def test_no_import_cycle_between_modules():
+    """No module imports itself through others, inside a package as across packages (the
+    layers above rule out only the latter): a cycle means neither module can be read, tested
+    or changed without the other, and a lazy import is how one hides. Imports in functions and
+    under `if TYPE_CHECKING:` count: a reader of the lower module must still read the higher
+    one, and the cycle is only hidden from the interpreter. The shared piece belongs in a
+    module below both."""
+    paths = {module_name(p): p for p in sorted(ROOT.rglob("*.py"))}
+    modules = frozenset(paths)
+    lines = {m: module_imports(p, modules) for m, p in paths.items()}
+    graph = {m: {imported for _, imported in found} for m, found in lines.items()}
+    cycles = import_cycles(graph)
+    edges = sorted(
+        {
+            (paths[a].relative_to(ROOT).as_posix(), line, b)
+            for cycle in cycles
+            for a, b in itertools.pairwise(cycle)
+            for line, imported in lines[a]
+            if imported == b
+        }
+    )
+    problems = [" -> ".join(cycle) for cycle in cycles] + ["where:"]
+    problems += [f"  vabench/{rel}:{line}: imports {b}" for rel, line, b in edges]
+    assert not cycles, "import cycles:\n" + "\n".join(problems)
+
+
+def test_the_cycle_checker_resolves_imports_and_finds_every_cycle(tmp_path):
+    """Relative and absolute imports, a submodule and a name imported `from` a package, lazy
+    and TYPE_CHECKING imports; every cycle of a graph, once each, longer ones too."""
+    root = tmp_path / "vabench"
+    (root / "pkg" / "sub").mkdir(parents=True)
+    files = {
+        "__init__.py": "",
+        "pkg/__init__.py": "from vabench.pkg.a import A\n",
+        "pkg/a.py": "from . import b\nfrom .sub import c\n",
+        "pkg/b.py": (
+            "from typing import TYPE_CHECKING\n"
+            "if TYPE_CHECKING:\n    from vabench.pkg.a import A\n"
+            "def f():\n    import vabench.pkg.sub.c\n"
+        ),
+        "pkg/sub/__init__.py": "",
+        "pkg/sub/c.py": (
+            "from ..b import f\nfrom vabench.pkg import A, b\nfrom vabench import pkg\n"
+        ),
+    }
+    for name, text in files.items():
+        (root / name).write_text(text)
+    paths = {module_name(p, root): p for p in root.rglob("*.py")}
+    modules = frozenset(paths)
+    found = {m: module_imports(p, modules, root) for m, p in paths.items()}
+    assert found == {
+        "vabench": [],
+        "vabench.pkg": [(1, "vabench.pkg.a")],
+        "vabench.pkg.a": [(1, "vabench.pkg.b"), (2, "vabench.pkg.sub.c")],
+        "vabench.pkg.b": [(3, "vabench.pkg.a"), (5, "vabench.pkg.sub.c")],
+        "vabench.pkg.sub": [],
+        "vabench.pkg.sub.c": [(1, "vabench.pkg.b"), (2, "vabench.pkg"), (2, "vabench.pkg.b")]
+        + [(3, "vabench.pkg")],
+    }
+    graph = {"a": {"b", "d"}, "b": {"a", "c"}, "c": {"a", "b"}, "d": set(), "e": {"e"}}
+    assert import_cycles(graph) == [
+        ["a", "b", "a"],
+        ["a", "b", "c", "a"],
+        ["b", "c", "b"],
+        ["e", "e"],
     ]

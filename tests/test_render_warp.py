@@ -24,7 +24,7 @@ from PIL import Image
 pytest.importorskip("warp", reason="the Warp renderer needs warp-lang (the [test] extra has it)")
 pytest.importorskip("mujoco_warp", reason="the Warp renderer needs mujoco-warp ([test] extra)")
 
-from vabench.render import backends
+from vabench.render import availability, backends
 from vabench.render import camera as cam
 from vabench.render.__main__ import reset_state
 from vabench.render.images import ImageSettings, RenderError, RenderItem
@@ -96,11 +96,11 @@ def _red_centroid(rgb: np.ndarray) -> np.ndarray:
 
 # -- choosing the renderer ---------------------------------------------------------------
 def test_choice_and_its_reasons(monkeypatch):
-    monkeypatch.setattr(backends, "warp_problem", lambda device: None)
+    monkeypatch.setattr(availability, "warp_problem", lambda device: None)
     assert backends.resolve_renderer("auto", "cuda:0").backend == "warp"
     assert backends.resolve_renderer("gl").backend == "gl"
     monkeypatch.setattr(
-        backends, "warp_problem", lambda device: "the Warp backend needs the package warp-lang"
+        availability, "warp_problem", lambda device: "the Warp backend needs the package warp-lang"
     )
     auto = backends.resolve_renderer("auto", "cuda:0")
     assert auto.backend == "gl" and "warp-lang" in auto.reason

@@ -31,7 +31,6 @@ import dataclasses
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from vabench import protocol as P
@@ -43,36 +42,17 @@ from vabench.agent.observation import (
     observation_text,
 )
 from vabench.agent.prompts import system_prompt
-from vabench.agent.records import EpisodeRecorder, EpisodeResult, SummaryStatus
+from vabench.agent.records import EpisodeRecorder, EpisodeResult
 from vabench.agent.services import TaskServices
 from vabench.agent.session import SessionEnd, Spend, reply_fields
 from vabench.agent.simulation import SlotSnapshot
+from vabench.agent.spec import EpisodeSpec
 from vabench.agent.tools import camera_history, geometry_result
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image
 from vabench.render import camera as cam
 from vabench.render.images import RenderError, RenderItem
 from vabench.sim_mjx.interface import SimulationError
-
-
-@dataclass(frozen=True)
-class EpisodeSpec:
-    """What to run: one seed of one task against one model."""
-
-    task: str
-    seed: int
-    model: str
-    protocol: P.ObservationProtocol = "active"
-    run: int = 0
-    out_dir: Path | None = None
-    demonstration_summary: str | dict[str, Any] | None = None
-    summary_mode: str = "none"
-    summary_from: str | None = None
-    """Where `demonstration_summary` came from, for the record (`EpisodeResult.summary_*`)."""
-    summary_status: SummaryStatus = "none"
-    step_budget: int | None = None
-    """Override of the task's step budget for smoke runs and benchmarks (None: the task's;
-    the record states the budget used)."""
 
 
 @dataclass

@@ -9,19 +9,17 @@ import functools
 import logging
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from vabench.agent.batching import BatchStats
 from vabench.agent.conversation import ContextLimits
 from vabench.agent.simulation import RenderService, SimService
+from vabench.agent.spec import EpisodeSpec
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.pool import LLMPool
 from vabench.render.backends import Renderer
 from vabench.render.images import ImageSettings
 from vabench.tasks.base import Task
-
-if TYPE_CHECKING:
-    from vabench.agent.engine import EpisodeSpec
 
 log = logging.getLogger(__name__)
 

@@ -66,37 +66,17 @@ from vabench.llm_pool.policies import (
     pure_function,
     pure_reply,
 )
+from vabench.llm_pool.request_record import RequestRecord
 from vabench.llm_pool.server_config import (
     PolicySpec,
     ServerConfig,
     policy_workers,
     serving_processes,
 )
-from vabench.llm_pool.server_processes import ServingProcesses
+from vabench.llm_pool.server_processes import READY, ServingProcesses
 from vabench.llm_pool.settings import DEFAULT_MAX_OUTPUT_TOKENS
 from vabench.llm_pool.simulate import PromptCache, simulate_usage
 from vabench.llm_pool.tokens import CHARS_PER_TOKEN, block_tokens, text_tokens
-
-
-@dataclasses.dataclass
-class RequestRecord:
-    """One request as the server saw it. No headers, no keys, no content."""
-
-    id: int
-    api: str
-    received_s: float
-    process: int = 0
-    """Which of the server's processes answered (`ServerConfig.server_processes`; 0 for one)."""
-    body_bytes: int = 0
-    model: str | None = None
-    images: int = 0
-    fault: str | None = None
-    status: int | None = None
-    """HTTP status sent; None while in flight or when the client went away first."""
-    input_tokens: int = 0
-    output_tokens: int = 0
-    finished_s: float | None = None
-    error: str | None = None
 
 
 class LocalServer:
@@ -177,7 +157,9 @@ class LocalServer:
         if self.config.log_path:
             self._log_file = open(self.config.log_path, "a", encoding="utf-8")  # noqa: SIM115
         if self.processes:
-            self._processes = ServingProcesses(self.config, self.processes, self._note)
+            self._processes = ServingProcesses(
+                self.config, self.processes, _serve_in_process, self._note
+            )
             self.host, self.port = await asyncio.to_thread(self._processes.start, host, port)
             return self
         await self._start_workers()
@@ -462,3 +444,21 @@ def _load_pure(policies: list[str]) -> None:
     """Import the pure policies' code in a worker before its first request."""
     for name in policies:
         pure_function(name)
+
+
+async def _serve_in_process(
+    config: ServerConfig, index: int, host: str, port: int, records: Any, stop: Any
+) -> None:
+    """The server in one serving process (`ServingProcesses` runs it there): it shares the
+    port, puts each finished request's record on `records` and READY once it listens, and stops
+    when `stop` is set. Passed to the processes rather than imported by them: this module
+    starts them."""
+    server = LocalServer(config)
+    server.process_index = index
+    server.on_record = records.put
+    await server.start(host, port, reuse_port=True)
+    records.put(READY)
+    try:
+        await asyncio.to_thread(stop.wait)
+    finally:
+        await server.stop()

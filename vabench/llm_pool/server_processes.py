@@ -12,6 +12,10 @@ processes (spawned, never forked: the parent may hold JAX and threads), waits un
 listens, and collects the record of every request they finish through a pipe, so its
 `LocalServer.log`, `counts` and JSONL log are those of one server. The processes ignore Ctrl-C
 and exit when their parent is gone (`vabench.children`); `stop` ends them.
+
+This module sits below the server, which starts the processes: what each process runs (the
+server's `_serve_in_process`) is passed in, and the record it sends is `request_record`'s, so
+nothing here imports the server back (issue 32: the two imported each other).
 """
 
 from __future__ import annotations
@@ -22,14 +26,19 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from typing import TYPE_CHECKING, Any
 
 from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
+from vabench.llm_pool.request_record import RequestRecord
 
 if TYPE_CHECKING:
-    from vabench.llm_pool.server import RequestRecord
     from vabench.llm_pool.server_config import ServerConfig
+
+Serve = Callable[["ServerConfig", int, str, int, Any, Any], Coroutine[Any, Any, None]]
+"""How one process serves: (its config, its index, host, port, the records queue, the stop
+event); the server's `_serve_in_process`, a module-level function so that it reaches the
+spawned process by name."""
 
 START_TIMEOUT_S = 120.0
 """How long the processes may take to import and listen (the reference agent's code included)."""
@@ -41,9 +50,13 @@ class ServingProcesses:
     of this process)."""
 
     def __init__(
-        self, config: ServerConfig, n: int, on_record: Callable[[RequestRecord], None]
+        self,
+        config: ServerConfig,
+        n: int,
+        serve: Serve,
+        on_record: Callable[[RequestRecord], None],
     ) -> None:
-        self.config, self.n, self.on_record = config, n, on_record
+        self.config, self.n, self.serve, self.on_record = config, n, serve, on_record
         self._context = multiprocessing.get_context("spawn")
         self._records = self._context.SimpleQueue()
         self._stop = self._context.Event()
@@ -66,7 +79,16 @@ class ServingProcesses:
             for index in range(self.n):
                 process = self._context.Process(
                     target=_serve_in_child,
-                    args=(self.config, index, host, port, self._records, self._stop, os.getpid()),
+                    args=(
+                        self.serve,
+                        self.config,
+                        index,
+                        host,
+                        port,
+                        self._records,
+                        self._stop,
+                        os.getpid(),
+                    ),
                     name=f"vabench-server-{index}",
                     daemon=True,
                 )
@@ -106,6 +128,7 @@ class ServingProcesses:
 
 
 def _serve_in_child(
+    serve: Serve,
     config: ServerConfig,
     index: int,
     host: str,
@@ -122,20 +145,4 @@ def _serve_in_child(
     own = config.model_copy(
         update={"server_processes": 0, "policy_processes": 0, "log_path": None, "seed": seed}
     )
-    asyncio.run(_serve(own, index, host, port, records, stop))
-
-
-async def _serve(
-    config: ServerConfig, index: int, host: str, port: int, records: Any, stop: Any
-) -> None:
-    from vabench.llm_pool.server import LocalServer  # the server module starts these processes
-
-    server = LocalServer(config)
-    server.process_index = index
-    server.on_record = records.put
-    await server.start(host, port, reuse_port=True)
-    records.put(READY)
-    try:
-        await asyncio.to_thread(stop.wait)
-    finally:
-        await server.stop()
+    asyncio.run(serve(own, index, host, port, records, stop))

@@ -7,7 +7,8 @@
     backend "auto"  "warp" where a CUDA GPU and the [gpu] extra are present, else "gl".
 
 Asking for "warp" where it cannot run raises `BackendUnavailable` naming the missing package or
-device, never a silent fallback. `VABENCH_WARP_DEVICE` picks the Warp device, as for physics
+device (`availability.renderer_problem`, which the Warp renderer checks too), never a silent
+fallback. `VABENCH_WARP_DEVICE` picks the Warp device, as for physics
 ("cpu" runs the same kernels on the CPU: slow, for tests).
 """
 
@@ -16,9 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from vabench.render.availability import renderer_problem
 from vabench.render.images import ImageSettings, RenderItem, RenderStats
 from vabench.sim_mjx.backends import BackendUnavailable
-from vabench.sim_mjx.warp.device import warp_device, warp_problem
+from vabench.sim_mjx.warp.device import warp_device
 
 RENDER_BACKENDS = ("auto", "warp", "gl")
 
@@ -53,16 +55,6 @@ class RenderChoice:
     def title(self) -> str:
         """How `--dry-run` names it."""
         return {"gl": "GL worker processes", "warp": "MuJoCo Warp's ray tracer"}[self.backend]
-
-
-def renderer_problem(device: str) -> str | None:
-    """Why the Warp renderer cannot run on `device` (None when it can)."""
-    problem = warp_problem(device)
-    if problem is None:
-        return None
-    return problem.replace("the Warp backend", "the Warp renderer").replace(
-        "Use backend c", "Use render backend gl"
-    )
 
 
 def resolve_renderer(

@@ -138,7 +138,7 @@ class WarpRenderPool:
     def start(self) -> str:
         if self.info is not None:
             return self.info
-        from vabench.render.backends import renderer_problem
+        from vabench.render.availability import renderer_problem
         from vabench.sim_mjx.backends import BackendUnavailable
 
         name = self.device or warp_device()

@@ -27,7 +27,7 @@ from __future__ import annotations
 import uuid
 from collections.abc import Mapping
 from datetime import datetime, timedelta, timezone
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
@@ -35,9 +35,6 @@ from vabench.llm_pool.apis import base
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 from vabench.llm_pool.settings import ConfigError, GenerationOptions
 from vabench.llm_pool.tokens import anthropic_image_tokens
-
-if TYPE_CHECKING:
-    from vabench.llm_pool.config import ModelEndpoint
 
 ANTHROPIC_VERSION = "2026-10-21"
 """The `anthropic-version` the official SDK (anthropic 2.13) sends."""
@@ -232,7 +229,7 @@ class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
         return {"anthropic-version": ANTHROPIC_VERSION, **super().headers(api_key)}
 
     def build_body(
-        self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
+        self, endpoint: base.Endpoint, request: ChatRequest, options: GenerationOptions
     ) -> dict[str, Any]:
         cache = options.cache_prompt is not False
         messages = self.messages(request)

@@ -27,7 +27,7 @@ import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar
+from typing import Any, ClassVar, Generic, Literal, Protocol, TypeVar
 
 import pydantic_core
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -44,9 +44,6 @@ from vabench.llm_pool.messages import (
 )
 from vabench.llm_pool.settings import GenerationOptions
 
-if TYPE_CHECKING:  # config.py sits above the registry: it derives `ApiName` from it
-    from vabench.llm_pool.config import ModelEndpoint
-
 M = TypeVar("M", bound=BaseModel)
 DATA_URL_MEDIA_TYPES = ("image/jpeg", "image/png", "image/gif", "image/webp")
 PromptCaching = Literal["automatic", "explicit"]
@@ -62,6 +59,24 @@ class RequestShapeError(ValueError):
         super().__init__(f"{field}: {message}" if field else message)
         self.field = field
         self.message = message
+
+
+class Endpoint(Protocol):
+    """What a request body needs of the endpoint it goes to: a `config.ModelEndpoint` is one.
+
+    A structural type, so that the adapters need not import `config.py`, which sits above
+    their registry (it derives `ApiName` from `apis.ADAPTERS`): the two imported each other
+    (issue 32)."""
+
+    @property
+    def provider_model(self) -> str:
+        """The provider's model id."""
+        ...
+
+    @property
+    def max_tokens_field(self) -> str:
+        """Chat Completions: the field that carries the output limit."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -374,7 +389,7 @@ class ApiAdapter(ABC, Generic[RequestT, ResponseT]):
 
     @abstractmethod
     def build_body(
-        self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
+        self, endpoint: Endpoint, request: ChatRequest, options: GenerationOptions
     ) -> dict[str, Any]:
         """The JSON body for one call."""
 

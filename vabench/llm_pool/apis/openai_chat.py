@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 import uuid
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
@@ -24,9 +24,6 @@ from vabench.llm_pool.apis import base
 from vabench.llm_pool.apis import openai_common as common
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 from vabench.llm_pool.settings import GenerationOptions, ReasoningEffort
-
-if TYPE_CHECKING:
-    from vabench.llm_pool.config import ModelEndpoint
 
 # -- request shape (as documented; the embedded server validates against it) ----------------
 
@@ -155,7 +152,7 @@ class OpenAIChat(common.OpenAIApi[ChatCompletionsRequest, ChatCompletionsRespons
     response_label = "chat completions"
 
     def build_body(
-        self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
+        self, endpoint: base.Endpoint, request: ChatRequest, options: GenerationOptions
     ) -> dict[str, Any]:
         system = [{"role": "system", "content": request.system}] if request.system else []
         body: dict[str, Any] = {

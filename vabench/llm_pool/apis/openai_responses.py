@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 import uuid
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
@@ -26,9 +26,6 @@ from vabench.llm_pool.apis import openai_common as common
 from vabench.llm_pool.errors import ResponseFormatError
 from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
 from vabench.llm_pool.settings import GenerationOptions, ReasoningEffort
-
-if TYPE_CHECKING:
-    from vabench.llm_pool.config import ModelEndpoint
 
 # -- request shape ----------------------------------------------------------------------------
 
@@ -193,7 +190,7 @@ class OpenAIResponses(common.OpenAIApi[ResponsesRequest, ResponsesResponse]):
     last_turn_error = ("input", "the last input message must be a user message")
 
     def build_body(
-        self, endpoint: ModelEndpoint, request: ChatRequest, options: GenerationOptions
+        self, endpoint: base.Endpoint, request: ChatRequest, options: GenerationOptions
     ) -> dict[str, Any]:
         body: dict[str, Any] = {
             "model": endpoint.provider_model,
