@@ -186,7 +186,7 @@ def test_csv_import_checks_every_row_and_writes_nothing_on_error(tmp_path, store
     assert "row 5: value: expected 0, 1 or null, got 'yes'" in text
     assert not store.directory.exists()
     (tmp_path / "cols.csv").write_text("who,episode,item,value\n")
-    with pytest.raises(CsvImportError, match="missing column 'annotator'"):
+    with pytest.raises(CsvImportError, match="no 'annotator' column"):
         import_csv(store, tmp_path / "cols.csv")
 
 

@@ -395,14 +395,14 @@ def base_sweep() -> list[dict]:
 
 
 # report.md of base_sweep() written by the code before the track sections (commit 7a84126's
-# vabench/report, the parent of 4ce55dd),
-# with the results path replaced by {RESULTS}.
+# vabench/report, the parent of 4ce55dd), with the results path replaced by {RESULTS}, and
+# the headline's macro-averages worded "number unit (runs)" since issue 35.
 BASE_REPORT_MD = """\
 # VA-Bench report
 
 - 36 scored episodes, 0 unscored records (0 episodes never scored) in {RESULTS}
-- a / active: macro-average success 45.83 ± 5.89 % over 2 run(s)
-- a / passive: macro-average success 8.33 (1 run) % over 1 run(s)
+- a / active: macro-average success 45.83 ± 5.89 % (mean ± SD over 2 runs)
+- a / passive: macro-average success 8.33 % (1 run)
 - a active vs passive (run 1): passive worse on 2 of 2 non-tied families, sign test p = 0.5
 
 ## Macro-average success

@@ -9,6 +9,10 @@
         answered by the embedded server's `rubric_judge` stand-in, without keys
     python -m vabench.diagnostics export RUN_DIR [--out FILE] [--history]
     python -m vabench.diagnostics import RUN_DIR FILE
+        rows in any order; importing a file again changes nothing
+    python -m vabench.diagnostics agreement VOTES.csv [--out FILE]
+        the agreement table of a votes file alone (annotator, episode or item, item or
+        criterion, value), no run directory needed; gate rows optional
 
 Exit status: 0 done, 1 nothing to report (no annotations) or some judge conversations failed,
 2 bad input (the message names it).
@@ -29,7 +33,7 @@ import yaml
 from vabench.diagnostics.episodes import RunDirError, RunIndex
 from vabench.run_layout import RunDir
 
-COMMANDS = ("judge", "export", "import")
+COMMANDS = ("judge", "export", "import", "agreement")
 
 
 def _summary(argv: Sequence[str]) -> int:
@@ -130,7 +134,30 @@ async def _judge(args: argparse.Namespace, index: RunIndex) -> int:
     return 1 if report.failures else 0
 
 
+def _agreement(argv: Sequence[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m vabench.diagnostics agreement",
+        description="The inter-annotator agreement table of a votes CSV alone: columns "
+        "annotator, episode (or item), item (or criterion), value (0, 1; empty or NA: no "
+        "judgment), optional time; gate rows optional, rows in any order.",
+    )
+    parser.add_argument("csv", type=Path, help="the votes file")
+    parser.add_argument("--out", type=Path, help="also write the table as CSV (long format)")
+    args = parser.parse_args(argv)
+    from vabench.diagnostics.votes_file import agreement_from_csv
+    from vabench.tables import section_markdown, to_csv
+
+    section = agreement_from_csv(args.csv)
+    print(section_markdown(section))
+    if args.out:
+        args.out.write_text(to_csv(section.csvs[0]), encoding="utf-8")
+        print(f"wrote {args.out}")
+    return 0
+
+
 def _command(name: str, argv: Sequence[str]) -> int:
+    if name == "agreement":
+        return _agreement(argv)
     parser = argparse.ArgumentParser(prog=f"python -m vabench.diagnostics {name}")
     parser.add_argument("run_dir", type=Path)
     if name == "judge":
@@ -164,7 +191,10 @@ def _command(name: str, argv: Sequence[str]) -> int:
             sys.stdout.write(text)
         return 0
     written, skipped = import_csv(store, args.csv)
-    print(f"imported {written} judgments ({skipped} rows already in force) into {store.directory}")
+    print(
+        f"imported {written} judgments into {store.directory} ({skipped} rows skipped: "
+        "recorded already)"
+    )
     return 0
 
 

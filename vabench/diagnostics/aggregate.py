@@ -65,32 +65,55 @@ class Collected:
         return sum(i.status == status and i.criterion == criterion for i in self.items)
 
 
-def collect(index: RunIndex, state: Mapping[Key, Judgment]) -> Collected:
-    """Every annotated scored episode's gates and criterion items."""
-    by_episode: dict[str, dict[str, dict[str, int]]] = {}
+Votes = dict[str, dict[str, dict[str, int]]]
+"""episode -> item -> annotator -> 0/1: the judgments in force, as `collect_votes` reads them."""
+
+
+def votes_of(state: Mapping[Key, Judgment]) -> Votes:
+    by_episode: Votes = {}
     for (episode, annotator, item), j in state.items():
         if j.value is not None:
             by_episode.setdefault(episode, {}).setdefault(item, {})[annotator] = j.value
+    return by_episode
+
+
+def collect(index: RunIndex, state: Mapping[Key, Judgment]) -> Collected:
+    """Every annotated scored episode's gates and criterion items."""
+    votes = {
+        episode: judged
+        for episode, judged in votes_of(state).items()
+        if (ref := index.episodes.get(episode)) is not None and ref.result.scored
+    }
+    return collect_votes(votes)
+
+
+def collect_votes(votes: Votes, gates_optional: bool = False) -> Collected:
+    """Gates and criterion items of every episode of `votes`.
+
+    A run's annotations always hold the gate before a gated criterion (the store refuses a
+    criterion its gate does not activate), so there a gated criterion without gate votes is
+    missing. A votes file from elsewhere may hold no gate rows at all (`gates_optional`): then
+    a gated criterion judged on an episode with no vote on its gate counts as applicable, as
+    the annotators who judged it found it so; where gate votes exist, their majority decides
+    as always, and an NA criterion is one nobody judged."""
     out = Collected()
-    for episode, judged in by_episode.items():
-        ref = index.episodes.get(episode)
-        if ref is None or not ref.result.scored:
-            continue
-        out.annotators[episode] = tuple(sorted({a for votes in judged.values() for a in votes}))
+    for episode, judged in votes.items():
+        out.annotators[episode] = tuple(sorted({a for v in judged.values() for a in v}))
         gates = {g: majority(judged.get(g, {}).values()) for g in GATE_CODES}
         out.gates[episode] = gates
         for code in CRITERION_CODES:
-            votes = judged.get(code, {})
+            votes_on = judged.get(code, {})
             gate = CRITERIA[code].gate
-            if gate is not None and gates[gate] == 0:
-                out.dropped += len(votes)
+            decided = None if gate is None else gates[gate]
+            if decided == 0:
+                out.dropped += len(votes_on)
                 out.items.append(EpisodeItem(episode, code, "na"))
-            elif not votes or (gate is not None and gates[gate] is None):
+            elif not votes_on or (gate is not None and decided is None and not gates_optional):
                 out.items.append(EpisodeItem(episode, code, "missing"))
             else:
-                names = tuple(sorted(votes))
+                names = tuple(sorted(votes_on))
                 out.items.append(
-                    EpisodeItem(episode, code, "scored", tuple(votes[a] for a in names), names)
+                    EpisodeItem(episode, code, "scored", tuple(votes_on[a] for a in names), names)
                 )
     return out
 

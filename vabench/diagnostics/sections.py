@@ -142,9 +142,21 @@ def problem_notes(problems: Sequence[str]) -> list[str]:
 
 
 def agreement_section(data: DiagnosticsData) -> Section:
-    rows, left_out = agg.agreement(data.collected)
-    raters = agg.raters_of(data.collected)
-    table_rows, csv_rows, notes = [], [], []
+    return agreement_of(data.collected)
+
+
+def agreement_of(collected: agg.Collected, notes: Sequence[str] = ()) -> Section:
+    """The agreement section of collected judgments (a run's, or a votes file's), `notes`
+    first."""
+    rows, left_out = agg.agreement(collected)
+    raters = agg.raters_of(collected)
+    table_rows: list[list[str]] = []
+    csv_rows: list[list[object]] = []
+    notes = [
+        *notes,
+        f"items judged by exactly {raters or 0} annotators (n = applicable episode-"
+        "criterion items); positive rate = share of majority labels equal to 1",
+    ]
     for r in rows:
         table_rows.append(
             [
@@ -160,11 +172,6 @@ def agreement_section(data: DiagnosticsData) -> Section:
         csv_rows.append([r.module, r.label, r.n, r.unanimity, r.positive_rate, r.kappa, r.ac1])
         if r.kappa_note and r.n:
             notes.append(f"{r.label}: Fleiss' kappa {r.kappa_note}")
-    notes.insert(
-        0,
-        f"items judged by exactly {raters or 0} annotators (n = applicable episode-"
-        "criterion items); positive rate = share of majority labels equal to 1",
-    )
     if left_out:
         notes.append(f"{left_out} scored items with another number of judgments left out")
     header = ["module", "criterion", "n", "unanimity (%)", "pos. rate", "Fleiss kappa", "Gwet AC1"]

@@ -153,11 +153,27 @@ def majority(values: Iterable[int]) -> int | None:
 
 
 def gate_votes(state: Mapping[Key, Judgment], episode: str, gate: str) -> dict[str, int]:
+    """Every annotator's vote on one gate of one episode (a scan of `state`: for many look-ups,
+    build `GateVotes` once)."""
     return {
         a: j.value
         for (e, a, i), j in state.items()
         if e == episode and i == gate and j.value is not None
     }
+
+
+class GateVotes:
+    """The gate votes of a state, indexed by (episode, gate): one pass over the state, then a
+    look-up per judgment, so checking n judgments against a store of m costs n + m, not n x m."""
+
+    def __init__(self, state: Mapping[Key, Judgment]):
+        self._votes: dict[tuple[str, str], dict[str, int]] = {}
+        for (episode, annotator, item), j in state.items():
+            if item in GATES and j.value is not None:
+                self._votes.setdefault((episode, item), {})[annotator] = j.value
+
+    def of(self, episode: str, gate: str) -> dict[str, int]:
+        return self._votes.get((episode, gate), {})
 
 
 def activation(state: Mapping[Key, Judgment], episode: str, annotator: str, item: str) -> str:
@@ -167,16 +183,31 @@ def activation(state: Mapping[Key, Judgment], episode: str, annotator: str, item
     gate = gate_of(item)
     if gate is None:
         return ""
-    votes = gate_votes(state, episode, gate)
-    if votes.get(annotator) == 1 or majority(votes.values()) == 1:
+    return inactive_reason(item, episode, annotator, gate_votes(state, episode, gate))
+
+
+def inactive_reason(
+    item: str, episode: str, annotator: str, votes: Mapping[str, int], remedy: str = ""
+) -> str:
+    """'' when `votes` (annotator -> vote on `item`'s gate) activate `item` for `annotator`,
+    else a sentence saying what is missing; `remedy` replaces its last clause (what to do)."""
+    gate = gate_of(item)
+    if gate is None or votes.get(annotator) == 1 or majority(votes.values()) == 1:
         return ""
-    own = votes.get(annotator)
-    own_text = "no vote yet" if own is None else f"voted {own}"
-    return (
-        f"criterion {item} is not activated for episode {episode!r}: its gate {gate} "
-        f"({GATES[gate].name}) is 0 ({annotator} {own_text}; majority of {len(votes)} "
-        f"vote(s): {majority(votes.values())}); record the gate as 1 first"
+    ones = sum(votes.values())
+    if not votes:
+        state = f"nobody has voted its gate {gate} ({GATES[gate].name}) yet"
+    else:
+        own = votes.get(annotator)
+        mine = f"{annotator} has not voted it" if own is None else f"{annotator} voted 0"
+        state = (
+            f"its gate {gate} ({GATES[gate].name}) is not 1: {mine}, and {ones} of "
+            f"{len(votes)} vote(s) are 1, no majority"
+        )
+    todo = remedy or (
+        f"record {annotator}'s {gate} vote first (1 = yes to {GATES[gate].question!r})"
     )
+    return f"criterion {item} is not activated for episode {episode!r}: {state}; {todo}"
 
 
 @dataclass
@@ -254,6 +285,15 @@ class AnnotationStore:
     ) -> Judgment:
         """A judgment `record` would accept (AnnotationError naming the field otherwise)."""
         annotator = check_annotator(annotator)
+        episode = self.check_episode(episode)
+        item = check_item(item)
+        value = check_value(value)
+        if value is not None and (why := activation(state, episode, annotator, item)):
+            raise AnnotationError("item", why)
+        return Judgment(annotator, episode, item, value, time.time())
+
+    def check_episode(self, episode: Any) -> str:
+        """`episode` if it is a scored episode of the run (AnnotationError otherwise)."""
         if not isinstance(episode, str) or episode not in self.index.episodes:
             raise AnnotationError("episode", str(UnknownEpisode(str(episode), self.index.run_dir)))
         ref = self.index.episodes[episode]
@@ -263,11 +303,7 @@ class AnnotationStore:
                 f"{episode!r} was never scored (status {ref.result.status}); "
                 "only scored episodes are annotated",
             )
-        item = check_item(item)
-        value = check_value(value)
-        if value is not None and (why := activation(state, episode, annotator, item)):
-            raise AnnotationError("item", why)
-        return Judgment(annotator, episode, item, value, time.time())
+        return episode
 
     def record(
         self,
@@ -287,13 +323,13 @@ class AnnotationStore:
 
     def append(self, judgments: Iterable[Judgment]) -> None:
         """Append already-validated judgments, one locked write per annotator file."""
-        by_file: dict[Path, list[str]] = {}
+        by_annotator: dict[str, list[str]] = {}
         for j in judgments:
-            by_file.setdefault(self.path(j.annotator), []).append(json.dumps(j.record()) + "\n")
+            by_annotator.setdefault(j.annotator, []).append(json.dumps(j.record()) + "\n")
         self.directory.mkdir(parents=True, exist_ok=True)
-        for path, lines in by_file.items():
+        for annotator, lines in by_annotator.items():
             data = "".join(lines).encode("utf-8")
-            with _locked_append(path) as fd:
+            with _locked_append(self.path(annotator)) as fd:
                 while data:  # one write() in practice; a short one is finished under the lock
                     data = data[os.write(fd, data) :]
 

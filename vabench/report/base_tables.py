@@ -29,6 +29,17 @@ from vabench.tables import (
     signed,
 )
 
+MACRO_TABLE = "Macro-average success (mean ± sample SD across runs)"
+"""Table titles double as the anchors of figures (report.html shows a figure beside its table)."""
+
+
+def task_table_title(model: str, track: str) -> str:
+    return f"{model} — {track}"
+
+
+def comparison_table_title(cmp: TrackComparison) -> str:
+    return f"{cmp.model} — {runs_label(cmp.runs)}"
+
 
 def per_task_section(
     cells: Sequence[Cell],
@@ -53,7 +64,7 @@ def per_task_section(
                 [task, subset_of(task, arms), *counts, mean_sd_text(spreads[(model, track, task)])]
             )
         header = ["task", "arms", *[f"run {r}" for r in runs], "success % (mean ± SD)"]
-        tables.append(Table(f"{model} — {track}", header, rows))
+        tables.append(Table(task_table_title(model, track), header, rows))
     csv_rows = [
         [c.model, c.track, c.task, subset_of(c.task, arms), c.run, c.successes, c.total, c.rate]
         for c in cells
@@ -90,7 +101,7 @@ def macro_section(
     subset_cols = [f"{SUBSET_TITLES[s]} %" for s in SUBSETS]
     tables = [
         Table(
-            "Macro-average success (mean ± sample SD across runs)",
+            MACRO_TABLE,
             ["model", "track", "runs"] + subset_cols,
             summary,
         ),
@@ -149,7 +160,7 @@ def active_passive_section(comparisons: Sequence[TrackComparison], order: Sequen
             for p in families
         ]
         tables.append(
-            Table(f"{cmp.model} — {label}", ["task", "active", "passive", "Δ (P − A)"], rows)
+            Table(comparison_table_title(cmp), ["task", "active", "passive", "Δ (P − A)"], rows)
         )
         for p in families:
             fam_rows.append(

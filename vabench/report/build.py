@@ -9,7 +9,10 @@ Files written (each atomically: a temporary sibling, then `os.replace`):
                          vote_rules)
     <table>.csv          raw numbers in long format
     figures/*.png        macro-average bars, per-task bars per model/track, active vs passive
-    report.html          everything above in one self-contained page (figures as base64)
+    report.html          everything above in one self-contained page (figures as base64), with
+                         a table of contents and each figure beside the table it draws
+An unfinished sweep (fewer scored episodes than RUN_DIR/plan.json planned) is said first, in
+report.md, report.html and the printed summary, before any number it qualifies.
 figures/ is wholly generated: PNGs of an earlier report that this one does not produce are
 removed, so the folder never shows a model that is no longer in the results.
 """
@@ -17,6 +20,7 @@ removed, so the folder never shows a model that is no longer in the results.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -122,21 +126,28 @@ def write_report(
     if bill_section is not None:
         sections.append(bill_section)
 
-    pngs: list[tuple[str, str, str, bytes]] = [
+    pngs: list[tuple[str, html.Figure]] = [  # (its file in figures/, the figure)
         (
-            "macro_average",
             "macro_average.png",
-            "Macro-average success",
-            figures.macro_figure(macro_spreads),
-        ),
+            html.Figure(
+                "macro_average",
+                "Macro-average success",
+                figures.macro_figure(macro_spreads),
+                base_tables.MACRO_TABLE,
+            ),
+        )
     ]
     for model, track in sorted({(c.model, c.track) for c in cells}):
+        figure = figures.task_success_figure(cells, task_spreads, model, track, order)
         pngs.append(
             (
-                "success_per_task",
                 f"success_{_slug(model)}_{_slug(track)}.png",
-                f"{model} — {track}: per-task success",
-                figures.task_success_figure(cells, task_spreads, model, track, order),
+                html.Figure(
+                    "success_per_task",
+                    f"{model} — {track}: per-task success",
+                    figure,
+                    base_tables.task_table_title(model, track),
+                ),
             )
         )
     shown: dict[str, active_passive.TrackComparison] = {}
@@ -145,35 +156,48 @@ def write_report(
     for model, cmp in shown.items():
         pngs.append(
             (
-                "active_passive",
                 f"active_passive_{_slug(model)}.png",
-                f"{model}: active vs passive ({tables.runs_label(cmp.runs)})",
-                figures.active_passive_figure(cmp, order),
+                html.Figure(
+                    "active_passive",
+                    f"{model}: active vs passive ({tables.runs_label(cmp.runs)})",
+                    figures.active_passive_figure(cmp, order),
+                    base_tables.comparison_table_title(cmp),
+                ),
             )
         )
 
+    alerts = _alerts(results, len(unresolved))
     summary = _summary(results, macro_spreads, comparisons, len(unresolved))
     written: list[Path] = []
     fig_dir = out_dir / FIGURES
     fig_dir.mkdir(parents=True, exist_ok=True)
-    for _, name, _, png in pngs:
-        written.append(_write(fig_dir / name, png))
-    keep = {name for _, name, _, _ in pngs}
+    for name, f in pngs:
+        written.append(_write(fig_dir / name, f.png))
+    keep = {name for name, _ in pngs}
     for stale in fig_dir.glob("*.png"):
         if stale.name not in keep:
             stale.unlink()
-    md_parts = ["# VA-Bench report\n", "".join(f"- {s}\n" for s in summary)]
+    md_parts = [
+        "# VA-Bench report\n",
+        "".join(f"- **{a}**\n" for a in alerts) + "".join(f"- {s}\n" for s in summary),
+    ]
     for section in sections:
         text = tables.section_markdown(section)
         written.append(_write(out_dir / f"{section.name}.md", text.encode()))
-        links = [f"![{t}]({FIGURES}/{n})\n" for s, n, t, _ in pngs if s == section.name]
+        links = [f"![{f.title}]({FIGURES}/{n})\n" for n, f in pngs if f.section == section.name]
         md_parts += [text, *links]
         for table in section.csvs:
             written.append(_write(out_dir / f"{table.name}.csv", tables.to_csv(table).encode()))
     written.append(_write(out_dir / REPORT_MD, "\n".join(md_parts).encode()))
-    page = html.render("VA-Bench report", summary, sections, [(s, t, png) for s, _, t, png in pngs])
+    page = html.render(
+        "VA-Bench report",
+        summary,
+        sections,
+        [f for _, f in pngs],
+        alerts,
+    )
     written.append(_write(out_dir / REPORT_HTML, page.encode()))
-    return ReportOutput(out_dir, written, summary)
+    return ReportOutput(out_dir, written, alerts + summary)
 
 
 def track_sections(
@@ -191,9 +215,7 @@ def track_sections(
             arms,
             notes + more + summaries.failed_summary_notes(results.scored),
         ),
-        summary_tables.learning_section(
-            summaries.learning_rows(RunDir(results.path.parent).summaries)
-        ),
+        summary_tables.learning_section(summaries.learning_rows(RunDir(results.path.parent))),
     ]
     if meta is not None:
         sections += [
@@ -214,6 +236,40 @@ def diagnostic_sections(run_dir: Path) -> list[tables.Section]:
     return [] if data is None else diagnostics.sections(data)
 
 
+def macro_headline(s: stats.Spread) -> str:
+    """ "45.83 ± 5.89 % (mean ± SD over 2 runs)", or "8.33 % (1 run)": the unit after the
+    number, the runs after both."""
+    if s.sd is None:
+        return f"{tables.pct(s.mean)} % ({s.n} run)"
+    return f"{tables.pct(s.mean)} ± {tables.pct(s.sd)} % (mean ± SD over {s.n} runs)"
+
+
+def planned_episodes(run: RunDir) -> int | None:
+    """How many episodes the sweep planned (RUN_DIR/plan.json, written before the first
+    episode); None without a readable plan (a run directory made by hand, or by an old
+    sweep)."""
+    try:
+        plan = json.loads(run.plan.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    episodes = plan.get("episodes") if isinstance(plan, dict) else plan  # version 1: a list
+    return len(episodes) if isinstance(episodes, list) else None
+
+
+def _alerts(results: Results, n_unresolved: int) -> list[str]:
+    """What a reader must know before any number: an unfinished sweep's numbers cover only the
+    episodes scored so far, so they can move anywhere when it finishes."""
+    planned = planned_episodes(RunDir(results.path.parent))
+    scored = len(results.scored)
+    if planned is None or scored >= planned:
+        return []
+    unscored = f" ({n_unresolved:,} more ended without a score)" if n_unresolved else ""
+    return [
+        f"incomplete sweep: {scored:,} of {planned:,} planned episodes scored{unscored}; "
+        "every number below covers only those"
+    ]
+
+
 def _summary(
     results: Results,
     spreads: Mapping[tuple[str, str, str], stats.Spread],
@@ -226,10 +282,7 @@ def _summary(
     ]
     for (model, track, subset), s in spreads.items():
         if subset == "all":
-            lines.append(
-                f"{model} / {track}: macro-average success {tables.mean_sd_text(s)} % "
-                f"over {s.n} run(s)"
-            )
+            lines.append(f"{model} / {track}: macro-average success {macro_headline(s)}")
     for cmp in comparisons:
         left_out = (
             f" ({len(cmp.skipped)} families left out: every episode skipped under one protocol)"

@@ -10,13 +10,18 @@ from __future__ import annotations
 import io
 from collections.abc import Mapping, Sequence
 
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.container import BarContainer
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 
 from vabench.report.active_passive import TrackComparison, in_order
 from vabench.report.stats import SUBSET_TITLES, SUBSETS, Cell, Spread
 
 _DPI = 110
+_OUTSIDE: dict = {"fontsize": 8, "loc": "upper left", "bbox_to_anchor": (1.01, 1.0)}
+"""Legends right of the axes: inside, they would cover the bars near 100 %."""
 
 
 def _png(fig: Figure) -> bytes:
@@ -24,6 +29,12 @@ def _png(fig: Figure) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=_DPI, bbox_inches="tight", metadata={"Software": None})
     return buf.getvalue()
+
+
+def _values(ax: Axes, bars: BarContainer, values: Sequence[float]) -> None:
+    """Each bar's value above it: a bar at 0 % is otherwise no bar at all, and a reader cannot
+    tell a failed family from a missing one."""
+    ax.bar_label(bars, labels=[f"{v:.0f}" for v in values], fontsize=7, padding=2)
 
 
 def task_success_figure(
@@ -42,7 +53,8 @@ def task_success_figure(
     fig = Figure(figsize=(max(6.0, 0.55 * len(tasks) + 2), 4.2))
     ax = fig.add_subplot()
     xs = range(len(tasks))
-    ax.bar(xs, means, yerr=sds, capsize=3, color="#4C72B0", alpha=0.8, label="mean ± SD")
+    bars = ax.bar(xs, means, yerr=sds, capsize=3, color="#4C72B0", alpha=0.8, label="mean ± SD")
+    _values(ax, bars, means)
     for i, task in enumerate(tasks):
         runs = [100 * float(c.rate) for c in mine if c.task == task]
         # spread the run dots sideways so equal rates of different runs stay visible
@@ -59,7 +71,7 @@ def task_success_figure(
     ax.set_ylim(0, 105)
     ax.set_ylabel("success (%)")
     ax.set_title(f"{model} — {track}: per-task success")
-    ax.legend(fontsize=8, loc="upper right")
+    ax.legend(**_OUTSIDE)
     return _png(fig)
 
 
@@ -72,8 +84,10 @@ def active_passive_figure(cmp: TrackComparison, order: Sequence[str]) -> bytes:
     fig = Figure(figsize=(max(6.0, 0.55 * len(tasks) + 2), 4.2))
     ax = fig.add_subplot()
     xs = list(range(len(tasks)))
-    ax.bar([x - 0.2 for x in xs], active, width=0.4, label="active", color="#4C72B0")
-    ax.bar([x + 0.2 for x in xs], passive, width=0.4, label="passive", color="#DD8452")
+    bars = ax.bar([x - 0.2 for x in xs], active, width=0.4, label="active", color="#4C72B0")
+    _values(ax, bars, active)
+    bars = ax.bar([x + 0.2 for x in xs], passive, width=0.4, label="passive", color="#DD8452")
+    _values(ax, bars, passive)
     ax.set_xticks(xs, tasks, rotation=60, ha="right", fontsize=8)
     ax.set_ylim(0, 105)
     ax.set_ylabel("success (%)")
@@ -85,16 +99,24 @@ def active_passive_figure(cmp: TrackComparison, order: Sequence[str]) -> bytes:
         + (f" ({len(cmp.skipped)} all-skipped left out)" if cmp.skipped else ""),
         fontsize=9,
     )
-    ax.legend(fontsize=8)
+    ax.legend(**_OUTSIDE)
     return _png(fig)
 
 
+SUBSET_COLOURS = {"single": "#4C72B0", "dual": "#DD8452", "all": "#55A868"}
+"""Fixed per subset: a subset without bars must not shift the others' colours, nor take a
+colour of theirs in the legend (matplotlib gives an empty bar series the first colour)."""
+
+
 def macro_figure(spreads: Mapping[tuple[str, str, str], Spread]) -> bytes:
-    """Macro-average success per model and track (mean ± SD) for each family subset."""
+    """Macro-average success per model and track (mean ± SD) for each family subset. A subset
+    with no family in any run is named in the legend as having no data, hatched and empty;
+    without any scored episode the axes say so."""
     pairs = sorted({(m, t) for m, t, _ in spreads})
     fig = Figure(figsize=(max(6.0, 1.2 * len(pairs) + 2), 4.2))
     ax = fig.add_subplot()
     width = 0.8 / len(SUBSETS)
+    handles = []
     for j, subset in enumerate(SUBSETS):
         xs, ys, es = [], [], []
         for i, pair in enumerate(pairs):
@@ -103,10 +125,20 @@ def macro_figure(spreads: Mapping[tuple[str, str, str], Spread]) -> bytes:
                 xs.append(i + (j - 1) * width)
                 ys.append(100 * float(s.mean))
                 es.append(100 * (s.sd or 0.0))
-        ax.bar(xs, ys, width=width, yerr=es, capsize=3, label=SUBSET_TITLES[subset])
+        colour = SUBSET_COLOURS[subset]
+        _values(ax, ax.bar(xs, ys, width=width, yerr=es, capsize=3, color=colour), ys)
+        title = SUBSET_TITLES[subset]
+        handles.append(
+            Patch(facecolor=colour, label=title)
+            if xs
+            else Patch(facecolor="white", edgecolor=colour, hatch="//", label=f"{title} (no data)")
+        )
     ax.set_xticks(range(len(pairs)), [f"{m}\n{t}" for m, t in pairs], fontsize=8)
     ax.set_ylim(0, 105)
     ax.set_ylabel("macro-average success (%)")
     ax.set_title("Macro-average success, mean ± sample SD across runs")
-    ax.legend(fontsize=8)
+    if pairs:
+        ax.legend(handles=handles, **_OUTSIDE)
+    else:
+        ax.text(0.5, 0.5, "no scored episode yet", ha="center", va="center", transform=ax.transAxes)
     return _png(fig)

@@ -11,7 +11,8 @@ pure functions over condition cells (`conditions`) and RUN_DIR/summaries/.
 - Cross-model: a model's rate under a mode is pooled success (successes / episodes) over its
   matched tasks and matched runs; Δ = shared − own. The avg row averages the models' rates
   unweighted; its Δ leaves out the summary author (whose own summary is the shared one).
-- Learning stage: one row per session file RUN_DIR/summaries/<model>/<family>.json.
+- Learning stage: one row per session file RUN_DIR/summaries/<model>/<family>.json
+  (`summary_files`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Any
 
 from vabench.report.conditions import OWN, CondCell
 from vabench.report.stats import SUBSETS, Spread, average, mean_sd_or_none, subset_of
+from vabench.run_layout import LEARNING_RESULT, RESULT, RunDir
 from vabench.run_records import Record, ReportError, validation_problems
 
 
@@ -241,16 +243,31 @@ class LearningRow:
     learn_refusals: int
 
 
-def learning_rows(summaries_dir: Path) -> list[LearningRow]:
-    """One row per RUN_DIR/summaries/<model>/<family>.json (none when the folder is absent)."""
-    if not summaries_dir.is_dir():
+def summary_files(run: RunDir) -> list[Path]:
+    """Every stored `LearningResult`, RUN_DIR/summaries/<model>/<family>.json, sorted.
+
+    A model name may hold slashes (`vendor/model`, folders within folders), so a summary is not
+    always one folder down (`RunDir.summary_files` looks there only). Beside each summary lies
+    its session's folder, whose result (`LEARNING_RESULT`, also in set-aside attempts) is a
+    second copy of the same session: read, it would list every session twice. Those are the
+    only other .json files under summaries/."""
+    if not run.summaries.is_dir():
+        return []
+    records = (LEARNING_RESULT, RESULT)
+    return sorted(p for p in run.summaries.rglob("*.json") if p.name not in records)
+
+
+def learning_rows(run: RunDir) -> list[LearningRow]:
+    """One row per learning session (`summary_files`; none when the sweep learned nothing)."""
+    paths = summary_files(run)
+    if not paths:
         return []
     from pydantic import ValidationError
 
     from vabench.agent.learning import read_result  # the agent stack: only when needed
 
     rows = []
-    for path in sorted(summaries_dir.rglob("*.json")):
+    for path in paths:
         try:
             r = read_result(path)
         except json.JSONDecodeError as exc:
