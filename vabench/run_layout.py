@@ -179,8 +179,16 @@ class RunDir:
         return self.summaries / model / f"{family}.json"
 
     def summary_files(self) -> list[Path]:
-        """Every stored `LearningResult` (`summary`), sorted."""
-        return sorted(self.summaries.glob("*/*.json"))
+        """Every stored `LearningResult` (`summary`), RUN_DIR/summaries/<model>/<family>.json,
+        sorted. A model name may hold slashes (`vendor/model`: folders within folders), so a
+        summary is not always one folder down; beside each lies its session's folder, whose
+        results (`LEARNING_RESULT`, `RESULT` in set-aside attempts) are second copies of the same
+        session: read, they would list every session twice. Those are the only other .json
+        files under summaries/."""
+        if not self.summaries.is_dir():
+            return []
+        copies = (LEARNING_RESULT, RESULT)
+        return sorted(p for p in self.summaries.rglob("*.json") if p.name not in copies)
 
     def summary_lock(self, model: str, family: str) -> Path:
         """The file lock held by the one process learning (model, family)."""

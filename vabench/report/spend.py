@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 from vabench.report.stats import TOKEN_FIELDS
-from vabench.report.summaries import summary_files
 from vabench.run_layout import (
     ATTEMPT_PREFIX,
     EPISODES,
@@ -146,7 +145,7 @@ def bill(run_dir: Path | str) -> Bill:
         _add_record(row(str(record.get("model")), SOURCES[2]), record)
     for record in jsonl_objects(files.duplicates):
         _add_record(row(str(record.get("model")), SOURCES[4]), record)
-    for path in summary_files(files):
+    for path in files.summary_files():
         try:
             learned = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError):

@@ -12,7 +12,7 @@ pure functions over condition cells (`conditions`) and RUN_DIR/summaries/.
   matched tasks and matched runs; Δ = shared − own. The avg row averages the models' rates
   unweighted; its Δ leaves out the summary author (whose own summary is the shared one).
 - Learning stage: one row per session file RUN_DIR/summaries/<model>/<family>.json
-  (`summary_files`).
+  (`RunDir.summary_files`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from typing import Any
 
 from vabench.report.conditions import OWN, CondCell
 from vabench.report.stats import SUBSETS, Spread, average, mean_sd_or_none, subset_of
-from vabench.run_layout import LEARNING_RESULT, RESULT, RunDir
+from vabench.run_layout import RunDir
 from vabench.run_records import Record, ReportError, validation_problems
 
 
@@ -243,23 +243,10 @@ class LearningRow:
     learn_refusals: int
 
 
-def summary_files(run: RunDir) -> list[Path]:
-    """Every stored `LearningResult`, RUN_DIR/summaries/<model>/<family>.json, sorted.
-
-    A model name may hold slashes (`vendor/model`, folders within folders), so a summary is not
-    always one folder down (`RunDir.summary_files` looks there only). Beside each summary lies
-    its session's folder, whose result (`LEARNING_RESULT`, also in set-aside attempts) is a
-    second copy of the same session: read, it would list every session twice. Those are the
-    only other .json files under summaries/."""
-    if not run.summaries.is_dir():
-        return []
-    records = (LEARNING_RESULT, RESULT)
-    return sorted(p for p in run.summaries.rglob("*.json") if p.name not in records)
-
-
 def learning_rows(run: RunDir) -> list[LearningRow]:
-    """One row per learning session (`summary_files`; none when the sweep learned nothing)."""
-    paths = summary_files(run)
+    """One row per learning session (`RunDir.summary_files`; none when the sweep learned
+    nothing)."""
+    paths = run.summary_files()
     if not paths:
         return []
     from pydantic import ValidationError
