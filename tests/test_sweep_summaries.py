@@ -56,6 +56,11 @@ async def run_sweep(doc: dict[str, Any], tmp_path: Path, out: Path) -> LocalSwee
     return sweep
 
 
+def ledger_lines(out: Path) -> list[dict[str, Any]]:
+    """The ledger's whole lines (`Ledger.records` keeps only each line's outcome)."""
+    return [json.loads(x) for x in RunDir(out).results.read_text().splitlines()]
+
+
 def requests(server: LocalServer) -> list[tuple[str, str, str]]:
     """(model, system text, last user text) of every captured request."""
     out = []
@@ -107,7 +112,7 @@ def test_one_learning_per_model_and_family_for_three_runs_of_twenty_seeds(tmp_pa
             evaluation = [(m, t) for m, s, t in requests(server) if P.LEARNING_STAGE_MARK not in s]
             assert len(evaluation) == 2 * 20 * 3
             assert all(texts[m] in t for m, t in evaluation)
-            for record in sweep.ledger.records.values():
+            for record in ledger_lines(out):
                 model = record["model"]
                 assert (record["summary_mode"], record["summary_from"]) == ("own", model)
                 assert record["summary_status"] == "learned"
@@ -135,8 +140,8 @@ def test_own_shared_and_none_tracks_show_whose_summary(tmp_path):
                 {"name": "active_none", "protocol": "active", "summaries": "none"},
             ]
             out = tmp_path / "out"
-            sweep = await run_sweep(sweep_doc(server, ["m1", "m2"], tracks=tracks), tmp_path, out)
-            records = {(r["model"], r["track"]): r for r in sweep.ledger.records.values()}
+            await run_sweep(sweep_doc(server, ["m1", "m2"], tracks=tracks), tmp_path, out)
+            records = {(r["model"], r["track"]): r for r in ledger_lines(out)}
             text = {m: read_result(RunDir(out).summary(m, TASK)).summary_text for m in ("m1", "m2")}
             assert text["m1"] and text["m2"] and text["m1"] != text["m2"]
             expected = {
@@ -181,7 +186,7 @@ def test_a_failed_session_is_final_and_an_infrastructure_failure_is_retried(tmp_
             assert failed.status == "failed" and failed.stop_reason == "invalid_output"
             assert not RunDir(out).summary("m2", TASK).exists()
             assert len(sweep.ledger.records) == 2 * 3
-            records = {r["model"]: r for r in sweep.ledger.records.values()}  # any one per model
+            records = {r["model"]: r for r in ledger_lines(out)}  # any one per model
             assert (
                 records["m1"]["summary_status"] == "failed"
                 and records["m1"]["summary_from"] is None
@@ -226,8 +231,8 @@ def test_a_held_out_variant_reads_its_base_familys_summary(tmp_path):
         async with LocalServer(config, capture_bodies=True) as server:
             doc = sweep_doc(server, ["m1"], tracks=["active", "transfer"], seeds={"verified": 1})
             out = tmp_path / "out"
-            sweep = await run_sweep(doc, tmp_path, out)
-            tasks = {r["task"]: r for r in sweep.ledger.records.values()}
+            await run_sweep(doc, tmp_path, out)
+            tasks = {r["task"]: r for r in ledger_lines(out)}
             assert set(tasks) == {TASK, f"{TASK}_heldout"}
             assert learning_sessions(out) == {("m1", TASK): 1}
             text = read_result(RunDir(out).summary("m1", TASK)).summary_text

@@ -82,9 +82,11 @@ def test_annotate_an_episode_in_the_browser(viewer, page):
     page.goto(url + "/")
     ready(page)
     assert page.locator("#episodes tbody tr").count() == 2
-    page.select_option("#f-track", "passive")
+    page.select_option("#f-track", "passive")  # the server filters: wait for its page
+    ready(page)
     assert page.locator("#episodes tbody tr").count() == 1
     page.select_option("#f-track", "")
+    ready(page)
     page.fill("#annotator", "alice")
     page.dispatch_event("#annotator", "change")
     page.click(f"#episodes tbody tr[data-id='{ACTIVE}'] a")

@@ -27,12 +27,18 @@ A second line for an episode already in the ledger (two writers raced: a worker 
 sweep and its resumption) is not fatal: `open()` keeps the first, moves the others to
 RUN_DIR/results.duplicates.jsonl (their spend still counts in the report) and reports them in
 `Ledger.collapsed`.
+
+In memory the ledger keeps what the sweep decides on, each line's `OUTCOME` fields, not the
+whole line: a sweep of 200,000 episodes holds ~0.2 GB of lines that decoded to ~0.8 GB of
+dicts; the report and the viewer read the file (`vabench.run_records`). Pydantic reads those
+fields straight from each line's JSON (`_OUTCOME`), skipping the rest.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import io
 import json
 import os
 from collections import Counter
@@ -41,8 +47,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pydantic import TypeAdapter, ValidationError
+from typing_extensions import TypedDict
+
 from vabench.agent.records import RECORD_VERSION, EpisodeResult, read_result
-from vabench.run_layout import DUPLICATES, INFRASTRUCTURE, RESULTS, EpisodeDir, RunDir
+from vabench.run_layout import DUPLICATES, INFRASTRUCTURE, RESULT, RESULTS, EpisodeDir, RunDir
 
 Key = tuple[str, str, str, int, int]
 Sink = Callable[[str, dict[str, Any]], None]
@@ -69,12 +78,50 @@ class LedgerError(ValueError):
     pass
 
 
+class Outcome(TypedDict, total=False):
+    """What `Ledger.records` keeps of a line: the episode's key, where it ran and how it
+    ended (what resuming, the progress counts and the closing list of unscored episodes
+    read). The key's fields are required; a line without them is not a record."""
+
+    model: str
+    track: str
+    task: str
+    seed: int
+    run: int
+    episode_dir: str
+    status: str
+    success: bool
+    stop_reason: str
+    error: str | None
+
+
+OUTCOME: tuple[str, ...] = tuple(Outcome.__annotations__)
+_KEY = ("model", "track", "task", "seed", "run")
+_OUTCOME = TypeAdapter(Outcome)
+
+
+def outcome(record: dict[str, Any]) -> dict[str, Any]:
+    """The `OUTCOME` fields of a whole record (one `add` builds or a worker sends)."""
+    return {k: record[k] for k in OUTCOME if k in record}
+
+
+def read_outcome(line: bytes) -> dict[str, Any]:
+    """A ledger line's `OUTCOME` fields, validated from its JSON; `LedgerError`-worthy lines
+    raise `ValueError` (pydantic's `ValidationError`, a missing key field)."""
+    found = _OUTCOME.validate_json(line)
+    missing = [k for k in _KEY if k not in found]
+    if missing:
+        raise ValueError(f"no {', '.join(missing)}")
+    return dict(found)
+
+
 @dataclass
 class Ledger:
     """What has finished (loaded at start, appended as episodes end)."""
 
     run_dir: Path
     records: dict[Key, dict[str, Any]] = field(default_factory=dict)
+    """Key -> the line's `OUTCOME` fields (the whole line stays in results.jsonl)."""
     infra_attempts: Counter = field(default_factory=Counter)
     sink: Sink | None = None
     """Set in a worker whose parent writes the logs (`executor: processes`)."""
@@ -95,7 +142,7 @@ class Ledger:
         if infra.exists():
             for line in _read_whole_lines(infra):
                 if line.strip():
-                    ledger.infra_attempts[key_of(json.loads(line))] += 1
+                    ledger.infra_attempts[key_of(read_outcome(line))] += 1
         return ledger
 
     def finished(self, key: Key) -> bool:
@@ -119,7 +166,7 @@ class Ledger:
             if key in self.records:
                 raise LedgerError(f"refusing a second record for {key}")
             self._append(RESULTS, record)
-            self.records[key] = record
+            self.records[key] = outcome(record)
         elif name == INFRASTRUCTURE:
             self._append(INFRASTRUCTURE, record)
             self.infra_attempts[key_of(record)] += 1
@@ -142,7 +189,7 @@ class Ledger:
         if key in self.records:
             raise LedgerError(f"refusing a second record for {key}")
         self._append(RESULTS, record)
-        self.records[key] = record
+        self.records[key] = outcome(record)
         return record
 
     def add_infrastructure_failure(
@@ -161,24 +208,24 @@ class Ledger:
 def _load_collapsing(
     path: Path, aside: Path, rewrite: bool = True
 ) -> tuple[dict[Key, dict[str, Any]], list[str]]:
-    """The ledger's records by key; second records of a key are moved to `aside` (each line
-    once, even if a crash repeats the move) and the ledger rewritten in place without them,
-    all under the ledger's lock."""
+    """The ledger's records (`OUTCOME`s) by key; second records of a key are moved to `aside`
+    (each line once, even if a crash repeats the move) and the ledger rewritten in place
+    without them, all under the ledger's lock."""
     records: dict[Key, dict[str, Any]] = {}
-    kept: list[str] = []
-    moved: list[str] = []
+    moved: dict[int, bytes] = {}
     notes: list[str] = []
     with _locked(path, os.O_RDWR) as fd:
-        for n, line in enumerate(_whole_lines(fd), 1):
+        data = _whole_data(fd)
+        for n, line in enumerate(io.BytesIO(data), 1):  # one line at a time, never a list
             if not line.strip():
                 continue
             try:
-                record = json.loads(line)
+                record = read_outcome(line)
                 key = key_of(record)
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
-                raise LedgerError(f"{path}:{n}: not a result record ({err})") from None
+            except (KeyError, TypeError, ValueError) as err:
+                raise LedgerError(f"{path}:{n}: not a result record ({_why(err)})") from None
             if key in records:
-                moved.append(line)
+                moved[n] = line.rstrip(b"\n")
                 notes.append(
                     f"{path}:{n}: a second record for {'/'.join(map(str, key))} "
                     f"(status {record.get('status')}); kept the first, moved this one to "
@@ -186,20 +233,32 @@ def _load_collapsing(
                 )
                 continue
             records[key] = record
-            kept.append(line)
         if moved and rewrite:
-            known = set(aside.read_text(encoding="utf-8").splitlines()) if aside.exists() else set()
-            with open(aside, "a", encoding="utf-8") as f:
-                f.writelines(line + "\n" for line in moved if line not in known)
+            known = set(aside.read_bytes().splitlines()) if aside.exists() else set()
+            with open(aside, "ab") as f:
+                f.writelines(line + b"\n" for line in moved.values() if line not in known)
                 f.flush()
                 os.fsync(f.fileno())
-            data = "".join(line + "\n" for line in kept).encode("utf-8")
+            data = b"".join(
+                line
+                for n, line in enumerate(io.BytesIO(data), 1)
+                if n not in moved and line.strip()
+            )
             os.lseek(fd, 0, os.SEEK_SET)
             os.ftruncate(fd, 0)
             while data:
                 data = data[os.write(fd, data) :]
             os.fsync(fd)
     return records, notes
+
+
+def _why(err: Exception) -> str:
+    """One line of what is wrong with a line that is not a record."""
+    if isinstance(err, ValidationError):
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        return f"{where + ': ' if where else ''}{first['msg']}"
+    return str(err)
 
 
 @contextlib.contextmanager
@@ -218,15 +277,17 @@ def _locked(path: Path, flags: int) -> Iterator[int]:
         os.close(fd)  # releases the lock
 
 
-def _read_whole_lines(path: Path) -> list[str]:
+def _read_whole_lines(path: Path) -> list[bytes]:
     """The lines of a JSONL log, after dropping a last line without its newline (a write cut
     short by a kill). Under the log's lock, so another process's append is never cut."""
     with _locked(path, os.O_RDWR) as fd:
-        return _whole_lines(fd)
+        return _whole_data(fd).splitlines()
 
 
-def _whole_lines(fd: int) -> list[str]:
-    """`_read_whole_lines` on a descriptor whose lock the caller holds."""
+def _whole_data(fd: int) -> bytes:
+    """A log's bytes up to its last newline, the rest (a line cut short) cut off the file;
+    on a descriptor whose lock the caller holds. Bytes, not text: the lines go to pydantic's
+    JSON reader undecoded."""
     os.lseek(fd, 0, os.SEEK_SET)
     chunks = []
     while chunk := os.read(fd, 1 << 20):
@@ -235,7 +296,7 @@ def _whole_lines(fd: int) -> list[str]:
     if data and not data.endswith(b"\n"):
         data = data[: data.rfind(b"\n") + 1]
         os.ftruncate(fd, len(data))
-    return data.decode("utf-8").splitlines()
+    return data
 
 
 def set_aside(episode_dir: Path) -> None:
@@ -250,5 +311,9 @@ def set_aside(episode_dir: Path) -> None:
 
 
 def recover(run_dir: Path, episode_dir: str) -> EpisodeResult | None:
-    """The result.json of an episode that finished but never reached the ledger, if any."""
+    """The result.json of an episode that finished but never reached the ledger, if any.
+    A resume asks this of every unfinished episode, nearly always of one without a result:
+    that answer is one `stat`, without building paths."""
+    if not os.path.exists(os.path.join(run_dir, episode_dir, RESULT)):
+        return None
     return read_result(run_dir / episode_dir)

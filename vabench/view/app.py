@@ -5,7 +5,10 @@ Pages (plain HTML, CSS and JS from `static/`; every value is inserted as text, n
     /episode?id=ID         the timeline of one episode and the annotation panel
     /diagnostics           the diagnostics, agreement and vote-rule tables of the annotations
 JSON:
-    GET  /api/run                              episodes and who annotated them
+    GET  /api/run?model=&track=&task=&outcome=&offset=&limit=
+                                               one page of the episodes passing the filters,
+                                               who annotated them, and the filters' values
+    GET  /api/neighbours?id=ID&<filters>       the episodes before and after ID (n/p keys)
     GET  /api/episode?id=ID                    the timeline (vabench.view.timeline)
     GET  /api/frame?episode=ID&file=frames/..  one image the model saw
     GET  /api/rubric                           criteria, gates, rubric text
@@ -35,12 +38,15 @@ from vabench.diagnostics.episodes import RunIndex, UnknownEpisode
 from vabench.diagnostics.store import (
     AnnotationError,
     AnnotationStore,
+    Judgment,
+    Key,
     activation,
     check_annotator,
     gate_votes,
     majority,
 )
 from vabench.run_layout import EpisodeDir, RunDir
+from vabench.view.listing import Listing, LiveIndex, filters_of, paging_of
 from vabench.view.timeline import build_timeline
 
 STATIC = Path(__file__).parent / "static"
@@ -63,24 +69,39 @@ def _error(status: int, message: str, field: str = "") -> web.Response:
 
 
 class Viewer:
-    """Holds the run's index (reloaded when results.jsonl changes) and its annotation store."""
+    """Holds the run's index (kept current while the sweep writes: `listing.LiveIndex`), its
+    episode listing and its annotation store."""
 
     def __init__(self, run_dir: Path | str):
         self.run_dir = Path(run_dir)
-        self._index = RunIndex.load(self.run_dir)  # raises RunDirError with a clear message
-        self._stamp = self._results_stamp()
-        self.store = AnnotationStore(self._index)
-
-    def _results_stamp(self) -> int:
-        return RunDir(self.run_dir).results.stat().st_mtime_ns
+        self.live = LiveIndex(self.run_dir)  # raises RunDirError with a clear message
+        self.listing = Listing(self.live)
+        self.store = AnnotationStore(self.live.index)
+        self._reloads = self.live.reloads
+        self._state: tuple[Any, dict[Key, Judgment]] = (None, {})
+        # What the run page's first request needs, ready before the viewer says it serves.
+        self.listing.matching({})
+        self.judgments()
 
     @property
     def index(self) -> RunIndex:
-        stamp = self._results_stamp()
-        if stamp != self._stamp:  # the sweep is still writing: pick up new episodes
-            self._index, self._stamp = RunIndex.load(self.run_dir), stamp
-            self.store = AnnotationStore(self._index)
-        return self._index
+        if self.live.refresh():  # the sweep is still writing: pick up new episodes
+            if self.live.reloads != self._reloads:  # read from the start: a new store
+                self.store = AnnotationStore(self.live.index)
+                self._reloads = self.live.reloads
+            else:  # grown: the store's judgments all name episodes it still holds
+                self.store.index = self.live.index
+        return self.live.index
+
+    def judgments(self) -> dict[Key, Judgment]:
+        """The judgments in force (`AnnotationStore.state`), computed again only when an
+        annotation file changed: every request reads them, and at 100,000 judgments that
+        takes a tenth of a second."""
+        files = RunDir(self.run_dir).annotation_files()
+        stamp = (self.store, [(f, f.stat().st_size, f.stat().st_mtime_ns) for f in files])
+        if self._state[0] != stamp:
+            self._state = (stamp, self.store.state())
+        return self._state[1]
 
     def app(self) -> web.Application:
         app = web.Application(middlewares=[self._guard], client_max_size=64 * 1024)
@@ -89,6 +110,7 @@ class Viewer:
         app.router.add_get("/diagnostics", self.diagnostics_page)
         app.router.add_static("/static/", STATIC, follow_symlinks=False)
         app.router.add_get("/api/run", self.run)
+        app.router.add_get("/api/neighbours", self.neighbours)
         app.router.add_get("/api/episode", self.episode)
         app.router.add_get("/api/frame", self.frame)
         app.router.add_get("/api/rubric", self.rubric)
@@ -123,17 +145,27 @@ class Viewer:
     # -- run and episodes -------------------------------------------------------------------
     async def run(self, request: web.Request) -> web.Response:
         index = self.index
-        state = self.store.state()
+        try:
+            offset, limit = paging_of(request.query)
+        except ValueError as err:
+            return _error(400, str(err), str(err).split(":")[0])
+        page = self.listing.page(filters_of(request.query), offset, limit)
+        shown = {ref.id for ref in page["episodes"]}
         annotated: dict[str, set[str]] = {}
-        for episode, annotator, _ in state:
-            annotated.setdefault(episode, set()).add(annotator)
-        episodes = [
-            {**e.summary(), "annotators": sorted(annotated.get(e.id, ()))}
-            for e in index.episodes.values()
+        for episode, annotator, _ in self.judgments():
+            if episode in shown:
+                annotated.setdefault(episode, set()).add(annotator)
+        page["episodes"] = [
+            {**ref.summary(), "annotators": sorted(annotated.get(ref.id, ()))}
+            for ref in page["episodes"]
         ]
         return web.json_response(
-            {"run_dir": str(index.run_dir), "name": index.run_dir.name, "episodes": episodes}
+            {"run_dir": str(index.run_dir), "name": index.run_dir.name, **page}
         )
+
+    async def neighbours(self, request: web.Request) -> web.Response:
+        episode = self._episode_id(request)
+        return web.json_response(self.listing.neighbours(filters_of(request.query), episode))
 
     def _episode_id(self, request: web.Request, key: str = "id") -> str:
         episode = request.query.get(key, "")
@@ -192,8 +224,9 @@ class Viewer:
     def _annotation_state(self, episode: str, annotator: str) -> dict[str, Any]:
         """What the annotator sees: their own judgments, each gate's vote count and majority
         (not the other annotators' values: judgments stay independent), and which criteria
-        are activated for them."""
-        state = self.store.state()
+        are activated for them. Computed from this episode's judgments alone: the vote
+        helpers scan what they are given, once per gate and criterion."""
+        state = {k: j for k, j in self.judgments().items() if k[0] == episode}
         own = {
             item: j.value for (e, a, item), j in state.items() if e == episode and a == annotator
         }

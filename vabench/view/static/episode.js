@@ -80,12 +80,19 @@ function goStep(step) {
   if (i >= 0) setStep(i);
 }
 
+// The episodes before and after this one in the run page's filtered order (its filters are in
+// sessionStorage; the server finds the neighbours, however many episodes pass them).
+let NEIGHBOURS = { previous: null, next: null };
+
+async function loadNeighbours() {
+  const filters = sessionStorage.getItem(ORDER_KEY) || "";
+  const query = new URLSearchParams(filters.startsWith("[") ? "" : filters);
+  query.set("id", EPISODE);
+  NEIGHBOURS = await getJSON("/api/neighbours?" + query);
+}
+
 function neighbour(delta) {
-  let order = [];
-  try { order = JSON.parse(sessionStorage.getItem(ORDER_KEY) || "[]"); } catch (e) { order = []; }
-  const i = order.indexOf(EPISODE);
-  if (i < 0 || !order[i + delta]) return null;
-  return order[i + delta];
+  return delta > 0 ? NEIGHBOURS.next : NEIGHBOURS.previous;
 }
 
 function goEpisode(delta) {
@@ -178,6 +185,7 @@ async function main() {
     ` · ${s.robot_actions} robot, ${s.camera_actions} camera, ${s.invalid_actions} failed actions`,
     evaluatorPanel(ep.reset, "EVALUATOR-ONLY — state after reset (never sent to any model)"));
   document.getElementById("steps").replaceChildren(...ep.steps.map(stepCard));
+  await loadNeighbours();
   document.getElementById("prev-episode").disabled = !neighbour(-1);
   document.getElementById("next-episode").disabled = !neighbour(1);
   document.getElementById("prev-episode").addEventListener("click", () => goEpisode(-1));
