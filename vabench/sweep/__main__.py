@@ -54,7 +54,7 @@ from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
 from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import Ledger, LedgerError, ledger_key  # noqa: E402
-from vabench.sweep.rundir import RunDirMismatch, check_run_dir  # noqa: E402
+from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
 from vabench.sweep.runner import LocalSweep, SweepStopped  # noqa: E402
 
 log = logging.getLogger("vabench.sweep")
@@ -101,6 +101,10 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     if args.dry_run:
         print(format_estimate(estimate(config, keys)))
         print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
+        problem = run_dir_problem(run_dir, config, keys)  # what the run would refuse
+        if problem is not None:
+            print(f"error: {problem}", file=sys.stderr)
+            return 2
         if RunDir(run_dir).results.exists():
             done = len(Ledger.open(run_dir).records)
             print(f"{run_dir}: {done} of {len(keys)} episodes already finished")

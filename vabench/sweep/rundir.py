@@ -20,6 +20,7 @@ compared by ids and then upgraded in place.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -90,30 +91,47 @@ def differing_fields(before: dict[str, Any], now: dict[str, Any]) -> list[str]:
     return lines
 
 
+def run_dir_problem(run_dir: Path, config: SweepConfig, keys: list[EpisodeKey]) -> str | None:
+    """Why `run_dir` cannot hold this plan (None: it can), reading only: `--dry-run` says what
+    the run would refuse. A path that is a file, a directory that cannot be created or written,
+    or one made by another plan (the differing fields named)."""
+    if run_dir.exists() and not run_dir.is_dir():
+        return f"the run directory {run_dir} is a file; name a directory with --out DIR"
+    existing = next(p for p in (run_dir, *run_dir.parents) if p.exists())
+    if not existing.is_dir():
+        return f"the run directory {run_dir} cannot be made: {existing} is a file"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"the run directory {run_dir} cannot be written: {existing} is not writable"
+    path = RunDir(run_dir).plan
+    if not path.exists():
+        return None
+    ids = [k.as_id() for k in keys]
+    before = json.loads(path.read_text(encoding="utf-8"))
+    if isinstance(before, list):  # version 1: ids only
+        diff = [] if before == ids else [f"episodes: {len(before)} -> {len(ids)}"]
+    else:
+        diff = differing_fields(before.get("fields", {}), plan_identity(config))
+        if not diff and before.get("episodes") != ids:
+            diff = [f"episodes: {len(before.get('episodes', []))} -> {len(ids)}"]
+    return _refusal(run_dir, diff) if diff else None
+
+
 def check_run_dir(
     run_dir: Path, config: SweepConfig, keys: list[EpisodeKey], config_dump: dict[str, Any]
 ) -> None:
-    """Store the plan's identity in a new run directory, or refuse one made by another plan
-    (`RunDirMismatch` naming the differing fields); then write the resolved config."""
+    """Store the plan's identity in a new run directory, or refuse one it cannot use
+    (`RunDirMismatch`, with `run_dir_problem`'s message); then write the resolved config."""
+    problem = run_dir_problem(run_dir, config, keys)
+    if problem is not None:
+        raise RunDirMismatch(problem)
     files = RunDir(run_dir)
     path = files.plan
-    ids = [k.as_id() for k in keys]
-    fields = plan_identity(config)
-    if path.exists():
-        before = json.loads(path.read_text(encoding="utf-8"))
-        if isinstance(before, list):  # version 1: ids only
-            if before != ids:
-                raise RunDirMismatch(_refusal(run_dir, [f"episodes: {len(before)} -> {len(ids)}"]))
-        else:
-            diff = differing_fields(before.get("fields", {}), fields)
-            if not diff and before.get("episodes") != ids:
-                diff = [f"episodes: {len(before.get('episodes', []))} -> {len(ids)}"]
-            if diff:
-                raise RunDirMismatch(_refusal(run_dir, diff))
-            files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
-            return
+    if path.exists() and isinstance(json.loads(path.read_text(encoding="utf-8")), dict):
+        files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
+        return
     run_dir.mkdir(parents=True, exist_ok=True)
-    record = {"v": PLAN_VERSION, "fields": fields, "episodes": ids}
+    ids = [k.as_id() for k in keys]
+    record = {"v": PLAN_VERSION, "fields": plan_identity(config), "episodes": ids}
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(record), encoding="utf-8")
     tmp.replace(path)
