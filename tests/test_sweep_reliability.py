@@ -266,3 +266,41 @@ def test_a_wrong_key_stops_the_sweep_and_the_fixed_run_does_every_episode(
         if path.is_file():
             data = path.read_bytes()
             assert b"right-key" not in data and b"wrong-key" not in data, path
+
+
+def test_a_failed_gpu_stops_the_sweep_and_the_next_run_does_every_episode(
+    tmp_path, capsys, monkeypatch
+):
+    """On an H100 (2026-11-26) an illegal memory access killed the process's CUDA context 13 s
+    into a sweep; every later call on the device failed, and each of the 2,160 episodes was
+    recorded as a harness error within 26 s, none of them run again by a resume. A failed
+    device (`DeviceFailure`, raised by the Warp backends once the context reports its sticky
+    error) now stops the sweep like a refusing endpoint: nothing recorded for the episodes it
+    interrupted, the reason printed, and the same command runs every episode. The C backend
+    stands in for the GPU here: its step fails from the second action on, as a dead context's
+    calls do."""
+    from vabench.sim_mjx.cpu import CpuBatch
+    from vabench.sim_mjx.interface import DeviceFailure
+
+    cfg = write(tmp_path / "gpu.yaml", budget=3)
+    out = tmp_path / "out"
+    real = CpuBatch._execute
+    calls = {"n": 0}
+
+    def failing(self, rows):
+        calls["n"] += 1
+        if calls["n"] >= 2:
+            raise DeviceFailure("the CUDA context of cuda:0 failed (CUDA error 700: ...)")
+        return real(self, rows)
+
+    monkeypatch.setattr(CpuBatch, "_execute", failing)
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert "CUDA context of cuda:0 failed" in err and "same command" in err
+    assert ledger_lines(out) == []
+    assert not list(out.glob("episodes/**/result.json"))
+
+    monkeypatch.setattr(CpuBatch, "_execute", real)
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    records = ledger_lines(out)
+    assert len(records) == 2 and all(r["status"] in ("success", "failure") for r in records)

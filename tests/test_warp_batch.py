@@ -294,3 +294,32 @@ def test_missing_package_is_named(monkeypatch):
         backends.resolve("mjx", "warp")
     auto = backends.resolve("auto")
     assert auto.kind is backends.Physics.C and "mujoco-warp" in auto.reason
+
+
+def _cuda() -> bool:
+    import warp as wp
+
+    return wp.is_cuda_available()
+
+
+@pytest.mark.skipif(not _cuda(), reason="device loops are CUDA graphs (run on the GPU host)")
+def test_a_device_loop_steps_like_a_graph_per_substep(cube):
+    """`loop: device` (one graph per action, its substeps in a CUDA while node, MuJoCo Warp's
+    scratch arrays from an arena) moves the slots as a graph per substep does, and does not
+    fall back. Deterministic orderings; not bit for bit on a GPU, hence the tolerance (a lost or
+    extra substep moves the arm by centimetres)."""
+    _, model, q0 = cube
+    loops = {
+        loop: WarpBatch(model, 4, device="cuda:0", deterministic=True, loop=loop)
+        for loop in ("device", "per_step")
+    }
+    for batch in loops.values():
+        _reset(batch, q0)
+    start = loops["device"].qpos()
+    for commands in ([DOWN] * 4, [TURN, CLOSE, RIGHT, DOWN], [CLOSE, FAR, DOWN, TURN]):
+        for batch in loops.values():
+            batch.step(commands)
+    assert loops["device"]._graphs.loop == "device"  # captured, not fallen back to per_step
+    moved = loops["device"].qpos()
+    assert np.abs(moved - start).max() > 0.01
+    np.testing.assert_allclose(moved, loops["per_step"].qpos(), atol=1e-3)

@@ -52,7 +52,7 @@ from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image
 from vabench.render import camera as cam
 from vabench.render.images import RenderError, RenderItem
-from vabench.sim_mjx.interface import SimulationError
+from vabench.sim_mjx.interface import DeviceFailure, SimulationError
 
 
 @dataclass
@@ -139,6 +139,8 @@ class Episode:
                 failures=list(err.failures),
             )
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
+        except DeviceFailure:  # the process's GPU, not this episode: no result; sweep stops
+            raise
         except (RenderError, SimulationError) as err:
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:

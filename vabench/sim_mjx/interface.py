@@ -47,6 +47,13 @@ class SimulationError(RuntimeError):
     re-run, never scored."""
 
 
+class DeviceFailure(RuntimeError):
+    """The GPU's CUDA context failed (an illegal memory access, a launch failure: CUDA's
+    sticky errors): nothing more can run on that device in this process. Not an episode's
+    outcome: the episodes it interrupts get no record, the sweep stops, and the same command
+    (a new process, a new context) runs them again."""
+
+
 @pytree_dataclass
 class StepInfo(PyTree):
     executed: jax.Array  # (N,) bool: the slot's physics advanced

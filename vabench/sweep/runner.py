@@ -24,7 +24,8 @@ re-runs each, logged in infrastructure.jsonl, and after the last round recorded 
 An endpoint that refuses the sweep's requests themselves (`RequestRejected.fatal`: a wrong key,
 an unknown model, parameters it does not take) stops the sweep: no episode starts after it,
 the episodes it ended get no record (their partial logs are set aside when they run again), and
-`stopped` says which model and what to check. The same command runs them once it is fixed.
+`stopped` says which model and what to check. The same command runs them once it is fixed. A
+failed GPU (`DeviceFailure`: the process's CUDA context is dead) stops it the same way.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from vabench.llm_pool.server import LocalServer
 from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import Choice
+from vabench.sim_mjx.interface import DeviceFailure
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
 from vabench.sweep.inflight import InFlight
@@ -59,7 +61,8 @@ log = logging.getLogger(__name__)
 
 
 class SweepStopped(Exception):
-    """An endpoint refused the sweep's requests (`LocalSweep.stopped` says which and why);
+    """An endpoint refused the sweep's requests, or the GPU failed (`LocalSweep.stopped` says
+    which and why);
     raised by the cell executors once every cell in flight has ended."""
 
 
@@ -279,6 +282,8 @@ class LocalSweep:
                     await run_one(k)
                 except RequestRejected as err:  # only fatal ones leave an episode
                     self._stop(err)
+                except DeviceFailure as err:
+                    self._stop_device(err)
 
             async def run_one(k: Any) -> None:
                 if self.stopped is not None:
@@ -326,6 +331,14 @@ class LocalSweep:
                 f"model {err.endpoint!r}: its endpoint refused the sweep's requests "
                 f"({err.message}); {err.hint}. Nothing was recorded for the "
                 "episodes this stopped: the same command runs them once this is fixed."
+            )
+            log.error("stopping the sweep: %s", self.stopped)
+
+    def _stop_device(self, err: DeviceFailure) -> None:
+        if self.stopped is None:
+            self.stopped = (
+                f"{err}. Nothing was recorded for the episodes this stopped: the same command "
+                "runs them again in a new process."
             )
             log.error("stopping the sweep: %s", self.stopped)
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
@@ -54,6 +55,7 @@ from vabench.sim_mjx.warp import streams
 from vabench.sim_mjx.warp.device import device_lock
 from vabench.sim_mjx.warp.graphs import Graphs
 from vabench.sim_mjx.warp.model import FAILURE_BITS, WarpModel, capacity, failure_texts
+from vabench.sim_mjx.warp.modules import keep_loaded
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -70,6 +72,9 @@ def on_device(method: F) -> F:
 
     return locked  # type: ignore[return-value]
 
+
+LOOP_ENV = "VABENCH_WARP_LOOP"
+"""Environment variable: how graphs hold an action's substeps (`graphs.LOOPS`; default device)."""
 
 HOLD_CHUNK = 100  # physics steps per settle graph (see interface.hold_chunks)
 PREDICATE_LANES = 32  # width of the JAX predicate and proprio vmaps (see interface.in_lanes)
@@ -95,8 +100,9 @@ class WarpBatch(BatchBase):
         njmax: int | None = None,
         deterministic: bool = False,
         graphs: bool = True,
-        loop: str = "per_step",
+        loop: str | None = None,
     ):
+        keep_loaded()  # see modules: no module's code unloaded under a running kernel
         self._setup(model, n_slots, PREDICATE_LANES)
         check_same_structure(self.models)
         m0 = self.model
@@ -104,8 +110,8 @@ class WarpBatch(BatchBase):
         self.lock = device_lock(str(self.device))
         self.capacity = capacity(m0, nconmax, njmax)
         self.backend_id = f"mjx-warp-{mjw.__version__}-{mujoco.__version__}-{self.device.arch}"
+        loop = loop or os.environ.get(LOOP_ENV, "device")
         self._graphs = Graphs(self.device, graphs and self.device.is_cuda, loop)
-        self.loop = loop
         n, arms = n_slots, len(self.arms)
         self._event: wp.Event | None = None
         with self.lock, wp.ScopedDevice(self.device):
@@ -183,7 +189,7 @@ class WarpBatch(BatchBase):
     def _physics(self, name: str, pre: Callable, substep: Callable, post: Callable, n: int) -> None:
         """pre, n x substep, post (see `Graphs.run_loop`); the caller is `_queued`."""
         self._host.clear()
-        self._graphs.run_loop(name, pre, substep, post, n)
+        self._graphs.run_loop(name, pre, substep, post, n, counter=self._k)
 
     def _finish_queue(self) -> None:
         """After the work of a call (the caller is `_queued`): the watched contact flags at the

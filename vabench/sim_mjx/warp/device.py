@@ -16,6 +16,7 @@ import threading
 import mujoco
 
 from vabench.sim_mjx.warp.cuda_sync import prefer_blocking_sync
+from vabench.sim_mjx.warp.modules import keep_loaded
 
 GPU_EXTRA = "pip install 'vabench[gpu]'"
 
@@ -61,6 +62,7 @@ def warp_problem(device: str | None = None) -> str | None:
     wp.config.quiet = True  # type: ignore[attr-defined]  # not in warp's stubs
     wp.config.log_level = wp.LOG_WARNING  # no 'Module ... load' line per kernel module
     wp.init()
+    keep_loaded()
     if device.startswith("cuda"):
         if not wp.is_cuda_available():
             return (
