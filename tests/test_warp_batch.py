@@ -323,3 +323,27 @@ def test_a_device_loop_steps_like_a_graph_per_substep(cube):
     moved = loops["device"].qpos()
     assert np.abs(moved - start).max() > 0.01
     np.testing.assert_allclose(moved, loops["per_step"].qpos(), atol=1e-3)
+
+
+@pytest.mark.skipif(not _cuda(), reason="stream priorities are CUDA's (run on the GPU host)")
+def test_the_critical_path_batch_streams_at_the_highest_priority(cube):
+    import ctypes
+
+    _, model, _ = cube
+    cuda = ctypes.CDLL("libcuda.so.1")
+
+    def priority(batch: WarpBatch) -> int:
+        value = ctypes.c_int()
+        assert (
+            cuda.cuStreamGetPriority(ctypes.c_void_p(batch.stream.cuda_stream), ctypes.byref(value))
+            == 0
+        )
+        return value.value
+
+    urgent = WarpBatch(model, 2, device="cuda:0", critical_path=True)
+    usual = WarpBatch(model, 2, device="cuda:0")
+    least, greatest = ctypes.c_int(), ctypes.c_int()  # Warp's context is current by now
+    assert cuda.cuCtxGetStreamPriorityRange(ctypes.byref(least), ctypes.byref(greatest)) == 0
+    assert greatest.value < least.value  # the GPU has priorities to give
+    assert priority(urgent) == greatest.value
+    assert priority(usual) == least.value

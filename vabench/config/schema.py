@@ -84,9 +84,10 @@ class SimulatorOptions(_Strict):
     window_s: float = Field(default=0.01, ge=0)
     """How long the simulator batch waits to gather actions before stepping."""
 
-    def batch_kwargs(self, physics: Physics) -> dict[str, Any]:
+    def batch_kwargs(self, physics: Physics, critical_path: bool = False) -> dict[str, Any]:
         """The TaskBatch arguments these options ask for, on the resolved `physics`
-        (`sim_mjx.backends.resolve`)."""
+        (`sim_mjx.backends.resolve`); `critical_path`: the task bounds the sweep's wall time
+        (Warp gives its GPU work the highest stream priority)."""
         out: dict[str, Any] = {"backend": physics.value}
         if physics is Physics.MJX_JAX and self.lanes:
             out["lanes"] = self.lanes
@@ -95,6 +96,8 @@ class SimulatorOptions(_Strict):
             out.update({k: v for k, v in extra.items() if v is not None})
             if self.deterministic:
                 out["deterministic"] = True
+            if critical_path:
+                out["critical_path"] = True
         return out
 
 

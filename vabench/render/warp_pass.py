@@ -96,6 +96,7 @@ class RenderPass:
         width: int,
         height: int,
         device_jpeg: bool,
+        high_priority: bool = False,
     ):
         self.n_worlds, self.width, self.height = n_worlds, width, height
         m0 = models[0]
@@ -126,7 +127,7 @@ class RenderPass:
         # Its own stream (the renderer queues a pass there and waits for it with the device's
         # lock released: sim_mjx.warp.streams), and who is using it: one request at a time,
         # from queueing to the last JPEG; a pass in use is never evicted.
-        self.stream = streams.new_stream(self.d.qpos.device)
+        self.stream = streams.new_stream(self.d.qpos.device, high_priority)
         if self.stream is not None:  # the arrays above were made on the device's current stream
             self.stream.wait_stream(wp.get_stream(self.d.qpos.device))
         self.lock = threading.Lock()

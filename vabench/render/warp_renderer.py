@@ -168,8 +168,14 @@ class WarpRenderPool:
             log.info(
                 "renderer: %d requests, %d images in %d passes (%d built, %d evicted); %.1f s "
                 "drawing, %.1f s JPEG, %.1f s in requests",
-                st.requests, st.images, st.passes, st.built, st.evicted, st.render_s,
-                st.encode_s, st.wall_s,
+                st.requests,
+                st.images,
+                st.passes,
+                st.built,
+                st.evicted,
+                st.render_s,
+                st.encode_s,
+                st.wall_s,
             )
         with self._lock, self._lock_device:  # freeing device memory is device work too
             for p, _ in self._passes.values():
@@ -293,7 +299,8 @@ class WarpRenderPool:
         threads): the GPU traces other tasks' passes and steps the physics meanwhile."""
         n = len(chunk)
         device_jpeg = self._device_jpeg is not None
-        p = self._checkout(task, models, pass_size(n), settings, device_jpeg)
+        urgent = bool(getattr(source, "critical_path", False))  # see WarpBatch
+        p = self._checkout(task, models, pass_size(n), settings, device_jpeg, urgent)
         try:
             t0 = time.perf_counter()
             with streams.queueing(self._lock_device, self._device, p.stream):
@@ -370,7 +377,7 @@ class WarpRenderPool:
             )
         return largest
 
-    def _checkout(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
+    def _checkout(self, task, models, n_worlds, settings, device_jpeg, urgent) -> RenderPass:
         """A pass for `n_worlds` images of `task`, locked for the caller (who releases
         `pass.lock`): a kept pass of this key, waited for if another request uses it, else one
         built within the memory budget. The pool's lock is held only to look up and update the
@@ -390,7 +397,7 @@ class WarpRenderPool:
                 with self._lock:
                     if self._kept(task, n_worlds, settings) is not None:
                         continue  # built by another request while this one waited to build
-                built = self._build(task, models, n_worlds, settings, device_jpeg)
+                built = self._build(task, models, n_worlds, settings, device_jpeg, urgent)
                 built.lock.acquire()
                 return built
 
@@ -401,7 +408,8 @@ class WarpRenderPool:
         kept = [
             k
             for k in self._passes
-            if k[0] == task and k[2:] == (settings.width, settings.height)
+            if k[0] == task
+            and k[2:] == (settings.width, settings.height)
             and n_worlds <= k[1] <= 2 * n_worlds
         ]
         if not kept:
@@ -410,7 +418,7 @@ class WarpRenderPool:
         self._passes.move_to_end(best)
         return self._passes[best][0]
 
-    def _build(self, task, models, n_worlds, settings, device_jpeg) -> RenderPass:
+    def _build(self, task, models, n_worlds, settings, device_jpeg, urgent) -> RenderPass:
         """A new pass, kept, after evicting least recently used passes not in use until it fits
         the memory budget (the caller holds `_building`)."""
         key = (task, n_worlds, settings.width, settings.height)
@@ -432,7 +440,9 @@ class WarpRenderPool:
                 log.debug("render pass %s evicted for %s (budget %d MiB)", old, key, budget >> 20)
         with self._lock_device, wp.ScopedDevice(self._device):
             victims.clear()  # their memory is freed here, with the device's lock held
-            built = RenderPass(models, n_worlds, settings.width, settings.height, device_jpeg)
+            built = RenderPass(
+                models, n_worlds, settings.width, settings.height, device_jpeg, urgent
+            )
         with self._lock:
             self._passes[key] = (built, need)
             self.stats.built += 1

@@ -239,14 +239,16 @@ class LocalSweep:
             by_task[k.task].append(k)
         task_gate = asyncio.Semaphore(self.choices.executor.max_tasks)
 
-        async def one_task(name: str, task_keys: list[Any]) -> None:
+        async def one_task(name: str, task_keys: list[Any], critical: bool) -> None:
             async with task_gate:
-                await self._run_task(name, task_keys, llm, pool, image)
+                await self._run_task(name, task_keys, llm, pool, image, critical)
 
         # Longest episodes first (the basket's 250-step budget before the base families'):
         # they start as soon as there is room, instead of running alone at the end.
-        longest_first = sorted(by_task.items(), key=lambda kv: -self.config.budget(kv[0]))
-        await asyncio.gather(*(one_task(n, ks) for n, ks in longest_first))
+        budgets = {name: self.config.budget(name) for name in by_task}
+        longest_first = sorted(by_task.items(), key=lambda kv: -budgets[kv[0]])
+        critical = critical_path_tasks(budgets)
+        await asyncio.gather(*(one_task(n, ks, n in critical) for n, ks in longest_first))
 
     async def _run_task(
         self,
@@ -255,6 +257,7 @@ class LocalSweep:
         llm: LLMPool,
         pool: Renderer,
         image: ImageSettings,
+        critical: bool = False,
     ) -> None:
         cfg, ex, sim = self.config, self.config.executor, self.config.simulator
         task = get_task(name)
@@ -273,7 +276,7 @@ class LocalSweep:
             image=image,
             sim_window_s=sim.window_s,
             on_decision=on_decision,
-            **sim.batch_kwargs(self.physics.kind),
+            **sim.batch_kwargs(self.physics.kind, critical_path=critical),
         ) as svc:
             slots = asyncio.Semaphore(n_slots)
 
@@ -354,6 +357,21 @@ class LocalSweep:
         set_aside(self.run_dir / k.rel_dir)
         self.progress.cells[(k.model, k.track, k.task)].retried += 1
         self.on_change(self.progress)
+
+
+def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
+    """The tasks whose episodes bound a round's wall time: those of the largest step budget,
+    when it is at least twice every other task's (the basket's 250 steps against 50: its
+    episodes take ~166 decisions, the base families' 13-37, and on an H100 they ran ~2.3 s a
+    decision behind 21 other families and finished last, docs/PERFORMANCE.md). Where budgets
+    are alike, none: a priority for everyone is a priority for no one."""
+    if not budgets:
+        return set()
+    top = max(budgets.values())
+    others = [b for b in budgets.values() if b != top]
+    if not others or top < 2 * max(others):
+        return set()
+    return {name for name, b in budgets.items() if b == top}
 
 
 def _unavailable(spec: EpisodeSpec, budget: int, why: str) -> EpisodeResult:

@@ -88,7 +88,9 @@ class WarpBatch(BatchBase):
     from the scene). `deterministic`: MuJoCo Warp's stable contact and constraint orderings on
     GPUs (slower; closer run to run, but measured not bit-identical on an H100). `graphs`:
     capture CUDA graphs (GPU only; off = launch kernel by kernel, for debugging). `loop`: see
-    `graphs.LOOPS`.
+    `graphs.LOOPS`. `critical_path`: this batch's episodes bound the sweep's wall time (the
+    longest task's): its stream, and those of the render passes that read it, get the GPU's
+    highest priority.
     """
 
     def __init__(
@@ -101,6 +103,7 @@ class WarpBatch(BatchBase):
         deterministic: bool = False,
         graphs: bool = True,
         loop: str | None = None,
+        critical_path: bool = False,
     ):
         keep_loaded()  # see modules: no module's code unloaded under a running kernel
         self._setup(model, n_slots, PREDICATE_LANES)
@@ -114,8 +117,9 @@ class WarpBatch(BatchBase):
         self._graphs = Graphs(self.device, graphs and self.device.is_cuda, loop)
         n, arms = n_slots, len(self.arms)
         self._event: wp.Event | None = None
+        self.critical_path = critical_path
         with self.lock, wp.ScopedDevice(self.device):
-            self.stream = streams.new_stream(self.device)
+            self.stream = streams.new_stream(self.device, high_priority=critical_path)
         with self._queued():
             self._build(n, arms, deterministic)
 

@@ -103,8 +103,10 @@ def context_error(device: wp.context.Device) -> str | None:
 CU_STREAM_NON_BLOCKING = 0x1
 
 
-def new_stream(device: wp.context.Device) -> wp.Stream | None:
-    """A non-blocking stream of its own on a CUDA device (None on the CPU).
+def new_stream(device: wp.context.Device, high_priority: bool = False) -> wp.Stream | None:
+    """A non-blocking stream of its own on a CUDA device (None on the CPU); `high_priority`:
+    the device's highest stream priority, whose kernels' blocks the GPU schedules ahead of
+    pending blocks of other streams (for the work on the sweep's critical path).
 
     Non-blocking: work on CUDA's legacy default stream does not wait for it, nor it for that
     work. Warp makes blocking streams, and with them nvImageCodec's encodes (which synchronise
@@ -115,16 +117,17 @@ def new_stream(device: wp.context.Device) -> wp.Stream | None:
     where the driver refuses, a blocking Warp stream (logged)."""
     if not device.is_cuda:
         return None
-    handle = _nonblocking_stream(device.context)
+    handle = _nonblocking_stream(device.context, high_priority)
     if handle is None:
         log.warning("streams: the CUDA driver made no non-blocking stream; using a blocking one")
         return wp.Stream(device)
     return wp.Stream(device, cuda_stream=handle)
 
 
-def _nonblocking_stream(context: Any) -> int | None:
-    """cuStreamCreate(CU_STREAM_NON_BLOCKING) in `context` (Warp's primary context of the
-    device); never destroyed: a process makes a few dozen (one per batch and render pass)."""
+def _nonblocking_stream(context: Any, high_priority: bool = False) -> int | None:
+    """cuStreamCreateWithPriority(CU_STREAM_NON_BLOCKING) in `context` (Warp's primary context
+    of the device), at the default priority or the context's greatest; never destroyed: a
+    process makes a few dozen (one per batch and render pass)."""
     try:
         cuda = ctypes.CDLL("libcuda.so.1")
     except OSError:
@@ -132,8 +135,15 @@ def _nonblocking_stream(context: Any) -> int | None:
     if cuda.cuCtxPushCurrent_v2(ctypes.c_void_p(context)) != 0:
         return None
     try:
+        priority = 0  # CUDA's default; lower numbers are higher priorities
+        least, greatest = ctypes.c_int(), ctypes.c_int()
+        if high_priority and (
+            cuda.cuCtxGetStreamPriorityRange(ctypes.byref(least), ctypes.byref(greatest)) == 0
+        ):
+            priority = greatest.value
         stream = ctypes.c_void_p()
-        if cuda.cuStreamCreate(ctypes.byref(stream), CU_STREAM_NON_BLOCKING) != 0:
+        flags = ctypes.c_uint(CU_STREAM_NON_BLOCKING)
+        if cuda.cuStreamCreateWithPriority(ctypes.byref(stream), flags, priority) != 0:
             return None
         return stream.value
     finally:
