@@ -56,6 +56,11 @@ class RenderChoice:
         """How `--dry-run` names it."""
         return {"gl": "GL worker processes", "warp": "MuJoCo Warp's ray tracer"}[self.backend]
 
+    @property
+    def is_warp(self) -> bool:
+        """Images from MuJoCo Warp's ray tracer (its kernels compile like the physics')."""
+        return self.backend == "warp"
+
 
 def resolve_renderer(
     backend: str = "auto", device: str | None = None, *, probe: bool = True

@@ -50,9 +50,11 @@ from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import Choice
 from vabench.sim_mjx.interface import DeviceFailure
+from vabench.sim_mjx.warp.device import warp_device
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
 from vabench.sweep.inflight import InFlight
+from vabench.sweep.precompile import ensure_compiled
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -195,6 +197,16 @@ class LocalSweep:
         cell.unscored += not result.scored
         self.on_change(self.progress)
 
+    async def _precompile(self, engine: Engine) -> None:
+        """Warp physics on a GPU: every family's kernels compiled side by side first (see
+        `precompile`; nothing to do once they are)."""
+        if not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
+            return
+        tasks = sorted({k.task for k in self._pending()})
+        images = self.choices.renderer.is_warp
+        size = (engine.image.width, engine.image.height)
+        await asyncio.to_thread(ensure_compiled, tasks, *size, warp_device(), images)
+
     def _pending(self) -> list[Any]:
         rounds = self.config.retries.infrastructure_rounds
         return [
@@ -219,6 +231,7 @@ class LocalSweep:
     async def _run_in(self, engine: Engine) -> None:
         self.physics, self.gate, self.summaries = engine.physics, engine.gate, engine.summaries
         self.progress.pool, self.progress.gate = engine.llm, engine.gate
+        await self._precompile(engine)
         round_no = 0
         while (pending := self._pending()) and self.stopped is None:
             if round_no:

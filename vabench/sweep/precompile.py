@@ -1,0 +1,193 @@
+"""MuJoCo Warp's kernels for a sweep's families, compiled in parallel before the sweep needs them.
+
+Warp compiles a module's kernels on first use (MuJoCo Warp specialises many on the scene), one
+to two minutes a family on a fresh machine, then caches them (`~/.cache/warp`). In a sweep the
+first uses come one family after another in one process, with the device's lock held: on a
+fresh H100 the first episode waited 6.5 minutes (docs/PERFORMANCE.md, issue 33), while the
+runbook's 14 processes compiling the base families side by side took 147 s in all.
+
+`ensure_compiled` does the same at the sweep's start: one child process per family not yet
+compiled for this code on this machine (at most one per core), each running the family's
+expert for one seed in a batch of one slot (the reset's settle graphs, the action's device
+loop, the observation) and one image of it through the Warp renderer at the sweep's size (its
+render kernels), then exiting. A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by
+the Warp, MuJoCo Warp and vabench code, the GPU's architecture and the image size) says it was
+done; a file lock keeps the processes of one machine (the processes executor's workers) from
+compiling the same family twice. A child that fails only costs the time: the sweep then
+compiles that family itself, as before (its log names the family and the error).
+
+`VABENCH_WARP_PRECOMPILE=0` turns it off. Not measured end to end yet (written after the
+device time of 2026-11-26 ended; the runbook in docs/PERFORMANCE.md measures it first).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import fcntl
+import hashlib
+import logging
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+ENV = "VABENCH_WARP_PRECOMPILE"
+CHILD_TIMEOUT_S = 900
+
+
+def marker_dir() -> Path:
+    return Path(os.environ.get("VABENCH_CACHE", Path.home() / ".cache" / "vabench")) / (
+        "warp_compiled"
+    )
+
+
+def code_key(arch: str, width: int, height: int) -> str:
+    """What a compiled family depends on: the packages' versions, vabench's Warp code (its
+    kernels and how it calls MuJoCo Warp), the GPU architecture and the image size."""
+    import mujoco_warp
+    import warp
+
+    import vabench
+
+    digest = hashlib.sha256()
+    for part in (warp.__version__, mujoco_warp.__version__, arch, f"{width}x{height}"):
+        digest.update(part.encode() + b"\0")
+    root = Path(vabench.__file__).parent
+    for path in sorted([*root.glob("sim_mjx/warp/*.py"), *root.glob("render/warp*.py")]):
+        digest.update(path.name.encode() + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def missing(tasks: Sequence[str], key: str, markers: Path) -> list[str]:
+    """The families of `tasks` without a marker for `key`, in order."""
+    return [t for t in dict.fromkeys(tasks) if not (markers / f"{t}.{key}").exists()]
+
+
+@contextlib.contextmanager
+def _machine_lock(markers: Path) -> Iterator[None]:
+    markers.mkdir(parents=True, exist_ok=True)
+    with open(markers / ".lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def ensure_compiled(
+    tasks: Sequence[str],
+    width: int,
+    height: int,
+    device: str,
+    images: bool = True,
+    processes: int | None = None,
+) -> list[str]:
+    """Compile the Warp kernels of `tasks` not yet compiled here (blocking; see the module
+    docstring); `images`: the Warp renderer's too. Returns the families that failed to compile
+    (the sweep compiles those itself)."""
+    if os.environ.get(ENV, "1") == "0":
+        return []
+    import warp as wp
+
+    arch = f"sm{wp.get_device(device).arch}"
+    key = code_key(arch, width if images else 0, height if images else 0)
+    markers = marker_dir()
+    with _machine_lock(markers):
+        todo = missing(tasks, key, markers)
+        if not todo:
+            return []
+        workers = max(1, min(len(todo), processes or os.cpu_count() or 1))
+        log.info(
+            "compiling MuJoCo Warp's kernels for %d famil%s in %d processes (first run of this "
+            "code on this machine; cached for the next)",
+            len(todo),
+            "y" if len(todo) == 1 else "ies",
+            workers,
+        )
+        started = time.monotonic()
+        with ThreadPoolExecutor(workers) as pool:
+            size = (width, height) if images else None
+            errors = dict(zip(todo, pool.map(lambda t: _child(t, size, device), todo), strict=True))
+        failed = [t for t, err in errors.items() if err]
+        for task in todo:
+            if task not in failed:
+                (markers / f"{task}.{key}").touch()
+        for task in failed:
+            log.warning(
+                "precompile of %s failed (compiled by the sweep instead): %s", task, errors[task]
+            )
+        log.info(
+            "compiled %d of %d families in %.0f s",
+            len(todo) - len(failed),
+            len(todo),
+            time.monotonic() - started,
+        )
+        return failed
+
+
+def _child(task: str, size: tuple[int, int] | None, device: str) -> str | None:
+    """Compile one family in a child process: None, or the end of its output if it failed."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "VABENCH_WARP_DEVICE": device}
+    command = [sys.executable, "-m", __name__, task]
+    if size is not None:
+        command += ["--size", f"{size[0]}x{size[1]}"]
+    try:
+        done = subprocess.run(
+            command, env=env, capture_output=True, text=True, timeout=CHILD_TIMEOUT_S
+        )
+    except subprocess.TimeoutExpired:
+        return f"no end after {CHILD_TIMEOUT_S} s"
+    if done.returncode != 0:
+        return (done.stderr or done.stdout).strip()[-500:] or f"exit {done.returncode}"
+    return None
+
+
+def compile_family(task_name: str, size: tuple[int, int] | None) -> None:
+    """In this process: one seed of the family's expert on Warp physics and (`size`) one
+    image of its last state through the Warp renderer: every kernel a sweep of it launches."""
+    import numpy as np
+
+    from vabench.render import camera as cam
+    from vabench.render.images import ImageSettings, RenderItem
+    from vabench.render.warp_renderer import WarpRenderPool
+    from vabench.sim_mjx.backends import Physics
+    from vabench.tasks import REGISTRY
+    from vabench.tasks.manifests import verified_seeds
+    from vabench.tasks.task_batch import TaskBatch, run_experts
+
+    task = REGISTRY[task_name]
+    batch = TaskBatch(task, 1, backend=Physics.WARP)
+    run_experts(batch, verified_seeds(task_name)[:1])
+    if size is None:
+        return
+    width, height = size
+    view = batch.views([0])[0]
+    gcs = {arm: view.arms[arm].gc for arm in task.arms}
+    item = RenderItem(
+        np.asarray(batch.batch.qpos()[0]),
+        int(batch.batch.variant()[0]),
+        cam.head_view(gcs, task.arms),
+        slot=0,
+    )
+    with WarpRenderPool(max_size=(width, height)) as pool:
+        pool.render(task_name, [item], ImageSettings(width, height), batch.batch)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("task")
+    parser.add_argument("--size", help="WxH of the images (none: physics only)")
+    args = parser.parse_args(argv)
+    width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
+    compile_family(args.task, (width, height) if args.size else None)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
