@@ -337,3 +337,25 @@ def test_concurrent_requests_get_their_own_images(warp_pool, cube_items, shoe_it
         got = list(threads.map(lambda job: warp_pool.render(job[0], job[1], SIZE), jobs))
     for (task, _), images in zip(jobs, got, strict=True):
         assert images == alone[task]
+
+
+def _cuda() -> bool:
+    import warp as wp
+
+    return wp.is_cuda_available()
+
+
+@pytest.mark.skipif(not _cuda(), reason="a GPU host without nvImageCodec (run on the GPU host)")
+def test_a_gpu_host_without_nvimagecodec_is_told_what_it_costs(monkeypatch, caplog):
+    """Issue 34: on a GPU host without the JPEG extra, images were encoded on CPU threads at
+    about the GL pool's rate with nothing said; the renderer's first lines now name the extra
+    and the measured cost."""
+    from vabench.render import gpu_jpeg
+
+    monkeypatch.setattr(gpu_jpeg, "available", lambda: False)
+    with caplog.at_level("WARNING"), WarpRenderPool(device="cuda:0", max_size=(64, 48)) as pool:
+        assert "threads" in (pool.info or "")
+    assert any(
+        "vabench[jpeg-cu13]" in r.getMessage() and "images/s" in r.getMessage()
+        for r in caplog.records
+    )

@@ -14,7 +14,7 @@ from typing import Any
 
 from vabench.render.images import ImageSettings
 
-PACKAGE_HINT = "pip install nvidia-nvimgcodec-cu13 nvidia-nvjpeg (CUDA 13; -cu12 for CUDA 12)"
+PACKAGE_HINT = "pip install 'vabench[jpeg-cu13]' (CUDA 13; jpeg-cu12 for CUDA 12)"
 
 
 def available() -> bool:
