@@ -203,3 +203,24 @@ def test_a_directory_of_runs_in_the_browser(runs_viewer, page):
     page.click("table.compare tr:has(td) >> nth=1 >> a")
     ready(page)
     assert page.inner_text("#title") == ACTIVE
+
+
+def test_a_bundle_opens_from_disk(tmp_path_factory, tmp_path, page):
+    run = copy_run(tmp_path_factory.getbasetemp(), tmp_path / "run")
+    out = tmp_path / "bundle"
+    subprocess.run(
+        [sys.executable, "-m", "vabench.view", str(run), "--bundle", str(out)],
+        cwd=REPO,
+        check=True,
+        timeout=120,
+    )
+    page.goto((out / "index.html").as_uri())
+    assert page.locator("table.episodes tbody tr").count() == 2
+    page.click(f"text={PASSIVE}")
+    assert page.url.startswith("file://") and page.inner_text("h1") == PASSIVE
+    loaded = page.evaluate(
+        "[...document.querySelectorAll('img.thumb')].map(i => i.complete && i.naturalWidth > 0)"
+    )
+    assert loaded == [True] * 4 * 5  # the five-view bundle of every step
+    page.click("text=run")
+    assert page.url.endswith("/index.html")

@@ -152,3 +152,25 @@ def test_compare_one_trial_across_runs_and_within_one(runs):
     assert within.count("<tr><td>") == len(models)
     for model in models:
         assert f"<td>{model}</td>" in within
+
+
+def test_bundle_is_a_static_site_with_relative_links_only(run, tmp_path, capsys):
+    out = tmp_path / "bundle"
+    assert main([str(run), "--bundle", str(out)]) == 0
+    n = len(Viewer(run).index.episodes)
+    assert f"wrote {n} episodes" in capsys.readouterr().out
+    pages = sorted(out.rglob("*.html"))
+    assert (out / "index.html") in pages and len(list((out / "e").glob("*.html"))) == n
+    images = 0
+    for html in pages:
+        for ref in re.findall(r"(?:href|src)='([^']*)'", html.read_text()):
+            ref = unescape(ref)
+            assert "://" not in ref and not ref.startswith("/"), (html, ref)
+            target = (html.parent / ref).resolve()
+            assert target.is_file() and target.is_relative_to(out.resolve()), (html, ref)
+            images += ref.endswith(".jpg")
+    assert images > n  # every episode shows what its model saw
+    first = (out / "e" / "0.html").read_text()
+    assert "EVALUATOR-ONLY" in first and "href='../index.html'" in first
+    assert main([str(run), "--bundle", str(out)]) == 2  # never written over
+    assert "--bundle: " in capsys.readouterr().err
