@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 
-from vabench.diagnostics.hints import hints
+from vabench.diagnostics.hints import RULES, hints
 from vabench.diagnostics.judge import JUDGE_MARK
 from vabench.diagnostics.judge_policy import RubricJudge
 from vabench.llm_pool import ChatRequest, Turn
@@ -29,8 +29,8 @@ def action(step, label, ok=True, z=0.76, gc=(0.2, -0.1, 0.95)):
 RESET = {"type": "reset", "objects": {"cube": {"pos": [0.2, -0.1, 0.76], "quat": [1, 0, 0, 0]}}}
 
 
-def found(events):
-    return {(h.item, h.step, h.source) for h in hints(events)}
+def found(events, protocol="active"):
+    return {(h.item, h.step, h.source) for h in hints(events, protocol)}
 
 
 def test_failure_hints_and_what_followed():
@@ -44,7 +44,7 @@ def test_failure_hints_and_what_followed():
     got = found(events)
     assert ("AE", 1, "visible") in got  # a camera action before the first robot action
     assert ("gate_error", 2, "visible") in got and ("gate_error", 3, "visible") in got
-    texts = {(h.item, h.step): h.text for h in hints(events)}
+    texts = {(h.item, h.step): h.text for h in hints(events, "active")}
     assert texts[("PF", 3)] == "repeated the failed action unchanged"
     assert texts[("PF", 4)].startswith("changed the action after the failure")
 
@@ -62,6 +62,23 @@ def test_drop_and_miss_from_evaluator_poses():
     assert ("gate_error", 4, "evaluator") in got  # closed ~37 cm from the cube
     assert ("gate_error", 1, "evaluator") not in got  # closed at the cube: no miss
     assert ("AE", 0, "visible") in got  # no camera action at all
+
+
+def test_camera_hints_only_where_the_camera_can_move():
+    """A passive episode's model gets five fixed views and no camera action: no hint about
+    camera actions (AE's, ED's look after a failure); the others apply to both protocols."""
+    events = [RESET, action(1, "move_world z-90mm", ok=False), action(2, "gripper.close")]
+    active, passive = found(events, "active"), found(events, "passive")
+    assert ("AE", 0, "visible") in active  # no camera action at all: worth a look
+    assert not {h for h in passive if h[0] == "AE"}
+    assert active - passive == {("AE", 0, "visible")}
+    assert ("gate_error", 1, "visible") in passive and ("PF", 2, "visible") in passive
+    looked = [*events[:2], {"type": "camera", "step": 2, "label": "camera.view_side"}]
+    assert ("ED", 1, "visible") in found(looked) and ("ED", 1, "visible") not in found(
+        looked, "passive"
+    )
+    for rule in RULES:
+        assert rule.protocols and rule.protocols <= {"active", "passive"}, rule.name
 
 
 def ask(transcript, question, annotator="judge-x-1", flip=0.0):

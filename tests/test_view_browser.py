@@ -34,11 +34,10 @@ if not Path(CHROMIUM).exists() and not os.environ.get("CI"):
 sync_api = pytest.importorskip("playwright.sync_api")
 
 
-@pytest.fixture
-def viewer(tmp_path_factory, tmp_path):
-    run = copy_run(tmp_path_factory.getbasetemp(), tmp_path / "run")
+def launch(path):
+    """`python -m vabench.view PATH --port 0`: (process, its URL)."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "vabench.view", str(run), "--port", "0"],
+        [sys.executable, "-m", "vabench.view", str(path), "--port", "0"],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -47,7 +46,26 @@ def viewer(tmp_path_factory, tmp_path):
     line = proc.stdout.readline()
     found = re.search(r"at (http://127\.0\.0\.1:\d+)/", line)
     assert found, line
-    yield run, found.group(1)
+    return proc, found.group(1)
+
+
+@pytest.fixture
+def viewer(tmp_path_factory, tmp_path):
+    run = copy_run(tmp_path_factory.getbasetemp(), tmp_path / "run")
+    proc, url = launch(run)
+    yield run, url
+    proc.terminate()
+    proc.wait(timeout=20)
+
+
+@pytest.fixture
+def runs_viewer(tmp_path_factory, tmp_path):
+    """A directory of two runs, runs/first and runs/later/second."""
+    base = tmp_path_factory.getbasetemp()
+    copy_run(base, tmp_path / "runs" / "first")
+    copy_run(base, tmp_path / "runs" / "later" / "second")
+    proc, url = launch(tmp_path / "runs")
+    yield url
     proc.terminate()
     proc.wait(timeout=20)
 
@@ -160,3 +178,49 @@ def test_annotate_an_episode_in_the_browser(viewer, page):
         page.screenshot(
             path=str(Path(os.environ["VABENCH_SCREENSHOTS"]) / "agreement.png"), full_page=True
         )
+
+
+def test_a_directory_of_runs_in_the_browser(runs_viewer, page):
+    url = runs_viewer
+    page.goto(url + "/")
+    ready(page)
+    rows = page.locator("table.runs tbody tr")
+    names = [rows.nth(i).locator("td").first.inner_text() for i in range(rows.count())]
+    assert names == ["first", "later/second"]
+    assert "2 / 2" in rows.nth(1).inner_text()  # episodes done / planned
+    page.click("text=later/second")
+    ready(page)  # the run's own page, under /runs/1/
+    assert page.inner_text("#title") == "run second"
+    assert page.locator("#episodes tbody tr").count() == 2
+    page.click(f"#episodes tbody tr[data-id='{ACTIVE}'] td:last-child a")  # compare, this run
+    assert page.locator("table.compare tr:has(td)").count() == 1
+    page.goto(url + "/compare?task=grasp_single_cube&seed=1000&track=active")  # both runs
+    assert page.locator("table.compare tr:has(td)").count() == 2
+    loaded = page.evaluate(
+        "[...document.querySelectorAll('img.thumb')].map(i => i.complete && i.naturalWidth > 0)"
+    )
+    assert loaded == [True] * 4
+    page.click("table.compare tr:has(td) >> nth=1 >> a")
+    ready(page)
+    assert page.inner_text("#title") == ACTIVE
+
+
+def test_a_bundle_opens_from_disk(tmp_path_factory, tmp_path, page):
+    run = copy_run(tmp_path_factory.getbasetemp(), tmp_path / "run")
+    out = tmp_path / "bundle"
+    subprocess.run(
+        [sys.executable, "-m", "vabench.view", str(run), "--bundle", str(out)],
+        cwd=REPO,
+        check=True,
+        timeout=120,
+    )
+    page.goto((out / "index.html").as_uri())
+    assert page.locator("table.episodes tbody tr").count() == 2
+    page.click(f"text={PASSIVE}")
+    assert page.url.startswith("file://") and page.inner_text("h1") == PASSIVE
+    loaded = page.evaluate(
+        "[...document.querySelectorAll('img.thumb')].map(i => i.complete && i.naturalWidth > 0)"
+    )
+    assert loaded == [True] * 4 * 5  # the five-view bundle of every step
+    page.click("text=run")
+    assert page.url.endswith("/index.html")

@@ -4,6 +4,7 @@ Pages (plain HTML, CSS and JS from `static/`; every value is inserted as text, n
     /                      the run: episodes with filters, success and checkpoint columns
     /episode?id=ID         the timeline of one episode and the annotation panel
     /diagnostics           the diagnostics, agreement and vote-rule tables of the annotations
+    /compare?task=&seed=&track=   every model's episode of that trial (vabench.view.compare)
 JSON:
     GET  /api/run?model=&track=&task=&outcome=&offset=&limit=
                                                one page of the episodes passing the filters,
@@ -46,6 +47,8 @@ from vabench.diagnostics.store import (
     majority,
 )
 from vabench.run_layout import EpisodeDir, RunDir
+from vabench.view.compare import Source, Trials
+from vabench.view.compare import page as compare_page
 from vabench.view.listing import Listing, LiveIndex, filters_of, paging_of
 from vabench.view.timeline import build_timeline
 
@@ -57,7 +60,7 @@ SECURITY_HEADERS = {
     "Referrer-Policy": "no-referrer",
     "Content-Security-Policy": (
         "default-src 'self'; img-src 'self'; style-src 'self'; script-src 'self'; "
-        "frame-ancestors 'none'; form-action 'none'"
+        "frame-ancestors 'none'; form-action 'self'"
     ),
 }
 
@@ -76,6 +79,7 @@ class Viewer:
         self.run_dir = Path(run_dir)
         self.live = LiveIndex(self.run_dir)  # raises RunDirError with a clear message
         self.listing = Listing(self.live)
+        self.trials = Trials(self.live)
         self.store = AnnotationStore(self.live.index)
         self._reloads = self.live.reloads
         self._state: tuple[Any, dict[Key, Judgment]] = (None, {})
@@ -108,6 +112,7 @@ class Viewer:
         app.router.add_get("/", self._page("run.html"))
         app.router.add_get("/episode", self._page("episode.html"))
         app.router.add_get("/diagnostics", self.diagnostics_page)
+        app.router.add_get("/compare", self.compare_page)
         app.router.add_static("/static/", STATIC, follow_symlinks=False)
         app.router.add_get("/api/run", self.run)
         app.router.add_get("/api/neighbours", self.neighbours)
@@ -190,6 +195,12 @@ class Viewer:
         if not path.is_file():
             return _error(404, f"no image {name!r} in episode {episode!r}", "file")
         return web.FileResponse(path, headers={"Content-Type": IMAGE_TYPES[path.suffix.lower()]})
+
+    async def compare_page(self, request: web.Request) -> web.Response:
+        self.index  # noqa: B018 (refreshes it: the sweep may still be writing)
+        source = Source(self.run_dir.name, "", self.trials)
+        status, html = compare_page([source], request.query, "./")
+        return web.Response(text=html, content_type="text/html", status=status)
 
     # -- annotation ---------------------------------------------------------------------------
     async def rubric(self, request: web.Request) -> web.Response:
@@ -284,8 +295,8 @@ class Viewer:
         parts = [
             "<!DOCTYPE html><html><head><meta charset='utf-8'><title>diagnostics — "
             f"{escape(self.run_dir.name)}</title>",
-            "<link rel='stylesheet' href='/static/app.css'></head><body class='tables'>",
-            "<nav><a href='/'>run</a></nav>",
+            "<link rel='stylesheet' href='static/app.css'></head><body class='tables'>",
+            "<nav><a href='./'>run</a></nav>",
             f"<h1>Diagnostics of {escape(self.run_dir.name)}</h1>",
             f"<p class='muted'>computed {escape(time.strftime('%Y-%m-%d %H:%M:%S'))}</p>",
         ]

@@ -97,5 +97,5 @@ def build_timeline(index: RunIndex, episode: str) -> dict[str, Any]:
         "reset": reset,
         "end": end,
         "steps": [cards[s] for s in sorted(cards)],
-        "hints": [h.record() for h in hints(events)],
+        "hints": [h.record() for h in hints(events, ref.result.protocol)],
     }

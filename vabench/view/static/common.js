@@ -47,7 +47,7 @@ function setAnnotatorName(name) {
 }
 
 function episodeUrl(id) {
-  return "/episode?id=" + encodeURIComponent(id);
+  return "episode?id=" + encodeURIComponent(id);
 }
 
 function checkpointsText(e) {

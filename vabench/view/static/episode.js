@@ -6,7 +6,7 @@ let STATE = null;
 let current = 0;
 
 function frameUrl(file) {
-  return `/api/frame?episode=${encodeURIComponent(EPISODE)}&file=${encodeURIComponent(file)}`;
+  return `api/frame?episode=${encodeURIComponent(EPISODE)}&file=${encodeURIComponent(file)}`;
 }
 
 function viewOfFrame(file, fallback) {
@@ -88,7 +88,7 @@ async function loadNeighbours() {
   const filters = sessionStorage.getItem(ORDER_KEY) || "";
   const query = new URLSearchParams(filters.startsWith("[") ? "" : filters);
   query.set("id", EPISODE);
-  NEIGHBOURS = await getJSON("/api/neighbours?" + query);
+  NEIGHBOURS = await getJSON("api/neighbours?" + query);
 }
 
 function neighbour(delta) {
@@ -139,7 +139,7 @@ async function loadState() {
   STATE = null;
   if (who) {
     try {
-      STATE = await getJSON(`/api/annotations?episode=${encodeURIComponent(EPISODE)}&annotator=${encodeURIComponent(who)}`);
+      STATE = await getJSON(`api/annotations?episode=${encodeURIComponent(EPISODE)}&annotator=${encodeURIComponent(who)}`);
     } catch (err) {
       setStatus(String(err.message || err), true);
     }
@@ -157,7 +157,7 @@ function setStatus(text, bad) {
 
 async function vote(item, value) {
   try {
-    STATE = await postJSON("/api/judgment", { annotator: annotatorName(), episode: EPISODE, item, value });
+    STATE = await postJSON("api/judgment", { annotator: annotatorName(), episode: EPISODE, item, value });
     setStatus(`saved ${item} = ${value === null ? "cleared" : value} at ${new Date().toLocaleTimeString()}`);
   } catch (err) {
     setStatus(String(err.message || err), true);
@@ -173,8 +173,8 @@ function renderHints(hints) {
 }
 
 async function main() {
-  [RUBRIC] = await Promise.all([getJSON("/api/rubric")]);
-  const ep = await getJSON(`/api/episode?id=${encodeURIComponent(EPISODE)}`);
+  [RUBRIC] = await Promise.all([getJSON("api/rubric")]);
+  const ep = await getJSON(`api/episode?id=${encodeURIComponent(EPISODE)}`);
   const s = ep.summary;
   document.title = `episode ${ep.id}`;
   document.getElementById("title").textContent = ep.id;

@@ -37,7 +37,9 @@ function render(run) {
     el("td", { class: "outcome" }, e.scored ? (e.success ? "✓ success" : "✗ failure") : e.status),
     el("td", {}, e.stop_reason), el("td", {}, `${e.steps_used}/${e.step_budget}`),
     el("td", {}, checkpointsText(e)),
-    el("td", {}, e.annotators.join(", ")))));
+    el("td", {}, e.annotators.join(", ")),
+    el("td", {}, el("a", { href: "compare?" + new URLSearchParams(
+      { task: e.task, seed: e.seed, track: e.track }) }, "models")))));
   const first = run.episodes.length ? run.offset + 1 : 0;
   const last = run.offset + run.episodes.length;
   document.getElementById("count").textContent =
@@ -55,7 +57,7 @@ async function load() {
   sessionStorage.setItem(ORDER_KEY, query.toString());
   query.set("offset", OFFSET);
   query.set("limit", PAGE_SIZE);
-  const run = await getJSON("/api/run?" + query);
+  const run = await getJSON("api/run?" + query);
   if (mine !== LOADING) return; // a later filter or page was asked for meanwhile
   for (const name of FILTERS.slice(0, 3)) fillSelect(name, run.facets[name]);
   document.getElementById("title").textContent = `run ${run.name}`;
@@ -64,7 +66,7 @@ async function load() {
   const params = new URLSearchParams();
   for (const [name, value] of chosen()) params.set("f-" + name, value);
   if (OFFSET) params.set("offset", OFFSET);
-  history.replaceState(null, "", params.toString() ? "?" + params : "/");
+  history.replaceState(null, "", params.toString() ? "?" + params : location.pathname);
   document.body.dataset.ready = "1";
 }
 
