@@ -47,19 +47,22 @@ def pricing_of(prices: Prices | None, embedded: bool) -> Pricing:
     return Pricing.EMBEDDED if embedded else Pricing.NOT_SET
 
 
-def cost_text(usd: float, pricing: Mapping[str, Pricing], fmt: str = ",.2f") -> str:
+def cost_text(
+    usd: float, pricing: Mapping[str, Pricing], fmt: str = ",.2f", *, sign: str = "$"
+) -> str:
     """`usd` spent by the models of `pricing` (name -> Pricing), in words: dollars where every
     model has prices, "price not set" where none of the paid ones has, both where some have.
-    An empty mapping (pricing unknown: a run directory without its config) shows dollars."""
+    An empty mapping (pricing unknown: a run directory without its config) shows dollars.
+    `sign=""` for a column whose header already says USD."""
     unset = sorted(m for m, p in pricing.items() if p is Pricing.NOT_SET)
     priced = not pricing or any(p is Pricing.SET for p in pricing.values())
     if not unset and not priced:
         return EMBEDDED_TEXT
     if not unset:
-        return f"${usd:{fmt}}"
+        return f"{sign}{usd:{fmt}}"
     if not priced:
         return NOT_SET_TEXT if len(pricing) == 1 else f"{NOT_SET_TEXT} ({', '.join(unset)})"
-    return f"${usd:{fmt}} + {NOT_SET_TEXT} ({', '.join(unset)})"
+    return f"{sign}{usd:{fmt}} + {NOT_SET_TEXT} ({', '.join(unset)})"
 
 
 @dataclass(frozen=True)

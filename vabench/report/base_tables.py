@@ -292,7 +292,7 @@ def usage_section(
         return "—" if x is None else f"{100 * x:.1f}%"
 
     def usd(value: float, model: str, fmt: str = ".2f") -> str:
-        return cost_text(value, {model: known[model]} if model in known else {}, fmt)
+        return cost_text(value, {model: known[model]} if model in known else {}, fmt, sign="")
 
     rows = [
         [

@@ -207,7 +207,7 @@ def spend_section(b: Bill, pricing: Mapping[str, Pricing] | None = None) -> Sect
     known = pricing or {}
 
     def usd(value: float, model: str) -> str:
-        return cost_text(value, {model: known[model]} if model in known else {}, ".4f")
+        return cost_text(value, {model: known[model]} if model in known else {}, ".4f", sign="")
 
     rows, csv_rows = [], []
     for model in sorted({r.model for r in b.rows}):

@@ -344,7 +344,7 @@ def format_estimate(est: Estimate) -> str:
     rows = [[m.model, f"{m.episodes:,}", *_usage_cells(m.usage), cost_of(m)] for m in est.models]
     total = _cost(est.cost_usd, {m.model: m.pricing for m in est.models})
     rows.append(["total", f"{est.episodes:,}", *_usage_cells(est.usage), total])
-    header = ["Model", "Episodes", "Calls", "Input tokens", "Output tokens", "Cost"]
+    header = ["Model", "Episodes", "Calls", "Input tokens", "Output tokens", "Cost (USD)"]
     a = est.assumptions
     lines += [
         "",
@@ -371,7 +371,7 @@ def cost_of(m: ModelEstimate) -> str:
 
 
 def _cost(usd: float, pricing: dict[str, Pricing]) -> str:
-    return cost_text(usd, pricing, ",.2f")
+    return cost_text(usd, pricing, ",.2f", sign="")
 
 
 def _usage_cells(u: Usage) -> list[str]:
