@@ -189,3 +189,16 @@ def test_a_bad_cap_is_one_line_naming_the_field(tmp_path, capsys, extra, model, 
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--dry-run"]) == 2
     err = capsys.readouterr().err
     assert expected in err and "Traceback" not in err
+
+
+def test_the_example_models_carry_dated_list_prices():
+    import yaml
+
+    from vabench.llm_pool.config import load_endpoints
+
+    path = Path(__file__).parents[1] / "configs" / "models.example.yaml"
+    text = path.read_text()
+    models = {m.name: m for m in load_endpoints(yaml.safe_load(text)["models"])}
+    assert models["gpt"].prices is not None and models["gpt"].prices.output > 0
+    assert models["claude"].prices is not None and models["claude"].prices.output > 0
+    assert "list prices as of" in text and "check the provider's pricing page" in text.lower()
