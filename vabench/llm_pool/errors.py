@@ -20,6 +20,11 @@ Model behaviour (a refusal, hitting max tokens, an empty answer) is not an error
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # a value only carried here; spend.py does not import this module either
+    from vabench.llm_pool.spend import CapReached
+
 
 class LLMError(Exception):
     """Base of every error a pool call raises."""
@@ -83,7 +88,7 @@ class SpendCapReached(RequestRejected):
     at what spend). Fatal like a wrong key: the episodes it stops get no record, and the same
     command with a higher cap resumes them."""
 
-    def __init__(self, endpoint: str, reached: object):
+    def __init__(self, endpoint: str, reached: CapReached):
         super().__init__(
             endpoint,
             str(reached),

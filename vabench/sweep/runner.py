@@ -363,7 +363,7 @@ class LocalSweep:
         """A spend cap refused a call: the model's stops that model, the sweep's every one."""
         self.refused += 1
         reached = err.reached
-        if getattr(reached, "model", None) is None:
+        if reached.model is None:
             if self.stopped is None:
                 self.stopped = (
                     f"{reached}: no new model call was started. Nothing was recorded for the "
