@@ -159,11 +159,22 @@ def _check(
         )
     if isinstance(executor, dict) and executor.get("actors") and executor.get("kind") != "ray":
         problems.append(Problem("executor.actors", "only used with kind: ray"))
+    if parsed is not None:
+        problems += _cap_problems(parsed, embedded)
     if problems or parsed is None:
         return None, problems
     name = parsed.name or stem
     # The sections checked by the schema alone go over as they are; the rest was resolved here.
-    as_written = ("learning", "runs", "step_budget", "simulator", "render", "executor", "retries")
+    as_written = (
+        "learning",
+        "runs",
+        "step_budget",
+        "simulator",
+        "render",
+        "executor",
+        "retries",
+        "limits",
+    )
     config = SweepConfig(
         **{key: getattr(parsed, key) for key in as_written},
         name=name,
@@ -176,6 +187,30 @@ def _check(
         seeds=seeds,
     )
     return config, []
+
+
+def _cap_problems(parsed: SweepFile, embedded: list[str]) -> list[Problem]:
+    """A spend cap counts dollars: every model it covers needs prices (the embedded server's
+    models cost nothing without them)."""
+    problems = []
+    models = parsed.models
+    unpriced = [
+        (i, m.name) for i, m in enumerate(models) if m.prices is None and m.name not in embedded
+    ]
+    for i, name in unpriced:
+        if models[i].limits.max_cost_usd is not None:
+            problems.append(
+                Problem(
+                    f"models[{i}].limits.max_cost_usd",
+                    f"max_cost_usd needs prices for model {name!r} (models[{i}].prices)",
+                )
+            )
+    if parsed.limits.max_cost_usd is not None and unpriced:
+        names = ", ".join(repr(n) for _, n in unpriced)
+        fields = ", ".join(f"models[{i}].prices" for i, _ in unpriced)
+        message = f"max_cost_usd needs prices for model {names} ({fields})"
+        problems.append(Problem("limits.max_cost_usd", message))
+    return problems
 
 
 def _mark_embedded(doc: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:

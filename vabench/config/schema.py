@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from vabench.config.problems import is_int
 from vabench.llm_pool.config import ApiName, ModelEndpoint
 from vabench.llm_pool.server_config import ServerConfig
+from vabench.llm_pool.spend import EMBEDDED_BASE_URL, Pricing, pricing_of
 from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import Physics
 from vabench.tasks import REGISTRY, SUITES
@@ -49,7 +50,7 @@ def suite_tasks(suite: str, selected: Iterable[str]) -> tuple[str, ...]:
 
 SUMMARY_MODES = ("own", "none", "shared:<model>")
 
-EMBEDDED = "embedded"
+EMBEDDED = EMBEDDED_BASE_URL
 """The `base_url` that means "the embedded server the sweep starts"."""
 EMBEDDED_PLACEHOLDER_URL = "http://embedded.invalid"
 """Stands in for the embedded server's address until it runs (`SweepConfig.endpoints`)."""
@@ -192,6 +193,14 @@ class RetryOptions(_Strict):
     """How many times episodes ended by an infrastructure error are re-run (FACTS: 3)."""
 
 
+class SweepLimits(_Strict):
+    max_cost_usd: float | None = Field(default=None, gt=0)
+    """US dollars the whole sweep may spend (its run directory, resumes included): no call is
+    sent that could cross it, and the sweep stops saying so (`llm_pool.spend.SpendCaps`).
+    Every model not of the embedded server needs `prices`. Each model may have its own too
+    (`models[i].limits.max_cost_usd`)."""
+
+
 class SweepFile(_Strict):
     """The document's schema. `tasks` and `seeds` have several spellings and name registry
     entries, so they are checked by `resolve.resolve_tasks` and `resolve.resolve_seeds`
@@ -213,6 +222,7 @@ class SweepFile(_Strict):
     render: RenderOptions = Field(default_factory=RenderOptions)
     executor: ExecutorOptions = Field(default_factory=ExecutorOptions)
     retries: RetryOptions = Field(default_factory=RetryOptions)
+    limits: SweepLimits = Field(default_factory=SweepLimits)
 
 
 class SweepConfig(_Strict):
@@ -238,6 +248,7 @@ class SweepConfig(_Strict):
     render: RenderOptions = Field(default_factory=RenderOptions)
     executor: ExecutorOptions = Field(default_factory=ExecutorOptions)
     retries: RetryOptions = Field(default_factory=RetryOptions)
+    limits: SweepLimits = Field(default_factory=SweepLimits)
 
     def model(self, name: str) -> ModelEndpoint:
         for endpoint in self.models:
@@ -250,6 +261,10 @@ class SweepConfig(_Strict):
             if track.name == name:
                 return track
         raise KeyError(f"no track {name!r}; tracks: {[t.name for t in self.tracks]}")
+
+    def pricing(self) -> dict[str, Pricing]:
+        """How each model's cost is shown (`llm_pool.spend.pricing_of`), by name."""
+        return {m.name: pricing_of(m.prices, m.name in self.embedded_models) for m in self.models}
 
     @property
     def track_names(self) -> tuple[str, ...]:
@@ -305,6 +320,6 @@ class SweepConfig(_Strict):
             "runs": self.runs,
             "step_budget": self.step_budget,
         }
-        for key in ("learning", "simulator", "render", "executor", "retries"):
+        for key in ("learning", "simulator", "render", "executor", "retries", "limits"):
             doc[key] = getattr(self, key).model_dump(mode="json")
         return doc

@@ -53,7 +53,9 @@ class ModelEndpoint(Strict):
     """Chat Completions: which field carries the output limit. OpenAI reasoning models require
     max_completion_tokens; some OpenAI-compatible servers (Ollama) only read max_tokens."""
     limits: Limits = Field(default_factory=Limits)
-    prices: Prices = Field(default_factory=Prices)
+    prices: Prices | None = None
+    """US dollars per million tokens; unset: costs show as "price not set" (`spend.Pricing`),
+    and `limits.max_cost_usd` is refused."""
     generation: GenerationOptions = Field(default_factory=GenerationOptions)
     retry: RetryPolicy = Field(default_factory=RetryPolicy)
 

@@ -9,6 +9,8 @@
   parameters it does not take), the sweep stops and records nothing for the episodes it
   touched; otherwise (a 400 or 413 of one episode's request, e.g. its context grew too
   long) the episode ends with that reason.
+- `SpendCapReached`: a `RequestRejected` never sent, because its cost could cross a spend cap
+  (`limits.max_cost_usd`); fatal.
 - `ResponseFormatError`: a body that is not what the API documents. Raised by the parsers,
   retried by the pool, and named in the final `InfrastructureError` if it persists.
 
@@ -17,6 +19,11 @@ Model behaviour (a refusal, hitting max tokens, an empty answer) is not an error
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # a value only carried here; spend.py does not import this module either
+    from vabench.llm_pool.spend import CapReached
 
 
 class LLMError(Exception):
@@ -74,6 +81,24 @@ class RequestRejected(LLMError):
         return {401: "auth", 403: "auth", 404: "not_found", 413: "too_large"}.get(
             self.status, "bad_request"
         )
+
+
+class SpendCapReached(RequestRejected):
+    """A call not sent: its cost could cross `limits.max_cost_usd` (`reached` says whose cap and
+    at what spend). Fatal like a wrong key: the episodes it stops get no record, and the same
+    command with a higher cap resumes them."""
+
+    def __init__(self, endpoint: str, reached: CapReached):
+        super().__init__(
+            endpoint,
+            str(reached),
+            status=0,
+            attempts=0,
+            elapsed_s=0.0,
+            fatal=True,
+            hint="raise limits.max_cost_usd and run the same command to resume",
+        )
+        self.reached = reached
 
 
 class ResponseFormatError(ValueError):

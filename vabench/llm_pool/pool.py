@@ -39,11 +39,12 @@ from vabench.llm_pool.config import (
     ModelEndpoint,
     load_endpoints,
 )
-from vabench.llm_pool.errors import InfrastructureError, RequestRejected
+from vabench.llm_pool.errors import InfrastructureError, RequestRejected, SpendCapReached
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
 from vabench.llm_pool.retry import RetryDecision, backoff_delay
 from vabench.llm_pool.shared_limits import SharedLimits
+from vabench.llm_pool.spend import SpendCaps
 from vabench.llm_pool.tokens import estimate_input_tokens
 from vabench.llm_pool.transport import Failure, Transport
 
@@ -130,6 +131,8 @@ class EndpointClient:
                 limits.rpm, limits.tpm, period_s=limits.period_s, burst_s=limits.burst_s
             )
         self._counters = CallCounts()
+        self.spend_caps: SpendCaps | None = None
+        """`limits.max_cost_usd` kept by the sweep (`LLMPool.set_spend_caps`); None: no cap."""
         self._paused_until = 0.0
         self._closed = False
         self._warned_no_usage = False
@@ -166,10 +169,17 @@ class EndpointClient:
             raise RequestRejected(
                 self.name, str(err), status=413, attempts=0, elapsed_s=0.0
             ) from None
+        bound = self._upper_bound_usd(estimate, options.resolved_max_output_tokens)
+        caps = self.spend_caps
+        if caps is not None and (reached := caps.hold(self.name, bound)) is not None:
+            self._counters.rejected += 1
+            raise SpendCapReached(self.name, reached)
         self._counters.started += 1
         call = _Call(request, options, estimate, asyncio.get_running_loop().time())
+        cost = 0.0
         try:
             result = await self._call(call)
+            cost = result.cost_usd
         except InfrastructureError:
             self._counters.failed += 1
             raise
@@ -179,8 +189,20 @@ class EndpointClient:
         except asyncio.CancelledError:
             self._counters.cancelled += 1
             raise
+        finally:
+            if caps is not None:
+                caps.settle(self.name, bound, cost)
         self._counters.succeeded += 1
         return result
+
+    def _upper_bound_usd(self, estimate: int, max_output: int) -> float:
+        """The most a call of `estimate` tokens (input estimate + output limit) may cost: its
+        input at the dearest input price, its whole output limit at the output price."""
+        p = self.config.prices
+        if p is None:
+            return 0.0
+        dearest_input = max(p.input, p.cache_write or 0.0, p.cached_input or 0.0)
+        return ((estimate - max_output) * dearest_input + max_output * p.output) / 1e6
 
     async def _call(self, call: _Call) -> CompletionResult:
         while True:
@@ -311,7 +333,8 @@ class EndpointClient:
         return await self.rate.acquire(estimate)
 
     def _result(self, call: _Call, parsed: ParsedResponse, latency: float) -> CompletionResult:
-        cost = parsed.usage.cost(self.config.prices)
+        prices = self.config.prices
+        cost = parsed.usage.cost(prices) if prices is not None else 0.0
         self._counters.usage += parsed.usage
         self._counters.cost_usd += cost
         return CompletionResult(
@@ -375,6 +398,12 @@ class LLMPool:
                 key = SecretStr(value)
             shared = shared_limits(ep) if shared_limits is not None else None
             self._clients[ep.name] = EndpointClient(ep, key, random.Random(rng.random()), shared)
+
+    def set_spend_caps(self, caps: SpendCaps | None) -> None:
+        """Keep `caps` (`limits.max_cost_usd`) before every call of every endpoint from now on;
+        None lifts them."""
+        for client in self._clients.values():
+            client.spend_caps = caps
 
     @property
     def names(self) -> list[str]:

@@ -52,6 +52,9 @@ class Limits(Strict):
     period_s: float = Field(default=60.0, gt=0)
     """Length of the rate window. Providers use a minute; tests and the simulated server use
     shorter windows to exercise the same code quickly."""
+    max_cost_usd: float | None = Field(default=None, gt=0)
+    """US dollars this model may spend in one sweep (its run directory, resumes included): a
+    call that could cross it is not sent (`spend.SpendCaps`). Needs `prices`."""
 
     @model_validator(mode="after")
     def _floor_below_ceiling(self) -> Limits:

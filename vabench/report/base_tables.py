@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from fractions import Fraction
 
+from vabench.llm_pool.spend import Pricing, cost_text
 from vabench.report.active_passive import TrackComparison, in_order
 from vabench.report.stats import (
     SUBSET_TITLES,
@@ -281,9 +282,17 @@ def usage_section(
     unscored: Mapping[tuple[str, str, str], tuple[int, float]],
     unresolved_count: int,
     retried: Mapping[tuple[str, str], int],
+    pricing: Mapping[str, Pricing] | None = None,
 ) -> Section:
+    """`pricing`: how each model's cost is shown (`llm_pool.spend.cost_text`); a model not in
+    it shows dollars."""
+    known = pricing or {}
+
     def share(x: float | None) -> str:
         return "—" if x is None else f"{100 * x:.1f}%"
+
+    def usd(value: float, model: str, fmt: str = ".2f") -> str:
+        return cost_text(value, {model: known[model]} if model in known else {}, fmt, sign="")
 
     rows = [
         [
@@ -296,8 +305,8 @@ def usage_section(
             share(u.invalid_action_share),
             f"{u.total_tokens:,}",
             f"{u.total_tokens / u.episodes:,.0f}",
-            f"{u.cost_usd:.2f}",
-            f"{u.cost_usd / u.episodes:.4f}",
+            usd(u.cost_usd, u.model),
+            usd(u.cost_usd / u.episodes, u.model, ".4f"),
         ]
         for u in usages
     ]
@@ -320,7 +329,7 @@ def usage_section(
             Table(
                 "Unscored records (not counted in any statistic)",
                 ["model", "track", "status", "records", "cost USD"],
-                [[m, t, s, str(n), f"{c:.2f}"] for (m, t, s), (n, c) in unscored.items()],
+                [[m, t, s, str(n), usd(c, m)] for (m, t, s), (n, c) in unscored.items()],
             )
         )
     token_names = list(usages[0].tokens) if usages else []

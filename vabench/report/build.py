@@ -93,6 +93,7 @@ def write_report(
     """`meta` (suites, base families) enables the transfer and long-horizon sections; the
     learning-stage section reads RUN_DIR/summaries/ next to the results file."""
     cells = stats.task_cells(results.scored)
+    pricing = spend.model_pricing(results.path.parent)
     task_spreads = stats.task_spread(cells)
     macros = stats.macro_averages(cells, arms)
     macro_spreads = stats.macro_spread(macros)
@@ -119,10 +120,10 @@ def write_report(
         base_tables.checkpoint_section(stats.checkpoint_micro(results.scored, arms)),
         *diagnostic_sections(results.path.parent),
         base_tables.usage_section(
-            stats.usage(results.scored), unscored, len(unresolved), results.retried
+            stats.usage(results.scored), unscored, len(unresolved), results.retried, pricing
         ),
     ]
-    bill_section = spend.spend_section(spend.bill(results.path.parent))
+    bill_section = spend.spend_section(spend.bill(results.path.parent), pricing)
     if bill_section is not None:
         sections.append(bill_section)
 

@@ -21,11 +21,15 @@ from __future__ import annotations
 import json
 import math
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
+
+from vabench.llm_pool.settings import Prices
+from vabench.llm_pool.spend import EMBEDDED_BASE_URL, Pricing, cost_text, pricing_of
 from vabench.report.stats import TOKEN_FIELDS
 from vabench.run_layout import (
     ATTEMPT_PREFIX,
@@ -128,8 +132,10 @@ def _model_of(run_dir: Path, events_file: Path, events: list[dict[str, Any]]) ->
     return None
 
 
-def bill(run_dir: Path | str) -> Bill:
-    """Every source of the module docstring, per model."""
+def bill(run_dir: Path | str, *, unknown_usage: bool = True) -> Bill:
+    """Every source of the module docstring, per model; `unknown_usage=False` skips counting
+    the attempts whose usage never came back (a read of every events.jsonl, which the sweep's
+    spend caps, reading the bill on resume, do not need)."""
     run_dir = Path(run_dir)
     files = RunDir(run_dir)
     rows: dict[tuple[str, str], Spend] = {}
@@ -158,7 +164,7 @@ def bill(run_dir: Path | str) -> Bill:
             continue
         learning = events_file.relative_to(run_dir).parts[0] == SUMMARIES
         _add_calls(row(model, SOURCES[5] if learning else SOURCES[3]), events)
-    for events_file in run_dir.rglob(EVENTS):
+    for events_file in run_dir.rglob(EVENTS) if unknown_usage else ():
         events = list(jsonl_objects(events_file))
         if (n := _no_usage_failures(events)) and (m := _model_of(run_dir, events_file, events)):
             unknown[m] += n
@@ -167,21 +173,52 @@ def bill(run_dir: Path | str) -> Bill:
     return Bill(ordered, dict(sorted(unknown.items())))
 
 
-def spend_section(b: Bill) -> Section | None:
+def recorded_spend(run_dir: Path | str) -> dict[str, float]:
+    """US dollars per model of every call the run directory holds a trace of (the bill's
+    sources): what a spend cap counts as already spent when a sweep resumes."""
+    b = bill(run_dir, unknown_usage=False)
+    return {m: b.total(m) for m in {r.model for r in b.rows}}
+
+
+def model_pricing(run_dir: Path | str) -> dict[str, Pricing]:
+    """How each model of the run directory's sweep.yaml is priced (empty without one: costs
+    then show as numbers). Read as YAML, not as a `SweepConfig`: the report sits below the
+    config package and needs only these two fields of each model."""
+    try:
+        doc = yaml.safe_load(RunDir(Path(run_dir)).config.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return {}
+    models = doc.get("models") if isinstance(doc, dict) else None
+    return {
+        str(m["name"]): pricing_of(
+            Prices.model_validate(m["prices"]) if m.get("prices") else None,
+            m.get("base_url") == EMBEDDED_BASE_URL,
+        )
+        for m in models or ()
+        if isinstance(m, dict) and "name" in m
+    }
+
+
+def spend_section(b: Bill, pricing: Mapping[str, Pricing] | None = None) -> Section | None:
     """The "Spend of every call" section; None when no call left a trace (no tokens, no
     cost anywhere: a bill of nothing)."""
     if not any(r.cost_usd or any(r.tokens.values()) for r in b.rows):
         return None
+    known = pricing or {}
+
+    def usd(value: float, model: str) -> str:
+        return cost_text(value, {model: known[model]} if model in known else {}, ".4f", sign="")
+
     rows, csv_rows = [], []
     for model in sorted({r.model for r in b.rows}):
         mine = [r for r in b.rows if r.model == model]
         for r in mine:
             tokens = sum(r.tokens.values()) - r.tokens["reasoning"]  # reasoning is in output
-            rows.append([model, r.source, str(r.items), f"{tokens:,}", f"{r.cost_usd:.4f}"])
+            rows.append([model, r.source, str(r.items), f"{tokens:,}", usd(r.cost_usd, model)])
             csv_rows.append(
                 [model, r.source, r.items, *(r.tokens[n] for n in TOKEN_FIELDS), r.cost_usd]
             )
-        rows.append([model, "total", "", "", f"{b.total(model):.4f}"])
+        rows.append([model, "total", "", "", usd(b.total(model), model)])
     notes = [
         "every call the sweep made, by where its trace lies: the usage table counts scored "
         "episodes only; this is the bill"

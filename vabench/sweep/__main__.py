@@ -118,7 +118,10 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     for line in choices.lines():
         log.info(line)
     display = Display(
-        config.name, live=False if args.plain else None, every_s=max(args.progress_every, 0.1)
+        config.name,
+        live=False if args.plain else None,
+        every_s=max(args.progress_every, 0.1),
+        pricing=config.pricing(),
     )
     own_handler = ctrl_c is None
     if ctrl_c is None:

@@ -23,11 +23,12 @@ import collections
 import json
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, TextIO
 
+from vabench.llm_pool.spend import Pricing, cost_text
 from vabench.run_layout import INFRASTRUCTURE, RESULTS
 from vabench.sweep.results import key_of
 
@@ -189,8 +190,12 @@ class Display:
         every_s: float = PLAIN_EVERY_S,
         out: TextIO | None = None,
         clock: Any = time.monotonic,
+        pricing: Mapping[str, Pricing] | None = None,
     ):
+        """`pricing`: how each model's cost is shown (`SweepConfig.pricing`); without it the
+        cost shows as dollars."""
         self.title = title
+        self.pricing = dict(pricing or {})
         self.out = out or sys.stdout
         self.live_mode = self.out.isatty() if live is None else live
         self.every_s = every_s
@@ -255,7 +260,7 @@ class Display:
             )
         parts.append(
             f"calls {calls_per_s:.1f}/s, {status.calls_in_flight} in flight, "
-            f"{status.tokens:,} tokens, ${status.cost:.2f}"
+            f"{status.tokens:,} tokens, {cost_text(status.cost, self.pricing)}"
         )
         parts.append(f"elapsed {_duration(self.clock() - self.t0)}, ETA {self._eta(total, per_s)}")
         if len(status.tracks) > 1:

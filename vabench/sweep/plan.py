@@ -26,7 +26,9 @@ estimate of model calls, tokens and cost, under these assumptions (`Assumptions`
 - a `cached_input_share` of the input tokens is billed at the model's cached-input price
   (default 0: no caching, an upper bound for providers that cache prompt prefixes).
 
-Cost = input x input price + output x output price (US dollars per million tokens).
+Cost = input x input price + output x output price (US dollars per million tokens); a model
+without `prices` shows "price not set", one of the embedded server "no cost"
+(`llm_pool.spend.cost_text`).
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from vabench.config import SweepConfig, Track
 from vabench.llm_pool.apis import get_adapter
 from vabench.llm_pool.config import ApiName, Prices
 from vabench.llm_pool.messages import ChatRequest, Image
+from vabench.llm_pool.spend import Pricing, cost_text
 from vabench.llm_pool.tokens import CHARS_PER_TOKEN, ImageTokenRule, estimate_input_tokens
 from vabench.run_layout import episode_rel
 from vabench.tasks import get_task
@@ -154,6 +157,7 @@ class ModelEstimate:
     episodes: int
     usage: Usage
     cost_usd: float
+    pricing: Pricing = Pricing.SET
 
 
 @dataclass(frozen=True)
@@ -191,9 +195,14 @@ def estimate(
         one = episode_usage(key.task, protocol, config.budget(key.task), size, api, a)
         per_model[key.model] = per_model.get(key.model, Usage()) + one
     by_model = Counter(k.model for k in keys)
+    pricing = config.pricing()
     models = [
         ModelEstimate(
-            m.name, by_model[m.name], per_model[m.name], cost(per_model[m.name], m.prices, a)
+            m.name,
+            by_model[m.name],
+            per_model[m.name],
+            cost(per_model[m.name], m.prices, a) if m.prices is not None else 0.0,
+            pricing[m.name],
         )
         for m in config.models
         if m.name in per_model
@@ -332,11 +341,9 @@ def format_estimate(est: Estimate) -> str:
             "",
             _table([title.capitalize(), "Episodes"], [[k, f"{v:,}"] for k, v in counts.items()]),
         ]
-    rows = [
-        [m.model, f"{m.episodes:,}", *_usage_cells(m.usage), f"{m.cost_usd:,.2f}"]
-        for m in est.models
-    ]
-    rows.append(["total", f"{est.episodes:,}", *_usage_cells(est.usage), f"{est.cost_usd:,.2f}"])
+    rows = [[m.model, f"{m.episodes:,}", *_usage_cells(m.usage), cost_of(m)] for m in est.models]
+    total = _cost(est.cost_usd, {m.model: m.pricing for m in est.models})
+    rows.append(["total", f"{est.episodes:,}", *_usage_cells(est.usage), total])
     header = ["Model", "Episodes", "Calls", "Input tokens", "Output tokens", "Cost (USD)"]
     a = est.assumptions
     lines += [
@@ -357,6 +364,14 @@ def format_estimate(est: Estimate) -> str:
             "3-8), over 640x480 demonstration frames; not included above.",
         ]
     return "\n".join(lines)
+
+
+def cost_of(m: ModelEstimate) -> str:
+    return _cost(m.cost_usd, {m.model: m.pricing})
+
+
+def _cost(usd: float, pricing: dict[str, Pricing]) -> str:
+    return cost_text(usd, pricing, ",.2f", sign="")
 
 
 def _usage_cells(u: Usage) -> list[str]:

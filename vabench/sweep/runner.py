@@ -26,6 +26,13 @@ an unknown model, parameters it does not take) stops the sweep: no episode start
 the episodes it ended get no record (their partial logs are set aside when they run again), and
 `stopped` says which model and what to check. The same command runs them once it is fixed. A
 failed GPU (`DeviceFailure`: the process's CUDA context is dead) stops it the same way.
+
+Spend caps (`limits.max_cost_usd` of the sweep and of each model, `llm_pool.spend.SpendCaps`):
+the pool sends no call that could cross one, counting what the run directory's records already
+hold (`report.spend.recorded_spend`, read when the sweep starts or resumes). A call refused by
+a model's cap ends its episode like a fatal refusal (no record) and no episode of that model
+starts after it, while the other models go on; the sweep's cap stops every model. `stopped`
+then names the cap and the spend; the same command with a higher cap resumes.
 """
 
 from __future__ import annotations
@@ -43,11 +50,13 @@ from vabench.agent.engine import EpisodeSpec, run_episode
 from vabench.agent.learning import LearningLimits
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
 from vabench.agent.services import task_services
-from vabench.llm_pool.errors import RequestRejected
+from vabench.llm_pool.errors import RequestRejected, SpendCapReached
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
+from vabench.llm_pool.spend import SpendCaps
 from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
+from vabench.report.spend import recorded_spend
 from vabench.sim_mjx.backends import Choice
 from vabench.sim_mjx.interface import DeviceFailure
 from vabench.sim_mjx.warp.device import warp_device
@@ -161,7 +170,10 @@ class LocalSweep:
         self.stopped: str | None = None
         """Why the sweep stopped early (an endpoint refused it), naming model and fix."""
         self.refused = 0
-        """Episodes ended without a record by that refusal."""
+        """Episodes ended without a record by that refusal (or by a spend cap)."""
+        self.capped: dict[str, str] = {}
+        """Models whose `limits.max_cost_usd` stopped their calls: model -> which cap, at what
+        spend (the sweep's own cap sets `stopped` instead)."""
         self.gate: InFlight | None = None
         """The engine's, once `run` has one."""
         self.physics: Choice | None = None
@@ -214,6 +226,7 @@ class LocalSweep:
             for k in self.keys
             if not self.ledger.finished(ledger_key(k))
             and self.ledger.infra_attempts[ledger_key(k)] <= rounds
+            and k.model not in self.capped
         ]
 
     # -- running -------------------------------------------------------------------------------
@@ -231,6 +244,7 @@ class LocalSweep:
     async def _run_in(self, engine: Engine) -> None:
         self.physics, self.gate, self.summaries = engine.physics, engine.gate, engine.summaries
         self.progress.pool, self.progress.gate = engine.llm, engine.gate
+        engine.llm.set_spend_caps(spend_caps(self.config, self.run_dir))
         await self._precompile(engine)
         round_no = 0
         while (pending := self._pending()) and self.stopped is None:
@@ -243,6 +257,14 @@ class LocalSweep:
                 )
             await self._run_round(pending, engine.llm, engine.renderer, engine.image)
             round_no += 1
+        if self.capped and self.stopped is None:
+            self.stopped = (
+                "; ".join(self.capped.values())
+                + f". No call of {'that model' if len(self.capped) == 1 else 'those models'} "
+                "was started past it; the episodes it stopped or never started have no record. "
+                "Raise the cap and run the same command to resume."
+            )
+            log.error("stopped: %s", self.stopped)
 
     async def _run_round(
         self, keys: list[Any], llm: LLMPool, pool: Renderer, image: ImageSettings
@@ -296,13 +318,15 @@ class LocalSweep:
             async def one(k: Any) -> None:
                 try:
                     await run_one(k)
+                except SpendCapReached as err:
+                    self._cap(err)
                 except RequestRejected as err:  # only fatal ones leave an episode
                     self._stop(err)
                 except DeviceFailure as err:
                     self._stop_device(err)
 
             async def run_one(k: Any) -> None:
-                if self.stopped is not None:
+                if self.stopped is not None or k.model in self.capped:
                     return
                 track = cfg.track(k.track)
                 # Before taking a slot: the first episodes of a family wait here for its
@@ -327,7 +351,8 @@ class LocalSweep:
                     self._finish(k, _unavailable(spec, cfg.budget(name), use.unavailable))
                     return
                 async with slots, gate.slot():
-                    if self.stopped is not None:  # stopped while this one waited for a slot
+                    # stopped (or capped) while this one waited for a slot
+                    if self.stopped is not None or k.model in self.capped:
                         return
                     cell = self.progress.cells[(k.model, k.track, k.task)]
                     cell.running += 1
@@ -349,6 +374,21 @@ class LocalSweep:
                 "episodes this stopped: the same command runs them once this is fixed."
             )
             log.error("stopping the sweep: %s", self.stopped)
+
+    def _cap(self, err: SpendCapReached) -> None:
+        """A spend cap refused a call: the model's stops that model, the sweep's every one."""
+        self.refused += 1
+        reached = err.reached
+        if reached.model is None:
+            if self.stopped is None:
+                self.stopped = (
+                    f"{reached}: no new model call was started. Nothing was recorded for the "
+                    "episodes this stopped: raise the cap and run the same command to resume."
+                )
+                log.error("stopping the sweep: %s", self.stopped)
+        elif err.endpoint not in self.capped:
+            self.capped[err.endpoint] = str(reached)
+            log.error("%s: no new call of model %r starts", reached, err.endpoint)
 
     def _stop_device(self, err: DeviceFailure) -> None:
         if self.stopped is None:
@@ -385,6 +425,18 @@ def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
     if not others or top < 2 * max(others):
         return set()
     return {name for name, b in budgets.items() if b == top}
+
+
+def spend_caps(config: Any, run_dir: Path) -> SpendCaps | None:
+    """The `limits.max_cost_usd` caps of `config` over what `run_dir` already spent; None when
+    no cap is set (the run directory is then not read)."""
+    per_model = {
+        m.name: m.limits.max_cost_usd for m in config.models if m.limits.max_cost_usd is not None
+    }
+    total = config.limits.max_cost_usd
+    if not per_model and total is None:
+        return None
+    return SpendCaps(per_model, total, recorded_spend(run_dir))
 
 
 def _unavailable(spec: EpisodeSpec, budget: int, why: str) -> EpisodeResult:
