@@ -9,6 +9,11 @@
   parameters it does not take), the sweep stops and records nothing for the episodes it
   touched; otherwise (a 400 or 413 of one episode's request, e.g. its context grew too
   long) the episode ends with that reason.
+- `EndpointUnreachable`: a `RequestRejected` that is always fatal: no connection could be made
+  (refused, DNS, TLS) to an endpoint that has not answered once since the pool opened, i.e.
+  nothing serves its `base_url` (a local server not started, a typo in the host). Retrying
+  would only turn every episode into an infrastructure error; once the endpoint has answered,
+  the same errors are transient (a server restarting) and retried as before.
 - `ResponseFormatError`: a body that is not what the API documents. Raised by the parsers,
   retried by the pool, and named in the final `InfrastructureError` if it persists.
 
@@ -68,12 +73,36 @@ class RequestRejected(LLMError):
         self.hint = hint
         """What to check (the key's environment variable, the model id, the parameters)."""
 
+    verdict = "its endpoint refused the sweep's requests"
+    """How a sweep stopped by this error says what happened (before the failure line)."""
+
     @property
     def kind(self) -> str:
         """auth (401/403), not_found (404), too_large (413) or bad_request (other 4xx)."""
         return {401: "auth", 403: "auth", 404: "not_found", 413: "too_large"}.get(
             self.status, "bad_request"
         )
+
+
+class EndpointUnreachable(RequestRejected):
+    """No connection to an endpoint that never answered: fatal, with status 0 (no HTTP)."""
+
+    verdict = "nothing answered at its endpoint"
+
+    def __init__(self, endpoint: str, message: str, *, attempts: int, elapsed_s: float, hint: str):
+        super().__init__(
+            endpoint,
+            message,
+            status=0,
+            attempts=attempts,
+            elapsed_s=elapsed_s,
+            fatal=True,
+            hint=hint,
+        )
+
+    @property
+    def kind(self) -> str:
+        return "unreachable"
 
 
 class ResponseFormatError(ValueError):

@@ -10,8 +10,9 @@ Running the same command again resumes: finished episodes are never re-run, inte
 start again, infrastructure failures get their retry rounds. Ctrl-C stops the sweep cleanly
 (a second press at once) and says how to resume. Exit code 0 when every planned episode is in
 results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run directory of
-another plan, or an endpoint that refused the sweep's requests (a wrong key, an unknown model:
-the sweep stops at once, naming the model and what to check), 130 after Ctrl-C.
+another plan, or an endpoint that refused the sweep's requests (a wrong key, an unknown model,
+no server at its base_url: the sweep stops at once, naming the model and what to check), 130
+after Ctrl-C.
 """
 
 from __future__ import annotations
