@@ -48,6 +48,7 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 from vabench.config import SweepConfigError, load_config  # noqa: E402
+from vabench.config.keys import KeySources, key_sources  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
 from vabench.sweep.choices import Choices, choose, configure_jax  # noqa: E402
@@ -89,7 +90,13 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     try:
-        config = load_config(args.config, overrides={"out": args.out} if args.out else None)
+        keys_from = key_sources(args.config, os.environ)
+        config = load_config(
+            args.config,
+            environ=keys_from.environ,
+            overrides={"out": args.out} if args.out else None,
+            require_keys=not args.dry_run,  # a dry run warns of them (below)
+        )
         choices = choose(config)
     except SweepConfigError as err:
         print(err, file=sys.stderr)
@@ -100,6 +107,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     keys = plan(config)
     run_dir = Path(config.out)
     if args.dry_run:
+        _print_key_sources(config, keys_from)
         print(format_estimate(estimate(config, keys)))
         print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
         problem = run_dir_problem(run_dir, config, keys)  # what the run would refuse
@@ -115,6 +123,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     except RunDirMismatch as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    os.environ.update(keys_from.added())  # the pool and the processes it starts read them here
     configure_jax(choices.physics)
     for line in choices.lines():
         log.info(line)
@@ -159,6 +168,20 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     finally:
         if own_handler:
             ctrl_c.restore()
+
+
+def _print_key_sources(config: Any, keys_from: KeySources) -> None:
+    """The dry run's word on keys: which variables the `.env` file gave (names only) and, one
+    line each, the models whose key is set nowhere (the real run refuses to start)."""
+    if keys_from.from_file:
+        print(f"keys from {keys_from.file}: {', '.join(keys_from.from_file)}")
+    for model, variable in keys_from.unset(config.models):
+        print(
+            f"warning: model {model!r}: environment variable {variable} is not set (its "
+            f"api_key_env): the run will refuse to start until it is exported or put in "
+            f"{keys_from.file}",
+            file=sys.stderr,
+        )
 
 
 def _run_local(
