@@ -7,6 +7,7 @@ the same with `--dry-run` exited 0 saying nothing; a dry-run after a change to t
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -131,3 +132,56 @@ def test_a_malformed_dotenv_line_is_named_by_number_not_shown(tmp_path, capsys, 
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"{tmp_path / '.env'}: line 2: expected NAME=VALUE (a # starts a comment)"
+
+
+TINY = """\
+name: tiny
+models:
+  - {name: local, api: openai_chat, base_url: embedded}
+embedded_server: {policy: conversation_hash}
+tracks: [active, {name: active_none, protocol: active, summaries: none}]
+summaries: own
+tasks: [grasp_single_cube]
+seeds: {verified: 1}
+runs: 1
+step_budget: 2
+simulator: {backend: c}
+render: {width: 64, height: 48, workers: 1}
+"""
+
+
+def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp_path, capsys):
+    """Issue 34: the dry run showed no output directory, no summary mode and no wall time.
+    With no earlier sweep beside the planned directory it says it has no pace; after one, it
+    estimates from that sweep's decisions per second of episode time."""
+    runs = tmp_path / "runs"
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY)
+    assert main([str(cfg), "--out", str(runs / "first"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"output: {runs / 'first'} (new)" in out
+    assert "summaries: active: own, active_none: none" in out
+    assert "wall time: no measured pace on this machine yet (run configs/smoke.yaml" in out
+
+    assert main([str(cfg), "--out", str(runs / "first"), "--plain", "--no-report"]) == 0
+    assert main([str(cfg), "--out", str(runs / "first"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"output: {runs / 'first'}: 2 of 2 episodes already finished" in out
+    assert "wall time: nothing left to run" in out
+
+    assert main([str(SMOKE), "--out", str(runs / "second"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    records = [json.loads(x) for x in (runs / "first" / "results.jsonl").read_text().splitlines()]
+    ends = sorted((r["started_at"], r["started_at"] + r["wall_s"]) for r in records)
+    busy = ends[0][1] - ends[0][0] + max(0.0, ends[1][1] - max(ends[1][0], ends[0][1]))
+    rate = sum(r["steps_used"] for r in records) / busy
+    (line,) = [x for x in out.splitlines() if x.startswith("wall time:")]
+    assert f"(40 decisions at {rate:.2g} a second, the pace of 2 episodes in {runs / 'first'}" in (
+        line
+    )
+
+
+def test_the_pace_leaves_out_the_time_between_a_stop_and_its_resumption():
+    from vabench.sweep.pace import _union_length
+
+    assert _union_length([(100.0, 110.0), (0.0, 10.0), (5.0, 15.0), (6.0, 7.0)]) == 25.0

@@ -2,8 +2,11 @@
 (see vabench.sweep).
 
 The defaults pick the fastest path this machine offers (`simulator.backend`, `render.backend`
-and `executor.kind` are `auto`; `--dry-run` prints what was picked and why). Progress shows on
-a clock: a live table on a terminal, a line every 15 s otherwise (`--plain`,
+and `executor.kind` are `auto`; `--dry-run` prints what was picked and why, the output
+directory, each track's summary mode and a wall time at the pace of an earlier sweep on this
+machine, and warns of a missing key instead of refusing). Keys come from the environment, or
+from a `.env` file beside the config for the variables the environment does not set. Progress
+shows on a clock: a live table on a terminal, a line every 15 s otherwise (`--plain`,
 `--progress-every`).
 
 Running the same command again resumes: finished episodes are never re-run, interrupted ones
@@ -54,6 +57,7 @@ from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
 from vabench.sweep.choices import Choices, choose, configure_jax  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
+from vabench.sweep.pace import measured_pace, wall_time_line  # noqa: E402
 from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import Ledger, LedgerError, ledger_key  # noqa: E402
 from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
@@ -114,9 +118,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         if problem is not None:
             print(f"error: {problem}", file=sys.stderr)
             return 2
-        if RunDir(run_dir).results.exists():
-            done = len(Ledger.open(run_dir).records)
-            print(f"{run_dir}: {done} of {len(keys)} episodes already finished")
+        _print_where_and_how_long(config, keys, run_dir)
         return 0
     try:
         check_run_dir(run_dir, config, keys, config.document())
@@ -182,6 +184,21 @@ def _print_key_sources(config: Any, keys_from: KeySources) -> None:
             f"{keys_from.file}",
             file=sys.stderr,
         )
+
+
+def _print_where_and_how_long(config: Any, keys: Sequence[Any], run_dir: Path) -> None:
+    """The dry run's last lines: the output directory (and what it holds), each track's
+    summary mode, and the wall time at this machine's measured pace (`sweep.pace`)."""
+    done: dict[Any, Any] = {}
+    if RunDir(run_dir).results.exists():
+        done = Ledger.open(run_dir).records
+        print(f"\noutput: {run_dir}: {len(done)} of {len(keys)} episodes already finished")
+    else:
+        print(f"\noutput: {run_dir} (new)")
+    modes = ", ".join(f"{t.name}: {t.summaries}" for t in config.tracks)
+    print(f"summaries: {modes}")
+    left = sum(config.budget(k.task) for k in keys if ledger_key(k) not in done)
+    print(wall_time_line(measured_pace(run_dir.parent), left))
 
 
 def _run_local(
