@@ -85,6 +85,10 @@ def test_a_limit_lowered_below_the_running_episodes_says_it_only_holds_back_new_
     display.update(status(6), force=True)  # 3 in flight under a limit of 4: nothing added
     last = out.getvalue().splitlines()[-1]
     assert "in flight 3 (limit 4: " in last and "above it" not in last
+    unknown = status(6)
+    unknown.in_flight, unknown.limit, unknown.reason = 0, 0, ""  # a worker stopped early
+    display.update(unknown, force=True)
+    assert "| in flight 0 (limit 0) |" in out.getvalue().splitlines()[-1]
 
 
 def test_the_last_line_is_not_printed_twice():

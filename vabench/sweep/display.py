@@ -263,11 +263,12 @@ class Display:
             # a limit lowered below the episodes already running ends none of them: it only
             # holds back new ones, which reads as a bug ("3 (limit 1") unless said
             above = (status.in_flight or 0) - status.limit
+            why = f": {status.reason}" if status.reason else ""  # a worker not yet timing
             parts.append(
-                f"in flight {status.in_flight} (limit now {status.limit}: {status.reason}; "
+                f"in flight {status.in_flight} (limit now {status.limit}{why}; "
                 f"the {above} above it finish before a new one starts)"
                 if above > 0
-                else f"in flight {status.in_flight} (limit {status.limit}: {status.reason})"
+                else f"in flight {status.in_flight} (limit {status.limit}{why})"
             )
         parts.append(
             f"calls {calls_per_s:.1f}/s, {status.calls_in_flight} in flight, "
