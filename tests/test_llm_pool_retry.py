@@ -139,6 +139,44 @@ def test_a_refusal_is_fatal_when_the_endpoint_never_answered_or_the_key_is_wrong
     assert "TEST_LLM_KEY" in got["401"].hint
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_nothing_listening_is_fatal_until_the_endpoint_has_answered_once():
+    """Nothing on the port before the first answer: `EndpointUnreachable` (fatal) at the first
+    attempt, naming the base_url; after the endpoint has answered, the same refused connection
+    (a server restarting) is retried and ends as an infrastructure error."""
+    port = _free_port()
+
+    async def main():
+        config = {
+            "name": "m",
+            "api": "openai_chat",
+            "base_url": f"http://127.0.0.1:{port}/v1",
+            "retry": {**FAST_RETRY, "max_attempts": 3},
+        }
+        async with LLMPool([config]) as pool:
+            with pytest.raises(RequestRejected) as never:
+                await pool.complete("m", REQUEST)
+            server = await LocalServer().start(port=port)
+            await pool.complete("m", REQUEST)  # answered once
+            await server.stop()
+            with pytest.raises(InfrastructureError) as later:
+                await pool.complete("m", REQUEST)
+        return never.value, later.value
+
+    never, later = asyncio.run(main())
+    assert never.fatal and never.attempts == 1 and never.kind == "unreachable"
+    assert "ClientConnectorError" in never.message
+    assert f"http://127.0.0.1:{port}/v1" in never.hint and "server is running" in never.hint
+    assert later.attempts == 3 and "ClientConnectorError" in later.failures[-1]
+
+
 def test_transport_faults_are_retried_and_named():
     async def main():
         async with LocalServer() as server:

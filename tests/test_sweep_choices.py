@@ -110,9 +110,17 @@ def test_dry_run_says_what_was_picked_and_why(tmp_path, capsys):
     text = capsys.readouterr().out
     section = text[text.index("Runs with:") :]
     assert "machine:   2 cores (VABENCH_CORES)" in section
-    # no CUDA GPU here: C MuJoCo and the GL workers, each with the reason
-    assert "physics:   C MuJoCo (auto: C MuJoCo (the Warp backend needs" in section
-    assert "renderer:  GL worker processes (auto: GL worker processes (" in section
+    # no CUDA GPU here: C MuJoCo and the GL workers, each with the reason, the choice named
+    # once (issue 34: `C MuJoCo (auto: C MuJoCo (the Warp backend needs ... (pip install ...)))`
+    # nested parentheses three deep)
+    assert "physics:   C MuJoCo (auto: the Warp backend needs" in section
+    assert "renderer:  GL worker processes (auto: the Warp renderer needs" in section
+    for line in section.splitlines()[1:]:
+        depth = deepest = 0
+        for ch in line:
+            depth += {"(": 1, ")": -1}.get(ch, 0)
+            deepest = max(deepest, depth)
+        assert deepest <= 2 and depth == 0, line
     assert "executor:  local, 4 task batches at once (auto: 2 cores: one process" in section
     assert "in flight: adaptive, at most 256 episodes per process" in section
 

@@ -7,6 +7,7 @@ the same with `--dry-run` exited 0 saying nothing; a dry-run after a change to t
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -53,3 +54,134 @@ def test_dry_run_of_a_new_or_matching_run_directory_still_passes(tmp_path, capsy
     config = load_config(SMOKE, overrides={"out": str(out)})
     check_run_dir(out, config, plan(config), config.document())
     assert main([str(SMOKE), "--out", str(out), "--dry-run"]) == 0
+
+
+KEYED = """\
+name: keyed
+models:
+  - {name: local, api: anthropic, base_url: embedded, api_key_env: VABENCH_DOOR_KEY}
+embedded_server: {policy: conversation_hash, api_key: right-key}
+tracks: [active]
+tasks: [grasp_single_cube]
+seeds: {verified: 2}
+runs: 1
+step_budget: 2
+simulator: {backend: c}
+render: {width: 64, height: 48, workers: 1}
+"""
+
+
+def test_dry_run_warns_of_a_missing_key_and_prints_the_plan(tmp_path, capsys, monkeypatch):
+    """Issue 34: `--dry-run` refused to print anything until every key was exported, so nobody
+    could preview a plan before setting keys. Now a missing key is one warning line naming the
+    model and the variable; the real run still refuses at start, with today's message."""
+    monkeypatch.delenv("VABENCH_DOOR_KEY", raising=False)
+    cfg = tmp_path / "keyed.yaml"
+    cfg.write_text(KEYED)
+    out = tmp_path / "out"
+    assert main([str(cfg), "--out", str(out), "--dry-run"]) == 0
+    got = capsys.readouterr()
+    assert "Planned episodes: 2" in got.out and "Runs with:" in got.out
+    (warning,) = [line for line in got.err.splitlines() if "VABENCH_DOOR_KEY" in line]
+    assert warning.startswith("warning: model 'local': environment variable VABENCH_DOOR_KEY")
+
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    unset = "environment variable VABENCH_DOOR_KEY is not set"
+    assert err == [f"{cfg}: models[0].api_key_env: {unset}"]
+    assert not out.exists()
+
+
+def test_a_dotenv_beside_the_config_gives_keys_named_never_shown(tmp_path, capsys, monkeypatch):
+    """Issue 34: keys from a `.env` file beside the config (comments, `export`, quotes); the
+    dry run names the variables it took from it, never a value; the environment wins."""
+    for name in ("VABENCH_DOOR_KEY", "VABENCH_DOOR_OTHER"):  # the run sets them: restored after
+        monkeypatch.delenv(name, raising=False)
+    cfg = tmp_path / "keyed.yaml"
+    cfg.write_text(KEYED)
+    (tmp_path / ".env").write_text(
+        '# keys for the trials\n\nexport VABENCH_DOOR_KEY = "right-key"\n'
+        "VABENCH_DOOR_OTHER='x y' # unused\n"
+    )
+    out = tmp_path / "out"
+    assert main([str(cfg), "--out", str(out), "--dry-run"]) == 0
+    got = capsys.readouterr()
+    assert f"keys from {tmp_path / '.env'}: VABENCH_DOOR_KEY, VABENCH_DOOR_OTHER" in got.out
+    assert "right-key" not in got.out + got.err and "warning" not in got.err
+
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    got = capsys.readouterr()
+    assert "right-key" not in got.out + got.err
+    records = [line for line in (out / "results.jsonl").read_text().splitlines() if line]
+    assert len(records) == 2
+    for path in out.rglob("*"):  # the key reached no file of the run directory
+        if path.is_file():
+            assert b"right-key" not in path.read_bytes(), path
+
+    monkeypatch.setenv("VABENCH_DOOR_KEY", "from-the-environment")  # the environment wins
+    monkeypatch.delenv("VABENCH_DOOR_OTHER")
+    assert main([str(cfg), "--out", str(out), "--dry-run"]) == 0
+    assert f"keys from {tmp_path / '.env'}: VABENCH_DOOR_OTHER\n" in capsys.readouterr().out
+
+
+def test_a_malformed_dotenv_line_is_named_by_number_not_shown(tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("VABENCH_DOOR_KEY", raising=False)
+    cfg = tmp_path / "keyed.yaml"
+    cfg.write_text(KEYED)
+    (tmp_path / ".env").write_text("# ok\nsk-secret-without-a-name\n")
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"{tmp_path / '.env'}: line 2: expected NAME=VALUE (a # starts a comment)"
+
+
+TINY = """\
+name: tiny
+models:
+  - {name: local, api: openai_chat, base_url: embedded}
+embedded_server: {policy: conversation_hash}
+tracks: [active, {name: active_none, protocol: active, summaries: none}]
+summaries: own
+tasks: [grasp_single_cube]
+seeds: {verified: 1}
+runs: 1
+step_budget: 2
+simulator: {backend: c}
+render: {width: 64, height: 48, workers: 1}
+"""
+
+
+def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp_path, capsys):
+    """Issue 34: the dry run showed no output directory, no summary mode and no wall time.
+    With no earlier sweep beside the planned directory it says it has no pace; after one, it
+    estimates from that sweep's decisions per second of episode time."""
+    runs = tmp_path / "runs"
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY)
+    assert main([str(cfg), "--out", str(runs / "first"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"output: {runs / 'first'} (new)" in out
+    assert "summaries: active: own, active_none: none" in out
+    assert "wall time: no measured pace on this machine yet (run configs/smoke.yaml" in out
+
+    assert main([str(cfg), "--out", str(runs / "first"), "--plain", "--no-report"]) == 0
+    assert main([str(cfg), "--out", str(runs / "first"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"output: {runs / 'first'}: 2 of 2 episodes already finished" in out
+    assert "wall time: nothing left to run" in out
+
+    assert main([str(SMOKE), "--out", str(runs / "second"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    records = [json.loads(x) for x in (runs / "first" / "results.jsonl").read_text().splitlines()]
+    ends = sorted((r["started_at"], r["started_at"] + r["wall_s"]) for r in records)
+    busy = ends[0][1] - ends[0][0] + max(0.0, ends[1][1] - max(ends[1][0], ends[0][1]))
+    rate = sum(r["steps_used"] for r in records) / busy
+    (line,) = [x for x in out.splitlines() if x.startswith("wall time:")]
+    assert f"(40 decisions at {rate:.2g} a second, the pace of 2 episodes in {runs / 'first'}" in (
+        line
+    )
+
+
+def test_the_pace_leaves_out_the_time_between_a_stop_and_its_resumption():
+    from vabench.sweep.pace import _union_length
+
+    assert _union_length([(100.0, 110.0), (0.0, 10.0), (5.0, 15.0), (6.0, 7.0)]) == 25.0

@@ -77,10 +77,57 @@ def test_a_limit_lowered_below_the_running_episodes_says_it_only_holds_back_new_
     lowered = status(5)
     lowered.in_flight, lowered.limit = 6, 3
     display.update(lowered)
-    assert "in flight 6 (limit 3: " in out.getvalue()
-    assert "; no new episode until fewer run)" in out.getvalue()
+    # issue 34: "in flight 3 (limit 1: ...)" read as a bug
+    assert "in flight 6 (limit now 3: decisions at 1.20x their unloaded time: growing; " in (
+        out.getvalue()
+    )
+    assert "; the 3 above it finish before a new one starts)" in out.getvalue()
     display.update(status(6), force=True)  # 3 in flight under a limit of 4: nothing added
-    assert "no new episode" not in out.getvalue().splitlines()[-1]
+    last = out.getvalue().splitlines()[-1]
+    assert "in flight 3 (limit 4: " in last and "above it" not in last
+    unknown = status(6)
+    unknown.in_flight, unknown.limit, unknown.reason = 0, 0, ""  # a worker stopped early
+    display.update(unknown, force=True)
+    assert "| in flight 0 (limit 0) |" in out.getvalue().splitlines()[-1]
+
+
+def test_the_last_line_is_not_printed_twice():
+    """Issue 34: the sweep's last update and `close` printed the same line twice."""
+    clock, out = Clock(), io.StringIO()
+    display = Display("all", live=False, every_s=15, out=out, clock=clock)
+    display.update(status(0))
+    display.close(status(0))
+    assert len(out.getvalue().splitlines()) == 1
+    clock.now = 1
+    display.close(status(1))  # a different line still comes
+    assert len(out.getvalue().splitlines()) == 2
+
+
+def test_log_lines_print_above_the_live_table_not_through_it(capsys):
+    """Issue 34: on a terminal the first status block showed twice: log lines (the handler
+    `logging.basicConfig` made before the table, holding the real stderr) were written past
+    rich's live table, which left a copy of it on screen. While the table is up they go
+    through rich, which prints them above it; the handler gets its stream back at the end."""
+    import logging
+    import sys
+
+    handler = logging.StreamHandler(sys.stderr)  # as basicConfig makes it, before the table
+    root = logging.getLogger()
+    root.addHandler(handler)
+    level, root.level = root.level, logging.INFO
+    try:
+        out = io.StringIO()
+        display = Display("all", live=True, out=out, clock=Clock())
+        display.update(status(0))
+        logging.getLogger("vabench.test").info("embedded server on http://127.0.0.1:1")
+        display.update(status(1))
+        display.close(status(2))
+        assert "embedded server on" in out.getvalue()  # printed by rich, above the table
+        assert "embedded server on" not in capsys.readouterr().err
+        assert handler.stream is sys.stderr
+    finally:
+        root.removeHandler(handler)
+        root.level = level
 
 
 def _seconds(eta: str) -> int:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -266,6 +267,49 @@ def test_a_wrong_key_stops_the_sweep_and_the_fixed_run_does_every_episode(
         if path.is_file():
             data = path.read_bytes()
             assert b"right-key" not in data and b"wrong-key" not in data, path
+
+
+def test_nothing_answering_at_base_url_stops_the_sweep_and_the_run_with_a_server_does_all(
+    tmp_path, capsys
+):
+    """Issue 34 (2026-11-26): a sweep against nothing on 127.0.0.1:8000 did three retry rounds,
+    then recorded `infrastructure_error ... ClientConnectorError` for every episode. An
+    endpoint that never answered now stops the sweep at its first call like a wrong key,
+    naming the model and its base_url; nothing is recorded; once a server listens there
+    (a real process), the same command runs every episode."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    base_url = f"http://127.0.0.1:{port}/v1"
+    cfg = tmp_path / "unreachable.yaml"
+    cfg.write_text(
+        write(tmp_path / "x.yaml")
+        .read_text()
+        .replace("base_url: embedded", f"base_url: {base_url}")
+        .replace("embedded_server: {policy: conversation_hash}\n", "")
+    )
+    out = tmp_path / "out"
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert "model 'local'" in err and base_url in err and "server is running" in err
+    assert ledger_lines(out) == [] and not (out / "infrastructure.jsonl").exists()
+    assert not list(out.glob("episodes/**/result.json"))
+    assert not list(out.glob("summaries/local/*.json"))
+
+    server = subprocess.Popen(
+        [sys.executable, "-m", "vabench.llm_pool.serve", "--port", str(port)]
+        + ["--policy", "conversation_hash"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert server.stdout is not None and "llm server on" in server.stdout.readline()
+        assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    records = ledger_lines(out)
+    assert len(records) == 2 and all(r["status"] in ("success", "failure") for r in records)
 
 
 def test_a_failed_gpu_stops_the_sweep_and_the_next_run_does_every_episode(

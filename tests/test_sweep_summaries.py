@@ -177,9 +177,15 @@ def test_a_failed_session_is_final_and_an_infrastructure_failure_is_retried(tmp_
         config = ServerConfig(
             model_policies={"m1": {"policy": "echo"}, "m2": {"policy": "random_action"}},
         )
-        async with LocalServer(config, capture_bodies=True) as server:
+        # (A server that answers 503 on every call: nothing listening at all would stop the
+        # sweep, as an endpoint that never answered does.)
+        failing = ServerConfig(faults={"rates": {"unavailable": 1.0}})
+        async with (
+            LocalServer(config, capture_bodies=True) as server,
+            LocalServer(failing) as down,
+        ):
             doc = sweep_doc(server, ["m1", "m2"], seeds={"verified": 3})
-            doc["models"][1]["base_url"] = "http://127.0.0.1:9/v1"  # nothing listens there
+            doc["models"][1]["base_url"] = down.base_url("openai_chat")
             out = tmp_path / "out"
             sweep = await run_sweep(doc, tmp_path, out)
             failed = read_result(RunDir(out).summary("m1", TASK))

@@ -45,12 +45,14 @@ def load_config(
     *,
     environ: Mapping[str, str] = os.environ,
     overrides: Mapping[str, Any] | None = None,
+    require_keys: bool = True,
 ) -> SweepConfig:
     """Read, check and resolve the sweep config at `path`.
 
     `overrides` replace values of the document before it is checked; keys are dotted field
     paths (`out`, `executor.kind`), as the command line sets them. `environ` is where the
-    models' `api_key_env` variables must be set (and non-empty).
+    models' `api_key_env` variables must be set (and non-empty), unless `require_keys` is false
+    (`--dry-run`, which warns of them instead: `keys.KeySources.unset`).
 
     Raises `SweepConfigError` listing every problem found (see the module docstring).
     """
@@ -74,7 +76,7 @@ def load_config(
         )
     doc = _apply_overrides(doc, overrides or {})
     doc, old_spelling = _old_physics_spelling(doc, file)
-    config, problems = _check(doc, path.stem, environ)
+    config, problems = _check(doc, path.stem, environ if require_keys else None)
     problems = old_spelling + problems
     if problems or config is None:
         order = {key: i for i, key in enumerate(doc)}  # report in the order the file reads
@@ -123,9 +125,10 @@ def _position(path: str, order: Mapping[str, int]) -> tuple[int, int]:
 
 
 def _check(
-    doc: dict[str, Any], stem: str, environ: Mapping[str, str]
+    doc: dict[str, Any], stem: str, environ: Mapping[str, str] | None
 ) -> tuple[SweepConfig | None, list[Problem]]:
-    """Validate the document; every section is checked even when another one fails."""
+    """Validate the document; every section is checked even when another one fails (the key
+    variables only with an `environ`)."""
     problems: list[Problem] = []
     doc, embedded = _mark_embedded(doc)
     parsed: SweepFile | None = None

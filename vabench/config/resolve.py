@@ -20,8 +20,9 @@ from vabench.tasks import BASE_FAMILIES, REGISTRY
 from vabench.tasks.manifests import verified_seeds
 
 
-def model_problems(models: Any, environ: Mapping[str, str]) -> list[Problem]:
-    """Path-safe unique names and set key variables (the schema checks the rest)."""
+def model_problems(models: Any, environ: Mapping[str, str] | None) -> list[Problem]:
+    """Path-safe unique names and set key variables (the schema checks the rest; keys not
+    without an `environ`)."""
     if not isinstance(models, list):
         return []
     problems = []
@@ -45,7 +46,7 @@ def model_problems(models: Any, environ: Mapping[str, str]) -> list[Problem]:
                 )
             seen.setdefault(name, i)
         key_env = entry.get("api_key_env")
-        if isinstance(key_env, str) and not environ.get(key_env):
+        if environ is not None and isinstance(key_env, str) and not environ.get(key_env):
             problems.append(
                 Problem(f"models[{i}].api_key_env", f"environment variable {key_env} is not set")
             )

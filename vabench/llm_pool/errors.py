@@ -11,6 +11,11 @@
   long) the episode ends with that reason.
 - `SpendCapReached`: a `RequestRejected` never sent, because its cost could cross a spend cap
   (`limits.max_cost_usd`); fatal.
+- `EndpointUnreachable`: a `RequestRejected` that is always fatal: no connection could be made
+  (refused, DNS, TLS) to an endpoint that has not answered once since the pool opened, i.e.
+  nothing serves its `base_url` (a local server not started, a typo in the host). Retrying
+  would only turn every episode into an infrastructure error; once the endpoint has answered,
+  the same errors are transient (a server restarting) and retried as before.
 - `ResponseFormatError`: a body that is not what the API documents. Raised by the parsers,
   retried by the pool, and named in the final `InfrastructureError` if it persists.
 
@@ -75,6 +80,9 @@ class RequestRejected(LLMError):
         self.hint = hint
         """What to check (the key's environment variable, the model id, the parameters)."""
 
+    verdict = "its endpoint refused the sweep's requests"
+    """How a sweep stopped by this error says what happened (before the failure line)."""
+
     @property
     def kind(self) -> str:
         """auth (401/403), not_found (404), too_large (413) or bad_request (other 4xx)."""
@@ -99,6 +107,27 @@ class SpendCapReached(RequestRejected):
             hint="raise limits.max_cost_usd and run the same command to resume",
         )
         self.reached = reached
+
+
+class EndpointUnreachable(RequestRejected):
+    """No connection to an endpoint that never answered: fatal, with status 0 (no HTTP)."""
+
+    verdict = "nothing answered at its endpoint"
+
+    def __init__(self, endpoint: str, message: str, *, attempts: int, elapsed_s: float, hint: str):
+        super().__init__(
+            endpoint,
+            message,
+            status=0,
+            attempts=attempts,
+            elapsed_s=elapsed_s,
+            fatal=True,
+            hint=hint,
+        )
+
+    @property
+    def kind(self) -> str:
+        return "unreachable"
 
 
 class ResponseFormatError(ValueError):

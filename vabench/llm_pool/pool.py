@@ -14,7 +14,8 @@ first admission (time spent queueing behind other calls of a saturated endpoint 
 endpoint's fault); the attempt ceiling counts HTTP attempts.
 
 Every call ends exactly once: a `CompletionResult`, an `InfrastructureError` (retries ran
-out), a `RequestRejected` (a non-retryable 4xx), or the caller's cancellation. Usage and cost
+out), a `RequestRejected` (a non-retryable 4xx, or `EndpointUnreachable`: no connection could
+be made before the endpoint ever answered), or the caller's cancellation. Usage and cost
 are counted once, from the successful attempt.
 """
 
@@ -39,7 +40,12 @@ from vabench.llm_pool.config import (
     ModelEndpoint,
     load_endpoints,
 )
-from vabench.llm_pool.errors import InfrastructureError, RequestRejected, SpendCapReached
+from vabench.llm_pool.errors import (
+    EndpointUnreachable,
+    InfrastructureError,
+    RequestRejected,
+    SpendCapReached,
+)
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
 from vabench.llm_pool.retry import RetryDecision, backoff_delay
@@ -136,6 +142,8 @@ class EndpointClient:
         self._paused_until = 0.0
         self._closed = False
         self._warned_no_usage = False
+        self._answered = False
+        """Whether any reply (any status) came back: connection failures are then transient."""
 
     @property
     def name(self) -> str:
@@ -240,6 +248,8 @@ class EndpointClient:
         self._counters.attempts += 1
         sent = loop.time()
         outcome = await self._transport.post(call.body, attempt_timeout)
+        if not (isinstance(outcome, Failure) and outcome.unreachable):
+            self._answered = True
         if isinstance(outcome, Failure):
             # No usage came back; the provider may have counted the estimate: keep it.
             return outcome
@@ -260,6 +270,16 @@ class EndpointClient:
         loop = asyncio.get_running_loop()
         call.failures.append(failure.line)
         decision = failure.decision
+        if failure.unreachable and not self._answered:
+            where = self.config.base_url or self.url
+            raise EndpointUnreachable(
+                self.name,
+                failure.line,
+                attempts=call.attempt,
+                elapsed_s=loop.time() - call.started,
+                hint=f"check that a server is running at {where} (base_url of model "
+                f"{self.name!r}) and that this machine can reach it",
+            )
         if not decision.retry:
             status = failure.status or 0
             fatal, hint = self._refusal(status)

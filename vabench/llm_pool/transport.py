@@ -4,7 +4,9 @@ A `Transport` holds what every attempt at an endpoint shares: its aiohttp sessio
 connection pool sized to the endpoint's concurrency, opened on first use), its API's URL and
 headers, and its key. `post` sends one encoded body and returns the parsed reply or a
 `Failure`: a line for the record and the retry decision. HTTP error statuses are classified by
-`retry.decide`; timeouts, dropped connections and malformed 2xx bodies are transient. Only
+`retry.decide`; timeouts, dropped connections and malformed 2xx bodies are transient. A
+connection that could not be made at all (refused, DNS, TLS handshake) is marked `unreachable`:
+the pool decides whether that is transient (the endpoint answered before) or fatal. Only
 cancellation propagates.
 """
 
@@ -31,6 +33,8 @@ class Failure:
     line: str
     decision: RetryDecision
     status: int | None = None
+    unreachable: bool = False
+    """No connection was made (refused, DNS, TLS): nothing of the endpoint answered."""
 
 
 class Transport:
@@ -73,7 +77,10 @@ class Transport:
             )
         except aiohttp.ClientError as err:
             line = f"{type(err).__name__}: {err}"
-            return self._failure(line, RetryDecision("transient", "connection"))
+            # ClientConnectorError covers refused connections, DNS (ClientConnectorDNSError)
+            # and TLS handshakes (ClientSSLError); a drop after connecting is not one.
+            unreachable = isinstance(err, aiohttp.ClientConnectorError)
+            return self._failure(line, RetryDecision("transient", "connection"), None, unreachable)
         if 200 <= status < 300:
             try:
                 return self.adapter.parse_response(raw)
@@ -82,11 +89,17 @@ class Transport:
         line = f"HTTP {status}: {error_message(raw)}"
         return self._failure(line, decide(status, headers), status)
 
-    def _failure(self, line: str, decision: RetryDecision, status: int | None = None) -> Failure:
+    def _failure(
+        self,
+        line: str,
+        decision: RetryDecision,
+        status: int | None = None,
+        unreachable: bool = False,
+    ) -> Failure:
         # Providers sometimes echo (part of) a key in errors; never let it reach a record.
         if self._key:
             line = line.replace(self._key, "[redacted]")
-        return Failure(line, decision, status)
+        return Failure(line, decision, status, unreachable)
 
     async def close(self) -> None:
         if self._session is not None:

@@ -81,7 +81,7 @@ def resolve_renderer(
         return RenderChoice("warp", f"MuJoCo Warp's ray tracer on {device}")
     if problem is None:
         return RenderChoice("warp", f"auto: MuJoCo Warp's ray tracer on {device}")
-    return RenderChoice("gl", f"auto: GL worker processes ({problem})")
+    return RenderChoice("gl", f"auto: {problem}")  # shown after the title: not repeated
 
 
 def check_renderer(choice: RenderChoice, device: str | None = None) -> None:

@@ -162,7 +162,7 @@ def resolve(
         return Choice(Physics.WARP, f"MuJoCo Warp on {device}")
     if problem is None:
         return Choice(Physics.WARP, f"auto: MuJoCo Warp on {device}")
-    return Choice(Physics.C, f"auto: C MuJoCo ({problem})")
+    return Choice(Physics.C, f"auto: {problem}")  # shown after the title: not repeated
 
 
 def check(physics: Physics, device: str | None = None) -> None:

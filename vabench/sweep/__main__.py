@@ -2,16 +2,20 @@
 (see vabench.sweep).
 
 The defaults pick the fastest path this machine offers (`simulator.backend`, `render.backend`
-and `executor.kind` are `auto`; `--dry-run` prints what was picked and why). Progress shows on
-a clock: a live table on a terminal, a line every 15 s otherwise (`--plain`,
+and `executor.kind` are `auto`; `--dry-run` prints what was picked and why, the output
+directory, each track's summary mode and a wall time at the pace of an earlier sweep on this
+machine, and warns of a missing key instead of refusing). Keys come from the environment, or
+from a `.env` file beside the config for the variables the environment does not set. Progress
+shows on a clock: a live table on a terminal, a line every 15 s otherwise (`--plain`,
 `--progress-every`).
 
 Running the same command again resumes: finished episodes are never re-run, interrupted ones
 start again, infrastructure failures get their retry rounds. Ctrl-C stops the sweep cleanly
 (a second press at once) and says how to resume. Exit code 0 when every planned episode is in
 results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run directory of
-another plan, or an endpoint that refused the sweep's requests (a wrong key, an unknown model:
-the sweep stops at once, naming the model and what to check), 130 after Ctrl-C.
+another plan, or an endpoint that refused the sweep's requests (a wrong key, an unknown model,
+no server at its base_url: the sweep stops at once, naming the model and what to check), 130
+after Ctrl-C.
 """
 
 from __future__ import annotations
@@ -47,11 +51,13 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 from vabench.config import SweepConfigError, load_config  # noqa: E402
+from vabench.config.keys import KeySources, key_sources  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
 from vabench.sweep.choices import Choices, choose, configure_jax  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
+from vabench.sweep.pace import measured_pace, wall_time_line  # noqa: E402
 from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import Ledger, LedgerError, ledger_key  # noqa: E402
 from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
@@ -88,7 +94,13 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     try:
-        config = load_config(args.config, overrides={"out": args.out} if args.out else None)
+        keys_from = key_sources(args.config, os.environ)
+        config = load_config(
+            args.config,
+            environ=keys_from.environ,
+            overrides={"out": args.out} if args.out else None,
+            require_keys=not args.dry_run,  # a dry run warns of them (below)
+        )
         choices = choose(config)
     except SweepConfigError as err:
         print(err, file=sys.stderr)
@@ -99,21 +111,21 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     keys = plan(config)
     run_dir = Path(config.out)
     if args.dry_run:
+        _print_key_sources(config, keys_from)
         print(format_estimate(estimate(config, keys)))
         print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
         problem = run_dir_problem(run_dir, config, keys)  # what the run would refuse
         if problem is not None:
             print(f"error: {problem}", file=sys.stderr)
             return 2
-        if RunDir(run_dir).results.exists():
-            done = len(Ledger.open(run_dir).records)
-            print(f"{run_dir}: {done} of {len(keys)} episodes already finished")
+        _print_where_and_how_long(config, keys, run_dir)
         return 0
     try:
         check_run_dir(run_dir, config, keys, config.document())
     except RunDirMismatch as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    os.environ.update(keys_from.added())  # the pool and the processes it starts read them here
     configure_jax(choices.physics)
     for line in choices.lines():
         log.info(line)
@@ -161,6 +173,35 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     finally:
         if own_handler:
             ctrl_c.restore()
+
+
+def _print_key_sources(config: Any, keys_from: KeySources) -> None:
+    """The dry run's word on keys: which variables the `.env` file gave (names only) and, one
+    line each, the models whose key is set nowhere (the real run refuses to start)."""
+    if keys_from.from_file:
+        print(f"keys from {keys_from.file}: {', '.join(keys_from.from_file)}")
+    for model, variable in keys_from.unset(config.models):
+        print(
+            f"warning: model {model!r}: environment variable {variable} is not set (its "
+            f"api_key_env): the run will refuse to start until it is exported or put in "
+            f"{keys_from.file}",
+            file=sys.stderr,
+        )
+
+
+def _print_where_and_how_long(config: Any, keys: Sequence[Any], run_dir: Path) -> None:
+    """The dry run's last lines: the output directory (and what it holds), each track's
+    summary mode, and the wall time at this machine's measured pace (`sweep.pace`)."""
+    done: dict[Any, Any] = {}
+    if RunDir(run_dir).results.exists():
+        done = Ledger.open(run_dir).records
+        print(f"\noutput: {run_dir}: {len(done)} of {len(keys)} episodes already finished")
+    else:
+        print(f"\noutput: {run_dir} (new)")
+    modes = ", ".join(f"{t.name}: {t.summaries}" for t in config.tracks)
+    print(f"summaries: {modes}")
+    left = sum(config.budget(k.task) for k in keys if ledger_key(k) not in done)
+    print(wall_time_line(measured_pace(run_dir.parent), left))
 
 
 def _run_local(

@@ -11,16 +11,23 @@ flight, their limit and why) and hands it to `Display.update` once a second:
 
 On a terminal a rich table is redrawn every second (a bar per model and track); without one
 (`--plain`, logs, CI) a line is printed every `every_s` seconds (default 15) with the same
-counts, and once more at the end. Rates follow the sweep's current pace: calls per second over
-the last minute; the ETA's episodes per second over the last minute too, widened back to the
-last `ETA_MIN_EPISODES` finished episodes where the minute holds fewer (a small machine
-finishes a few per minute, in bursts, and over one minute its ETA swung between 1 and 7 hours).
+counts, and once more at the end (unless that line is the one just printed). While the table
+is up, log lines print above it: rich swaps `sys.stdout`/`sys.stderr` for proxies that do
+that, and the handlers `logging.basicConfig` made before the table still hold the old streams,
+so `Display` points them at the proxies until it closes (a log line written past the table
+left a copy of the table on screen: the first status block showed twice).
+
+Rates follow the sweep's current pace: calls per second over the last minute; the ETA's
+episodes per second over the last minute too, widened back to the last `ETA_MIN_EPISODES`
+finished episodes where the minute holds fewer (a small machine finishes a few per minute, in
+bursts, and over one minute its ETA swung between 1 and 7 hours).
 """
 
 from __future__ import annotations
 
 import collections
 import json
+import logging
 import sys
 import time
 from collections.abc import Iterable, Mapping
@@ -202,16 +209,23 @@ class Display:
         self.clock = clock
         self.t0 = clock()
         self._last_print: float | None = None
+        self._last_line = ""
         self._history: collections.deque[tuple[float, int, int]] = collections.deque()
         self._done_at: collections.deque[tuple[float, int]] = collections.deque()
         """(time, episodes done) where the count rose: the ETA's last ETA_MIN_EPISODES."""
         self._live: Any = None
+        self._rerouted: list[tuple[logging.StreamHandler, TextIO]] = []
         if self.live_mode:
             from rich.console import Console
             from rich.live import Live
 
-            self._live = Live(console=Console(file=self.out), auto_refresh=False)
+            before = sys.stdout, sys.stderr
+            # force_terminal: a caller that asks for the table gets its terminal behaviour
+            # (the proxies below included) whatever `out` is; a terminal is one anyway
+            console = Console(file=self.out, force_terminal=True)
+            self._live = Live(console=console, auto_refresh=False)
             self._live.start()
+            self._rerouted = _route_logs(before, (sys.stdout, sys.stderr))
 
     # -- rates -----------------------------------------------------------------------------
     def _rates(self, done: int, calls: int) -> tuple[float, float]:
@@ -252,11 +266,14 @@ class Display:
         ]
         if status.limit is not None:
             # a limit lowered below the episodes already running ends none of them: it only
-            # holds back new ones, which reads as a bug unless said
-            running = status.in_flight or 0
-            held = "; no new episode until fewer run" if running > status.limit else ""
+            # holds back new ones, which reads as a bug ("3 (limit 1") unless said
+            above = (status.in_flight or 0) - status.limit
+            why = f": {status.reason}" if status.reason else ""  # a worker not yet timing
             parts.append(
-                f"in flight {status.in_flight} (limit {status.limit}: {status.reason}{held})"
+                f"in flight {status.in_flight} (limit now {status.limit}{why}; "
+                f"the {above} above it finish before a new one starts)"
+                if above > 0
+                else f"in flight {status.in_flight} (limit {status.limit}{why})"
             )
         parts.append(
             f"calls {calls_per_s:.1f}/s, {status.calls_in_flight} in flight, "
@@ -279,9 +296,10 @@ class Display:
             self._live.update(self._table(status), refresh=True)
             return
         if force or self._last_print is None or now - self._last_print >= self.every_s:
-            self._last_print = now
+            line = self.line(status)
+            self._last_print, self._last_line = now, line
             stamp = time.strftime("%H:%M:%S")
-            print(f"{stamp} {self.title}: {self.line(status)}", file=self.out, flush=True)
+            print(f"{stamp} {self.title}: {line}", file=self.out, flush=True)
 
     def _table(self, status: Status) -> Any:
         from rich.console import Group
@@ -307,7 +325,27 @@ class Display:
         return Group(head, table)
 
     def close(self, status: Status) -> None:
-        self.update(status, force=True)
+        if self.live_mode or self.line(status) != self._last_line:  # not the same line twice
+            self.update(status, force=True)
         if self._live is not None:
             self._live.stop()
             self._live = None
+            for handler, stream in self._rerouted:
+                handler.setStream(stream)
+            self._rerouted = []
+
+
+def _route_logs(
+    old: tuple[TextIO, TextIO], new: tuple[TextIO, TextIO]
+) -> list[tuple[logging.StreamHandler, TextIO]]:
+    """Point the root logger's handlers that write to the `old` stdout/stderr at the `new`
+    ones (rich's proxies); returns (handler, its old stream) to restore."""
+    moved = []
+    for handler in logging.getLogger().handlers:
+        if not isinstance(handler, logging.StreamHandler):
+            continue
+        for before, after in zip(old, new, strict=True):
+            if handler.stream is before and after is not before:
+                moved.append((handler, before))
+                handler.setStream(after)
+    return moved

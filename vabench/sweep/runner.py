@@ -22,7 +22,8 @@ re-runs each, logged in infrastructure.jsonl, and after the last round recorded 
 `infrastructure_error`: listed, never scored.
 
 An endpoint that refuses the sweep's requests themselves (`RequestRejected.fatal`: a wrong key,
-an unknown model, parameters it does not take) stops the sweep: no episode starts after it,
+an unknown model, parameters it does not take, or nothing answering at its `base_url` before it
+ever answered) stops the sweep: no episode starts after it,
 the episodes it ended get no record (their partial logs are set aside when they run again), and
 `stopped` says which model and what to check. The same command runs them once it is fixed. A
 failed GPU (`DeviceFailure`: the process's CUDA context is dead) stops it the same way.
@@ -369,8 +370,8 @@ class LocalSweep:
         self.refused += 1
         if self.stopped is None:
             self.stopped = (
-                f"model {err.endpoint!r}: its endpoint refused the sweep's requests "
-                f"({err.message}); {err.hint}. Nothing was recorded for the "
+                f"model {err.endpoint!r}: {err.verdict} ({err.message}); {err.hint}. "
+                "Nothing was recorded for the "
                 "episodes this stopped: the same command runs them once this is fixed."
             )
             log.error("stopping the sweep: %s", self.stopped)
