@@ -168,6 +168,10 @@ def test_model_base_url_evaluates_an_endpoint_the_config_does_not_name(
     assert f"--model org/served, --model-base-url {outside_server}" in shown
     assert planned(shown) == 1
 
+    # without its key the endpoint refuses: the sweep stops naming the model, records nothing
+    assert main(args) == 2
+    assert "served" in capsys.readouterr().err and ledger(out) == []
+
     assert main([*args, "--model-key-env", "TRIAL_KEY"]) == 0
     records = ledger(out)
     assert [(r["model"], r["status"] in ("success", "failure")) for r in records] == [
