@@ -101,11 +101,12 @@ class Overrides:
             raise OverrideError("--model-base-url needs --model NAME (the endpoint's name)")
         if args.model_key_env and not args.model_base_url:
             raise OverrideError("--model-key-env is only used with --model-base-url")
-        limit = None
+        limit: int | None = None
         if args.limit is not None:
-            limit = _number(args.limit)
-            if not isinstance(limit, int) or limit < 1:
+            number = _number(args.limit)
+            if not isinstance(number, int) or number < 1:
                 raise OverrideError(f"--limit: expected a whole number >= 1, got {args.limit!r}")
+            limit = number
 
         def opt(text: str | None) -> int | str | None:
             return None if text is None else _number(text)
