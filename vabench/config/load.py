@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -46,13 +46,16 @@ def load_config(
     environ: Mapping[str, str] = os.environ,
     overrides: Mapping[str, Any] | None = None,
     require_keys: bool = True,
+    edit: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
 ) -> SweepConfig:
     """Read, check and resolve the sweep config at `path`.
 
     `overrides` replace values of the document before it is checked; keys are dotted field
     paths (`out`, `executor.kind`), as the command line sets them. `environ` is where the
     models' `api_key_env` variables must be set (and non-empty), unless `require_keys` is false
-    (`--dry-run`, which warns of them instead: `keys.KeySources.unset`).
+    (`--dry-run`, which warns of them instead: `keys.KeySources.unset`). `edit` rewrites the
+    document after the overrides, before it is checked (the command line's quick-trial flags,
+    `sweep.overrides`, which edit lists such as `models:`).
 
     Raises `SweepConfigError` listing every problem found (see the module docstring).
     """
@@ -75,6 +78,8 @@ def load_config(
             file, [Problem("", f"expected a mapping of settings, got {type(doc).__name__}")]
         )
     doc = _apply_overrides(doc, overrides or {})
+    if edit is not None:
+        doc = edit(doc)
     doc, old_spelling = _old_physics_spelling(doc, file)
     config, problems = _check(doc, path.stem, environ if require_keys else None)
     problems = old_spelling + problems

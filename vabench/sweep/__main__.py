@@ -1,6 +1,12 @@
 """`python -m vabench.sweep CONFIG [--dry-run] [--out DIR] [--no-report] [--plain]`
 (see vabench.sweep).
 
+Quick trials need no YAML edit: `--model`, `--tasks`, `--tracks`, `--seeds`, `--runs`,
+`--limit`, `--max-episodes`, `--max-connections` override the config for this invocation, and
+`--model NAME --model-base-url URL` evaluates an OpenAI-compatible endpoint instead of the
+config's models (`vabench.sweep.overrides`). The run directory records the overridden plan:
+resuming it with other overrides is refused like a changed config.
+
 The defaults pick the fastest path this machine offers (`simulator.backend`, `render.backend`
 and `executor.kind` are `auto`; `--dry-run` prints what was picked and why, the output
 directory, each track's summary mode and a wall time at the pace of an earlier sweep on this
@@ -57,6 +63,8 @@ from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
 from vabench.sweep.choices import Choices, choose, configure_jax  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
+from vabench.sweep.overrides import OverrideError, Overrides  # noqa: E402
+from vabench.sweep.overrides import add_arguments as add_overrides  # noqa: E402
 from vabench.sweep.pace import measured_pace, wall_time_line  # noqa: E402
 from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import Ledger, LedgerError, ledger_key  # noqa: E402
@@ -91,25 +99,33 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         metavar="SECONDS",
         help=f"seconds between plain progress lines (default {PLAIN_EVERY_S:.0f})",
     )
+    add_overrides(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     try:
+        given = Overrides.from_args(args)
         keys_from = key_sources(args.config, os.environ)
         config = load_config(
             args.config,
             environ=keys_from.environ,
             overrides={"out": args.out} if args.out else None,
             require_keys=not args.dry_run,  # a dry run warns of them (below)
+            edit=given.edit,
         )
         choices = choose(config)
+    except OverrideError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     except SweepConfigError as err:
-        print(err, file=sys.stderr)
+        print(given.name_flags(err), file=sys.stderr)
         return 2
     except (BackendUnavailable, ValueError) as err:  # an explicit backend that cannot run here
         print(f"error: {args.config}: {err}", file=sys.stderr)
         return 2
-    keys = plan(config)
+    keys = given.limited(plan(config))
     run_dir = Path(config.out)
+    if given.line() is not None:
+        print(given.line())
     if args.dry_run:
         _print_key_sources(config, keys_from)
         print(format_estimate(estimate(config, keys)))
