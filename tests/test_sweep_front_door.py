@@ -185,3 +185,45 @@ def test_the_pace_leaves_out_the_time_between_a_stop_and_its_resumption():
     from vabench.sweep.pace import _union_length
 
     assert _union_length([(100.0, 110.0), (0.0, 10.0), (5.0, 15.0), (6.0, 7.0)]) == 25.0
+
+
+@pytest.mark.parametrize("dry_run", [[], ["--dry-run"]])
+def test_a_missing_config_is_one_line(tmp_path, capsys, dry_run):
+    missing = tmp_path / "nowhere.yaml"
+    assert main([str(missing), "--out", str(tmp_path / "out"), *dry_run]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(missing) in err[0] and "No such file" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["-m", "vabench.llm_pool.serve", "--host", "127.0.0.1", "--port", "{port}"],
+        ["-m", "vabench.view", "{run}", "--host", "127.0.0.1", "--port", "{port}"],
+    ],
+    ids=["llm server", "viewer"],
+)
+def test_a_port_in_use_is_one_line(tmp_path, command):
+    """The server of `python -m vabench.llm_pool.serve` ended in an OSError traceback when
+    its port was taken (the viewer already said it in one line)."""
+    import socket
+    import subprocess
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from synthetic_runs import make_run  # a run directory shaped like a sweep's, to serve
+
+    run = make_run(tmp_path / "run", 20).run_dir
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        args = [a.format(port=port, run=run) for a in command]
+        done = subprocess.run(
+            [sys.executable, *args], capture_output=True, text=True, timeout=120, cwd=ROOT
+        )
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert any(f"127.0.0.1:{port}" in line and "cannot listen" in line for line in lines)

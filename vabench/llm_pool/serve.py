@@ -117,9 +117,20 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
     return ServerConfig.model_validate(data)
 
 
+class CannotListen(Exception):
+    """The server's address is taken or not this machine's (one line, no traceback)."""
+
+
 async def serve(config: ServerConfig, host: str, port: int) -> None:
     server = LocalServer(config)
-    await server.start(host, port)
+    try:
+        await server.start(host, port)
+    except OSError as err:
+        await server.stop()
+        raise CannotListen(
+            f"error: cannot listen on {host}:{port}: {err.strerror or err} (another process "
+            "may hold the port: --port 0 picks a free one)"
+        ) from err
     served = f", {server.processes} processes" if server.processes else ""
     print(
         f"vabench llm server on {server.url} (policy {config.policy}{served}); Ctrl-C stops",
@@ -142,7 +153,13 @@ def main(argv: list[str] | None = None) -> int:
     except (ValidationError, ValueError, KeyError) as err:
         print(f"invalid server configuration: {err}", file=sys.stderr)
         return 2
-    asyncio.run(serve(config, args.host, args.port))
+    try:
+        asyncio.run(serve(config, args.host, args.port))
+    except CannotListen as err:
+        print(err, file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        pass
     return 0
 
 
