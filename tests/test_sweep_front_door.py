@@ -227,3 +227,41 @@ def test_a_port_in_use_is_one_line(tmp_path, command):
     assert "Traceback" not in done.stderr
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert any(f"127.0.0.1:{port}" in line and "cannot listen" in line for line in lines)
+
+
+def test_a_full_disk_under_the_ledger_is_one_clear_error_and_loses_nothing(tmp_path):
+    """A ledger line that cannot be written (ENOSPC, from /dev/full: the kernel's full disk)
+    is taken back and stops the sweep with one line (LedgerError, exit 2 in the command),
+    instead of an OSError traceback out of an episode task; the episodes recorded before it
+    stay."""
+    from vabench.agent.records import EpisodeResult
+    from vabench.run_layout import RESULTS
+    from vabench.sweep.results import Ledger, LedgerError
+
+    def result(seed: int) -> EpisodeResult:
+        return EpisodeResult(
+            task="grasp_single_cube",
+            seed=seed,
+            model="m",
+            protocol="active",
+            run=1,
+            status="success",
+            success=True,
+            stop_reason="success",
+            step_budget=2,
+            n_checkpoints=1,
+        )
+
+    run_dir = tmp_path / "run"
+    ledger = Ledger.open(run_dir)
+    ledger.add("active", "episodes/a", result(1))
+    kept = (run_dir / RESULTS).read_bytes()
+    (run_dir / RESULTS).rename(run_dir / "kept.jsonl")
+    (run_dir / RESULTS).symlink_to("/dev/full")
+    with pytest.raises(LedgerError, match=r"No space left on device.*run the same command"):
+        ledger.add("active", "episodes/b", result(2))
+    assert len(ledger.records) == 1  # the episode that could not be written is not counted
+    (run_dir / RESULTS).unlink()
+    (run_dir / "kept.jsonl").rename(run_dir / RESULTS)
+    assert (run_dir / RESULTS).read_bytes() == kept
+    assert len(Ledger.open(run_dir).records) == 1

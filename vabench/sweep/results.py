@@ -154,9 +154,19 @@ class Ledger:
             return
         data = (json.dumps(record) + "\n").encode("utf-8")
         with _locked(self.run_dir / name, os.O_WRONLY | os.O_APPEND | os.O_CREAT) as fd:
-            while data:  # one write() in practice; a short one is finished under the lock
-                data = data[os.write(fd, data) :]
-            os.fsync(fd)
+            end = os.lseek(fd, 0, os.SEEK_END)
+            try:
+                while data:  # one write() in practice; a short one is finished under the lock
+                    data = data[os.write(fd, data) :]
+                os.fsync(fd)
+            except OSError as err:  # a full disk: the line is taken back, the sweep stops
+                with contextlib.suppress(OSError):
+                    os.ftruncate(fd, end)
+                raise LedgerError(
+                    f"cannot write {self.run_dir / name}: {err.strerror or err}. Every episode "
+                    "recorded before this one is kept; make room and run the same command to "
+                    "resume"
+                ) from None
 
     def append_line(self, name: str, record: dict[str, Any]) -> None:
         """Append a line a worker built (`add`/`add_infrastructure_failure` through a sink);
