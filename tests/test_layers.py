@@ -252,6 +252,8 @@ def f(run_dir, d, k, m, n, seed, step, parts, row):
         (9, "summaries"),
         (10, "partial_"),
     }
+
+
 # -- the physics choice is a typed value: no backend name is tested as a string (issue 32) ----
 BACKEND_NAMES = frozenset({"c", "mjx", "warp", "jax", "mjx/warp", "mjx/jax"})
 """Physics and renderer backend names: the config's and the command lines' spellings, and the

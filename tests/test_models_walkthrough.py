@@ -1,9 +1,10 @@
 """The example model entries work as written (issue 34): every entry of
 configs/models.example.yaml (OpenAI, Anthropic, a local vLLM and Ollama through their
-OpenAI-compatible endpoints), copied verbatim into a sweep config with only its `base_url` pointed at a real
-server on loopback (the embedded server's code, run as an outside endpoint that checks a key),
-runs an episode through the command: every field the examples use is accepted, each API's wire
-format is the one the server parses, keys come from the variables the entries name."""
+OpenAI-compatible endpoints), copied verbatim into a sweep config with only its `base_url`
+pointed at a real server on loopback (the embedded server's code, run as an outside endpoint,
+keyed where the entry names a key), runs an episode through the command: every field the
+examples use is accepted, each API's wire format is the one the server parses, keys come from
+the variables the entries name."""
 
 from __future__ import annotations
 

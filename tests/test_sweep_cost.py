@@ -109,6 +109,15 @@ def test_display_and_report_say_price_not_set(tmp_path, capsys, outside_server):
     spend = (out / "report" / "spend.md").read_text()
     assert "| unpriced | total |  |  | price not set |" in spend
     assert "0.0000" not in spend
+    import csv  # the CSVs leave an unpriced cost empty: a 0.0 would read as free
+
+    for name, columns in (
+        ("usage", ("cost_usd", "cost_usd_per_episode")),
+        ("spend", ("cost_usd",)),
+    ):
+        with open(out / "report" / f"{name}.csv", newline="") as f:
+            rows = [r for r in csv.DictReader(f) if r["model"] == "unpriced"]
+        assert rows and all(r[c] == "" for r in rows for c in columns), (name, rows)
 
 
 def test_a_models_cap_stops_only_that_model_and_a_higher_cap_resumes(tmp_path, capsys):

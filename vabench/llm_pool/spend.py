@@ -65,6 +65,12 @@ def cost_text(
     return f"{sign}{usd:{fmt}} + {NOT_SET_TEXT} ({', '.join(unset)})"
 
 
+def cost_cell(usd: float, pricing: Pricing | None) -> float | str:
+    """A cost in a CSV cell: the number, or an empty cell for a model without prices (a 0.0
+    there would read as free). `pricing` None: unknown (no config): the number."""
+    return "" if pricing is Pricing.NOT_SET else usd
+
+
 @dataclass(frozen=True)
 class CapReached:
     """A spend cap that a call would cross: the model's (`model` set) or the sweep's."""

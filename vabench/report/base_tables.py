@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from fractions import Fraction
 
-from vabench.llm_pool.spend import Pricing, cost_text
+from vabench.llm_pool.spend import Pricing, cost_cell, cost_text
 from vabench.report.active_passive import TrackComparison, in_order
 from vabench.report.stats import (
     SUBSET_TITLES,
@@ -349,8 +349,8 @@ def usage_section(
             u.invalid_actions,
             u.invalid_action_share,
             *[u.tokens[n] for n in token_names],
-            u.cost_usd,
-            u.cost_usd / u.episodes,
+            cost_cell(u.cost_usd, known.get(u.model)),
+            cost_cell(u.cost_usd / u.episodes, known.get(u.model)),
         ]
         for u in usages
     ]
@@ -390,7 +390,10 @@ def usage_section(
             Csv(
                 "unscored",
                 ["model", "track", "status", "records", "cost_usd"],
-                [[m, t, s, n, c] for (m, t, s), (n, c) in unscored.items()],
+                [
+                    [m, t, s, n, cost_cell(c, known.get(m))]
+                    for (m, t, s), (n, c) in unscored.items()
+                ],
             ),
         ],
         notes,

@@ -29,7 +29,7 @@ from typing import Any
 import yaml
 
 from vabench.llm_pool.settings import Prices
-from vabench.llm_pool.spend import EMBEDDED_BASE_URL, Pricing, cost_text, pricing_of
+from vabench.llm_pool.spend import EMBEDDED_BASE_URL, Pricing, cost_cell, cost_text, pricing_of
 from vabench.report.stats import TOKEN_FIELDS
 from vabench.run_layout import (
     ATTEMPT_PREFIX,
@@ -215,9 +215,8 @@ def spend_section(b: Bill, pricing: Mapping[str, Pricing] | None = None) -> Sect
         for r in mine:
             tokens = sum(r.tokens.values()) - r.tokens["reasoning"]  # reasoning is in output
             rows.append([model, r.source, str(r.items), f"{tokens:,}", usd(r.cost_usd, model)])
-            csv_rows.append(
-                [model, r.source, r.items, *(r.tokens[n] for n in TOKEN_FIELDS), r.cost_usd]
-            )
+            cell = cost_cell(r.cost_usd, known.get(model))
+            csv_rows.append([model, r.source, r.items, *(r.tokens[n] for n in TOKEN_FIELDS), cell])
         rows.append([model, "total", "", "", usd(b.total(model), model)])
     notes = [
         "every call the sweep made, by where its trace lies: the usage table counts scored "
