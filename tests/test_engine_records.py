@@ -232,3 +232,19 @@ def test_compaction_inside_an_episode_is_logged_and_the_episode_goes_on(pool, tm
     assert [e["summary"] for e in compactions] == ["summary one", "summary two"]
     assert all(e["messages_summarised"] >= 2 for e in compactions)
     _check_records(run, tmp_path)
+
+
+def test_the_command_line_prints_no_dollars_for_a_model_without_prices(tmp_path):
+    """`python -m vabench.episode` printed `$0.0000` for every model (issue 34): the embedded
+    server reads "no cost (embedded server)"."""
+    cmd = [
+        *(sys.executable, "-m", "vabench.episode"),
+        *("--task", TASK, "--seed", str(SEED), "--backend", "c"),
+        *("--width", "64", "--height", "48", "--max-steps", "2"),
+        *("--out", str(tmp_path / "episode")),
+    ]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    last = [line for line in proc.stdout.splitlines() if "output tokens" in line][-1]
+    assert "no cost (embedded server)" in last and "$" not in last

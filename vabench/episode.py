@@ -34,6 +34,7 @@ from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.policies import POLICIES
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.llm_pool.spend import Pricing, cost_text, pricing_of
 from vabench.render.backends import make_renderer
 from vabench.render.images import ImageSettings
 from vabench.run_layout import RESULT, RunDir
@@ -52,7 +53,11 @@ def load_models(path: Path) -> list[Any]:
     return load_endpoints(data["models"])
 
 
-def print_trajectory(events: Sequence[dict[str, Any]], result: EpisodeResult) -> None:
+def print_trajectory(
+    events: Sequence[dict[str, Any]], result: EpisodeResult, pricing: Pricing | None = None
+) -> None:
+    """The episode step by step, then its outcome; `pricing`: how the model is priced (its
+    cost reads "price not set" rather than $0.0000 for a model without prices)."""
     for e in events:
         kind = e["type"]
         if kind == "reset":
@@ -78,7 +83,8 @@ def print_trajectory(events: Sequence[dict[str, Any]], result: EpisodeResult) ->
         f"({result.robot_actions} robot, {result.camera_actions} camera), "
         f"{result.invalid_outputs} invalid replies, checkpoints {result.checkpoints_reached}, "
         f"{result.model_calls} model calls, {result.tokens.input + result.tokens.cached_input} "
-        f"input / {result.tokens.output} output tokens, ${result.cost_usd:.4f}, "
+        f"input / {result.tokens.output} output tokens, "
+        f"{cost_text(result.cost_usd, {} if pricing is None else {result.model: pricing}, '.4f')}, "
         f"{result.wall_s:.1f} s"
     )
     if result.error:
@@ -124,7 +130,10 @@ async def run(args: argparse.Namespace) -> EpisodeResult:
         if server is not None:
             await server.stop()
     if not args.json:  # --json: stdout is the result document alone (pipeable)
-        print_trajectory(episode.rec.events, result)
+        endpoint = next(e for e in endpoints if e.name == args.model)
+        print_trajectory(
+            episode.rec.events, result, pricing_of(endpoint.prices, embedded=server is not None)
+        )
     print(f"records: {out}", file=sys.stderr)
     return result
 
