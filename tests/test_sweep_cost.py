@@ -211,3 +211,23 @@ def test_the_example_models_carry_dated_list_prices():
     assert models["gpt"].prices is not None and models["gpt"].prices.output > 0
     assert models["claude"].prices is not None and models["claude"].prices.output > 0
     assert "list prices as of" in text and "check the provider's pricing page" in text.lower()
+
+
+@pytest.mark.parametrize("kind", ["processes", "ray"])
+def test_a_cap_is_refused_where_several_processes_would_count_it(tmp_path, capsys, kind):
+    """Each worker process or engine counts its own spend, so cells running at once could
+    together cross a cap: with a cap the executor must be one process."""
+    cfg = write(tmp_path / "c.yaml", paid("priced", cap=5), f"executor: {{kind: {kind}}}\n")
+    assert main([str(cfg), "--out", str(tmp_path / "out"), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "executor.kind" in err and "max_cost_usd" in err and "Traceback" not in err
+
+
+def test_auto_keeps_a_capped_sweep_in_one_process_on_a_many_core_machine():
+    from vabench.config.schema import ExecutorOptions
+    from vabench.sweep.choices import Machine, resolve_executor
+
+    many = Machine(32, ())
+    assert resolve_executor(ExecutorOptions(), many).kind == "processes"
+    capped = resolve_executor(ExecutorOptions(), many, spend_capped=True)
+    assert capped.kind == "local" and "max_cost_usd" in capped.reason

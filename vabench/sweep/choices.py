@@ -106,13 +106,20 @@ class ExecutorChoice:
 
 
 def resolve_executor(
-    options: Any, machine: Machine, physics: Choice | None = None
+    options: Any, machine: Machine, physics: Choice | None = None, spend_capped: bool = False
 ) -> ExecutorChoice:
-    """`options` is the config's `ExecutorOptions`; `physics` the resolved simulator."""
+    """`options` is the config's `ExecutorOptions`; `physics` the resolved simulator;
+    `spend_capped`: a `limits.max_cost_usd` is set (kept exactly by one process only)."""
     kind, max_tasks = options.kind, options.max_tasks
     one_gpu = physics is not None and physics.is_warp and len(machine.gpus) <= 1
     if kind == "auto" and one_gpu:
         return ExecutorChoice("local", max_tasks or GPU_LOCAL_MAX_TASKS, ONE_GPU_REASON)
+    if kind == "auto" and spend_capped:
+        return ExecutorChoice(
+            "local",
+            max_tasks or LOCAL_MAX_TASKS,
+            "auto: a spend cap (limits.max_cost_usd) is kept exactly by one process",
+        )
     if kind == "auto":
         if machine.cores >= PROCESSES_FROM_CORES:
             return ExecutorChoice(
@@ -161,7 +168,10 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
     ex = config.executor
     physics = resolve(config.simulator.backend)
     in_flight = in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched)
-    executor = resolve_executor(ex, machine, physics)
+    capped = config.limits.max_cost_usd is not None or any(
+        m.limits.max_cost_usd is not None for m in config.models
+    )
+    executor = resolve_executor(ex, machine, physics, spend_capped=capped)
     server = None
     if config.embedded_models and executor.kind == "ray":
         server = "embedded, in each engine, sized to the engine's share of its node's cores"
