@@ -76,33 +76,39 @@ def test_camera_hints_only_on_episodes_that_can_move_the_camera(run):
 
 @pytest.fixture
 def runs(pristine, tmp_path):
-    """runs/a (a run), runs/group/b (the same run, a level deeper), runs/broken (a plan, no
-    ledger yet), runs/.hidden (ignored)."""
+    """runs/a (a run), runs/group/b (the same run, a level deeper), runs/broken (a ledger
+    that is not one), runs/fresh (a plan, no episode finished yet), runs/.hidden (ignored)."""
     root = tmp_path / "runs"
     shutil.copytree(pristine.run_dir, root / "a")
     shutil.copytree(pristine.run_dir, root / "group" / "b")
     (root / "broken").mkdir()
     (root / "broken" / "plan.json").write_text("{}")
+    (root / "broken" / "results.jsonl").write_text("not a record\n")
+    (root / "fresh").mkdir()
+    shutil.copy(pristine.run_dir / "plan.json", root / "fresh" / "plan.json")
     shutil.copytree(pristine.run_dir, root / ".hidden")
     return root
 
 
 def test_a_directory_of_runs_lists_them_and_serves_each(runs, pristine):
     viewer = RunsViewer(runs)
-    assert [e.name for e in viewer.entries] == ["a", "broken", "group/b"]
+    assert [e.name for e in viewer.entries] == ["a", "broken", "fresh", "group/b"]
 
     async def body(http):
         listing = await (await http.get("/")).text()
-        inner = await (await http.get("/runs/2/api/run", params={"limit": 3})).json()
-        page = await (await http.get("/runs/2/")).text()
+        inner = await (await http.get("/runs/3/api/run", params={"limit": 3})).json()
+        page = await (await http.get("/runs/3/")).text()
         css = await http.get("/static/app.css")
         return listing, inner, page, css.status
 
     listing, inner, page, css = serve(viewer.app(), body)
     planned, done = pristine.planned, pristine.finished
     assert f"{done} / {planned}" in listing and "model-0, model-1" in listing
-    assert "href='runs/0/'>a</a>" in listing and "href='runs/2/'>group/b</a>" in listing
-    assert "results.jsonl: not found" in listing  # the broken run, listed with its problem
+    assert "href='runs/0/'>a</a>" in listing and "href='runs/3/'>group/b</a>" in listing
+    broken = next(r for r in listing.split("<tr") if ">broken<" in r)
+    assert "class='error'" in broken  # listed with its problem
+    fresh = next(r for r in listing.split("<tr") if ">fresh<" in r)
+    assert f"0 / {planned}" in fresh and "no episode finished yet" in fresh  # not an error
     assert ".hidden" not in listing
     assert inner["name"] == "b" and inner["total"] == done and len(inner["episodes"]) == 3
     assert "run.js" in page and css == 200

@@ -72,6 +72,12 @@ class Entry:
         return f"runs/{self.key}/"
 
     def row(self) -> list[Cell]:
+        if self.viewer is None and self.problem == NOT_STARTED:
+            from vabench.report.build import planned_episodes
+
+            planned = planned_episodes(RunDir(self.path))
+            done = f"0 / {planned:,}" if planned is not None else "0 / ?"
+            return [self.name, "", done, "", "", NOT_STARTED]
         if self.viewer is None:
             return [
                 self.name,
@@ -103,6 +109,9 @@ class Entry:
         return [link(self.prefix, self.name), ", ".join(models), done, rate, date, ""]
 
 
+NOT_STARTED = "no episode finished yet"
+
+
 class RunsViewer:
     """The viewer of a directory of runs (module docstring)."""
 
@@ -118,6 +127,9 @@ class RunsViewer:
         self.entries: list[Entry] = []
         for key, path in enumerate(paths):
             name = path.relative_to(self.root).as_posix()
+            if not RunDir(path).results.exists():  # planned, nothing finished yet: not an error
+                self.entries.append(Entry(name, path, None, key, NOT_STARTED))
+                continue
             try:
                 self.entries.append(Entry(name, path, Viewer(path), key))
             except RunDirError as err:
