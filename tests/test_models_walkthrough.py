@@ -8,9 +8,7 @@ the variables the entries name."""
 
 from __future__ import annotations
 
-import asyncio
 import json
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,6 +16,7 @@ import pytest
 import yaml
 
 from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.llm_pool.testing import server_in_thread
 from vabench.run_layout import RESULTS
 from vabench.sweep.__main__ import main
 
@@ -27,23 +26,8 @@ KEY = "walkthrough-key"
 
 def _outside(api_key: str | None) -> Iterator[LocalServer]:
     """A real endpoint the sweep does not start (requiring `api_key` when given)."""
-    ready = threading.Event()
-    holder: dict = {}
-
-    async def serve() -> None:
-        config = ServerConfig(policy="conversation_hash", api_key=api_key)
-        async with LocalServer(config) as server:
-            holder["server"], holder["stop"] = server, asyncio.Event()
-            holder["loop"] = asyncio.get_running_loop()
-            ready.set()
-            await holder["stop"].wait()
-
-    thread = threading.Thread(target=asyncio.run, args=(serve(),), daemon=True)
-    thread.start()
-    assert ready.wait(30)
-    yield holder["server"]
-    holder["loop"].call_soon_threadsafe(holder["stop"].set)
-    thread.join(30)
+    with server_in_thread(ServerConfig(policy="conversation_hash", api_key=api_key)) as server:
+        yield server
 
 
 @pytest.fixture(scope="module")

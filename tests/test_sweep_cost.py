@@ -11,15 +11,14 @@ thread of the test.
 
 from __future__ import annotations
 
-import asyncio
 import json
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.llm_pool.server import ServerConfig
+from vabench.llm_pool.testing import server_in_thread
 from vabench.report.spend import bill
 from vabench.run_layout import RESULTS
 from vabench.sweep.__main__ import main
@@ -60,23 +59,8 @@ def ledger(run_dir: Path) -> list[dict]:
 def outside_server() -> Iterator[str]:
     """A real endpoint the sweep does not start (its URL): a model pointed at it is not the
     embedded server, so without prices its cost is unknown."""
-    ready = threading.Event()
-    holder: dict = {}
-
-    async def serve() -> None:
-        async with LocalServer(ServerConfig(policy="conversation_hash")) as server:
-            holder["url"] = server.base_url("openai_chat")
-            holder["stop"] = asyncio.Event()
-            holder["loop"] = asyncio.get_running_loop()
-            ready.set()
-            await holder["stop"].wait()
-
-    thread = threading.Thread(target=asyncio.run, args=(serve(),), daemon=True)
-    thread.start()
-    assert ready.wait(30)
-    yield holder["url"]
-    holder["loop"].call_soon_threadsafe(holder["stop"].set)
-    thread.join(30)
+    with server_in_thread(ServerConfig(policy="conversation_hash")) as server:
+        yield server.base_url("openai_chat")
 
 
 def test_dry_run_says_price_not_set_never_zero_dollars(tmp_path, capsys):

@@ -6,15 +6,14 @@ evaluates a real OpenAI-compatible endpoint on loopback that the config does not
 
 from __future__ import annotations
 
-import asyncio
 import json
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.llm_pool.server import ServerConfig
+from vabench.llm_pool.testing import server_in_thread
 from vabench.run_layout import RESULTS
 from vabench.sweep.__main__ import main
 
@@ -135,24 +134,9 @@ def test_a_run_records_exactly_the_overridden_plan_and_holds_to_it(config, tmp_p
 @pytest.fixture
 def outside_server() -> Iterator[str]:
     """A real OpenAI-compatible endpoint the config does not name, wanting a key (its URL)."""
-    ready = threading.Event()
-    holder: dict = {}
-
-    async def serve() -> None:
-        cfg = ServerConfig(policy="conversation_hash", api_key="trial-key")
-        async with LocalServer(cfg) as server:
-            holder["url"] = server.base_url("openai_chat")
-            holder["stop"] = asyncio.Event()
-            holder["loop"] = asyncio.get_running_loop()
-            ready.set()
-            await holder["stop"].wait()
-
-    thread = threading.Thread(target=asyncio.run, args=(serve(),), daemon=True)
-    thread.start()
-    assert ready.wait(30)
-    yield holder["url"]
-    holder["loop"].call_soon_threadsafe(holder["stop"].set)
-    thread.join(30)
+    config = ServerConfig(policy="conversation_hash", api_key="trial-key")
+    with server_in_thread(config) as server:
+        yield server.base_url("openai_chat")
 
 
 def test_model_base_url_evaluates_an_endpoint_the_config_does_not_name(

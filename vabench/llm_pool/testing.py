@@ -1,11 +1,17 @@
 """Helpers for tests and benchmarks of the pool: images that look like JPEGs to every header
 reader (start-of-image and start-of-frame markers with the given size) without being decoded,
 so their size and byte count can be chosen freely and generated in microseconds; and the
-busiest-window measure that rate-limit checks use."""
+busiest-window measure that rate-limit checks use; and a real server run in a thread
+(`server_in_thread`), for an endpoint a sweep calls without starting it."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import random
+import threading
+from collections.abc import Iterator
+from typing import Any
 
 from vabench.llm_pool.messages import Image
 
@@ -40,3 +46,31 @@ def max_in_window(events: list[tuple[float, float]], width: float) -> float:
             start += 1
         best = max(best, total)
     return best
+
+
+@contextlib.contextmanager
+def server_in_thread(config: Any) -> Iterator[Any]:
+    """A real `LocalServer` of `config` (a `ServerConfig`) on loopback, run in a thread of its
+    own for the block: an endpoint a sweep calls without starting it (what a provider or a
+    local vLLM is to the sweep). Yields the started server (`base_url(api)`)."""
+    from vabench.llm_pool.server import LocalServer
+
+    ready = threading.Event()
+    holder: dict[str, Any] = {}
+
+    async def serve() -> None:
+        async with LocalServer(config) as server:
+            holder["server"], holder["stop"] = server, asyncio.Event()
+            holder["loop"] = asyncio.get_running_loop()
+            ready.set()
+            await holder["stop"].wait()
+
+    thread = threading.Thread(target=asyncio.run, args=(serve(),), daemon=True)
+    thread.start()
+    if not ready.wait(30):
+        raise RuntimeError("the server did not start within 30 s")
+    try:
+        yield holder["server"]
+    finally:
+        holder["loop"].call_soon_threadsafe(holder["stop"].set)
+        thread.join(30)
