@@ -55,7 +55,8 @@ def test_the_logs_read_back_with_inspect_ais_reader(run, tmp_path):
         wins = sum(r["success"] for r in mine.values())
         assert log.results.scores[0].metrics["accuracy"].value == wins / 2
         for sample in log.samples:
-            r = mine[("grasp_single_cube", int(sample.id.split("seed_")[1].split("/")[0]), 1)]
+            task, seed, number = str(sample.id).split(":")
+            r = mine[(task, int(seed), int(number))]
             assert sample.scores["success"].value == (1 if r["success"] else 0)
             assert sample.scores["success"].answer == r["stop_reason"]
             replies = [m for m in sample.messages if m.role == "assistant"]

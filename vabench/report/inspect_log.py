@@ -7,7 +7,7 @@ that format (the optional extra `inspect`: `pip install 'vabench[inspect]'`), bu
 inspect_ai's own log classes so that what it writes is what its reader takes:
 
 - one log per (model, track): the task is `vabench/<track>`, the model `vabench/<model>`;
-- a sample per scored episode (id `<task>/seed_<seed>/run_<run>`, epoch = the run), its
+- a sample per scored episode (id `<task>:<seed>:<run>`, epoch = the run), its
   messages the conversation as recorded: each observation a user message with the frames the
   model saw (JPEG data URIs; `--no-images` leaves a line naming the frame instead, for
   smaller logs: a full suite's frames are gigabytes) and each reply an assistant message;
@@ -91,7 +91,7 @@ def _sample(run_dir: Path, record: Record, images: bool) -> Any:
     r = record.result
     episode = run_dir / record.episode_dir
     return EvalSample(
-        id=f"{r.task}/seed_{r.seed}/run_{r.run}",
+        id=f"{r.task}:{r.seed}:{r.run}",
         epoch=r.run,
         input=f"{r.task}, seed {r.seed} ({r.protocol} camera protocol)",
         target="success",
