@@ -121,7 +121,11 @@ def op_dry_run(run: SyntheticRun) -> Callable[[], dict[str, Any]]:
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
             rc = main([str(run.config), "--dry-run"])
-        return {"rc": rc, "last_line": out.getvalue().strip().splitlines()[-1]}
+        lines = out.getvalue().strip().splitlines()
+        # what the dry run says the run directory holds (its output line; later lines add the
+        # summary modes and the wall time)
+        held = [line for line in lines if line.startswith("output: ")] or lines[-1:]
+        return {"rc": rc, "output_line": held[0]}
 
     return timed
 

@@ -53,7 +53,7 @@ def test_every_operation_reports_what_the_run_holds(measured):
     assert (resume["planned"], resume["finished"]) == (run.planned, run.finished)
     assert resume["pending"] == run.planned - run.finished
     assert by_op["dry_run"]["rc"] == 0
-    assert f"{run.finished} of {run.planned} episodes" in by_op["dry_run"]["last_line"]
+    assert f"{run.finished} of {run.planned} episodes" in by_op["dry_run"]["output_line"]
     assert by_op["report"]["files"] > 5
     assert by_op["diagnostics"]["rc"] == 0 and by_op["diagnostics"]["chars"] > 0
     viewer = by_op["viewer"]
