@@ -268,12 +268,18 @@ def run_op(op: str, run: SyntheticRun) -> dict[str, Any]:
     """`op` in this process: its figures plus the memory after imports and at the peak."""
     import logging
 
+    # The operations' own log lines are not the figures; put the process's setting back after
+    # (in-process runs, the tests', share it with everything that runs later).
+    previous = logging.root.manager.disable
     logging.disable(logging.INFO)
-    timed = OPERATIONS[op](run)
-    before = memory_mb("VmRSS")
-    t0 = time.perf_counter()
-    out: dict[str, Any] = {"op": op, **timed()}
-    out["seconds"] = time.perf_counter() - t0
+    try:
+        timed = OPERATIONS[op](run)
+        before = memory_mb("VmRSS")
+        t0 = time.perf_counter()
+        out: dict[str, Any] = {"op": op, **timed()}
+        out["seconds"] = time.perf_counter() - t0
+    finally:
+        logging.disable(previous)
     out["base_rss_mb"] = before
     out["peak_rss_mb"] = memory_mb("VmHWM")
     return out
