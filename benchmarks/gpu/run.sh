@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One phase of the GPU measurements on the lent device machine; each phase fits one call
 # (< 10 minutes) and writes its results under $OUT. The order of calls (device tool):
-#   1. carry .wp1 .ray1:  mkdir -p /tmp/wp /tmp/ray && cp .wp1/* /tmp/wp/ && cp .ray1/* /tmp/ray/
+#   1. carry .wp1 .ray1 .spy:  mkdir -p /tmp/wp /tmp/ray /tmp/spy && cp .wp1/* /tmp/wp/ &&
+#      cp .ray1/* /tmp/ray/ && cp .spy/* /tmp/spy/   (.spy: the py-spy wheel, for MAIN_PYSPY)
 #   2. carry .wp2 .ray2:  mkdir -p /tmp/wp /tmp/ray && cp .wp2/* /tmp/wp/ && cp .ray2/* /tmp/ray/
 #      (the image had aiohttp, rich, yaml, PIL and pytest on 2026-11-25; if `setup` says one is
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
@@ -34,6 +35,10 @@ case "$phase" in
     if ! python3 -c "import aiohttp, rich, yaml, PIL, pytest" 2>/dev/null; then
       ls /tmp/dep/*.whl >/dev/null 2>&1 || { echo "setup: the image lacks aiohttp, rich, yaml, PIL or pytest: carry .dep (see the top of run.sh)"; exit 1; }
       python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site /tmp/dep/*.whl \
+        || exit 1
+    fi
+    if ls /tmp/spy/*.whl >/dev/null 2>&1; then
+      python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site /tmp/spy/*.whl \
         || exit 1
     fi
     if [ -d .ray3 ] && ls /tmp/ray/rp.* >/dev/null 2>&1; then
@@ -113,11 +118,17 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     # MAIN_PYSPY=1: py-spy samples the sweep process and its children (every thread, idle ones
     # too: where they wait is the point) for MAIN_PYSPY_S seconds from MAIN_PYSPY_AT s after the
     # start, as collapsed stacks (benchmarks/profile_summary.py reads them), plus three dumps.
+    # MAIN_PYSPY=gil: only the thread holding the interpreter lock, each sample (what paces a
+    # process whose event loop waits for the lock: the "host:" lines tell when).
+    # Always: the sweep's "host:" lines every 15 s (vabench/sweep/hostload.py).
+    export VABENCH_HOSTLOAD_S=${VABENCH_HOSTLOAD_S:-15}
+    spy_mode="--idle"
+    [ "${MAIN_PYSPY:-}" = gil ] && spy_mode="--gil"
     if [ -n "${MAIN_PYSPY:-}" ]; then
       (sleep "${MAIN_PYSPY_AT:-40}"; pid=$(pgrep -of "vabench.sweep $config --out") || exit 0
        for i in 1 2 3; do (sleep $((i * 30)); /tmp/site/bin/py-spy dump --pid "$pid" \
          --subprocesses >> "$out/pyspy_dump.txt" 2>&1) & done
-       /tmp/site/bin/py-spy record --pid "$pid" --subprocesses --threads --idle --rate 20 \
+       /tmp/site/bin/py-spy record --pid "$pid" --subprocesses --threads $spy_mode --rate 20 \
          --nonblocking --format raw --duration "${MAIN_PYSPY_S:-120}" -o "$out/pyspy.raw" \
          > "$out/pyspy.log" 2>&1) &
     fi

@@ -61,6 +61,7 @@ from vabench.report.spend import recorded_spend
 from vabench.sim_mjx.backends import Choice
 from vabench.sim_mjx.interface import DeviceFailure
 from vabench.sim_mjx.warp.device import warp_device
+from vabench.sweep import hostload
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
 from vabench.sweep.inflight import InFlight
@@ -235,11 +236,12 @@ class LocalSweep:
         """Run the planned episodes, in `engine` (kept open by the caller, shared with other
         sweeps: a Ray engine actor) or in one opened for this run."""
         self._adopt_orphans()
-        if engine is not None:
-            await self._run_in(engine)
-        else:
-            async with open_engine(self.config, self.choices, self.run_dir) as own:
-                await self._run_in(own)
+        async with hostload.watching():
+            if engine is not None:
+                await self._run_in(engine)
+            else:
+                async with open_engine(self.config, self.choices, self.run_dir) as own:
+                    await self._run_in(own)
         return self.progress
 
     async def _run_in(self, engine: Engine) -> None:

@@ -1,0 +1,245 @@
+"""Where a sweep process's time goes while it runs: the event loop's lag and CPU, the CPU of
+each group of threads, and of the child processes (the embedded server's, the render workers).
+
+Why: on an H100 the main job ran with the GPU ~45 % busy and 5 of 16 cores busy, ~7.5 s a
+decision at 1,024 episodes in flight (2026-11-26, docs/PERFORMANCE.md, issue 33): something in
+the one sweep process paces the rest, and the candidates tell apart by these figures:
+
+- the event loop saturated: its thread's CPU near 100 % and its lag large;
+- the interpreter lock: the loop's lag large while its CPU is low (it waits for the lock held
+  by the batch threads), and the Python threads' CPU summing to about one core;
+- the GPU or the model server: the loop mostly idle, its lag small, the children busy.
+
+`HostLoad` samples every `every_s` (a line each time, and one for the whole run at the end);
+it reads /proc (Linux), costs a few milliseconds a sample, and says nothing elsewhere.
+`VABENCH_HOSTLOAD_S` sets the period (0: off; default `DEFAULT_EVERY_S`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import re
+import threading
+import time
+from collections import defaultdict
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+ENV = "VABENCH_HOSTLOAD_S"
+DEFAULT_EVERY_S = 60.0
+LAG_PROBE_S = 0.1
+"""The loop's lag is how late a sleep of this length wakes up."""
+
+_PROC = Path("/proc")
+
+
+def every_s_from_env() -> float:
+    raw = os.environ.get(ENV, "")
+    try:
+        return float(raw) if raw else DEFAULT_EVERY_S
+    except ValueError:
+        log.warning("%s=%r is not a number of seconds; using %s", ENV, raw, DEFAULT_EVERY_S)
+        return DEFAULT_EVERY_S
+
+
+def _ticks(stat_line: str) -> int:
+    """utime + stime of a /proc stat line, in clock ticks (the fields after the command name,
+    which may hold spaces and parentheses: split after its last ')')."""
+    fields = stat_line.rsplit(")", 1)[1].split()
+    return int(fields[11]) + int(fields[12])
+
+
+def _read(path: Path) -> str | None:
+    try:
+        return path.read_text()
+    except OSError:  # a thread or process that ended between listing and reading
+        return None
+
+
+def thread_group(name: str) -> str:
+    """A thread's group: its name without the task and the pool index ('sim-lift_pot_0' ->
+    'sim', 'jpeg_3' -> 'jpeg'); the main thread is the event loop's."""
+    if name == "MainThread":
+        return "event loop"
+    head = re.split(r"[-_:]", name, maxsplit=1)[0]
+    return head or name
+
+
+def thread_ticks() -> dict[str, int]:
+    """CPU ticks of this process's threads, by group; threads Python did not start (CUDA's,
+    nvImageCodec's, the allocator's) are 'native'."""
+    names = {t.native_id: t.name for t in threading.enumerate() if t.native_id is not None}
+    out: dict[str, int] = defaultdict(int)
+    for task in (_PROC / "self" / "task").iterdir():
+        line = _read(task / "stat")
+        if line is None:
+            continue
+        tid = int(task.name)
+        out[thread_group(names[tid]) if tid in names else "native"] += _ticks(line)
+    return dict(out)
+
+
+def children_ticks() -> int:
+    """CPU ticks of this process's children: those running (their own and their reaped
+    children's) and those that ended and were waited for (`os.times`). A thread's CPU has no
+    such account: a thread that ends between two samples takes its share with it (the
+    sweep's threads live as long as their task)."""
+    parent = os.getpid()
+    reaped = os.times()
+    total = round((reaped.children_user + reaped.children_system) * os.sysconf("SC_CLK_TCK"))
+    for entry in _PROC.iterdir():
+        if not entry.name.isdigit():
+            continue
+        line = _read(entry / "stat")
+        if line is None:
+            continue
+        fields = line.rsplit(")", 1)[1].split()
+        if int(fields[1]) == parent:
+            total += sum(int(f) for f in fields[11:15])
+    return total
+
+
+@dataclass
+class Sample:
+    at: float
+    threads: dict[str, int]
+    children: int
+
+
+@dataclass
+class Window:
+    """The figures between two samples."""
+
+    seconds: float
+    cores: dict[str, float]
+    """Cores busy on average, by thread group (and 'children')."""
+    lag_mean_s: float
+    lag_max_s: float
+
+    def describe(self) -> str:
+        loop = self.cores.get("event loop", 0.0)
+        rest = sorted(
+            ((g, c) for g, c in self.cores.items() if g not in ("event loop", "children")),
+            key=lambda gc: -gc[1],
+        )
+        threads = ", ".join(f"{g} {c:.2f}" for g, c in rest if c >= 0.005) or "none"
+        process = sum(c for g, c in self.cores.items() if g != "children")
+        return (
+            f"event loop {loop:.0%} of a core, late {self.lag_mean_s * 1e3:.0f} ms on average "
+            f"(at most {self.lag_max_s * 1e3:.0f} ms); this process {process:.1f} cores "
+            f"(threads: {threads}); child processes {self.cores.get('children', 0.0):.1f} cores"
+        )
+
+
+@dataclass
+class Lags:
+    """How late the loop woke up: running figures (a sweep of hours keeps no list)."""
+
+    total_s: float = 0.0
+    n: int = 0
+    max_s: float = 0.0
+
+    def add(self, late_s: float) -> None:
+        self.total_s += late_s
+        self.n += 1
+        self.max_s = max(self.max_s, late_s)
+
+
+def window(a: Sample, b: Sample, lags: Lags) -> Window:
+    seconds = max(b.at - a.at, 1e-9)
+    hz = os.sysconf("SC_CLK_TCK")
+    cores = {
+        g: (b.threads.get(g, 0) - a.threads.get(g, 0)) / hz / seconds
+        for g in set(a.threads) | set(b.threads)
+    }
+    # a group whose threads ended in between can read negative: they are gone, not negative
+    cores = {g: max(c, 0.0) for g, c in cores.items()}
+    cores["children"] = max(b.children - a.children, 0) / hz / seconds
+    return Window(
+        seconds,
+        cores,
+        lags.total_s / lags.n if lags.n else 0.0,
+        lags.max_s,
+    )
+
+
+@dataclass
+class HostLoad:
+    """Samples this process while the sweep runs (see the module docstring)."""
+
+    every_s: float = field(default_factory=every_s_from_env)
+    first: Sample | None = None
+    last: Sample | None = None
+    lags: Lags = field(default_factory=Lags)
+    all_lags: Lags = field(default_factory=Lags)
+
+    @staticmethod
+    def available() -> bool:
+        return (_PROC / "self" / "task").is_dir()
+
+    def sample(self) -> Sample:
+        return Sample(time.monotonic(), thread_ticks(), children_ticks())
+
+    def tick(self) -> Window | None:
+        """A sample; the window since the one before (None for the first)."""
+        now = self.sample()
+        before, self.last = self.last, now
+        if before is None:
+            self.first = now
+            return None
+        w = window(before, now, self.lags)
+        self.lags = Lags()
+        return w
+
+    def whole_run(self) -> Window | None:
+        if self.first is None or self.last is None or self.last is self.first:
+            return None
+        return window(self.first, self.last, self.all_lags)
+
+    async def _probe(self) -> None:
+        while True:
+            t0 = time.monotonic()
+            await asyncio.sleep(LAG_PROBE_S)
+            late = max(time.monotonic() - t0 - LAG_PROBE_S, 0.0)
+            self.lags.add(late)
+            self.all_lags.add(late)
+
+    async def _report(self) -> None:
+        self.tick()
+        while True:
+            await asyncio.sleep(self.every_s)
+            w = await asyncio.to_thread(self.tick)
+            if w is not None:
+                log.info("host: %s", w.describe())
+
+
+@contextlib.asynccontextmanager
+async def watching(load: HostLoad | None = None) -> AsyncIterator[HostLoad | None]:
+    """`HostLoad` sampling for the block, a line every `every_s` and one for the whole block
+    at its end; nothing where it is off or /proc is missing."""
+    load = load or HostLoad()
+    if load.every_s <= 0 or not load.available():
+        yield None
+        return
+    tasks = [
+        asyncio.create_task(load._probe(), name="hostload-lag"),
+        asyncio.create_task(load._report(), name="hostload-report"),
+    ]
+    try:
+        yield load
+    finally:
+        for t in tasks:
+            t.cancel()
+        for t in tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await t
+        load.tick()
+        whole = load.whole_run()
+        if whole is not None:
+            log.info("host, whole run (%.0f s): %s", whole.seconds, whole.describe())
