@@ -99,3 +99,54 @@ def test_workers_write_a_profile_of_each_chunk_when_asked(tmp_path, monkeypatch)
     assert "local-active-grasp_single_cube" in profile.name
     functions = {name for _, _, name in pstats.Stats(str(profile)).stats}  # type: ignore[attr-defined]
     assert {"_run_reporting", "open_engine", "_run_task"} <= functions  # the chunk's engine
+
+
+def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_its(tmp_path):
+    """Engine processes sharing a GPU (`executor: processes` on batched physics): each takes
+    whole tasks, every track and run (one simulator batch per task), the costliest tasks
+    spread first, and steps all of its tasks at once; nothing lost or doubled."""
+    import dataclasses
+
+    from vabench.sweep.cells import pending_cells
+    from vabench.sweep.process_executor import for_chunk, plan_chunks
+    from vabench.sweep.results import ledger_key
+
+    text = CONFIG.format(executor="{kind: processes, max_tasks: 2}")
+    text = text.replace("tracks: [active]", "tracks: [active, passive]")
+    text = text.replace(
+        "tasks: [grasp_single_cube, handover_horizontal_block]",
+        "tasks: [grasp_single_cube, handover_horizontal_block, lift_pot, place_shoe, "
+        "put_everything_in_basket]",
+    )
+    text = text.replace("step_budget: 3\n", "")  # the tasks' own budgets: the basket's is 5x
+    (tmp_path / "c.yaml").write_text(text)
+    config = load_config(tmp_path / "c.yaml")
+    keys = plan(config)
+    choices = choose(config)
+    batched = dataclasses.replace(
+        choices,
+        physics=dataclasses.replace(choices.physics, kind=type(choices.physics.kind)("mjx")),
+    )
+    assert batched.physics.batched and not choices.physics.batched
+    cells = pending_cells(keys, set())
+
+    parts = plan_chunks(config, cells, batched)
+    assert len(parts) == 2
+    tasks_of = [{k.task for k in part} for _, part in parts]
+    # costs (episodes x step budget): basket 4 x 250, handover and shoe 4 x 100, the others
+    # 4 x 50; dealt longest first to the cheaper chunk: 1,200 and 1,000, the costlier first
+    assert tasks_of[0] == {"put_everything_in_basket", "lift_pot"}
+    assert tasks_of[1] == {"handover_horizontal_block", "place_shoe", "grasp_single_cube"}
+    assert parts[1][0] == "+".join(sorted(tasks_of[1], key=parts[1][0].index))
+    for _, part in parts:  # every track of a task in the same chunk
+        for task in {k.task for k in part}:
+            assert {k.track for k in part if k.task == task} == {"active", "passive"}
+    flat = [ledger_key(k) for _, part in parts for k in part]
+    assert sorted(flat) == sorted(ledger_key(k) for k in keys)
+    assert for_chunk(batched, parts[1][1]).executor.max_tasks == 3
+    assert for_chunk(batched, parts[0][1]).executor.max_tasks == 2  # never lowered
+
+    # C MuJoCo: cells cut as before, one (model, track, task) each at most
+    cut = plan_chunks(config, cells, choices)
+    assert all(len({(k.track, k.task) for k in part}) == 1 for _, part in cut)
+    assert for_chunk(choices, cut[0][1]) is choices

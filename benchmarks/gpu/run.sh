@@ -132,12 +132,28 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
          --nonblocking --format raw --duration "${MAIN_PYSPY_S:-120}" -o "$out/pyspy.raw" \
          > "$out/pyspy.log" 2>&1) &
     fi
+    # MAIN_MPS=1: CUDA's multi-process service for the run, so that the kernels of several
+    # engine processes (MAIN_EXECUTOR=processes MAIN_MAX_TASKS=n) run side by side on the GPU
+    # instead of their contexts taking turns (the test of one process being bound by Python's
+    # interpreter lock: the "host:" lines).
+    if [ -n "${MAIN_MPS:-}" ]; then
+      if command -v nvidia-cuda-mps-control >/dev/null; then
+        export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps_pipe CUDA_MPS_LOG_DIRECTORY=/tmp/mps_log
+        mkdir -p /tmp/mps_pipe /tmp/mps_log && nvidia-cuda-mps-control -d \
+          && echo "MPS on" | tee "$out/main_mps.txt"
+      else
+        echo "MPS asked for, but nvidia-cuda-mps-control is not on this image" | tee "$out/main_mps.txt"
+      fi
+    fi
     start=$EPOCHREALTIME
     timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep "$config" --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
     rc=${PIPESTATUS[0]}
     echo "rc $rc wall_s $(python3 -c "print(round($EPOCHREALTIME - $start, 1))")" | tee -a "$out/main_wall.txt"
     kill $sampler 2>/dev/null
+    [ -n "${MAIN_MPS:-}" ] && command -v nvidia-cuda-mps-control >/dev/null \
+      && echo quit | nvidia-cuda-mps-control
+    grep -a " host" "$out/main.log" > "$out/main_host.txt"
     if [ -n "${MAIN_PROFILE:-}" ]; then
       python3 -c "import glob, pstats; s = pstats.Stats(*glob.glob('/tmp/prof/*.prof'));
 s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)" \

@@ -100,6 +100,38 @@ def chunks(
     return sorted(out, key=lambda c: -len(c[1]) * cost(c[1][0].task))
 
 
+def bins(
+    groups: Mapping[tuple[str], list[EpisodeKey]],
+    workers: int,
+    cost: Callable[[str], int],
+) -> list[tuple[str, list[EpisodeKey]]]:
+    """The `task_groups` dealt whole into at most `workers` chunks of nearly equal cost
+    (longest first, each to the cheapest chunk so far; cost = episodes x `cost(task)`), for
+    engine processes sharing one GPU (`executor: processes` with batched physics): each
+    process then steps one batch per task of its chunk, all of them at once, as the local
+    executor does for every task in one process. Several such processes on one GPU only pay
+    where one process cannot keep the GPU busy (Python's interpreter lock: the sweep's "host:"
+    lines) and with CUDA's multi-process service (else their contexts take turns). A chunk is
+    named after its tasks, joined by '+'."""
+    ranked = sorted(groups.items(), key=lambda kv: -len(kv[1]) * cost(kv[0][0]))
+    n = max(1, min(workers, len(ranked)))
+    loads = [0] * n
+    members: list[list[tuple[tuple[str], list[EpisodeKey]]]] = [[] for _ in range(n)]
+    for group, keys in ranked:
+        i = loads.index(min(loads))
+        loads[i] += len(keys) * cost(group[0])
+        members[i].append((group, keys))
+    dealt = sorted(
+        (
+            (load, "+".join(g[0] for g, _ in m), [k for _, keys in m for k in keys])
+            for load, m in zip(loads, members, strict=True)
+            if m
+        ),
+        key=lambda c: -c[0],
+    )
+    return [(name, keys) for _, name, keys in dealt]
+
+
 def load_document(document: dict[str, Any], run_dir: Path) -> SweepConfig:
     """The config `document` (a `SweepConfig.document()`) loaded in this process, for the run
     directory `run_dir`, which must be the one the driver wrote its plan into (a shared mount

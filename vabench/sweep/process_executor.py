@@ -4,7 +4,11 @@ For many-core hosts where one sweep process is CPU-bound: C MuJoCo rollouts (one
 process), a CPU-heavy embedded policy (the reference servo decodes and segments every image),
 the learning stage's demonstration builds. The cells
 (`cells.pending_cells`, one per (model, track, task)) are cut into chunks so that the last
-processes to finish do not leave the others' cores idle (`cells.chunks`); each chunk runs in
+processes to finish do not leave the others' cores idle (`cells.chunks`); with batched physics
+(Warp, MJX) whole tasks are dealt over the workers instead, each worker stepping one batch per
+task of its chunk, all at once (`cells.bins`, `plan_chunks`): engine processes sharing a GPU,
+for a process bound by Python's interpreter lock (with CUDA MPS; without it their contexts
+take turns on the GPU). Each chunk runs in
 `cells.run_cell` (a `LocalSweep` restricted to it, with its own LLM pool, embedded server,
 render workers and simulator batch, on the sweep's `Choices`, sent to it as they are), so the
 records equal those of the local executor.
@@ -36,6 +40,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import cProfile
+import dataclasses
 import logging
 import math
 import multiprocessing
@@ -61,9 +66,11 @@ from vabench.sweep.cells import (
     STATUS,
     WORKER_ENVIRONMENT,
     KeyTuple,
+    bins,
     chunks,
     pending_cells,
     run_cell,
+    task_groups,
 )
 from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.display import Status, Tally, with_reports
@@ -206,6 +213,35 @@ def _end_workers(pool: cf.ProcessPoolExecutor) -> None:
         p.join(timeout=10)
 
 
+def plan_chunks(
+    config: SweepConfig, cells: dict[Any, list[EpisodeKey]], choices: Choices
+) -> list[tuple[str, list[EpisodeKey]]]:
+    """The chunks the workers take. With batched physics (Warp, MJX: an action costs the same
+    for 10 slots as for 200) whole tasks, every track and model, dealt over the workers, each
+    stepping one batch per task at once (several engine processes sharing a GPU, `cells.bins`);
+    else cells cut to keep every core busy to the end (`cells.chunks`). The task's step budget
+    is its cost (a task the registry lacks fails in its chunk)."""
+
+    def cost(task: str) -> int:
+        return config.budget(task) if task in REGISTRY else 1
+
+    workers = choices.executor.max_tasks
+    if choices.physics.batched:
+        return bins(task_groups(cells), workers, cost)
+    return chunks(cells, min(workers, len(cells)), cost)
+
+
+def for_chunk(choices: Choices, part: Sequence[EpisodeKey]) -> Choices:
+    """The choices a worker runs `part` on: with batched physics (a chunk of whole tasks,
+    `cells.bins`) every task of its chunk at once, one batch each; else the sweep's."""
+    tasks = len({k.task for k in part})
+    if not choices.physics.batched or tasks <= choices.executor.max_tasks:
+        return choices
+    return dataclasses.replace(
+        choices, executor=dataclasses.replace(choices.executor, max_tasks=tasks)
+    )
+
+
 def run_processes(
     config: SweepConfig,
     keys: Sequence[EpisodeKey],
@@ -222,10 +258,8 @@ def run_processes(
         log.info("processes: every planned episode is already in %s; nothing to run", RESULTS)
         return Ledger.open(run_dir).records
     machine = choices.machine
-    workers = min(choices.executor.max_tasks, len(cells))
-    # the task's step budget ranks chunks by cost (a task the registry lacks fails in its cell)
-    parts = chunks(cells, workers, lambda t: config.budget(t) if t in REGISTRY else 1)
-    workers = min(workers, len(parts))
+    parts = plan_chunks(config, cells, choices)
+    workers = min(choices.executor.max_tasks, len(parts))
     env = child_environment(choices.physics)
     # Workers that share a GPU size their GPU buffers (render passes) to their share of it,
     # and every worker sizes its pools (policy processes, JPEG threads) to its share of cores.
@@ -265,7 +299,7 @@ def run_processes(
                     pool.submit(
                         _run_cell_in_worker,
                         document,
-                        choices,
+                        for_chunk(choices, part),
                         str(run_dir),
                         [ledger_key(k) for k in part],
                     ): (name, part)
