@@ -266,3 +266,20 @@ def test_chunks_of_one_cell_running_at_once_are_all_counted(tmp_path):
     shown = writer.status(Tally(tmp_path, keys))
     assert shown.total().running == 3 and shown.in_flight == 3 and shown.limit == 8
     assert shown.calls == 17 and shown.tokens == 10 and shown.calls_in_flight == 2
+
+
+def test_the_spend_shown_never_drops_below_the_ledgers_when_reporters_go_quiet():
+    """A Ray engine closed at the end of a sweep reports no spend: the last line read "0
+    tokens" after 4 episodes had recorded 4,593 (seen walking docs/RAY.md's steps, 2026-11-26).
+    The ledger's records of this invocation are the floor; live reports above it win."""
+    from vabench.sweep.display import with_reports
+
+    def ledger() -> Status:
+        return Status({}, calls=12, tokens=4593, cost=0.5)
+
+    quiet = with_reports(ledger(), [], [], "engines")
+    assert (quiet.calls, quiet.tokens, quiet.cost) == (12, 4593, 0.5)
+    report = {"calls": 20, "tokens": 9000, "cost": 0.75, "calls_in_flight": 3}
+    report |= {"in_flight": 4, "limit": 8, "reason": "r"}
+    live = with_reports(ledger(), [report], [report], "engines")
+    assert (live.calls, live.tokens, live.cost, live.calls_in_flight) == (20, 9000, 0.75, 3)

@@ -89,10 +89,12 @@ def with_reports(status: Status, reports: list[dict], live: list[dict], unit: st
     """`status` (the ledger's counts) with what the sweep's processes report (each a
     `cells.cell_status`-shaped dict): the spend of every report, finished ones included, and
     the in-flight counts, limits and reason of the `live` ones. `unit` names the reporters in
-    the reason ("worker processes", "engines"). Their running episodes are the caller's."""
-    status.calls = sum(r["calls"] for r in reports)
-    status.tokens = sum(r["tokens"] for r in reports)
-    status.cost = sum(r["cost"] for r in reports)
+    the reason ("worker processes", "engines"). Their running episodes are the caller's.
+    The spend never reads below what the ledger's records of this invocation hold (`status`):
+    a Ray engine closed at the end reports no spend, and the last line read "0 tokens"."""
+    status.calls = max(status.calls, sum(r["calls"] for r in reports))
+    status.tokens = max(status.tokens, sum(r["tokens"] for r in reports))
+    status.cost = max(status.cost, sum(r["cost"] for r in reports))
     status.calls_in_flight = sum(r["calls_in_flight"] for r in live)
     if live:
         status.in_flight = sum(r["in_flight"] for r in live)
