@@ -131,7 +131,7 @@ class WarpRenderPool:
         self._encoders = threading.local()
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
-        self._lock_device: threading.RLock | contextlib.nullcontext = contextlib.nullcontext()
+        self._lock_device: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
         self.info: str | None = None
 
     # -- life cycle ----------------------------------------------------------------------

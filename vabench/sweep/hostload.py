@@ -8,7 +8,9 @@ the one sweep process paces the rest, and the candidates tell apart by these fig
 - the event loop saturated: its thread's CPU near 100 % and its lag large;
 - the interpreter lock: the loop's lag large while its CPU is low (it waits for the lock held
   by the batch threads), and the Python threads' CPU summing to about one core;
-- the GPU or the model server: the loop mostly idle, its lag small, the children busy.
+- the GPU or the model server: the loop mostly idle, its lag small, the children busy;
+- the Warp device lock (held while a batch or a render pass queues its work): held most of
+  the time, with threads waiting on it.
 
 `HostLoad` samples every `every_s` (a line each time, and one for the whole run at the end);
 it reads /proc (Linux), costs a few milliseconds a sample, and says nothing elsewhere.
@@ -22,6 +24,7 @@ import contextlib
 import logging
 import os
 import re
+import sys
 import threading
 import time
 from collections import defaultdict
@@ -105,11 +108,19 @@ def children_ticks() -> int:
     return total
 
 
+def device_locks() -> dict[str, tuple[float, float, int]]:
+    """The Warp device locks' figures (`sim_mjx.warp.device.lock_figures`), where this process
+    uses Warp (never imported for it)."""
+    device = sys.modules.get("vabench.sim_mjx.warp.device")
+    return device.lock_figures() if device is not None else {}
+
+
 @dataclass
 class Sample:
     at: float
     threads: dict[str, int]
     children: int
+    locks: dict[str, tuple[float, float, int]] = field(default_factory=dict)
 
 
 @dataclass
@@ -121,6 +132,9 @@ class Window:
     """Cores busy on average, by thread group (and 'children')."""
     lag_mean_s: float
     lag_max_s: float
+    locks: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    """Per device lock: (share of the time held, thread-seconds waited per second, holds per
+    second)."""
 
     def describe(self) -> str:
         loop = self.cores.get("event loop", 0.0)
@@ -130,10 +144,16 @@ class Window:
         )
         threads = ", ".join(f"{g} {c:.2f}" for g, c in rest if c >= 0.005) or "none"
         process = sum(c for g, c in self.cores.items() if g != "children")
+        locks = "".join(
+            f"; {name} lock held {held:.0%} of the time, {waited:.1f} threads waiting on "
+            f"average, {holds:.0f} holds/s"
+            for name, (held, waited, holds) in sorted(self.locks.items())
+        )
         return (
             f"event loop {loop:.0%} of a core, late {self.lag_mean_s * 1e3:.0f} ms on average "
             f"(at most {self.lag_max_s * 1e3:.0f} ms); this process {process:.1f} cores "
             f"(threads: {threads}); child processes {self.cores.get('children', 0.0):.1f} cores"
+            f"{locks}"
         )
 
 
@@ -161,11 +181,16 @@ def window(a: Sample, b: Sample, lags: Lags) -> Window:
     # a group whose threads ended in between can read negative: they are gone, not negative
     cores = {g: max(c, 0.0) for g, c in cores.items()}
     cores["children"] = max(b.children - a.children, 0) / hz / seconds
+    locks = {}
+    for name, (waited, held, holds) in b.locks.items():
+        w0, h0, n0 = a.locks.get(name, (0.0, 0.0, 0))
+        locks[name] = ((held - h0) / seconds, (waited - w0) / seconds, (holds - n0) / seconds)
     return Window(
         seconds,
         cores,
         lags.total_s / lags.n if lags.n else 0.0,
         lags.max_s,
+        locks,
     )
 
 
@@ -184,7 +209,7 @@ class HostLoad:
         return (_PROC / "self" / "task").is_dir()
 
     def sample(self) -> Sample:
-        return Sample(time.monotonic(), thread_ticks(), children_ticks())
+        return Sample(time.monotonic(), thread_ticks(), children_ticks(), device_locks())
 
     def tick(self) -> Window | None:
         """A sample; the window since the one before (None for the first)."""

@@ -12,6 +12,7 @@ import importlib.metadata
 import importlib.util
 import os
 import threading
+import time
 
 import mujoco
 
@@ -36,17 +37,65 @@ def warp_device() -> str:
     return os.environ.get("VABENCH_WARP_DEVICE", "cuda:0")
 
 
-_DEVICE_LOCKS: dict[str, threading.RLock] = {}
+class TimedLock:
+    """A re-entrant lock that keeps how long its holders waited for it and held it (the
+    outermost hold of each thread): the sweep's "host:" lines read them (`lock_figures`), to
+    tell a device lock that paces the batches from one that does not."""
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self._local = threading.local()
+        self.waited_s = 0.0
+        self.held_s = 0.0
+        self.acquisitions = 0
+
+    def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+        depth = getattr(self._local, "depth", 0)
+        t0 = time.perf_counter()
+        if not self._lock.acquire(blocking, timeout):
+            return False
+        self._local.depth = depth + 1
+        if depth == 0:  # counted while held: no other thread writes them now
+            now = time.perf_counter()
+            self.waited_s += now - t0
+            self.acquisitions += 1
+            self._local.since = now
+        return True
+
+    def release(self) -> None:
+        self._local.depth -= 1
+        if self._local.depth == 0:
+            self.held_s += time.perf_counter() - self._local.since
+        self._lock.release()
+
+    def _is_owned(self) -> bool:
+        return self._lock._is_owned()  # type: ignore[attr-defined]
+
+    def __enter__(self) -> bool:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+_DEVICE_LOCKS: dict[str, TimedLock] = {}
 _DEVICE_LOCKS_GUARD = threading.Lock()
 
 
-def device_lock(device: str) -> threading.RLock:
+def lock_figures() -> dict[str, tuple[float, float, int]]:
+    """Each device lock of this process: (seconds waited for it, seconds held, holds)."""
+    with _DEVICE_LOCKS_GUARD:
+        locks = dict(_DEVICE_LOCKS)
+    return {name: (lk.waited_s, lk.held_s, lk.acquisitions) for name, lk in locks.items()}
+
+
+def device_lock(device: str) -> TimedLock:
     """The lock of one Warp device, held by whoever queues work on it (the physics batch for a
     whole action, the renderer for a whole pass). Warp queues every launch of a device on one
     stream, so the work of two threads could interleave: a render that reads a batch's state
     between two substeps of an action would see slots the action has not yet restored."""
     with _DEVICE_LOCKS_GUARD:
-        return _DEVICE_LOCKS.setdefault(str(device), threading.RLock())
+        return _DEVICE_LOCKS.setdefault(str(device), TimedLock())
 
 
 def warp_problem(device: str | None = None) -> str | None:
