@@ -70,3 +70,37 @@ def test_a_sweep_on_warp_physics_and_warp_images_records_every_episode_once(tmp_
     # nothing left to do: the same command resumes to no work
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     assert len((out / RESULTS).read_text().splitlines()) == 4
+
+
+def test_engine_processes_sharing_the_device_each_take_whole_tasks(
+    tmp_path, warp_on_cpu, monkeypatch
+):
+    """`executor: processes` on Warp physics: whole tasks dealt over the workers
+    (`cells.bins`), each worker stepping one batch per task of its chunk (several engine
+    processes on one GPU, for CUDA MPS): every planned episode recorded once, each task's
+    episodes, every track, in one worker's chunk."""
+    from vabench.sweep import process_executor
+
+    planned: list[list[tuple[str, list]]] = []
+    real = process_executor.plan_chunks
+
+    def plan_chunks(*args):
+        planned.append(real(*args))
+        return planned[-1]
+
+    monkeypatch.setattr(process_executor, "plan_chunks", plan_chunks)
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(
+        CONFIG.replace("executor: {kind: auto}", "executor: {kind: processes, max_tasks: 2}")
+    )
+    out = tmp_path / "out"
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    records = [json.loads(line) for line in (out / RESULTS).read_text().splitlines()]
+    keys = {(r["model"], r["track"], r["task"], r["seed"], r["run"]) for r in records}
+    assert len(records) == len(keys) == 4
+    assert all(r["error"] is None and r["status"] in ("success", "failure") for r in records)
+    # 4 cells (2 tasks x 2 tracks) in 2 chunks of whole tasks, not one chunk per cell
+    (parts,) = planned
+    assert sorted(name for name, _ in parts) == ["grasp_single_cube", "lift_pot"]
+    for name, part in parts:
+        assert {(k.task, k.track) for k in part} == {(name, "active"), (name, "passive")}
