@@ -27,6 +27,7 @@ from vabench.sweep.__main__ import main
 from vabench.sweep.choices import choose
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.ray_executor import engine_plan, run_ray
+from vabench.sweep.ray_plan import engine_environment
 from vabench.sweep.results import Ledger, ledger_key
 
 CONFIG = """\
@@ -257,6 +258,16 @@ def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
     assert engine_plan(auto, here, {"CPU": 5.0}) == (2, cpu_engine, here)  # C MuJoCo engines
     three = auto.model_copy(update={"executor": auto.executor.model_copy(update={"actors": 3})})
     assert engine_plan(three, here, {"CPU": 128.0, "GPU": 8.0})[0] == 3
+    # more engines than GPUs: each claims its share of one, so that all of them fit (three on
+    # two GPUs: halves), and is told how many share its GPU
+    assert engine_plan(three, here, {"CPU": 32.0, "GPU": 2.0})[:2] == (
+        3,
+        {"num_cpus": 1.0, "num_gpus": 0.5},
+    )
+    four = auto.model_copy(update={"executor": auto.executor.model_copy(update={"actors": 4})})
+    assert engine_plan(four, here, {"CPU": 16.0, "GPU": 1.0})[1]["num_gpus"] == 0.25
+    assert engine_environment(four, 4, 4)["VABENCH_GPU_SHARE"] == "4"
+    assert "VABENCH_GPU_SHARE" not in engine_environment(four, 4)
 
 
 def test_batched_engines_get_a_chunk_per_task_across_tracks_and_models():

@@ -70,10 +70,13 @@ class ClusterSweep:
         self.tally = Tally(run_dir, keys)
         cluster = ray.cluster_resources()
         self.engines_wanted, self.resources, self.choices = engine_plan(config, choices, cluster)
-        cores = int(self.resources["num_cpus"])
+        cores, share = int(self.resources["num_cpus"]), 1
         if self.resources["num_gpus"]:
-            cores = max(1, int(cluster.get("CPU", 1)) // max(1, int(cluster.get("GPU", 1))))
-        self.environ = engine_environment(config, cores)
+            per_gpu = max(1, round(1 / self.resources["num_gpus"]))  # engines sharing a GPU
+            gpus = max(1, int(cluster.get("GPU", 1)))
+            cores = max(1, int(cluster.get("CPU", 1)) // (gpus * per_gpu))
+            share = per_gpu
+        self.environ = engine_environment(config, cores, share)
         # a task the registry lacks fails in its chunk
         cost = lambda task: config.budget(task) if task in REGISTRY else 1  # noqa: E731
         # Engines on GPUs batch their physics: a chunk per task (every track and model of it)

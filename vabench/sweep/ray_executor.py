@@ -18,7 +18,9 @@ writer of the ledger.
    `num_gpus=1` and running MuJoCo Warp and Warp's renderer for its chunks; otherwise one per
    `1 + render.workers` CPUs of the cluster, each claiming that many CPUs (C MuJoCo and the GL
    render workers: CPU-only nodes take these).
-   `executor.actors` sets the number. When a model is not served by the embedded server, a
+   `executor.actors` sets the number; more engines than GPUs each claim their share of one
+   (`num_gpus` 1/k for k engines a GPU, told `VABENCH_GPU_SHARE`): several engine processes
+   per GPU, for CUDA MPS. When a model is not served by the embedded server, a
    limit board (`sweep.limiter.LimiterActor`, on the driver's node) keeps its RPM, TPM,
    concurrency and Retry-After pause for every engine at once;
 4. the driver hands out chunks as engines have room (pull): a started engine is given the next

@@ -7,6 +7,7 @@ chunk (`Chunk`) and of an engine (`EngineHandle`).
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -15,6 +16,7 @@ from typing import Any
 
 import vabench
 from vabench.config import SweepConfig
+from vabench.sim_mjx.warp.device import GPU_SHARE
 from vabench.sweep.cells import KeyTuple
 from vabench.sweep.choices import Choices, for_engines
 
@@ -52,17 +54,25 @@ def engine_plan(
     gpus = int(cluster.get("GPU", 0))
     engines = for_engines(choices, config, gpus)
     if engines.physics.batched and gpus >= 1:
-        return asked or gpus, {"num_cpus": 1.0, "num_gpus": 1.0}, engines
+        # more engines than GPUs (`executor.actors`): each claims its share of one, so that
+        # several engine processes share a GPU (which pays with CUDA MPS running where one
+        # process cannot keep a GPU busy; docs/PERFORMANCE.md, issue 33)
+        n = asked or gpus
+        share = 1.0 / math.ceil(n / gpus)  # 1 / engines per GPU: all of them fit
+        return n, {"num_cpus": 1.0, "num_gpus": share}, engines
     cpus = 1 + config.render.workers
     resources = {"num_cpus": float(cpus), "num_gpus": 0.0}
     return asked or max(1, int(cluster.get("CPU", 1)) // cpus), resources, engines
 
 
-def engine_environment(config: SweepConfig, cores: int) -> dict[str, str]:
+def engine_environment(config: SweepConfig, cores: int, gpu_share: int = 1) -> dict[str, str]:
     """What an engine's process is started with: the config's API keys from this process's
-    environment, and `VABENCH_CORES` (the engine's share of its node, which sizes the embedded
-    server's policy processes)."""
+    environment, `VABENCH_CORES` (the engine's share of its node, which sizes the embedded
+    server's policy processes) and, where engines share a GPU, `VABENCH_GPU_SHARE` (how many:
+    GPU buffers sized from the memory free take that share of it)."""
     env = {"VABENCH_CORES": str(max(1, cores))}
+    if gpu_share > 1:
+        env[GPU_SHARE] = str(gpu_share)
     for model in config.models:
         name = model.api_key_env
         if name and os.environ.get(name):
