@@ -283,6 +283,8 @@ def test_passes_kept_stay_within_the_memory_budget(cube_items, shoe_items, warp_
                 assert small.bytes_kept() <= budget
             assert small.stats.evicted >= 2
             assert small.stats.built == 4  # 3 images drawn in the kept pass of 4 worlds
+            # the builds' time (the device's lock held: every batch waits) is kept
+            assert 0 < small.stats.build_s < small.stats.wall_s
             again = small.render_rgb(CUBE, cube_items[:3], SIZE)  # its pass was evicted
             assert small.bytes_kept() <= budget
     finally:

@@ -80,6 +80,7 @@ class RenderStats:
     shared_state: int = 0  # Warp: images whose state was read on the device from Warp physics
     built: int = 0  # Warp: render passes built (one kept serves later requests of up to its size)
     evicted: int = 0  # Warp: passes dropped to keep the passes kept within their memory budget
+    build_s: float = 0.0  # Warp: building passes, the device's lock held (every batch waits)
     render_s: float = 0.0  # drawing and reading pixels (GL: inside workers)
     encode_s: float = 0.0  # JPEG encoding
     wall_s: float = 0.0  # around whole requests, in the caller

@@ -175,12 +175,13 @@ class WarpRenderPool:
         st = self.stats
         if st.requests:
             log.info(
-                "renderer: %d requests, %d images in %d passes (%d built, %d evicted); %.1f s "
-                "drawing, %.1f s JPEG, %.1f s in requests",
+                "renderer: %d requests, %d images in %d passes (%d built in %.1f s with the "
+                "device's lock held, %d evicted); %.1f s drawing, %.1f s JPEG, %.1f s in requests",
                 st.requests,
                 st.images,
                 st.passes,
                 st.built,
+                st.build_s,
                 st.evicted,
                 st.render_s,
                 st.encode_s,
@@ -448,13 +449,16 @@ class WarpRenderPool:
                 self.stats.evicted += 1
                 log.debug("render pass %s evicted for %s (budget %d MiB)", old, key, budget >> 20)
         with self._lock_device, wp.ScopedDevice(self._device):
+            t0 = time.perf_counter()
             victims.clear()  # their memory is freed here, with the device's lock held
             built = RenderPass(
                 models, n_worlds, settings.width, settings.height, device_jpeg, urgent
             )
+            seconds = time.perf_counter() - t0
         with self._lock:
             self._passes[key] = (built, need)
             self.stats.built += 1
+            self.stats.build_s += seconds
         return built
 
     def bytes_kept(self) -> int:
