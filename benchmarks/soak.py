@@ -1,7 +1,7 @@
 """Soak: the LLM pool and the episode engine for a long run against a faulty embedded server.
 
     python benchmarks/soak.py [--minutes 10] [--callers 1200] [--latency 4] [--fault-rate 0.2]
-        [--episodes 6] [--steps 8] [--json FILE]
+        [--episodes 6] [--steps 8] [--warmup 60] [--json FILE]
 
 One process, one embedded server (real HTTP on loopback) that answers after a lognormal latency
 and injects `--fault-rate` faults spread evenly over every kind it knows (`faults.FAULT_KINDS`:
@@ -24,7 +24,9 @@ When the time is up no new call or episode starts; those running finish. Then th
   fault, or a latency or a loaded loop that outlasted the attempt timeout) as a timeout. A
   client timeout at the instant the server answered is counted apart (`reconcile`): the
   server logged an answer (perhaps a faulted one), the client a timeout;
-- the process's resident memory (VmRSS) every 15 s: first sample after warm-up, last, max.
+- the process's resident memory (VmRSS) every 15 s: first sample after warm-up (`--warmup`
+  seconds), last, max, and its least-squares slope after warm-up in MB/min (flat memory: the
+  target is < 0.1).
 Prints the figures; `--json` writes them. Exit code 1 if anything is lost, doubled or
 unaccounted for.
 """
@@ -52,6 +54,17 @@ def rss_mb() -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def slope_per_min(samples: list[tuple[float, float]]) -> float:
+    """Least-squares slope of (seconds, MB) samples, in MB per minute (0 for fewer than 2)."""
+    if len(samples) < 2:
+        return 0.0
+    n = len(samples)
+    mt = sum(t for t, _ in samples) / n
+    mm = sum(m for _, m in samples) / n
+    var = sum((t - mt) ** 2 for t, _ in samples)
+    return 60 * sum((t - mt) * (m - mm) for t, m in samples) / var if var else 0.0
 
 
 def fault_kind(line: str) -> str:
@@ -282,7 +295,8 @@ async def soak(args) -> dict:
     statuses, bad_records, episode_faults = check_episodes(out, ep_results)
     client_faults = books.client_faults + episode_faults
     expected = expected_failures(server_log)
-    warm = [m for t, m in rss if t >= 60] or [m for _, m in rss]
+    after = [(t, m) for t, m in rss if t >= args.warmup] or rss
+    warm = [m for _, m in after]
     steady = books.in_flight_samples[len(books.in_flight_samples) // 10 :]
     figures = {
         "minutes": round(steady_s / 60, 2),
@@ -310,6 +324,7 @@ async def soak(args) -> dict:
         "rss_mb_first_after_warmup": round(warm[0], 1),
         "rss_mb_last": round(warm[-1], 1),
         "rss_mb_max": round(max(warm), 1),
+        "rss_slope_mb_per_min": round(slope_per_min(after), 3),
         "rss_samples": [(round(t), round(m, 1)) for t, m in rss],
         "tokens": {n: u.total_tokens for n, u in usage_books.items()},
         "records": str(out),
@@ -325,6 +340,7 @@ def main() -> int:
     p.add_argument("--fault-rate", type=float, default=0.2)
     p.add_argument("--episodes", type=int, default=6, help="engine episodes at a time")
     p.add_argument("--steps", type=int, default=8)
+    p.add_argument("--warmup", type=float, default=60.0, help="seconds before the RSS slope")
     p.add_argument("--json")
     args = p.parse_args()
     figures = asyncio.run(soak(args))
