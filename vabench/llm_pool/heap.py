@@ -1,4 +1,5 @@
-"""Keep glibc from growing the heap under a long run of HTTP reads (the soak's creep, issue 36).
+"""Give back to the system what a long run of HTTP reads leaves in glibc's heap (the soak's
+creep, issue 36).
 
 asyncio's socket transport reads for a plain `Protocol` (aiohttp's client and server protocols
 are such) with `sock.recv(256 KiB)` and shrinks the result to what arrived. glibc serves a
@@ -10,35 +11,64 @@ flight the heap's free space fragments faster than it is reused: the soak grew ~
 68.4 -> 68.3 MiB, taken from the system 72.9 -> 80.0 MiB over 3 minutes): no object leaked, the
 heap did.
 
-Fixing the threshold at glibc's default of 128 KiB (`mallopt(M_MMAP_THRESHOLD)`, what the
-environment variable MALLOC_MMAP_THRESHOLD_=131072 does at start-up) keeps every read buffer in
-its own mapping, returned whole when freed; the cost is an mmap and munmap per read. Measured:
-the 30-minute soak's RSS slope 0.075 MB/min (docs/RELIABILITY.md, "Soak"). Process-wide,
-once; a no-op off glibc, or where the user set the variable (theirs to choose).
+Fixing the threshold at 128 KiB (`mallopt(M_MMAP_THRESHOLD)`) stopped it (the 30-minute soak
+at 0.075 MB/min), but it is process-wide: every allocation of 128 KiB or more then costs an
+mmap, page faults and an munmap, and the embedded server's image decoding (a 1280x960 JPEG to
+RGB and HSV) took 40-70 % longer with it (this 2-core CPU, 2026-11-26). So instead a thread
+returns the heap's free pages to the system every `TRIM_EVERY_S` (`malloc_trim(0)`, which
+releases whole free pages inside the heap too, not only at its top): allocation stays as fast
+as glibc makes it, and what fragmentation holds is given back. `keep_trimmed` starts it once
+per process (the pool and the embedded server call it); a no-op off glibc.
 """
 
 from __future__ import annotations
 
 import ctypes
-import os
 import sys
+import threading
+from collections.abc import Callable
 
-M_MMAP_THRESHOLD = -3  # <malloc.h>
-READ_BUFFER_THRESHOLD = 128 * 1024  # glibc's default; below asyncio's 256 KiB read buffer
-_fixed = False
+TRIM_EVERY_S = 30.0
+_trimmer: threading.Thread | None = None
+_guard = threading.Lock()
 
 
-def fix_mmap_threshold(nbytes: int = READ_BUFFER_THRESHOLD) -> bool:
-    """Fix glibc's mmap threshold at `nbytes` for this process (once); True if it is fixed."""
-    global _fixed
-    if _fixed or "MALLOC_MMAP_THRESHOLD_" in os.environ:
-        return _fixed
+def _malloc_trim() -> Callable[[int], int] | None:
     if not sys.platform.startswith("linux"):
-        return False
+        return None
     try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):  # not glibc (musl has no tunable threshold)
+        fn = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):  # not glibc (musl has none)
+        return None
+    fn.argtypes = (ctypes.c_size_t,)
+    fn.restype = ctypes.c_int
+    return fn
+
+
+MALLOC_TRIM = _malloc_trim()
+
+
+def trim() -> bool:
+    """Return the free pages of every malloc arena to the system now; True if any was."""
+    return bool(MALLOC_TRIM(0)) if MALLOC_TRIM is not None else False
+
+
+def keep_trimmed(every_s: float = TRIM_EVERY_S) -> bool:
+    """Start this process's trimming thread (once; later calls return at once). False where
+    glibc's malloc_trim is missing."""
+    global _trimmer
+    if MALLOC_TRIM is None:
         return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    _fixed = bool(mallopt(M_MMAP_THRESHOLD, nbytes))
-    return _fixed
+    with _guard:
+        if _trimmer is None or not _trimmer.is_alive():
+            _trimmer = threading.Thread(
+                target=_trim_forever, args=(every_s,), name="heap-trim", daemon=True
+            )
+            _trimmer.start()
+    return True
+
+
+def _trim_forever(every_s: float) -> None:
+    wake = threading.Event()
+    while not wake.wait(every_s):
+        trim()

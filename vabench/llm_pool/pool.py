@@ -46,7 +46,7 @@ from vabench.llm_pool.errors import (
     RequestRejected,
     SpendCapReached,
 )
-from vabench.llm_pool.heap import fix_mmap_threshold
+from vabench.llm_pool.heap import keep_trimmed
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
 from vabench.llm_pool.retry import RetryDecision, backoff_delay
@@ -405,7 +405,7 @@ class LLMPool:
         """`shared_limits(endpoint)`: the limits an endpoint shares with other processes, or
         None for its own (the default for every endpoint)."""
         environ = os.environ if environ is None else environ
-        fix_mmap_threshold()  # else a long run's read buffers fragment the heap (heap.py)
+        keep_trimmed()  # else a long run's read buffers hold heap pages (heap.py)
         rng = random.Random(seed)
         self._clients: dict[str, EndpointClient] = {}
         for i, ep in enumerate(load_endpoints(endpoints)):

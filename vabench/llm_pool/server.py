@@ -56,7 +56,7 @@ from vabench.llm_pool.faults import (
     status_of,
     truncated_response,
 )
-from vabench.llm_pool.heap import fix_mmap_threshold
+from vabench.llm_pool.heap import keep_trimmed
 from vabench.llm_pool.limits import RateBudget
 from vabench.llm_pool.policies import (
     PURE_REPLIES,
@@ -155,7 +155,7 @@ class LocalServer:
     ) -> LocalServer:
         """Listen on host:port (port 0: a free port, see `.port`); `reuse_port`: share the port
         with other processes (SO_REUSEPORT)."""
-        fix_mmap_threshold()  # else a long run's read buffers fragment the heap (heap.py)
+        keep_trimmed()  # else a long run's read buffers hold heap pages (heap.py)
         if self.config.log_path:
             self._log_file = open(self.config.log_path, "a", encoding="utf-8")  # noqa: SIM115
         if self.processes:
