@@ -26,6 +26,7 @@ import argparse
 import contextlib
 import fcntl
 import hashlib
+import json
 import logging
 import os
 import subprocess
@@ -35,9 +36,13 @@ from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from vabench.sweep.warp_ahead import compile_log, load_ahead
+
 log = logging.getLogger(__name__)
 
 ENV = "VABENCH_WARP_PRECOMPILE"
+STATS_ENV = "VABENCH_PRECOMPILE_STATS"
+"""A folder: each child writes <family>.json there (the modules it compiled, its seconds)."""
 CHILD_TIMEOUT_S = 900
 
 
@@ -111,9 +116,14 @@ def ensure_compiled(
             workers,
         )
         started = time.monotonic()
+        size = (width, height) if images else None
+        lead, rest = phases(todo)
+        # Phase 1: the modules every family shares, once, in threads; phase 2: the rest of
+        # each family (its scene's own modules) side by side, the shared ones now cached.
+        errors = {lead: _child(lead, size, device, workers)}
         with ThreadPoolExecutor(workers) as pool:
-            size = (width, height) if images else None
-            errors = dict(zip(todo, pool.map(lambda t: _child(t, size, device), todo), strict=True))
+            done = pool.map(lambda t: _child(t, size, device, 1), rest)
+            errors.update(zip(rest, done, strict=True))
         failed = [t for t, err in errors.items() if err]
         for task in todo:
             if task not in failed:
@@ -131,10 +141,17 @@ def ensure_compiled(
         return failed
 
 
-def _child(task: str, size: tuple[int, int] | None, device: str) -> str | None:
-    """Compile one family in a child process: None, or the end of its output if it failed."""
+def phases(todo: Sequence[str]) -> tuple[str, list[str]]:
+    """The family compiled alone first (its modules shared by the others compiled once, in
+    threads) and those compiled side by side after it: the first, then the rest, in order."""
+    return todo[0], list(todo[1:])
+
+
+def _child(task: str, size: tuple[int, int] | None, device: str, threads: int) -> str | None:
+    """Compile one family in a child process (`threads` > 1: its modules loaded ahead in that
+    many threads): None, or the end of its output if it failed."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "VABENCH_WARP_DEVICE": device}
-    command = [sys.executable, "-m", __name__, task]
+    command = [sys.executable, "-m", __name__, task, "--threads", str(threads)]
     if size is not None:
         command += ["--size", f"{size[0]}x{size[1]}"]
     try:
@@ -148,9 +165,11 @@ def _child(task: str, size: tuple[int, int] | None, device: str) -> str | None:
     return None
 
 
-def compile_family(task_name: str, size: tuple[int, int] | None) -> None:
+def compile_family(task_name: str, size: tuple[int, int] | None, threads: int = 1) -> None:
     """In this process: one seed of the family's expert on Warp physics and (`size`) one
-    image of its last state through the Warp renderer: every kernel a sweep of it launches."""
+    image of its last state through the Warp renderer: every kernel a sweep of it launches.
+    `threads` > 1: the modules they launch are compiled first in that many threads
+    (`warp_ahead`)."""
     import numpy as np
 
     from vabench.render import camera as cam
@@ -163,6 +182,8 @@ def compile_family(task_name: str, size: tuple[int, int] | None) -> None:
 
     task = REGISTRY[task_name]
     batch = TaskBatch(task, 1, backend=Physics.WARP)
+    if threads > 1:
+        load_ahead(batch.batch, batch.models, size, threads)
     run_experts(batch, verified_seeds(task_name)[:1])
     if size is None:
         return
@@ -183,9 +204,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("task")
     parser.add_argument("--size", help="WxH of the images (none: physics only)")
+    parser.add_argument("--threads", type=int, default=1, help="compile its modules ahead")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
-    compile_family(args.task, (width, height) if args.size else None)
+    compiled: list[str] = []
+    started = time.monotonic()
+    with compile_log(compiled):
+        compile_family(args.task, (width, height) if args.size else None, args.threads)
+    if stats := os.environ.get(STATS_ENV):
+        report = {"task": args.task, "compiled": compiled, "s": time.monotonic() - started}
+        (Path(stats) / f"{args.task}.json").write_text(json.dumps(report))
     return 0
 
 
