@@ -6,18 +6,38 @@ first uses come one family after another in one process, with the device's lock 
 fresh H100 the first episode waited 6.5 minutes (docs/PERFORMANCE.md, issue 33), while the
 runbook's 14 processes compiling the base families side by side took 147 s in all.
 
-`ensure_compiled` does the same at the sweep's start: one child process per family not yet
-compiled for this code on this machine (at most one per core), each running the family's
-expert for one seed in a batch of one slot (the reset's settle graphs, the action's device
-loop, the observation) and one image of it through the Warp renderer at the sweep's size (its
-render kernels), then exiting. A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by
-the Warp, MuJoCo Warp and vabench code, the GPU's architecture and the image size) says it was
-done; a file lock keeps the processes of one machine (the processes executor's workers) from
-compiling the same family twice. A child that fails only costs the time: the sweep then
-compiles that family itself, as before (its log names the family and the error).
+`ensure_compiled` does it at the sweep's start, for the families not yet compiled for this
+code on this machine, in two phases:
 
-`VABENCH_WARP_PRECOMPILE=0` turns it off. Not measured end to end yet (written after the
-device time of 2026-11-26 ended; the runbook in docs/PERFORMANCE.md measures it first).
+1. One family alone (the first), in a child process whose modules are found before any is
+   compiled and compiled side by side in one thread per core (`warp_ahead.load_ahead`).
+2. Every other family in a child process of its own, side by side (at most one per core).
+
+Each child then runs its family's expert for one seed in a batch of one slot (the reset's
+settle graphs, the action's device loop, the observation) and one image of it through the
+Warp renderer at the sweep's size (its render kernels), compiling whatever is not yet in
+Warp's cache, and exits.
+
+Why two phases: most of a family's modules are the same module (same hash, same entry in
+Warp's cache) in every family; a few are specialised on its scene. Measured on Warp's CPU
+device (the same module structure as CUDA; 2 shared cores, Warp 1.19, 2026-11-26): from an
+empty cache grasp_single_cube compiled 43 modules (89 s of compiles), then lift_pot found 40 of
+its 43 in that cache and compiled 3 (8 s), place_shoe 5 (11 s). Warp has no lock between
+processes: children started together from an empty cache each compile every shared module
+(the last rename wins), so the old single phase of 22 children on a fresh 16-core H100
+compiled ~22 x 43 modules where ~43 + 22 x 4 differ: "compiled 22 of 22 families in 310 s",
+first episode at 328 s (`configs/all.yaml`, 2026-11-26 22:21 UTC). Phase 1 compiles the
+shared modules once, in parallel threads; phase 2 only the scenes' own. Side by side on this
+CPU: `benchmarks/precompile.py` (docs/PERFORMANCE.md, issue 33).
+
+A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by the Warp, MuJoCo Warp and
+vabench code, the GPU's architecture and the image size) says it was done; a file lock keeps
+the processes of one machine (the processes executor's workers) from compiling the same family
+twice. A child that fails only costs the time: the sweep then compiles that family itself, as
+before (its log names the family and the error); the first family's failure does not stop the
+second phase.
+
+`VABENCH_WARP_PRECOMPILE=0` turns it off. The two phases are not yet measured on a GPU.
 """
 
 from __future__ import annotations
@@ -181,9 +201,9 @@ def compile_family(task_name: str, size: tuple[int, int] | None, threads: int = 
     from vabench.tasks.task_batch import TaskBatch, run_experts
 
     task = REGISTRY[task_name]
-    batch = TaskBatch(task, 1, backend=Physics.WARP)
     if threads > 1:
-        load_ahead(batch.batch, batch.models, size, threads)
+        load_ahead(task, size, threads)
+    batch = TaskBatch(task, 1, backend=Physics.WARP)
     run_experts(batch, verified_seeds(task_name)[:1])
     if size is None:
         return

@@ -3,16 +3,16 @@
 Warp compiles a module when a kernel of it is first launched, so one process running a family
 compiles its ~45 modules one after another. `load_ahead` names them first without running
 anything: while `Module.load` answers None, `wp.launch` returns before launching (Warp's own
-path for a module without code), so one physics step and one render pass of the family, called
-with MuJoCo Warp's functions on the family's real arrays, record every module (and block size)
-they would launch. Those then load in a thread pool: Warp's compilers (clang for the CPU,
+path for a module without code), so a batch's build, one physics step and one render pass of
+the family, on the family's real models and arrays, record every module (and block size) they
+would launch. Those then load in a thread pool: Warp's compilers (clang for the CPU,
 NVRTC for CUDA) run outside the GIL. Measured on Warp's CPU device, 2 shared cores, 2026-11-26:
 67 modules in 185 s with 2 threads against 366 s of compiles one by one.
 
 Only ever an optimisation: a module it misses, or a call that fails (logged), is compiled by
-the family's real run after it, as before. The calls go through MuJoCo Warp, never through the
-batch's own methods: those capture CUDA graphs, and a graph captured while launches are skipped
-would be empty.
+the family's real run after it, as before. The batch built for it has CUDA graphs off (a graph
+captured while launches are skipped would be empty) and is thrown away; the step goes through
+MuJoCo Warp's functions, not the batch's methods.
 
 `compile_log` records which modules a process compiled (those not found in Warp's cache): the
 precompile's children report them (`precompile.STATS_ENV`), so that a benchmark or a test can
@@ -24,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -72,19 +72,25 @@ def recording(found: Found) -> Iterator[None]:
         wp.capture_while, wp.capture_if = loop, branch
 
 
-def load_ahead(
-    batch: Any, models: Sequence[Any], size: tuple[int, int] | None, threads: int
-) -> int:
-    """Compile (or load from the cache) in `threads` threads every module one physics step of
-    `batch` (a `WarpBatch`) and, with `size`, one render pass of `models` would launch, and
-    vabench's own. Returns how many modules it loaded."""
+def load_ahead(task: Any, size: tuple[int, int] | None, threads: int) -> int:
+    """Compile (or load from the cache) in `threads` threads every module that building a
+    Warp batch of `task`, one physics step of it and, with `size`, one render pass of it would
+    launch, and vabench's own. Returns how many modules it loaded."""
     import warp as wp
     from warp._src import context
 
+    from vabench.sim_mjx.warp.device import warp_device, warp_problem
+
+    # Warp set up as the batch sets it up, its loader patched (`modules.keep_loaded`) before
+    # `recording` patches it in turn: that patch wraps Warp's loader, not the recorder.
+    if problem := warp_problem():
+        log.info("load ahead: %s", problem)
+        return 0
+    device = wp.get_device(warp_device())
     started = time.monotonic()
     found: Found = {}
-    with recording(found), wp.ScopedDevice(batch.device):
-        for name, call in _dry_calls(batch, models, size):
+    with recording(found), wp.ScopedDevice(device):
+        for name, call in _dry_calls(task, size):
             try:
                 call()
             except Exception as err:  # only an optimisation: the real run compiles it
@@ -100,10 +106,10 @@ def load_ahead(
     def load(job: tuple[Any, Any, Any] | Any) -> None:
         try:
             if isinstance(job, tuple):
-                module, device, block_dim = job
-                module.load(device, block_dim)
+                module, on, block_dim = job
+                module.load(on, block_dim)
             else:  # a whole module at the block size a plain launch uses (Warp's rule)
-                wp.force_load(batch.device, modules=[job], max_workers=0)
+                wp.force_load(device, modules=[job], max_workers=0)
         except Exception as err:
             log.info("load ahead: module %s failed (%s)", getattr(job, "name", job), err)
 
@@ -118,14 +124,21 @@ def load_ahead(
     return len(launched) + len(own)
 
 
-def _dry_calls(
-    batch: Any, models: Sequence[Any], size: tuple[int, int] | None
-) -> list[tuple[str, Callable[[], None]]]:
-    """What a family launches: MuJoCo Warp's step, and the render pass's build and draw."""
+def _dry_calls(task: Any, size: tuple[int, int] | None) -> list[tuple[str, Callable[[], None]]]:
+    """What a family launches: a Warp batch's build (its first reset and observation), MuJoCo
+    Warp's step, and the render pass's build and draw. The batch is built without CUDA graphs
+    (a graph captured here would be empty) and thrown away."""
     import mujoco_warp as mjw
 
+    from vabench.sim_mjx.backends import Physics, make_batch
+
+    built: list[Any] = []
+
+    def batch() -> None:
+        built.append(make_batch(task.build_models(), 1, Physics.WARP, graphs=False))
+
     def physics() -> None:
-        m, d = batch._m, batch._d  # the batch's MuJoCo Warp model and data
+        m, d = built[0]._m, built[0]._d  # the batch's MuJoCo Warp model and data
         mjw.kinematics(m, d)
         mjw.collision(m, d)
         mjw.step(m, d)
@@ -133,14 +146,16 @@ def _dry_calls(
     def render() -> None:
         from vabench.render.camera import CameraPose
         from vabench.render.images import RenderItem
-        from vabench.render.warp_pass import RenderPass
+        from vabench.render.warp_pass import RenderPass, pass_size, render_models
 
         assert size is not None
-        built = RenderPass(models, 1, size[0], size[1], device_jpeg=False)
+        models = render_models(task, *size)  # as the renderer's pool makes them
+        drawn = RenderPass(models, pass_size(1), size[0], size[1], device_jpeg=False)
         camera = CameraPose(np.array([0.0, -1.0, 1.0]), np.eye(3), 1.0, 45.0, "head")
-        built.draw([RenderItem(np.zeros(models[0].nq), 0, camera)], None)
+        drawn.draw([RenderItem(np.zeros(models[0].nq), 0, camera)], None)
 
-    return [("physics", physics)] + ([("render", render)] if size is not None else [])
+    calls = [("batch", batch), ("physics", physics)]
+    return calls + ([("render", render)] if size is not None else [])
 
 
 @contextlib.contextmanager
