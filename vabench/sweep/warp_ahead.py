@@ -159,9 +159,9 @@ def _dry_calls(task: Any, size: tuple[int, int] | None) -> list[tuple[str, Calla
 
 
 @contextlib.contextmanager
-def compile_log(compiled: list[str]) -> Iterator[None]:
-    """Within: the cache directory name of each module this process compiles is appended to
-    `compiled` (a module found in Warp's cache is not)."""
+def compile_log(compiled: list[tuple[str, float]]) -> Iterator[None]:
+    """Within: (cache directory name, seconds) of each module this process compiles is
+    appended to `compiled` (a module found in Warp's cache is not)."""
     import os
 
     from warp._src import context
@@ -169,10 +169,12 @@ def compile_log(compiled: list[str]) -> Iterator[None]:
     compile_ = context.Module._compile
 
     def logged(module: Any, *args: Any, **kwargs: Any) -> bool:
+        started = time.monotonic()
         done = bool(compile_(module, *args, **kwargs))
         if done:
             out = kwargs.get("output_dir", args[1] if len(args) > 1 else None)
-            compiled.append(os.path.basename(str(out)) if out else module.name)
+            name = os.path.basename(str(out)) if out else module.name
+            compiled.append((name, time.monotonic() - started))
         return done
 
     context.Module._compile = logged  # type: ignore[method-assign,assignment]
