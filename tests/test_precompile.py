@@ -85,6 +85,13 @@ def test_one_family_compiles_alone_first_then_the_rest_side_by_side(markers, mon
     assert precompile.missing(families, key, markers) == ["grasp_single_cube"]
 
 
+def test_a_family_alone_compiles_in_a_thread_per_core(markers, monkeypatch):
+    calls = []
+    monkeypatch.setattr(precompile, "_child", lambda *args: calls.append(args[1:]))
+    assert precompile.ensure_compiled(["lift_pot"], 64, 48, "cpu", processes=4) == []
+    assert calls == [((64, 48), "cpu", 4)]
+
+
 def test_a_recorded_launch_names_its_module_and_runs_nothing():
     """How a family's modules are found before they are compiled (warp_ahead): while
     recording, a launch records its kernel's module and block size and launches nothing."""

@@ -141,7 +141,15 @@ def ensure_compiled(
         lead, rest = phases(todo)
         # Phase 1: the modules every family shares, once, in threads; phase 2: the rest of
         # each family (its scene's own modules) side by side, the shared ones now cached.
-        errors = {lead: _child(lead, size, device, workers)}
+        threads = max(1, processes or os.cpu_count() or 1)
+        errors = {lead: _child(lead, size, device, threads)}
+        log.info(
+            "phase 1: %s alone, its modules in %d threads, in %.0f s; phase 2: %d more",
+            lead,
+            threads,
+            time.monotonic() - started,
+            len(rest),
+        )
         with ThreadPoolExecutor(workers) as pool:
             done = pool.map(lambda t: _child(t, size, device, 1), rest)
             errors.update(zip(rest, done, strict=True))
