@@ -7,7 +7,9 @@ path for a module without code), so a batch's build, one physics step and one re
 the family, on the family's real models and arrays, record every module (and block size) they
 would launch. Those then load in a thread pool: Warp's compilers (clang for the CPU,
 NVRTC for CUDA) run outside the GIL. Measured on Warp's CPU device, 2 shared cores, 2026-11-26:
-67 modules in 185 s with 2 threads against 366 s of compiles one by one.
+67 modules in 185 s with 2 threads against 366 s of compiles one by one; grasp_single_cube from
+an empty cache, 2 threads: 44 modules found and loaded ahead in 55 s, and its real run after it
+compiled none (docs/PERFORMANCE.md, issue 33).
 
 Only ever an optimisation: a module it misses, or a call that fails (logged), is compiled by
 the family's real run after it, as before. The batch built for it has CUDA graphs off (a graph
