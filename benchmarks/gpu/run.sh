@@ -11,13 +11,15 @@
 #        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
+#        precompile_bench (issue 33, lever 8: vabench/sweep/precompile.py's old single phase
+#        against its two phases, each from an empty Warp cache; PRECOMPILE_FAMILIES=a,b,c)
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
 # benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh, .ray1-3 (Ray
 # for the `ray` phase, optional) from benchmarks/gpu/make_ray_part.sh (all run once here, from
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray|streams|precompile}
+phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -182,6 +184,12 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     done
     wait
     echo "precompiled $i families: $(grep -l "solved\|GC" /tmp/precompile_*.log | wc -l) finished"
+    ;;
+  precompile_bench)
+    # Temporary Warp caches: leaves ~/.cache/warp as it was (a fresh machine stays fresh).
+    fams=${PRECOMPILE_FAMILIES:-$(python3 -c "from vabench.tasks import base_tasks as b; print(','.join(t.name for t in b()[:8]))")}
+    timeout 560 python3 benchmarks/precompile.py --device cuda:0 --size "${PRECOMPILE_SIZE:-1280x960}" \
+      --families "$fams" --json "$out/precompile.json" 2>&1 | tee "$out/precompile.log"
     ;;
   ray)
     # Issue 25: the same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local

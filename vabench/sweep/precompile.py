@@ -6,18 +6,38 @@ first uses come one family after another in one process, with the device's lock 
 fresh H100 the first episode waited 6.5 minutes (docs/PERFORMANCE.md, issue 33), while the
 runbook's 14 processes compiling the base families side by side took 147 s in all.
 
-`ensure_compiled` does the same at the sweep's start: one child process per family not yet
-compiled for this code on this machine (at most one per core), each running the family's
-expert for one seed in a batch of one slot (the reset's settle graphs, the action's device
-loop, the observation) and one image of it through the Warp renderer at the sweep's size (its
-render kernels), then exiting. A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by
-the Warp, MuJoCo Warp and vabench code, the GPU's architecture and the image size) says it was
-done; a file lock keeps the processes of one machine (the processes executor's workers) from
-compiling the same family twice. A child that fails only costs the time: the sweep then
-compiles that family itself, as before (its log names the family and the error).
+`ensure_compiled` does it at the sweep's start, for the families not yet compiled for this
+code on this machine, in two phases:
 
-`VABENCH_WARP_PRECOMPILE=0` turns it off. Not measured end to end yet (written after the
-device time of 2026-11-26 ended; the runbook in docs/PERFORMANCE.md measures it first).
+1. One family alone (the first), in a child process whose modules are found before any is
+   compiled and compiled side by side in one thread per core (`warp_ahead.load_ahead`).
+2. Every other family in a child process of its own, side by side (at most one per core).
+
+Each child then runs its family's expert for one seed in a batch of one slot (the reset's
+settle graphs, the action's device loop, the observation) and one image of it through the
+Warp renderer at the sweep's size (its render kernels), compiling whatever is not yet in
+Warp's cache, and exits.
+
+Why two phases: most of a family's modules are the same module (same hash, same entry in
+Warp's cache) in every family; a few are specialised on its scene. Measured on Warp's CPU
+device (the same module structure as CUDA; 2 shared cores, Warp 1.19, 2026-11-26): from an
+empty cache grasp_single_cube compiled 43 modules (89 s of compiles), then lift_pot found 40 of
+its 43 in that cache and compiled 3 (8 s), place_shoe 5 (11 s). Warp has no lock between
+processes: children started together from an empty cache each compile every shared module
+(the last rename wins), so the old single phase of 22 children on a fresh 16-core H100
+compiled ~22 x 43 modules where ~43 + 22 x 4 differ: "compiled 22 of 22 families in 310 s",
+first episode at 328 s (`configs/all.yaml`, 2026-11-26 22:21 UTC). Phase 1 compiles the
+shared modules once, in parallel threads; phase 2 only the scenes' own. Side by side on this
+CPU: `benchmarks/precompile.py` (docs/PERFORMANCE.md, issue 33).
+
+A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by the Warp, MuJoCo Warp and
+vabench code, the GPU's architecture and the image size) says it was done; a file lock keeps
+the processes of one machine (the processes executor's workers) from compiling the same family
+twice. A child that fails only costs the time: the sweep then compiles that family itself, as
+before (its log names the family and the error); the first family's failure does not stop the
+second phase.
+
+`VABENCH_WARP_PRECOMPILE=0` turns it off. The two phases are not yet measured on a GPU.
 """
 
 from __future__ import annotations
@@ -26,6 +46,7 @@ import argparse
 import contextlib
 import fcntl
 import hashlib
+import json
 import logging
 import os
 import subprocess
@@ -35,9 +56,14 @@ from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from vabench.sweep.warp_ahead import compile_log, load_ahead
+
 log = logging.getLogger(__name__)
 
 ENV = "VABENCH_WARP_PRECOMPILE"
+STATS_ENV = "VABENCH_PRECOMPILE_STATS"
+"""A folder: each child writes <family>.json there (the modules it compiled, the seconds spent
+compiling them, summed over its threads, and its wall seconds)."""
 CHILD_TIMEOUT_S = 900
 
 
@@ -111,9 +137,22 @@ def ensure_compiled(
             workers,
         )
         started = time.monotonic()
+        size = (width, height) if images else None
+        lead, rest = phases(todo)
+        # Phase 1: the modules every family shares, once, in threads; phase 2: the rest of
+        # each family (its scene's own modules) side by side, the shared ones now cached.
+        threads = max(1, processes or os.cpu_count() or 1)
+        errors = {lead: _child(lead, size, device, threads)}
+        log.info(
+            "phase 1: %s alone, its modules in %d threads, in %.0f s; phase 2: %d more",
+            lead,
+            threads,
+            time.monotonic() - started,
+            len(rest),
+        )
         with ThreadPoolExecutor(workers) as pool:
-            size = (width, height) if images else None
-            errors = dict(zip(todo, pool.map(lambda t: _child(t, size, device), todo), strict=True))
+            done = pool.map(lambda t: _child(t, size, device, 1), rest)
+            errors.update(zip(rest, done, strict=True))
         failed = [t for t, err in errors.items() if err]
         for task in todo:
             if task not in failed:
@@ -131,10 +170,17 @@ def ensure_compiled(
         return failed
 
 
-def _child(task: str, size: tuple[int, int] | None, device: str) -> str | None:
-    """Compile one family in a child process: None, or the end of its output if it failed."""
+def phases(todo: Sequence[str]) -> tuple[str, list[str]]:
+    """The family compiled alone first (its modules shared by the others compiled once, in
+    threads) and those compiled side by side after it: the first, then the rest, in order."""
+    return todo[0], list(todo[1:])
+
+
+def _child(task: str, size: tuple[int, int] | None, device: str, threads: int) -> str | None:
+    """Compile one family in a child process (`threads` > 1: its modules loaded ahead in that
+    many threads): None, or the end of its output if it failed."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "VABENCH_WARP_DEVICE": device}
-    command = [sys.executable, "-m", __name__, task]
+    command = [sys.executable, "-m", __name__, task, "--threads", str(threads)]
     if size is not None:
         command += ["--size", f"{size[0]}x{size[1]}"]
     try:
@@ -148,9 +194,11 @@ def _child(task: str, size: tuple[int, int] | None, device: str) -> str | None:
     return None
 
 
-def compile_family(task_name: str, size: tuple[int, int] | None) -> None:
+def compile_family(task_name: str, size: tuple[int, int] | None, threads: int = 1) -> None:
     """In this process: one seed of the family's expert on Warp physics and (`size`) one
-    image of its last state through the Warp renderer: every kernel a sweep of it launches."""
+    image of its last state through the Warp renderer: every kernel a sweep of it launches.
+    `threads` > 1: the modules they launch are compiled first in that many threads
+    (`warp_ahead`)."""
     import numpy as np
 
     from vabench.render import camera as cam
@@ -162,6 +210,8 @@ def compile_family(task_name: str, size: tuple[int, int] | None) -> None:
     from vabench.tasks.task_batch import TaskBatch, run_experts
 
     task = REGISTRY[task_name]
+    if threads > 1:
+        load_ahead(task, size, threads)
     batch = TaskBatch(task, 1, backend=Physics.WARP)
     run_experts(batch, verified_seeds(task_name)[:1])
     if size is None:
@@ -183,9 +233,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("task")
     parser.add_argument("--size", help="WxH of the images (none: physics only)")
+    parser.add_argument("--threads", type=int, default=1, help="compile its modules ahead")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
-    compile_family(args.task, (width, height) if args.size else None)
+    compiled: list[tuple[str, float]] = []
+    started = time.monotonic()
+    with compile_log(compiled):
+        compile_family(args.task, (width, height) if args.size else None, args.threads)
+    if stats := os.environ.get(STATS_ENV):
+        report = {
+            "task": args.task,
+            "compiled": [name for name, _ in compiled],
+            "compile_s": sum(s for _, s in compiled),  # compiling, summed over threads
+            "s": time.monotonic() - started,
+        }
+        (Path(stats) / f"{args.task}.json").write_text(json.dumps(report))
     return 0
 
 

@@ -1,0 +1,186 @@
+"""The Warp modules a family launches, compiled side by side in threads before it launches them.
+
+Warp compiles a module when a kernel of it is first launched, so one process running a family
+compiles its ~45 modules one after another. `load_ahead` names them first without running
+anything: while `Module.load` answers None, `wp.launch` returns before launching (Warp's own
+path for a module without code), so a batch's build, one physics step and one render pass of
+the family, on the family's real models and arrays, record every module (and block size) they
+would launch. Those then load in a thread pool: Warp's compilers (clang for the CPU,
+NVRTC for CUDA) run outside the GIL. Measured on Warp's CPU device, 2 shared cores, 2026-11-26:
+67 modules in 185 s with 2 threads against 366 s of compiles one by one; grasp_single_cube from
+an empty cache, 2 threads: 44 modules found and loaded ahead in 55 s, and its real run after it
+compiled none (docs/PERFORMANCE.md, issue 33).
+
+Only ever an optimisation: a module it misses, or a call that fails (logged), is compiled by
+the family's real run after it, as before. The batch built for it has CUDA graphs off (a graph
+captured while launches are skipped would be empty) and is thrown away; the step goes through
+MuJoCo Warp's functions, not the batch's methods.
+
+`compile_log` records which modules a process compiled (those not found in Warp's cache): the
+precompile's children report them (`precompile.STATS_ENV`), so that a benchmark or a test can
+see that a module shared by families was compiled once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+OWN_MODULES = "vabench."
+"""vabench's own Warp modules (control, rows, the render pass's): loaded ahead whole."""
+
+Found = dict[tuple[int, str, Any], tuple[Any, Any, Any]]
+
+
+@contextlib.contextmanager
+def recording(found: Found) -> Iterator[None]:
+    """Within: a launch records (module, device, block size) in `found` and launches nothing;
+    a conditional loop runs its body once and a conditional both branches (outside a graph
+    capture Warp runs them on the host while a flag on the device says so, and no launch
+    changes the flag)."""
+    import warp as wp
+    from warp._src import context  # the loader; no public hook exists
+
+    load, loop, branch = context.Module.load, wp.capture_while, wp.capture_if
+
+    def record(module: Any, device: Any = None, block_dim: Any = None, *_: Any, **__: Any) -> None:
+        found.setdefault((id(module), str(device), block_dim), (module, device, block_dim))
+
+    def once(condition: Any, while_body: Any, stream: Any = None, **kwargs: Any) -> None:
+        if callable(while_body):
+            while_body(**kwargs)
+
+    def both(
+        condition: Any, on_true: Any = None, on_false: Any = None, stream: Any = None, **kwargs: Any
+    ) -> None:
+        for body in (on_true, on_false):
+            if callable(body):
+                body(**kwargs)
+
+    context.Module.load = record  # type: ignore[method-assign,assignment]
+    wp.capture_while, wp.capture_if = once, both
+    try:
+        yield
+    finally:
+        context.Module.load = load  # type: ignore[method-assign]
+        wp.capture_while, wp.capture_if = loop, branch
+
+
+def load_ahead(task: Any, size: tuple[int, int] | None, threads: int) -> int:
+    """Compile (or load from the cache) in `threads` threads every module that building a
+    Warp batch of `task`, one physics step of it and, with `size`, one render pass of it would
+    launch, and vabench's own. Returns how many modules it loaded."""
+    import warp as wp
+    from warp._src import context
+
+    from vabench.sim_mjx.warp.device import warp_device, warp_problem
+
+    # Warp set up as the batch sets it up, its loader patched (`modules.keep_loaded`) before
+    # `recording` patches it in turn: that patch wraps Warp's loader, not the recorder.
+    if problem := warp_problem():
+        log.info("load ahead: %s", problem)
+        return 0
+    device = wp.get_device(warp_device())
+    started = time.monotonic()
+    found: Found = {}
+    with recording(found), wp.ScopedDevice(device):
+        for name, call in _dry_calls(task, size):
+            try:
+                call()
+            except Exception as err:  # only an optimisation: the real run compiles it
+                log.info("load ahead: %s failed (%s); the run compiles what it needs", name, err)
+    launched = list(found.values())
+    seen = {id(module) for module, _, _ in launched}
+    own = [
+        m
+        for m in list(context.user_modules.values())
+        if m.name.startswith(OWN_MODULES) and m.kernels and id(m) not in seen
+    ]
+
+    def load(job: tuple[Any, Any, Any] | Any) -> None:
+        try:
+            if isinstance(job, tuple):
+                module, on, block_dim = job
+                module.load(on, block_dim)
+            else:  # a whole module at the block size a plain launch uses (Warp's rule)
+                wp.force_load(device, modules=[job], max_workers=0)
+        except Exception as err:
+            log.info("load ahead: module %s failed (%s)", getattr(job, "name", job), err)
+
+    with ThreadPoolExecutor(max(1, threads)) as pool:
+        list(pool.map(load, [*launched, *own]))
+    log.info(
+        "loaded %d Warp modules ahead in %d threads in %.1f s",
+        len(launched) + len(own),
+        threads,
+        time.monotonic() - started,
+    )
+    return len(launched) + len(own)
+
+
+def _dry_calls(task: Any, size: tuple[int, int] | None) -> list[tuple[str, Callable[[], None]]]:
+    """What a family launches: a Warp batch's build (its first reset and observation), MuJoCo
+    Warp's step, and the render pass's build and draw. The batch is built without CUDA graphs
+    (a graph captured here would be empty) and thrown away."""
+    import mujoco_warp as mjw
+
+    from vabench.sim_mjx.backends import Physics, make_batch
+
+    built: list[Any] = []
+
+    def batch() -> None:
+        built.append(make_batch(task.build_models(), 1, Physics.WARP, graphs=False))
+
+    def physics() -> None:
+        m, d = built[0]._m, built[0]._d  # the batch's MuJoCo Warp model and data
+        mjw.kinematics(m, d)
+        mjw.collision(m, d)
+        mjw.step(m, d)
+
+    def render() -> None:
+        from vabench.render.camera import CameraPose
+        from vabench.render.images import RenderItem
+        from vabench.render.warp_pass import RenderPass, pass_size, render_models
+
+        assert size is not None
+        models = render_models(task, *size)  # as the renderer's pool makes them
+        drawn = RenderPass(models, pass_size(1), size[0], size[1], device_jpeg=False)
+        camera = CameraPose(np.array([0.0, -1.0, 1.0]), np.eye(3), 1.0, 45.0, "head")
+        drawn.draw([RenderItem(np.zeros(models[0].nq), 0, camera)], None)
+
+    calls = [("batch", batch), ("physics", physics)]
+    return calls + ([("render", render)] if size is not None else [])
+
+
+@contextlib.contextmanager
+def compile_log(compiled: list[tuple[str, float]]) -> Iterator[None]:
+    """Within: (cache directory name, seconds) of each module this process compiles is
+    appended to `compiled` (a module found in Warp's cache is not)."""
+    import os
+
+    from warp._src import context
+
+    compile_ = context.Module._compile
+
+    def logged(module: Any, *args: Any, **kwargs: Any) -> bool:
+        started = time.monotonic()
+        done = bool(compile_(module, *args, **kwargs))
+        if done:
+            out = kwargs.get("output_dir", args[1] if len(args) > 1 else None)
+            name = os.path.basename(str(out)) if out else module.name
+            compiled.append((name, time.monotonic() - started))
+        return done
+
+    context.Module._compile = logged  # type: ignore[method-assign,assignment]
+    try:
+        yield
+    finally:
+        context.Module._compile = compile_  # type: ignore[method-assign]
