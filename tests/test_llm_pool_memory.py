@@ -164,7 +164,6 @@ def test_the_pool_keeps_a_thread_giving_the_heap_back(monkeypatch):
     monkeypatch.setattr(heap, "trim", lambda: trims.append(1) or True)
     monkeypatch.setattr(heap, "_trimmer", None)
     monkeypatch.setattr(heap, "TRIM_EVERY_S", 0.05)
-    monkeypatch.setattr(heap.keep_trimmed, "__defaults__", (0.05,))
     LLMPool([])
     first = heap._trimmer
     assert first is not None and first.is_alive() and first.name == "heap-trim"
@@ -174,3 +173,6 @@ def test_the_pool_keeps_a_thread_giving_the_heap_back(monkeypatch):
     while len(trims) < 2 and time.monotonic() < deadline:
         time.sleep(0.05)
     assert len(trims) >= 2
+    heap._stop.set()  # this test's fast thread ends here, not with the test session
+    first.join(timeout=5)
+    heap._stop.clear()

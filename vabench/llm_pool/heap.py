@@ -31,6 +31,7 @@ from collections.abc import Callable
 TRIM_EVERY_S = 30.0
 _trimmer: threading.Thread | None = None
 _guard = threading.Lock()
+_stop = threading.Event()  # set: the thread ends (tests); the process's exit ends it anyway
 
 
 def _malloc_trim() -> Callable[[int], int] | None:
@@ -53,22 +54,21 @@ def trim() -> bool:
     return bool(MALLOC_TRIM(0)) if MALLOC_TRIM is not None else False
 
 
-def keep_trimmed(every_s: float = TRIM_EVERY_S) -> bool:
-    """Start this process's trimming thread (once; later calls return at once). False where
-    glibc's malloc_trim is missing."""
+def keep_trimmed() -> bool:
+    """Start this process's trimming thread, a trim every `TRIM_EVERY_S` (once; later calls
+    return at once). False where glibc's malloc_trim is missing."""
     global _trimmer
     if MALLOC_TRIM is None:
         return False
     with _guard:
         if _trimmer is None or not _trimmer.is_alive():
             _trimmer = threading.Thread(
-                target=_trim_forever, args=(every_s,), name="heap-trim", daemon=True
+                target=_trim_forever, args=(TRIM_EVERY_S,), name="heap-trim", daemon=True
             )
             _trimmer.start()
     return True
 
 
 def _trim_forever(every_s: float) -> None:
-    wake = threading.Event()
-    while not wake.wait(every_s):
+    while not _stop.wait(every_s):
         trim()

@@ -51,10 +51,16 @@ def every_s_from_env() -> float:
         return DEFAULT_EVERY_S
 
 
+def _fields(stat_line: str) -> list[str]:
+    """The fields of a /proc stat line after the command name (which may hold spaces and
+    parentheses: split after its last ')'); [1] is the parent, [11:13] utime and stime, [13:15]
+    the reaped children's, in clock ticks."""
+    return stat_line.rsplit(")", 1)[1].split()
+
+
 def _ticks(stat_line: str) -> int:
-    """utime + stime of a /proc stat line, in clock ticks (the fields after the command name,
-    which may hold spaces and parentheses: split after its last ')')."""
-    fields = stat_line.rsplit(")", 1)[1].split()
+    """utime + stime of a /proc stat line, in clock ticks."""
+    fields = _fields(stat_line)
     return int(fields[11]) + int(fields[12])
 
 
@@ -102,7 +108,7 @@ def children_ticks() -> int:
         line = _read(entry / "stat")
         if line is None:
             continue
-        fields = line.rsplit(")", 1)[1].split()
+        fields = _fields(line)
         if int(fields[1]) == parent:
             total += sum(int(f) for f in fields[11:15])
     return total
@@ -199,10 +205,15 @@ class HostLoad:
     """Samples this process while the sweep runs (see the module docstring)."""
 
     every_s: float = field(default_factory=every_s_from_env)
-    first: Sample | None = None
     last: Sample | None = None
     lags: Lags = field(default_factory=Lags)
     all_lags: Lags = field(default_factory=Lags)
+    # the windows so far, summed (the whole run is their sum, which keeps the CPU of threads
+    # that ended in between, a finished task's batch threads, where one window from the first
+    # sample to the last would lose it)
+    seconds: float = 0.0
+    core_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    lock_s: dict[str, list[float]] = field(default_factory=dict)
 
     @staticmethod
     def available() -> bool:
@@ -216,16 +227,29 @@ class HostLoad:
         now = self.sample()
         before, self.last = self.last, now
         if before is None:
-            self.first = now
             return None
         w = window(before, now, self.lags)
         self.lags = Lags()
+        self.seconds += w.seconds
+        for group, cores in w.cores.items():
+            self.core_s[group] += cores * w.seconds
+        for name, figures in w.locks.items():
+            sums = self.lock_s.setdefault(name, [0.0, 0.0, 0.0])
+            for k, x in enumerate(figures):
+                sums[k] += x * w.seconds
         return w
 
     def whole_run(self) -> Window | None:
-        if self.first is None or self.last is None or self.last is self.first:
+        if not self.seconds:
             return None
-        return window(self.first, self.last, self.all_lags)
+        t, lags = self.seconds, self.all_lags
+        return Window(
+            t,
+            {g: c / t for g, c in self.core_s.items()},
+            lags.total_s / lags.n if lags.n else 0.0,
+            lags.max_s,
+            {name: (s[0] / t, s[1] / t, s[2] / t) for name, s in self.lock_s.items()},
+        )
 
     async def _probe(self) -> None:
         while True:

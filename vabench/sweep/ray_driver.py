@@ -72,10 +72,9 @@ class ClusterSweep:
         self.engines_wanted, self.resources, self.choices = engine_plan(config, choices, cluster)
         cores, share = int(self.resources["num_cpus"]), 1
         if self.resources["num_gpus"]:
-            per_gpu = max(1, round(1 / self.resources["num_gpus"]))  # engines sharing a GPU
+            share = round(1 / self.resources["num_gpus"])  # engines sharing a GPU
             gpus = max(1, int(cluster.get("GPU", 1)))
-            cores = max(1, int(cluster.get("CPU", 1)) // (gpus * per_gpu))
-            share = per_gpu
+            cores = max(1, int(cluster.get("CPU", 1)) // (gpus * share))
         self.environ = engine_environment(config, cores, share)
         # a task the registry lacks fails in its chunk
         cost = lambda task: config.budget(task) if task in REGISTRY else 1  # noqa: E731
