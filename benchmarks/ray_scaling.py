@@ -152,7 +152,7 @@ def main() -> None:
     counts = [int(n) for n in args.engines.split(",")]
     on_gpus = resolve(args.backend).batched
     if on_gpus:
-        ray.init(include_dashboard=False)
+        ray.init(address="local", include_dashboard=False)
         gpus = int(ray.cluster_resources().get("GPU", 0))
         skipped = [n for n in counts if n > gpus]
         counts = [n for n in counts if n <= gpus]
@@ -160,7 +160,9 @@ def main() -> None:
             print(f"skipped (only {gpus} GPUs here): {skipped}", flush=True)
     else:
         cpus = max(counts) * (1 + args.render_workers)
-        ray.init(num_cpus=max(cpus, len(os.sched_getaffinity(0))), include_dashboard=False)
+        ray.init(
+            address="local", num_cpus=max(cpus, len(os.sched_getaffinity(0))), include_dashboard=False
+        )
     host = device()
     print(f"device: {host}; Ray {ray.__version__}; {datetime.date.today()}", flush=True)
     results = []

@@ -26,7 +26,7 @@ def actors():
     """A local Ray instance with the server and caller actors (defined here, so that Ray ships
     them by value)."""
     try:
-        ray.init(num_cpus=2, include_dashboard=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False)
     except Exception as err:  # say why, never skip
         pytest.fail(f"a local Ray instance does not start here: {type(err).__name__}: {err}")
 

@@ -55,7 +55,7 @@ def cluster() -> str:
     """A local Ray cluster for this module (4 CPUs: two engines of 1 + render.workers CPUs);
     its GCS address."""
     try:
-        context = ray.init(num_cpus=4, include_dashboard=False)
+        context = ray.init(address="local", num_cpus=4, include_dashboard=False)
     except Exception as err:  # say why, never skip: this module is the ray executor's test
         pytest.fail(f"a local Ray cluster does not start here: {type(err).__name__}: {err}")
     yield context.address_info["gcs_address"]
