@@ -23,10 +23,20 @@ on a fresh GPU machine that compiles Warp's kernels and fills the settled-state 
 
 Printed per count: wall time of the sweep (engine start-up included), the steady rate
 (episodes / the span from the first episode's start to the last one's end, from the records),
-and the scaling ratio rate(N) / (N x rate(1)) on both. Whether every count recorded every
-planned episode once is checked, and the outcomes (success per episode) are compared with the
-first count's: with the deterministic agent and C MuJoCo they must agree; on GPUs Warp's
-contact ordering may differ unless `simulator.deterministic` is set, so they are only shown.
+and the scaling ratio rate(N) / (N x rate(1)) on both. Then per engine (the driver's
+`engine_report`): its seconds of start-up, working (a chunk or more) and waiting for work, its
+episodes, and its GPU's busy share over its life (sampled by the engine through nvidia-smi; GPUs
+only). And where the lost time goes: with the same episodes, 1 - ratio = (N x wall - wall(1)) /
+(N x wall), and the engine-seconds N x wall split into start-up, working, waiting and the
+driver's own (before the engines, after them), so the shortfall is the sum of each part's
+excess over the first count's: more start-up, more waiting for work (placement, the tail: an
+engine idle while another holds the basket), or more working seconds for the same episodes
+(engines slowing each other: shared cores, a shared GPU, the driver).
+
+Whether every count recorded every planned episode once is checked, and the outcomes (success
+per episode) are compared with the first count's: with the deterministic agent and C MuJoCo
+they must agree; on GPUs Warp's contact ordering may differ unless `simulator.deterministic` is
+set, so they are only shown.
 """
 
 from __future__ import annotations
@@ -105,8 +115,9 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     config = load_config(make_config(args, engines, out), overrides={"out": str(out)})
     keys = plan(config)
     check_run_dir(out, config, keys, config.document())
+    report: list[dict] = []
     t0 = time.perf_counter()
-    records = run_ray(config, keys, out, choose(config))
+    records = run_ray(config, keys, out, choose(config), on_engines=report.extend)
     wall = time.perf_counter() - t0
     lines = RunDir(out).results.read_text().splitlines()
     recs = [json.loads(x) for x in lines]
@@ -121,11 +132,44 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
         "episodes_per_s": len(recs) / wall,
         "steady_episodes_per_s": len(recs) / (last - first),
         "success": sum(r["success"] for r in recs),
+        "engine_report": report,
+        "engine_time": engine_time(report, engines, wall),
         "outcomes": {
             f"{r['model']}/{r['track']}/{r['task']}/{r['seed']}/{r['run']}": r["success"]
             for r in recs
         },
     }
+
+
+PARTS = ("start_up_s", "working_s", "waiting_s", "other_s")
+
+
+def engine_time(report: list[dict], engines: int, wall: float) -> dict[str, float]:
+    """The engine-seconds of a count (engines x wall) split into start-up, working, waiting
+    for work and the rest ('other': the driver before and after its engines; an engine started
+    in place of a dead one adds its own seconds to the parts)."""
+    total = engines * wall
+    parts = {k: sum(r[k] for r in report) for k in PARTS[:3]}
+    parts["other_s"] = max(total - sum(parts.values()), 0.0)
+    return {"total_s": total, **parts}
+
+
+def lost_time(result: dict, base: dict) -> dict[str, float]:
+    """Each part's excess engine-seconds over the first count's, as a share of this count's
+    engine-seconds: they sum to 1 - ratio (same episodes in both)."""
+    mine, first = result["engine_time"], base["engine_time"]
+    return {k: (mine[k] - first[k]) / mine["total_s"] for k in PARTS}
+
+
+def print_engines(result: dict) -> None:
+    for r in result["engine_report"]:
+        gpu = f"{r['gpu_busy']:.0%}" if r.get("gpu_busy") is not None else "-"
+        print(
+            f"    engine {r['engine']} ({r.get('host') or '?'}): start-up {r['start_up_s']:.1f} s, "
+            f"working {r['working_s']:.1f} s, waiting {r['waiting_s']:.1f} s, "
+            f"{r['episodes']} episodes, GPU busy {gpu}{', died' if r['died'] else ''}",
+            flush=True,
+        )
 
 
 def main() -> None:
@@ -160,9 +204,8 @@ def main() -> None:
             print(f"skipped (only {gpus} GPUs here): {skipped}", flush=True)
     else:
         cpus = max(counts) * (1 + args.render_workers)
-        ray.init(
-            address="local", num_cpus=max(cpus, len(os.sched_getaffinity(0))), include_dashboard=False
-        )
+        cpus = max(cpus, len(os.sched_getaffinity(0)))
+        ray.init(address="local", num_cpus=cpus, include_dashboard=False)
     host = device()
     print(f"device: {host}; Ray {ray.__version__}; {datetime.date.today()}", flush=True)
     results = []
@@ -182,6 +225,7 @@ def main() -> None:
                 f"/s over {result['span_s']:.1f} s)",
                 flush=True,
             )
+            print_engines(result)
     ray.shutdown()
     base = results[0]
     print(
@@ -198,6 +242,19 @@ def main() -> None:
             f"{r['steady_episodes_per_s']:>9.3f} {r['steady_ratio']:>6.2f} "
             f"{'yes' if r['recorded_once'] else 'NO':>5} "
             f"{'same' if r['same_outcomes'] else 'differ':>9}"
+        )
+    print(
+        "\nwhere the lost time goes (engine-seconds beyond the first count's, share of N x wall):"
+    )
+    print(
+        f"{'engines':>7} {'1-ratio':>8} {'start-up':>9} {'working':>8} {'waiting':>8} {'other':>7}"
+    )
+    for r in results:
+        r["lost"] = lost_time(r, base)
+        lost = r["lost"]
+        print(
+            f"{r['engines']:>7} {1 - r['ratio']:>8.3f} {lost['start_up_s']:>9.3f} "
+            f"{lost['working_s']:>8.3f} {lost['waiting_s']:>8.3f} {lost['other_s']:>7.3f}"
         )
     if args.json:
         summary = {

@@ -296,3 +296,45 @@ def test_batched_engines_get_a_chunk_per_task_across_tracks_and_models():
     assert {name for name, _ in cut} == {"t1 part 1/2", "t1 part 2/2", "t2 part 1/2", "t2 part 2/2"}
     flat = [ledger_key(k) for _, part in cut for k in part]
     assert len(flat) == len(set(flat)) == len(keys) - 1
+
+
+def test_each_engines_time_is_accounted_and_logged(cluster, tmp_path, caplog):
+    """The driver's report: every engine's start-up, working and waiting seconds add up to its
+    life, its episodes to the sweep's, and the log says the same (no GPU here: no busy share)."""
+    config = load_config(
+        write(tmp_path / "ray.yaml", "{kind: ray, actors: 2, max_tasks: 1}", tracks="[active]"),
+        overrides={"out": str(tmp_path / "out")},
+    )
+    run_dir = tmp_path / "out"
+    keys = plan(config)
+    run_dir.mkdir()
+    (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
+    reports: list[list[dict]] = []
+    t0 = time.monotonic()
+    with caplog.at_level(logging.INFO, logger="vabench.sweep.ray_executor"):
+        got = run_ray(config, keys, run_dir, choose(config), on_engines=reports.append)
+    wall = time.monotonic() - t0
+    assert len(got) == len(keys) == 4
+    [report] = reports
+    walls = [json.loads(x) for x in (run_dir / "results.jsonl").read_text().splitlines()]
+    assert [r["engine"] for r in report] == [0, 1]
+    assert sum(r["episodes"] for r in report) == len(keys)
+    for r in report:
+        assert not r["died"] and r["host"]
+        assert r["start_up_s"] > 0 and r["waiting_s"] >= 0
+        assert r["start_up_s"] + r["working_s"] + r["waiting_s"] == pytest.approx(r["life_s"])
+        assert r["life_s"] <= wall
+        assert r["gpu_busy"] is None
+        # an engine that recorded episodes worked at least as long as one of them took
+        if r["episodes"]:
+            assert r["working_s"] >= min(rec["wall_s"] for rec in walls)
+    lines = [m.getMessage() for m in caplog.records if m.getMessage().startswith("ray: engine")]
+    for r in report:
+        assert any(
+            line.startswith(f"ray: engine {r['engine']} (")
+            and f"{r['episodes']} episodes" in line
+            and "waiting for work" in line
+            for line in lines
+        ), lines
+    total = [m.getMessage() for m in caplog.records if "ray: engine time" in m.getMessage()]
+    assert len(total) == 1 and "over 2 engines" in total[0]

@@ -12,6 +12,9 @@ the one sweep process paces the rest, and the candidates tell apart by these fig
 - the Warp device lock (held while a batch or a render pass queues its work): held most of
   the time, with threads waiting on it.
 
+Each line also gives the GPUs' busy share where the process sees a GPU (`gpu_busy.GpuBusy`:
+the driver's utilisation, sampled every second), so a line says at once whether the GPU waits.
+
 `HostLoad` samples every `every_s` (a line each time, and one for the whole run at the end);
 it reads /proc (Linux), costs a few milliseconds a sample, and says nothing elsewhere.
 `VABENCH_HOSTLOAD_S` sets the period (0: off; default `DEFAULT_EVERY_S`).
@@ -31,6 +34,9 @@ from collections import defaultdict
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from vabench.sweep import gpu_busy
+from vabench.sweep.gpu_busy import GpuBusy, Totals
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +133,7 @@ class Sample:
     threads: dict[str, int]
     children: int
     locks: dict[str, tuple[float, float, int]] = field(default_factory=dict)
+    gpu: Totals | None = None
 
 
 @dataclass
@@ -141,6 +148,10 @@ class Window:
     locks: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     """Per device lock: (share of the time held, thread-seconds waited per second, holds per
     second)."""
+    gpu_busy: float | None = None
+    """The visible GPUs' mean busy share (None: not sampled)."""
+    gpu_memory_mib: float = 0.0
+    """The most GPU memory used so far (all processes on the GPUs watched)."""
 
     def describe(self) -> str:
         loop = self.cores.get("event loop", 0.0)
@@ -155,11 +166,16 @@ class Window:
             f"average, {holds:.0f} holds/s"
             for name, (held, waited, holds) in sorted(self.locks.items())
         )
+        gpu = (
+            f"; GPU busy {self.gpu_busy:.0%} (memory {self.gpu_memory_mib / 1024:.1f} GiB at most)"
+            if self.gpu_busy is not None
+            else ""
+        )
         return (
             f"event loop {loop:.0%} of a core, late {self.lag_mean_s * 1e3:.0f} ms on average "
             f"(at most {self.lag_max_s * 1e3:.0f} ms); this process {process:.1f} cores "
             f"(threads: {threads}); child processes {self.cores.get('children', 0.0):.1f} cores"
-            f"{locks}"
+            f"{locks}{gpu}"
         )
 
 
@@ -191,12 +207,15 @@ def window(a: Sample, b: Sample, lags: Lags) -> Window:
     for name, (waited, held, holds) in b.locks.items():
         w0, h0, n0 = a.locks.get(name, (0.0, 0.0, 0))
         locks[name] = ((held - h0) / seconds, (waited - w0) / seconds, (holds - n0) / seconds)
+    busy = b.gpu.mean_since(a.gpu) if b.gpu is not None else None
     return Window(
         seconds,
         cores,
         lags.total_s / lags.n if lags.n else 0.0,
         lags.max_s,
         locks,
+        busy,
+        b.gpu.memory_max_mib if b.gpu is not None else 0.0,
     )
 
 
@@ -214,19 +233,25 @@ class HostLoad:
     seconds: float = 0.0
     core_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     lock_s: dict[str, list[float]] = field(default_factory=dict)
+    gpus: GpuBusy | None = None
+    """The GPU sampler `watching` runs where the process sees a GPU."""
+    gpu_start: Totals | None = None
+    """Its sums at the first sample (the sampler is the process's, shared)."""
 
     @staticmethod
     def available() -> bool:
         return (_PROC / "self" / "task").is_dir()
 
     def sample(self) -> Sample:
-        return Sample(time.monotonic(), thread_ticks(), children_ticks(), device_locks())
+        gpu = self.gpus.totals() if self.gpus is not None else None
+        return Sample(time.monotonic(), thread_ticks(), children_ticks(), device_locks(), gpu)
 
     def tick(self) -> Window | None:
         """A sample; the window since the one before (None for the first)."""
         now = self.sample()
         before, self.last = self.last, now
         if before is None:
+            self.gpu_start = now.gpu
             return None
         w = window(before, now, self.lags)
         self.lags = Lags()
@@ -243,12 +268,15 @@ class HostLoad:
         if not self.seconds:
             return None
         t, lags = self.seconds, self.all_lags
+        gpu = self.gpus.totals() if self.gpus is not None else None
         return Window(
             t,
             {g: c / t for g, c in self.core_s.items()},
             lags.total_s / lags.n if lags.n else 0.0,
             lags.max_s,
             {name: (s[0] / t, s[1] / t, s[2] / t) for name, s in self.lock_s.items()},
+            gpu.mean_since(self.gpu_start) if gpu is not None else None,
+            gpu.memory_max_mib if gpu is not None else 0.0,
         )
 
     async def _probe(self) -> None:
@@ -276,6 +304,9 @@ async def watching(load: HostLoad | None = None) -> AsyncIterator[HostLoad | Non
     if load.every_s <= 0 or not load.available():
         yield None
         return
+    gpus = contextlib.ExitStack()
+    if load.gpus is None:
+        load.gpus = gpus.enter_context(gpu_busy.sampling())
     tasks = [
         asyncio.create_task(load._probe(), name="hostload-lag"),
         asyncio.create_task(load._report(), name="hostload-report"),
@@ -289,6 +320,7 @@ async def watching(load: HostLoad | None = None) -> AsyncIterator[HostLoad | Non
             with contextlib.suppress(asyncio.CancelledError):
                 await t
         load.tick()
+        await asyncio.to_thread(gpus.close)
         whole = load.whole_run()
         if whole is not None:
             log.info("host, whole run (%.0f s): %s", whole.seconds, whole.describe())

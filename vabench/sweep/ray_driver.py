@@ -2,7 +2,9 @@
 3-8): `ClusterSweep` starts the limit board and the engines, hands out chunks as engines have
 room, appends the ledger lines they stream back (the only writer of the ledger), puts the
 unfinished episodes of a dead engine back in the queue and starts another in its place, polls
-the engines' statuses for the display, and closes everything at the end.
+the engines' statuses for the display, and closes everything at the end. It keeps each
+engine's time (`ray_plan.EngineClock`: start-up, working, waiting for work) and its GPU's busy
+share, and logs them when the sweep ends (`engine_report`).
 """
 
 from __future__ import annotations
@@ -100,6 +102,7 @@ class ClusterSweep:
         self.max_chunks = choices.executor.max_tasks
         self._changed = False
         """A chunk ended or an engine came or went since the last progress line."""
+        self.started_at = time.monotonic()
         log.info(
             "ray: %d chunks (%d episodes; %s) on a cluster of %s: %d engines, each %s%s",
             self.total,
@@ -253,6 +256,7 @@ class ClusterSweep:
             self._lost(engine, err)
             return
         engine.starting = None
+        engine.clock.started_at = time.monotonic()
         engine.status = {"limit": engine.info.get("limit", 1)}
         self._changed = True
         log.info("ray: engine %d started: %s", engine.index, engine.info)
@@ -261,6 +265,7 @@ class ClusterSweep:
         """`engine` died: its chunks' episodes without a record go back to the queue's front,
         the limit board frees what it held, and another engine takes its place."""
         engine.dead = True
+        engine.clock.end(time.monotonic())
         self._changed = True
         requeued = 0
         for chunk in reversed(list(engine.chunks.values())):
@@ -327,6 +332,7 @@ class ClusterSweep:
             if best is None:
                 return
             chunk = self.queue.popleft()
+            best.clock.work_began(time.monotonic())
             best.chunks[best.actor.run_chunk.remote(chunk.name, chunk.keys)] = chunk
             log.info("ray: chunk %s (%d episodes) to %s", chunk.name, len(chunk.keys), _host(best))
 
@@ -336,14 +342,11 @@ class ClusterSweep:
             ref = next(stream)
             item = ray.get(ref)
         except StopIteration:  # ended without its summary (never, but not a reason to hang)
-            engine.chunks.pop(stream, None)
-            self.done += 1
+            self._chunk_over(engine, stream)
             self._changed = True
             return
         except ray.exceptions.RayTaskError as err:  # the chunk's own error
-            engine.chunks.pop(stream, None)
-            self.done += 1
-            self._changed = True
+            self._chunk_over(engine, stream)
             self.failures.append(chunk)
             log.error("ray: chunk %s failed on %s:\n%s", chunk.name, _host(engine), err)
             return
@@ -351,23 +354,32 @@ class ClusterSweep:
             self._lost(engine, err)
             return
         if item[0] == LINE:
-            self._append(item[1], item[2])
+            if self._append(item[1], item[2]):
+                engine.clock.episodes += 1
         elif item[0] == DONE:
-            engine.chunks.pop(stream, None)
-            self.done += 1
-            self._changed = True
+            self._chunk_over(engine, stream)
             summary = item[1]
             log.info("ray: chunk %s done on %s: %s", chunk.name, _host(engine), summary)
             if summary.get("stopped") and not self.stopped:
                 self.stopped.append(summary["stopped"])
                 self.queue.clear()
 
-    def _append(self, name: str, record: dict[str, Any]) -> None:
+    def _chunk_over(self, engine: EngineHandle, stream: Any) -> None:
+        engine.chunks.pop(stream, None)
+        if not engine.chunks:
+            engine.clock.work_ended(time.monotonic())
+        self.done += 1
+        self._changed = True
+
+    def _append(self, name: str, record: dict[str, Any]) -> bool:
+        """Append a ledger line; False when it was an episode's second record."""
         try:
             self.ledger.append_line(name, record)
         except LedgerError as err:  # an episode reported twice (an engine taken for dead)
             log.warning("ray: %s; kept in %s", err, DUPLICATES)
             self.ledger.add_duplicate(record)
+            return False
+        return True
 
     # -- status --------------------------------------------------------------------------------
     def _poll_statuses(self) -> None:
@@ -404,16 +416,71 @@ class ClusterSweep:
         """Close the engines (or, interrupted, end them at once) and the limit board."""
         ray = self.ray
         live = [e for e in self.engines if not e.dead]
+        now = time.monotonic()
+        for e in self.engines:
+            e.clock.end(now)
         if gracefully:
-            closing = [e.actor.close.remote() for e in live if e.starting is None]
+            closing = {e.actor.close.remote(): e for e in live if e.starting is None}
             with contextlib.suppress(Exception):
-                ray.wait(closing, num_returns=len(closing), timeout=60)
+                ready, _ = ray.wait(list(closing), num_returns=len(closing), timeout=60)
+                for ref in ready:
+                    with contextlib.suppress(Exception):
+                        closing[ref].final = ray.get(ref) or {}
+        if self.engines:
+            self._log_engine_time()
         for e in live:
             with contextlib.suppress(Exception):
                 ray.kill(e.actor, no_restart=True)
         if self.limiter is not None:
             with contextlib.suppress(Exception):
                 ray.kill(self.limiter, no_restart=True)
+
+    def engine_report(self) -> list[dict[str, Any]]:
+        """Per engine: where it ran, its seconds of start-up, working (a chunk or more) and
+        waiting for work, the episodes it recorded, whether it died, and its GPU's busy share
+        over its life and most memory (None where not sampled)."""
+        now = time.monotonic()
+        return [
+            {
+                "engine": e.index,
+                "host": e.info.get("host"),
+                **e.clock.figures(now),
+                "episodes": e.clock.episodes,
+                "died": e.dead,
+                "gpu_busy": (e.final or e.status).get("gpu_busy"),
+                "gpu_memory_mib": (e.final or e.status).get("gpu_memory_mib"),
+            }
+            for e in self.engines
+        ]
+
+    def _log_engine_time(self) -> None:
+        report = self.engine_report()
+        for r in report:
+            gpu = f", GPU busy {r['gpu_busy']:.0%}" if r["gpu_busy"] is not None else ""
+            log.info(
+                "ray: engine %d (%s): start-up %.1f s, working %.1f s, waiting for work %.1f s, "
+                "%d episodes%s%s",
+                r["engine"],
+                r["host"] or "not started",
+                r["start_up_s"],
+                r["working_s"],
+                r["waiting_s"],
+                r["episodes"],
+                gpu,
+                ", died" if r["died"] else "",
+            )
+        total = sum(r["life_s"] for r in report)
+        if total > 0:
+            log.info(
+                "ray: engine time %.0f s over %d engines (%.0f s of sweep): start-up %.0f %%, "
+                "working %.0f %%, waiting for work %.0f %%",
+                total,
+                len(report),
+                time.monotonic() - self.started_at,
+                100 * sum(r["start_up_s"] for r in report) / total,
+                100 * sum(r["working_s"] for r in report) / total,
+                100 * sum(r["waiting_s"] for r in report) / total,
+            )
 
 
 def _host(engine: EngineHandle) -> str:

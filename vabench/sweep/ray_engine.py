@@ -38,6 +38,7 @@ from typing import Any
 
 from vabench.render.backends import check_renderer
 from vabench.sim_mjx.backends import check
+from vabench.sweep import gpu_busy
 from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document
 from vabench.sweep.choices import Choices, configure_jax
 from vabench.sweep.plan import EpisodeKey
@@ -76,12 +77,18 @@ class EngineActor:
         self.engine: Engine | None = None
         self._stack: contextlib.AsyncExitStack | None = None
         self._sweeps: dict[str, LocalSweep] = {}
+        self._gpus: gpu_busy.GpuBusy | None = None
+        self._gpu_start: gpu_busy.Totals | None = None
 
     async def start(self) -> dict[str, Any]:
         """Open the engine; returns where and how it runs, for the driver's log."""
         cfg = self.config
         configure_jax(self.choices.physics)
         stack = contextlib.AsyncExitStack()
+        # the busy share of the GPU this engine was given (Ray set CUDA_VISIBLE_DEVICES), for
+        # the driver's report of where each engine's time went
+        self._gpus = stack.enter_context(gpu_busy.sampling())
+        self._gpu_start = self._gpus.totals() if self._gpus is not None else None
         limits = None
         if self.limiter is not None and self.shared:
             from vabench.sweep.limiter import BoardLimits, RayChannel
@@ -158,7 +165,7 @@ class EngineActor:
                 if counts.running:
                     key = f"{model}/{track}"
                     running[key] = running.get(key, 0) + counts.running
-        out: dict[str, Any] = {"running": running, "chunks": len(self._sweeps)}
+        out: dict[str, Any] = {"running": running, "chunks": len(self._sweeps), **self._gpu()}
         if self.engine is not None:
             stats = list(self.engine.llm.stats().values())
             gate = self.engine.gate
@@ -173,8 +180,21 @@ class EngineActor:
             }
         return out
 
-    async def close(self) -> None:
-        """Close the engine (the driver calls this once no chunk is left)."""
+    def _gpu(self) -> dict[str, Any]:
+        """Its GPU's mean busy share since the engine started and the most memory used."""
+        if self._gpus is None:
+            return {}
+        totals = self._gpus.totals()
+        return {
+            "gpu_busy": totals.mean_since(self._gpu_start),
+            "gpu_memory_mib": totals.memory_max_mib,
+        }
+
+    async def close(self) -> dict[str, Any]:
+        """Close the engine (the driver calls this once no chunk is left); returns its GPU's
+        figures over its life (empty without a GPU)."""
+        figures = self._gpu()
         if self._stack is not None:
             stack, self._stack = self._stack, None
             await stack.aclose()
+        return figures

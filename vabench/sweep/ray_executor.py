@@ -40,7 +40,10 @@ writer of the ledger.
    refuses the sweep's requests (`LocalSweep.stopped`) ends the handing out: chunks in flight
    finish, and `run_ray` raises `SweepStopped`;
 8. the driver logs a line when an engine starts or dies, when a chunk ends and every
-   `PROGRESS_EVERY_S`; Ctrl-C ends every engine at once (no episode goes on calling a model);
+   `PROGRESS_EVERY_S`, and at the end one per engine: its seconds of start-up, working (a
+   chunk or more) and waiting for work, its episodes and its GPU's busy share (sampled by the
+   engine, `gpu_busy`), then their sums; Ctrl-C ends every engine at once (no episode goes on
+   calling a model);
 9. the ledger's records are returned, `{(model, track, task, seed, run): record}`.
 
 A killed driver takes its engines with it (Ray ends the actors a driver owns when the driver
@@ -114,10 +117,12 @@ def run_ray(
     run_dir: Path,
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
+    on_engines: Callable[[list[dict[str, Any]]], None] | None = None,
 ) -> dict[KeyTuple, dict[str, Any]]:
     """Run the pending episodes of `keys` on the engines of a Ray cluster, for a sweep whose
     command chose `choices`, and return the ledger's records afterwards (see the module
-    docstring). `on_status` is called about once a second."""
+    docstring). `on_status` is called about once a second; `on_engines` once at the end with
+    `ClusterSweep.engine_report()` (each engine's time and GPU busy share)."""
     run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:
@@ -131,7 +136,11 @@ def run_ray(
         ray.init(address=config.executor.address, runtime_env=project_runtime_env() or None)
     try:
         sweep = ClusterSweep(ray, config, choices, keys, run_dir, cells, on_status)
-        sweep.run()
+        try:
+            sweep.run()
+        finally:
+            if on_engines is not None:
+                on_engines(sweep.engine_report())
     finally:
         if started_here:
             ray.shutdown()

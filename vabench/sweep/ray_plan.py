@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,6 +90,49 @@ class Chunk:
 
 
 @dataclass
+class EngineClock:
+    """An engine's time as the driver sees it (monotonic seconds): asked for, started, ended
+    (died, or the sweep closed it), and the seconds it had at least one chunk ("working"); the
+    rest of its started life it waited for work. The split tells a scaling run where lost
+    engine-time went: start-up, waiting for work (placement, the tail), or working slower."""
+
+    asked_at: float = field(default_factory=time.monotonic)
+    started_at: float | None = None
+    ended_at: float | None = None
+    working_since: float | None = None
+    working_s: float = 0.0
+    episodes: int = 0
+    """Ledger lines its chunks reported."""
+
+    def work_began(self, now: float) -> None:
+        if self.working_since is None:
+            self.working_since = now
+
+    def work_ended(self, now: float) -> None:
+        if self.working_since is not None:
+            self.working_s += now - self.working_since
+            self.working_since = None
+
+    def end(self, now: float) -> None:
+        if self.ended_at is None:
+            self.work_ended(now)
+            self.ended_at = now
+
+    def figures(self, now: float) -> dict[str, float]:
+        """Seconds of start-up (asked for to started, or to its end if it never started),
+        working and waiting for work, up to its end (or `now`)."""
+        end = self.ended_at if self.ended_at is not None else now
+        working = self.working_s + (end - self.working_since if self.working_since else 0.0)
+        started = self.started_at if self.started_at is not None else end
+        return {
+            "start_up_s": started - self.asked_at,
+            "working_s": working,
+            "waiting_s": max(end - started - working, 0.0),
+            "life_s": end - self.asked_at,
+        }
+
+
+@dataclass
 class EngineHandle:
     """The driver's view of one engine actor."""
 
@@ -103,6 +147,9 @@ class EngineHandle:
     status: dict[str, Any] = field(default_factory=dict)
     status_ref: Any = None
     dead: bool = False
+    clock: EngineClock = field(default_factory=EngineClock)
+    final: dict[str, Any] = field(default_factory=dict)
+    """What its `close()` returned (its GPU's busy share over its life)."""
 
     @property
     def ready(self) -> bool:
