@@ -149,3 +149,39 @@ def test_the_host_line_says_how_busy_the_gpu_was(tmp_path):
     w = plain.tick()
     assert w is not None and w.gpu_busy is None and "GPU" not in w.describe()
     assert hostload.Window(1.0, {}, 0.0, 0.0).gpu_busy is None
+
+
+def test_one_failed_reading_is_not_the_end_and_n_a_is_said_as_such(tmp_path, caplog):
+    # the first call fails (a slow or busy driver), the next ones answer
+    count = tmp_path / "n"
+    count.write_text("0")
+    smi = fake_smi(
+        tmp_path / "bin",
+        f"n=$(( $(cat {count}) + 1 )); echo $n > {count}\n"
+        '[ $n -eq 1 ] && { echo "timed out" >&2; exit 15; }\n'
+        'echo "0, GPU-aaaa, 30, 100"\n',
+    )
+    sampler = GpuBusy(every_s=0.02, environ={"CUDA_VISIBLE_DEVICES": "0"}, command=str(smi))
+    with sampler:
+        deadline = time.monotonic() + 30
+        while sampler.totals().readings < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert sampler.totals().readings >= 2
+    assert sampler.totals().mean_since() == pytest.approx(0.30)
+    # a GPU that reports no utilisation: said as such, and given up after MAX_FAILURES
+    na = fake_smi(tmp_path / "na", 'echo "0, GPU-aaaa, [N/A], 100"\n')
+    sampler = GpuBusy(every_s=0.01, environ={"CUDA_VISIBLE_DEVICES": "0"}, command=str(na))
+    with caplog.at_level(logging.INFO, logger="vabench.sweep.gpu_busy"), sampler:
+        sampler._thread.join(timeout=30)
+    assert not sampler._thread.is_alive() and sampler.totals().readings == 0
+    assert "no utilisation ([N/A])" in (sampler.failed or "")
+    assert len([r for r in caplog.records if "not sampled" in r.getMessage()]) == 1
+
+
+def test_mig_instances_alone_are_not_sampled_as_the_whole_node(tmp_path):
+    smi = fake_smi(tmp_path / "bin", f'echo "{LISTING}"\n')
+    mig = {"CUDA_VISIBLE_DEVICES": "MIG-11111111-2222-3333-4444-555555555555"}
+    sampler = GpuBusy(every_s=0.01, environ=mig, command=str(smi))
+    assert sampler.read() is None and "MIG" in (sampler.failed or "")
+    with gpu_busy.sampling(mig) as none:
+        assert none is None

@@ -40,6 +40,13 @@ def test_an_engines_clock_splits_its_life_into_start_up_working_and_waiting():
     }
 
 
+def test_a_span_that_began_at_zero_counts():
+    clock = EngineClock(asked_at=0.0)
+    clock.started_at = 0.0
+    clock.work_began(0.0)
+    assert clock.figures(10.0)["working_s"] == 10.0
+
+
 def test_an_engine_that_never_started_spent_its_life_starting():
     clock = EngineClock(asked_at=0.0)
     clock.end(30.0)

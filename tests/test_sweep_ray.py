@@ -322,6 +322,8 @@ def test_each_engines_time_is_accounted_and_logged(cluster, tmp_path, caplog):
     for r in report:
         assert not r["died"] and r["host"]
         assert r["start_up_s"] > 0 and r["waiting_s"] >= 0
+        # working never exceeds the engine's started life (waiting is not a clamped negative)
+        assert r["working_s"] <= r["life_s"] - r["start_up_s"] + 1e-9
         assert r["start_up_s"] + r["working_s"] + r["waiting_s"] == pytest.approx(r["life_s"])
         assert r["life_s"] <= wall
         assert r["gpu_busy"] is None

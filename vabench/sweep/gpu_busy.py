@@ -11,7 +11,12 @@ stopped by its last), so the chunks of a Ray engine or a sweep's tasks do not ea
 
 The utilisation is the driver's: the share of its last sampling period (1/6 s to 1 s) in which
 a kernel of any process ran on the GPU, so engines sharing a GPU read the same figure. Where
-`nvidia-smi` is missing or fails, the sampler says so once in the log and reports nothing.
+`nvidia-smi` is missing or keeps failing (`MAX_FAILURES` in a row), the sampler says why once
+in the log and stops; its figures are then those read before (or none). MIG instances are not
+sampled (the driver reports no utilisation per instance). CUDA_VISIBLE_DEVICES indices are
+matched to nvidia-smi's, which number GPUs in PCI order as CUDA does with
+CUDA_DEVICE_ORDER=PCI_BUS_ID; on a host of mixed GPUs name them by UUID (Ray does for its
+actors when told to, and UUIDs always match).
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ log = logging.getLogger(__name__)
 QUERY = "index,uuid,utilization.gpu,memory.used"
 DEFAULT_EVERY_S = 1.0
 TIMEOUT_S = 10.0
+MAX_FAILURES = 3
+"""Failed readings in a row after which the sampler stops (one slow answer is not the end)."""
 
 
 @dataclass(frozen=True)
@@ -95,8 +102,11 @@ class GpuBusy:
     ):
         self.every_s = every_s
         env = os.environ if environ is None else environ
-        # MIG instances are not listed by index or UUID: watch the whole GPU then
-        self.watched = tuple(g for g in visible_gpus(env) if not g.startswith("MIG-"))
+        visible = visible_gpus(env)
+        self.watched = tuple(g for g in visible if not g.startswith("MIG-"))
+        # MIG instances only: the driver gives no utilisation per instance (an empty `watched`
+        # would mean every GPU of the node)
+        self.mig_only = bool(visible) and not self.watched
         self.command = command
         self._totals = Totals()
         self._lock = threading.Lock()
@@ -107,6 +117,9 @@ class GpuBusy:
 
     def read(self) -> Reading | None:
         """One reading now (None where the driver cannot be asked)."""
+        if self.mig_only:
+            self.failed = "MIG instances: the driver reports no utilisation per instance"
+            return None
         try:
             done = subprocess.run(
                 [self.command, f"--query-gpu={QUERY}", "--format=csv,noheader,nounits"],
@@ -122,7 +135,12 @@ class GpuBusy:
             return None
         reading = parse(done.stdout, self.watched)
         if reading is None:
-            self.failed = f"{self.command} listed none of the GPUs {list(self.watched)}"
+            listed = parse(done.stdout.replace("[N/A]", "0"), self.watched) is not None
+            self.failed = (
+                f"{self.command} reports no utilisation ([N/A]) for the GPUs {list(self.watched)}"
+                if listed
+                else f"{self.command} listed none of the GPUs {list(self.watched)}"
+            )
         return reading
 
     def totals(self) -> Totals:
@@ -130,11 +148,17 @@ class GpuBusy:
             return self._totals
 
     def _run(self) -> None:
+        failures = 0
         while not self._stop.is_set():
             reading = self.read()
             if reading is None:
-                log.info("GPU busy share not sampled: %s", self.failed)
-                return
+                failures += 1
+                if failures >= MAX_FAILURES or self.mig_only:
+                    log.info("GPU busy share not sampled: %s", self.failed)
+                    return
+                self._stop.wait(self.every_s)
+                continue
+            failures = 0
             with self._lock:
                 t = self._totals
                 self._totals = Totals(
@@ -173,8 +197,8 @@ def sampling(environ: Mapping[str, str] | None = None) -> Iterator[GpuBusy | Non
     ends); None where the process sees no GPU."""
     global _shared, _users
     env = os.environ if environ is None else environ
-    if not visible_gpus(env):
-        yield None
+    if not any(not g.startswith("MIG-") for g in visible_gpus(env)):
+        yield None  # no GPU, or only MIG instances (no utilisation per instance)
         return
     with _shared_lock:
         if _shared is None:

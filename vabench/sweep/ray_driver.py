@@ -311,6 +311,7 @@ class ClusterSweep:
         for e in self.engines:
             if not e.dead and e.starting is not None:
                 e.dead = True
+                e.clock.end(time.monotonic())
                 with contextlib.suppress(Exception):
                     self.ray.kill(e.actor, no_restart=True)
 
@@ -426,14 +427,17 @@ class ClusterSweep:
                 for ref in ready:
                     with contextlib.suppress(Exception):
                         closing[ref].final = ray.get(ref) or {}
-        if self.engines:
-            self._log_engine_time()
         for e in live:
             with contextlib.suppress(Exception):
                 ray.kill(e.actor, no_restart=True)
         if self.limiter is not None:
             with contextlib.suppress(Exception):
                 ray.kill(self.limiter, no_restart=True)
+        if self.engines:
+            try:
+                self._log_engine_time()
+            except Exception:  # a report, never a reason to lose the sweep's own error
+                log.exception("ray: the engines' time could not be reported")
 
     def engine_report(self) -> list[dict[str, Any]]:
         """Per engine: where it ran, its seconds of start-up, working (a chunk or more) and

@@ -84,23 +84,30 @@ class EngineActor:
         """Open the engine; returns where and how it runs, for the driver's log."""
         cfg = self.config
         configure_jax(self.choices.physics)
-        stack = contextlib.AsyncExitStack()
-        # the busy share of the GPU this engine was given (Ray set CUDA_VISIBLE_DEVICES), for
-        # the driver's report of where each engine's time went
-        self._gpus = stack.enter_context(gpu_busy.sampling())
-        self._gpu_start = self._gpus.totals() if self._gpus is not None else None
-        limits = None
-        if self.limiter is not None and self.shared:
-            from vabench.sweep.limiter import BoardLimits, RayChannel
-
-            limits = BoardLimits(RayChannel(self.limiter), self.holder, self.shared)
-            stack.push_async_callback(limits.close)  # after the pool has closed
-        self.engine = await stack.enter_async_context(
-            open_engine(cfg, self.choices, self.run_dir, shared_limits=limits)
-        )
-        self._stack = stack
         import jax
         import ray
+
+        stack = contextlib.AsyncExitStack()
+        try:
+            # the busy share of the GPU this engine was given, for the driver's report of where
+            # each engine's time went; only where Ray gave it one (an actor without a GPU keeps
+            # the node's CUDA_VISIBLE_DEVICES: it would read every GPU of the node)
+            if ray.get_gpu_ids():
+                self._gpus = stack.enter_context(gpu_busy.sampling())
+            self._gpu_start = self._gpus.totals() if self._gpus is not None else None
+            limits = None
+            if self.limiter is not None and self.shared:
+                from vabench.sweep.limiter import BoardLimits, RayChannel
+
+                limits = BoardLimits(RayChannel(self.limiter), self.holder, self.shared)
+                stack.push_async_callback(limits.close)  # after the pool has closed
+            self.engine = await stack.enter_async_context(
+                open_engine(cfg, self.choices, self.run_dir, shared_limits=limits)
+            )
+        except BaseException:
+            await stack.aclose()
+            raise
+        self._stack = stack
 
         return {
             "host": socket.gethostname(),
@@ -194,7 +201,7 @@ class EngineActor:
         """Close the engine (the driver calls this once no chunk is left); returns its GPU's
         figures over its life (empty without a GPU)."""
         figures = self._gpu()
-        if self._stack is not None:
+        if self._stack is not None:  # (stopping the GPU sampler waits for its last reading)
             stack, self._stack = self._stack, None
             await stack.aclose()
         return figures

@@ -140,7 +140,10 @@ def run_ray(
             sweep.run()
         finally:
             if on_engines is not None:
-                on_engines(sweep.engine_report())
+                try:
+                    on_engines(sweep.engine_report())
+                except Exception:  # the caller's report must not hide the sweep's own error
+                    log.exception("ray: on_engines failed")
     finally:
         if started_here:
             ray.shutdown()

@@ -122,7 +122,8 @@ class EngineClock:
         """Seconds of start-up (asked for to started, or to its end if it never started),
         working and waiting for work, up to its end (or `now`)."""
         end = self.ended_at if self.ended_at is not None else now
-        working = self.working_s + (end - self.working_since if self.working_since else 0.0)
+        since = self.working_since
+        working = self.working_s + (end - since if since is not None else 0.0)
         started = self.started_at if self.started_at is not None else end
         return {
             "start_up_s": started - self.asked_at,
