@@ -108,7 +108,13 @@ def test_a_node_killed_mid_sweep_costs_only_its_unfinished_episodes(cluster, tmp
 
     def driver() -> None:
         try:
-            outcome["records"] = run_ray(config, keys, run_dir, choose(config))
+            outcome["records"] = run_ray(
+                config,
+                keys,
+                run_dir,
+                choose(config),
+                on_engines=outcome.setdefault("engines", []).extend,
+            )
         except BaseException as err:  # reported by the assertions below
             outcome["error"] = err
 
@@ -143,3 +149,10 @@ def test_a_node_killed_mid_sweep_costs_only_its_unfinished_episodes(cluster, tmp
     assert not (run_dir / "results.duplicates.jsonl").exists()
     statuses = {json.loads(x)["status"] for x in (run_dir / RESULTS).read_text().splitlines()}
     assert statuses <= {"success", "failure"}
+    # the driver's report of engine time: the dead engine's clock stopped at its death, the
+    # one started in its place counted on its own, and the episodes add up
+    report = outcome["engines"]
+    dead = [r for r in report if r["died"]]
+    assert len(dead) == 1 and len(report) == len(workers) + 2  # head, workers, replacement
+    assert dead[0]["working_s"] > 0 and dead[0]["life_s"] < max(r["life_s"] for r in report)
+    assert sum(r["episodes"] for r in report) == PLANNED
