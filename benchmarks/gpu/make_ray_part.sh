@@ -19,8 +19,10 @@ mkdir "$t/x" && (cd "$t/x" && for w in "$t"/*.whl; do unzip -q -o "$w"; done
   tar -cf - . | xz -T0 -6 > "$t/ray.tar.xz")
 rm -rf .ray1 .ray2 .ray3 && mkdir .ray1 .ray2 .ray3
 # part sizes: what fits beside .wp1 (45 MiB), .wp2 + .dep, .wp3 + .whl + .gl + .nvj in 64 MiB
-head -c 14000000 "$t/ray.tar.xz" > .ray1/rp.0
-tail -c +14000001 "$t/ray.tar.xz" | head -c 8000000 > .ray2/rp.1
-tail -c +22000001 "$t/ray.tar.xz" > .ray3/rp.2
+# (dd, not `tail | head`: head closing the pipe early fails the script under pipefail)
+dd if="$t/ray.tar.xz" of=.ray1/rp.0 bs=1M iflag=count_bytes count=14000000 status=none
+dd if="$t/ray.tar.xz" of=.ray2/rp.1 bs=1M iflag=skip_bytes,count_bytes skip=14000000 \
+  count=8000000 status=none
+dd if="$t/ray.tar.xz" of=.ray3/rp.2 bs=1M iflag=skip_bytes skip=22000000 status=none
 rm -rf "$t"
 du -sh .ray1 .ray2 .ray3

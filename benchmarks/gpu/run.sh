@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # One phase of the GPU measurements on the lent device machine; each phase fits one call
 # (< 10 minutes) and writes its results under $OUT. The order of calls (device tool):
-#   1. carry .wp1 .ray1 .spy:  mkdir -p /tmp/wp /tmp/ray /tmp/spy && cp .wp1/* /tmp/wp/ &&
-#      cp .ray1/* /tmp/ray/ && cp .spy/* /tmp/spy/   (.spy: the py-spy wheel, for MAIN_PYSPY)
-#   2. carry .wp2 .ray2:  mkdir -p /tmp/wp /tmp/ray && cp .wp2/* /tmp/wp/ && cp .ray2/* /tmp/ray/
+#   1. carry .wp1 .ray1:  mkdir -p /tmp/wp /tmp/ray && cp .wp1/* /tmp/wp/ && cp .ray1/* /tmp/ray/
+#   2. carry .wp2 .ray2 .spy:  mkdir -p /tmp/wp /tmp/ray /tmp/spy && cp .wp2/* /tmp/wp/ &&
+#      cp .ray2/* /tmp/ray/ && cp .spy/* /tmp/spy/   (.spy: the py-spy wheel, for MAIN_PYSPY)
+#      (a call carries 64 MiB with the ~4.5 MiB tree: .wp1 45 + .ray1 13.4, .wp2 45 + .ray2 7.6
+#      + .spy 2.8, .wp3 7.5 + .whl 40.3 + .gl 0.4 + .nvj 5.8 + .ray3 4.0 MiB, measured 2026-11-27)
 #      (the image had aiohttp, rich, yaml, PIL and pytest on 2026-11-25; if `setup` says one is
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
