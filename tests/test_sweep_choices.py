@@ -52,7 +52,9 @@ def test_the_executor_is_sized_from_the_cores(options, cores, kind, max_tasks):
         ({}, ("0",), "local", 64),  # one process steps every task batch on the GPU
         ({}, (), "local", 64),  # Warp on the CPU (tests): one process as well
         ({"max_tasks": 8}, ("0",), "local", 8),
-        ({}, ("0", "1"), "processes", 16),  # several GPUs: workers spread over them
+        ({}, ("0", "1"), "processes", 2),  # several GPUs: one engine process per GPU
+        ({}, ("0", "1", "2", "3"), "processes", 4),
+        ({"max_tasks": 8}, ("0", "1"), "processes", 8),  # asked for: kept
         ({"kind": "processes"}, ("0",), "processes", 16),  # asked for: kept
     ],
 )
@@ -62,6 +64,11 @@ def test_warp_physics_on_one_gpu_runs_in_one_process(options, gpus, kind, max_ta
     assert (choice.kind, choice.max_tasks) == (kind, max_tasks)
     if kind == "local" and "kind" not in options:
         assert "one GPU" in choice.reason
+    if kind == "processes" and not options:
+        assert f"one engine process per GPU ({16 // len(gpus)} cores each)" in choice.reason
+        # a spend cap is kept exactly by one process only, on any number of GPUs
+        capped = resolve_executor(ExecutorOptions(), Machine(16, gpus), warp, spend_capped=True)
+        assert capped.kind == "local"
     # C physics on the same machine: a worker per core, as before
     assert resolve_executor(ExecutorOptions(), Machine(16, gpus), c).kind == "processes"
 
