@@ -344,7 +344,6 @@ class ClusterSweep:
             item = ray.get(ref)
         except StopIteration:  # ended without its summary (never, but not a reason to hang)
             self._chunk_over(engine, stream)
-            self._changed = True
             return
         except ray.exceptions.RayTaskError as err:  # the chunk's own error
             self._chunk_over(engine, stream)
