@@ -39,6 +39,21 @@ def fake_smi(folder: Path, body: str) -> Path:
     return path
 
 
+def counting_smi(tmp_path: Path, body: str) -> Path:
+    """A `fake_smi` whose `body` may read `$n`: 1 on its first call, 2 on the next, ..."""
+    count = tmp_path / "n"
+    count.write_text("0")
+    return fake_smi(tmp_path / "bin", f"n=$(( $(cat {count}) + 1 )); echo $n > {count}\n" + body)
+
+
+def wait_for_readings(sampler: GpuBusy, n: int) -> Totals:
+    """The sampler's sums once it has taken `n` readings (30 s at most)."""
+    deadline = time.monotonic() + 30
+    while sampler.totals().readings < n and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return sampler.totals()
+
+
 @pytest.mark.parametrize(
     "watched, busy, memory",
     [
@@ -62,24 +77,16 @@ def test_a_gpu_not_listed_or_a_figure_not_a_number_reads_nothing():
 
 
 def test_the_sampler_sums_its_readings_and_gives_the_mean_between_two(tmp_path):
-    # the busy share climbs 20, 40, 60, ... % call after call (a counter file)
-    count = tmp_path / "n"
-    count.write_text("0")
-    smi = fake_smi(
-        tmp_path / "bin",
-        f"n=$(( $(cat {count}) + 1 )); echo $n > {count}\n"
+    # the busy share climbs 20, 40, 60, ... % call after call
+    smi = counting_smi(
+        tmp_path,
         'echo "0, GPU-aaaa, 5, 100"\n'
         'echo "1, GPU-bbbb, $(( n * 20 > 100 ? 100 : n * 20 )), $(( n * 1000 ))"\n',
     )
     sampler = GpuBusy(every_s=0.05, environ={"CUDA_VISIBLE_DEVICES": "1"}, command=str(smi))
     with sampler:
-        deadline = time.monotonic() + 30
-        while sampler.totals().readings < 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        first = sampler.totals()
-        while sampler.totals().readings < first.readings + 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        later = sampler.totals()
+        first = wait_for_readings(sampler, 2)
+        later = wait_for_readings(sampler, first.readings + 2)
     assert sampler.failed is None
     n0, n1 = first.readings, later.readings
     assert n1 >= n0 + 2
@@ -133,10 +140,7 @@ def test_the_host_line_says_how_busy_the_gpu_was(tmp_path):
     with sampler:
         load = HostLoad(every_s=1.0, gpus=sampler)
         load.tick()
-        deadline = time.monotonic() + 30
-        start = sampler.totals().readings
-        while sampler.totals().readings < start + 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_for_readings(sampler, sampler.totals().readings + 2)
         w = load.tick()
     assert w is not None and w.gpu_busy == pytest.approx(0.70)
     assert "GPU busy 70% (memory 2.0 GiB at most)" in w.describe()
@@ -153,19 +157,13 @@ def test_the_host_line_says_how_busy_the_gpu_was(tmp_path):
 
 def test_one_failed_reading_is_not_the_end_and_n_a_is_said_as_such(tmp_path, caplog):
     # the first call fails (a slow or busy driver), the next ones answer
-    count = tmp_path / "n"
-    count.write_text("0")
-    smi = fake_smi(
-        tmp_path / "bin",
-        f"n=$(( $(cat {count}) + 1 )); echo $n > {count}\n"
-        '[ $n -eq 1 ] && { echo "timed out" >&2; exit 15; }\n'
-        'echo "0, GPU-aaaa, 30, 100"\n',
+    smi = counting_smi(
+        tmp_path,
+        '[ $n -eq 1 ] && { echo "timed out" >&2; exit 15; }\necho "0, GPU-aaaa, 30, 100"\n',
     )
     sampler = GpuBusy(every_s=0.02, environ={"CUDA_VISIBLE_DEVICES": "0"}, command=str(smi))
     with sampler:
-        deadline = time.monotonic() + 30
-        while sampler.totals().readings < 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_for_readings(sampler, 2)
     assert sampler.totals().readings >= 2
     assert sampler.totals().mean_since() == pytest.approx(0.30)
     # a GPU that reports no utilisation: said as such, and given up after MAX_FAILURES
