@@ -348,3 +348,79 @@ def test_a_failed_gpu_stops_the_sweep_and_the_next_run_does_every_episode(
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     records = ledger_lines(out)
     assert len(records) == 2 and all(r["status"] in ("success", "failure") for r in records)
+
+
+@pytest.mark.parametrize("where", ["action", "batch"])
+def test_any_error_after_a_gpu_context_failed_stops_the_sweep_unrecorded(
+    tmp_path, capsys, monkeypatch, where
+):
+    """After a sticky CUDA error every later call fails wherever it is made, as whatever
+    error that call raises: on an H100 with 8 engine processes under MPS (2026-11-27) 136
+    episodes were recorded as harness errors ("Failed to allocate 4 bytes on device 'cuda:0'",
+    "Failed to load CUDA module 'mujoco_warp._src.render_util'") raised outside the calls
+    that check the context. Every episode error (and a task's batch that cannot be built) now
+    asks the devices' registered checks first (`interface.device_failure`). The C backend
+    stands in for the GPU; the check is registered as `warp.device.device_lock` does."""
+    from vabench.sim_mjx import interface
+    from vabench.sim_mjx.cpu import CpuBatch
+
+    monkeypatch.setattr(interface, "_CONTEXT_CHECKS", {})
+    failed = {"now": False}
+    interface.watch_device(
+        "cuda:0",
+        lambda: (
+            "the CUDA context of cuda:0 failed (CUDA error 700: CUDA_ERROR_ILLEGAL_ADDRESS)"
+            if failed["now"]
+            else None
+        ),
+    )
+    cfg = write(tmp_path / "gpu.yaml", budget=3)
+    out = tmp_path / "out"
+    if where == "action":
+        real = CpuBatch._execute
+
+        def failing(self, rows):
+            failed["now"] = True
+            raise RuntimeError("Failed to allocate 4 bytes on device 'cuda:0'")
+
+        monkeypatch.setattr(CpuBatch, "_execute", failing)
+    else:
+        real = CpuBatch.__init__
+
+        def failing(self, *args, **kwargs):
+            failed["now"] = True
+            raise RuntimeError("Failed to load CUDA module 'mujoco_warp._src.render_util'")
+
+        monkeypatch.setattr(CpuBatch, "__init__", failing)
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert "CUDA error 700" in err and "first error here: RuntimeError: Failed to" in err
+    assert "same command" in err
+    assert ledger_lines(out) == []
+    assert not list(out.glob("episodes/**/result.json"))
+
+    failed["now"] = False  # a new process: a new context
+    monkeypatch.setattr(CpuBatch, "_execute" if where == "action" else "__init__", real)
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    records = ledger_lines(out)
+    assert len(records) == 2 and all(r["status"] in ("success", "failure") for r in records)
+
+
+def test_a_cuda_device_lock_registers_its_context_check(monkeypatch):
+    """Whoever queues work on a CUDA device takes its lock (`warp.device.device_lock`), which
+    registers the device's context check once; a CPU device has none. A device this process
+    does not have (no CUDA here, or a higher index on a GPU host) reports no failure, so an
+    ordinary error stays the episode's."""
+    from vabench.sim_mjx import interface
+    from vabench.sim_mjx.warp import device
+
+    monkeypatch.setattr(interface, "_CONTEXT_CHECKS", {})
+    monkeypatch.setattr(device, "_DEVICE_LOCKS", {})
+    device.device_lock("cpu")
+    assert interface._CONTEXT_CHECKS == {}
+    device.device_lock("cuda:63")
+    device.device_lock("cuda:63")
+    assert list(interface._CONTEXT_CHECKS) == ["cuda:63"]
+    assert interface.device_failure(RuntimeError("an ordinary bug")) is None
+    failure = interface.DeviceFailure("dead")
+    assert interface.device_failure(failure) is failure

@@ -52,7 +52,7 @@ from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image
 from vabench.render import camera as cam
 from vabench.render.images import RenderError, RenderItem
-from vabench.sim_mjx.interface import DeviceFailure, SimulationError
+from vabench.sim_mjx.interface import DeviceFailure, SimulationError, device_failure
 
 
 @dataclass
@@ -142,6 +142,7 @@ class Episode:
         except DeviceFailure:  # the process's GPU, not this episode: no result; sweep stops
             raise
         except (RenderError, SimulationError) as err:
+            _raise_if_device_failed(err)
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:
             if err.fatal:  # the endpoint's refusal, not this episode's: no result; sweep stops
@@ -150,6 +151,7 @@ class Episode:
                 raise
             return self._finish("error", "request_rejected", f"{err.kind}: {err}")
         except Exception as err:  # a harness bug: recorded, never scored
+            _raise_if_device_failed(err)
             self.rec.event("harness_error", error=f"{type(err).__name__}: {err}")
             return self._finish("error", "harness_error", f"{type(err).__name__}: {err}")
         finally:
@@ -428,3 +430,11 @@ async def run_episodes(specs: Sequence[EpisodeSpec], services: TaskServices) -> 
             return await run_episode(spec, services)
 
     return list(await asyncio.gather(*(one(s) for s in specs)))
+
+
+def _raise_if_device_failed(err: Exception) -> None:
+    """An error that a failed GPU context caused is the process's, not the episode's: raised
+    as `DeviceFailure` (no record; the sweep stops and the same command runs the episode)."""
+    failure = device_failure(err)
+    if failure is not None:
+        raise failure from err

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import functools
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -52,6 +52,34 @@ class DeviceFailure(RuntimeError):
     sticky errors): nothing more can run on that device in this process. Not an episode's
     outcome: the episodes it interrupts get no record, the sweep stops, and the same command
     (a new process, a new context) runs them again."""
+
+
+_CONTEXT_CHECKS: dict[str, Callable[[], str | None]] = {}
+
+
+def watch_device(name: str, check: Callable[[], str | None]) -> None:
+    """Register how to ask whether device `name`'s context has failed (`check` returns the
+    reason, or None while it works). The Warp backends register each CUDA device they queue
+    work on (`warp.device.device_lock`)."""
+    _CONTEXT_CHECKS.setdefault(name, check)
+
+
+def device_failure(err: BaseException) -> DeviceFailure | None:
+    """`err` as a `DeviceFailure` when a device this process uses has a failed context, else
+    None. The one test an episode's error passes before it is recorded: after a sticky CUDA
+    error every later call fails wherever it is made (an allocation, a module load, a JPEG
+    encode), and no call site can be trusted to wrap its own (an H100 run with 8 engine
+    processes under MPS recorded 136 such errors as harness errors, 2026-11-27). Synchronises
+    the devices checked: for error paths only."""
+    if isinstance(err, DeviceFailure):
+        return err
+    for check in list(_CONTEXT_CHECKS.values()):
+        reason = check()
+        if reason is not None:
+            failure = DeviceFailure(f"{reason}; first error here: {type(err).__name__}: {err}")
+            failure.__cause__ = err
+            return failure
+    return None
 
 
 @pytree_dataclass

@@ -59,7 +59,7 @@ from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
 from vabench.report.spend import recorded_spend
 from vabench.sim_mjx.backends import Choice
-from vabench.sim_mjx.interface import DeviceFailure
+from vabench.sim_mjx.interface import DeviceFailure, device_failure
 from vabench.sim_mjx.warp.device import warp_device
 from vabench.sweep import hostload
 from vabench.sweep.choices import Choices
@@ -279,7 +279,15 @@ class LocalSweep:
 
         async def one_task(name: str, task_keys: list[Any], critical: bool) -> None:
             async with task_gate:
-                await self._run_task(name, task_keys, llm, pool, image, critical)
+                if self.stopped is not None:
+                    return
+                try:
+                    await self._run_task(name, task_keys, llm, pool, image, critical)
+                except Exception as err:  # e.g. a task's batch built on a failed GPU context
+                    failure = device_failure(err)
+                    if failure is None:
+                        raise
+                    self._stop_device(failure)
 
         # Longest episodes first (the basket's 250-step budget before the base families'):
         # they start as soon as there is room, instead of running alone at the end.

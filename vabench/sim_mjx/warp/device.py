@@ -8,6 +8,7 @@ device both the physics batches and the renderer use (VABENCH_WARP_DEVICE, else 
 
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import importlib.util
 import os
@@ -94,8 +95,29 @@ def device_lock(device: str) -> TimedLock:
     whole action, the renderer for a whole pass). Warp queues every launch of a device on one
     stream, so the work of two threads could interleave: a render that reads a batch's state
     between two substeps of an action would see slots the action has not yet restored."""
+    name = str(device)
     with _DEVICE_LOCKS_GUARD:
-        return _DEVICE_LOCKS.setdefault(str(device), TimedLock())
+        if name not in _DEVICE_LOCKS:
+            _DEVICE_LOCKS[name] = TimedLock()
+            if name.startswith("cuda"):  # the interface imports JAX: not at this module's import
+                from vabench.sim_mjx.interface import watch_device
+
+                watch_device(name, functools.partial(_failed_context, name))
+        return _DEVICE_LOCKS[name]
+
+
+def _failed_context(name: str) -> str | None:
+    """Why the CUDA context of device `name` failed (None while it works)."""
+    import warp as wp
+
+    from vabench.sim_mjx.warp.streams import context_error
+
+    try:
+        device = wp.get_device(name)
+    except (RuntimeError, ValueError):  # no such device in this process: nothing of it failed
+        return None
+    failure = context_error(device)
+    return None if failure is None else f"the CUDA context of {name} failed ({failure})"
 
 
 def warp_problem(device: str | None = None) -> str | None:
