@@ -73,6 +73,56 @@ def test_warp_physics_on_one_gpu_runs_in_one_process(options, gpus, kind, max_ta
     assert resolve_executor(ExecutorOptions(), Machine(16, gpus), c).kind == "processes"
 
 
+@pytest.mark.parametrize(
+    ("options", "gpus", "kind", "max_tasks", "per_gpu"),
+    [
+        ({}, ("0",), "processes", 4, 4),  # 4 engine processes share the GPU under MPS
+        ({}, ("0", "1"), "processes", 8, 4),
+        ({"max_tasks": 2}, ("0",), "processes", 2, 2),
+        ({"mps": "off"}, ("0",), "local", 64, 1),  # without MPS: as before
+        ({"mps": "off"}, ("0", "1"), "processes", 2, 1),
+        ({"kind": "processes", "max_tasks": 8}, ("0",), "processes", 8, 8),  # asked for
+        ({"kind": "processes", "max_tasks": 2}, ("0", "1"), "processes", 2, 1),  # one per GPU
+        ({"kind": "local"}, ("0",), "local", 4, 1),
+    ],
+)
+def test_engine_processes_share_a_gpu_under_mps_where_it_is_installed(
+    options, gpus, kind, max_tasks, per_gpu
+):
+    """On an H100, 4 engine processes under CUDA MPS recorded 2,100 episodes in 302 s against
+    1,152 in 325 s for one process (2026-11-27): `auto` runs them where NVIDIA's MPS control
+    program is installed, and says so; `mps: off` keeps the one-process layout."""
+    warp, c = Choice(Physics.WARP, ""), Choice(Physics.C, "")
+    machine = Machine(16, gpus, mps=True)
+    choice = resolve_executor(ExecutorOptions(**options), machine, warp)
+    assert (choice.kind, choice.max_tasks, choice.per_gpu) == (kind, max_tasks, per_gpu)
+    assert choice.mps == (per_gpu > 1)
+    if choice.mps:
+        assert f"{per_gpu} per GPU under CUDA MPS" in choice.label
+    if not options:
+        assert "under a CUDA MPS daemon of the sweep's own" in choice.reason
+        assert f"({16 // max_tasks} cores each)" in choice.reason
+        capped = resolve_executor(ExecutorOptions(), machine, warp, spend_capped=True)
+        assert (capped.kind, capped.mps) == ("local", False)
+    assert not resolve_executor(ExecutorOptions(**options), machine, c).mps
+    assert not resolve_executor(ExecutorOptions(**options), Machine(16, gpus), warp).mps
+
+
+def test_the_episodes_in_flight_on_a_gpu_are_shared_by_its_engine_processes(monkeypatch):
+    """`executor.max_episodes` (1,024 in configs/all.yaml) stays the GPU's: 4 engine processes
+    sharing it keep 256 each in flight, the layout measured."""
+    from vabench.config import load_config
+    from vabench.sweep import choices as choices_module
+
+    monkeypatch.setattr(choices_module, "resolve", lambda *a, **k: Choice(Physics.WARP, ""))
+    config = load_config("configs/all.yaml")
+    picked = choose(config, Machine(16, ("0",), mps=True))
+    assert picked.executor.per_gpu == 4 and picked.in_flight.ceiling == 256
+    assert "256 episodes per process" in picked.in_flight.describe()
+    alone = choose(config, Machine(16, ("0",)))
+    assert alone.executor.kind == "local" and alone.in_flight.ceiling == 1024
+
+
 def test_the_machine_is_read_from_the_environment():
     assert this_machine({"VABENCH_CORES": "12"}).cores == 12
     with pytest.raises(ValueError, match="VABENCH_CORES must be a whole number, got 'many'"):

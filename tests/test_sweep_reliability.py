@@ -424,3 +424,66 @@ def test_a_cuda_device_lock_registers_its_context_check(monkeypatch):
     assert interface.device_failure(RuntimeError("an ordinary bug")) is None
     failure = interface.DeviceFailure("dead")
     assert interface.device_failure(failure) is failure
+
+
+GPU_FAILS_ONCE = """\
+import os
+import sys
+
+if "spawn_main" in " ".join(getattr(sys, "orig_argv", [])):  # the sweep's worker processes
+    from vabench.sim_mjx import cpu, interface
+
+    flags = os.environ["VABENCH_TEST_FLAGS"]
+    mine = os.path.join(flags, f"failed-{os.getpid()}")
+    interface.watch_device(
+        "cuda:0",
+        lambda: "the CUDA context of cuda:0 failed (CUDA error 700: CUDA_ERROR_ILLEGAL_ADDRESS)"
+        if os.path.exists(mine)
+        else None,
+    )
+    real = cpu.CpuBatch._execute
+
+    def failing(self, rows):
+        try:  # the first action of the whole sweep, in whichever worker makes it
+            os.close(os.open(os.path.join(flags, "claimed"), os.O_CREAT | os.O_EXCL))
+        except FileExistsError:
+            return real(self, rows)
+        open(mine, "w").close()
+        raise RuntimeError("Failed to allocate 4 bytes on device 'cuda:0'")
+
+    cpu.CpuBatch._execute = failing
+"""
+
+
+def test_a_worker_whose_gpu_failed_is_replaced_and_its_chunks_rerun(tmp_path):
+    """On an H100 under CUDA MPS (2026-11-27) a worker's context failed 2 minutes into the
+    run; its episodes' errors are the process's (no record), and a new process has a new
+    context: the processes executor starts new workers for the chunks the failure stopped and
+    finishes the plan in the same invocation, one record per episode (before, the sweep
+    stopped and asked for the same command again). The failure is made in the workers at
+    start-up (`sitecustomize`): their first action fails as a dead context's calls do and the
+    context check says so, in that process only."""
+    site, flags = tmp_path / "site", tmp_path / "flags"
+    site.mkdir()
+    flags.mkdir()
+    (site / "sitecustomize.py").write_text(GPU_FAILS_ONCE)
+    cfg = tmp_path / "processes.yaml"
+    cfg.write_text(PROCESSES.replace("mean_s: 0.25", "mean_s: 0.01"))
+    out = tmp_path / "out"
+    path = os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
+    done = subprocess.run(
+        [sys.executable, "-m", "vabench.sweep", str(cfg), "--out", str(out), "--plain"]
+        + ["--no-report"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=path, VABENCH_TEST_FLAGS=str(flags)),
+        timeout=600,
+    )
+    text = done.stdout + done.stderr
+    assert list(flags.glob("failed-*")), text[-3000:]  # the failure happened
+    assert done.returncode == 0, text[-3000:]
+    assert "a worker's GPU failed (the CUDA context of cuda:0 failed" in text
+    records = ledger_lines(out)
+    keys = [(r["task"], r["seed"]) for r in records]
+    assert len(keys) == len(set(keys)) == 6
+    assert all(r["status"] != "error" for r in records), records

@@ -222,6 +222,59 @@ def test_waits_for_the_gpu_with_the_device_lock_released(cube, monkeypatch):
     batch.close()
 
 
+def test_device_uploads_outlive_the_wait_for_the_work_that_reads_them(cube, monkeypatch):
+    """Warp frees pool memory on CUDA's legacy stream, which waits for no non-blocking stream
+    (each batch's): an upload dropped before its batch's work has run goes back to the pool
+    while a queued kernel still reads it, and another stream's allocation may take it (the
+    likely illegal address of the H100 runs, 2026-11-27). So every device array the batch
+    makes for a call is still alive when the call waits for its work (`streams.wait`). Warp's
+    CPU device stands in: the arrays' lifetimes are the same Python objects'. (MuJoCo Warp's
+    own scratch arrays are allocated inside captured graphs on a GPU, owned by the graph.)"""
+    import weakref
+
+    import warp as wp
+
+    from vabench.sim_mjx.warp import batch as batch_module
+    from vabench.sim_mjx.warp import streams
+
+    _, model, q0 = cube
+    batch = WarpBatch(model, 2, device="cpu")
+    _reset(batch, q0)
+    made: list[weakref.ref] = []
+    real_array = wp.array
+
+    class Tracked(real_array):  # type: ignore[misc, valid-type]
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(weakref.ref(self))
+
+    dropped: list[int] = []
+    real_wait = streams.wait
+
+    def wait(event):
+        dropped.append(sum(r() is None for r in made))
+        made.clear()
+        real_wait(event)
+
+    class Warp:  # the batch module's `wp`, making its own arrays Tracked
+        array = Tracked
+
+        def __getattr__(self, name):
+            return getattr(wp, name)
+
+    monkeypatch.setattr(batch_module, "wp", Warp())
+    monkeypatch.setattr(streams, "wait", wait)
+    state = batch.get_state([0, 1])
+    # a cached reset: the slots' indices and state rows uploaded
+    batch.set_state([0, 1], state, np.zeros(2, np.int32))
+    side_a, side_b = np.zeros((1, model.ngeom), bool), np.zeros((1, model.ngeom), bool)
+    side_a[0, 0], side_b[0, 1:] = True, True
+    batch.contact_flags(side_a, side_b)
+    batch.step([DOWN, None])
+    assert dropped and not any(dropped), dropped
+    batch.close()
+
+
 def _expert_replay_gc_deviation(task_name: str, n_seeds: int) -> float:
     """Run the expert on C, replay its actions on Warp (CPU) in lockstep; the largest finger
     centre distance between the two after any action."""

@@ -124,8 +124,10 @@ class RenderOptions(_Strict):
 
 class ExecutorOptions(_Strict):
     kind: Literal["auto", "local", "processes", "ray"] = "auto"
-    """auto: `local` when the physics is MuJoCo Warp on one GPU (every task batch in one
-    process), else `processes` on a host of 4 or more cores, else `local` (`sweep.choices`;
+    """auto: with MuJoCo Warp, `processes` of 4 engine processes per GPU under CUDA MPS
+    (`mps`), or without MPS `local` on one GPU (every task batch in one process) and one
+    engine process per GPU on several; else `processes` on a host of 4 or more cores, else
+    `local` (`sweep.choices`;
     `--dry-run` says which and why); local: one process; processes: cells of the plan as
     worker processes of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy
     embedded policies);
@@ -139,7 +141,13 @@ class ExecutorOptions(_Strict):
     physics runs on GPUs, else one per `1 + render.workers` CPUs of the cluster."""
     max_tasks: int | None = Field(default=None, ge=1)
     """Task batches run at once in one process (local; default 4), cells at once (processes:
-    default one per core), or chunks at once in one engine actor (ray: default 16)."""
+    default one per core; with `auto` on GPUs, engine processes), or chunks at once in one
+    engine actor (ray: default 16)."""
+    mps: Literal["auto", "off"] = "auto"
+    """auto: where several engine processes share a GPU (`auto` with MuJoCo Warp, when NVIDIA's
+    `nvidia-cuda-mps-control` is installed: 4 per GPU), the sweep runs a CUDA MPS daemon of
+    its own for them, so that their kernels run side by side (`sweep.mps`); off: never (one
+    engine process per GPU with `auto`)."""
     max_episodes: int = Field(default=256, ge=1)
     """The most episodes in flight at once in one process (and simulator slots per task
     batch)."""

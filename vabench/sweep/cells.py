@@ -184,6 +184,7 @@ def run_cell(
         "unscored": counts.unscored,
         "retried": counts.retried,
         "stopped": sweep.stopped,
+        "device_failed": sweep.device_failed,
         "physics": choices.physics.label,
         "in_flight": sweep.gate.reason if sweep.gate is not None else None,
         "jax": jax.default_backend(),

@@ -60,7 +60,8 @@ from vabench.children import (
 )
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS
-from vabench.sim_mjx.warp.device import GPU_SHARE
+from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
+from vabench.sweep import mps
 from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
     STATUS,
@@ -75,6 +76,7 @@ from vabench.sweep.cells import (
 from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.plan import EpisodeKey
+from vabench.sweep.precompile import ensure_compiled
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import SweepStopped
 from vabench.tasks import REGISTRY
@@ -242,6 +244,38 @@ def for_chunk(choices: Choices, part: Sequence[EpisodeKey]) -> Choices:
     )
 
 
+def _gpu_sharing(stack: contextlib.ExitStack, choices: Choices) -> dict[str, str]:
+    """Where engine processes share a GPU: an MPS daemon of the sweep's own for them (closed
+    with `stack`), and the variables that make the workers its clients. Without it they still
+    run, their contexts taking turns on the GPU (logged)."""
+    if not choices.executor.mps:
+        return {}
+    try:
+        return stack.enter_context(mps.private_daemon())
+    except mps.MpsUnavailable as err:
+        log.warning(
+            "CUDA MPS could not start (%s): the %d engine processes' CUDA contexts take turns "
+            "on the GPU, slower than under MPS (executor.mps: off runs one engine process per "
+            "GPU)",
+            err,
+            choices.executor.max_tasks,
+        )
+        return {}
+
+
+def _precompile(
+    config: SweepConfig, parts: Sequence[tuple[str, Sequence[EpisodeKey]]], choices: Choices
+) -> None:
+    """Warp physics on a GPU: every family's kernels compiled once, here, before the workers
+    start (`precompile`; each worker would otherwise compile its own families one worker after
+    another, under the machine's compile lock, each compiling the modules the families share)."""
+    if not choices.physics.is_warp or not warp_device().startswith("cuda"):
+        return
+    tasks = sorted({k.task for _, part in parts for k in part})
+    render = config.render
+    ensure_compiled(tasks, render.width, render.height, warp_device(), choices.renderer.is_warp)
+
+
 def run_processes(
     config: SweepConfig,
     keys: Sequence[EpisodeKey],
@@ -286,7 +320,11 @@ def run_processes(
     finished = False
     todo = list(parts)
     restarts = 0
+    device_stop: str | None = None  # why a worker's GPU context failed, this pool
+    gpu = contextlib.ExitStack()
     try:
+        _precompile(config, parts, choices)  # before the daemon: this process is no client
+        env.update(_gpu_sharing(gpu, choices))
         while todo:
             with _environment(env), children_ignore_sigint():
                 pool = cf.ProcessPoolExecutor(
@@ -322,6 +360,13 @@ def run_processes(
                         log.exception("processes: cell %s failed", name)
                         continue
                     log.info("processes: cell %s done: %s", name, summary)
+                    if summary.get("device_failed"):  # a new process has a new context
+                        device_stop = summary["stopped"]
+                        todo.append((name, part))
+                        for other in pending:  # not started: run in the new workers
+                            if other.cancel():
+                                todo.append(futures[other])
+                        continue
                     if summary.get("stopped") and not stopped:
                         stopped.append(summary["stopped"])
                         for other in pending:  # chunks not started yet never start
@@ -341,9 +386,12 @@ def run_processes(
                     )
             pool.shutdown(wait=True)
             if todo and restarts >= MAX_POOL_RESTARTS:
-                failures.extend(name for name, _ in todo)
+                if device_stop is not None:
+                    stopped.append(device_stop)
+                else:
+                    failures.extend(name for name, _ in todo)
                 log.error(
-                    "processes: a worker process died %d times; %d chunks not run",
+                    "processes: a worker process died or lost its GPU %d times; %d chunks not run",
                     restarts + 1,
                     len(todo),
                 )
@@ -351,11 +399,15 @@ def run_processes(
             elif todo:
                 restarts += 1
                 log.warning(
-                    "processes: a worker process died (killed, out of memory, or a crash in "
-                    "native code: its last lines are above); starting new workers for the %d "
-                    "chunks it took down (recorded episodes are kept, interrupted ones restart)",
+                    "processes: %s; starting new workers for the %d chunks it took down "
+                    "(recorded episodes are kept, interrupted ones restart)",
+                    f"a worker's GPU failed ({device_stop})"
+                    if device_stop is not None
+                    else "a worker process died (killed, out of memory, or a crash in native "
+                    "code: its last lines are above)",
                     len(todo),
                 )
+                device_stop = None
         finished = True
     finally:
         if finished:
@@ -367,6 +419,7 @@ def run_processes(
                 _end_workers(pool)
                 pool.shutdown(wait=True, cancel_futures=True)
             writer.abandon()
+        gpu.close()  # the MPS daemon quits once its clients, the workers, are gone
     if failures:
         log.error(
             "processes: %d of %d cells failed: %s", len(failures), len(parts), ", ".join(failures)

@@ -173,6 +173,8 @@ class LocalSweep:
         """Why the sweep stopped early (an endpoint refused it), naming model and fix."""
         self.refused = 0
         """Episodes ended without a record by that refusal (or by a spend cap)."""
+        self.device_failed = False
+        """`stopped` because this process's GPU context failed (a new process may go on)."""
         self.capped: dict[str, str] = {}
         """Models whose `limits.max_cost_usd` stopped their calls: model -> which cap, at what
         spend (the sweep's own cap sets `stopped` instead)."""
@@ -403,6 +405,7 @@ class LocalSweep:
 
     def _stop_device(self, err: DeviceFailure) -> None:
         if self.stopped is None:
+            self.device_failed = True
             self.stopped = (
                 f"{err}. Nothing was recorded for the episodes this stopped: the same command "
                 "runs them again in a new process."

@@ -21,8 +21,10 @@ buffers (`streams.Readback`: the step's flags, qpos, proprioception, grip state 
 predicates' contact flags), records an event, and waits for it with the lock released: the GPU
 runs the actions of many batches side by side while their threads queue the next ones. Host
 reads (`qpos`, `proprio`, `contact_flags` of the watched pairs, ...) then come from those copies,
-with no device work. Allocations and frees of device memory happen under the lock with the
-batch's stream current, so that a free is ordered behind the work that used the memory.
+with no device work. Allocations happen under the lock with the batch's stream current. A
+free is not ordered behind that stream: Warp frees pool memory on CUDA's legacy stream, which
+waits for no non-blocking stream, so device memory the batch's queued work reads is dropped
+only after `_wait` (or kept by the batch for its life).
 
 Buffers (contacts, constraint rows) are sized from the scene (`model.capacity`); a slot
 whose world overflows them gets an infrastructure error (`failure_text`), never silent wrong
@@ -322,8 +324,13 @@ class WarpBatch(BatchBase):
         if not slots:
             return
         with self._queued():
-            # Every upload stays referenced in `uploads` until the scatters are queued, and is
-            # freed at its end, in this scope: the free is ordered behind them on this stream.
+            # Every upload stays referenced until the scatters that read it have run (`_wait`
+            # below). Warp frees a pool allocation on CUDA's legacy stream, which waits for
+            # no non-blocking stream (this batch's): freed at the end of this block, an upload
+            # went back to the pool while its scatter was still queued, and another stream's
+            # next allocation could take it, so that `idx` held another array's bytes when
+            # the scatter wrote `dst[idx[i]]`: the likely illegal address of the H100 runs
+            # (docs/PERFORMANCE.md, "Fifth session").
             uploads = [idx := wp.array(np.asarray(slots, np.int32), dtype=int)]
             for name, dst in self._rows.items():
                 if dst.shape[1]:
@@ -342,10 +349,10 @@ class WarpBatch(BatchBase):
             self._host.clear()
             self._graphs.run("observe", self._observe)
             self._finish_queue()
-            del idx
-            uploads.clear()
         self._init_qpos[slots] = state["qpos"]
         self._wait()
+        del idx
+        uploads.clear()  # only now: see above
 
     @on_device
     def get_state(self, slots: Sequence[int]) -> dict[str, np.ndarray]:
@@ -462,4 +469,7 @@ class WarpBatch(BatchBase):
 
     @on_device
     def close(self) -> None:
+        # Everything queued on this stream has run before the graphs and their arenas go back
+        # to the pool (frees wait for no non-blocking stream: see the module docstring).
+        streams.wait(streams.record(self.stream))
         self._graphs.clear()

@@ -1,0 +1,97 @@
+"""The sweep's own CUDA MPS daemon (vabench.sweep.mps): started with a private pipe folder, its
+clients' variables handed out, told to quit when the block ends (errors too), a start that
+fails said in one line, a daemon the user runs left alone. NVIDIA's control program cannot
+run here (no driver): a real executable of that name on PATH stands in, answering `-d` by
+opening a control pipe in CUDA_MPS_PIPE_DIRECTORY and `quit` on its standard input as the
+real one does, and writing what it was asked to a log."""
+
+from __future__ import annotations
+
+import os
+import stat
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from vabench.sweep import mps
+
+FAKE_CONTROL = """\
+#!{python}
+import os, sys
+log = open(os.environ["FAKE_MPS_LOG"], "a")
+pipe = os.environ.get("CUDA_MPS_PIPE_DIRECTORY", "")
+if sys.argv[1:] == ["-d"]:
+    if os.environ.get("FAKE_MPS_FAIL"):
+        print("An instance of this daemon is already running", file=sys.stderr)
+        sys.exit(1)
+    log.write(f"start {{pipe}}\\n")
+    if not os.environ.get("FAKE_MPS_NO_PIPE"):
+        open(os.path.join(pipe, "control"), "w").close()
+else:
+    log.write(f"{{sys.stdin.read().strip()}} {{pipe}}\\n")
+"""
+
+
+@pytest.fixture
+def control(tmp_path, monkeypatch):
+    """The stand-in control program on PATH; returns its log."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    program = bin_dir / mps.CONTROL
+    program.write_text(FAKE_CONTROL.format(python=sys.executable))
+    program.chmod(program.stat().st_mode | stat.S_IXUSR)
+    log = tmp_path / "mps.log"
+    log.touch()
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("FAKE_MPS_LOG", str(log))
+    monkeypatch.delenv(mps.PIPE_VARIABLE, raising=False)
+    return log
+
+
+def test_a_private_daemon_for_the_block_then_quit(control):
+    assert mps.control_program() is not None
+    with mps.private_daemon() as env:
+        pipe = Path(env[mps.PIPE_VARIABLE])
+        assert (pipe / "control").exists() and Path(env[mps.LOG_VARIABLE]).is_dir()
+        assert pipe.parent.name.startswith("vabench-mps-")
+        assert control.read_text().splitlines() == [f"start {pipe}"]
+    assert control.read_text().splitlines() == [f"start {pipe}", f"quit {pipe}"]
+    assert not pipe.parent.exists()  # its folder removed
+
+
+def test_the_daemon_quits_when_the_block_fails(control):
+    with pytest.raises(RuntimeError, match="a worker failed"), mps.private_daemon() as env:
+        raise RuntimeError("a worker failed")
+    assert control.read_text().splitlines()[-1] == f"quit {env[mps.PIPE_VARIABLE]}"
+
+
+def test_a_refused_start_is_one_line_naming_why(control, monkeypatch):
+    monkeypatch.setenv("FAKE_MPS_FAIL", "1")
+    monkeypatch.setattr(tempfile, "tempdir", str(control.parent))  # where it would be left
+    refused = pytest.raises(mps.MpsUnavailable, match="exited 1: An instance of this daemon")
+    with refused, mps.private_daemon():
+        pass
+    assert not list(control.parent.glob("vabench-mps-*"))
+
+
+def test_a_daemon_without_a_control_pipe_is_refused_in_time(control, monkeypatch):
+    monkeypatch.setenv("FAKE_MPS_NO_PIPE", "1")
+    monkeypatch.setattr(mps, "START_WAIT_S", 0.3)
+    with pytest.raises(mps.MpsUnavailable, match="no control pipe"), mps.private_daemon():
+        pass
+
+
+def test_the_users_daemon_is_used_as_it_is(control):
+    with mps.private_daemon({mps.PIPE_VARIABLE: "/run/their-mps"}) as env:
+        assert env == {}
+    assert control.read_text() == ""  # neither started nor quit
+
+
+def test_no_control_program_is_said(monkeypatch, tmp_path):
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv(mps.PIPE_VARIABLE, raising=False)
+    assert mps.control_program() is None
+    with pytest.raises(mps.MpsUnavailable, match="not on PATH"), mps.private_daemon():
+        pass

@@ -1,0 +1,118 @@
+"""CUDA's multi-process service (MPS) for the engine processes that share one GPU.
+
+Why several engine processes on one GPU: one process is paced by its host side, not by the
+GPU. On an H100 host (16 cores, 2026-11-27, configs/all.yaml warm) the one process held its
+device lock 70 % of the time with 5.3 threads waiting on average, its event loop woke 271 ms
+late on average, and the GPU was busy 34-60 %; four engine processes (whole task families dealt
+over them, 256 episodes in flight each) recorded 2,100 episodes in 302 s against 1,152 in
+325 s, the GPU 76-89 % busy and 12-14 cores working (docs/PERFORMANCE.md, "Fifth session").
+
+Why MPS: without it the CUDA contexts of several processes take turns on the GPU in time
+slices (16 worker processes on one H100 made 3.4 episodes/s against 5.7 for one process);
+under MPS their kernels run side by side as one context's streams would.
+
+The sweep starts a daemon of its own (`private_daemon`): its pipe and log folders in a new
+temporary folder, given to the sweep's workers alone (`CUDA_MPS_PIPE_DIRECTORY`), so that no
+other process of the machine becomes its client; it is told to quit when the sweep ends, on
+errors and Ctrl-C too. A daemon the user runs already (`CUDA_MPS_PIPE_DIRECTORY` set in the
+sweep's environment) is used as it is and left running.
+
+Under MPS a fatal fault of one client (an illegal memory access) ends the work of every client
+on that GPU: the processes executor then starts new workers for the chunks it interrupted
+(`process_executor`), and nothing is recorded for their interrupted episodes
+(`interface.device_failure`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+CONTROL = "nvidia-cuda-mps-control"
+PIPE_VARIABLE = "CUDA_MPS_PIPE_DIRECTORY"
+LOG_VARIABLE = "CUDA_MPS_LOG_DIRECTORY"
+ENGINES_PER_GPU = 4
+"""Engine processes per GPU under MPS with `executor: auto` (measured: 4 on one H100; more
+were not measured to completion: 8 processes hit the fault above within 10 s)."""
+START_WAIT_S = 10.0
+"""How long the daemon may take to open its control pipe after `-d` returns."""
+
+
+class MpsUnavailable(RuntimeError):
+    """The MPS daemon could not be started (the message says why)."""
+
+
+def control_program() -> str | None:
+    """The MPS control program on PATH (NVIDIA's driver installs it), or None."""
+    return shutil.which(CONTROL)
+
+
+@contextlib.contextmanager
+def private_daemon(environ: Mapping[str, str] = os.environ) -> Iterator[dict[str, str]]:
+    """An MPS daemon for the duration of the block; yields the variables that make a process
+    its client (empty when the user's daemon is used). Raises `MpsUnavailable`."""
+    if environ.get(PIPE_VARIABLE):
+        log.info("CUDA MPS: the daemon of %s=%s", PIPE_VARIABLE, environ[PIPE_VARIABLE])
+        yield {}
+        return
+    program = control_program()
+    if program is None:
+        raise MpsUnavailable(f"{CONTROL} is not on PATH")
+    folder = Path(tempfile.mkdtemp(prefix="vabench-mps-"))
+    env = {PIPE_VARIABLE: str(folder / "pipe"), LOG_VARIABLE: str(folder / "log")}
+    for path in env.values():
+        Path(path).mkdir()
+    full = {**environ, **env}
+    try:
+        started = subprocess.run(
+            [program, "-d"], env=full, capture_output=True, text=True, timeout=30
+        )
+        if started.returncode != 0:
+            said = (started.stderr or started.stdout).strip()
+            raise MpsUnavailable(f"`{CONTROL} -d` exited {started.returncode}: {said}")
+        _wait_for_control(folder / "pipe")
+    except (OSError, subprocess.TimeoutExpired, MpsUnavailable) as err:
+        shutil.rmtree(folder, ignore_errors=True)
+        if isinstance(err, MpsUnavailable):
+            raise
+        raise MpsUnavailable(f"`{CONTROL} -d` failed: {err}") from err
+    log.info("CUDA MPS: a daemon of the sweep's own (%s=%s)", PIPE_VARIABLE, env[PIPE_VARIABLE])
+    try:
+        yield env
+    finally:
+        _quit(program, full)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _wait_for_control(pipe: Path) -> None:
+    deadline = time.monotonic() + START_WAIT_S
+    while not (pipe / "control").exists():
+        if time.monotonic() > deadline:
+            raise MpsUnavailable(
+                f"the daemon opened no control pipe in {pipe} within {START_WAIT_S:.0f} s"
+            )
+        time.sleep(0.05)
+
+
+def _quit(program: str, env: Mapping[str, str]) -> None:
+    """Tell the daemon to quit (it ends its server once the last client is gone)."""
+    try:
+        done = subprocess.run(
+            [program], input="quit\n", env=dict(env), capture_output=True, text=True, timeout=30
+        )
+    except (OSError, subprocess.TimeoutExpired) as err:
+        log.warning("CUDA MPS: the daemon was not told to quit: %s", err)
+        return
+    if done.returncode != 0:
+        log.warning("CUDA MPS: `quit` exited %d: %s", done.returncode, done.stderr.strip())
+    else:
+        log.info("CUDA MPS: the sweep's daemon quit")
