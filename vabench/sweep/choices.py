@@ -56,7 +56,8 @@ GPU_LOCAL_MAX_TASKS = 64
 """Task batches at once in the one process of `executor: auto` on a GPU (configs/all.yaml has
 22): every batch of the plan steps on the GPU, none waits for another to finish."""
 ONE_GPU_REASON = (
-    "auto: Warp physics on one GPU: one process steps every task's batch (on an H100, 5.7 "
+    "auto: Warp physics on one GPU, no CUDA MPS (executor.mps: off, or nvidia-cuda-mps-control "
+    "not installed): one process steps every task's batch (on an H100, 5.7 "
     "episodes/s against 3.4 for a worker process per core, whose CUDA contexts take turns on "
     "the GPU; docs/PERFORMANCE.md)"
 )
