@@ -131,19 +131,28 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     cells = pending_cells(keys, set())
 
     parts = plan_chunks(config, cells, batched)
-    assert len(parts) == 2
+    assert len(parts) == 3
     tasks_of = [{k.task for k in part} for _, part in parts]
-    # costs (episodes x step budget): basket 4 x 250, handover and shoe 4 x 100, the others
-    # 4 x 50; dealt longest first to the cheaper chunk: 1,200 and 1,000, the costlier first
-    assert tasks_of[0] == {"put_everything_in_basket", "lift_pot"}
-    assert tasks_of[1] == {"handover_horizontal_block", "place_shoe", "grasp_single_cube"}
+    # the basket (250 steps, at least twice every other budget) is the critical path: an
+    # engine process of its own, beside the 2 asked for; the rest by cost (episodes x step
+    # budget): handover and shoe 4 x 100, the others 4 x 50, dealt longest first to the
+    # cheaper chunk: 600 and 600
+    assert parts[0] == ("put_everything_in_basket", parts[0][1])
+    assert tasks_of[0] == {"put_everything_in_basket"}
+    assert tasks_of[1] == {"handover_horizontal_block", "grasp_single_cube"}
+    assert tasks_of[2] == {"place_shoe", "lift_pot"}
     assert parts[1][0] == "+".join(sorted(tasks_of[1], key=parts[1][0].index))
     for _, part in parts:  # every track of a task in the same chunk
         for task in {k.task for k in part}:
             assert {k.track for k in part if k.task == task} == {"active", "passive"}
     flat = [ledger_key(k) for _, part in parts for k in part]
     assert sorted(flat) == sorted(ledger_key(k) for k in keys)
-    assert for_chunk(batched, parts[1][1]).executor.max_tasks == 3
+    alone = dataclasses.replace(
+        batched, executor=dataclasses.replace(batched.executor, max_tasks=1)
+    )
+    assert len(plan_chunks(config, cells, alone)) == 1  # one process: nothing set apart
+    four_tasks = [k for _, part in parts[1:] for k in part]
+    assert for_chunk(batched, four_tasks).executor.max_tasks == 4  # every task of it at once
     assert for_chunk(batched, parts[0][1]).executor.max_tasks == 2  # never lowered
 
     # C MuJoCo: cells cut as before, one (model, track, task) each at most

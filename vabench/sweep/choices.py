@@ -64,7 +64,8 @@ ONE_GPU_REASON = (
 MPS_REASON = (
     "auto: Warp physics on {gpus}: {per_gpu} engine processes share each GPU under a CUDA MPS "
     "daemon of the sweep's own ({cores} cores each), whole task families dealt over them by "
-    "cost; one process is paced by its host side (on an H100: 2,100 episodes in 302 s for 4 "
+    "cost, a task on the critical path (the basket) in one more of its own; one process is "
+    "paced by its host side (on an H100: 2,100 episodes in 302 s for 4 "
     "processes against 1,152 in 325 s for one, GPU busy 76-89 % against 34-60 %; "
     "docs/PERFORMANCE.md)"
 )

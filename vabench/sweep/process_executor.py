@@ -78,7 +78,7 @@ from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.precompile import ensure_compiled
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
-from vabench.sweep.runner import SweepStopped
+from vabench.sweep.runner import SweepStopped, critical_path_tasks
 from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
@@ -222,15 +222,28 @@ def plan_chunks(
     for 10 slots as for 200) whole tasks, every track and model, dealt over the workers, each
     stepping one batch per task at once (several engine processes sharing a GPU, `cells.bins`);
     else cells cut to keep every core busy to the end (`cells.chunks`). The task's step budget
-    is its cost (a task the registry lacks fails in its chunk)."""
+    is its cost (a task the registry lacks fails in its chunk).
+
+    With batched physics and several workers, a task on the sweep's critical path
+    (`runner.critical_path_tasks`: the basket's 250 steps against 50) gets an engine process
+    of its own beside them: its episodes take ~166 decisions to the others' 13-37, every
+    decision waits for the process's other batches, and on an H100 its 60 episodes were the
+    last unfinished at 332 s while four engine processes had recorded the other 2,100 by 302 s
+    (docs/PERFORMANCE.md, "Fifth session")."""
 
     def cost(task: str) -> int:
         return config.budget(task) if task in REGISTRY else 1
 
     workers = choices.executor.max_tasks
-    if choices.physics.batched:
-        return bins(task_groups(cells), workers, cost)
-    return chunks(cells, min(workers, len(cells)), cost)
+    if not choices.physics.batched:
+        return chunks(cells, min(workers, len(cells)), cost)
+    groups = task_groups(cells)
+    critical = (
+        critical_path_tasks({task: cost(task) for (task,) in groups}) if workers > 1 else set()
+    )
+    alone = [(task, keys) for (task,), keys in groups.items() if task in critical]
+    rest = {group: keys for group, keys in groups.items() if group[0] not in critical}
+    return alone + (bins(rest, workers, cost) if rest else [])
 
 
 def for_chunk(choices: Choices, part: Sequence[EpisodeKey]) -> Choices:
@@ -293,7 +306,9 @@ def run_processes(
         return Ledger.open(run_dir).records
     machine = choices.machine
     parts = plan_chunks(config, cells, choices)
-    workers = min(choices.executor.max_tasks, len(parts))
+    # batched physics: every chunk at once (`plan_chunks` makes at most `max_tasks`, plus the
+    # critical path's own)
+    workers = len(parts) if choices.physics.batched else min(choices.executor.max_tasks, len(parts))
     env = child_environment(choices.physics)
     # Workers that share a GPU size their GPU buffers (render passes) to their share of it,
     # and every worker sizes its pools (policy processes, JPEG threads) to its share of cores.
