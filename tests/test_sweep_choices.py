@@ -82,6 +82,7 @@ def test_warp_physics_on_one_gpu_runs_in_one_process(options, gpus, kind, max_ta
         ({"mps": "off"}, ("0",), "local", 64, 1),  # without MPS: as before
         ({"mps": "off"}, ("0", "1"), "processes", 2, 1),
         ({"kind": "processes", "max_tasks": 8}, ("0",), "processes", 8, 8),  # asked for
+        ({"kind": "processes"}, ("0",), "processes", 4, 4),  # engines, not one per core
         ({"kind": "processes", "max_tasks": 2}, ("0", "1"), "processes", 2, 1),  # one per GPU
         ({"kind": "local"}, ("0",), "local", 4, 1),
     ],
@@ -90,7 +91,7 @@ def test_engine_processes_share_a_gpu_under_mps_where_it_is_installed(
     options, gpus, kind, max_tasks, per_gpu
 ):
     """On an H100, 4 engine processes under CUDA MPS recorded 2,100 episodes in 302 s against
-    1,152 in 325 s for one process (2026-11-27): `auto` runs them where NVIDIA's MPS control
+    1,187 in 325 s for one process (2026-11-27): `auto` runs them where NVIDIA's MPS control
     program is installed, and says so; `mps: off` keeps the one-process layout."""
     warp, c = Choice(Physics.WARP, ""), Choice(Physics.C, "")
     machine = Machine(16, gpus, mps=True)
@@ -104,6 +105,7 @@ def test_engine_processes_share_a_gpu_under_mps_where_it_is_installed(
         assert f"({16 // max_tasks} cores each)" in choice.reason
         capped = resolve_executor(ExecutorOptions(), machine, warp, spend_capped=True)
         assert (capped.kind, capped.mps) == ("local", False)
+        assert "spend cap" in capped.reason
     assert not resolve_executor(ExecutorOptions(**options), machine, c).mps
     assert not resolve_executor(ExecutorOptions(**options), Machine(16, gpus), warp).mps
 

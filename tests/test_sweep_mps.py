@@ -47,6 +47,7 @@ def control(tmp_path, monkeypatch):
     monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
     monkeypatch.setenv("FAKE_MPS_LOG", str(log))
     monkeypatch.delenv(mps.PIPE_VARIABLE, raising=False)
+    monkeypatch.setattr(mps, "DEFAULT_PIPE", tmp_path / "no-default-daemon")
     return log
 
 
@@ -81,12 +82,34 @@ def test_a_daemon_without_a_control_pipe_is_refused_in_time(control, monkeypatch
     monkeypatch.setattr(mps, "START_WAIT_S", 0.3)
     with pytest.raises(mps.MpsUnavailable, match="no control pipe"), mps.private_daemon():
         pass
+    start, quit_ = control.read_text().splitlines()  # whatever ran is told to quit
+    assert start.startswith("start ") and quit_ == f"quit {start.split()[1]}"
 
 
-def test_the_users_daemon_is_used_as_it_is(control):
+def test_the_users_daemon_is_used_as_it_is(control, tmp_path, monkeypatch):
     with mps.private_daemon({mps.PIPE_VARIABLE: "/run/their-mps"}) as env:
         assert env == {}
+    machine = tmp_path / "nvidia-mps"  # a daemon of the machine's, on the default pipe
+    machine.mkdir()
+    (machine / "control").touch()
+    monkeypatch.setattr(mps, "DEFAULT_PIPE", machine)
+    with mps.private_daemon({}) as env:
+        assert env == {}
     assert control.read_text() == ""  # neither started nor quit
+
+
+@pytest.mark.parametrize(
+    ("gpus", "variables", "dealt"),
+    [
+        (("1",), {"CUDA_VISIBLE_DEVICES": "0"}, ("1",)),  # the daemon's only GPU is its 0
+        (("2", "3"), {}, ("0", "1")),
+        (("GPU-aa", "GPU-bb", "GPU-cc"), {}, ("0", "1", "2")),
+    ],
+)
+def test_clients_of_the_sweeps_daemon_name_its_gpus_from_0(gpus, variables, dealt):
+    """The daemon inherits the sweep's CUDA_VISIBLE_DEVICES and numbers what it sees from 0:
+    a worker naming the host's id ("3") under it fails (NVIDIA's MPS documentation)."""
+    assert mps.client_devices(gpus) == (variables, dealt)
 
 
 def test_no_control_program_is_said(monkeypatch, tmp_path):

@@ -130,11 +130,15 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     assert batched.physics.batched and not choices.physics.batched
     cells = pending_cells(keys, set())
 
+    assert len(plan_chunks(config, cells, batched)) == 2  # no MPS: the 2 asked for, no more
+    batched = dataclasses.replace(  # engine processes sharing a GPU under MPS
+        batched, executor=dataclasses.replace(batched.executor, mps=True, per_gpu=2)
+    )
     parts = plan_chunks(config, cells, batched)
     assert len(parts) == 3
     tasks_of = [{k.task for k in part} for _, part in parts]
-    # the basket (250 steps, at least twice every other budget) is the critical path: an
-    # engine process of its own, beside the 2 asked for; the rest by cost (episodes x step
+    # under MPS the basket (250 steps, at least twice every other budget) is the critical
+    # path: an engine process of its own, beside the 2 asked for; the rest by cost (episodes x step
     # budget): handover and shoe 4 x 100, the others 4 x 50, dealt longest first to the
     # cheaper chunk: 600 and 600
     assert parts[0] == ("put_everything_in_basket", parts[0][1])

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -444,6 +445,8 @@ if "spawn_main" in " ".join(getattr(sys, "orig_argv", [])):  # the sweep's worke
     real = cpu.CpuBatch._execute
 
     def failing(self, rows):
+        if os.path.exists(mine):  # a dead context fails every later call of its process
+            raise RuntimeError("Failed to allocate 4 bytes on device 'cuda:0'")
         try:  # the first action of the whole sweep, in whichever worker makes it
             os.close(os.open(os.path.join(flags, "claimed"), os.O_CREAT | os.O_EXCL))
         except FileExistsError:
@@ -455,20 +458,27 @@ if "spawn_main" in " ".join(getattr(sys, "orig_argv", [])):  # the sweep's worke
 """
 
 
-def test_a_worker_whose_gpu_failed_is_replaced_and_its_chunks_rerun(tmp_path):
+@pytest.mark.parametrize("workers", [2, 1])
+def test_a_worker_whose_gpu_failed_is_replaced_and_its_chunks_rerun(tmp_path, workers):
     """On an H100 under CUDA MPS (2026-11-27) a worker's context failed 2 minutes into the
     run; its episodes' errors are the process's (no record), and a new process has a new
     context: the processes executor starts new workers for the chunks the failure stopped and
     finishes the plan in the same invocation, one record per episode (before, the sweep
     stopped and asked for the same command again). The failure is made in the workers at
     start-up (`sitecustomize`): their first action fails as a dead context's calls do and the
-    context check says so, in that process only."""
+    context check says so, in that process only, whose later calls fail too. With one worker
+    and three chunks, the chunk the pool had already handed to the dead worker fails as well
+    after the others were cancelled: each chunk is run again once (a cancelled chunk was queued
+    a second time for each failure reported before the fix)."""
     site, flags = tmp_path / "site", tmp_path / "flags"
     site.mkdir()
     flags.mkdir()
     (site / "sitecustomize.py").write_text(GPU_FAILS_ONCE)
     cfg = tmp_path / "processes.yaml"
-    cfg.write_text(PROCESSES.replace("mean_s: 0.25", "mean_s: 0.01"))
+    text = PROCESSES.replace("mean_s: 0.25", "mean_s: 0.01")
+    text = text.replace("max_tasks: 2", f"max_tasks: {workers}")
+    text = text.replace("handover_horizontal_block]", "handover_horizontal_block, lift_pot]")
+    cfg.write_text(text)
     out = tmp_path / "out"
     path = os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")]))
     done = subprocess.run(
@@ -485,5 +495,8 @@ def test_a_worker_whose_gpu_failed_is_replaced_and_its_chunks_rerun(tmp_path):
     assert "a worker's GPU failed (the CUDA context of cuda:0 failed" in text
     records = ledger_lines(out)
     keys = [(r["task"], r["seed"]) for r in records]
-    assert len(keys) == len(set(keys)) == 6
+    assert len(keys) == len(set(keys)) == 9
     assert all(r["status"] != "error" for r in records), records
+    assert "was not written" not in text  # no episode sent twice to the ledger
+    restarted = [int(n) for n in re.findall(r"starting new workers for the (\d+) chunks", text)]
+    assert restarted and all(n <= 3 for n in restarted), restarted  # 3 chunks in all

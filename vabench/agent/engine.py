@@ -52,7 +52,12 @@ from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image
 from vabench.render import camera as cam
 from vabench.render.images import RenderError, RenderItem
-from vabench.sim_mjx.interface import DeviceFailure, SimulationError, device_failure
+from vabench.sim_mjx.interface import (
+    DeviceFailure,
+    SimulationError,
+    device_failure,
+    watched_devices,
+)
 
 
 @dataclass
@@ -142,7 +147,7 @@ class Episode:
         except DeviceFailure:  # the process's GPU, not this episode: no result; sweep stops
             raise
         except (RenderError, SimulationError) as err:
-            _raise_if_device_failed(err)
+            await _raise_if_device_failed(err)
             return self._finish("infrastructure_error", "infrastructure_error", str(err))
         except RequestRejected as err:
             if err.fatal:  # the endpoint's refusal, not this episode's: no result; sweep stops
@@ -151,7 +156,7 @@ class Episode:
                 raise
             return self._finish("error", "request_rejected", f"{err.kind}: {err}")
         except Exception as err:  # a harness bug: recorded, never scored
-            _raise_if_device_failed(err)
+            await _raise_if_device_failed(err)
             self.rec.event("harness_error", error=f"{type(err).__name__}: {err}")
             return self._finish("error", "harness_error", f"{type(err).__name__}: {err}")
         finally:
@@ -432,9 +437,12 @@ async def run_episodes(specs: Sequence[EpisodeSpec], services: TaskServices) -> 
     return list(await asyncio.gather(*(one(s) for s in specs)))
 
 
-def _raise_if_device_failed(err: Exception) -> None:
+async def _raise_if_device_failed(err: Exception) -> None:
     """An error that a failed GPU context caused is the process's, not the episode's: raised
-    as `DeviceFailure` (no record; the sweep stops and the same command runs the episode)."""
-    failure = device_failure(err)
+    as `DeviceFailure` (no record; the sweep stops and the same command runs the episode). The
+    check waits for the GPU's queued work: in a thread, off the event loop."""
+    if not watched_devices():
+        return
+    failure = await asyncio.to_thread(device_failure, err)
     if failure is not None:
         raise failure from err

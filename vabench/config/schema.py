@@ -150,7 +150,8 @@ class ExecutorOptions(_Strict):
     engine process per GPU with `auto`)."""
     max_episodes: int = Field(default=256, ge=1)
     """The most episodes in flight at once in one process (and simulator slots per task
-    batch)."""
+    batch); where engine processes share a GPU under MPS, on that GPU (each of its processes
+    keeps its share)."""
     in_flight: Literal["auto"] | int = "auto"
     """Episodes in flight in one process: "auto" adapts between 1 and `max_episodes` so that
     the simulator, renderer and model endpoints stay busy without queueing (Little's law,

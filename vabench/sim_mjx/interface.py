@@ -64,6 +64,11 @@ def watch_device(name: str, check: Callable[[], str | None]) -> None:
     _CONTEXT_CHECKS.setdefault(name, check)
 
 
+def watched_devices() -> bool:
+    """Whether any device's context check is registered (none on a machine without CUDA)."""
+    return bool(_CONTEXT_CHECKS)
+
+
 def device_failure(err: BaseException) -> DeviceFailure | None:
     """`err` as a `DeviceFailure` when a device this process uses has a failed context, else
     None. The one test an episode's error passes before it is recorded: after a sticky CUDA

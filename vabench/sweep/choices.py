@@ -66,7 +66,7 @@ MPS_REASON = (
     "daemon of the sweep's own ({cores} cores each), whole task families dealt over them by "
     "cost, a task on the critical path (the basket) in one more of its own; one process is "
     "paced by its host side (on an H100: 2,100 episodes in 302 s for 4 "
-    "processes against 1,152 in 325 s for one, GPU busy 76-89 % against 34-60 %; "
+    "processes against 1,187 in 325 s for one, GPU busy 76-89 % against 34-60 %; "
     "docs/PERFORMANCE.md)"
 )
 MULTI_GPU_REASON = (
@@ -152,7 +152,10 @@ def resolve_executor(
         )
         return ExecutorChoice("processes", engines, reason, mps=per_gpu > 1, per_gpu=per_gpu)
     if kind == "auto" and warp and len(machine.gpus) <= 1:
-        return ExecutorChoice("local", max_tasks or GPU_LOCAL_MAX_TASKS, ONE_GPU_REASON)
+        reason = ONE_GPU_REASON
+        if spend_capped and use_mps:
+            reason = "auto: a spend cap (limits.max_cost_usd) is kept exactly by one process"
+        return ExecutorChoice("local", max_tasks or GPU_LOCAL_MAX_TASKS, reason)
     if kind == "auto" and warp and not spend_capped:
         n = len(machine.gpus)
         return ExecutorChoice(
@@ -178,6 +181,8 @@ def resolve_executor(
             f"{PROCESSES_FROM_CORES} cores)",
         )
     default = {"local": LOCAL_MAX_TASKS, "processes": machine.cores, "ray": RAY_MAX_TASKS}[kind]
+    if kind == "processes" and use_mps:  # engine processes, not one per core
+        default = mps.ENGINES_PER_GPU * gpus
     chosen = ExecutorChoice(kind, max_tasks or default, "asked for")
     if kind == "processes" and use_mps and chosen.max_tasks > gpus:
         per_gpu = math.ceil(chosen.max_tasks / gpus)

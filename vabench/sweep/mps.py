@@ -4,7 +4,7 @@ Why several engine processes on one GPU: one process is paced by its host side, 
 GPU. On an H100 host (16 cores, 2026-11-27, configs/all.yaml warm) the one process held its
 device lock 70 % of the time with 5.3 threads waiting on average, its event loop woke 271 ms
 late on average, and the GPU was busy 34-60 %; four engine processes (whole task families dealt
-over them, 256 episodes in flight each) recorded 2,100 episodes in 302 s against 1,152 in
+over them, 256 episodes in flight each) recorded 2,100 episodes in 302 s against 1,187 in
 325 s, the GPU 76-89 % busy and 12-14 cores working (docs/PERFORMANCE.md, "Fifth session").
 
 Why MPS: without it the CUDA contexts of several processes take turns on the GPU in time
@@ -15,7 +15,10 @@ The sweep starts a daemon of its own (`private_daemon`): its pipe and log folder
 temporary folder, given to the sweep's workers alone (`CUDA_MPS_PIPE_DIRECTORY`), so that no
 other process of the machine becomes its client; it is told to quit when the sweep ends, on
 errors and Ctrl-C too. A daemon the user runs already (`CUDA_MPS_PIPE_DIRECTORY` set in the
-sweep's environment) is used as it is and left running.
+sweep's environment, or one listening on the default `/tmp/nvidia-mps`) is used as it is and
+left running. A sweep killed by SIGKILL or SIGTERM leaves its daemon running (idle; `echo quit
+| CUDA_MPS_PIPE_DIRECTORY=<its folder>/pipe nvidia-cuda-mps-control` ends it; the folder is
+named in the sweep's log).
 
 Under MPS a fatal fault of one client (an illegal memory access) ends the work of every client
 on that GPU: the processes executor then starts new workers for the chunks it interrupted
@@ -43,6 +46,8 @@ LOG_VARIABLE = "CUDA_MPS_LOG_DIRECTORY"
 ENGINES_PER_GPU = 4
 """Engine processes per GPU under MPS with `executor: auto` (measured: 4 on one H100; more
 were not measured to completion: 8 processes hit the fault above within 10 s)."""
+DEFAULT_PIPE = Path("/tmp/nvidia-mps")
+"""Where a daemon started without CUDA_MPS_PIPE_DIRECTORY listens (the machine's own)."""
 START_WAIT_S = 10.0
 """How long the daemon may take to open its control pipe after `-d` returns."""
 
@@ -64,6 +69,10 @@ def private_daemon(environ: Mapping[str, str] = os.environ) -> Iterator[dict[str
         log.info("CUDA MPS: the daemon of %s=%s", PIPE_VARIABLE, environ[PIPE_VARIABLE])
         yield {}
         return
+    if (DEFAULT_PIPE / "control").exists():  # a daemon of the machine's, on the default pipe
+        log.info("CUDA MPS: the daemon of %s", DEFAULT_PIPE)
+        yield {}
+        return
     program = control_program()
     if program is None:
         raise MpsUnavailable(f"{CONTROL} is not on PATH")
@@ -76,21 +85,35 @@ def private_daemon(environ: Mapping[str, str] = os.environ) -> Iterator[dict[str
         started = subprocess.run(
             [program, "-d"], env=full, capture_output=True, text=True, timeout=30
         )
-        if started.returncode != 0:
-            said = (started.stderr or started.stdout).strip()
-            raise MpsUnavailable(f"`{CONTROL} -d` exited {started.returncode}: {said}")
-        _wait_for_control(folder / "pipe")
-    except (OSError, subprocess.TimeoutExpired, MpsUnavailable) as err:
+    except (OSError, subprocess.TimeoutExpired) as err:
         shutil.rmtree(folder, ignore_errors=True)
-        if isinstance(err, MpsUnavailable):
-            raise
         raise MpsUnavailable(f"`{CONTROL} -d` failed: {err}") from err
+    if started.returncode != 0:
+        shutil.rmtree(folder, ignore_errors=True)
+        said = (started.stderr or started.stdout).strip()
+        raise MpsUnavailable(f"`{CONTROL} -d` exited {started.returncode}: {said}")
+    try:  # from here on a daemon may run: told to quit whatever happens (Ctrl-C included)
+        _wait_for_control(folder / "pipe")
+    except BaseException:
+        _quit(program, full)
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
     log.info("CUDA MPS: a daemon of the sweep's own (%s=%s)", PIPE_VARIABLE, env[PIPE_VARIABLE])
     try:
         yield env
     finally:
         _quit(program, full)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def client_devices(gpus: tuple[str, ...]) -> tuple[dict[str, str], tuple[str, ...]]:
+    """How the clients of a daemon the sweep started name their GPUs: the daemon inherits the
+    sweep's CUDA_VISIBLE_DEVICES and numbers the devices it sees 0..n-1 for its clients (NVIDIA's
+    MPS documentation: a client naming them by the host's ids fails). Returns the variables for
+    every worker (one GPU: "0") and the ids to deal over the workers (several: 0..n-1)."""
+    if len(gpus) == 1:
+        return {"CUDA_VISIBLE_DEVICES": "0"}, gpus
+    return {}, tuple(str(i) for i in range(len(gpus)))
 
 
 def _wait_for_control(pipe: Path) -> None:

@@ -224,12 +224,12 @@ def plan_chunks(
     else cells cut to keep every core busy to the end (`cells.chunks`). The task's step budget
     is its cost (a task the registry lacks fails in its chunk).
 
-    With batched physics and several workers, a task on the sweep's critical path
-    (`runner.critical_path_tasks`: the basket's 250 steps against 50) gets an engine process
-    of its own beside them: its episodes take ~166 decisions to the others' 13-37, every
-    decision waits for the process's other batches, and on an H100 its 60 episodes were the
-    last unfinished at 332 s while four engine processes had recorded the other 2,100 by 302 s
-    (docs/PERFORMANCE.md, "Fifth session")."""
+    With batched physics and several workers sharing GPUs under MPS, a task on the sweep's
+    critical path (`runner.critical_path_tasks`: the basket's 250 steps against 50) gets an
+    engine process of its own beside them: its episodes take ~166 decisions to the others'
+    13-37, every decision waits for the process's other batches, and on an H100 its 60
+    episodes were the last unfinished at 332 s while four engine processes had recorded the
+    other 2,100 by 302 s (docs/PERFORMANCE.md, "Fifth session")."""
 
     def cost(task: str) -> int:
         return config.budget(task) if task in REGISTRY else 1
@@ -238,8 +238,11 @@ def plan_chunks(
     if not choices.physics.batched:
         return chunks(cells, min(workers, len(cells)), cost)
     groups = task_groups(cells)
+    shares_gpus = choices.executor.mps  # without MPS one engine process per GPU, no more
     critical = (
-        critical_path_tasks({task: cost(task) for (task,) in groups}) if workers > 1 else set()
+        critical_path_tasks({task: cost(task) for (task,) in groups})
+        if workers > 1 and shares_gpus
+        else set()
     )
     alone = [(task, keys) for (task,), keys in groups.items() if task in critical]
     rest = {group: keys for group, keys in groups.items() if group[0] not in critical}
@@ -339,14 +342,19 @@ def run_processes(
     gpu = contextlib.ExitStack()
     try:
         _precompile(config, parts, choices)  # before the daemon: this process is no client
-        env.update(_gpu_sharing(gpu, choices))
+        clients = _gpu_sharing(gpu, choices)
+        env.update(clients)
+        worker_gpus = machine.gpus
+        if clients:  # the sweep's own daemon numbers the GPUs it sees 0..n-1
+            devices, worker_gpus = mps.client_devices(machine.gpus)
+            env.update(devices)
         while todo:
             with _environment(env), children_ignore_sigint():
                 pool = cf.ProcessPoolExecutor(
                     max_workers=workers,
                     mp_context=context,
                     initializer=_init_worker,
-                    initargs=(os.getpid(), lines, context.Value("i", 0), machine.gpus),
+                    initargs=(os.getpid(), lines, context.Value("i", 0), worker_gpus),
                 )
                 futures = {
                     pool.submit(
@@ -378,9 +386,8 @@ def run_processes(
                     if summary.get("device_failed"):  # a new process has a new context
                         device_stop = summary["stopped"]
                         todo.append((name, part))
-                        for other in pending:  # not started: run in the new workers
-                            if other.cancel():
-                                todo.append(futures[other])
+                        for other in pending:  # not started: the new workers take them (below)
+                            other.cancel()
                         continue
                     if summary.get("stopped") and not stopped:
                         stopped.append(summary["stopped"])
@@ -400,6 +407,10 @@ def run_processes(
                         len(keys),
                     )
             pool.shutdown(wait=True)
+            if stopped:  # an endpoint refused, or a cap: nothing more starts
+                todo = []
+            elif device_stop is not None:  # cancelled once above, whatever cancel() said after
+                todo.extend(futures[f] for f in futures if f.cancelled())
             if todo and restarts >= MAX_POOL_RESTARTS:
                 if device_stop is not None:
                     stopped.append(device_stop)

@@ -471,5 +471,7 @@ class WarpBatch(BatchBase):
     def close(self) -> None:
         # Everything queued on this stream has run before the graphs and their arenas go back
         # to the pool (frees wait for no non-blocking stream: see the module docstring).
-        streams.wait(streams.record(self.stream))
-        self._graphs.clear()
+        try:
+            streams.wait(streams.record(self.stream))
+        finally:
+            self._graphs.clear()

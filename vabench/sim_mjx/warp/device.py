@@ -97,13 +97,13 @@ def device_lock(device: str) -> TimedLock:
     between two substeps of an action would see slots the action has not yet restored."""
     name = str(device)
     with _DEVICE_LOCKS_GUARD:
-        if name not in _DEVICE_LOCKS:
-            _DEVICE_LOCKS[name] = TimedLock()
-            if name.startswith("cuda"):  # the interface imports JAX: not at this module's import
-                from vabench.sim_mjx.interface import watch_device
+        made = name not in _DEVICE_LOCKS
+        lock = _DEVICE_LOCKS.setdefault(name, TimedLock())
+    if made and name.startswith("cuda"):  # outside the guard: the interface imports JAX
+        from vabench.sim_mjx.interface import watch_device
 
-                watch_device(name, functools.partial(_failed_context, name))
-        return _DEVICE_LOCKS[name]
+        watch_device(name, functools.partial(_failed_context, name))
+    return lock
 
 
 def _failed_context(name: str) -> str | None:

@@ -77,9 +77,31 @@ def failing_device(device: wp.context.Device) -> Iterator[None]:
         raise
 
 
+STICKY_ERRORS = {
+    214: "CUDA_ERROR_ECC_UNCORRECTABLE",
+    700: "CUDA_ERROR_ILLEGAL_ADDRESS",
+    702: "CUDA_ERROR_LAUNCH_TIMEOUT",
+    709: "CUDA_ERROR_CONTEXT_IS_DESTROYED",
+    710: "CUDA_ERROR_ASSERT",
+    714: "CUDA_ERROR_HARDWARE_STACK_ERROR",
+    715: "CUDA_ERROR_ILLEGAL_INSTRUCTION",
+    716: "CUDA_ERROR_MISALIGNED_ADDRESS",
+    717: "CUDA_ERROR_INVALID_ADDRESS_SPACE",
+    718: "CUDA_ERROR_INVALID_PC",
+    719: "CUDA_ERROR_LAUNCH_FAILED",
+    805: "CUDA_ERROR_MPS_CONNECTION_FAILED",
+    806: "CUDA_ERROR_MPS_RPC_FAILURE",
+    807: "CUDA_ERROR_MPS_SERVER_NOT_READY",
+    810: "CUDA_ERROR_MPS_CLIENT_TERMINATED",
+}
+"""The driver's errors after which a context can do nothing more (a kernel's fault, a dead
+MPS server). Others a synchronisation may report (one about another thread's graph capture,
+say) say nothing about the context's health."""
+
+
 def context_error(device: wp.context.Device) -> str | None:
-    """The error the CUDA context of `device` reports when synchronised (its sticky error
-    after a kernel fault), or None when it works (and on the CPU). Waits for the device's
+    """The sticky error the CUDA context of `device` reports when synchronised (after a kernel
+    fault: `STICKY_ERRORS`), or None when it works (and on the CPU). Waits for the device's
     queued work: for error paths only."""
     if not device.is_cuda:
         return None
@@ -93,7 +115,7 @@ def context_error(device: wp.context.Device) -> str | None:
         code = cuda.cuCtxSynchronize()
     finally:
         cuda.cuCtxPopCurrent_v2(ctypes.byref(ctypes.c_void_p()))
-    if code == 0:
+    if code not in STICKY_ERRORS:
         return None
     name = ctypes.c_char_p()
     cuda.cuGetErrorName(code, ctypes.byref(name))
