@@ -323,7 +323,7 @@ class WarpRenderPool:
             t1 = time.perf_counter()
             if rgb is not None:
                 stream = p.stream.cuda_stream if p.stream is not None else 0
-                with streams.failing_device(self._device):
+                with streams.failing_device():
                     images = self._jpeg_encoder().encode(rgb[:n], settings, stream)
                 self._count(n, source, t1 - t0, time.perf_counter() - t1)
                 return images

@@ -151,15 +151,16 @@ def resolve_executor(
             cores=max(1, machine.cores // engines),
         )
         return ExecutorChoice("processes", engines, reason, mps=per_gpu > 1, per_gpu=per_gpu)
-    if kind == "auto" and warp and len(machine.gpus) <= 1:
+    if kind == "auto" and warp and gpus <= 1:
         reason = ONE_GPU_REASON
         if spend_capped and use_mps:
             reason = "auto: a spend cap (limits.max_cost_usd) is kept exactly by one process"
         return ExecutorChoice("local", max_tasks or GPU_LOCAL_MAX_TASKS, reason)
     if kind == "auto" and warp and not spend_capped:
-        n = len(machine.gpus)
         return ExecutorChoice(
-            "processes", max_tasks or n, MULTI_GPU_REASON.format(n=n, cores=machine.cores // n)
+            "processes",
+            max_tasks or gpus,
+            MULTI_GPU_REASON.format(n=gpus, cores=machine.cores // gpus),
         )
     if kind == "auto" and spend_capped:
         return ExecutorChoice(

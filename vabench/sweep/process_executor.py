@@ -300,8 +300,8 @@ def run_processes(
     on_status: Callable[[Status], None] | None = None,
 ) -> dict[KeyTuple, dict[str, Any]]:
     """Run the pending episodes of `keys` in worker processes, the chosen executor's
-    `max_tasks` at once, on `choices`; return the ledger's records afterwards. `on_status` is
-    called about once a second."""
+    `max_tasks` at once (batched physics: every chunk of `plan_chunks` at once), on `choices`;
+    return the ledger's records afterwards. `on_status` is called about once a second."""
     run_dir = Path(run_dir).resolve()
     cells = pending_cells(keys, Ledger.open(run_dir).records)
     if not cells:

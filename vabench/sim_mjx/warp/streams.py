@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from vabench.sim_mjx.interface import DeviceFailure
+from vabench.sim_mjx.interface import device_failure
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ def queueing(
     does not wait for the one it replaces (`sync_enter=False`): batches and passes are
     independent, and a false dependency would serialise them again. An error inside that
     comes from a failed CUDA context is raised as `DeviceFailure` (`failing_device`)."""
-    with lock, wp.ScopedDevice(device), failing_device(device):
+    with lock, wp.ScopedDevice(device), failing_device():
         if stream is None:
             yield
         else:
@@ -55,25 +55,21 @@ def queueing(
 
 
 @contextlib.contextmanager
-def failing_device(device: wp.context.Device) -> Iterator[None]:
-    """Raise an error inside as `DeviceFailure` when the device's CUDA context has failed.
+def failing_device() -> Iterator[None]:
+    """Raise an error inside as `DeviceFailure` when a CUDA context of this process has failed.
 
     After a sticky CUDA error (an illegal memory access in any kernel of the process) every
     later call on the device fails: allocations ('Failed to allocate 4 bytes'), module loads,
     nvImageCodec. Recorded as each episode's harness error, one such error ended every episode
     of a sweep on an H100 in 26 s (2,160 records, none re-run by a resume; 2026-11-26). The
-    check (`context_error`) runs only once something has already failed."""
+    check (`interface.device_failure`: the context checks `device.device_lock` registered for
+    each device queued on) runs only once something has already failed."""
     try:
         yield
-    except DeviceFailure:
-        raise
     except Exception as err:
-        failure = context_error(device)
-        if failure is not None:
-            raise DeviceFailure(
-                f"the CUDA context of {device} failed ({failure}); first error here: "
-                f"{type(err).__name__}: {err}"
-            ) from err
+        failure = device_failure(err)
+        if failure is not None and failure is not err:
+            raise failure from err
         raise
 
 
@@ -193,7 +189,7 @@ def wait(event: wp.Event | None) -> None:
         wp.synchronize_event(event)
         return
     if not core.wp_cuda_event_synchronize(event.cuda_event):
-        with failing_device(event.device):
+        with failing_device():
             raise RuntimeError(
                 f"CUDA reported an error waiting for the GPU: {runtime.get_error_string()}"
             )
