@@ -53,6 +53,10 @@ def test_processes_equal_the_local_executor_and_a_rerun_runs_nothing(tmp_path, c
         assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     assert "cells 2/2 done (0 failed) | episodes recorded 4/4" in caplog.text
     assert records(out) == records(tmp_path / "local") and len(records(out)) == 4
+    # each worker's own INFO lines (lost before: a spawned process has no logging set up)
+    logs = "".join(p.read_text() for p in (out / "logs").glob("worker_*.log"))
+    for task in ("grasp_single_cube", "handover_horizontal_block"):
+        assert f"{task}: physics " in logs and "images" in logs  # the stage lines
     # summaries were learned once per family, in the cells' processes
     assert sorted(p.name for p in (out / "summaries" / "local").glob("*.json")) == [
         "grasp_single_cube.json",

@@ -23,6 +23,7 @@ directory name spelled anywhere else in vabench. docs/DESIGN.md, "Run directory"
     RUN_DIR/annotations/<annotator>.jsonl     judgments (`vabench.diagnostics.store`)
     RUN_DIR/report/                    report.md, report.html, <section>.md, <table>.csv,
                                        figures/*.png (`vabench.report.build`)
+    RUN_DIR/logs/worker_<pid>.log      an engine worker process's log (the processes executor)
 
 Paths are `Path`s; the one path recorded as text, the ledger's `episode_dir`, is
 `episode_rel`'s POSIX string relative to the run directory, so a run directory moved or mounted
@@ -47,6 +48,8 @@ EPISODES = "episodes"
 SUMMARIES = "summaries"
 ANNOTATIONS = "annotations"
 REPORT = "report"
+LOGS = "logs"
+WORKER_LOG_PREFIX = "worker_"
 
 EVENTS = "events.jsonl"
 RESULT = "result.json"
@@ -212,3 +215,11 @@ class RunDir:
     @property
     def report(self) -> Path:
         return self.path / REPORT
+
+    @property
+    def logs(self) -> Path:
+        return self.path / LOGS
+
+    def worker_log(self, pid: int) -> Path:
+        """The log of the engine worker process `pid` (its tasks' stage and host lines)."""
+        return self.logs / f"{WORKER_LOG_PREFIX}{pid}.log"

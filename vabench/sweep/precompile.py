@@ -7,28 +7,26 @@ fresh H100 the first episode waited 6.5 minutes (docs/PERFORMANCE.md, issue 33),
 runbook's 14 processes compiling the base families side by side took 147 s in all.
 
 `ensure_compiled` does it at the sweep's start, for the families not yet compiled for this
-code on this machine, in two phases:
+code on this machine: every family in a child process of its own, all side by side (at most one
+per core), each child in a few threads. A child first finds every module its family launches
+without running anything and loads them ahead (`warp_ahead.load_ahead`), then runs its family's
+expert for one seed in a batch of one slot (the reset's settle graphs, the action's device loop,
+the observation) and one image of it through the Warp renderer at the sweep's size, compiling
+whatever the first step missed, and exits.
 
-1. One family alone (the first), in a child process whose modules are found before any is
-   compiled and compiled side by side in one thread per core (`warp_ahead.load_ahead`).
-2. Every other family in a child process of its own, side by side (at most one per core).
-
-Each child then runs its family's expert for one seed in a batch of one slot (the reset's
-settle graphs, the action's device loop, the observation) and one image of it through the
-Warp renderer at the sweep's size (its render kernels), compiling whatever is not yet in
-Warp's cache, and exits.
-
-Why two phases: most of a family's modules are the same module (same hash, same entry in
-Warp's cache) in every family; a few are specialised on its scene. Measured on Warp's CPU
-device (the same module structure as CUDA; 2 shared cores, Warp 1.19, 2026-11-26): from an
-empty cache grasp_single_cube compiled 43 modules (89 s of compiles), then lift_pot found 40 of
-its 43 in that cache and compiled 3 (8 s), place_shoe 5 (11 s). Warp has no lock between
-processes: children started together from an empty cache each compile every shared module
-(the last rename wins), so the old single phase of 22 children on a fresh 16-core H100
-compiled ~22 x 43 modules where ~43 + 22 x 4 differ: "compiled 22 of 22 families in 310 s",
-first episode at 328 s (`configs/all.yaml`, 2026-11-26 22:21 UTC). Phase 1 compiles the
-shared modules once, in parallel threads; phase 2 only the scenes' own. Side by side on this
-CPU: `benchmarks/precompile.py` (docs/PERFORMANCE.md, issue 33).
+Most of a family's modules are the same module (same hash, same entry in Warp's cache) in every
+family; a few are specialised on its scene. Measured for CUDA (sm_90, NVRTC, which runs without
+a GPU) on this 2-core CPU, 2026-11-27, families in `configs/all.yaml`'s order in one cache:
+grasp_single_cube launches 42 modules (64 s of NVRTC, one of them, MuJoCo Warp's convex
+collision kernel, 31 s; 11 s of Warp's Python codegen), the next families 3-5 new ones each
+(2-6 s). Warp has no lock between processes: children started together from an empty cache
+each compiled every shared module (the last rename wins), so the first scheme's 22 children on
+a fresh 16-core H100 compiled ~22 x 43 modules: "compiled 22 of 22 families in 310 s", first
+episode at 328 s (2026-11-26). The children now share a folder of claims (a file lock per
+module): the first to reach a module compiles it, the others compile what nobody holds and
+then wait for the rest, reading it from the cache. (The scheme before this one compiled the
+first family alone in threads, then the rest side by side: 316-332 s on the H100, its first
+phase alone 133-142 s with ~1.2 cores busy, 2026-11-27.)
 
 A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by the Warp, MuJoCo Warp and
 vabench code, the GPU's architecture and the image size) says it was done; a file lock keeps
@@ -37,7 +35,9 @@ twice. A child that fails only costs the time: the sweep then compiles that fami
 before (its log names the family and the error); the first family's failure does not stop the
 second phase.
 
-`VABENCH_WARP_PRECOMPILE=0` turns it off. The two phases are not yet measured on a GPU.
+`VABENCH_WARP_PRECOMPILE=0` turns it off. The log's last line says, for all the children, how
+many modules they compiled and waited for, and the slowest child's seconds finding and loading
+its modules ahead and running its expert: where a fresh machine's minutes go.
 """
 
 from __future__ import annotations
@@ -49,14 +49,16 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from vabench.sweep.warp_ahead import compile_log, load_ahead
+from vabench.sweep.warp_ahead import Ahead, compile_log, load_ahead
 
 log = logging.getLogger(__name__)
 
@@ -128,31 +130,32 @@ def ensure_compiled(
         todo = missing(tasks, key, markers)
         if not todo:
             return []
-        workers = max(1, min(len(todo), processes or os.cpu_count() or 1))
+        cores = max(1, processes or os.cpu_count() or 1)
+        workers = min(len(todo), cores)
+        # Threads beyond the cores: a child's threads spend much of their time waiting (for
+        # Python's lock in Warp's codegen, for a module another child holds).
+        threads = max(2, -(-2 * cores // workers))
         log.info(
-            "compiling MuJoCo Warp's kernels for %d famil%s in %d processes (first run of this "
-            "code on this machine; cached for the next)",
+            "compiling MuJoCo Warp's kernels for %d famil%s in %d processes of %d threads "
+            "(first run of this code on this machine; cached for the next)",
             len(todo),
             "y" if len(todo) == 1 else "ies",
             workers,
+            threads,
         )
         started = time.monotonic()
         size = (width, height) if images else None
-        lead, rest = phases(todo)
-        # Phase 1: the modules every family shares, once, in threads; phase 2: the rest of
-        # each family (its scene's own modules) side by side, the shared ones now cached.
-        threads = max(1, processes or os.cpu_count() or 1)
-        errors = {lead: _child(lead, size, device, threads)}
-        log.info(
-            "phase 1: %s alone, its modules in %d threads, in %.0f s; phase 2: %d more",
-            lead,
-            threads,
-            time.monotonic() - started,
-            len(rest),
-        )
-        with ThreadPoolExecutor(workers) as pool:
-            done = pool.map(lambda t: _child(t, size, device, 1), rest)
-            errors.update(zip(rest, done, strict=True))
+        shared = Path(tempfile.mkdtemp(prefix="vabench-precompile-"))
+        claims, stats = shared / "claims", Path(os.environ.get(STATS_ENV) or shared / "stats")
+        claims.mkdir()
+        stats.mkdir(exist_ok=True)
+        try:
+            with ThreadPoolExecutor(workers) as pool:
+                done = pool.map(lambda t: _child(t, size, device, threads, claims, stats), todo)
+                errors = dict(zip(todo, done, strict=True))
+            summary = _summary(todo, stats)
+        finally:
+            shutil.rmtree(shared, ignore_errors=True)
         failed = [t for t, err in errors.items() if err]
         for task in todo:
             if task not in failed:
@@ -162,25 +165,51 @@ def ensure_compiled(
                 "precompile of %s failed (compiled by the sweep instead): %s", task, errors[task]
             )
         log.info(
-            "compiled %d of %d families in %.0f s",
+            "compiled %d of %d families in %.0f s%s",
             len(todo) - len(failed),
             len(todo),
             time.monotonic() - started,
+            summary,
         )
         return failed
 
 
-def phases(todo: Sequence[str]) -> tuple[str, list[str]]:
-    """The family compiled alone first (its modules shared by the others compiled once, in
-    threads) and those compiled side by side after it: the first, then the rest, in order."""
-    return todo[0], list(todo[1:])
+def _summary(families: Sequence[str], stats: Path) -> str:
+    """What the children reported (`STATS_ENV`): modules compiled and waited for, and the
+    slowest child's time, in words ("" if none reported)."""
+    reports = []
+    for family in families:
+        with contextlib.suppress(OSError, ValueError):
+            reports.append(json.loads((stats / f"{family}.json").read_text()))
+    if not reports:
+        return ""
+    slowest = max(reports, key=lambda r: r["s"])
+    return (
+        f": {sum(len(r['compiled']) for r in reports)} modules compiled "
+        f"({sum(r['compile_s'] for r in reports):.0f} s of compiling, summed over threads), "
+        f"{sum(r.get('waited', 0) for r in reports)} waited for; slowest {slowest['task']} "
+        f"{slowest['s']:.0f} s (modules ahead {slowest.get('ahead_s', 0):.0f} s, its expert "
+        f"and image {slowest['s'] - slowest.get('ahead_s', 0):.0f} s)"
+    )
 
 
-def _child(task: str, size: tuple[int, int] | None, device: str, threads: int) -> str | None:
-    """Compile one family in a child process (`threads` > 1: its modules loaded ahead in that
-    many threads): None, or the end of its output if it failed."""
+def _child(
+    task: str,
+    size: tuple[int, int] | None,
+    device: str,
+    threads: int,
+    claims: Path | None = None,
+    stats: Path | None = None,
+) -> str | None:
+    """Compile one family in a child process (its modules loaded ahead in `threads` threads,
+    sharing `claims` with the other children; its report written to `stats`): None, or the
+    end of its output if it failed."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "VABENCH_WARP_DEVICE": device}
+    if stats is not None:
+        env[STATS_ENV] = str(stats)
     command = [sys.executable, "-m", __name__, task, "--threads", str(threads)]
+    if claims is not None:
+        command += ["--claims", str(claims)]
     if size is not None:
         command += ["--size", f"{size[0]}x{size[1]}"]
     try:
@@ -194,11 +223,13 @@ def _child(task: str, size: tuple[int, int] | None, device: str, threads: int) -
     return None
 
 
-def compile_family(task_name: str, size: tuple[int, int] | None, threads: int = 1) -> None:
+def compile_family(
+    task_name: str, size: tuple[int, int] | None, threads: int = 1, claims: Path | None = None
+) -> Ahead:
     """In this process: one seed of the family's expert on Warp physics and (`size`) one
     image of its last state through the Warp renderer: every kernel a sweep of it launches.
-    `threads` > 1: the modules they launch are compiled first in that many threads
-    (`warp_ahead`)."""
+    `threads` > 1 or `claims`: the modules they launch are compiled first, in that many
+    threads, each by one of the processes sharing `claims` (`warp_ahead`)."""
     import numpy as np
 
     from vabench.render import camera as cam
@@ -210,12 +241,11 @@ def compile_family(task_name: str, size: tuple[int, int] | None, threads: int = 
     from vabench.tasks.task_batch import TaskBatch, run_experts
 
     task = REGISTRY[task_name]
-    if threads > 1:
-        load_ahead(task, size, threads)
+    ahead = load_ahead(task, size, threads, claims) if threads > 1 or claims else Ahead()
     batch = TaskBatch(task, 1, backend=Physics.WARP)
     run_experts(batch, verified_seeds(task_name)[:1])
     if size is None:
-        return
+        return ahead
     width, height = size
     view = batch.views([0])[0]
     gcs = {arm: view.arms[arm].gc for arm in task.arms}
@@ -227,6 +257,7 @@ def compile_family(task_name: str, size: tuple[int, int] | None, threads: int = 
     )
     with WarpRenderPool(max_size=(width, height)) as pool:
         pool.render(task_name, [item], ImageSettings(width, height), batch.batch)
+    return ahead
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -234,17 +265,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("task")
     parser.add_argument("--size", help="WxH of the images (none: physics only)")
     parser.add_argument("--threads", type=int, default=1, help="compile its modules ahead")
+    parser.add_argument("--claims", type=Path, help="a folder of claims shared by processes")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
     compiled: list[tuple[str, float]] = []
     started = time.monotonic()
     with compile_log(compiled):
-        compile_family(args.task, (width, height) if args.size else None, args.threads)
+        size = (width, height) if args.size else None
+        ahead = compile_family(args.task, size, args.threads, args.claims)
     if stats := os.environ.get(STATS_ENV):
         report = {
             "task": args.task,
             "compiled": [name for name, _ in compiled],
             "compile_s": sum(s for _, s in compiled),  # compiling, summed over threads
+            "waited": ahead.waited,
+            "ahead_s": ahead.s,
             "s": time.monotonic() - started,
         }
         (Path(stats) / f"{args.task}.json").write_text(json.dumps(report))

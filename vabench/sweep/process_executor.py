@@ -59,7 +59,7 @@ from vabench.children import (
     ignore_sigint,
 )
 from vabench.config import SweepConfig
-from vabench.run_layout import RESULTS
+from vabench.run_layout import RESULTS, RunDir
 from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
 from vabench.sweep import mps
 from vabench.sweep.cells import (
@@ -155,10 +155,13 @@ class LedgerWriter:
         return with_reports(status, reports, live, "worker processes")
 
 
-def _init_worker(parent_pid: int, lines: Any, counter: Any, gpus: tuple[str, ...]) -> None:
+def _init_worker(
+    parent_pid: int, lines: Any, counter: Any, gpus: tuple[str, ...], run_dir: str
+) -> None:
     global _lines
     ignore_sigint()  # the parent ends this process (vabench.children)
     _lines = lines
+    _worker_logging(RunDir(Path(run_dir)))
     with counter.get_lock():
         index = counter.value
         counter.value += 1
@@ -167,6 +170,22 @@ def _init_worker(parent_pid: int, lines: Any, counter: Any, gpus: tuple[str, ...
         os.environ["CUDA_VISIBLE_DEVICES"] = gpu
     # gone with its parent; its own children (render workers) see their pipes close and exit
     exit_with_parent(parent_pid)
+
+
+def _worker_logging(run: RunDir) -> None:
+    """A spawned worker starts with no logging set up: its tasks' INFO lines (stage lines,
+    "host:" lines, what the engine chose) go to its own file in the run directory, and its
+    warnings to the sweep's console too, as before."""
+    root = logging.getLogger()
+    with contextlib.suppress(OSError):
+        run.logs.mkdir(parents=True, exist_ok=True)
+        to_file = logging.FileHandler(run.worker_log(os.getpid()), encoding="utf-8")
+        to_file.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+        root.addHandler(to_file)
+    console = logging.StreamHandler()
+    console.setLevel(logging.WARNING)
+    root.addHandler(console)
+    root.setLevel(logging.INFO)
 
 
 def _send(name: str, record: dict[str, Any]) -> None:
@@ -354,7 +373,13 @@ def run_processes(
                     max_workers=workers,
                     mp_context=context,
                     initializer=_init_worker,
-                    initargs=(os.getpid(), lines, context.Value("i", 0), worker_gpus),
+                    initargs=(
+                        os.getpid(),
+                        lines,
+                        context.Value("i", 0),
+                        worker_gpus,
+                        str(run_dir),
+                    ),
                 )
                 futures = {
                     pool.submit(

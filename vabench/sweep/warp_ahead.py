@@ -16,6 +16,14 @@ the family's real run after it, as before. The batch built for it has CUDA graph
 captured while launches are skipped would be empty) and is thrown away; the step goes through
 MuJoCo Warp's functions, not the batch's methods.
 
+Several processes loading ahead at once (one per family, `precompile`) share the work through
+claims: a file lock per module in a folder they are given. A thread compiles a module only
+while it holds its claim; a module another process holds is set aside and, once every module
+this process could claim is done, waited for and then read from Warp's cache. So each module
+shared by families is compiled once, by whichever process reached it first, while the others
+compile the rest (Warp itself has no lock between processes: children started together from an
+empty cache each compiled every shared module, the last rename winning).
+
 `compile_log` records which modules a process compiled (those not found in Warp's cache): the
 precompile's children report them (`precompile.STATS_ENV`), so that a benchmark or a test can
 see that a module shared by families was compiled once.
@@ -24,11 +32,14 @@ see that a module shared by families was compiled once.
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import hashlib
 import logging
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -38,6 +49,15 @@ OWN_MODULES = "vabench."
 """vabench's own Warp modules (control, rows, the render pass's): loaded ahead whole."""
 
 Found = dict[tuple[int, str, Any], tuple[Any, Any, Any]]
+
+
+class Ahead(NamedTuple):
+    """What `load_ahead` did: modules loaded, how many of them it waited for (another process
+    held their claim), and its seconds."""
+
+    modules: int = 0
+    waited: int = 0
+    s: float = 0.0
 
 
 @contextlib.contextmanager
@@ -74,10 +94,13 @@ def recording(found: Found) -> Iterator[None]:
         wp.capture_while, wp.capture_if = loop, branch
 
 
-def load_ahead(task: Any, size: tuple[int, int] | None, threads: int) -> int:
+def load_ahead(
+    task: Any, size: tuple[int, int] | None, threads: int, claims: Path | None = None
+) -> Ahead:
     """Compile (or load from the cache) in `threads` threads every module that building a
     Warp batch of `task`, one physics step of it and, with `size`, one render pass of it would
-    launch, and vabench's own. Returns how many modules it loaded."""
+    launch, and vabench's own; with `claims`, a folder shared by processes doing the same for
+    other families, each module compiled by one of them (`claimed`)."""
     import warp as wp
     from warp._src import context
 
@@ -87,7 +110,7 @@ def load_ahead(task: Any, size: tuple[int, int] | None, threads: int) -> int:
     # `recording` patches it in turn: that patch wraps Warp's loader, not the recorder.
     if problem := warp_problem():
         log.info("load ahead: %s", problem)
-        return 0
+        return Ahead()
     device = wp.get_device(warp_device())
     started = time.monotonic()
     found: Found = {}
@@ -106,24 +129,77 @@ def load_ahead(task: Any, size: tuple[int, int] | None, threads: int) -> int:
     ]
 
     def load(job: tuple[Any, Any, Any] | Any) -> None:
+        if isinstance(job, tuple):
+            module, on, block_dim = job
+            module.load(on, block_dim)
+        else:  # a whole module at the block size a plain launch uses (Warp's rule)
+            wp.force_load(device, modules=[job], max_workers=0)
+
+    def claim(job: tuple[Any, Any, Any] | Any) -> str:
+        module, block_dim = (job[0], job[2]) if isinstance(job, tuple) else (job, None)
+        return f"{module.get_module_identifier(block_dim)}.{device.arch}"
+
+    jobs = [*launched, *own]
+    ahead = Ahead(len(jobs), claimed(jobs, load, claim, claims, threads))
+    ahead = ahead._replace(s=time.monotonic() - started)
+    log.info(
+        "loaded %d Warp modules ahead in %d threads in %.1f s (%d of them held by another "
+        "process, waited for)",
+        *(ahead.modules, threads, ahead.s, ahead.waited),
+    )
+    return ahead
+
+
+def claimed(
+    jobs: list[Any],
+    load: Callable[[Any], None],
+    claim: Callable[[Any], str],
+    claims: Path | None,
+    threads: int,
+) -> int:
+    """Run `load(job)` for every job in `threads` threads, each while holding the file lock
+    named `claim(job)` in `claims` (None: no locks): first every job whose lock is free (the
+    others set aside), then the set-aside ones, each after waiting for its lock (its holder,
+    another process, is compiling it: the load then finds it in Warp's cache). A failed load is
+    logged (only an optimisation: the real run compiles it). Returns how many jobs waited."""
+
+    def attempt(job: Any, wait: bool) -> bool:
+        name = getattr(job[0] if isinstance(job, tuple) else job, "name", str(job))
         try:
-            if isinstance(job, tuple):
-                module, on, block_dim = job
-                module.load(on, block_dim)
-            else:  # a whole module at the block size a plain launch uses (Warp's rule)
-                wp.force_load(device, modules=[job], max_workers=0)
+            with _holding(claims, claim(job) if claims else "", wait) as held:
+                if held:
+                    load(job)
+                return held
         except Exception as err:
-            log.info("load ahead: module %s failed (%s)", getattr(job, "name", job), err)
+            log.info("load ahead: module %s failed (%s)", name, err)
+            return True
 
     with ThreadPoolExecutor(max(1, threads)) as pool:
-        list(pool.map(load, [*launched, *own]))
-    log.info(
-        "loaded %d Warp modules ahead in %d threads in %.1f s",
-        len(launched) + len(own),
-        threads,
-        time.monotonic() - started,
-    )
-    return len(launched) + len(own)
+        done = list(pool.map(lambda job: attempt(job, False), jobs))
+        later = [job for job, ok in zip(jobs, done, strict=True) if not ok]
+        list(pool.map(lambda job: attempt(job, True), later))
+    return len(later)
+
+
+@contextlib.contextmanager
+def _holding(claims: Path | None, name: str, wait: bool) -> Iterator[bool]:
+    """Within: True while this thread holds the lock `name` in `claims` (always, without
+    `claims`); False at once if another holds it and not `wait`."""
+    if claims is None:
+        yield True
+        return
+    # A fixed-length file name: module identifiers can be long (Warp's "__locals__" names).
+    path = claims / (hashlib.sha256(name.encode()).hexdigest()[:32] + ".lock")
+    with open(path, "a") as handle:  # its own open file: flock excludes other threads too
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def _dry_calls(task: Any, size: tuple[int, int] | None) -> list[tuple[str, Callable[[], None]]]:
