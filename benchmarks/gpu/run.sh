@@ -164,12 +164,13 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
         > "$out/main_profile.txt" 2>&1
     fi
     cp "$run"/results.jsonl "$run"/infrastructure.jsonl "$run"/*.json "$out/" 2>/dev/null
+    [ -d "$run/logs" ] && cp -r "$run/logs" "$out/worker_logs"  # the engine workers' own lines
     nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
     # The device tool returns at most 8 files (a py-spy profile was lost to it on 2026-11-27):
     # all but the main ones go into main_extra.tgz.
     (cd "$out" && extra=$(ls | grep -v -x -E \
       'main.log|main_host.txt|main_util.txt|main_wall.txt|results.jsonl|pyspy.raw|main_extra.tgz') \
-      && [ -n "$extra" ] && tar czf main_extra.tgz $extra && rm -f $extra)
+      && [ -n "$extra" ] && tar czf main_extra.tgz $extra && rm -rf $extra)
     ;;
   streams)
     # Issue 33: what a CUDA stream (and a host thread) per task batch gains over one stream per
