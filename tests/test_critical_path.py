@@ -17,6 +17,10 @@ def test_the_longest_budget_is_the_critical_path_only_when_it_stands_out():
     assert critical_path_tasks({"a": 80, "b": 50}) == set()  # not twice as long
     assert critical_path_tasks({"a": 100, "b": 100, "c": 50}) == {"a", "b"}
     assert critical_path_tasks({"only": 250}) == set()
+    # against the median of the others, not the largest other (place_cube_on_cube's 200)
+    assert critical_path_tasks({"basket": 250, "pile": 200, "a": 50, "b": 50, "c": 100}) == {
+        "basket"
+    }
     assert critical_path_tasks({}) == set()
 
 
@@ -26,3 +30,17 @@ def test_only_the_warp_batch_is_asked_for_a_priority():
     assert "critical_path" not in options.batch_kwargs(Physics.WARP)
     for physics in (Physics.C, Physics.MJX_JAX):  # their batches take no such argument
         assert "critical_path" not in options.batch_kwargs(physics, critical_path=True)
+
+
+def test_the_shipped_config_puts_the_basket_on_the_critical_path():
+    """configs/all.yaml's budgets (the basket 250 steps, place_cube_on_cube 200, most 50-100):
+    the rule must find the basket there, where it ran 160 s after everything else (H100,
+    2026-11-27), or the executors never give it its own process and priority."""
+    from pathlib import Path
+
+    from vabench.config import load_config
+    from vabench.sweep.plan import plan
+
+    config = load_config(Path(__file__).parent.parent / "configs" / "all.yaml")
+    tasks = {key.task for key in plan(config)}
+    assert critical_path_tasks({t: config.budget(t) for t in tasks}) == {"put_everything_in_basket"}

@@ -187,9 +187,12 @@ def _summary(families: Sequence[str], stats: Path) -> str:
     return (
         f": {sum(len(r['compiled']) for r in reports)} modules compiled "
         f"({sum(r['compile_s'] for r in reports):.0f} s of compiling, summed over threads), "
-        f"{sum(r.get('waited', 0) for r in reports)} waited for; slowest {slowest['task']} "
-        f"{slowest['s']:.0f} s (modules ahead {slowest.get('ahead_s', 0):.0f} s, its expert "
-        f"and image {slowest['s'] - slowest.get('ahead_s', 0):.0f} s)"
+        f"{sum(r.get('waited', 0) for r in reports)} waited for, "
+        f"{sum(len(r.get('compiled_after', [])) for r in reports)} only in the experts' runs; "
+        f"slowest {slowest['task']} {slowest['s']:.0f} s (modules ahead "
+        f"{slowest.get('ahead_s', 0):.0f} s, its expert and image "
+        f"{slowest['s'] - slowest.get('ahead_s', 0):.0f} s, compiling "
+        f"{', '.join(slowest.get('compiled_after', [])[:8]) or 'nothing'} in it)"
     )
 
 
@@ -268,7 +271,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--claims", type=Path, help="a folder of claims shared by processes")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
-    compiled: list[tuple[str, float]] = []
+    compiled: list[tuple[str, float, float]] = []
     started = time.monotonic()
     with compile_log(compiled):
         size = (width, height) if args.size else None
@@ -276,8 +279,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if stats := os.environ.get(STATS_ENV):
         report = {
             "task": args.task,
-            "compiled": [name for name, _ in compiled],
-            "compile_s": sum(s for _, s in compiled),  # compiling, summed over threads
+            "compiled": [name for name, _, _ in compiled],
+            "compile_s": sum(s for _, s, _ in compiled),  # compiling, summed over threads
+            # compiled by the expert's run: modules the first step's launches did not name
+            "compiled_after": [name for name, _, end in compiled if end > ahead.ended],
             "waited": ahead.waited,
             "ahead_s": ahead.s,
             "s": time.monotonic() - started,

@@ -53,11 +53,12 @@ Found = dict[tuple[int, str, Any], tuple[Any, Any, Any]]
 
 class Ahead(NamedTuple):
     """What `load_ahead` did: modules loaded, how many of them it waited for (another process
-    held their claim), and its seconds."""
+    held their claim), its seconds, and when it ended (`time.monotonic()`)."""
 
     modules: int = 0
     waited: int = 0
     s: float = 0.0
+    ended: float = 0.0
 
 
 @contextlib.contextmanager
@@ -141,7 +142,7 @@ def load_ahead(
 
     jobs = [*launched, *own]
     ahead = Ahead(len(jobs), claimed(jobs, load, claim, claims, threads))
-    ahead = ahead._replace(s=time.monotonic() - started)
+    ahead = ahead._replace(s=time.monotonic() - started, ended=time.monotonic())
     log.info(
         "loaded %d Warp modules ahead in %d threads in %.1f s (%d of them held by another "
         "process, waited for)",
@@ -237,9 +238,9 @@ def _dry_calls(task: Any, size: tuple[int, int] | None) -> list[tuple[str, Calla
 
 
 @contextlib.contextmanager
-def compile_log(compiled: list[tuple[str, float]]) -> Iterator[None]:
-    """Within: (cache directory name, seconds) of each module this process compiles is
-    appended to `compiled` (a module found in Warp's cache is not)."""
+def compile_log(compiled: list[tuple[str, float, float]]) -> Iterator[None]:
+    """Within: (cache directory name, seconds, `time.monotonic()` at its end) of each module
+    this process compiles is appended to `compiled` (a module found in Warp's cache is not)."""
     import os
 
     from warp._src import context
@@ -252,7 +253,8 @@ def compile_log(compiled: list[tuple[str, float]]) -> Iterator[None]:
         if done:
             out = kwargs.get("output_dir", args[1] if len(args) > 1 else None)
             name = os.path.basename(str(out)) if out else module.name
-            compiled.append((name, time.monotonic() - started))
+            ended = time.monotonic()
+            compiled.append((name, ended - started, ended))
         return done
 
     context.Module._compile = logged  # type: ignore[method-assign,assignment]
