@@ -183,6 +183,11 @@ def test_the_experts_actions_replayed_through_the_engine_succeed(pool):
     assert r.progress == r.n_checkpoints == len(task.checkpoints)
     # the engine's per-step progress is the expert's, step for step
     assert [e["progress"] for e in run.of_type("action")] == [a["progress"] for a in expert.actions]
+    # stopped early (how the precompile runs only an expert's first actions): the same first
+    # actions, then "stopped"
+    [first] = run_experts(TaskBatch(task, 1, backend="c"), [SEED], max_steps=2)
+    assert (first.success, first.end, first.steps) == (False, "stopped after 2 steps", 2)
+    assert [a["action"] for a in first.actions] == actions[:2]
 
 
 def test_dual_arm_forms_reach_their_arm_and_camera_target(pool):

@@ -10,9 +10,9 @@ runbook's 14 processes compiling the base families side by side took 147 s in al
 code on this machine: every family in a child process of its own, all side by side (at most one
 per core), each child in a few threads. A child first finds every module its family launches
 without running anything and loads them ahead (`warp_ahead.load_ahead`), then runs its family's
-expert for one seed in a batch of one slot (the reset's settle graphs, the action's device loop,
-the observation) and one image of it through the Warp renderer at the sweep's size, compiling
-whatever the first step missed, and exits.
+expert's first few actions (`EXPERT_STEPS`) for one seed in a batch of one slot (the reset's
+settle graphs, the action's device loop, the observation) and one image of it through the Warp
+renderer at the sweep's size, compiling whatever the first step missed, and exits.
 
 Most of a family's modules are the same module (same hash, same entry in Warp's cache) in every
 family; a few are specialised on its scene. Measured for CUDA (sm_90, NVRTC, which runs without
@@ -36,8 +36,11 @@ before (its log names the family and the error); the first family's failure does
 second phase.
 
 `VABENCH_WARP_PRECOMPILE=0` turns it off. The log's last line says, for all the children, how
-many modules they compiled and waited for, and the slowest child's seconds finding and loading
-its modules ahead and running its expert: where a fresh machine's minutes go.
+many modules they compiled, waited for and compiled only after the first step, and the slowest
+child's seconds in each part (modules ahead, its batch, its expert, its image): where a fresh
+machine's minutes go. The first fresh H100 run of this scheme (2026-11-27, whole expert
+episodes then): 22 families in 293 s, 16 cores busy compiling for ~125 s, then the basket's
+child alone on one core for ~130 s.
 """
 
 from __future__ import annotations
@@ -67,6 +70,11 @@ STATS_ENV = "VABENCH_PRECOMPILE_STATS"
 """A folder: each child writes <family>.json there (the modules it compiled, the seconds spent
 compiling them, summed over its threads, and its wall seconds)."""
 CHILD_TIMEOUT_S = 900
+EXPERT_STEPS = 3
+"""The expert's actions a child runs: the first reset and actions launch every kernel an
+episode does (the kernels a step launches depend on the scene, not on the state); a whole
+episode only costs time (the basket's on a fresh H100: its child ran ~130 s on one core after
+the others had ended, 2026-11-27)."""
 
 
 def marker_dir() -> Path:
@@ -184,15 +192,14 @@ def _summary(families: Sequence[str], stats: Path) -> str:
     if not reports:
         return ""
     slowest = max(reports, key=lambda r: r["s"])
+    parts = ", ".join(f"{k} {v:.0f} s" for k, v in slowest.get("parts_s", {}).items())
     return (
         f": {sum(len(r['compiled']) for r in reports)} modules compiled "
         f"({sum(r['compile_s'] for r in reports):.0f} s of compiling, summed over threads), "
         f"{sum(r.get('waited', 0) for r in reports)} waited for, "
-        f"{sum(len(r.get('compiled_after', [])) for r in reports)} only in the experts' runs; "
-        f"slowest {slowest['task']} {slowest['s']:.0f} s (modules ahead "
-        f"{slowest.get('ahead_s', 0):.0f} s, its expert and image "
-        f"{slowest['s'] - slowest.get('ahead_s', 0):.0f} s, compiling "
-        f"{', '.join(slowest.get('compiled_after', [])[:8]) or 'nothing'} in it)"
+        f"{sum(len(r.get('compiled_after', [])) for r in reports)} only after the first step's; "
+        f"slowest {slowest['task']} {slowest['s']:.0f} s ({parts or 'no parts'}; compiling "
+        f"{', '.join(slowest.get('compiled_after', [])[:6]) or 'nothing'} after the first step)"
     )
 
 
@@ -228,11 +235,12 @@ def _child(
 
 def compile_family(
     task_name: str, size: tuple[int, int] | None, threads: int = 1, claims: Path | None = None
-) -> Ahead:
-    """In this process: one seed of the family's expert on Warp physics and (`size`) one
-    image of its last state through the Warp renderer: every kernel a sweep of it launches.
-    `threads` > 1 or `claims`: the modules they launch are compiled first, in that many
-    threads, each by one of the processes sharing `claims` (`warp_ahead`)."""
+) -> tuple[Ahead, dict[str, float]]:
+    """In this process: the family's expert for its first `EXPERT_STEPS` actions of one seed
+    on Warp physics and (`size`) one image of its last state through the Warp renderer: every
+    kernel a sweep of it launches. `threads` > 1 or `claims`: the modules they launch are
+    compiled first, in that many threads, each by one of the processes sharing `claims`
+    (`warp_ahead`). Returns what loading ahead did and each part's seconds."""
     import numpy as np
 
     from vabench.render import camera as cam
@@ -243,12 +251,23 @@ def compile_family(
     from vabench.tasks.manifests import verified_seeds
     from vabench.tasks.task_batch import TaskBatch, run_experts
 
+    seconds: dict[str, float] = {}
+    clock = time.monotonic()
+
+    def lap(part: str) -> None:
+        nonlocal clock
+        seconds[part] = round(time.monotonic() - clock, 2)
+        clock = time.monotonic()
+
     task = REGISTRY[task_name]
     ahead = load_ahead(task, size, threads, claims) if threads > 1 or claims else Ahead()
+    lap("ahead")
     batch = TaskBatch(task, 1, backend=Physics.WARP)
-    run_experts(batch, verified_seeds(task_name)[:1])
+    lap("batch")
+    run_experts(batch, verified_seeds(task_name)[:1], max_steps=EXPERT_STEPS)
+    lap("expert")
     if size is None:
-        return ahead
+        return ahead, seconds
     width, height = size
     view = batch.views([0])[0]
     gcs = {arm: view.arms[arm].gc for arm in task.arms}
@@ -260,7 +279,8 @@ def compile_family(
     )
     with WarpRenderPool(max_size=(width, height)) as pool:
         pool.render(task_name, [item], ImageSettings(width, height), batch.batch)
-    return ahead
+    lap("image")
+    return ahead, seconds
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -275,7 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = time.monotonic()
     with compile_log(compiled):
         size = (width, height) if args.size else None
-        ahead = compile_family(args.task, size, args.threads, args.claims)
+        ahead, seconds = compile_family(args.task, size, args.threads, args.claims)
     if stats := os.environ.get(STATS_ENV):
         report = {
             "task": args.task,
@@ -285,6 +305,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "compiled_after": [name for name, _, end in compiled if end > ahead.ended],
             "waited": ahead.waited,
             "ahead_s": ahead.s,
+            "parts_s": seconds,
             "s": time.monotonic() - started,
         }
         (Path(stats) / f"{args.task}.json").write_text(json.dumps(report))

@@ -360,11 +360,15 @@ class ExpertEpisode:
 
 
 def run_experts(
-    tb: TaskBatch, seeds: Sequence[int], slots: Sequence[int] | None = None
+    tb: TaskBatch,
+    seeds: Sequence[int],
+    slots: Sequence[int] | None = None,
+    max_steps: int | None = None,
 ) -> list[ExpertEpisode]:
     """Reset `slots` (default: the first len(seeds)) to `seeds` and run the family's expert in
     every slot in lockstep, one batched step per round, until each succeeds, gives up, or
-    exhausts the step budget. Seeds failing the reset gate are not run."""
+    exhausts the step budget (or `max_steps`, ending "stopped"). Seeds failing the reset gate
+    are not run."""
     slots = list(range(len(seeds))) if slots is None else list(slots)
     if len(seeds) > tb.n_slots or len(slots) != len(seeds):
         raise ValueError(f"{len(seeds)} seeds for {len(slots)} slots of {tb.n_slots}")
@@ -428,6 +432,10 @@ def run_experts(
                 continue
             if ep.steps >= tb.task.step_budget:
                 ep.end = "budget"
+                scripts.pop(slot)
+                continue
+            if max_steps is not None and ep.steps >= max_steps:
+                ep.end = f"stopped after {max_steps} steps"
                 scripts.pop(slot)
                 continue
             view = views[slot]
