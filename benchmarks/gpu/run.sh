@@ -149,6 +149,9 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
         echo "MPS asked for, but nvidia-cuda-mps-control is not on this image" | tee "$out/main_mps.txt"
       fi
     fi
+    # A fresh machine's precompile: each family's child's report (modules compiled, waited
+    # for, compiled after the first step; each part's seconds) comes back in main_extra.tgz.
+    export VABENCH_PRECOMPILE_STATS=$out/precompile_stats
     start=$EPOCHREALTIME
     timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep "$config" --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"

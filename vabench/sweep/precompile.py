@@ -156,7 +156,7 @@ def ensure_compiled(
         shared = Path(tempfile.mkdtemp(prefix="vabench-precompile-"))
         claims, stats = shared / "claims", Path(os.environ.get(STATS_ENV) or shared / "stats")
         claims.mkdir()
-        stats.mkdir(exist_ok=True)
+        stats.mkdir(parents=True, exist_ok=True)
         try:
             with ThreadPoolExecutor(workers) as pool:
                 done = pool.map(lambda t: _child(t, size, device, threads, claims, stats), todo)
@@ -197,7 +197,8 @@ def _summary(families: Sequence[str], stats: Path) -> str:
         f": {sum(len(r['compiled']) for r in reports)} modules compiled "
         f"({sum(r['compile_s'] for r in reports):.0f} s of compiling, summed over threads), "
         f"{sum(r.get('waited', 0) for r in reports)} waited for, "
-        f"{sum(len(r.get('compiled_after', [])) for r in reports)} only after the first step's; "
+        f"{sum(len(r.get('compiled_after', [])) for r in reports)} compiled only after the "
+        "first step; "
         f"slowest {slowest['task']} {slowest['s']:.0f} s ({parts or 'no parts'}; compiling "
         f"{', '.join(slowest.get('compiled_after', [])[:6]) or 'nothing'} after the first step)"
     )
