@@ -111,8 +111,10 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     spread first, and steps all of its tasks at once; nothing lost or doubled."""
     import dataclasses
 
+    from vabench.children import CORES_VARIABLE
+    from vabench.sim_mjx.warp.device import GPU_SHARE
     from vabench.sweep.cells import pending_cells
-    from vabench.sweep.process_executor import for_chunk, plan_chunks
+    from vabench.sweep.process_executor import for_chunk, plan_chunks, worker_shares
     from vabench.sweep.results import ledger_key
 
     text = CONFIG.format(executor="{kind: processes, max_tasks: 2}")
@@ -155,6 +157,9 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
             assert {k.track for k in part if k.task == task} == {"active", "passive"}
     flat = [ledger_key(k) for _, part in parts for k in part]
     assert sorted(flat) == sorted(ledger_key(k) for k in keys)
+    # each worker's share of the host and the GPU: the basket's own process is not counted
+    host = dataclasses.replace(batched, machine=dataclasses.replace(batched.machine, cores=16))
+    assert worker_shares(host, len(parts)) == {CORES_VARIABLE: "8", GPU_SHARE: "2"}
     alone = dataclasses.replace(
         batched, executor=dataclasses.replace(batched.executor, max_tasks=1)
     )

@@ -192,6 +192,9 @@ def _summary(families: Sequence[str], stats: Path) -> str:
     if not reports:
         return ""
     slowest = max(reports, key=lambda r: r["s"])
+    dry = sorted({f for r in reports for f in r.get("dry_failed", [])})
+    if dry:  # then the children compiled one module after another, in their runs
+        log.warning("precompile: finding the modules ahead failed: %s", "; ".join(dry[:3]))
     parts = ", ".join(f"{k} {v:.0f} s" for k, v in slowest.get("parts_s", {}).items())
     return (
         f": {sum(len(r['compiled']) for r in reports)} modules compiled "
@@ -291,6 +294,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="compile its modules ahead")
     parser.add_argument("--claims", type=Path, help="a folder of claims shared by processes")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
     compiled: list[tuple[str, float, float]] = []
     started = time.monotonic()
@@ -305,6 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             # compiled by the expert's run: modules the first step's launches did not name
             "compiled_after": [name for name, _, end in compiled if end > ahead.ended],
             "waited": ahead.waited,
+            "dry_failed": list(ahead.failed),
             "ahead_s": ahead.s,
             "parts_s": seconds,
             "s": time.monotonic() - started,

@@ -268,6 +268,23 @@ def plan_chunks(
     return alone + (bins(rest, workers, cost) if rest else [])
 
 
+def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
+    """The variables that size each of `workers` worker processes to its share: of its GPU
+    (`GPU_SHARE`: render passes) and of the host's cores (`CORES_VARIABLE`: the embedded
+    server's processes, JPEG threads). The critical path's process of its own (`plan_chunks`)
+    is not counted: its ~60 episodes need a fraction of what a quarter of the GPU's 1,024 do,
+    and counting it cut every worker of a 16-core H100 host from 4 cores to 3, below the 4 from
+    which the embedded server has processes of its own: the reference agent's replies were
+    then computed in the engine processes, and the warm suite slowed from 2,100 episodes at
+    248 s to 1,765 at 330 s (2026-11-27)."""
+    sharing = max(1, min(workers, choices.executor.max_tasks))
+    gpus = max(1, len(choices.machine.gpus))
+    return {
+        GPU_SHARE: str(math.ceil(sharing / gpus)),
+        CORES_VARIABLE: str(max(1, choices.machine.cores // sharing)),
+    }
+
+
 def for_chunk(choices: Choices, part: Sequence[EpisodeKey]) -> Choices:
     """The choices a worker runs `part` on: with batched physics (a chunk of whole tasks,
     `cells.bins`) every task of its chunk at once, one batch each; else the sweep's."""
@@ -331,11 +348,7 @@ def run_processes(
     # batched physics: every chunk at once (`plan_chunks` makes at most `max_tasks`, plus the
     # critical path's own)
     workers = len(parts) if choices.physics.batched else min(choices.executor.max_tasks, len(parts))
-    env = child_environment(choices.physics)
-    # Workers that share a GPU size their GPU buffers (render passes) to their share of it,
-    # and every worker sizes its pools (policy processes, JPEG threads) to its share of cores.
-    env[GPU_SHARE] = str(math.ceil(workers / max(1, len(machine.gpus))))
-    env[CORES_VARIABLE] = str(max(1, machine.cores // workers))
+    env = child_environment(choices.physics) | worker_shares(choices, workers)
     seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
         "processes: %d cells (%d episodes) in %d chunks, %d at once; workers run with %s%s",

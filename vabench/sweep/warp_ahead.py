@@ -59,6 +59,8 @@ class Ahead(NamedTuple):
     waited: int = 0
     s: float = 0.0
     ended: float = 0.0
+    failed: tuple[str, ...] = ()
+    """The dry calls that raised ("physics: ..."): their modules were not found."""
 
 
 @contextlib.contextmanager
@@ -115,12 +117,14 @@ def load_ahead(
     device = wp.get_device(warp_device())
     started = time.monotonic()
     found: Found = {}
+    failed: list[str] = []
     with recording(found), wp.ScopedDevice(device):
         for name, call in _dry_calls(task, size):
             try:
                 call()
             except Exception as err:  # only an optimisation: the real run compiles it
                 log.info("load ahead: %s failed (%s); the run compiles what it needs", name, err)
+                failed.append(f"{name}: {type(err).__name__}: {str(err)[:300]}")
     launched = list(found.values())
     seen = {id(module) for module, _, _ in launched}
     own = [
@@ -141,7 +145,7 @@ def load_ahead(
         return f"{module.get_module_identifier(block_dim)}.{device.arch}"
 
     jobs = [*launched, *own]
-    ahead = Ahead(len(jobs), claimed(jobs, load, claim, claims, threads))
+    ahead = Ahead(len(jobs), claimed(jobs, load, claim, claims, threads), failed=tuple(failed))
     ahead = ahead._replace(s=time.monotonic() - started, ended=time.monotonic())
     log.info(
         "loaded %d Warp modules ahead in %d threads in %.1f s (%d of them held by another "
