@@ -150,6 +150,23 @@ def test_a_recorded_launch_names_its_module_and_runs_nothing():
     assert out.numpy().tolist() == [7, 7, 7, 7]
 
 
+def test_a_recorded_occupancy_query_names_its_module_and_answers():
+    """MuJoCo Warp asks CUDA for a kernel's occupancy (`wp.get_suggested_block_size`) before
+    some launches; Warp's answer needs the module loaded, so while recording the query is
+    answered (and its module recorded) instead of raising and ending the dry step there."""
+    import warp as wp
+
+    from vabench.sweep import warp_ahead
+
+    found: warp_ahead.Found = {}
+    with warp_ahead.recording(found):
+        block, grid = wp.get_suggested_block_size(_fill_seven, "cpu")
+    assert block > 0 and grid > 0
+    assert [module for module, _, _ in found.values()] == [_fill_seven.module]
+    assert wp.get_suggested_block_size(_fill_seven, "cpu") == (1, 1)  # Warp's own again
+    assert len(found) == 1
+
+
 @pytest.mark.slow
 def test_shared_modules_compile_once(markers, tmp_path, monkeypatch):
     """Two families from an empty Warp cache, side by side: no module is compiled twice (the

@@ -68,14 +68,25 @@ def recording(found: Found) -> Iterator[None]:
     """Within: a launch records (module, device, block size) in `found` and launches nothing;
     a conditional loop runs its body once and a conditional both branches (outside a graph
     capture Warp runs them on the host while a flag on the device says so, and no launch
-    changes the flag)."""
+    changes the flag); a CUDA occupancy query (`wp.get_suggested_block_size`, which MuJoCo
+    Warp makes on CUDA devices before its broadphase, convex collision and solver launches)
+    records its kernel's module and answers a plausible size. Warp's own query raises when
+    the module does not load: on the H100 the first dry physics step ended at the broadphase,
+    and a fresh machine's precompile found almost none of the modules ahead (232 of 247
+    compiled only in the experts' runs, one after another, 2026-11-27)."""
     import warp as wp
     from warp._src import context  # the loader; no public hook exists
 
     load, loop, branch = context.Module.load, wp.capture_while, wp.capture_if
+    occupancy = wp.get_suggested_block_size
 
     def record(module: Any, device: Any = None, block_dim: Any = None, *_: Any, **__: Any) -> None:
         found.setdefault((id(module), str(device), block_dim), (module, device, block_dim))
+
+    def suggested(kernel: Any, device: Any = None) -> tuple[int, int]:
+        on = wp.get_device(device)
+        record(kernel.module, on, None)  # the query loads the module's default block size
+        return 256, max(1, int(getattr(on, "sm_count", 0) or 1))
 
     def once(condition: Any, while_body: Any, stream: Any = None, **kwargs: Any) -> None:
         if callable(while_body):
@@ -90,11 +101,13 @@ def recording(found: Found) -> Iterator[None]:
 
     context.Module.load = record  # type: ignore[method-assign,assignment]
     wp.capture_while, wp.capture_if = once, both
+    wp.get_suggested_block_size = suggested
     try:
         yield
     finally:
         context.Module.load = load  # type: ignore[method-assign]
         wp.capture_while, wp.capture_if = loop, branch
+        wp.get_suggested_block_size = occupancy
 
 
 def load_ahead(
