@@ -10,13 +10,16 @@ the other in this run:
 - old: one child process per family, all side by side (at most one per core), each compiling
   every module its family launches: the modules the families share are compiled by every child
   at once (Warp has no cross-process lock; the last rename wins);
-- new: `precompile.ensure_compiled` (the first family alone, its modules loaded ahead in
-  threads; then the rest side by side, finding the shared modules in the cache).
+- new: `precompile.ensure_compiled` (every family's child at once, its modules found and
+  loaded ahead in threads, each module compiled by whichever child claims it first; the
+  others wait for it and read it from the cache).
 
 Prints each scheme's wall time, the modules compiled in all and per family (each child reports
 them through `precompile.STATS_ENV`), and the ratio. On Warp's CPU device each child also
-steps its family's expert for a whole episode on the CPU (~40-80 s a family here), which the GPU
-does in seconds: the CPU ratio understates the GPU's; the module counts carry over.
+steps its family's expert's first actions (`precompile.EXPERT_STEPS`) on the CPU, which the
+GPU does in seconds: the CPU ratio understates the GPU's; the module counts carry over. (On
+Warp's CPU device MuJoCo Warp makes no CUDA occupancy queries: the bug that kept the first
+step from finding modules on a GPU, 2026-11-27, shows only there.)
 """
 
 from __future__ import annotations
