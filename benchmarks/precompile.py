@@ -18,8 +18,8 @@ Prints each scheme's wall time, the modules compiled in all and per family (each
 them through `precompile.STATS_ENV`), and the ratio. On Warp's CPU device each child also
 steps its family's expert's first actions (`precompile.EXPERT_STEPS`) on the CPU, which the
 GPU does in seconds: the CPU ratio understates the GPU's; the module counts carry over. (On
-Warp's CPU device MuJoCo Warp makes no CUDA occupancy queries: the bug that kept the first
-step from finding modules on a GPU, 2026-11-27, shows only there.)
+Warp's CPU device Warp answers MuJoCo Warp's occupancy queries without loading a module: the
+bug that kept the first step from finding modules on a GPU, 2026-11-27, shows only there.)
 """
 
 from __future__ import annotations

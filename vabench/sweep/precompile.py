@@ -32,8 +32,7 @@ A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by the Warp, MuJoC
 vabench code, the GPU's architecture and the image size) says it was done; a file lock keeps
 the processes of one machine (the processes executor's workers) from compiling the same family
 twice. A child that fails only costs the time: the sweep then compiles that family itself, as
-before (its log names the family and the error); the first family's failure does not stop the
-second phase.
+before (its log names the family and the error); one child's failure does not stop the others.
 
 `VABENCH_WARP_PRECOMPILE=0` turns it off. The log's last line says, for all the children, how
 many modules they compiled, waited for and compiled only after the first step, and the slowest
@@ -70,6 +69,8 @@ STATS_ENV = "VABENCH_PRECOMPILE_STATS"
 """A folder: each child writes <family>.json there (the modules it compiled, the seconds spent
 compiling them, summed over its threads, and its wall seconds)."""
 CHILD_TIMEOUT_S = 900
+REPORT_KEYS = {"task", "compiled", "compile_s", "s"}
+"""What every child's report has (`main`); the summary reads nothing else without a default."""
 EXPERT_STEPS = 3
 """The expert's actions a child runs: the first reset and actions launch every kernel an
 episode does (the kernels a step launches depend on the scene, not on the state); a whole
@@ -188,7 +189,9 @@ def _summary(families: Sequence[str], stats: Path) -> str:
     reports = []
     for family in families:
         with contextlib.suppress(OSError, ValueError):
-            reports.append(json.loads((stats / f"{family}.json").read_text()))
+            report = json.loads((stats / f"{family}.json").read_text())
+            if isinstance(report, dict) and report.keys() >= REPORT_KEYS:
+                reports.append(report)  # else a stale or foreign file: left out
     if not reports:
         return ""
     slowest = max(reports, key=lambda r: r["s"])
@@ -307,6 +310,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "compiled": [name for name, _, _ in compiled],
             "compile_s": sum(s for _, s, _ in compiled),  # compiling, summed over threads
             # compiled by the expert's run: modules the first step's launches did not name
+            # (every module it compiled, where nothing was loaded ahead)
             "compiled_after": [name for name, _, end in compiled if end > ahead.ended],
             "waited": ahead.waited,
             "dry_failed": list(ahead.failed),

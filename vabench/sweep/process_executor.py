@@ -177,9 +177,12 @@ def _worker_logging(run: RunDir) -> None:
     "host:" lines, what the engine chose) go to its own file in the run directory, and its
     warnings to the sweep's console too, as before."""
     root = logging.getLogger()
+    path = run.worker_log(os.getpid())
+    if any(getattr(h, "baseFilename", None) == str(path.resolve()) for h in root.handlers):
+        return  # set up already (an initializer run twice in one process)
     with contextlib.suppress(OSError):
         run.logs.mkdir(parents=True, exist_ok=True)
-        to_file = logging.FileHandler(run.worker_log(os.getpid()), encoding="utf-8")
+        to_file = logging.FileHandler(path, encoding="utf-8")
         to_file.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
         root.addHandler(to_file)
     console = logging.StreamHandler()

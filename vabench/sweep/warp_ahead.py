@@ -20,8 +20,9 @@ Several processes loading ahead at once (one per family, `precompile`) share the
 claims: a file lock per module in a folder they are given. A thread compiles a module only
 while it holds its claim; a module another process holds is set aside and, once every module
 this process could claim is done, waited for and then read from Warp's cache. So each module
-shared by families is compiled once, by whichever process reached it first, while the others
-compile the rest (Warp itself has no lock between processes: children started together from an
+found ahead and shared by families is compiled once, by whichever process reached it first,
+while the others compile the rest (one the dry calls miss is compiled by each run that
+launches it) (Warp itself has no lock between processes: children started together from an
 empty cache each compiled every shared module, the last rename winning).
 
 `compile_log` records which modules a process compiled (those not found in Warp's cache): the
@@ -49,6 +50,8 @@ OWN_MODULES = "vabench."
 """vabench's own Warp modules (control, rows, the render pass's): loaded ahead whole."""
 
 Found = dict[tuple[int, str, Any], tuple[Any, Any, Any]]
+BLOCKS_PER_SM = 8
+"""Resident 256-thread blocks per SM (2,048 threads on an H100): the recorded occupancy."""
 
 
 class Ahead(NamedTuple):
@@ -68,12 +71,15 @@ def recording(found: Found) -> Iterator[None]:
     """Within: a launch records (module, device, block size) in `found` and launches nothing;
     a conditional loop runs its body once and a conditional both branches (outside a graph
     capture Warp runs them on the host while a flag on the device says so, and no launch
-    changes the flag); a CUDA occupancy query (`wp.get_suggested_block_size`, which MuJoCo
-    Warp makes on CUDA devices before its broadphase, convex collision and solver launches)
-    records its kernel's module and answers a plausible size. Warp's own query raises when
-    the module does not load: on the H100 the first dry physics step ended at the broadphase,
-    and a fresh machine's precompile found almost none of the modules ahead (232 of 247
-    compiled only in the experts' runs, one after another, 2026-11-27)."""
+    changes the flag); an occupancy query on a CUDA device (`wp.get_suggested_block_size`,
+    which MuJoCo Warp makes before its broadphase, convex collision and solver launches)
+    records its kernel's module at the block size the query loads and answers a plausible
+    size (a whole H100's worth of 256-thread blocks; where the answer shapes a kernel, e.g.
+    under `deterministic`, the real run compiles its own variant). Warp's own query raises on
+    CUDA when the module does not load: on the H100 the first dry physics step ended at the
+    broadphase, and a fresh machine's precompile found almost none of the modules ahead (232
+    of 247 compiled only in the experts' runs, one after another, 2026-11-27). On the CPU
+    Warp answers (1, 1) without loading anything, and so does the recording."""
     import warp as wp
     from warp._src import context  # the loader; no public hook exists
 
@@ -84,9 +90,11 @@ def recording(found: Found) -> Iterator[None]:
         found.setdefault((id(module), str(device), block_dim), (module, device, block_dim))
 
     def suggested(kernel: Any, device: Any = None) -> tuple[int, int]:
-        on = wp.get_device(device)
-        record(kernel.module, on, None)  # the query loads the module's default block size
-        return 256, max(1, int(getattr(on, "sm_count", 0) or 1))
+        on = device if hasattr(device, "is_cuda") else wp.get_device(device)  # a Device or name
+        if not on.is_cuda:
+            return occupancy(kernel, on)
+        record(kernel.module, on, kernel.module.options["block_dim"])  # what the query loads
+        return 256, BLOCKS_PER_SM * max(1, int(getattr(on, "sm_count", 0) or 1))
 
     def once(condition: Any, while_body: Any, stream: Any = None, **kwargs: Any) -> None:
         if callable(while_body):
@@ -178,19 +186,24 @@ def claimed(
     """Run `load(job)` for every job in `threads` threads, each while holding the file lock
     named `claim(job)` in `claims` (None: no locks): first every job whose lock is free (the
     others set aside), then the set-aside ones, each after waiting for its lock (its holder,
-    another process, is compiling it: the load then finds it in Warp's cache). A failed load is
-    logged (only an optimisation: the real run compiles it). Returns how many jobs waited."""
+    another process, is compiling it: the load then finds it in Warp's cache). A job whose claim
+    cannot be named or locked loads without one. A failed load is logged (only an
+    optimisation: the real run compiles it). Returns how many jobs waited."""
 
     def attempt(job: Any, wait: bool) -> bool:
         name = getattr(job[0] if isinstance(job, tuple) else job, "name", str(job))
-        try:
-            with _holding(claims, claim(job) if claims else "", wait) as held:
-                if held:
+        with contextlib.ExitStack() as stack:
+            try:
+                held = stack.enter_context(_holding(claims, claim(job) if claims else "", wait))
+            except Exception as err:  # no claim (its hash, the folder, the lock): unclaimed
+                log.info("load ahead: no claim for module %s (%s)", name, err)
+                held = True
+            if held:
+                try:
                     load(job)
-                return held
-        except Exception as err:
-            log.info("load ahead: module %s failed (%s)", name, err)
-            return True
+                except Exception as err:
+                    log.info("load ahead: module %s failed (%s)", name, err)
+            return held
 
     with ThreadPoolExecutor(max(1, threads)) as pool:
         done = list(pool.map(lambda job: attempt(job, False), jobs))
@@ -211,7 +224,10 @@ def _holding(claims: Path | None, name: str, wait: bool) -> Iterator[bool]:
     with open(path, "a") as handle:  # its own open file: flock excludes other threads too
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+            got = True
         except BlockingIOError:
+            got = False
+        if not got:
             yield False
             return
         try:
