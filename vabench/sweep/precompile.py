@@ -39,7 +39,10 @@ many modules they compiled, waited for and compiled only after the first step, a
 child's seconds in each part (modules ahead, its batch, its expert, its image): where a fresh
 machine's minutes go. The first fresh H100 run of this scheme (2026-11-27, whole expert
 episodes then): 22 families in 293 s, 16 cores busy compiling for ~125 s, then the basket's
-child alone on one core for ~130 s.
+child alone on one core for ~130 s. The second (three actions): 232 s, and its report said
+why: 232 of 247 compiles came after the first step (92 distinct modules), because the dry
+step raised at MuJoCo Warp's first CUDA occupancy query; `warp_ahead.recording` now answers
+it (not yet measured on a GPU).
 """
 
 from __future__ import annotations
