@@ -34,7 +34,7 @@ def test_only_the_warp_batch_is_asked_for_a_priority():
 
 def test_the_shipped_config_puts_the_basket_on_the_critical_path():
     """configs/all.yaml's budgets (the basket 250 steps, place_cube_on_cube 200, most 50-100):
-    the rule must find the basket there, where it ran 160 s after everything else (H100,
+    the rule must find the basket there, where it ran ~150 s after everything else (H100,
     2026-11-27), or the executors never give it its own process and priority."""
     from pathlib import Path
 

@@ -18,15 +18,16 @@ Most of a family's modules are the same module (same hash, same entry in Warp's 
 family; a few are specialised on its scene. Measured for CUDA (sm_90, NVRTC, which runs without
 a GPU) on this 2-core CPU, 2026-11-27, families in `configs/all.yaml`'s order in one cache:
 grasp_single_cube launches 42 modules (64 s of NVRTC, one of them, MuJoCo Warp's convex
-collision kernel, 31 s; 11 s of Warp's Python codegen), the next families 3-5 new ones each
-(2-6 s). Warp has no lock between processes: children started together from an empty cache
-each compiled every shared module (the last rename wins), so the first scheme's 22 children on
-a fresh 16-core H100 compiled ~22 x 43 modules: "compiled 22 of 22 families in 310 s", first
-episode at 328 s (2026-11-26). The children now share a folder of claims (a file lock per
-module): the first to reach a module compiles it, the others compile what nobody holds and
-then wait for the rest, reading it from the cache. (The scheme before this one compiled the
-first family alone in threads, then the rest side by side: 316-332 s on the H100, its first
-phase alone 133-142 s with ~1.2 cores busy, 2026-11-27.)
+collision kernel, 31 s; 11 s of Warp's Python codegen), the next families 0-5 new ones each (up
+to 79 s where a scene needs its own convex collision kernel), the basket 17: 89 distinct
+modules, 317 s of NVRTC in all. Warp has no lock between processes: children started together
+from an empty cache each compiled every shared module (the last rename wins), so the first
+scheme's 22 children on a fresh 16-core H100 compiled ~22 x 43 modules: "compiled 22 of 22
+families in 310 s", first episode at 328 s (2026-11-26). The children now share a folder of
+claims (a file lock per module): the first to reach a module compiles it, the others compile
+what nobody holds and then wait for the rest, reading it from the cache. (The scheme before this
+one compiled the first family alone in threads, then the rest side by side: 316-332 s on the
+H100, its first phase alone 133-142 s with ~1.2 cores busy, 2026-11-27.)
 
 A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by the Warp, MuJoCo Warp and
 vabench code, the GPU's architecture and the image size) says it was done; a file lock keeps

@@ -178,7 +178,7 @@ def _worker_logging(run: RunDir) -> None:
     warnings to the sweep's console too, as before."""
     root = logging.getLogger()
     path = run.worker_log(os.getpid())
-    if any(getattr(h, "baseFilename", None) == str(path.resolve()) for h in root.handlers):
+    if any(getattr(h, "baseFilename", None) == os.path.abspath(path) for h in root.handlers):
         return  # set up already (an initializer run twice in one process)
     with contextlib.suppress(OSError):
         run.logs.mkdir(parents=True, exist_ok=True)

@@ -434,7 +434,7 @@ def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
     ~2.3 s a decision behind 21 other families and finished last, docs/PERFORMANCE.md). The
     median, not the largest other: `configs/all.yaml` also gives place_cube_on_cube 200 steps
     (its episodes still end in ~37 decisions), and against that the basket went unnoticed until
-    2026-11-27 (it then ended its run 160 s after everything else). Where budgets are alike,
+    2026-11-27 (it then ended its run ~150 s after everything else). Where budgets are alike,
     none: a priority for everyone is a priority for no one."""
     if not budgets:
         return set()

@@ -21,9 +21,9 @@ claims: a file lock per module in a folder they are given. A thread compiles a m
 while it holds its claim; a module another process holds is set aside and, once every module
 this process could claim is done, waited for and then read from Warp's cache. So each module
 found ahead and shared by families is compiled once, by whichever process reached it first,
-while the others compile the rest (one the dry calls miss is compiled by each run that
-launches it) (Warp itself has no lock between processes: children started together from an
-empty cache each compiled every shared module, the last rename winning).
+while the others compile the rest. (A module the dry calls miss is compiled by each run that
+launches it. Warp itself has no lock between processes: children started together from an
+empty cache each compiled every shared module, the last rename winning.)
 
 `compile_log` records which modules a process compiled (those not found in Warp's cache): the
 precompile's children report them (`precompile.STATS_ENV`), so that a benchmark or a test can
@@ -166,8 +166,9 @@ def load_ahead(
         return f"{module.get_module_identifier(block_dim)}.{device.arch}"
 
     jobs = [*launched, *own]
-    ahead = Ahead(len(jobs), claimed(jobs, load, claim, claims, threads), failed=tuple(failed))
-    ahead = ahead._replace(s=time.monotonic() - started, ended=time.monotonic())
+    waited = claimed(jobs, load, claim, claims, threads)
+    ended = time.monotonic()
+    ahead = Ahead(len(jobs), waited, ended - started, ended, tuple(failed))
     log.info(
         "loaded %d Warp modules ahead in %d threads in %.1f s (%d of them held by another "
         "process, waited for)",
