@@ -44,3 +44,20 @@ def test_the_shipped_config_puts_the_basket_on_the_critical_path():
     config = load_config(Path(__file__).parent.parent / "configs" / "all.yaml")
     tasks = {key.task for key in plan(config)}
     assert critical_path_tasks({t: config.budget(t) for t in tasks}) == {"put_everything_in_basket"}
+
+
+def test_a_worker_keeps_the_critical_path_its_parent_decided_for_the_whole_sweep():
+    """A processes worker sees only its chunk's tasks: among place_cube_on_cube's 200 steps and
+    others' 50 it would find a critical path of its own. The parent's decision stands, and
+    only for the tasks the worker has."""
+    from vabench.sweep.runner import sweep_critical_path
+
+    chunk = {"place_cube_on_cube": 200, "grasp_single_cube": 50, "lift_pot": 50}
+    assert sweep_critical_path(None, chunk) == {"place_cube_on_cube"}  # on its own
+    assert sweep_critical_path((), chunk) == set()  # the parent found the basket elsewhere
+    assert sweep_critical_path(("put_everything_in_basket",), chunk) == set()
+    basket = {"put_everything_in_basket": 250}
+    assert sweep_critical_path(None, basket) == set()  # alone, nothing to stand out from
+    assert sweep_critical_path(("put_everything_in_basket",), basket) == {
+        "put_everything_in_basket"
+    }

@@ -113,8 +113,15 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
 
     from vabench.children import CORES_VARIABLE
     from vabench.sim_mjx.warp.device import GPU_SHARE
+    from vabench.sweep import mps
     from vabench.sweep.cells import pending_cells
-    from vabench.sweep.process_executor import for_chunk, plan_chunks, worker_shares
+    from vabench.sweep.process_executor import (
+        critical_environment,
+        critical_tasks,
+        for_chunk,
+        plan_chunks,
+        worker_shares,
+    )
     from vabench.sweep.results import ledger_key
 
     text = CONFIG.format(executor="{kind: processes, max_tasks: 2}")
@@ -167,6 +174,26 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     four_tasks = [k for _, part in parts[1:] for k in part]
     assert for_chunk(batched, four_tasks).executor.max_tasks == 4  # every task of it at once
     assert for_chunk(batched, parts[0][1]).executor.max_tasks == 2  # never lowered
+    # the critical path as the parent found it, in every worker (each sees only its tasks)
+    critical = critical_tasks(config, cells, batched)
+    assert critical == {"put_everything_in_basket"}
+    for _, part in parts:
+        assert for_chunk(host, part, critical).executor.critical_path == (
+            "put_everything_in_basket",
+        )
+    # the basket's process: a normal MPS client with half the host's cores for its server;
+    # the others stay below normal with their share (the shared environment)
+    shared = worker_shares(host, len(parts)) | {mps.PRIORITY_VARIABLE: mps.BELOW_NORMAL}
+    assert critical_environment(host, shared, parts[0][1], critical) == {
+        mps.PRIORITY_VARIABLE: mps.NORMAL,
+        CORES_VARIABLE: "8",
+    }
+    for _, part in parts[1:]:
+        assert critical_environment(host, shared, part, critical) == {}
+    assert critical_tasks(config, cells, alone) == set()  # one process: nothing set apart
+    no_mps = dataclasses.replace(batched, executor=dataclasses.replace(batched.executor, mps=False))
+    assert critical_tasks(config, cells, no_mps) == set()
+    assert for_chunk(no_mps, parts[1][1]).executor.critical_path is None  # decided locally
 
     # C MuJoCo: cells cut as before, one (model, track, task) each at most
     cut = plan_chunks(config, cells, choices)

@@ -152,6 +152,13 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     # A fresh machine's precompile: each family's child's report (modules compiled, waited
     # for, compiled after the first step; each part's seconds) comes back in main_extra.tgz.
     export VABENCH_PRECOMPILE_STATS=$out/precompile_stats
+    # MAIN_KERNELS=1: every engine worker records MAIN_KERNELS_S (20) seconds of its GPU
+    # kernels from MAIN_KERNELS_AT (60) s after its start (CUPTI through PyTorch, which the
+    # image has: vabench/sweep/kernel_profile.py), summed into main_kernels.txt; not a timing run.
+    if [ -n "${MAIN_KERNELS:-}" ]; then
+      rm -rf /tmp/kern && export VABENCH_KERNEL_PROFILE=/tmp/kern \
+        VABENCH_KERNEL_PROFILE_AT=${MAIN_KERNELS_AT:-60} VABENCH_KERNEL_PROFILE_S=${MAIN_KERNELS_S:-20}
+    fi
     start=$EPOCHREALTIME
     timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep "$config" --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
@@ -161,6 +168,11 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     [ -n "${MAIN_MPS:-}" ] && command -v nvidia-cuda-mps-control >/dev/null \
       && echo quit | nvidia-cuda-mps-control
     grep -a " host" "$out/main.log" > "$out/main_host.txt"
+    # where each decision's time went (physics, images, model, engine), per task and over time
+    timeout 120 python3 benchmarks/episode_timeline.py "$run" --window 20 \
+      --t0 "$(head -1 "$out/main_util.txt" | cut -d' ' -f1)" > "$out/main_timeline.txt" 2>&1
+    [ -n "${MAIN_KERNELS:-}" ] && python3 -m vabench.sweep.kernel_profile /tmp/kern \
+      > "$out/main_kernels.txt" 2>&1
     if [ -n "${MAIN_PROFILE:-}" ]; then
       python3 -c "import glob, pstats; s = pstats.Stats(*glob.glob('/tmp/prof/*.prof'));
 s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)" \
@@ -172,7 +184,7 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     # The device tool returns at most 8 files (a py-spy profile was lost to it on 2026-11-27):
     # all but the main ones go into main_extra.tgz.
     (cd "$out" && extra=$(ls | grep -v -x -E \
-      'main.log|main_host.txt|main_util.txt|main_wall.txt|results.jsonl|pyspy.raw|main_extra.tgz') \
+      'main.log|main_host.txt|main_util.txt|main_wall.txt|results.jsonl|main_timeline.txt|main_kernels.txt|main_extra.tgz') \
       && [ -n "$extra" ] && tar czf main_extra.tgz $extra && rm -rf $extra)
     ;;
   streams)

@@ -45,6 +45,7 @@ WORKER_ENVIRONMENT = (
     "XLA_PYTHON_CLIENT_PREALLOCATE",
     "CUDA_VISIBLE_DEVICES",
     "VABENCH_CORES",
+    "CUDA_MPS_CLIENT_PRIORITY",
 )
 """What a worker reports of its environment (the choices made for processes started on a GPU
 host, `sweep.choices`)."""

@@ -125,6 +125,10 @@ class ExecutorChoice:
     """The processes executor runs a CUDA MPS daemon for its workers (`sweep.mps`)."""
     per_gpu: int = 1
     """Engine processes sharing each GPU (processes executor, batched physics on GPUs)."""
+    critical_path: tuple[str, ...] | None = None
+    """The tasks on the whole sweep's critical path, decided by the processes executor for its
+    workers (each sees only its chunk's tasks); None: a `LocalSweep` decides from the budgets
+    of its own tasks (`runner.critical_path_tasks`)."""
 
     @property
     def label(self) -> str:

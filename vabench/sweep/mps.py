@@ -46,6 +46,15 @@ LOG_VARIABLE = "CUDA_MPS_LOG_DIRECTORY"
 ENGINES_PER_GPU = 4
 """Engine processes per GPU under MPS with `executor: auto` (measured: 4 on one H100; more
 were not measured to completion: 8 processes hit the fault above within 10 s)."""
+PRIORITY_VARIABLE = "CUDA_MPS_CLIENT_PRIORITY"
+"""A client's priority under MPS, read when the process makes its CUDA context: "0" normal (the
+default), "1" below normal (NVIDIA's MPS documentation, "CUDA_MPS_CLIENT_PRIORITY"): the GPU
+runs a normal client's kernels ahead of those waiting from below-normal ones. The processes
+executor puts every engine process below normal but the critical path's
+(`process_executor.critical_environment`): on an H100 (2026-11-27) the basket's 60 episodes,
+alone in their process, took 1.7 s a decision, 0.49 s of it for a physics call and 0.28 s for
+a JPEG call whose kernels waited behind four other processes' (docs/PERFORMANCE.md)."""
+NORMAL, BELOW_NORMAL = "0", "1"
 DEFAULT_PIPE = Path("/tmp/nvidia-mps")
 """Where a daemon started without CUDA_MPS_PIPE_DIRECTORY listens (the machine's own)."""
 START_WAIT_S = 10.0

@@ -41,6 +41,7 @@ import concurrent.futures as cf
 import contextlib
 import cProfile
 import dataclasses
+import functools
 import logging
 import math
 import multiprocessing
@@ -48,7 +49,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +62,7 @@ from vabench.children import (
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS, RunDir
 from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
-from vabench.sweep import mps
+from vabench.sweep import kernel_profile, mps
 from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
     STATUS,
@@ -196,8 +197,16 @@ def _send(name: str, record: dict[str, Any]) -> None:
 
 
 def _run_cell_in_worker(
-    document: dict[str, Any], choices: Choices, run_dir: str, keys: Sequence[KeyTuple]
+    document: dict[str, Any],
+    choices: Choices,
+    run_dir: str,
+    keys: Sequence[KeyTuple],
+    environment: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
+    # before anything here makes a CUDA context (the MPS client priority is read then): with
+    # batched physics a worker runs one chunk, its first (`run_processes`)
+    os.environ.update(environment or {})
+    kernel_profile.record_in_background()  # where VABENCH_KERNEL_PROFILE asks for it
     folder = os.environ.get(PROFILE_VARIABLE)
     if not folder:
         return run_cell(document, choices, run_dir, keys, sink=_send)
@@ -253,22 +262,34 @@ def plan_chunks(
     episodes were the last unfinished at 332 s while four engine processes had recorded the
     other 2,100 by 302 s (docs/PERFORMANCE.md, "Fifth session")."""
 
-    def cost(task: str) -> int:
-        return config.budget(task) if task in REGISTRY else 1
-
+    cost = functools.partial(_cost, config)
     workers = choices.executor.max_tasks
     if not choices.physics.batched:
         return chunks(cells, min(workers, len(cells)), cost)
     groups = task_groups(cells)
-    shares_gpus = choices.executor.mps  # without MPS one engine process per GPU, no more
-    critical = (
-        critical_path_tasks({task: cost(task) for (task,) in groups})
-        if workers > 1 and shares_gpus
-        else set()
-    )
+    critical = critical_tasks(config, cells, choices)
     alone = [(task, keys) for (task,), keys in groups.items() if task in critical]
     rest = {group: keys for group, keys in groups.items() if group[0] not in critical}
     return alone + (bins(rest, workers, cost) if rest else [])
+
+
+def _cost(config: SweepConfig, task: str) -> int:
+    """A task's cost for dealing the plan: its step budget (a task the registry lacks fails in
+    its chunk)."""
+    return config.budget(task) if task in REGISTRY else 1
+
+
+def critical_tasks(
+    config: SweepConfig, cells: dict[Any, list[EpisodeKey]], choices: Choices
+) -> set[str]:
+    """The tasks of `cells` on the sweep's critical path (`runner.critical_path_tasks`) where
+    engine processes share GPUs under MPS (batched physics, several workers): each gets an
+    engine process of its own (`plan_chunks`), run ahead of the others
+    (`critical_environment`). Without MPS (one engine process per GPU): none."""
+    ex = choices.executor
+    if not (choices.physics.batched and ex.mps and ex.max_tasks > 1):
+        return set()
+    return critical_path_tasks({k[0]: _cost(config, k[0]) for k in task_groups(cells)})
 
 
 def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
@@ -288,15 +309,40 @@ def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
     }
 
 
-def for_chunk(choices: Choices, part: Sequence[EpisodeKey]) -> Choices:
+def for_chunk(
+    choices: Choices, part: Sequence[EpisodeKey], critical: Collection[str] = ()
+) -> Choices:
     """The choices a worker runs `part` on: with batched physics (a chunk of whole tasks,
-    `cells.bins`) every task of its chunk at once, one batch each; else the sweep's."""
+    `cells.bins`) every task of its chunk at once, one batch each, and under MPS the sweep's
+    critical path as the parent decided it (`critical`: a worker sees only its own tasks, and
+    among a chunk's 200-step place_cube_on_cube and 50-step others it would find one); else
+    the sweep's."""
+    ex = choices.executor
+    if not choices.physics.batched:
+        return choices
     tasks = len({k.task for k in part})
-    if not choices.physics.batched or tasks <= choices.executor.max_tasks:
+    decided = tuple(sorted(critical)) if ex.mps else ex.critical_path
+    if tasks <= ex.max_tasks and decided == ex.critical_path:
         return choices
     return dataclasses.replace(
-        choices, executor=dataclasses.replace(choices.executor, max_tasks=tasks)
+        choices,
+        executor=dataclasses.replace(ex, max_tasks=max(tasks, ex.max_tasks), critical_path=decided),
     )
+
+
+def critical_environment(
+    choices: Choices, shared: Mapping[str, str], part: Sequence[EpisodeKey], critical: set[str]
+) -> dict[str, str]:
+    """What the worker of `part` sets before it starts, beyond the environment `shared` by all
+    workers: for the critical path's process (a chunk of `critical` tasks), the MPS priority of
+    a normal client while every other worker's is below normal (`mps.PRIORITY_VARIABLE`), and
+    half the host's cores for its embedded server's processes (its ~60 episodes' replies of a
+    decision round were computed by 2 processes at ~32 ms each, up to ~1 s on the critical
+    path; docs/PERFORMANCE.md, "Seventh session"). Nothing for the other workers."""
+    if not critical or not {k.task for k in part} <= critical:
+        return {}
+    cores = max(int(shared.get(CORES_VARIABLE, "1")), choices.machine.cores // 2)
+    return {mps.PRIORITY_VARIABLE: mps.NORMAL, CORES_VARIABLE: str(cores)}
 
 
 def _gpu_sharing(stack: contextlib.ExitStack, choices: Choices) -> dict[str, str]:
@@ -352,6 +398,9 @@ def run_processes(
     # critical path's own)
     workers = len(parts) if choices.physics.batched else min(choices.executor.max_tasks, len(parts))
     env = child_environment(choices.physics) | worker_shares(choices, workers)
+    critical = critical_tasks(config, cells, choices)
+    if critical:  # every engine process below the critical path's on the GPU
+        env[mps.PRIORITY_VARIABLE] = mps.BELOW_NORMAL
     seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
         "processes: %d cells (%d episodes) in %d chunks, %d at once; workers run with %s%s",
@@ -401,9 +450,10 @@ def run_processes(
                     pool.submit(
                         _run_cell_in_worker,
                         document,
-                        for_chunk(choices, part),
+                        for_chunk(choices, part, critical),
                         str(run_dir),
                         [ledger_key(k) for k in part],
+                        critical_environment(choices, env, part, critical),
                     ): (name, part)
                     for name, part in todo
                 }

@@ -296,7 +296,7 @@ class LocalSweep:
         # they start as soon as there is room, instead of running alone at the end.
         budgets = {name: self.config.budget(name) for name in by_task}
         longest_first = sorted(by_task.items(), key=lambda kv: -budgets[kv[0]])
-        critical = critical_path_tasks(budgets)
+        critical = sweep_critical_path(self.choices.executor.critical_path, budgets)
         await asyncio.gather(*(one_task(n, ks, n in critical) for n, ks in longest_first))
 
     async def _run_task(
@@ -443,6 +443,15 @@ def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
     if not others or top < 2 * statistics.median(others):
         return set()
     return {name for name, b in budgets.items() if b == top}
+
+
+def sweep_critical_path(decided: Sequence[str] | None, budgets: dict[str, int]) -> set[str]:
+    """The tasks of `budgets` (this process's) on the critical path: those a parent decided for
+    the whole sweep (`ExecutorChoice.critical_path`, set by the processes executor for its
+    workers), else those `critical_path_tasks` finds among them."""
+    if decided is None:
+        return critical_path_tasks(budgets)
+    return set(decided) & set(budgets)
 
 
 def spend_caps(config: Any, run_dir: Path) -> SpendCaps | None:

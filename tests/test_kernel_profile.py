@@ -1,0 +1,56 @@
+"""The kernel profile's stages and report (the recording itself needs CUPTI on a GPU host:
+`benchmarks/gpu/run.sh main` with MAIN_KERNELS=1)."""
+
+from __future__ import annotations
+
+import json
+
+from vabench.sweep import kernel_profile as kp
+
+
+def test_kernels_are_put_in_their_stage_and_summed():
+    assert kp.stage_of("_place_cameras_3f2a_cuda_kernel_forward") == "render"
+    assert kp.stage_of("_compute_bvh_bounds_cuda_kernel_forward") == "render"
+    assert kp.stage_of("_solver_iteration_9ab_cuda_kernel_forward") == "physics"
+    assert kp.stage_of("Memcpy HtoD (Pinned -> Device)") == "copies"
+    assert kp.stage_of("void nvjpeg::encode_huffman<int>(...)") == "jpeg"
+    assert kp.stage_of("some_library_kernel") == "other"
+    out = kp.summarize(
+        {
+            "_solver_cuda_kernel_forward": (10, 3_000_000.0),
+            "render_megakernel_cuda_kernel_forward": (5, 1_000_000.0),
+            "Memcpy DtoH": (2, 500_000.0),
+        },
+        window_s=10.0,
+    )
+    assert out["gpu_s"] == 4.5
+    assert out["stages_s"] == {"physics": 3.0, "render": 1.0, "copies": 0.5}
+    assert list(out["kernels"]) == [
+        "_solver_cuda_kernel_forward",
+        "render_megakernel_cuda_kernel_forward",
+        "Memcpy DtoH",
+    ]
+
+
+def test_the_report_sums_every_process_and_names_a_failed_one(tmp_path):
+    for pid, us in ((1, 2_000_000.0), (2, 6_000_000.0)):
+        data = kp.summarize({"_solver_cuda_kernel_forward": (4, us)}, window_s=20.0)
+        (tmp_path / f"kernels_{pid}.json").write_text(json.dumps(data))
+    (tmp_path / "kernels_3.json").write_text(json.dumps({"error": "ModuleNotFoundError: torch"}))
+    text = kp.report(tmp_path.glob("kernels_*.json"))
+    assert "kernels_1.json: 2.00 s of kernels in 20 s (10% of the GPU's time" in text
+    assert "kernels_3.json: ModuleNotFoundError: torch" in text
+    assert "all: physics 8.00 s (100%)" in text
+    assert "8 calls" in text
+
+
+def test_a_window_is_recorded_only_where_asked_and_always_leaves_its_file(tmp_path):
+    assert kp.record_in_background({}) is None
+    env = {kp.FOLDER_VARIABLE: str(tmp_path), kp.AT_VARIABLE: "0", kp.SECONDS_VARIABLE: "0.01"}
+    thread = kp.record_in_background(env)
+    assert thread is not None
+    thread.join(timeout=60)
+    (path,) = tmp_path.glob("kernels_*.json")
+    data = json.loads(path.read_text())
+    assert data["at_s"] == 0.0
+    assert "error" in data or data["window_s"] == 0.01  # no CUPTI here: the reason instead
