@@ -130,6 +130,27 @@ def test_log_lines_print_above_the_live_table_not_through_it(capsys):
         root.level = level
 
 
+def test_a_call_count_that_goes_backwards_never_reads_as_a_negative_rate():
+    """An H100 processes sweep's last line read "calls -878.5/s": its call count fell from
+    millions to 0. A drop is left out of the rate (what the window counted either side of it
+    stays), and the rate is the true pace again once the window is past it."""
+    clock, out = Clock(), io.StringIO()
+    display = Display("all", live=False, every_s=10, out=out, clock=clock)
+    for t in range(0, 310, 10):  # 45 calls/s for five minutes
+        clock.now = t
+        display.update(status(t // 10, calls=45 * t))
+    for t in range(310, 420, 10):  # the count starts again from 0, at the same pace
+        clock.now = t
+        display.update(status(t // 10, calls=45 * (t - 310)))
+    rates = [float(r) for r in re.findall(r"calls (-?[\d.]+)/s", out.getvalue())]
+    assert len(rates) == 42 and min(rates) >= 0, rates
+    assert rates[31] > 30  # at the drop: the calls before it, not 0 and not negative
+    assert rates[-1] == 45.0  # the window is past the drop
+    clock.now = 430
+    display.close(status(43, calls=0))  # and a last line fallen to 0
+    assert "calls -" not in out.getvalue().splitlines()[-1]
+
+
 def _seconds(eta: str) -> int:
     """'1h03m' / '4m05s' / '12s' -> seconds."""
     m = re.fullmatch(r"(?:(\d+)h)?(?:(\d+)m)?(?:(\d+)s)?", eta)
@@ -283,3 +304,49 @@ def test_the_spend_shown_never_drops_below_the_ledgers_when_reporters_go_quiet()
     report |= {"in_flight": 4, "limit": 8, "reason": "r"}
     live = with_reports(ledger(), [report], [report], "engines")
     assert (live.calls, live.tokens, live.cost, live.calls_in_flight) == (20, 9000, 0.75, 3)
+
+
+def test_the_last_status_keeps_the_spend_shown_with_the_ledgers_final_counts(tmp_path):
+    """Once the processes have ended, the last line has every record's episode (none running)
+    and the spend of the last status shown: the workers' reports, above the ledger's records.
+    It was a fresh Tally's, whose spend starts at 0: "0 tokens" after 1.5 billion."""
+    keys = [EpisodeKey("m", "active", "t", seed, 1) for seed in range(4)]
+    ledger = tmp_path / "results.jsonl"
+    ledger.write_text(ledger_line(keys[0]))  # an earlier invocation's: not spent here
+    tally = Tally(tmp_path, keys)
+    with ledger.open("a") as f:
+        f.write(ledger_line(keys[1]) + ledger_line(keys[2], "failure"))
+    shown = Status(
+        {("m", "active"): Counts(planned=4, done=2, running=2)}, calls=30, tokens=5000, cost=0.2
+    )
+    shown.in_flight, shown.limit = 2, 4
+    last = tally.ended(shown)
+    total = last.total()
+    assert (total.done, total.success, total.running) == (3, 2, 0)
+    assert (last.calls, last.tokens, last.cost) == (30, 5000, 0.2)
+    assert last.in_flight is None and last.limit is None
+    # reporters that said less than the ledger holds (a Ray engine closed early): the ledger's
+    quiet = tally.ended(Status())
+    assert (quiet.calls, quiet.tokens, quiet.cost) == (8, 220, 0.02)
+
+
+def test_the_last_plain_line_of_a_processes_sweep_keeps_its_calls_and_tokens(tmp_path, capsys):
+    """`python -m vabench.sweep --plain` with the processes executor: the line printed once
+    every worker has ended shows the whole run's tokens (it read "0 tokens", and a negative
+    calls rate, on an H100)."""
+    cfg = tmp_path / "sweep.yaml"
+    cfg.write_text(CONFIG.format(executor="{kind: processes, max_tasks: 1}"))
+    out = tmp_path / "out"
+    args = [str(cfg), "--out", str(out), "--plain", "--no-report", "--progress-every", "0.5"]
+    assert main(args) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "progress: episodes" in line]
+    tokens = [int(m.group(1).replace(",", "")) for m in map(SPEND.search, lines) if m]
+    rates = [float(m.group(1)) for m in map(RATE.search, lines) if m]
+    assert len(tokens) == len(rates) == len(lines), lines
+    assert "episodes 5/5" in lines[-1] and "0 running" in lines[-1], lines[-1]
+    assert tokens[-1] > 0 and tokens[-1] == max(tokens), lines
+    assert min(rates) >= 0, lines
+
+
+SPEND = re.compile(r" ([\d,]+) tokens")
+RATE = re.compile(r"calls (-?[\d.]+)/s")

@@ -155,7 +155,8 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     if ctrl_c is None:
         ctrl_c = CtrlC()
         ctrl_c.install()
-    last: list[Status] = [Tally(run_dir, keys).status()]
+    tally = Tally(run_dir, keys)  # its spend: this invocation's records, for the last line
+    last: list[Status] = [tally.status()]
 
     def show(status: Status) -> None:
         last[0] = status
@@ -170,7 +171,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
 
             run_cells = run_ray if choices.executor.kind == "ray" else run_processes
             records = run_cells(config, keys, run_dir, choices, on_status=show)
-            last[0] = Tally(run_dir, keys).status()
+            last[0] = tally.ended(last[0])  # every record in, the workers' spend kept
         display.close(last[0])
         return _conclude(records, keys, run_dir, args.no_report)
     except Interrupted:

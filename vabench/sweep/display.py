@@ -20,7 +20,14 @@ left a copy of the table on screen: the first status block showed twice).
 Rates follow the sweep's current pace: calls per second over the last minute; the ETA's
 episodes per second over the last minute too, widened back to the last `ETA_MIN_EPISODES`
 finished episodes where the minute holds fewer (a small machine finishes a few per minute, in
-bursts, and over one minute its ETA swung between 1 and 7 hours).
+bursts, and over one minute its ETA swung between 1 and 7 hours). A call count that goes
+backwards (a reporter's spend lost with its process) is a drop the rate leaves out, never a
+negative pace: an H100 run's last line read "calls -878.5/s".
+
+The last line, once the processes or engines have ended, is `Tally.ended`: the ledger's final
+counts with the spend of the last status shown (their reports). A fresh `Tally`'s status, which
+it was before, counts the records already there as spent before this invocation: the last line
+of a processes sweep read "0 tokens" after 1.5 billion.
 """
 
 from __future__ import annotations
@@ -181,6 +188,18 @@ class Tally:
             cost=self.cost,
         )
 
+    def ended(self, last: Status) -> Status:
+        """The status once the sweep's processes have ended: the ledger's counts read now
+        (every line in, nothing running) with the spend of `last`, the last status shown,
+        which holds the processes' reports; never below the ledger's records of this
+        invocation."""
+        self.refresh()
+        status = self.status()
+        status.calls = max(status.calls, last.calls)
+        status.tokens = max(status.tokens, last.tokens)
+        status.cost = max(status.cost, last.cost)
+        return status
+
 
 def _duration(seconds: float) -> str:
     seconds = int(seconds)
@@ -232,8 +251,14 @@ class Display:
     # -- rates -----------------------------------------------------------------------------
     def _rates(self, done: int, calls: int) -> tuple[float, float]:
         """(episodes per second, calls per second) over the last `RATE_WINDOW_S`; the episodes'
-        window reaches back to the last `ETA_MIN_EPISODES` episodes where it holds fewer."""
+        window reaches back to the last `ETA_MIN_EPISODES` episodes where it holds fewer. Where
+        `calls` fell below the last count, the window's earlier counts fall by as much: the
+        rate is the calls counted either side of the drop, never negative."""
         now = self.clock()
+        if self._history and calls < self._history[-1][2]:
+            # a count gone backwards: the window keeps what it counted, without the drop
+            drop = self._history[-1][2] - calls
+            self._history = collections.deque((t, d, c - drop) for t, d, c in self._history)
         self._history.append((now, done, calls))
         while len(self._history) > 2 and now - self._history[1][0] >= RATE_WINDOW_S:
             self._history.popleft()
