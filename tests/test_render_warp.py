@@ -361,3 +361,47 @@ def test_a_gpu_host_without_nvimagecodec_is_told_what_it_costs(monkeypatch, capl
         "vabench[jpeg-cu13]" in r.getMessage() and "images/s" in r.getMessage()
         for r in caplog.records
     )
+
+
+def test_a_pass_s_idle_worlds_look_at_the_sky(cube_items):
+    """A pass is up to a third larger than its request (`pass_size`) and ray traces every
+    world: the idle ones look straight up from above the scene, so that no ray of theirs hits
+    anything (an idle camera at the origin looking down hit the floor in every pixel and cast
+    its shadow rays through the scene)."""
+    import math
+
+    import mujoco
+
+    from vabench.render.warp_pass import IDLE_CAMERA_HEIGHT, RenderPass, render_models
+    from vabench.tasks import get_task
+
+    os.environ["VABENCH_WARP_DEVICE"] = "cpu"
+    try:
+        import warp as wp
+
+        models = render_models(get_task(CUBE), SIZE.width, SIZE.height)
+        with wp.ScopedDevice("cpu"):
+            p = RenderPass(models, 3, SIZE.width, SIZE.height, device_jpeg=False)
+            p.draw(cube_items[:2], None)
+            wp.synchronize()
+            xpos, xmat = p.d.cam_xpos.numpy()[:, p.cam], p.d.cam_xmat.numpy()[:, p.cam]
+    finally:
+        os.environ.pop("VABENCH_WARP_DEVICE", None)
+    np.testing.assert_allclose(xpos[:2], [it.camera.pos for it in cube_items[:2]], atol=1e-5)
+    assert xpos[2][2] == IDLE_CAMERA_HEIGHT
+    m = models[0]
+    d = mujoco.MjData(m)
+    d.qpos[:] = cube_items[0].qpos
+    mujoco.mj_forward(m, d)
+    half = math.tan(math.radians(45.0) / 2)
+    aspect = SIZE.width / SIZE.height
+    geom = np.zeros(1, np.int32)
+    for sx in (-1, 0, 1):
+        for sy in (-1, 0, 1):
+            view = xmat[2] @ np.array([sx * half * aspect, sy * half, -1.0])
+            assert view[2] > 0  # up
+            hit = mujoco.mj_ray(m, d, xpos[2].astype(float), view.astype(float), None, 1, -1, geom)
+            assert hit < 0, f"an idle world's ray ({sx}, {sy}) hits geom {geom[0]}"
+    # a ray of an item's own camera does hit the scene (the check above can fail)
+    centre = xmat[0] @ np.array([0.0, 0.0, -1.0])
+    assert mujoco.mj_ray(m, d, xpos[0].astype(float), centre.astype(float), None, 1, -1, geom) > 0
