@@ -138,7 +138,9 @@ class RenderPass:
         # Its own stream (the renderer queues a pass there and waits for it with the device's
         # lock released: sim_mjx.warp.streams), and who is using it: one request at a time,
         # from queueing to the last JPEG; a pass in use is never evicted.
-        self.stream = streams.new_stream(self.d.qpos.device, high_priority)
+        self.stream = streams.new_stream(
+            self.d.qpos.device, "greatest" if high_priority else "least"
+        )
         if self.stream is not None:  # the arrays above were made on the device's current stream
             self.stream.wait_stream(wp.get_stream(self.d.qpos.device))
         self.lock = threading.Lock()

@@ -321,10 +321,10 @@ class WarpRenderPool:
                 done = streams.record(p.stream)
             streams.wait(done)
             t1 = time.perf_counter()
-            if rgb is not None:
-                stream = p.stream.cuda_stream if p.stream is not None else 0
+            if rgb is not None:  # its pixels are on the device: the wait above saw them
+                encoder, stream = self._jpeg_encoder(urgent)
                 with streams.failing_device():
-                    images = self._jpeg_encoder().encode(rgb[:n], settings, stream)
+                    images = encoder.encode(rgb[:n], settings, stream)
                 self._count(n, source, t1 - t0, time.perf_counter() - t1)
                 return images
             packed = p.packed(n)
@@ -344,14 +344,22 @@ class WarpRenderPool:
             self.stats.render_s += render_s
             self.stats.encode_s += encode_s
 
-    def _jpeg_encoder(self) -> gpu_jpeg.DeviceJpeg:
+    def _jpeg_encoder(self, urgent: bool) -> tuple[gpu_jpeg.DeviceJpeg, int]:
         """This thread's nvImageCodec encoder (one per thread: passes of several tasks encode
-        at once, and an encoder is not shared between threads)."""
-        encoder = getattr(self._encoders, "jpeg", None)
-        if encoder is None:
+        at once, and an encoder is not shared between threads) and the handle of this thread's
+        stream to encode on: above the passes' ray tracing in priority, the critical path's
+        highest (`streams.PRIORITIES`: each of the encode's small kernels waited behind the
+        pending blocks of other passes' megakernels, ~0.25 s a call for ~3 ms of kernels)."""
+        local = self._encoders
+        if getattr(local, "jpeg", None) is None:
             with self._lock_device:
-                encoder = self._encoders.jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
-        return encoder
+                local.jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+                local.streams = {
+                    u: streams.new_stream(self._device, "greatest" if u else "middle")
+                    for u in (False, True)
+                }
+        stream = local.streams[urgent]
+        return local.jpeg, stream.cuda_stream if stream is not None else 0
 
     # -- passes ----------------------------------------------------------------------------
     def _task_models(self, task: str) -> list[mujoco.MjModel]:

@@ -92,7 +92,8 @@ class WarpBatch(BatchBase):
     capture CUDA graphs (GPU only; off = launch kernel by kernel, for debugging). `loop`: see
     `graphs.LOOPS`. `critical_path`: this batch's episodes bound the sweep's wall time (the
     longest task's): its stream, and those of the render passes that read it, get the GPU's
-    highest priority.
+    highest priority; other batches' streams the middle one, ahead of the render passes' ray
+    tracing (`streams.PRIORITIES`).
     """
 
     def __init__(
@@ -121,7 +122,7 @@ class WarpBatch(BatchBase):
         self._event: wp.Event | None = None
         self.critical_path = critical_path
         with self.lock, wp.ScopedDevice(self.device):
-            self.stream = streams.new_stream(self.device, high_priority=critical_path)
+            self.stream = streams.new_stream(self.device, "greatest" if critical_path else "middle")
         with self._queued():
             self._build(n, arms, deterministic)
 

@@ -121,10 +121,38 @@ def context_error(device: wp.context.Device) -> str | None:
 CU_STREAM_NON_BLOCKING = 0x1
 
 
-def new_stream(device: wp.context.Device, high_priority: bool = False) -> wp.Stream | None:
-    """A non-blocking stream of its own on a CUDA device (None on the CPU); `high_priority`:
-    the device's highest stream priority, whose kernels' blocks the GPU schedules ahead of
-    pending blocks of other streams (for the work on the sweep's critical path).
+PRIORITIES = ("least", "middle", "greatest")
+"""The stream priorities the engine uses, within the device's range (`priority_value`):
+
+- least: the render passes' ray tracing. Its megakernel (one thread a pixel, ~50 ms a pass of
+  ~60 worlds at 1280x960) was 84 % of the engine processes' recorded GPU kernel time on an
+  H100 (2026-11-27), and a kernel of another stream waited behind its pending blocks;
+- middle: the physics batches' actions and the JPEG encodes, chains of small kernels whose
+  every link waited behind those blocks (a JPEG call of ~20 images took ~0.25 s of wall time
+  for ~3 ms of kernels, a physics call 0.5-1.5 s);
+- greatest: the sweep's critical path (`WarpBatch.critical_path`), physics and images alike.
+
+The GPU dispatches pending blocks of a higher-priority stream first (never preempting running
+ones), so a small kernel slips in beside a megakernel instead of after it; the total work is
+the same."""
+
+
+def priority_value(level: str, least: int, greatest: int) -> int:
+    """CUDA's priority number for `level` (one of `PRIORITIES`) on a device whose range is
+    `least` (CUDA's default, 0) to `greatest` (a smaller number: -5 on an H100): middle halfway,
+    rounded towards greatest (a range of two levels has no middle: greatest)."""
+    if level not in PRIORITIES:
+        raise ValueError(f"stream priority must be one of {PRIORITIES}, got {level!r}")
+    if level == "least":
+        return least
+    if level == "greatest":
+        return greatest
+    return least - (least - greatest + 1) // 2
+
+
+def new_stream(device: wp.context.Device, priority: str = "least") -> wp.Stream | None:
+    """A non-blocking stream of its own on a CUDA device (None on the CPU), at `priority`
+    (`PRIORITIES`).
 
     Non-blocking: work on CUDA's legacy default stream does not wait for it, nor it for that
     work. Warp makes blocking streams, and with them nvImageCodec's encodes (which synchronise
@@ -133,19 +161,20 @@ def new_stream(device: wp.context.Device, high_priority: bool = False) -> wp.Str
     CUDA error 901 in every launch of that capture: 729 episodes lost their harness on an
     H100, 2026-11-26). Made through the driver API and handed to Warp as an external stream;
     where the driver refuses, a blocking Warp stream (logged)."""
+    priority_value(priority, 0, -1)  # a bad level fails here, on every device
     if not device.is_cuda:
         return None
-    handle = _nonblocking_stream(device.context, high_priority)
+    handle = _nonblocking_stream(device.context, priority)
     if handle is None:
         log.warning("streams: the CUDA driver made no non-blocking stream; using a blocking one")
         return wp.Stream(device)
     return wp.Stream(device, cuda_stream=handle)
 
 
-def _nonblocking_stream(context: Any, high_priority: bool = False) -> int | None:
+def _nonblocking_stream(context: Any, priority: str = "least") -> int | None:
     """cuStreamCreateWithPriority(CU_STREAM_NON_BLOCKING) in `context` (Warp's primary context
-    of the device), at the default priority or the context's greatest; never destroyed: a
-    process makes a few dozen (one per batch and render pass)."""
+    of the device), at `priority` within the context's range (`priority_value`); never
+    destroyed: a process makes a few dozen (one per batch, render pass and encoding thread)."""
     try:
         cuda = ctypes.CDLL("libcuda.so.1")
     except OSError:
@@ -153,15 +182,13 @@ def _nonblocking_stream(context: Any, high_priority: bool = False) -> int | None
     if cuda.cuCtxPushCurrent_v2(ctypes.c_void_p(context)) != 0:
         return None
     try:
-        priority = 0  # CUDA's default; lower numbers are higher priorities
+        value = 0  # CUDA's default; lower numbers are higher priorities
         least, greatest = ctypes.c_int(), ctypes.c_int()
-        if high_priority and (
-            cuda.cuCtxGetStreamPriorityRange(ctypes.byref(least), ctypes.byref(greatest)) == 0
-        ):
-            priority = greatest.value
+        if cuda.cuCtxGetStreamPriorityRange(ctypes.byref(least), ctypes.byref(greatest)) == 0:
+            value = priority_value(priority, least.value, greatest.value)
         stream = ctypes.c_void_p()
         flags = ctypes.c_uint(CU_STREAM_NON_BLOCKING)
-        if cuda.cuStreamCreateWithPriority(ctypes.byref(stream), flags, priority) != 0:
+        if cuda.cuStreamCreateWithPriority(ctypes.byref(stream), flags, value) != 0:
             return None
         return stream.value
     finally:
