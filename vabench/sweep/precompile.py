@@ -7,12 +7,13 @@ fresh H100 the first episode waited 6.5 minutes (docs/PERFORMANCE.md, issue 33),
 runbook's 14 processes compiling the base families side by side took 147 s in all.
 
 `ensure_compiled` does it at the sweep's start, for the families not yet compiled for this
-code on this machine: every family in a child process of its own, all side by side (at most one
-per core), each child in a few threads. A child first finds every module its family launches
-without running anything and loads them ahead (`warp_ahead.load_ahead`), then runs its family's
-expert's first few actions (`EXPERT_STEPS`) for one seed in a batch of one slot (the reset's
-settle graphs, the action's device loop, the observation) and one image of it through the Warp
-renderer at the sweep's size, compiling whatever the first step missed, and exits.
+code on this machine: every family in a child process of its own, all side by side (up to
+`CHILDREN_PER_CORE` a core), each child in a few threads. A child first finds every module its
+family launches without running anything and loads them ahead (`warp_ahead.load_ahead`), then
+runs its family's expert's first few actions (`EXPERT_STEPS`) for one seed in a batch of one
+slot (the reset's settle graphs, the action's device loop, the observation) and one image of it
+through the Warp renderer at the sweep's size, compiling whatever the first step missed, and
+exits.
 
 Most of a family's modules are the same module (same hash, same entry in Warp's cache) in every
 family; a few are specialised on its scene. Measured for CUDA (sm_90, NVRTC, which runs without
@@ -43,7 +44,11 @@ episodes then): 22 families in 293 s, 16 cores busy compiling for ~125 s, then t
 child alone on one core for ~130 s. The second (three actions): 232 s, and its report said
 why: 232 of 247 compiles came after the first step (92 distinct modules), because the dry
 step raised at MuJoCo Warp's first CUDA occupancy query; `warp_ahead.recording` now answers
-it (not yet measured on a GPU).
+it. With that fixed (H100, 2026-11-27): 158 s and 170 s, 92 modules compiled once each, none
+after the first step; but in two waves, 16 children (one a core) of ~85 s each, then the other
+6 (up to 41 s), with 1.7 cores busy and the GPU idle in the second wave's tail: most of a
+child's time is waiting for modules other children hold, and every child waits for the
+largest (~60-80 s of NVRTC). All the families' children now start at once.
 """
 
 from __future__ import annotations
@@ -75,6 +80,10 @@ compiling them, summed over its threads, and its wall seconds)."""
 CHILD_TIMEOUT_S = 900
 REPORT_KEYS = {"task", "compiled", "compile_s", "s"}
 """What every child's report has (`main`); the summary reads nothing else without a default."""
+CHILDREN_PER_CORE = 2
+"""The most children a core: enough for the 22 families of `configs/all.yaml` at once on a
+16-core host (a child mostly waits for modules others hold; one a core ran them in two waves,
+the second ~40 s longer on an H100); a 2-core machine runs 4."""
 EXPERT_STEPS = 3
 """The expert's actions a child runs: the first reset and actions launch every kernel an
 episode does (the kernels a step launches depend on the scene, not on the state); a whole
@@ -143,11 +152,7 @@ def ensure_compiled(
         todo = missing(tasks, key, markers)
         if not todo:
             return []
-        cores = max(1, processes or os.cpu_count() or 1)
-        workers = min(len(todo), cores)
-        # Threads beyond the cores: a child's threads spend much of their time waiting (for
-        # Python's lock in Warp's codegen, for a module another child holds).
-        threads = max(2, -(-2 * cores // workers))
+        workers, threads = children(len(todo), max(1, processes or os.cpu_count() or 1))
         log.info(
             "compiling MuJoCo Warp's kernels for %d famil%s in %d processes of %d threads "
             "(first run of this code on this machine; cached for the next)",
@@ -185,6 +190,15 @@ def ensure_compiled(
             summary,
         )
         return failed
+
+
+def children(families: int, cores: int) -> tuple[int, int]:
+    """(child processes, threads each) for `families` on `cores`: every family at once up to
+    `CHILDREN_PER_CORE` a core; threads beyond the cores, since a child's threads spend much of
+    their time waiting (for Python's lock in Warp's codegen, for a module another child
+    holds)."""
+    workers = max(1, min(families, CHILDREN_PER_CORE * cores))
+    return workers, max(2, -(-2 * cores // workers))
 
 
 def _summary(families: Sequence[str], stats: Path) -> str:
