@@ -61,3 +61,27 @@ def test_a_worker_keeps_the_critical_path_its_parent_decided_for_the_whole_sweep
     assert sweep_critical_path(("put_everything_in_basket",), basket) == {
         "put_everything_in_basket"
     }
+
+
+def test_the_critical_path_is_dealt_over_batches_of_its_own_where_physics_is_batched():
+    """One batch runs one action at a time: the basket's 60 episodes drifted into ~3 groups
+    waiting for each other's calls. With batched physics its episodes go to up to three
+    batches, every third key to each; nothing lost, doubled or moved to another task."""
+    from vabench.sweep.runner import CRITICAL_LANES, task_lanes
+
+    basket = [("basket", seed, run) for seed in range(20) for run in (1, 2, 3)]
+    cube = [("cube", seed, 1) for seed in range(40)]
+    tasks = [("basket", basket), ("cube", cube)]
+    lanes = task_lanes(tasks, {"basket"}, batched=True)
+    assert [name for name, _ in lanes] == ["basket"] * CRITICAL_LANES + ["cube"]
+    assert [len(keys) for _, keys in lanes] == [20, 20, 20, 40]
+    assert sorted(k for _, keys in lanes[:3] for k in keys) == sorted(basket)
+    assert lanes[0][1][:2] == [basket[0], basket[3]]  # dealt key by key in turn
+    assert lanes[3] == ("cube", cube)
+    assert task_lanes(tasks, {"basket"}, batched=False) == tasks  # C MuJoCo: one per slot anyway
+    assert task_lanes(tasks, set(), batched=True) == tasks
+    few = [("basket", basket[:25])]  # lanes of at least 10 episodes
+    assert [len(keys) for _, keys in task_lanes(few, {"basket"}, batched=True)] == [13, 12]
+    assert task_lanes([("basket", basket[:15])], {"basket"}, batched=True) == [
+        ("basket", basket[:15])
+    ]

@@ -340,3 +340,23 @@ def test_each_engines_time_is_accounted_and_logged(cluster, tmp_path, caplog):
         ), lines
     total = [m.getMessage() for m in caplog.records if "ray: engine time" in m.getMessage()]
     assert len(total) == 1 and "over 2 engines" in total[0]
+
+
+def test_engines_are_told_the_whole_sweeps_critical_path(tmp_path):
+    """Each chunk runs in a LocalSweep of its own tasks: the basket's chunks, alone, would
+    find nothing to stand out from, and its batches never got the GPU's first priority."""
+    from vabench.sweep.ray_plan import with_critical_path
+    from vabench.sweep.runner import sweep_critical_path
+
+    choices = choose(load_config(write(tmp_path / "ray.yaml", "{kind: ray}")))
+    budgets = {"put_everything_in_basket": 250, "place_cube_on_cube": 200, "a": 50, "b": 50}
+    told = with_critical_path(choices, budgets)
+    assert told.executor.critical_path == ("put_everything_in_basket",)
+    assert choices.executor.critical_path is None  # the command's choices are left alone
+    # what an engine's chunk then runs with: the basket's alone, and a chunk of others
+    path = told.executor.critical_path
+    assert sweep_critical_path(path, {"put_everything_in_basket": 250}) == {
+        "put_everything_in_basket"
+    }
+    assert sweep_critical_path(path, {"place_cube_on_cube": 200, "a": 50}) == set()
+    assert with_critical_path(choices, {"a": 50, "b": 50}).executor.critical_path == ()

@@ -32,6 +32,7 @@ from vabench.sweep.ray_plan import (
     EngineHandle,
     engine_environment,
     engine_plan,
+    with_critical_path,
 )
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.tasks import REGISTRY
@@ -85,6 +86,9 @@ class ClusterSweep:
         # <= 10 slots per engine, stepped one after the other, made 1.1 episodes/s).
         self.batched = self.choices.physics.batched
         units = task_groups(cells) if self.batched else cells
+        if self.batched:  # where batches have stream priorities
+            budgets = {key[0]: cost(key[0]) for key in units}
+            self.choices = with_critical_path(self.choices, budgets)
         parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
         self.queue: collections.deque[Chunk] = collections.deque(
             Chunk(name, [ledger_key(k) for k in part], cost(part[0].task)) for name, part in parts

@@ -11,7 +11,7 @@ import math
 import os
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ from vabench.config import SweepConfig
 from vabench.sim_mjx.warp.device import GPU_SHARE
 from vabench.sweep.cells import KeyTuple
 from vabench.sweep.choices import Choices, for_engines
+from vabench.sweep.runner import critical_path_tasks
 
 CHUNKS_PER_ENGINE = 8
 """Chunks per engine the plan is cut into: enough that engines finish close together."""
@@ -79,6 +80,16 @@ def engine_environment(config: SweepConfig, cores: int, gpu_share: int = 1) -> d
         if name and os.environ.get(name):
             env[name] = os.environ[name]
     return env
+
+
+def with_critical_path(choices: Choices, budgets: Mapping[str, int]) -> Choices:
+    """The engines' `choices` with the whole sweep's critical path (`runner.critical_path_tasks`
+    over every task's step budget, `budgets`): each chunk runs in a `LocalSweep` of its own
+    tasks, and the basket's chunks, alone, would find nothing to stand out from (so its batches
+    never had the GPU's highest stream priority; the same was found in the processes executor
+    on an H100, 2026-11-27)."""
+    critical = tuple(sorted(critical_path_tasks(dict(budgets))))
+    return replace(choices, executor=replace(choices.executor, critical_path=critical))
 
 
 @dataclass
