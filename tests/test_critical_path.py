@@ -73,15 +73,18 @@ def test_the_critical_path_is_dealt_over_batches_of_its_own_where_physics_is_bat
     cube = [("cube", seed, 1) for seed in range(40)]
     tasks = [("basket", basket), ("cube", cube)]
     lanes = task_lanes(tasks, {"basket"}, batched=True)
-    assert [name for name, _ in lanes] == ["basket"] * CRITICAL_LANES + ["cube"]
-    assert [len(keys) for _, keys in lanes] == [20, 20, 20, 40]
-    assert sorted(k for _, keys in lanes[:3] for k in keys) == sorted(basket)
-    assert lanes[0][1][:2] == [basket[0], basket[3]]  # dealt key by key in turn
-    assert lanes[3] == ("cube", cube)
-    assert task_lanes(tasks, {"basket"}, batched=False) == tasks  # C MuJoCo: one per slot anyway
-    assert task_lanes(tasks, set(), batched=True) == tasks
+    assert [name for name, _ in lanes] == ["basket", "cube"]  # one task gate each
+    basket_lanes = lanes[0][1]
+    assert len(basket_lanes) == CRITICAL_LANES
+    assert [len(keys) for keys in basket_lanes] == [20, 20, 20]
+    assert sorted(k for keys in basket_lanes for k in keys) == sorted(basket)
+    assert basket_lanes[0][:2] == [basket[0], basket[3]]  # dealt key by key in turn
+    assert lanes[1] == ("cube", [cube])
+    one_each = [("basket", [basket]), ("cube", [cube])]
+    assert task_lanes(tasks, {"basket"}, batched=False) == one_each  # C MuJoCo
+    assert task_lanes(tasks, set(), batched=True) == one_each
     few = [("basket", basket[:25])]  # lanes of at least 10 episodes
-    assert [len(keys) for _, keys in task_lanes(few, {"basket"}, batched=True)] == [13, 12]
+    assert [len(k) for k in task_lanes(few, {"basket"}, batched=True)[0][1]] == [13, 12]
     assert task_lanes([("basket", basket[:15])], {"basket"}, batched=True) == [
-        ("basket", basket[:15])
+        ("basket", [basket[:15]])
     ]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 
 import pytest
 from PIL import Image
@@ -132,4 +133,5 @@ def test_the_critical_path_in_lanes_of_its_own_records_every_episode_once(
     assert all(r["error"] is None and r["steps_used"] == 2 for r in records)
     stage_lines = [m for m in caplog.messages if m.startswith("grasp_single_cube: physics")]
     assert len(stage_lines) == 2  # two lanes of 10, a batch each
-    assert all("at most 10)" in line for line in stage_lines)
+    most = [int(n) for line in stage_lines for n in re.findall(r"at most (\d+)\)", line)]
+    assert most and max(most) <= 10  # no call of either batch served more than its lane

@@ -51,7 +51,8 @@ class DeviceJpeg:
         self, frames: Any, settings: ImageSettings, cuda_stream: int | None = 0
     ) -> list[bytes]:
         """`frames`: anything indexable whose items expose `__cuda_array_interface__` (a Warp
-        array of shape (n, H, W, 3)); `cuda_stream`: the handle of the stream that wrote them.
+        array of shape (n, H, W, 3)), complete or written by earlier work on `cuda_stream` (the
+        handle of the stream the encode runs on; it returns once that stream has caught up).
         Warp reports the default stream's handle as None (a NULL pointer through ctypes), which
         nvImageCodec refuses: it is stream 0 to CUDA (every episode of a sweep on an H100 failed
         on it before this)."""

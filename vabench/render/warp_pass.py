@@ -57,12 +57,12 @@ def _unpack_rgb(packed: wp.array2d(dtype=wp.uint32), width: int, rgb: wp.array4d
 
 
 IDLE_CAMERA_HEIGHT = 100.0
-"""Metres above the table where a pass's idle worlds (beyond its request's items) look
-straight up: every world of a pass is ray traced, and an idle camera left at the origin looking
-down hit the floor in every pixel and cast a shadow ray through the scene, as costly as an
-image. Looking up, a ray leaves the scene's bounds at once and reads the sky. The render
-megakernel was 84 % of the engine processes' GPU kernel time (H100, 2026-11-27) and a pass is up
-to a third larger than its request (`pass_size`)."""
+"""Metres above the world's origin (the floor) where a pass's idle worlds (beyond its
+request's items) look straight up: every world of a pass is ray traced, and an idle camera left
+at the origin looking down hit the floor in every pixel and cast a shadow ray through the
+scene, as costly as an image. Looking up, a ray leaves the scene's bounds at once and reads
+the sky. The render megakernel was 84 % of the engine processes' GPU kernel time (H100,
+2026-11-27) and a pass is up to a third larger than its request (`pass_size`)."""
 IDLE_CAMERA_ROT = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
 """A camera looks along its -z axis: this frame's -z is the world's +z (up)."""
 

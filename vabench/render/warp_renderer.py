@@ -358,14 +358,14 @@ class WarpRenderPool:
         pending blocks of other passes' megakernels, ~0.25 s a call for ~3 ms of kernels)."""
         local = self._encoders
         if getattr(local, "jpeg", None) is None:
+            local.jpeg = {}
+        if urgent not in local.jpeg:  # an encoder a stream: nvJPEG's state follows its stream
             with self._lock_device:
-                local.jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
-                local.streams = {
-                    u: streams.new_stream(self._device, "greatest" if u else "middle")
-                    for u in (False, True)
-                }
-        stream = local.streams[urgent]
-        return local.jpeg, stream.cuda_stream if stream is not None else 0
+                stream = streams.new_stream(self._device, "greatest" if urgent else "middle")
+                encoder = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+            local.jpeg[urgent] = (encoder, stream.cuda_stream if stream is not None else 0)
+        encoder, handle = local.jpeg[urgent]
+        return encoder, handle
 
     # -- passes ----------------------------------------------------------------------------
     def _task_models(self, task: str) -> list[mujoco.MjModel]:
@@ -428,8 +428,9 @@ class WarpRenderPool:
                 return built
 
     def _kept(self, task, n_worlds, settings, owner=0) -> RenderPass | None:
-        """A kept pass that serves `n_worlds` images of `task` for `owner` (0: any request; a
-        critical-path batch's id: its own) (the caller holds the pool's lock). One of up to
+        """A kept pass that serves `n_worlds` images of `task` for `owner` (0: shared by every
+        request off the critical path; a critical-path batch's id: its own) (the caller holds
+        the pool's lock). One of up to
         twice the worlds serves too (the extra worlds are traced for nothing): under a tight
         budget, building a pass per request size would churn."""
         kept = [

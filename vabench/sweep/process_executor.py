@@ -203,9 +203,30 @@ def _run_cell_in_worker(
     keys: Sequence[KeyTuple],
     environment: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
-    # before anything here makes a CUDA context (the MPS client priority is read then): with
-    # batched physics a worker runs one chunk, its first (`run_processes`)
-    os.environ.update(environment or {})
+    # Before anything here makes a CUDA context, which reads the MPS client priority: with
+    # batched physics every chunk is submitted at once, one a worker, but the pool does not
+    # promise it (a worker whose chunk failed at once may take another): then say so. Put
+    # back afterwards, so that a later chunk of this process runs as the sweep's others.
+    global _chunks_run
+    environment = dict(environment or {})
+    if environment and _chunks_run:
+        log.warning(
+            "processes: the critical path's chunk runs in a worker that ran %d chunk(s) before: "
+            "its CUDA context exists, so its MPS priority is that of the others",
+            _chunks_run,
+        )
+    _chunks_run += 1
+    with _environment(environment):
+        return _run_chunk(document, choices, run_dir, keys)
+
+
+_chunks_run = 0
+"""Chunks this worker process was given (`_run_cell_in_worker`)."""
+
+
+def _run_chunk(
+    document: dict[str, Any], choices: Choices, run_dir: str, keys: Sequence[KeyTuple]
+) -> dict[str, Any]:
     kernel_profile.record_in_background()  # where VABENCH_KERNEL_PROFILE asks for it
     folder = os.environ.get(PROFILE_VARIABLE)
     if not folder:
@@ -279,17 +300,26 @@ def _cost(config: SweepConfig, task: str) -> int:
     return config.budget(task) if task in REGISTRY else 1
 
 
+def sweep_critical_path(
+    config: SweepConfig, cells: dict[Any, list[EpisodeKey]], choices: Choices
+) -> set[str]:
+    """The tasks of `cells` on the whole sweep's critical path (`runner.critical_path_tasks`)
+    where physics is batched (each worker is told it: `for_chunk`); none otherwise."""
+    if not choices.physics.batched:
+        return set()
+    return critical_path_tasks({k[0]: _cost(config, k[0]) for k in task_groups(cells)})
+
+
 def critical_tasks(
     config: SweepConfig, cells: dict[Any, list[EpisodeKey]], choices: Choices
 ) -> set[str]:
-    """The tasks of `cells` on the sweep's critical path (`runner.critical_path_tasks`) where
-    engine processes share GPUs under MPS (batched physics, several workers): each gets an
-    engine process of its own (`plan_chunks`), run ahead of the others
-    (`critical_environment`). Without MPS (one engine process per GPU): none."""
+    """The critical path's tasks that get an engine process of their own (`plan_chunks`), run
+    ahead of the others (`critical_environment`): where engine processes share GPUs under MPS
+    (batched physics, several workers). Without MPS (one engine process per GPU): none."""
     ex = choices.executor
-    if not (choices.physics.batched and ex.mps and ex.max_tasks > 1):
+    if not (ex.mps and ex.max_tasks > 1):
         return set()
-    return critical_path_tasks({k[0]: _cost(config, k[0]) for k in task_groups(cells)})
+    return sweep_critical_path(config, cells, choices)
 
 
 def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
@@ -313,15 +343,16 @@ def for_chunk(
     choices: Choices, part: Sequence[EpisodeKey], critical: Collection[str] = ()
 ) -> Choices:
     """The choices a worker runs `part` on: with batched physics (a chunk of whole tasks,
-    `cells.bins`) every task of its chunk at once, one batch each, and under MPS the sweep's
-    critical path as the parent decided it (`critical`: a worker sees only its own tasks, and
-    among a chunk's 200-step place_cube_on_cube and 50-step others it would find one); else
-    the sweep's."""
+    `cells.bins`) every task of its chunk at once, one batch each (its lanes,
+    `runner.task_lanes`, sharing one of them), and the sweep's critical path as the parent
+    decided it (`critical`, `sweep_critical_path`: a worker sees only its own tasks, and among
+    a chunk's 200-step place_cube_on_cube and 50-step others it would find one); else the
+    sweep's."""
     ex = choices.executor
     if not choices.physics.batched:
         return choices
     tasks = len({k.task for k in part})
-    decided = tuple(sorted(critical)) if ex.mps else ex.critical_path
+    decided = tuple(sorted(critical))
     if tasks <= ex.max_tasks and decided == ex.critical_path:
         return choices
     return dataclasses.replace(
@@ -336,9 +367,10 @@ def critical_environment(
     """What the worker of `part` sets before it starts, beyond the environment `shared` by all
     workers: for the critical path's process (a chunk of `critical` tasks), the MPS priority of
     a normal client while every other worker's is below normal (`mps.PRIORITY_VARIABLE`), and
-    half the host's cores for its embedded server's processes (its ~60 episodes' replies of a
-    decision round were computed by 2 processes at ~32 ms each, up to ~1 s on the critical
-    path; docs/PERFORMANCE.md, "Seventh session"). Nothing for the other workers."""
+    half the host's cores (`CORES_VARIABLE`: its embedded server's processes, JPEG threads;
+    its ~60 episodes' replies of a decision round were computed by 2 processes at ~32 ms each,
+    up to ~1 s on the critical path; docs/PERFORMANCE.md, "Seventh session"). Nothing for the
+    other workers."""
     if not critical or not {k.task for k in part} <= critical:
         return {}
     cores = max(int(shared.get(CORES_VARIABLE, "1")), choices.machine.cores // 2)
@@ -398,9 +430,10 @@ def run_processes(
     # critical path's own)
     workers = len(parts) if choices.physics.batched else min(choices.executor.max_tasks, len(parts))
     env = child_environment(choices.physics) | worker_shares(choices, workers)
-    critical = critical_tasks(config, cells, choices)
+    critical = critical_tasks(config, cells, choices)  # in a process of its own
     if critical:  # every engine process below the critical path's on the GPU
         env[mps.PRIORITY_VARIABLE] = mps.BELOW_NORMAL
+    decided = sweep_critical_path(config, cells, choices)  # told to every worker
     seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
         "processes: %d cells (%d episodes) in %d chunks, %d at once; workers run with %s%s",
@@ -450,7 +483,7 @@ def run_processes(
                     pool.submit(
                         _run_cell_in_worker,
                         document,
-                        for_chunk(choices, part, critical),
+                        for_chunk(choices, part, decided),
                         str(run_dir),
                         [ledger_key(k) for k in part],
                         critical_environment(choices, env, part, critical),

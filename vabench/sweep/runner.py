@@ -290,16 +290,21 @@ class LocalSweep:
             by_task[k.task].append(k)
         task_gate = asyncio.Semaphore(self.choices.executor.max_tasks)
 
-        async def one_task(name: str, task_keys: list[Any], critical: bool) -> None:
-            async with task_gate:
+        async def one_task(name: str, lanes: list[list[Any]], critical: bool) -> None:
+            async with task_gate:  # one of `max_tasks`, whatever its lanes
                 if self.stopped is not None:
                     return
-                try:
-                    await self._run_task(name, task_keys, llm, pool, image, critical)
-                except Exception as err:  # e.g. a task's batch built on a failed GPU context
-                    failure = device_failure(err)
+                ran = await asyncio.gather(
+                    *(self._run_task(name, ks, llm, pool, image, critical) for ks in lanes),
+                    return_exceptions=True,
+                )
+                for err in ran:  # every lane ends before any error is raised
+                    if not isinstance(err, BaseException):
+                        continue
+                    # e.g. a task's batch built on a failed GPU context
+                    failure = device_failure(err) if isinstance(err, Exception) else None
                     if failure is None:
-                        raise
+                        raise err
                     self._stop_device(failure)
 
         # Longest episodes first (the basket's 250-step budget before the base families'):
@@ -308,7 +313,7 @@ class LocalSweep:
         longest_first = sorted(by_task.items(), key=lambda kv: -budgets[kv[0]])
         critical = sweep_critical_path(self.choices.executor.critical_path, budgets)
         lanes = task_lanes(longest_first, critical, self.choices.physics.batched)
-        await asyncio.gather(*(one_task(n, ks, n in critical) for n, ks in lanes))
+        await asyncio.gather(*(one_task(n, parts, n in critical) for n, parts in lanes))
 
     async def _run_task(
         self,
@@ -467,17 +472,18 @@ def sweep_critical_path(decided: Sequence[str] | None, budgets: dict[str, int]) 
 
 def task_lanes(
     tasks: Sequence[tuple[str, list[Any]]], critical: set[str], batched: bool
-) -> list[tuple[str, list[Any]]]:
-    """The simulator batches a round runs, in order: one per task, except that with batched
-    physics a task on the critical path is dealt over up to `CRITICAL_LANES` batches of at
-    least `MIN_LANE_EPISODES` episodes, dealt key by key in turn."""
-    out: list[tuple[str, list[Any]]] = []
+) -> list[tuple[str, list[list[Any]]]]:
+    """Each task of a round, in order, with its simulator batches' keys: one batch, except
+    that with batched physics a task on the critical path is dealt over up to
+    `CRITICAL_LANES` batches of at least `MIN_LANE_EPISODES` episodes, key by key in turn. A
+    task's lanes run at once and take one of the sweep's `max_tasks` between them."""
+    out: list[tuple[str, list[list[Any]]]] = []
     for name, keys in tasks:
         lanes = min(CRITICAL_LANES, len(keys) // MIN_LANE_EPISODES) if batched else 1
         if name not in critical or lanes < 2:
-            out.append((name, keys))
-            continue
-        out.extend((name, keys[i::lanes]) for i in range(lanes))
+            out.append((name, [keys]))
+        else:
+            out.append((name, [keys[i::lanes] for i in range(lanes)]))
     return out
 
 

@@ -161,7 +161,8 @@ def new_stream(device: wp.context.Device, priority: str = "least") -> wp.Stream 
     CUDA error 901 in every launch of that capture: 729 episodes lost their harness on an
     H100, 2026-11-26). Made through the driver API and handed to Warp as an external stream;
     where the driver refuses, a blocking Warp stream (logged)."""
-    priority_value(priority, 0, -1)  # a bad level fails here, on every device
+    if priority not in PRIORITIES:  # on every device, the CPU's too
+        raise ValueError(f"stream priority must be one of {PRIORITIES}, got {priority!r}")
     if not device.is_cuda:
         return None
     handle = _nonblocking_stream(device.context, priority)
