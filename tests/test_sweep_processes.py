@@ -120,7 +120,7 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
         critical_tasks,
         for_chunk,
         plan_chunks,
-        sweep_critical_path,
+        plan_critical_path,
         worker_shares,
     )
     from vabench.sweep.results import ledger_key
@@ -195,12 +195,12 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     no_mps = dataclasses.replace(batched, executor=dataclasses.replace(batched.executor, mps=False))
     assert critical_tasks(config, cells, no_mps) == set()  # one engine process per GPU
     # ... but every worker of batched physics is told the sweep's critical path
-    decided = sweep_critical_path(config, cells, no_mps)
+    decided = plan_critical_path(config, cells, no_mps)
     assert decided == {"put_everything_in_basket"}
     assert for_chunk(no_mps, parts[1][1], decided).executor.critical_path == (
         "put_everything_in_basket",
     )
-    assert sweep_critical_path(config, cells, choices) == set()  # C MuJoCo: no batches
+    assert plan_critical_path(config, cells, choices) == set()  # C MuJoCo: no batches
 
     # C MuJoCo: cells cut as before, one (model, track, task) each at most
     cut = plan_chunks(config, cells, choices)

@@ -364,8 +364,7 @@ class WarpRenderPool:
                 stream = streams.new_stream(self._device, "greatest" if urgent else "middle")
                 encoder = gpu_jpeg.DeviceJpeg(self._device.ordinal)
             local.jpeg[urgent] = (encoder, stream.cuda_stream if stream is not None else 0)
-        encoder, handle = local.jpeg[urgent]
-        return encoder, handle
+        return local.jpeg[urgent]
 
     # -- passes ----------------------------------------------------------------------------
     def _task_models(self, task: str) -> list[mujoco.MjModel]:
@@ -430,9 +429,8 @@ class WarpRenderPool:
     def _kept(self, task, n_worlds, settings, owner=0) -> RenderPass | None:
         """A kept pass that serves `n_worlds` images of `task` for `owner` (0: shared by every
         request off the critical path; a critical-path batch's id: its own) (the caller holds
-        the pool's lock). One of up to
-        twice the worlds serves too (the extra worlds are traced for nothing): under a tight
-        budget, building a pass per request size would churn."""
+        the pool's lock). One of up to twice the worlds serves too (the extra worlds are traced
+        for nothing): under a tight budget, building a pass per request size would churn."""
         kept = [
             k
             for k in self._passes

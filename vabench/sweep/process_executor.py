@@ -300,7 +300,7 @@ def _cost(config: SweepConfig, task: str) -> int:
     return config.budget(task) if task in REGISTRY else 1
 
 
-def sweep_critical_path(
+def plan_critical_path(
     config: SweepConfig, cells: dict[Any, list[EpisodeKey]], choices: Choices
 ) -> set[str]:
     """The tasks of `cells` on the whole sweep's critical path (`runner.critical_path_tasks`)
@@ -319,7 +319,7 @@ def critical_tasks(
     ex = choices.executor
     if not (ex.mps and ex.max_tasks > 1):
         return set()
-    return sweep_critical_path(config, cells, choices)
+    return plan_critical_path(config, cells, choices)
 
 
 def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
@@ -345,7 +345,7 @@ def for_chunk(
     """The choices a worker runs `part` on: with batched physics (a chunk of whole tasks,
     `cells.bins`) every task of its chunk at once, one batch each (its lanes,
     `runner.task_lanes`, sharing one of them), and the sweep's critical path as the parent
-    decided it (`critical`, `sweep_critical_path`: a worker sees only its own tasks, and among
+    decided it (`critical`, `plan_critical_path`: a worker sees only its own tasks, and among
     a chunk's 200-step place_cube_on_cube and 50-step others it would find one); else the
     sweep's."""
     ex = choices.executor
@@ -433,7 +433,7 @@ def run_processes(
     critical = critical_tasks(config, cells, choices)  # in a process of its own
     if critical:  # every engine process below the critical path's on the GPU
         env[mps.PRIORITY_VARIABLE] = mps.BELOW_NORMAL
-    decided = sweep_critical_path(config, cells, choices)  # told to every worker
+    decided = plan_critical_path(config, cells, choices)  # told to every worker
     seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
         "processes: %d cells (%d episodes) in %d chunks, %d at once; workers run with %s%s",

@@ -464,7 +464,8 @@ def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
 def sweep_critical_path(decided: Sequence[str] | None, budgets: dict[str, int]) -> set[str]:
     """The tasks of `budgets` (this process's) on the critical path: those a parent decided for
     the whole sweep (`ExecutorChoice.critical_path`, set by the processes executor for its
-    workers), else those `critical_path_tasks` finds among them."""
+    workers and the Ray driver for its engines), else those `critical_path_tasks` finds among
+    them."""
     if decided is None:
         return critical_path_tasks(budgets)
     return set(decided) & set(budgets)
