@@ -405,3 +405,35 @@ def test_a_pass_s_idle_worlds_look_at_the_sky(cube_items):
     # a ray of an item's own camera does hit the scene (the check above can fail)
     centre = xmat[0] @ np.array([0.0, 0.0, -1.0])
     assert mujoco.mj_ray(m, d, xpos[0].astype(float), centre.astype(float), None, 1, -1, geom) > 0
+
+
+def test_the_scene_bvh_rebuilt_at_the_first_pose_changes_no_pixel(shoe_items):
+    """A pass builds its scene BVH again around its first items (MuJoCo Warp builds it at qpos0,
+    every free object at the origin, then only refits it: slower rays, measured on an H100).
+    The rebuilt tree must draw the same images as the refit one, on the first draw and on a
+    later one of other states, and be a new tree (the check of pixels can fail: a tree whose
+    worlds' roots were not recomputed draws other worlds' geoms or none)."""
+    import warp as wp
+
+    from vabench.render.warp_pass import RENDER_BLOCK_DIM, RenderPass, render_models
+    from vabench.tasks import get_task
+
+    models = render_models(get_task(SHOE), SIZE.width, SIZE.height)
+    later = _items(SHOE, verified_seeds(SHOE)[2])[:4]
+    images = {}
+    with wp.ScopedDevice("cpu"):
+        for rebuilt in (False, True):
+            p = RenderPass(models, 4, SIZE.width, SIZE.height, device_jpeg=False)
+            assert p.m.block_dim.render == RENDER_BLOCK_DIM
+            p._bvh_posed = not rebuilt  # False: the pass rebuilds on its first draw
+            first_id = p.rc.bvh_id
+            p.draw(shoe_items, None)
+            wp.synchronize()
+            assert (p.rc.bvh_id != first_id) == rebuilt
+            first = p.rc.rgb_data.numpy().copy()
+            p.draw(later, None)
+            wp.synchronize()
+            images[rebuilt] = (first, p.rc.rgb_data.numpy().copy())
+    for before, after in zip(images[False], images[True], strict=True):
+        assert before.any()
+        assert np.mean(before != after) < 1e-4

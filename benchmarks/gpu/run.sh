@@ -10,7 +10,7 @@
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh physics | render | fidelity | tests | engine | main | ray |
+#        bash benchmarks/gpu/run.sh physics | render | render_options | fidelity | tests | engine | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
 #        precompile_bench (issue 33, lever 8: vabench/sweep/precompile.py's old single phase
@@ -21,7 +21,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
+phase=${1:?usage: run.sh setup|physics|render|render_options|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -213,6 +213,12 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     fams=${PRECOMPILE_FAMILIES:-$(python3 -c "from vabench.tasks import base_tasks as b; print(','.join(t.name for t in b()[:8]))")}
     timeout 560 python3 benchmarks/precompile.py --device cuda:0 --size "${PRECOMPILE_SIZE:-1280x960}" \
       --families "$fams" --json "$out/precompile.json" 2>&1 | tee "$out/precompile.log"
+    ;;
+  render_options)
+    # The render megakernel's options side by side (GPU ms a pass, pixels changed).
+    timeout 560 python3 benchmarks/render_options.py --worlds "${RENDER_WORLDS:-24}" \
+      --json "$out/render_options.json" 2>&1 | grep --line-buffered -av "^Module " \
+      | tee "$out/render_options.log"
     ;;
   ray)
     # Issue 25: the same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local

@@ -19,6 +19,7 @@ import mujoco
 import mujoco_warp as mjw
 import numpy as np
 import warp as wp
+from mujoco_warp._src.bvh import compute_bvh_group_roots  # mujoco-warp 4.0.0 (pinned)
 
 from vabench.render.camera import FAR, NEAR
 from vabench.render.images import RenderItem
@@ -65,6 +66,11 @@ the sky. The render megakernel was 84 % of the engine processes' GPU kernel time
 2026-11-27) and a pass is up to a third larger than its request (`pass_size`)."""
 IDLE_CAMERA_ROT = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
 """A camera looks along its -z axis: this frame's -z is the world's +z (up)."""
+
+RENDER_BLOCK_DIM = 256
+"""Threads a block of the render megakernel (MuJoCo Warp's default: 64). Same pixels; on an
+H100 (2026-11-27, `benchmarks/render_options.py`), 24 worlds at 1280x960: the basket's pass
+21.8 -> 18.9 ms, place_shoe's 15.4 -> 14.5 ms, grasp_single_cube's 11.7 -> ~9.6 ms (128)."""
 
 
 def render_models(task: Task, width: int, height: int) -> list[mujoco.MjModel]:
@@ -129,6 +135,8 @@ class RenderPass:
             use_precomputed_rays=False,  # per-world FOV
             render_skybox=True,
         )
+        self.m.block_dim.render = RENDER_BLOCK_DIM
+        self._bvh_posed = False
         self.slots = wp.zeros(n_worlds, dtype=int)
         self.pos = wp.zeros(n_worlds, dtype=wp.vec3)
         self.rot = wp.zeros(n_worlds, dtype=wp.mat33)
@@ -172,6 +180,7 @@ class RenderPass:
         else:
             qpos = np.zeros((self.n_worlds, nq), np.float32)
             qpos[:n] = np.stack([np.asarray(it.qpos, np.float32) for it in items])
+            qpos[n:] = qpos[0]  # idle worlds at a real pose, as gathered ones (slot 0)
             self.d.qpos.assign(qpos)
         mjw.kinematics(self.m, self.d)
         mjw.camlight(self.m, self.d)
@@ -182,7 +191,25 @@ class RenderPass:
             outputs=[self.d.cam_xpos, self.d.cam_xmat, self.m.cam_fovy],
         )
         mjw.refit_bvh(self.m, self.d, self.rc)
+        if not self._bvh_posed:
+            self._rebuild_bvh()
         mjw.render(self.m, self.d, self.rc)
+
+    def _rebuild_bvh(self) -> None:
+        """Build the scene's BVH again, once, around the first items' poses (bounds just
+        refit). MuJoCo Warp builds it at qpos0, where every free object sits at the world's
+        origin, and afterwards only refits it: the tree keeps grouping the objects as if they
+        were together, and rays visit more nodes. Built around a scene as the episodes set it,
+        the tree stays good while things move: on an H100 (2026-11-27) the basket's pass 21.8 ->
+        18.2 ms, place_shoe's 15.4 -> 14.7 ms, the same pixels but 1 in 30 million
+        (`benchmarks/render_options.py`). Once: the build copies the bounds to the host."""
+        rc = self.rc
+        rc.bvh = wp.Bvh(rc.lower, rc.upper, groups=rc.group, constructor="sah")
+        rc.bvh_id = rc.bvh.id
+        wp.launch(
+            compute_bvh_group_roots, dim=self.n_worlds, inputs=[rc.bvh.id], outputs=[rc.group_root]
+        )
+        self._bvh_posed = True
 
     def queue_packed(self) -> None:
         """Queue the copy of every world's packed pixels to pinned host memory (GPU; the
