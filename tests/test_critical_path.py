@@ -61,30 +61,3 @@ def test_a_worker_keeps_the_critical_path_its_parent_decided_for_the_whole_sweep
     assert sweep_critical_path(("put_everything_in_basket",), basket) == {
         "put_everything_in_basket"
     }
-
-
-def test_the_critical_path_is_dealt_over_batches_of_its_own_where_physics_is_batched():
-    """One batch runs one action at a time: the basket's 60 episodes drifted into ~3 groups
-    waiting for each other's calls. With batched physics its episodes go to up to three
-    batches, every third key to each; nothing lost, doubled or moved to another task."""
-    from vabench.sweep.runner import CRITICAL_LANES, task_lanes
-
-    basket = [("basket", seed, run) for seed in range(20) for run in (1, 2, 3)]
-    cube = [("cube", seed, 1) for seed in range(40)]
-    tasks = [("basket", basket), ("cube", cube)]
-    lanes = task_lanes(tasks, {"basket"}, batched=True)
-    assert [name for name, _ in lanes] == ["basket", "cube"]  # one task gate each
-    basket_lanes = lanes[0][1]
-    assert len(basket_lanes) == CRITICAL_LANES
-    assert [len(keys) for keys in basket_lanes] == [20, 20, 20]
-    assert sorted(k for keys in basket_lanes for k in keys) == sorted(basket)
-    assert basket_lanes[0][:2] == [basket[0], basket[3]]  # dealt key by key in turn
-    assert lanes[1] == ("cube", [cube])
-    one_each = [("basket", [basket]), ("cube", [cube])]
-    assert task_lanes(tasks, {"basket"}, batched=False) == one_each  # C MuJoCo
-    assert task_lanes(tasks, set(), batched=True) == one_each
-    few = [("basket", basket[:25])]  # lanes of at least 10 episodes
-    assert [len(k) for k in task_lanes(few, {"basket"}, batched=True)[0][1]] == [13, 12]
-    assert task_lanes([("basket", basket[:15])], {"basket"}, batched=True) == [
-        ("basket", [basket[:15]])
-    ]

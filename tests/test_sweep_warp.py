@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import io
 import json
-import re
 
 import pytest
 from PIL import Image
@@ -105,33 +104,3 @@ def test_engine_processes_sharing_the_device_each_take_whole_tasks(
     assert sorted(name for name, _ in parts) == ["grasp_single_cube", "lift_pot"]
     for name, part in parts:
         assert {(k.task, k.track) for k in part} == {(name, "active"), (name, "passive")}
-
-
-def test_the_critical_path_in_lanes_of_its_own_records_every_episode_once(
-    tmp_path, warp_on_cpu, monkeypatch, caplog
-):
-    """The critical path's episodes dealt over batches of their own (`runner.task_lanes`), each
-    with its own render passes: every planned episode recorded once, each lane's stage line."""
-    import logging
-
-    from vabench.sweep import runner
-
-    monkeypatch.setattr(runner, "sweep_critical_path", lambda decided, budgets: set(budgets))
-    cfg = tmp_path / "sweep.yaml"
-    cfg.write_text(
-        CONFIG.replace("tracks: [active, passive]", "tracks: [active]")
-        .replace("tasks: [grasp_single_cube, lift_pot]", "tasks: [grasp_single_cube]")
-        .replace("runs: 1", "runs: 2")
-        .replace("seeds: {verified: 1}", "seeds: {verified: 10}")
-    )
-    out = tmp_path / "out"
-    with caplog.at_level(logging.INFO, logger="vabench.agent.services"):
-        assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
-    records = [json.loads(line) for line in (out / RESULTS).read_text().splitlines()]
-    keys = {(r["model"], r["track"], r["task"], r["seed"], r["run"]) for r in records}
-    assert len(records) == len(keys) == 20
-    assert all(r["error"] is None and r["steps_used"] == 2 for r in records)
-    stage_lines = [m for m in caplog.messages if m.startswith("grasp_single_cube: physics")]
-    assert len(stage_lines) == 2  # two lanes of 10, a batch each
-    most = [int(n) for line in stage_lines for n in re.findall(r"at most (\d+)\)", line)]
-    assert most and max(most) <= 10  # no call of either batch served more than its lane

@@ -120,10 +120,8 @@ class WarpRenderPool:
             raise ValueError(f"jpeg must be 'auto', 'device' or 'host', got {self.jpeg!r}")
         self._device: Any = None
         # Passes kept, least recently used first, with the bytes each was charged.
-        # (task, worlds, width, height, owner: `_kept`) -> (pass, bytes charged)
-        self._passes: OrderedDict[tuple[str, int, int, int, int], tuple[RenderPass, int]] = (
-            OrderedDict()
-        )
+        # (task, worlds, width, height) -> (pass, bytes charged)
+        self._passes: OrderedDict[tuple[str, int, int, int], tuple[RenderPass, int]] = OrderedDict()
         self._budget = self.memory_budget  # bytes for all passes kept (else set with the first)
         self._models: dict[str, list[mujoco.MjModel]] = {}
         self._largest: dict[tuple[int, int], int] = {}
@@ -313,10 +311,7 @@ class WarpRenderPool:
         n = len(chunk)
         device_jpeg = self._device_jpeg is not None
         urgent = bool(getattr(source, "critical_path", False))  # see WarpBatch
-        # the critical path's batches (`runner.task_lanes`) have passes of their own: its lanes
-        # ray trace side by side instead of queueing for one pass of their shared size
-        owner = id(source) if urgent else 0
-        p = self._checkout(task, models, pass_size(n), settings, device_jpeg, urgent, owner)
+        p = self._checkout(task, models, pass_size(n), settings, device_jpeg, urgent)
         try:
             t0 = time.perf_counter()
             with streams.queueing(self._lock_device, self._device, p.stream):
@@ -400,9 +395,7 @@ class WarpRenderPool:
             )
         return largest
 
-    def _checkout(
-        self, task, models, n_worlds, settings, device_jpeg, urgent, owner=0
-    ) -> RenderPass:
+    def _checkout(self, task, models, n_worlds, settings, device_jpeg, urgent) -> RenderPass:
         """A pass for `n_worlds` images of `task`, locked for the caller (who releases
         `pass.lock`): a kept pass of this key, waited for if another request uses it, else one
         built within the memory budget. The pool's lock is held only to look up and update the
@@ -411,7 +404,7 @@ class WarpRenderPool:
         while True:
             with self._lock:
                 n_worlds = min(n_worlds, self._largest_pass(settings))
-                p = self._kept(task, n_worlds, settings, owner)
+                p = self._kept(task, n_worlds, settings)
                 if p is not None and p.lock.acquire(blocking=False):
                     return p
             if p is not None:
@@ -420,23 +413,21 @@ class WarpRenderPool:
                 continue  # then look again: it may have been evicted meanwhile
             with self._building:
                 with self._lock:
-                    if self._kept(task, n_worlds, settings, owner) is not None:
+                    if self._kept(task, n_worlds, settings) is not None:
                         continue  # built by another request while this one waited to build
-                built = self._build(task, models, n_worlds, settings, device_jpeg, urgent, owner)
+                built = self._build(task, models, n_worlds, settings, device_jpeg, urgent)
                 built.lock.acquire()
                 return built
 
-    def _kept(self, task, n_worlds, settings, owner=0) -> RenderPass | None:
-        """A kept pass that serves `n_worlds` images of `task` for `owner` (0: shared by every
-        request off the critical path; a critical-path batch's id: its own) (the caller holds
-        the pool's lock). One of up to twice the worlds serves too (the extra worlds are traced
+    def _kept(self, task, n_worlds, settings) -> RenderPass | None:
+        """A kept pass that serves `n_worlds` images of `task` (the caller holds the pool's
+        lock). One of up to twice the worlds serves too (the extra worlds are traced
         for nothing): under a tight budget, building a pass per request size would churn."""
         kept = [
             k
             for k in self._passes
             if k[0] == task
             and k[2:4] == (settings.width, settings.height)
-            and k[4] == owner
             and n_worlds <= k[1] <= 2 * n_worlds
         ]
         if not kept:
@@ -445,10 +436,10 @@ class WarpRenderPool:
         self._passes.move_to_end(best)
         return self._passes[best][0]
 
-    def _build(self, task, models, n_worlds, settings, device_jpeg, urgent, owner=0) -> RenderPass:
+    def _build(self, task, models, n_worlds, settings, device_jpeg, urgent) -> RenderPass:
         """A new pass, kept, after evicting least recently used passes not in use until it fits
         the memory budget (the caller holds `_building`)."""
-        key = (task, n_worlds, settings.width, settings.height, owner)
+        key = (task, n_worlds, settings.width, settings.height)
         need = pass_bytes(settings.width, settings.height, n_worlds, device_jpeg)
         victims = []
         with self._lock:

@@ -343,11 +343,10 @@ def for_chunk(
     choices: Choices, part: Sequence[EpisodeKey], critical: Collection[str] = ()
 ) -> Choices:
     """The choices a worker runs `part` on: with batched physics (a chunk of whole tasks,
-    `cells.bins`) every task of its chunk at once, one batch each (its lanes,
-    `runner.task_lanes`, sharing one of them), and the sweep's critical path as the parent
-    decided it (`critical`, `plan_critical_path`: a worker sees only its own tasks, and among
-    a chunk's 200-step place_cube_on_cube and 50-step others it would find one); else the
-    sweep's."""
+    `cells.bins`) every task of its chunk at once, one batch each, and the sweep's critical
+    path as the parent decided it (`critical`, `plan_critical_path`: a worker sees only its own
+    tasks, and among a chunk's 200-step place_cube_on_cube and 50-step others it would find
+    one); else the sweep's."""
     ex = choices.executor
     if not choices.physics.batched:
         return choices

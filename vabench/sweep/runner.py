@@ -73,16 +73,6 @@ from vabench.tasks import get_task
 
 log = logging.getLogger(__name__)
 
-CRITICAL_LANES = 3
-"""Simulator batches the critical path's episodes are dealt over where physics is batched
-(`task_lanes`). One batch runs one action at a time, and the basket's 60 episodes drifted into
-~3 groups a decision round (582 physics calls of ~18 worlds for 187 decisions on an H100,
-2026-11-27), each waiting for the others' calls: 1.5 s a decision, 0.97 s alone on the GPU.
-In batches of their own (own streams, own render passes) the groups' calls run side by side;
-an action costs a batch about the same for 20 worlds as for 60."""
-MIN_LANE_EPISODES = 10
-"""The fewest episodes a lane is cut down to (each batch costs its build and its GPU memory)."""
-
 
 class SweepStopped(Exception):
     """An endpoint refused the sweep's requests, or the GPU failed (`LocalSweep.stopped` says
@@ -290,21 +280,16 @@ class LocalSweep:
             by_task[k.task].append(k)
         task_gate = asyncio.Semaphore(self.choices.executor.max_tasks)
 
-        async def one_task(name: str, lanes: list[list[Any]], critical: bool) -> None:
-            async with task_gate:  # one of `max_tasks`, whatever its lanes
+        async def one_task(name: str, task_keys: list[Any], critical: bool) -> None:
+            async with task_gate:
                 if self.stopped is not None:
                     return
-                ran = await asyncio.gather(
-                    *(self._run_task(name, ks, llm, pool, image, critical) for ks in lanes),
-                    return_exceptions=True,
-                )
-                for err in ran:  # every lane ends before any error is raised
-                    if not isinstance(err, BaseException):
-                        continue
-                    # e.g. a task's batch built on a failed GPU context
-                    failure = device_failure(err) if isinstance(err, Exception) else None
+                try:
+                    await self._run_task(name, task_keys, llm, pool, image, critical)
+                except Exception as err:  # e.g. a task's batch built on a failed GPU context
+                    failure = device_failure(err)
                     if failure is None:
-                        raise err
+                        raise
                     self._stop_device(failure)
 
         # Longest episodes first (the basket's 250-step budget before the base families'):
@@ -312,8 +297,7 @@ class LocalSweep:
         budgets = {name: self.config.budget(name) for name in by_task}
         longest_first = sorted(by_task.items(), key=lambda kv: -budgets[kv[0]])
         critical = sweep_critical_path(self.choices.executor.critical_path, budgets)
-        lanes = task_lanes(longest_first, critical, self.choices.physics.batched)
-        await asyncio.gather(*(one_task(n, parts, n in critical) for n, parts in lanes))
+        await asyncio.gather(*(one_task(n, ks, n in critical) for n, ks in longest_first))
 
     async def _run_task(
         self,
@@ -469,23 +453,6 @@ def sweep_critical_path(decided: Sequence[str] | None, budgets: dict[str, int]) 
     if decided is None:
         return critical_path_tasks(budgets)
     return set(decided) & set(budgets)
-
-
-def task_lanes(
-    tasks: Sequence[tuple[str, list[Any]]], critical: set[str], batched: bool
-) -> list[tuple[str, list[list[Any]]]]:
-    """Each task of a round, in order, with its simulator batches' keys: one batch, except
-    that with batched physics a task on the critical path is dealt over up to
-    `CRITICAL_LANES` batches of at least `MIN_LANE_EPISODES` episodes, key by key in turn. A
-    task's lanes run at once and take one of the sweep's `max_tasks` between them."""
-    out: list[tuple[str, list[list[Any]]]] = []
-    for name, keys in tasks:
-        lanes = min(CRITICAL_LANES, len(keys) // MIN_LANE_EPISODES) if batched else 1
-        if name not in critical or lanes < 2:
-            out.append((name, [keys]))
-        else:
-            out.append((name, [keys[i::lanes] for i in range(lanes)]))
-    return out
 
 
 def spend_caps(config: Any, run_dir: Path) -> SpendCaps | None:
