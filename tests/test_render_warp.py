@@ -59,7 +59,9 @@ def _items(task: str, seed: int) -> list[RenderItem]:
 def warp_pool():
     os.environ["VABENCH_WARP_DEVICE"] = "cpu"
     try:
-        with WarpRenderPool(max_size=(320, 240)) as pool:
+        # states read on the device where a request names its physics batch (the tests of
+        # that path); off by default: `test_by_default_states_come_from_the_host_copies`
+        with WarpRenderPool(max_size=(320, 240), state_on_device=True) as pool:
             yield pool
     finally:
         os.environ.pop("VABENCH_WARP_DEVICE", None)
@@ -437,3 +439,34 @@ def test_the_scene_bvh_rebuilt_at_the_first_pose_changes_no_pixel(shoe_items):
     for before, after in zip(images[False], images[True], strict=True):
         assert before.any()
         assert np.mean(before != after) < 1e-4
+
+
+def test_by_default_states_come_from_the_host_copies(cube_items):
+    """A request naming its Warp physics batch is drawn from the host copies its items carry
+    unless the pool reads states on the device (`state_on_device`): the device gather waits
+    behind every action queued on the batch's stream. Same images either way."""
+    from vabench.tasks import get_task
+    from vabench.tasks.task_batch import TaskBatch
+
+    os.environ["VABENCH_WARP_DEVICE"] = "cpu"
+    try:
+        tb = TaskBatch(get_task(CUBE), 2, backend="mjx", impl="warp")
+        assert all(r.ok for r in tb.reset(range(2), verified_seeds(CUBE)[:2]))
+        qpos, p = tb.observe()
+        variants = tb.batch.variant()
+        items = [
+            RenderItem(
+                qpos[s], int(variants[s]), cam.head_view({"right": p.gc[s, 0]}, ("right",)), slot=s
+            )
+            for s in (1, 0)
+        ]
+        images = {}
+        for on_device in (False, True):
+            with WarpRenderPool(max_size=(320, 240), state_on_device=on_device) as pool:
+                assert pool.shares(tb.batch)
+                images[on_device] = pool.render_rgb(CUBE, items, SIZE, source=tb.batch)
+                assert pool.stats.shared_state == (2 if on_device else 0)
+    finally:
+        os.environ.pop("VABENCH_WARP_DEVICE", None)
+    for host, device in zip(images[False], images[True], strict=True):
+        np.testing.assert_array_equal(host, device)

@@ -23,6 +23,7 @@ import pytest
 import ray
 
 from vabench.config import SweepConfigError, load_config
+from vabench.run_layout import WORKER_LOG_PREFIX
 from vabench.sweep.__main__ import main
 from vabench.sweep.choices import choose
 from vabench.sweep.plan import EpisodeKey, plan
@@ -104,6 +105,12 @@ def test_ray_sweep_equals_the_local_one_and_a_rerun_runs_nothing(cluster, tmp_pa
         log,
     ), log[-4000:]
     assert "Pushing file package" in log  # the driver shipped this checkout to the engines
+    # each engine's INFO lines in its own log (an engine set up no logging before: a fresh
+    # node compiled kernels for minutes in silence)
+    engine_logs = sorted((out / "logs").glob(f"{WORKER_LOG_PREFIX}*-*.log"))
+    assert engine_logs, sorted(p.name for p in (out / "logs").iterdir())
+    lines = "".join(p.read_text() for p in engine_logs)
+    assert re.search(r"\w+: physics \d+ calls", lines), lines[-2000:]
     mine, local = records(out), records(tmp_path / "local")
     assert len(mine) == len(local) == PLANNED
     assert mine == local

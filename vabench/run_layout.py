@@ -220,6 +220,7 @@ class RunDir:
     def logs(self) -> Path:
         return self.path / LOGS
 
-    def worker_log(self, pid: int) -> Path:
-        """The log of the engine worker process `pid` (its tasks' stage and host lines)."""
+    def worker_log(self, pid: int | str) -> Path:
+        """The log of the engine worker process `pid` (its tasks' stage and host lines; a Ray
+        engine's is named by its host and pid)."""
         return self.logs / f"{WORKER_LOG_PREFIX}{pid}.log"

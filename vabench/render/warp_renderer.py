@@ -5,9 +5,9 @@ model id and a camera pose) like the GL `RenderPool`, but on a GPU, all images o
 once:
 
 1. every image is one world of a render batch: the item's state goes into that world's qpos,
-   gathered on the device from the physics batch when the physics runs on Warp on the same
-   device (`attach`; no trip through the host), else uploaded from the item's host copy. The
-   passive bundle of a slot is five worlds with one state and five cameras;
+   uploaded from the item's host copy (or, with `state_on_device`, gathered on the device from
+   the Warp physics batch the request names). The passive bundle of a slot is five worlds
+   with one state and five cameras;
 2. kinematics of those worlds, then each world's camera is set to its item's pose and FOV
    (the model's FOV is batched per world, and rays are computed per world);
 3. the BVH is refit and every world is ray traced in one launch (shadows, textures, skybox);
@@ -113,6 +113,12 @@ class WarpRenderPool:
     jpeg: str = "auto"
     jpeg_threads: int | None = None
     memory_budget: int | None = None
+    state_on_device: bool = False
+    """Read each image's state from the Warp physics batch a request names (`source`) on the
+    device, instead of uploading the host copy every `RenderItem` carries. Off by default: the
+    gather is queued on the batch's stream after every action already queued there
+    (`WarpBatch.copy_qpos`), so a group of episodes' images waited for another group's whole
+    action (~0.4 s for the basket on an H100); the upload is a few kB a pass."""
     stats: RenderStats = field(default_factory=RenderStats)
 
     def __post_init__(self) -> None:
@@ -315,7 +321,7 @@ class WarpRenderPool:
         try:
             t0 = time.perf_counter()
             with streams.queueing(self._lock_device, self._device, p.stream):
-                p.draw(chunk, source)
+                p.draw(chunk, source if self.state_on_device else None)
                 rgb = p.rgb_on_device() if encode and device_jpeg else None
                 if rgb is None:
                     p.queue_packed()
@@ -341,7 +347,7 @@ class WarpRenderPool:
     def _count(self, n: int, source: Any, render_s: float, encode_s: float) -> None:
         with self._lock:
             self.stats.passes += 1
-            self.stats.shared_state += n if source is not None else 0
+            self.stats.shared_state += n if source is not None and self.state_on_device else 0
             self.stats.render_s += render_s
             self.stats.encode_s += encode_s
 

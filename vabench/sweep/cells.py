@@ -12,6 +12,8 @@ engine actors (`ray_engine`). `load_document` loads a config sent as a document
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import math
 import os
 import socket
@@ -236,3 +238,30 @@ def cell_status(progress: SweepProgress, finished: bool) -> dict[str, Any]:
         "cost": status.cost,
         "calls_in_flight": status.calls_in_flight,
     }
+
+
+def worker_logging(run: RunDir, name: int | str | None = None, console: Sequence[str] = ()) -> None:
+    """Logging for a process the sweep started (a processes worker, a Ray engine): it starts
+    with none, and its tasks' INFO lines (stage lines, "host:" lines, what the engine chose,
+    the kernels' compilation) go to its own file in the run directory (`name`: its pid by
+    default), its warnings to the console, and so do the INFO lines of the loggers named in
+    `console` (a Ray engine's console is the driver's, prefixed with the actor)."""
+    root = logging.getLogger()
+    path = run.worker_log(os.getpid() if name is None else name)
+    if any(getattr(h, "baseFilename", None) == os.path.abspath(path) for h in root.handlers):
+        return  # set up already (an initializer run twice in one process)
+    with contextlib.suppress(OSError):
+        run.logs.mkdir(parents=True, exist_ok=True)
+        to_file = logging.FileHandler(path, encoding="utf-8")
+        to_file.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+        root.addHandler(to_file)
+    shown = tuple(console)
+
+    def on_console(record: logging.LogRecord) -> bool:
+        return record.levelno >= logging.WARNING or record.name.startswith(shown or "\0")
+
+    to_console = logging.StreamHandler()
+    to_console.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+    to_console.addFilter(on_console)
+    root.addHandler(to_console)
+    root.setLevel(logging.INFO)

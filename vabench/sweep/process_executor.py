@@ -73,6 +73,7 @@ from vabench.sweep.cells import (
     pending_cells,
     run_cell,
     task_groups,
+    worker_logging,
 )
 from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.display import Status, Tally, with_reports
@@ -162,7 +163,7 @@ def _init_worker(
     global _lines
     ignore_sigint()  # the parent ends this process (vabench.children)
     _lines = lines
-    _worker_logging(RunDir(Path(run_dir)))
+    worker_logging(RunDir(Path(run_dir)))
     with counter.get_lock():
         index = counter.value
         counter.value += 1
@@ -171,25 +172,6 @@ def _init_worker(
         os.environ["CUDA_VISIBLE_DEVICES"] = gpu
     # gone with its parent; its own children (render workers) see their pipes close and exit
     exit_with_parent(parent_pid)
-
-
-def _worker_logging(run: RunDir) -> None:
-    """A spawned worker starts with no logging set up: its tasks' INFO lines (stage lines,
-    "host:" lines, what the engine chose) go to its own file in the run directory, and its
-    warnings to the sweep's console too, as before."""
-    root = logging.getLogger()
-    path = run.worker_log(os.getpid())
-    if any(getattr(h, "baseFilename", None) == os.path.abspath(path) for h in root.handlers):
-        return  # set up already (an initializer run twice in one process)
-    with contextlib.suppress(OSError):
-        run.logs.mkdir(parents=True, exist_ok=True)
-        to_file = logging.FileHandler(path, encoding="utf-8")
-        to_file.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
-        root.addHandler(to_file)
-    console = logging.StreamHandler()
-    console.setLevel(logging.WARNING)
-    root.addHandler(console)
-    root.setLevel(logging.INFO)
 
 
 def _send(name: str, record: dict[str, Any]) -> None:

@@ -37,9 +37,10 @@ from pathlib import Path
 from typing import Any
 
 from vabench.render.backends import check_renderer
+from vabench.run_layout import RunDir
 from vabench.sim_mjx.backends import check
-from vabench.sweep import gpu_busy
-from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document
+from vabench.sweep import gpu_busy, precompile
+from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document, worker_logging
 from vabench.sweep.choices import Choices, configure_jax
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.runner import Engine, LocalSweep, open_engine
@@ -66,6 +67,14 @@ class EngineActor:
     ):
         os.environ.update(environ)
         self.run_dir = Path(run_dir)
+        # the engine's lines to its own log in the run directory; on the driver's console (Ray
+        # forwards an actor's output) its warnings and the kernels' compilation, minutes on a
+        # fresh node that were silent before (measured on a fresh 4 x H100 host, 2026-11-27)
+        worker_logging(
+            RunDir(self.run_dir),
+            f"{socket.gethostname()}-{os.getpid()}",
+            console=(precompile.__name__,),
+        )
         self.config = load_document(document, self.run_dir)
         # in creation, so that a node that cannot run them is not given another engine
         check(choices.physics.kind)
