@@ -77,9 +77,10 @@ class DeviceJpeg:
         """`n` output code streams, kept and reused from call to call. Left to nvImageCodec,
         every call made a new pinned host buffer for every image (and dropped the last call's),
         and allocating page-locked memory is one of CUDA's implicit synchronisations (the CUDA
-        programming guide, "Implicit Synchronization"): an encode of ~3 ms of kernels took
-        0.22-0.36 s of wall in the main job on an H100 (2026-11-27), whatever its number of
-        images. A kept buffer grows to its largest image once."""
+        programming guide, "Implicit Synchronization"). A kept buffer grows to its largest
+        image once. Measured in the main job on an H100 (2026-11-27): an encode's wall time
+        did not change with it (0.34-0.37 s a pass against 0.32-0.35 s; ~3 ms of kernels): what
+        a JPEG call waits for under load is elsewhere (docs/PERFORMANCE.md, "Eighth session")."""
         while len(self._outputs) < n:
             self._outputs.append(self._nv.CodeStream(pre_allocated_size=0, pin_memory=True))
         return self._outputs[:n]
