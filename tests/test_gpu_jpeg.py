@@ -103,3 +103,13 @@ def test_a_jpeg_that_is_not_whole_is_refused(fake_nvimgcodec):
     jpeg._encoder.encode = broken
     with pytest.raises(RuntimeError, match="malformed JPEG"):
         jpeg.encode(np.zeros((1, 4, 4, 3), np.uint8), ImageSettings(4, 4, 95), cuda_stream=7)
+
+    def unsized(images, codec, code_stream_s=None, params=None, cuda_stream=0):
+        for out in code_stream_s:  # a whole JPEG then an earlier image's tail, size unknown
+            out.buffer[:] = JPEG + b"tail" + b"\xff\xd9"
+            out.size = None
+        return code_stream_s
+
+    jpeg._encoder.encode = unsized
+    with pytest.raises(RuntimeError, match="no usable size"):
+        jpeg.encode(np.zeros((1, 4, 4, 3), np.uint8), ImageSettings(4, 4, 95), cuda_stream=7)

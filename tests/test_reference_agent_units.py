@@ -244,3 +244,65 @@ def test_upright_axis_from_the_silhouette_bottom(half, height, yaw):
     assert piece is not None
     x, y = upright_axis(*piece, cam)
     assert math.hypot(x - cx, y - cy) < 0.006
+
+
+# -- decoding: libjpeg-turbo and a table of PIL's HSV, the same pixels as PIL ------------------
+def test_the_hsv_table_is_pils_conversion_and_kept_in_the_cache(tmp_path, monkeypatch):
+    """The table holds PIL's HSV of every colour at R << 16 | G << 8 | B; it is made once,
+    written whole to the user's cache and read back memory-mapped by the next process."""
+    from vabench.reference_agent import vision
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(vision, "_TABLE", None)
+    table = vision.hsv_table()
+    assert table.shape == (3, 1 << 24) and isinstance(table, np.memmap)
+    (cached,) = (tmp_path / "vabench").glob("hsv-table-*.npy")
+    colours = np.random.default_rng(0).integers(0, 256, (100_000, 3), dtype=np.uint8)
+    colours[:4] = [(0, 0, 0), (255, 255, 255), (255, 0, 0), (164, 150, 126)]
+    expected = np.asarray(Image.fromarray(colours.reshape(1, -1, 3), "RGB").convert("HSV"))[0]
+    index = (colours[:, 0].astype(np.uint32) << 16) | (colours[:, 1].astype(np.uint32) << 8)
+    index |= colours[:, 2]
+    np.testing.assert_array_equal(table[:, index].T, expected)
+    monkeypatch.setattr(vision, "_TABLE", None)  # a later process: reads the file
+    stamp = cached.stat().st_mtime_ns
+    np.testing.assert_array_equal(vision.hsv_table()[:, index].T, expected)
+    assert cached.stat().st_mtime_ns == stamp
+
+
+def _scene_like(width: int, height: int) -> Image.Image:
+    """A table, objects of each colour the agent looks for, gradients and noise: every hue."""
+    rng = np.random.default_rng(width)
+    y, x = np.mgrid[0:height, 0:width]
+    rgb = np.empty((height, width, 3), np.uint8)
+    rgb[..., 0] = (x * 255 // max(1, width - 1)).astype(np.uint8)
+    rgb[..., 1] = (y * 255 // max(1, height - 1)).astype(np.uint8)
+    rgb[..., 2] = ((x + y) % 256).astype(np.uint8)
+    im = Image.fromarray(rgb, "RGB")
+    draw = ImageDraw.Draw(im)
+    draw.rectangle((width // 8, height // 8, width * 7 // 8, height * 7 // 8), fill=TABLE_RGB)
+    for i, fill in enumerate(((200, 30, 30), (30, 60, 200), (40, 170, 60), (220, 200, 40))):
+        x0 = width // 5 + i * width // 7
+        draw.ellipse((x0, height // 3, x0 + width // 10, height // 3 + width // 10), fill=fill)
+    noisy = np.asarray(im).astype(np.int16) + rng.integers(-6, 7, (height, width, 3))
+    return Image.fromarray(np.clip(noisy, 0, 255).astype(np.uint8), "RGB")
+
+
+@pytest.mark.parametrize("size", [(1280, 960), (1280, 720), (640, 480), (160, 120)])
+def test_decode_gives_pils_pixels(size):
+    """libjpeg-turbo through simplejpeg (DCT-scaled like PIL's draft) and the table: the very
+    pixels of PIL's decode and convert("HSV"), for JPEGs as the engine makes them (q95, 4:2:0)
+    and as PIL makes them; anything else goes through PIL."""
+    import simplejpeg
+
+    from vabench.reference_agent.vision import decode, decode_with_pil
+
+    im = _scene_like(*size)
+    engine_jpeg = simplejpeg.encode_jpeg(np.asarray(im), quality=95, colorsubsampling="420")
+    for image in (engine_jpeg, _jpeg(im)):
+        fast, reference = decode(image), decode_with_pil(image)
+        assert fast.shape == reference.shape and fast.shape[1] == min(size[0], 640)
+        np.testing.assert_array_equal(fast, reference)
+        assert not fast.flags.writeable  # shared by every look at the image: never changed
+    png = io.BytesIO()
+    im.save(png, "PNG")
+    np.testing.assert_array_equal(decode(png.getvalue()), decode_with_pil(png.getvalue()))

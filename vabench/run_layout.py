@@ -23,7 +23,8 @@ directory name spelled anywhere else in vabench. docs/DESIGN.md, "Run directory"
     RUN_DIR/annotations/<annotator>.jsonl     judgments (`vabench.diagnostics.store`)
     RUN_DIR/report/                    report.md, report.html, <section>.md, <table>.csv,
                                        figures/*.png (`vabench.report.build`)
-    RUN_DIR/logs/worker_<pid>.log      an engine worker process's log (the processes executor)
+    RUN_DIR/logs/worker_<pid>.log      an engine worker process's log (the processes executor;
+                                       a Ray engine's: worker_<host>-<pid>.log)
 
 Paths are `Path`s; the one path recorded as text, the ledger's `episode_dir`, is
 `episode_rel`'s POSIX string relative to the run directory, so a run directory moved or mounted

@@ -38,9 +38,10 @@ class RenderError(RuntimeError):
 class RenderItem:
     """One image to make: a slot's state, its object model id, and the camera.
 
-    `slot` (optional) is the simulator slot the state was read from: a renderer that shares
-    device memory with the simulator (Warp physics and Warp rendering on one GPU) reads the
-    state there instead of `qpos`, which then serves as the host copy for every other path.
+    `slot` (optional) is the simulator slot the state was read from: a renderer told to read
+    states in the simulator's device memory (the Warp renderer with `state_on_device`, Warp
+    physics on the same GPU) reads it there instead of `qpos`, the host copy every other path
+    draws.
     """
 
     qpos: np.ndarray

@@ -69,8 +69,11 @@ IDLE_CAMERA_ROT = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
 
 RENDER_BLOCK_DIM = 256
 """Threads a block of the render megakernel (MuJoCo Warp's default: 64). Same pixels; on an
-H100 (2026-11-27, `benchmarks/render_options.py`), 24 worlds at 1280x960: the basket's pass
-21.8 -> 18.9 ms, place_shoe's 15.4 -> 14.5 ms, grasp_single_cube's 11.7 -> ~9.6 ms (128)."""
+H100 (2026-11-27, `benchmarks/render_options.py`), 24 worlds at 1280x960, ms a pass for
+blocks of 64 / 128 / 256: the basket 21.2-22.0 / 19.5-19.7 / 18.9, place_shoe 15.4-16.1 /
+13.2-14.6 / 14.5 (runs differ by ~1 ms), grasp_single_cube 11.7-12.3 / 9.7 / -. 128 and 256
+are alike; with the posed BVH (`_rebuild_bvh`) only 128 was measured ("shipped" measures
+this pair)."""
 
 
 def render_models(task: Task, width: int, height: int) -> list[mujoco.MjModel]:
@@ -202,7 +205,9 @@ class RenderPass:
         were together, and rays visit more nodes. Built around a scene as the episodes set it,
         the tree stays good while things move: on an H100 (2026-11-27) the basket's pass 21.8 ->
         18.2 ms, place_shoe's 15.4 -> 14.7 ms, the same pixels but 1 in 30 million
-        (`benchmarks/render_options.py`). Once: the build copies the bounds to the host."""
+        (`benchmarks/render_options.py`). Once a pass: the build copies the bounds to the host,
+        which waits for the pass's queued work with the device's lock held (with
+        `state_on_device`, that includes the source batch's queued action)."""
         rc = self.rc
         rc.bvh = wp.Bvh(rc.lower, rc.upper, groups=rc.group, constructor="sah")
         rc.bvh_id = rc.bvh.id

@@ -27,10 +27,11 @@ with every task family and request size it met until the GPU ran out (measured o
 
 Threads and streams: requests of several tasks run at once (each task's render service has a
 thread of its own). A request takes a pass for itself (`RenderPass.lock`), queues the pass on
-the pass's CUDA stream holding the device's lock (the gather of the states runs on the physics
-batch's stream, ordered between its actions; `WarpBatch.copy_qpos`), waits for it with the lock
-released, and encodes its JPEGs on the thread's own nvImageCodec encoder while other passes
-trace and the physics steps (`sim_mjx.warp.streams`). The pool's own lock guards only the
+the pass's CUDA stream holding the device's lock (the states uploaded from the items' host
+copies; with `state_on_device`, gathered on the physics batch's stream, ordered between its
+actions: `WarpBatch.copy_qpos`), waits for it with the lock released, and encodes its JPEGs
+on the thread's own nvImageCodec encoder while other passes trace and the physics steps
+(`sim_mjx.warp.streams`). The pool's own lock guards only the
 passes kept and the counters; a pass is built outside it, one at a time.
 
 The physics batch to read states from is named per request (`source`), not registered per
@@ -206,7 +207,9 @@ class WarpRenderPool:
     # -- sharing the physics batch's memory -----------------------------------------------
     def shares(self, batch: Any) -> bool:
         """Whether this pool can read states from `batch` on the device (a Warp physics batch
-        on the same device): then pass it as `source` with the requests of its slots."""
+        on the same device): then pass it as `source` with the requests of its slots (the pool
+        reads them there with `state_on_device`; a source on the critical path also gets its
+        passes the highest stream priority)."""
         if self.info is None:
             self.start()
         return hasattr(batch, "copy_qpos") and str(getattr(batch, "device", "")) == str(

@@ -255,6 +255,9 @@ def worker_logging(run: RunDir, name: int | str | None = None, console: Sequence
         to_file = logging.FileHandler(path, encoding="utf-8")
         to_file.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
         root.addHandler(to_file)
+    if any(type(h) is logging.StreamHandler for h in root.handlers):
+        root.setLevel(logging.INFO)
+        return  # a console set up already (e.g. Ray's `logging_config`): lines once, not twice
     shown = tuple(console)
 
     def on_console(record: logging.LogRecord) -> bool:
