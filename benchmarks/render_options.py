@@ -73,28 +73,22 @@ def _pass(model, rows, width: int, height: int, options: set[str], posed_qpos):
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
-    from mujoco_warp._src.bvh import compute_bvh_group_roots
 
     from vabench.render.renderer import VIEW_CAMERA
-    from vabench.render.warp_pass import RENDER_BLOCK_DIM
+    from vabench.render.warp_pass import RENDER_BLOCK_DIM, rebuild_scene_bvh, render_context
 
     if "shipped" in options:
         options = options | {"posed", f"block{RENDER_BLOCK_DIM}"}
     n = len(rows)
     m = mjw.put_model(model)
     d = mjw.make_data(model, nworld=n, nconmax=1, njmax=1)
-    rc = mjw.create_render_context(
+    rc = render_context(
         model,
-        nworld=n,
-        cam_res=(width, height),
-        render_rgb=True,
-        render_depth=False,
-        render_seg=False,
+        n,
+        width,
+        height,
         use_textures="notex" not in options,
         use_shadows="noshadow" not in options,
-        cam_active=[VIEW_CAMERA],
-        use_precomputed_rays=False,
-        render_skybox=True,
         enable_backface_culling="nocull" not in options,
     )
     for o in options:
@@ -104,9 +98,7 @@ def _pass(model, rows, width: int, height: int, options: set[str], posed_qpos):
         d.qpos.assign(np.tile(posed_qpos, (n, 1)))
         mjw.kinematics(m, d)
         mjw.refit_bvh(m, d, rc)
-        rc.bvh = wp.Bvh(rc.lower, rc.upper, groups=rc.group, constructor="sah")
-        rc.bvh_id = rc.bvh.id
-        wp.launch(compute_bvh_group_roots, dim=n, inputs=[rc.bvh.id], outputs=[rc.group_root])
+        rebuild_scene_bvh(rc, n)
     d.qpos.assign(np.stack([r[0] for r in rows]))
     mjw.kinematics(m, d)
     mjw.camlight(m, d)

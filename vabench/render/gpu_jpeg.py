@@ -90,11 +90,11 @@ def _jpeg_bytes(code_stream: Any) -> bytes:
     """The JPEG of a code stream: its `size` bytes (a reused buffer may hold more: an earlier,
     larger image's tail, which also ends with an end-of-image marker), checked to start and end
     as a JPEG does: a frame cut short would otherwise reach the model without an error."""
-    data = bytes(memoryview(code_stream))
+    view = memoryview(code_stream)
     size = getattr(code_stream, "size", None)
-    if not isinstance(size, int) or not 0 < size <= len(data):
+    if not isinstance(size, int) or not 0 < size <= view.nbytes:
         raise RuntimeError(f"nvImageCodec reported no usable size for a JPEG ({size!r})")
-    data = data[:size]
+    data = bytes(view[:size])  # the JPEG only, not the buffer's capacity
     if not (data.startswith(b"\xff\xd8") and data.endswith(b"\xff\xd9")):
         raise RuntimeError(f"nvImageCodec returned a malformed JPEG ({len(data)} bytes)")
     return data

@@ -76,6 +76,35 @@ are alike; with the posed BVH (`_rebuild_bvh`) only 128 was measured ("shipped" 
 this pair)."""
 
 
+def render_context(
+    model: mujoco.MjModel, n_worlds: int, width: int, height: int, **options: Any
+) -> Any:
+    """MuJoCo Warp's render context of a pass: RGB only, one camera a world with its own FOV,
+    textures, ray-cast shadows and the skybox (`options` override them:
+    `benchmarks/render_options.py` measures what each costs)."""
+    settings: dict[str, Any] = {
+        "nworld": n_worlds,
+        "cam_res": (width, height),
+        "render_rgb": True,
+        "render_depth": False,
+        "render_seg": False,
+        "use_textures": True,
+        "use_shadows": True,
+        "cam_active": [VIEW_CAMERA],
+        "use_precomputed_rays": False,  # per-world FOV
+        "render_skybox": True,
+    }
+    return mjw.create_render_context(model, **(settings | options))
+
+
+def rebuild_scene_bvh(rc: Any, n_worlds: int) -> None:
+    """Build `rc`'s scene BVH again from its bounds as last refit (MuJoCo Warp builds it once,
+    at qpos0: see `RenderPass._rebuild_bvh`), and each world's root in it."""
+    rc.bvh = wp.Bvh(rc.lower, rc.upper, groups=rc.group, constructor="sah")
+    rc.bvh_id = rc.bvh.id
+    wp.launch(compute_bvh_group_roots, dim=n_worlds, inputs=[rc.bvh.id], outputs=[rc.group_root])
+
+
 def render_models(task: Task, width: int, height: int) -> list[mujoco.MjModel]:
     """The render model of every object variant of `task` (the GL path's, same clip planes)."""
     models = []
@@ -125,19 +154,7 @@ class RenderPass:
         self.m = self.wm.model
         # Kinematics only: no contacts or constraints are ever computed in these worlds.
         self.d = mjw.make_data(m0, nworld=n_worlds, nconmax=1, njmax=1)
-        self.rc = mjw.create_render_context(
-            m0,
-            nworld=n_worlds,
-            cam_res=(width, height),
-            render_rgb=True,
-            render_depth=False,
-            render_seg=False,
-            use_textures=True,
-            use_shadows=True,
-            cam_active=[VIEW_CAMERA],
-            use_precomputed_rays=False,  # per-world FOV
-            render_skybox=True,
-        )
+        self.rc = render_context(m0, n_worlds, width, height)
         self.m.block_dim.render = RENDER_BLOCK_DIM
         self._bvh_posed = False
         self.slots = wp.zeros(n_worlds, dtype=int)
@@ -208,12 +225,7 @@ class RenderPass:
         (`benchmarks/render_options.py`). Once a pass: the build copies the bounds to the host,
         which waits for the pass's queued work with the device's lock held (with
         `state_on_device`, that includes the source batch's queued action)."""
-        rc = self.rc
-        rc.bvh = wp.Bvh(rc.lower, rc.upper, groups=rc.group, constructor="sah")
-        rc.bvh_id = rc.bvh.id
-        wp.launch(
-            compute_bvh_group_roots, dim=self.n_worlds, inputs=[rc.bvh.id], outputs=[rc.group_root]
-        )
+        rebuild_scene_bvh(self.rc, self.n_worlds)
         self._bvh_posed = True
 
     def queue_packed(self) -> None:
