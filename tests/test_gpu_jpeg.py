@@ -35,7 +35,7 @@ class _CodeStream:
 
 
 class _Encoder:
-    def __init__(self, device_id: int):
+    def __init__(self, device_id: int, max_num_cpu_threads: int = 0):
         self.calls: list[dict] = []
         self.tail = b""
 

@@ -10,7 +10,7 @@
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh physics | render | render_options | fidelity | tests | engine | main | ray |
+#        bash benchmarks/gpu/run.sh physics | render | render_options | jpeg | fidelity | tests | engine | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
 #        precompile_bench (issue 33, lever 8: vabench/sweep/precompile.py's old single phase
@@ -21,7 +21,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|render_options|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
+phase=${1:?usage: run.sh setup|physics|render|render_options|jpeg|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -42,8 +42,11 @@ case "$phase" in
         || exit 1
     fi
     if ls /tmp/spy/*.whl >/dev/null 2>&1; then
-      python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site /tmp/spy/*.whl \
-        || exit 1
+      # a folder of its own: into /tmp/site, pip left the binary out ("Target directory
+      # /tmp/site/bin already exists", 2026-11-27), and --upgrade would replace that folder
+      python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/spysite \
+        /tmp/spy/*.whl || exit 1
+      [ -x /tmp/spysite/bin/py-spy ] || { echo "setup: py-spy did not install"; exit 1; }
     fi
     if [ -d .ray3 ] && ls /tmp/ray/rp.* >/dev/null 2>&1; then
       cat /tmp/ray/rp.* .ray3/rp.* | tar -xJf - -C /tmp/site || exit 1
@@ -111,6 +114,15 @@ d['executor'] = {**(d.get('executor') or {})} | ({'kind': kind} if kind else {})
 yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAIN_MAX_TASKS:-0}" \
         "${MAIN_MAX_EPISODES:-0}" || exit 1
     fi
+    # A run directory keeps every image the models saw (~20-30 GB for configs/all.yaml): the
+    # third run on one 64 GiB host filled its disk and the machine stopped answering
+    # (2026-11-27). Earlier calls' run directories go, except the one this call resumes.
+    touch /tmp/main_runs.txt
+    while read -r old; do
+      case "$old" in /tmp/?*) [ "$old" != "$run" ] && rm -rf "$old" ;; esac
+    done < /tmp/main_runs.txt
+    grep -qx "$run" /tmp/main_runs.txt || echo "$run" >> /tmp/main_runs.txt
+    df -h /tmp | tail -1 | tee "$out/main_disk.txt"
     python3 -m vabench.sweep "$config" --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
     # MAIN_PROFILE=1: each worker writes a cProfile of its chunks (summed into main_profile.txt);
     # always: GPU and CPU use every 5 s (main_util.txt: time, GPU %, GPU MiB, /proc/stat cpu)
@@ -121,7 +133,10 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     sampler=$!
     # MAIN_PYSPY=1: py-spy samples the sweep process and its children (every thread, idle ones
     # too: where they wait is the point) for MAIN_PYSPY_S seconds from MAIN_PYSPY_AT s after the
-    # start, as collapsed stacks (benchmarks/profile_summary.py reads them), plus three dumps.
+    # start, as collapsed stacks (benchmarks/profile_summary.py reads them), plus dumps with
+    # native frames (what a thread waits for inside a C extension: a CUDA sync, a mutex, the
+    # interpreter's lock) at MAIN_PYSPY_DUMPS seconds after the start (default: 30, 60 and 90
+    # s after MAIN_PYSPY_AT).
     # MAIN_PYSPY=gil: only the thread holding the interpreter lock, each sample (what paces a
     # process whose event loop waits for the lock: the "host:" lines tell when).
     # Always: the sweep's "host:" lines every 15 s (vabench/sweep/hostload.py).
@@ -129,10 +144,14 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     spy_mode="--idle"
     [ "${MAIN_PYSPY:-}" = gil ] && spy_mode="--gil"
     if [ -n "${MAIN_PYSPY:-}" ]; then
-      (sleep "${MAIN_PYSPY_AT:-40}"; pid=$(pgrep -of "vabench.sweep $config --out") || exit 0
-       for i in 1 2 3; do (sleep $((i * 30)); /tmp/site/bin/py-spy dump --pid "$pid" \
-         --subprocesses >> "$out/pyspy_dump.txt" 2>&1) & done
-       /tmp/site/bin/py-spy record --pid "$pid" --subprocesses --threads $spy_mode --rate 20 \
+      at=${MAIN_PYSPY_AT:-40}
+      for t in ${MAIN_PYSPY_DUMPS:-$((at + 30)) $((at + 60)) $((at + 90))}; do
+        (sleep "$t"; pid=$(pgrep -of "vabench.sweep $config --out") || exit 0
+         { echo "=== dump at ${t} s"; /tmp/spysite/bin/py-spy dump --pid "$pid" --subprocesses \
+           --native; } >> "$out/pyspy_dump.txt" 2>&1) &
+      done
+      (sleep "$at"; pid=$(pgrep -of "vabench.sweep $config --out") || exit 0
+       /tmp/spysite/bin/py-spy record --pid "$pid" --subprocesses --threads $spy_mode --rate 20 \
          --nonblocking --format raw --duration "${MAIN_PYSPY_S:-120}" -o "$out/pyspy.raw" \
          > "$out/pyspy.log" 2>&1) &
     fi
@@ -219,6 +238,12 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     timeout 560 python3 benchmarks/render_options.py --worlds "${RENDER_WORLDS:-24}" \
       --json "$out/render_options.json" 2>&1 | grep --line-buffered -av "^Module " \
       | tee "$out/render_options.log"
+    ;;
+  jpeg)
+    # Issue 33: what a device JPEG call waits for in a busy process (benchmarks/jpeg_contention.py;
+    # JPEG_ARGS replaces its defaults).
+    timeout 560 python3 benchmarks/jpeg_contention.py ${JPEG_ARGS:-} --json "$out/jpeg.json" \
+      2>&1 | grep --line-buffered -av "^Module " | tee "$out/jpeg.log"
     ;;
   ray)
     # Issue 25: the same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local

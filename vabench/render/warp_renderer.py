@@ -171,6 +171,7 @@ class WarpRenderPool:
         if self.jpeg != "host" and on_gpu and gpu_jpeg.available():
             with self._lock_device:
                 self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+            gpu_jpeg.shorten_switch_interval()
         else:
             self._host_jpeg = JpegThreads(self.jpeg_threads)
             if on_gpu and self.jpeg == "auto":

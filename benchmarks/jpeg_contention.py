@@ -1,0 +1,207 @@
+"""What a device JPEG call waits for when its process is busy: nvImageCodec under contention.
+
+    python benchmarks/jpeg_contention.py [--images 25] [--size 1280x960] [--seconds 8]
+        [--encoders 4] [--busy 0,6] [--threads 0,1] [--switch 0,0.0005] [--gpu-load 0,1]
+        [--json FILE]
+
+In the main job on an H100 a JPEG call of a render pass (~25 frames of 1280x960 already in
+device memory) took 0.23-0.36 s of wall time for ~3 ms of nvJPEG kernels, while three frames
+encode in 15-18 ms on an idle GPU (docs/PERFORMANCE.md). This benchmark rebuilds the engine
+process's conditions one at a time, each configuration in a fresh process (Python's switch
+interval and nvImageCodec's thread pools are per process):
+
+- `--encoders` threads each encode `--images` frames again and again with
+  `vabench.render.gpu_jpeg.DeviceJpeg` (one encoder a thread, as `WarpRenderPool` has);
+- `--busy` other Python threads keep the interpreter's lock busy (pure-Python work, as the
+  engine's event loop, request building and other render threads do);
+- `--threads`: each encoder's host threads (nvImageCodec's `max_num_cpu_threads`; 0 is its
+  default, the host's cores less one: a pool woken for every call);
+- `--switch`: Python's switch interval (0: the default 5 ms): the binding hands the lock back
+  and forth ~3 times an image, and each hand-off can wait one interval;
+- `--gpu-load 1`: a thread keeps the GPU busy with long kernels on a stream of its own (the ray
+  tracer's megakernels of other passes).
+
+Prints, per configuration, JPEG calls a second, images a second and the median and 90th
+percentile wall time of a call. Run it on the GPU (`bash benchmarks/gpu/run.sh jpeg`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+@wp.kernel
+def _spin(a: wp.array(dtype=wp.float32), n: int):  # type: ignore[valid-type]
+    """GPU load: a long arithmetic loop a thread (the ray tracer's megakernels, stand-in)."""
+    i = wp.tid()
+    v = a[i]
+    for _ in range(n):
+        v = v * 0.999 + 0.001
+    a[i] = v
+
+
+def frames_on_device(n: int, width: int, height: int, device: str):
+    """`n` frames that compress like rendered scenes (smooth shading, some edges and noise)."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    base = np.stack([x / width, y / height, 0.5 + 0.5 * np.sin(x / 37.0) * np.cos(y / 53.0)], -1)
+    out = np.empty((n, height, width, 3), np.uint8)
+    for i in range(n):
+        img = 200 * base + 20 * rng.standard_normal((height, width, 1)).astype(np.float32)
+        img[(x.astype(int) // (40 + i)) % 7 == 0] = 30  # edges
+        out[i] = np.clip(img, 0, 255).astype(np.uint8)
+    return wp.array(out, dtype=wp.uint8, device=device)
+
+
+def one_configuration(args: argparse.Namespace) -> dict:
+    """Runs in a child process: one configuration, timed for `args.seconds`."""
+    if args.switch > 0:
+        sys.setswitchinterval(args.switch)
+    wp.init()
+    from vabench.render import gpu_jpeg
+    from vabench.render.images import ImageSettings
+
+    width, height = (int(v) for v in args.size.split("x"))
+    device = "cuda:0"
+    frames = frames_on_device(args.images, width, height, device)
+    settings = ImageSettings(width=width, height=height)
+    stop = threading.Event()
+    calls: list[float] = []
+    lock = threading.Lock()
+    sizes: list[int] = []
+
+    def encoder_thread() -> None:
+        with wp.ScopedDevice(device):
+            stream = wp.Stream(device)
+            jpeg = gpu_jpeg.DeviceJpeg(0, threads=args.threads)
+            jpeg.encode(frames, settings, stream.cuda_stream)  # warm-up
+            while not stop.is_set():
+                t0 = time.perf_counter()
+                out = jpeg.encode(frames, settings, stream.cuda_stream)
+                with lock:
+                    calls.append(time.perf_counter() - t0)
+                    sizes.append(len(out[0]))
+
+    def busy_thread() -> None:
+        x = 0
+        while not stop.is_set():
+            for i in range(2000):
+                x += i * i % 7
+
+    def gpu_load_thread() -> None:
+        with wp.ScopedDevice(device):
+            stream = wp.Stream(device)
+            a = wp.zeros(132 * 2048 * 4, dtype=wp.float32)
+            while not stop.is_set():
+                with wp.ScopedStream(stream):
+                    for _ in range(4):
+                        wp.launch(_spin, dim=a.shape[0], inputs=[a, 20000])
+                wp.synchronize_stream(stream)
+
+    workers = [threading.Thread(target=encoder_thread) for _ in range(args.encoders)]
+    workers += [threading.Thread(target=busy_thread) for _ in range(args.busy)]
+    if args.gpu_load:
+        workers.append(threading.Thread(target=gpu_load_thread))
+    for t in workers:
+        t.start()
+    time.sleep(1.0)  # warm-ups and pools
+    with lock:
+        calls.clear()
+    t0 = time.perf_counter()
+    time.sleep(args.seconds)
+    with lock:
+        timed = list(calls)
+    elapsed = time.perf_counter() - t0
+    stop.set()
+    for t in workers:
+        t.join()
+    timed.sort()
+    return {
+        "calls_per_s": len(timed) / elapsed,
+        "images_per_s": len(timed) * args.images / elapsed,
+        "median_s": statistics.median(timed) if timed else None,
+        "p90_s": timed[int(0.9 * (len(timed) - 1))] if timed else None,
+        "calls": len(timed),
+        "jpeg_bytes": sizes[-1] if sizes else None,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--images", type=int, default=25)
+    ap.add_argument("--size", default="1280x960")
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--encoders", type=int, default=4)
+    ap.add_argument("--busy", default="0,6")
+    ap.add_argument("--threads", default="0,1")
+    ap.add_argument("--switch", default="0,0.0005")
+    ap.add_argument("--gpu-load", default="0,1")
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args, _ = ap.parse_known_args()
+    if args.child:
+        args.busy, args.threads, args.switch, args.gpu_load = (
+            int(args.busy),
+            int(args.threads),
+            float(args.switch),
+            int(args.gpu_load),
+        )
+        print(json.dumps(one_configuration(args)))
+        return
+    grid = itertools.product(
+        [int(v) for v in args.gpu_load.split(",")],
+        [int(v) for v in args.busy.split(",")],
+        [int(v) for v in args.threads.split(",")],
+        [float(v) for v in args.switch.split(",")],
+    )
+    print(
+        f"{args.encoders} encoder threads, {args.images} frames of {args.size} a call, "
+        f"{args.seconds:g} s each"
+    )
+    print(
+        f"{'gpu load':>8} {'busy':>4} {'threads':>7} {'switch ms':>9} {'calls/s':>8} "
+        f"{'img/s':>7} {'median s':>8} {'p90 s':>7}"
+    )
+    rows = []
+    for gpu_load, busy, threads, switch in grid:
+        cmd = [
+            sys.executable, __file__, "--child", "--images", str(args.images), "--size", args.size,
+            "--seconds", str(args.seconds), "--encoders", str(args.encoders), "--busy", str(busy),
+            "--threads", str(threads), "--switch", str(switch), "--gpu-load", str(gpu_load),
+        ]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + 2 * args.seconds)
+        lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
+        if done.returncode != 0 or not lines:
+            print(
+                f"{gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} failed: "
+                f"{(done.stderr or done.stdout).strip().splitlines()[-1:]}"
+            )
+            continue
+        r = json.loads(lines[-1])
+        r.update(gpu_load=gpu_load, busy=busy, threads=threads, switch_s=switch)
+        rows.append(r)
+        print(
+            f"{gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} {r['calls_per_s']:>8.1f} "
+            f"{r['images_per_s']:>7.0f} {r['median_s'] or 0:>8.3f} {r['p90_s'] or 0:>7.3f}",
+            flush=True,
+        )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
