@@ -1,8 +1,8 @@
 """What a device JPEG call waits for when its process is busy: nvImageCodec under contention.
 
     python benchmarks/jpeg_contention.py [--images 25] [--size 1280x960] [--seconds 8]
-        [--encoders 4] [--busy 0,6] [--threads 0,1] [--switch 0,0.0005] [--gpu-load 0,1]
-        [--json FILE]
+        [--encoders 4] [--encoder nvimgcodec,nvjpeg] [--busy 0,6] [--threads 0]
+        [--switch 0] [--gpu-load 0,1] [--json FILE]
 
 In the main job on an H100 a JPEG call of a render pass (~25 frames of 1280x960 already in
 device memory) took 0.23-0.36 s of wall time for ~3 ms of nvJPEG kernels, while three frames
@@ -10,12 +10,15 @@ encode in 15-18 ms on an idle GPU (docs/PERFORMANCE.md). This benchmark rebuilds
 process's conditions one at a time, each configuration in a fresh process (Python's switch
 interval and nvImageCodec's thread pools are per process):
 
-- `--encoders` threads each encode `--images` frames again and again with
-  `vabench.render.gpu_jpeg.DeviceJpeg` (one encoder a thread, as `WarpRenderPool` has);
+- `--encoders` threads each encode `--images` frames again and again (one encoder a thread,
+  each on a stream of its own at the renderer's encode priority, as `WarpRenderPool` has);
+- `--encoder`: `nvimgcodec` (`vabench.render.gpu_jpeg.DeviceJpeg`: nvImageCodec, which encodes
+  on default-priority streams of its own) or `nvjpeg` (`vabench.render.nvjpeg.NvJpeg`: nvJPEG
+  on the thread's stream);
 - `--busy` other Python threads keep the interpreter's lock busy (pure-Python work, as the
   engine's event loop, request building and other render threads do);
 - `--threads`: each encoder's host threads (nvImageCodec's `max_num_cpu_threads`; 0 is its
-  default, the host's cores less one: a pool woken for every call);
+  default, the host's cores less one: a pool woken for every call; nvimgcodec only);
 - `--switch`: Python's switch interval (0: the default 5 ms): the binding hands the lock back
   and forth ~3 times an image, and each hand-off can wait one interval;
 - `--gpu-load 1`: a thread keeps the GPU busy with long kernels on a stream of its own (the ray
@@ -36,6 +39,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import warp as wp
 
@@ -72,8 +76,9 @@ def one_configuration(args: argparse.Namespace) -> dict:
     if args.switch > 0:
         sys.setswitchinterval(args.switch)
     wp.init()
-    from vabench.render import gpu_jpeg
+    from vabench.render import gpu_jpeg, nvjpeg
     from vabench.render.images import ImageSettings
+    from vabench.sim_mjx.warp import streams
 
     width, height = (int(v) for v in args.size.split("x"))
     device = "cuda:0"
@@ -86,8 +91,13 @@ def one_configuration(args: argparse.Namespace) -> dict:
 
     def encoder_thread() -> None:
         with wp.ScopedDevice(device):
-            stream = wp.Stream(device)
-            jpeg = gpu_jpeg.DeviceJpeg(0, threads=args.threads)
+            stream = streams.new_stream(wp.get_device(device), "middle")
+            assert stream is not None
+            jpeg: Any = (
+                nvjpeg.NvJpeg(0)
+                if args.encoder == "nvjpeg"
+                else gpu_jpeg.DeviceJpeg(0, threads=args.threads)
+            )
             jpeg.encode(frames, settings, stream.cuda_stream)  # warm-up
             while not stop.is_set():
                 t0 = time.perf_counter()
@@ -146,9 +156,10 @@ def main() -> None:
     ap.add_argument("--size", default="1280x960")
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--encoders", type=int, default=4)
+    ap.add_argument("--encoder", default="nvimgcodec,nvjpeg")
     ap.add_argument("--busy", default="0,6")
-    ap.add_argument("--threads", default="0,1")
-    ap.add_argument("--switch", default="0,0.0005")
+    ap.add_argument("--threads", default="0")
+    ap.add_argument("--switch", default="0")
     ap.add_argument("--gpu-load", default="0,1")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -163,6 +174,7 @@ def main() -> None:
         print(json.dumps(one_configuration(args)))
         return
     grid = itertools.product(
+        args.encoder.split(","),
         [int(v) for v in args.gpu_load.split(",")],
         [int(v) for v in args.busy.split(",")],
         [int(v) for v in args.threads.split(",")],
@@ -173,30 +185,32 @@ def main() -> None:
         f"{args.seconds:g} s each"
     )
     print(
-        f"{'gpu load':>8} {'busy':>4} {'threads':>7} {'switch ms':>9} {'calls/s':>8} "
-        f"{'img/s':>7} {'median s':>8} {'p90 s':>7}"
+        f"{'encoder':>10} {'gpu load':>8} {'busy':>4} {'threads':>7} {'switch ms':>9} "
+        f"{'calls/s':>8} {'img/s':>7} {'median s':>8} {'p90 s':>7}"
     )
     rows = []
-    for gpu_load, busy, threads, switch in grid:
+    for encoder, gpu_load, busy, threads, switch in grid:
         cmd = [
             sys.executable, __file__, "--child", "--images", str(args.images), "--size", args.size,
             "--seconds", str(args.seconds), "--encoders", str(args.encoders), "--busy", str(busy),
             "--threads", str(threads), "--switch", str(switch), "--gpu-load", str(gpu_load),
+            "--encoder", encoder,
         ]  # fmt: skip
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + 2 * args.seconds)
         lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
         if done.returncode != 0 or not lines:
             print(
-                f"{gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} failed: "
+                f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} failed: "
                 f"{(done.stderr or done.stdout).strip().splitlines()[-1:]}"
             )
             continue
         r = json.loads(lines[-1])
-        r.update(gpu_load=gpu_load, busy=busy, threads=threads, switch_s=switch)
+        r.update(encoder=encoder, gpu_load=gpu_load, busy=busy, threads=threads, switch_s=switch)
         rows.append(r)
         print(
-            f"{gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} {r['calls_per_s']:>8.1f} "
-            f"{r['images_per_s']:>7.0f} {r['median_s'] or 0:>8.3f} {r['p90_s'] or 0:>7.3f}",
+            f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} "
+            f"{r['calls_per_s']:>8.1f} {r['images_per_s']:>7.0f} "
+            f"{r['median_s'] or 0:>8.3f} {r['p90_s'] or 0:>7.3f}",
             flush=True,
         )
     if args.json:

@@ -228,6 +228,16 @@ def test_bad_requests_fail_at_once(warp_pool, cube_items):
     assert len(warp_pool.render(CUBE, [item], SIZE)) == 1  # still usable
 
 
+def test_the_jpeg_choice_is_checked(monkeypatch):
+    with pytest.raises(ValueError, match="jpeg must be one of"):
+        WarpRenderPool(device="cpu", jpeg="gpu")
+    monkeypatch.setenv("VABENCH_WARP_JPEG", "nvjpeg")
+    pool = WarpRenderPool(device="cpu")
+    assert pool.jpeg == "nvjpeg"  # the environment's default (measuring side by side)
+    with pytest.raises(RenderError, match="needs a GPU and nvJPEG"):
+        pool.start()
+
+
 # -- sharing device memory with Warp physics ---------------------------------------------
 def test_states_read_on_the_device_equal_the_host_copies(warp_pool):
     """Two Warp physics batches of one task in one process (a Ray engine runs several cells at

@@ -146,11 +146,11 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     if [ -n "${MAIN_PYSPY:-}" ]; then
       at=${MAIN_PYSPY_AT:-40}
       for t in ${MAIN_PYSPY_DUMPS:-$((at + 30)) $((at + 60)) $((at + 90))}; do
-        (sleep "$t"; pid=$(pgrep -of "vabench.sweep $config --out") || exit 0
+        (sleep "$t"; pid=$(pgrep -of "^python3 -m vabench.sweep $config --out") || exit 0
          { echo "=== dump at ${t} s"; /tmp/spysite/bin/py-spy dump --pid "$pid" --subprocesses \
            --native; } >> "$out/pyspy_dump.txt" 2>&1) &
       done
-      (sleep "$at"; pid=$(pgrep -of "vabench.sweep $config --out") || exit 0
+      (sleep "$at"; pid=$(pgrep -of "^python3 -m vabench.sweep $config --out") || exit 0
        /tmp/spysite/bin/py-spy record --pid "$pid" --subprocesses --threads $spy_mode --rate 20 \
          --nonblocking --format raw --duration "${MAIN_PYSPY_S:-120}" -o "$out/pyspy.raw" \
          > "$out/pyspy.log" 2>&1) &

@@ -10,32 +10,11 @@ a thread pool (`images.JpegThreads`) with the same quality and chroma subsamplin
 from __future__ import annotations
 
 import importlib.util
-import os
 from typing import Any
 
 from vabench.render.images import ImageSettings
 
 PACKAGE_HINT = "pip install 'vabench[jpeg-cu13]' (CUDA 13; jpeg-cu12 for CUDA 12)"
-
-ENCODE_THREADS = int(os.environ.get("VABENCH_JPEG_THREADS", "0"))
-"""Host threads of each encoder (nvImageCodec's `max_num_cpu_threads`; 0: its default, the
-host's cores less one; 1: the calling thread alone, no pool)."""
-
-
-SWITCH_INTERVAL_S = float(os.environ.get("VABENCH_SWITCH_INTERVAL", "0"))
-"""Python's thread switch interval in a process that encodes on the device (0: Python's own,
-5 ms). nvImageCodec's binding hands the interpreter's lock back and forth about three times an
-image (the image made from the array, the reused code stream, its buffer reserved from a
-library thread); in a process whose other threads keep the lock busy each hand-off can wait a
-whole interval."""
-
-
-def shorten_switch_interval() -> None:
-    """Applies `SWITCH_INTERVAL_S` to this process (where it is set)."""
-    if SWITCH_INTERVAL_S > 0:
-        import sys
-
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
 
 
 def available() -> bool:
@@ -49,7 +28,10 @@ def available() -> bool:
 class DeviceJpeg:
     """Encodes (n, H, W, 3) uint8 frames in device memory of GPU `device_id` to JPEG bytes."""
 
-    def __init__(self, device_id: int, threads: int = ENCODE_THREADS):
+    def __init__(self, device_id: int, threads: int = 0):
+        """`threads`: the encoder's host threads (nvImageCodec's `max_num_cpu_threads`; 0, its
+        default, is the host's cores less one). 1 (no pool) measured no better on an H100 under
+        load (benchmarks/jpeg_contention.py, docs/PERFORMANCE.md "Ninth session")."""
         from nvidia import nvimgcodec
 
         self._nv = nvimgcodec

@@ -51,6 +51,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -63,7 +64,7 @@ import mujoco
 import numpy as np
 import warp as wp
 
-from vabench.render import gpu_jpeg
+from vabench.render import gpu_jpeg, nvjpeg
 from vabench.render.images import (
     ImageSettings,
     JpegThreads,
@@ -79,6 +80,11 @@ from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
 
+JPEG_CHOICES = ("auto", "device", "host", "nvjpeg")
+"""`WarpRenderPool.jpeg`: auto (nvImageCodec where installed, else host threads), device
+(nvImageCodec or an error), host (threads), nvjpeg (nvJPEG on the renderer's own priority
+streams, `vabench.render.nvjpeg`; not the default until measured on a GPU). The environment's
+VABENCH_WARP_JPEG sets the default (for measuring side by side)."""
 MIN_PASS = 8  # the smallest largest-pass a GPU must hold (else: memory too full to render)
 MAX_PASS = 1024  # largest render batch on a GPU (memory permitting)
 MAX_PASS_PIXELS = 128 * 1280 * 960
@@ -103,15 +109,16 @@ class WarpRenderPool:
 
     `device`: "cuda:N" or "cpu" (default: VABENCH_WARP_DEVICE, else cuda:0). `max_pass`: the
     most worlds one pass holds (default: from free GPU memory, at most MAX_PASS). `jpeg`:
-    "auto" (nvImageCodec on a GPU where installed, else threads), "device" or "host".
-    `memory_budget`: bytes all passes kept may take (default: MEMORY_SHARE of the GPU memory
-    free when the first pass is sized; on the CPU, CPU_BUDGET_WORLDS worlds of the largest size).
+    "auto" (nvImageCodec on a GPU where installed, else threads), "device", "host" or
+    "nvjpeg" (`JPEG_CHOICES`). `memory_budget`: bytes all passes kept may take (default:
+    MEMORY_SHARE of the GPU memory free when the first pass is sized; on the CPU,
+    CPU_BUDGET_WORLDS worlds of the largest size).
     """
 
     device: str | None = None
     max_size: tuple[int, int] = (1280, 960)
     max_pass: int | None = None
-    jpeg: str = "auto"
+    jpeg: str = field(default_factory=lambda: os.environ.get("VABENCH_WARP_JPEG", "auto"))
     jpeg_threads: int | None = None
     memory_budget: int | None = None
     state_on_device: bool = False
@@ -124,8 +131,8 @@ class WarpRenderPool:
     stats: RenderStats = field(default_factory=RenderStats)
 
     def __post_init__(self) -> None:
-        if self.jpeg not in ("auto", "device", "host"):
-            raise ValueError(f"jpeg must be 'auto', 'device' or 'host', got {self.jpeg!r}")
+        if self.jpeg not in JPEG_CHOICES:
+            raise ValueError(f"jpeg must be one of {JPEG_CHOICES}, got {self.jpeg!r}")
         self._device: Any = None
         # Passes kept, least recently used first, with the bytes each was charged.
         # (task, worlds, width, height) -> (pass, bytes charged)
@@ -134,7 +141,7 @@ class WarpRenderPool:
         self._models: dict[str, list[mujoco.MjModel]] = {}
         self._largest: dict[tuple[int, int], int] = {}
         self._host_jpeg: JpegThreads | None = None
-        self._device_jpeg: gpu_jpeg.DeviceJpeg | None = None
+        self._device_jpeg: Any = None  # the first encoder (gpu_jpeg.DeviceJpeg or NvJpeg)
         self._lock = threading.Lock()  # the passes kept, their budget and the stats
         self._building = threading.Lock()  # one pass built at a time, outside `_lock`
         self._encoders = threading.local()
@@ -168,15 +175,23 @@ class WarpRenderPool:
             raise RenderError(
                 f"JPEG on the device needs a GPU and nvImageCodec: {gpu_jpeg.PACKAGE_HINT}"
             )
-        if self.jpeg != "host" and on_gpu and gpu_jpeg.available():
+        if self.jpeg == "nvjpeg":
+            if not (on_gpu and nvjpeg.available()):
+                raise RenderError(f"jpeg='nvjpeg' needs a GPU and nvJPEG: {gpu_jpeg.PACKAGE_HINT}")
+            with self._lock_device, wp.ScopedDevice(self._device):
+                self._device_jpeg = nvjpeg.NvJpeg(self._device.ordinal)
+        elif self.jpeg != "host" and on_gpu and gpu_jpeg.available():
             with self._lock_device:
                 self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
-            gpu_jpeg.shorten_switch_interval()
         else:
             self._host_jpeg = JpegThreads(self.jpeg_threads)
             if on_gpu and self.jpeg == "auto":
                 log.warning(NO_DEVICE_JPEG, gpu_jpeg.PACKAGE_HINT)
-        encoder = "nvImageCodec" if self._device_jpeg else f"{self._host_jpeg.threads} threads"  # type: ignore[union-attr]
+        encoder = (
+            ("nvJPEG on the renderer's streams" if self.jpeg == "nvjpeg" else "nvImageCodec")
+            if self._device_jpeg
+            else f"{self._host_jpeg.threads} threads"  # type: ignore[union-attr]
+        )
         self.info = f"warp on {self._device} ({self._device.name}; JPEG: {encoder})"
         log.info("renderer: %s", self.info)
         return self.info
@@ -335,7 +350,8 @@ class WarpRenderPool:
             t1 = time.perf_counter()
             if rgb is not None:  # its pixels are on the device: the wait above saw them
                 encoder, stream = self._jpeg_encoder(urgent)
-                with streams.failing_device():
+                # the device's context current: nvJPEG's runtime calls use the thread's
+                with streams.failing_device(), wp.ScopedDevice(self._device):
                     images = encoder.encode(rgb[:n], settings, stream)
                 self._count(n, source, t1 - t0, time.perf_counter() - t1)
                 return images
@@ -356,7 +372,7 @@ class WarpRenderPool:
             self.stats.render_s += render_s
             self.stats.encode_s += encode_s
 
-    def _jpeg_encoder(self, urgent: bool) -> tuple[gpu_jpeg.DeviceJpeg, int]:
+    def _jpeg_encoder(self, urgent: bool) -> tuple[Any, int]:
         """This thread's nvImageCodec encoder (one per thread: passes of several tasks encode
         at once, and an encoder is not shared between threads) and the handle of this thread's
         stream to encode on: above the passes' ray tracing in priority, the critical path's
@@ -366,9 +382,13 @@ class WarpRenderPool:
         if getattr(local, "jpeg", None) is None:
             local.jpeg = {}
         if urgent not in local.jpeg:  # an encoder a stream: nvJPEG's state follows its stream
-            with self._lock_device:
+            with self._lock_device, wp.ScopedDevice(self._device):
                 stream = streams.new_stream(self._device, "greatest" if urgent else "middle")
-                encoder = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+                encoder = (
+                    nvjpeg.NvJpeg(self._device.ordinal)
+                    if self.jpeg == "nvjpeg"
+                    else gpu_jpeg.DeviceJpeg(self._device.ordinal)
+                )
             local.jpeg[urgent] = (encoder, stream.cuda_stream if stream is not None else 0)
         return local.jpeg[urgent]
 
