@@ -21,8 +21,10 @@ interval and nvImageCodec's thread pools are per process):
   default, the host's cores less one: a pool woken for every call; nvimgcodec only);
 - `--switch`: Python's switch interval (0: the default 5 ms): the binding hands the lock back
   and forth ~3 times an image, and each hand-off can wait one interval;
-- `--gpu-load 1`: a thread keeps the GPU busy with long kernels on a stream of its own (the ray
-  tracer's megakernels of other passes).
+- `--gpu-load 1`: a thread keeps every SM busy with kernels of many blocks on a non-blocking
+  stream of the least priority, eight queued at a time (the ray tracer's megakernels of other
+  passes). Before 2026-11-27 19:30 UTC its kernels were ~0.2 ms on a blocking stream, the GPU
+  idle at each of its waits (the first table in docs/PERFORMANCE.md's "Ninth session").
 
 Prints, per configuration, JPEG calls a second, images a second and the median and 90th
 percentile wall time of a call. Run it on the GPU (`bash benchmarks/gpu/run.sh jpeg`).
@@ -31,6 +33,7 @@ percentile wall time of a call. Run it on the GPU (`bash benchmarks/gpu/run.sh j
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import statistics
@@ -88,6 +91,21 @@ def one_configuration(args: argparse.Namespace) -> dict:
     calls: list[float] = []
     lock = threading.Lock()
     sizes: list[int] = []
+    errors: list[str] = []
+    # every encoder after its warm-up encode, the GPU load after its first kernels, and this
+    # thread: the timing starts when all are running (a first encode or kernel compiles)
+    ready = threading.Barrier(args.encoders + (1 if args.gpu_load else 0) + 1, timeout=120)
+
+    def failing(target):
+        def run() -> None:
+            try:
+                target()
+            except BaseException as err:  # reported by the child's exit status
+                errors.append(f"{target.__name__}: {err!r}")
+                ready.abort()
+                stop.set()
+
+        return run
 
     def encoder_thread() -> None:
         with wp.ScopedDevice(device):
@@ -99,6 +117,7 @@ def one_configuration(args: argparse.Namespace) -> dict:
                 else gpu_jpeg.DeviceJpeg(0, threads=args.threads)
             )
             jpeg.encode(frames, settings, stream.cuda_stream)  # warm-up
+            ready.wait()
             while not stop.is_set():
                 t0 = time.perf_counter()
                 out = jpeg.encode(frames, settings, stream.cuda_stream)
@@ -113,32 +132,44 @@ def one_configuration(args: argparse.Namespace) -> dict:
                 x += i * i % 7
 
     def gpu_load_thread() -> None:
+        # like the ray tracer's passes: a non-blocking stream at the least priority, kernels of
+        # many blocks (16 waves of the H100's 132 SMs x 2,048 threads, each thread ~0.5 ms),
+        # eight queued at a time so that the SMs never wait for the host
         with wp.ScopedDevice(device):
-            stream = wp.Stream(device)
-            a = wp.zeros(132 * 2048 * 4, dtype=wp.float32)
+            stream = streams.new_stream(wp.get_device(device), "least")
+            assert stream is not None
+            a = wp.zeros(132 * 2048 * 16, dtype=wp.float32)
+            first = True
             while not stop.is_set():
                 with wp.ScopedStream(stream):
-                    for _ in range(4):
-                        wp.launch(_spin, dim=a.shape[0], inputs=[a, 20000])
+                    for _ in range(8):
+                        wp.launch(_spin, dim=a.shape[0], inputs=[a, 200_000])
                 wp.synchronize_stream(stream)
+                if first:
+                    ready.wait()
+                    first = False
 
-    workers = [threading.Thread(target=encoder_thread) for _ in range(args.encoders)]
-    workers += [threading.Thread(target=busy_thread) for _ in range(args.busy)]
+    workers = [threading.Thread(target=failing(encoder_thread)) for _ in range(args.encoders)]
+    workers += [threading.Thread(target=failing(busy_thread)) for _ in range(args.busy)]
     if args.gpu_load:
-        workers.append(threading.Thread(target=gpu_load_thread))
+        workers.append(threading.Thread(target=failing(gpu_load_thread)))
     for t in workers:
         t.start()
-    time.sleep(1.0)  # warm-ups and pools
+    with contextlib.suppress(threading.BrokenBarrierError):  # a thread failed: `errors`
+        ready.wait()
     with lock:
         calls.clear()
     t0 = time.perf_counter()
-    time.sleep(args.seconds)
+    stop.wait(args.seconds)
     with lock:
         timed = list(calls)
     elapsed = time.perf_counter() - t0
     stop.set()
     for t in workers:
         t.join()
+    if errors:
+        print("\n".join(errors), file=sys.stderr)
+        sys.exit(1)
     timed.sort()
     return {
         "calls_per_s": len(timed) / elapsed,
@@ -196,7 +227,15 @@ def main() -> None:
             "--threads", str(threads), "--switch", str(switch), "--gpu-load", str(gpu_load),
             "--encoder", encoder,
         ]  # fmt: skip
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + 2 * args.seconds)
+        try:
+            done = subprocess.run(
+                cmd, capture_output=True, text=True, timeout=240 + 2 * args.seconds
+            )
+        except subprocess.TimeoutExpired:
+            print(
+                f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} timed out"
+            )
+            continue
         lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
         if done.returncode != 0 or not lines:
             print(

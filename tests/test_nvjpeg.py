@@ -85,6 +85,18 @@ class StandIn:
         self.encoded[state.value] = (img.channel[0], img.pitch[0])
         return self._status("nvjpegEncodeImage")
 
+    def nvjpegEncoderStateDestroy(self, state):
+        self.calls.append(("destroy state", state.value))
+        return 0
+
+    def nvjpegEncoderParamsDestroy(self, params):
+        self.calls.append(("destroy params", params.value))
+        return 0
+
+    def nvjpegDestroy(self, handle):
+        self.calls.append(("destroy", handle.value))
+        return 0
+
     def cuStreamSynchronize(self, stream):
         self.calls.append(("sync", stream))
         return 0
@@ -123,6 +135,8 @@ def test_every_image_is_queued_then_waited_for_once_then_retrieved(lib):
     assert ("sync", 55) in lib.calls
     # pointers and row pitches (a frame without strides is packed: width * 3)
     assert sorted(lib.encoded.values()) == [(0x1000, 18), (0x2000, 32)]
+    assert set(enc.seconds) == {"queueing", "waiting for the GPU", "copying out"}
+    assert all(seconds >= 0 for seconds in enc.seconds.values())
     # a second call reuses the states and the parameters
     lib.calls.clear()
     assert enc.encode(frames, ImageSettings(width=6, height=4, quality=90), 55) == [JPEG, JPEG]
@@ -137,6 +151,19 @@ def test_a_large_pass_is_encoded_in_groups_each_waited_for_once(lib, monkeypatch
     kinds = [c[0] for c in lib.calls if c[0] in ("encode", "sync", "state")]
     assert kinds == ["state", "state"] + ["encode", "encode", "sync"] * 2 + ["encode", "sync"]
     assert sorted(p for p, _ in lib.encoded.values()) == [0x4000, 0x5000]  # the last group's
+
+
+def test_close_frees_states_parameters_and_the_handle(lib):
+    enc = nvjpeg.NvJpeg(0)
+    enc.encode(Frames([Frame(0x1000), Frame(0x2000)]), ImageSettings(width=6, height=4), 3)
+    lib.calls.clear()
+    enc.close()
+    assert sorted(c[0] for c in lib.calls) == [
+        "destroy", "destroy params", "destroy state", "destroy state"
+    ]  # fmt: skip
+    lib.calls.clear()
+    enc.close()  # twice: nothing left to free
+    assert lib.calls == []
 
 
 @pytest.mark.parametrize(
@@ -178,3 +205,23 @@ def test_without_the_library_it_is_unavailable_with_the_install_hint(monkeypatch
 
 def _no_library(path):
     raise OSError(f"{path}: cannot open shared object file")
+
+
+def test_the_renderer_lends_each_encode_an_encoder_of_its_own_and_reuses_them(monkeypatch):
+    from vabench.render.warp_renderer import WarpRenderPool
+
+    pool = WarpRenderPool(device="cpu", jpeg="nvjpeg")
+    made: list[tuple] = []
+
+    def new(urgent):
+        made.append((f"encoder {len(made)}", 100 + len(made), urgent))
+        return made[-1][:2]
+
+    monkeypatch.setattr(pool, "_new_nvjpeg", new)
+    with pool._device_encoder(False) as a, pool._device_encoder(False) as b:
+        assert a != b  # two encodes at once: two encoders, each with its stream
+    with pool._device_encoder(False) as c:
+        assert c in (a, b)  # given back, then lent again
+    with pool._device_encoder(True) as d:
+        assert d not in (a, b)  # the critical path's: a stream of the greatest priority
+    assert [m[2] for m in made] == [False, False, True]

@@ -116,13 +116,18 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     fi
     # A run directory keeps every image the models saw (~20-30 GB for configs/all.yaml): the
     # third run on one 64 GiB host filled its disk and the machine stopped answering
-    # (2026-11-27). Earlier calls' run directories go, except the one this call resumes.
+    # (2026-11-27). Earlier calls' run directories go (each named as it was run, and only
+    # where it holds a run's episodes/), except the one this call resumes.
+    run=$(realpath -m "$run")
     touch /tmp/main_runs.txt
     while read -r old; do
-      case "$old" in /tmp/?*) [ "$old" != "$run" ] && rm -rf "$old" ;; esac
+      if [ -n "$old" ] && [ "$old" != "$run" ] && [ -d "$old/episodes" ]; then
+        echo "main: removing an earlier call's run directory $old (disk space)" | tee -a "$out/main_disk.txt"
+        rm -rf "$old"
+      fi
     done < /tmp/main_runs.txt
     grep -qx "$run" /tmp/main_runs.txt || echo "$run" >> /tmp/main_runs.txt
-    df -h /tmp | tail -1 | tee "$out/main_disk.txt"
+    df -h /tmp | tail -1 | tee -a "$out/main_disk.txt"
     python3 -m vabench.sweep "$config" --dry-run 2>&1 | tail -8 | tee "$out/main_choices.txt"
     # MAIN_PROFILE=1: each worker writes a cProfile of its chunks (summed into main_profile.txt);
     # always: GPU and CPU use every 5 s (main_util.txt: time, GPU %, GPU MiB, /proc/stat cpu)
@@ -136,7 +141,8 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     # start, as collapsed stacks (benchmarks/profile_summary.py reads them), plus dumps with
     # native frames (what a thread waits for inside a C extension: a CUDA sync, a mutex, the
     # interpreter's lock) at MAIN_PYSPY_DUMPS seconds after the start (default: 30, 60 and 90
-    # s after MAIN_PYSPY_AT).
+    # s after MAIN_PYSPY_AT). A dump stops each process while it unwinds (a second or more):
+    # a run with dumps is not a timing run.
     # MAIN_PYSPY=gil: only the thread holding the interpreter lock, each sample (what paces a
     # process whose event loop waits for the lock: the "host:" lines tell when).
     # Always: the sweep's "host:" lines every 15 s (vabench/sweep/hostload.py).

@@ -10,6 +10,7 @@ a thread pool (`images.JpegThreads`) with the same quality and chroma subsamplin
 from __future__ import annotations
 
 import importlib.util
+import time
 from typing import Any
 
 from vabench.render.images import ImageSettings
@@ -38,6 +39,8 @@ class DeviceJpeg:
         self._encoder = nvimgcodec.Encoder(device_id=device_id, max_num_cpu_threads=threads)
         self._params: dict[tuple[int, str], Any] = {}
         self._outputs: list[Any] = []  # `_code_streams`
+        self.seconds = {"making images": 0.0, "encoding": 0.0, "copying out": 0.0}
+        """Where this encoder's calls spent their time (the renderer logs the sums)."""
 
     def _encode_params(self, settings: ImageSettings) -> Any:
         key = (settings.quality, settings.subsampling)
@@ -61,10 +64,12 @@ class DeviceJpeg:
         nvImageCodec refuses: it is stream 0 to CUDA (every episode of a sweep on an H100 failed
         on it before this)."""
         stream = int(cuda_stream or 0)
+        t0 = time.perf_counter()
         # The image is tied to the encode's stream: by default nvImageCodec ties it to stream 0,
         # CUDA's legacy stream, which synchronises with every blocking stream of the process.
         images = [self._nv.as_image(frames[i], cuda_stream=stream) for i in range(frames.shape[0])]
         outputs = self._code_streams(len(images))
+        t1 = time.perf_counter()
         streams = self._encoder.encode(
             images,
             "jpeg",
@@ -72,9 +77,15 @@ class DeviceJpeg:
             params=self._encode_params(settings),
             cuda_stream=stream,
         )
+        t2 = time.perf_counter()
         if any(s is None for s in streams):
             raise RuntimeError("nvImageCodec failed to encode a frame")
-        return [_jpeg_bytes(s) for s in streams]
+        out = [_jpeg_bytes(s) for s in streams]
+        seconds = self.seconds
+        seconds["making images"] += t1 - t0
+        seconds["encoding"] += t2 - t1
+        seconds["copying out"] += time.perf_counter() - t2
+        return out
 
     def _code_streams(self, n: int) -> list[Any]:
         """`n` output code streams, kept and reused from call to call. Left to nvImageCodec,

@@ -10,6 +10,7 @@ names (the renderer's encode stream, above the ray tracing in priority: `streams
 each image with an encoder state of its own, so that a pass's encodes are queued back to back,
 waited for once, then their bytes retrieved.
 
+Each thread's encode holds its own encoder (the renderer keeps a pool: one an encode at once).
 The library is the `nvidia-nvjpeg` wheel's `libnvjpeg.so.<CUDA major>` (installed with
 `vabench[jpeg-cu13]`) or the system's; the stream is waited for through the CUDA driver
 (`cuStreamSynchronize`). Every call's status is checked; a JPEG that does not start and end as
@@ -22,6 +23,7 @@ import ctypes
 import glob
 import os
 import threading
+import time
 from typing import Any
 
 from vabench.render.images import ImageSettings
@@ -66,7 +68,12 @@ def _find_library() -> Any:
     problems = []
     for path in candidates:
         try:
-            return ctypes.CDLL(path)
+            # PyDLL: its calls keep the interpreter's lock. Each is short (a few kernels queued,
+            # a finished bitstream copied), and a call through CDLL hands the lock back and
+            # forth: ~3 an image, each waiting up to the switch interval behind busy threads
+            # (0.8 s a call of 25 images with nvImageCodec's binding, which does the same:
+            # benchmarks/jpeg_contention.py). The stream is waited for through CDLL (below).
+            return ctypes.PyDLL(path)
         except OSError as err:
             problems.append(str(err))
     raise NvJpegError(
@@ -98,6 +105,9 @@ def load() -> tuple[Any, Any]:
                     vp,
                 ],
                 "nvjpegEncodeRetrieveBitstream": [vp, vp, vp, ctypes.POINTER(sz), vp],
+                "nvjpegEncoderStateDestroy": [vp],
+                "nvjpegEncoderParamsDestroy": [vp],
+                "nvjpegDestroy": [vp],
             }
             for name, argtypes in signatures.items():
                 fn = getattr(lib, name)
@@ -136,6 +146,19 @@ class NvJpeg:
         _check(self._lib.nvjpegCreateSimple(ctypes.byref(self._handle)), "nvjpegCreateSimple")
         self._states: list[ctypes.c_void_p] = []
         self._params: dict[tuple[int, str], ctypes.c_void_p] = {}
+        self.seconds = {"queueing": 0.0, "waiting for the GPU": 0.0, "copying out": 0.0}
+        """Where this encoder's calls spent their time (the renderer logs the sums)."""
+
+    def close(self) -> None:
+        """Frees the encoder states, parameters and the handle (device memory among them)."""
+        lib = self._lib
+        for state in self._states:
+            lib.nvjpegEncoderStateDestroy(state)
+        for params in self._params.values():
+            lib.nvjpegEncoderParamsDestroy(params)
+        if self._handle:
+            lib.nvjpegDestroy(self._handle)
+        self._states, self._params, self._handle = [], {}, ctypes.c_void_p()
 
     def _encode_params(self, settings: ImageSettings, stream: int) -> ctypes.c_void_p:
         key = (settings.quality, settings.subsampling)
@@ -185,6 +208,7 @@ class NvJpeg:
     def _encode_group(
         self, frames: Any, indices: range, settings: ImageSettings, stream: int
     ) -> list[bytes]:
+        t0 = time.perf_counter()
         params = self._encode_params(settings, stream)
         states = self._encoder_states(len(indices), stream)
         lib = self._lib
@@ -215,9 +239,11 @@ class NvJpeg:
                 ),
                 "nvjpegEncodeImage",
             )
+        t1 = time.perf_counter()
         status = self._driver.cuStreamSynchronize(stream)
         if status != 0:
             raise NvJpegError(f"cuStreamSynchronize failed with CUresult {status}")
+        t2 = time.perf_counter()
         out = []
         for state in states:
             size = ctypes.c_size_t(0)
@@ -239,4 +265,8 @@ class NvJpeg:
                 raise NvJpegError(f"nvJPEG returned a malformed JPEG ({len(data)} bytes)")
             out.append(data)
         del keep
+        seconds = self.seconds
+        seconds["queueing"] += t1 - t0
+        seconds["waiting for the GPU"] += t2 - t1
+        seconds["copying out"] += time.perf_counter() - t2
         return out

@@ -55,7 +55,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -141,10 +141,14 @@ class WarpRenderPool:
         self._models: dict[str, list[mujoco.MjModel]] = {}
         self._largest: dict[tuple[int, int], int] = {}
         self._host_jpeg: JpegThreads | None = None
-        self._device_jpeg: Any = None  # the first encoder (gpu_jpeg.DeviceJpeg or NvJpeg)
+        self._device_jpeg: Any = None  # set where JPEG is encoded on the device: the first encoder
         self._lock = threading.Lock()  # the passes kept, their budget and the stats
         self._building = threading.Lock()  # one pass built at a time, outside `_lock`
         self._encoders = threading.local()
+        # jpeg="nvjpeg": encoders (each with its stream) not in use, per priority (urgent or
+        # not), taken by a pass for its encode and given back: as many as encode at once
+        self._nvjpeg_pool: dict[bool, list[tuple[nvjpeg.NvJpeg, int]]] = {False: [], True: []}
+        self._device_encoders: list[Any] = []  # every device encoder made (their `seconds`)
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
         self._lock_device: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
@@ -178,8 +182,8 @@ class WarpRenderPool:
         if self.jpeg == "nvjpeg":
             if not (on_gpu and nvjpeg.available()):
                 raise RenderError(f"jpeg='nvjpeg' needs a GPU and nvJPEG: {gpu_jpeg.PACKAGE_HINT}")
-            with self._lock_device, wp.ScopedDevice(self._device):
-                self._device_jpeg = nvjpeg.NvJpeg(self._device.ordinal)
+            self._device_jpeg = self._new_nvjpeg(False)
+            self._nvjpeg_pool[False].append(self._device_jpeg)
         elif self.jpeg != "host" and on_gpu and gpu_jpeg.available():
             with self._lock_device:
                 self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
@@ -212,6 +216,15 @@ class WarpRenderPool:
                 st.encode_s,
                 st.wall_s,
             )
+        parts: dict[str, float] = {}
+        for encoder in self._device_encoders:
+            for part, seconds in encoder.seconds.items():
+                parts[part] = parts.get(part, 0.0) + seconds
+        if parts:
+            log.info(
+                "renderer: JPEG on the device: %s",
+                ", ".join(f"{seconds:.1f} s {part}" for part, seconds in parts.items()),
+            )
         with self._lock, self._lock_device:  # freeing device memory is device work too
             for p, _ in self._passes.values():
                 p.evicted = True
@@ -219,6 +232,10 @@ class WarpRenderPool:
             if self._host_jpeg is not None:
                 self._host_jpeg.close()
                 self._host_jpeg = None
+            for pool in self._nvjpeg_pool.values():
+                while pool:
+                    with self._device.context_guard:
+                        pool.pop()[0].close()
 
     # -- sharing the physics batch's memory -----------------------------------------------
     def shares(self, batch: Any) -> bool:
@@ -349,9 +366,12 @@ class WarpRenderPool:
             streams.wait(done)
             t1 = time.perf_counter()
             if rgb is not None:  # its pixels are on the device: the wait above saw them
-                encoder, stream = self._jpeg_encoder(urgent)
-                # the device's context current: nvJPEG's runtime calls use the thread's
-                with streams.failing_device(), wp.ScopedDevice(self._device):
+                # the device's context current for this thread (nvJPEG's runtime calls use it)
+                with (
+                    self._device_encoder(urgent) as (encoder, stream),
+                    streams.failing_device(),
+                    self._device.context_guard,
+                ):
                     images = encoder.encode(rgb[:n], settings, stream)
                 self._count(n, source, t1 - t0, time.perf_counter() - t1)
                 return images
@@ -372,6 +392,35 @@ class WarpRenderPool:
             self.stats.render_s += render_s
             self.stats.encode_s += encode_s
 
+    @contextlib.contextmanager
+    def _device_encoder(self, urgent: bool) -> Iterator[tuple[Any, int]]:
+        """An encoder on the device and the handle of its stream, for one encode: with
+        jpeg="nvjpeg" one taken from the pool (or made) and given back after; else this
+        thread's nvImageCodec encoder (`_jpeg_encoder`)."""
+        if self.jpeg != "nvjpeg":
+            yield self._jpeg_encoder(urgent)
+            return
+        with self._lock:
+            pool = self._nvjpeg_pool[urgent]
+            taken = pool.pop() if pool else None
+        if taken is None:
+            taken = self._new_nvjpeg(urgent)
+        try:
+            yield taken
+        finally:
+            with self._lock:
+                self._nvjpeg_pool[urgent].append(taken)
+
+    def _new_nvjpeg(self, urgent: bool) -> tuple[nvjpeg.NvJpeg, int]:
+        """An nvJPEG encoder and a stream of its own, above the ray tracing in priority (the
+        critical path's highest)."""
+        with self._lock_device, self._device.context_guard:
+            stream = streams.new_stream(self._device, "greatest" if urgent else "middle")
+            encoder = nvjpeg.NvJpeg(self._device.ordinal)
+        with self._lock:
+            self._device_encoders.append(encoder)
+        return encoder, stream.cuda_stream if stream is not None else 0
+
     def _jpeg_encoder(self, urgent: bool) -> tuple[Any, int]:
         """This thread's nvImageCodec encoder (one per thread: passes of several tasks encode
         at once, and an encoder is not shared between threads) and the handle of this thread's
@@ -382,13 +431,11 @@ class WarpRenderPool:
         if getattr(local, "jpeg", None) is None:
             local.jpeg = {}
         if urgent not in local.jpeg:  # an encoder a stream: nvJPEG's state follows its stream
-            with self._lock_device, wp.ScopedDevice(self._device):
+            with self._lock_device:
                 stream = streams.new_stream(self._device, "greatest" if urgent else "middle")
-                encoder = (
-                    nvjpeg.NvJpeg(self._device.ordinal)
-                    if self.jpeg == "nvjpeg"
-                    else gpu_jpeg.DeviceJpeg(self._device.ordinal)
-                )
+                encoder = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+            with self._lock:
+                self._device_encoders.append(encoder)
             local.jpeg[urgent] = (encoder, stream.cuda_stream if stream is not None else 0)
         return local.jpeg[urgent]
 
