@@ -53,3 +53,123 @@ def test_a_closed_batcher_serves_again():
         return first, second
 
     assert asyncio.run(main()) == (1, 2)
+
+
+def _gated_batcher(concurrency: int):
+    """A batcher whose calls block until released one by one, recording each call's items and
+    how many calls were inside `run` at once."""
+    gates: list[threading.Event] = []
+    calls: list[list[int]] = []
+    inside = [0, 0]  # now, most
+    lock = threading.Lock()
+
+    def run(items):
+        gate = threading.Event()
+        with lock:
+            gates.append(gate)
+            calls.append(list(items))
+            inside[0] += 1
+            inside[1] = max(inside[1], inside[0])
+        assert gate.wait(20), "never released"
+        with lock:
+            inside[0] -= 1
+        return [x * 10 for x in items]
+
+    batcher = MicroBatcher(run, window_s=0, name="gated", concurrency=concurrency)
+    return batcher, gates, calls, inside
+
+
+async def _until(predicate):
+    for _ in range(2000):
+        if predicate():
+            return
+        await asyncio.sleep(0.005)
+    raise AssertionError("condition not reached")
+
+
+def test_one_call_at_a_time_by_default_and_items_gather_meanwhile():
+    async def main():
+        b, gates, calls, inside = _gated_batcher(1)
+        first = asyncio.ensure_future(b.submit(1))
+        await _until(lambda: len(calls) == 1)
+        later = [asyncio.ensure_future(b.submit(i)) for i in (2, 3, 4)]
+        await asyncio.sleep(0.05)
+        assert len(calls) == 1  # the others wait for the call in flight...
+        gates[0].set()
+        await _until(lambda: len(calls) == 2)
+        assert calls[1] == [2, 3, 4]  # ...and go together in the next one
+        gates[1].set()
+        results = await asyncio.gather(first, *later)
+        await b.close()
+        return results, inside[1]
+
+    results, most = asyncio.run(main())
+    assert results == [10, 20, 30, 40] and most == 1
+
+
+def test_with_concurrency_two_a_second_batch_starts_while_the_first_runs():
+    """A renderer that serves requests side by side: one group's images need not wait for
+    another group's whole call; a third batch gathers until a call ends."""
+
+    async def main():
+        b, gates, calls, inside = _gated_batcher(2)
+        first = asyncio.ensure_future(b.submit(1))
+        await _until(lambda: len(calls) == 1)
+        second = asyncio.ensure_future(b.submit(2))
+        await _until(lambda: len(calls) == 2)  # started while the first still runs
+        later = [asyncio.ensure_future(b.submit(i)) for i in (3, 4)]
+        await asyncio.sleep(0.05)
+        assert len(calls) == 2  # both calls busy: the rest gather
+        gates[1].set()  # the second call ends first: its result does not wait for the first
+        assert await second == 20
+        await _until(lambda: len(calls) == 3)
+        assert calls[2] == [3, 4]
+        gates[0].set()
+        gates[2].set()
+        results = await asyncio.gather(first, *later)
+        await b.close()
+        return results, inside[1], b.stats.calls
+
+    results, most, n_calls = asyncio.run(main())
+    assert results == [10, 30, 40] and most == 2 and n_calls == 3
+
+
+def test_close_with_calls_in_flight_cancels_their_episodes_and_serves_again():
+    async def main():
+        b, gates, calls, _ = _gated_batcher(2)
+        waiting = [asyncio.ensure_future(b.submit(i)) for i in (1, 2)]
+        await _until(lambda: len(calls) >= 1)
+        await b.close()
+        for g in gates:
+            g.set()
+        outcomes = await asyncio.gather(*waiting, return_exceptions=True)
+        again = asyncio.ensure_future(b.submit(5))
+        await _until(lambda: len(gates) >= len(calls) and len(calls) >= 2)
+        for g in list(gates):
+            g.set()
+        result = await again
+        await b.close()
+        return outcomes, result
+
+    outcomes, result = asyncio.run(main())
+    assert all(isinstance(o, asyncio.CancelledError) for o in outcomes)
+    assert result == 50
+
+
+def test_concurrency_below_one_is_refused():
+    import pytest
+
+    with pytest.raises(ValueError, match="concurrency must be >= 1"):
+        MicroBatcher(lambda items: list(items), concurrency=0)
+
+
+def test_a_render_service_sends_as_many_requests_at_once_as_its_pool_serves():
+    from types import SimpleNamespace
+
+    from vabench.agent.simulation import RenderService
+    from vabench.render.images import ImageSettings
+
+    side_by_side = RenderService(SimpleNamespace(concurrent_requests=2), "t", ImageSettings())
+    one_at_a_time = RenderService(SimpleNamespace(), "t", ImageSettings())  # GL's pool
+    assert side_by_side._batcher.concurrency == 2
+    assert one_at_a_time._batcher.concurrency == 1

@@ -16,6 +16,7 @@ import io
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -27,7 +28,7 @@ pytest.importorskip("mujoco_warp", reason="the Warp renderer needs mujoco-warp (
 from vabench.render import availability, backends
 from vabench.render import camera as cam
 from vabench.render.__main__ import reset_state
-from vabench.render.images import ImageSettings, RenderError, RenderItem
+from vabench.render.images import ImageSettings, RenderError, RenderItem, encode_jpeg
 from vabench.render.warp_renderer import WarpRenderPool
 from vabench.render.worker import RenderPool
 from vabench.sim_mjx.backends import BackendUnavailable
@@ -236,6 +237,40 @@ def test_the_jpeg_choice_is_checked(monkeypatch):
     assert pool.jpeg == "nvjpeg"  # the environment's default (measuring side by side)
     with pytest.raises(RenderError, match="needs a GPU and nvJPEG"):
         pool.start()
+
+
+class _DeviceJpegStandIn:
+    """Stands in for nvImageCodec on Warp's CPU device (no GPU here): encodes the frames it is
+    handed, and records whether the pass they came from was still held while it did."""
+
+    def __init__(self, pool):
+        self.pool = pool
+        self.seconds = {"encoding": 0.0}
+        self.pass_held: list[bool] = []
+
+    def encode(self, frames, settings, stream):
+        self.pass_held.append(any(p.lock.locked() for p, _ in self.pool._passes.values()))
+        return [encode_jpeg(f, settings.quality, settings.subsampling) for f in frames.numpy()]
+
+
+@pytest.mark.parametrize("concurrent", [1, 2])
+def test_device_jpeg_path_with_requests_side_by_side(concurrent, cube_items, monkeypatch):
+    """The device-JPEG branch of a pass (nvImageCodec's on a GPU), on Warp's CPU device with a
+    stand-in encoder: the same bytes whether requests run one at a time or side by side, and
+    with more than one the pass is free again while its frames (a copy) are encoded."""
+    monkeypatch.setenv("VABENCH_WARP_DEVICE", "cpu")
+    with WarpRenderPool(max_size=(320, 240), concurrent_requests=concurrent) as pool:
+        encoder = _DeviceJpegStandIn(pool)
+        pool._device_jpeg = encoder
+        monkeypatch.setattr(pool, "_jpeg_encoder", lambda urgent: (encoder, 0))
+        alone = pool.render(CUBE, cube_items, SIZE)
+        with ThreadPoolExecutor(3) as threads:
+            side_by_side = list(
+                threads.map(lambda _: pool.render(CUBE, cube_items, SIZE), range(3))
+            )
+    assert all(images == alone for images in side_by_side)
+    assert all(jpeg[:2] == b"\xff\xd8" for jpeg in alone)
+    assert encoder.pass_held[0] == (concurrent == 1)  # the request alone: its pass or none
 
 
 # -- sharing device memory with Warp physics ---------------------------------------------

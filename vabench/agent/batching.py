@@ -3,12 +3,15 @@
 Each episode awaits `submit(item)`. The first item of a batch opens a short window
 (`window_s`); when it closes, or as soon as `max_batch` items are waiting, everything waiting
 goes to `run(items)` in one call on a worker thread, and each episode gets its own result.
-Only one call runs at a time (the simulator batch and the render pool are single resources),
-on a thread of the batcher's own: a sweep runs dozens of batchers at once, and on asyncio's
-shared default pool (cores + 4 threads) their calls queued for a thread, so that on a 16-core
-GPU host some tasks never started while others held every thread (measured on an H100,
-2026-11-26). Items that arrive meanwhile form the next batch, so under load the window costs
-nothing: the next batch is already waiting when the previous call returns.
+Up to `concurrency` calls run at a time (1 by default: a simulator batch is a single resource;
+a renderer that serves requests side by side may take more, so that one group's images do not
+wait for another's whole call), on threads of the batcher's own: a sweep runs dozens of
+batchers at once, and on asyncio's shared default pool (cores + 4 threads) their calls queued
+for a thread, so that on a 16-core GPU host some tasks never started while others held every
+thread (measured on an H100, 2026-11-26). Items that arrive meanwhile form the next batch,
+so under load the window costs nothing: the next batch is already waiting when a call returns
+(a batch is formed only when a call may start, so items keep gathering while every call is
+busy).
 
 A call that raises fails every item of its batch with the same exception: each episode
 decides what that means for it (the engine records an infrastructure error).
@@ -32,7 +35,7 @@ R = TypeVar("R")
 class BatchStats:
     calls: int = 0
     items: int = 0
-    busy_s: float = 0.0  # inside `run`
+    busy_s: float = 0.0  # inside `run` (calls side by side each count)
     max_batch: int = 0
 
     @property
@@ -50,7 +53,10 @@ class MicroBatcher(Generic[T, R]):
         window_s: float = 0.01,
         max_batch: int | None = None,
         name: str = "batch",
+        concurrency: int = 1,
     ):
+        if concurrency < 1:
+            raise ValueError(f"concurrency must be >= 1, got {concurrency}")
         if window_s < 0:
             raise ValueError(f"window_s must be >= 0, got {window_s}")
         if max_batch is not None and max_batch < 1:
@@ -59,17 +65,21 @@ class MicroBatcher(Generic[T, R]):
         self.window_s = window_s
         self.max_batch = max_batch
         self.name = name
+        self.concurrency = concurrency
         self.stats = BatchStats()
         self._pending: list[tuple[T, asyncio.Future[R]]] = []
         self._wake: asyncio.Event | None = None
         self._full: asyncio.Event | None = None
         self._task: asyncio.Task[None] | None = None
         self._thread: ThreadPoolExecutor | None = None
+        self._slots: asyncio.Semaphore | None = None  # calls that may start now
+        self._calls: set[asyncio.Task[None]] = set()  # calls in flight (concurrency > 1)
 
     async def submit(self, item: T) -> R:
         loop = asyncio.get_running_loop()
         if self._task is None or self._task.done():
             self._wake, self._full = asyncio.Event(), asyncio.Event()
+            self._slots = asyncio.Semaphore(self.concurrency)
             self._task = loop.create_task(self._dispatch(), name=f"{self.name}-dispatch")
         assert self._wake is not None and self._full is not None
         future: asyncio.Future[R] = loop.create_future()
@@ -80,9 +90,10 @@ class MicroBatcher(Generic[T, R]):
         return await future
 
     async def _dispatch(self) -> None:
-        assert self._wake is not None and self._full is not None
+        assert self._wake is not None and self._full is not None and self._slots is not None
         while True:
             await self._wake.wait()
+            await self._slots.acquire()  # a call may start: form its batch now
             if self.window_s > 0 and not self._full.is_set():
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(self._full.wait(), self.window_s)
@@ -95,15 +106,22 @@ class MicroBatcher(Generic[T, R]):
                 self._full.set()
             live = [(item, fut) for item, fut in batch if not fut.cancelled()]
             if not live:
+                self._slots.release()
                 continue
-            await self._execute(live)
+            if self.concurrency == 1:
+                await self._execute(live)
+            else:
+                call = asyncio.get_running_loop().create_task(self._execute(live))
+                self._calls.add(call)
+                call.add_done_callback(self._calls.discard)
 
     async def _execute(self, batch: list[tuple[T, asyncio.Future[R]]]) -> None:
+        slots = self._slots  # this call's (close and a later submit make new ones)
         items = [item for item, _ in batch]
         t0 = time.perf_counter()
         try:
             if self._thread is None:
-                self._thread = ThreadPoolExecutor(1, thread_name_prefix=self.name)
+                self._thread = ThreadPoolExecutor(self.concurrency, thread_name_prefix=self.name)
             loop = asyncio.get_running_loop()
             results = await loop.run_in_executor(self._thread, self._run, items)
             if len(results) != len(items):
@@ -115,7 +133,13 @@ class MicroBatcher(Generic[T, R]):
                 if not fut.done():
                     fut.set_exception(err)
             return
+        except asyncio.CancelledError:  # closed with the call in flight: its episodes too
+            for _, fut in batch:
+                fut.cancel()
+            raise
         finally:
+            assert slots is not None
+            slots.release()
             dt = time.perf_counter() - t0
             self.stats.calls += 1
             self.stats.items += len(items)
@@ -131,6 +155,10 @@ class MicroBatcher(Generic[T, R]):
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
             self._task = None
+        for call in list(self._calls):  # their threads' calls finish on their own
+            call.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await call
         for _, fut in self._pending:
             if not fut.done():
                 fut.cancel()

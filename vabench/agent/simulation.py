@@ -193,8 +193,12 @@ class RenderService:
         self.task_name = task_name
         self.settings = settings
         self.source = source  # the physics batch the pool reads states from (see Renderer)
+        # a pool that serves requests side by side says how many (`concurrent_requests`)
         self._batcher: MicroBatcher[list[RenderItem], list[bytes]] = MicroBatcher(
-            self._run, window_s=window_s, name=f"render-{task_name}"
+            self._run,
+            window_s=window_s,
+            name=f"render-{task_name}",
+            concurrency=max(1, int(getattr(pool, "concurrent_requests", 1))),
         )
 
     async def render(self, items: Sequence[RenderItem]) -> list[bytes]:

@@ -128,9 +128,21 @@ class WarpRenderPool:
     (`WarpBatch.copy_qpos`), so a group of episodes' images waited for another group's whole
     action (the basket's episodes drift into ~3 groups a round; its action takes ~0.4 s on an
     H100); the upload is a few kB a pass."""
+    concurrent_requests: int = field(
+        default_factory=lambda: int(os.environ.get("VABENCH_RENDER_CONCURRENCY", "1"))
+    )
+    """Requests of one task an engine sends side by side (`RenderService`; default 1, or the
+    environment's VABENCH_RENDER_CONCURRENCY, for measuring side by side: not yet measured on
+    a GPU). With more than one, a pass's frames are copied on the device after its ray tracing
+    and the pass is free for the next request while they are encoded: the basket's episodes
+    drift into ~2.4 groups a round, and each group's images waited for the others' whole
+    requests (draw and JPEG, ~0.26 s each on an H100 under load), ~0.6 s of its 1.2 s a
+    decision."""
     stats: RenderStats = field(default_factory=RenderStats)
 
     def __post_init__(self) -> None:
+        if self.concurrent_requests < 1:
+            raise ValueError(f"concurrent_requests must be >= 1, got {self.concurrent_requests}")
         if self.jpeg not in JPEG_CHOICES:
             raise ValueError(f"jpeg must be one of {JPEG_CHOICES}, got {self.jpeg!r}")
         self._device: Any = None
@@ -355,16 +367,23 @@ class WarpRenderPool:
         device_jpeg = self._device_jpeg is not None
         urgent = bool(getattr(source, "critical_path", False))  # see WarpBatch
         p = self._checkout(task, models, pass_size(n), settings, device_jpeg, urgent)
+        locked = True
         try:
             t0 = time.perf_counter()
             with streams.queueing(self._lock_device, self._device, p.stream):
                 p.draw(chunk, source if self.state_on_device else None)
                 rgb = p.rgb_on_device() if encode and device_jpeg else None
+                copied = rgb is not None and self.concurrent_requests > 1
+                if rgb is not None and copied:  # on the pass's stream: see concurrent_requests
+                    rgb = wp.clone(rgb[:n])
                 if rgb is None:
                     p.queue_packed()
                 done = streams.record(p.stream)
             streams.wait(done)
             t1 = time.perf_counter()
+            if copied:  # the pass's pixels are copied: the next request may draw
+                p.lock.release()
+                locked = False
             if rgb is not None:  # its pixels are on the device: the wait above saw them
                 # the device's context current for this thread (nvJPEG's runtime calls use it)
                 with (
@@ -373,11 +392,15 @@ class WarpRenderPool:
                     self._device.context_guard,
                 ):
                     images = encoder.encode(rgb[:n], settings, stream)
+                if copied:
+                    with self._lock_device:  # freeing device memory is device work too
+                        del rgb
                 self._count(n, source, t1 - t0, time.perf_counter() - t1)
                 return images
             packed = p.packed(n)
         finally:
-            p.lock.release()
+            if locked:
+                p.lock.release()
         self._count(n, source, t1 - t0, 0.0)
         if not encode:
             return [packed_to_rgb(packed)]
