@@ -68,12 +68,13 @@ def _find_library() -> Any:
     problems = []
     for path in candidates:
         try:
-            # PyDLL: its calls keep the interpreter's lock. Each is short (a few kernels queued,
-            # a finished bitstream copied), and a call through CDLL hands the lock back and
-            # forth: ~3 an image, each waiting up to the switch interval behind busy threads
-            # (0.8 s a call of 25 images with nvImageCodec's binding, which does the same:
-            # benchmarks/jpeg_contention.py). The stream is waited for through CDLL (below).
-            return ctypes.PyDLL(path)
+            # CDLL: each call releases the interpreter's lock (~3 hand-offs an image, as
+            # nvImageCodec's binding). Keeping it (PyDLL) would save them, but nvJPEG's calls
+            # may block on the GPU (a first allocation syncs the device; parts of its pipeline
+            # are synchronous), and a block with the lock held stops every thread of the
+            # engine's process; the hand-offs did not bind in the main job (a shorter switch
+            # interval changed nothing there: docs/PERFORMANCE.md, "Ninth session").
+            return ctypes.CDLL(path)
         except OSError as err:
             problems.append(str(err))
     raise NvJpegError(
