@@ -261,7 +261,7 @@ class NvJpeg:
                 ),
                 "nvjpegEncodeRetrieveBitstream",
             )
-            data = bytes(buffer)[: size.value]
+            data = ctypes.string_at(buffer, size.value)  # one copy, of the JPEG's own bytes
             if not (data.startswith(b"\xff\xd8") and data.endswith(b"\xff\xd9")):
                 raise NvJpegError(f"nvJPEG returned a malformed JPEG ({len(data)} bytes)")
             out.append(data)

@@ -153,7 +153,9 @@ class WarpRenderPool:
         self._models: dict[str, list[mujoco.MjModel]] = {}
         self._largest: dict[tuple[int, int], int] = {}
         self._host_jpeg: JpegThreads | None = None
-        self._device_jpeg: Any = None  # set where JPEG is encoded on the device: the first encoder
+        # set where JPEG is encoded on the device (nvImageCodec's first encoder, or nvjpeg's
+        # first pooled (encoder, stream)): the passes then keep their RGB on the device
+        self._device_jpeg: Any = None
         self._lock = threading.Lock()  # the passes kept, their budget and the stats
         self._building = threading.Lock()  # one pass built at a time, outside `_lock`
         self._encoders = threading.local()
