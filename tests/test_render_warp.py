@@ -394,14 +394,15 @@ def _cuda() -> bool:
     return wp.is_cuda_available()
 
 
-@pytest.mark.skipif(not _cuda(), reason="a GPU host without nvImageCodec (run on the GPU host)")
+@pytest.mark.skipif(not _cuda(), reason="a GPU host without nvJPEG or nvImageCodec (run on the GPU host)")
 def test_a_gpu_host_without_nvimagecodec_is_told_what_it_costs(monkeypatch, caplog):
     """Issue 34: on a GPU host without the JPEG extra, images were encoded on CPU threads at
     about the GL pool's rate with nothing said; the renderer's first lines now name the extra
     and the measured cost."""
-    from vabench.render import gpu_jpeg
+    from vabench.render import gpu_jpeg, nvjpeg
 
     monkeypatch.setattr(gpu_jpeg, "available", lambda: False)
+    monkeypatch.setattr(nvjpeg, "available", lambda: False)
     with caplog.at_level("WARNING"), WarpRenderPool(device="cuda:0", max_size=(64, 48)) as pool:
         assert "threads" in (pool.info or "")
     assert any(

@@ -81,10 +81,17 @@ from vabench.tasks import REGISTRY
 log = logging.getLogger(__name__)
 
 JPEG_CHOICES = ("auto", "device", "host", "nvjpeg")
-"""`WarpRenderPool.jpeg`: auto (nvImageCodec where installed, else host threads), device
-(nvImageCodec or an error), host (threads), nvjpeg (nvJPEG on the renderer's own priority
-streams, `vabench.render.nvjpeg`; not the default until measured on a GPU). The environment's
-VABENCH_WARP_JPEG sets the default (for measuring side by side)."""
+"""`WarpRenderPool.jpeg`: auto (on a GPU nvJPEG where it loads, else nvImageCodec where
+installed, else host threads), nvjpeg (nvJPEG on the renderer's own priority streams,
+`vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error), host (threads). The
+environment's VABENCH_WARP_JPEG sets the default (for measuring side by side).
+
+nvJPEG first: measured on one H100 (2026-11-27, docs/PERFORMANCE.md "Tenth session") the main
+job took 218.3 s against 242.3 s with nvImageCodec on the same warm host, the basket's images
+0.23 s a decision against 0.60: nvImageCodec encodes on streams of its own at CUDA's lowest
+priority, behind the ray tracer's kernels, and hands the interpreter's lock back and forth in
+every image; under a GPU load like the ray tracer's it made no call in 6 s where nvJPEG made
+16 a second (`benchmarks/jpeg_contention.py`)."""
 MIN_PASS = 8  # the smallest largest-pass a GPU must hold (else: memory too full to render)
 MAX_PASS = 1024  # largest render batch on a GPU (memory permitting)
 MAX_PASS_PIXELS = 128 * 1280 * 960
@@ -97,7 +104,7 @@ CPU_BUDGET_WORLDS = 2 * CPU_MAX_PASS  # the pass budget on the CPU, in worlds of
 
 
 NO_DEVICE_JPEG = (
-    "renderer: JPEG on CPU threads, not on the GPU: nvImageCodec is not installed (%s). "
+    "renderer: JPEG on CPU threads, not on the GPU: neither nvJPEG nor nvImageCodec loads (%s). "
     "Measured on an H100 host at 1280x960: ~230 images/s on 16 cores against ~1,200 with it "
     "(docs/PERFORMANCE.md, 'Rendering on the GPU')"
 )
@@ -109,10 +116,10 @@ class WarpRenderPool:
 
     `device`: "cuda:N" or "cpu" (default: VABENCH_WARP_DEVICE, else cuda:0). `max_pass`: the
     most worlds one pass holds (default: from free GPU memory, at most MAX_PASS). `jpeg`:
-    "auto" (nvImageCodec on a GPU where installed, else threads), "device", "host" or
-    "nvjpeg" (`JPEG_CHOICES`). `memory_budget`: bytes all passes kept may take (default:
-    MEMORY_SHARE of the GPU memory free when the first pass is sized; on the CPU,
-    CPU_BUDGET_WORLDS worlds of the largest size).
+    "auto" (on a GPU nvJPEG, else nvImageCodec where installed, else threads), "nvjpeg",
+    "device" (nvImageCodec) or "host" (`JPEG_CHOICES`). `memory_budget`: bytes all passes
+    kept may take (default: MEMORY_SHARE of the GPU memory free when the first pass is sized;
+    on the CPU, CPU_BUDGET_WORLDS worlds of the largest size).
     """
 
     device: str | None = None
@@ -132,12 +139,12 @@ class WarpRenderPool:
         default_factory=lambda: int(os.environ.get("VABENCH_RENDER_CONCURRENCY", "1"))
     )
     """Requests of one task an engine sends side by side (`RenderService`; default 1, or the
-    environment's VABENCH_RENDER_CONCURRENCY, for measuring side by side: not yet measured on
-    a GPU). With more than one, a pass's frames are copied on the device after its ray tracing
-    and the pass is free for the next request while they are encoded: the basket's episodes
-    drift into ~2.4 groups a round, and each group's images waited for the others' whole
-    requests (draw and JPEG, ~0.26 s each on an H100 under load), ~0.6 s of its 1.2 s a
-    decision."""
+    environment's VABENCH_RENDER_CONCURRENCY). With more than one, a pass's frames are copied
+    on the device after its ray tracing and the pass is free for the next request while they
+    are encoded: the basket's episodes drift into ~2.4 groups a round, and each group's images
+    wait for the others' requests. Measured on one H100 with nvJPEG (2026-11-27): 2 no faster
+    (the main job 221.9 s against 218.3 s, the basket's images 0.24 s a decision against
+    0.23), so 1 stays the default and the simpler path."""
     stats: RenderStats = field(default_factory=RenderStats)
 
     def __post_init__(self) -> None:
@@ -159,10 +166,11 @@ class WarpRenderPool:
         self._lock = threading.Lock()  # the passes kept, their budget and the stats
         self._building = threading.Lock()  # one pass built at a time, outside `_lock`
         self._encoders = threading.local()
-        # jpeg="nvjpeg": encoders (each with its stream) not in use, per priority (urgent or
+        # with nvJPEG: encoders (each with its stream) not in use, per priority (urgent or
         # not), taken by a pass for its encode and given back: as many as encode at once
         self._nvjpeg_pool: dict[bool, list[tuple[nvjpeg.NvJpeg, int]]] = {False: [], True: []}
         self._device_encoders: list[Any] = []  # every device encoder made (their `seconds`)
+        self._nvjpeg = self.jpeg == "nvjpeg"  # resolved by `start` (jpeg="auto": on a GPU)
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
         self._lock_device: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
@@ -193,9 +201,12 @@ class WarpRenderPool:
             raise RenderError(
                 f"JPEG on the device needs a GPU and nvImageCodec: {gpu_jpeg.PACKAGE_HINT}"
             )
-        if self.jpeg == "nvjpeg":
-            if not (on_gpu and nvjpeg.available()):
-                raise RenderError(f"jpeg='nvjpeg' needs a GPU and nvJPEG: {gpu_jpeg.PACKAGE_HINT}")
+        if self.jpeg == "nvjpeg" and not (on_gpu and nvjpeg.available()):
+            raise RenderError(f"jpeg='nvjpeg' needs a GPU and nvJPEG: {gpu_jpeg.PACKAGE_HINT}")
+        self._nvjpeg = self.jpeg == "nvjpeg" or (
+            self.jpeg == "auto" and on_gpu and nvjpeg.available()
+        )
+        if self._nvjpeg:
             self._device_jpeg = self._new_nvjpeg(False)
             self._nvjpeg_pool[False].append(self._device_jpeg)
         elif self.jpeg != "host" and on_gpu and gpu_jpeg.available():
@@ -206,7 +217,7 @@ class WarpRenderPool:
             if on_gpu and self.jpeg == "auto":
                 log.warning(NO_DEVICE_JPEG, gpu_jpeg.PACKAGE_HINT)
         encoder = (
-            ("nvJPEG on the renderer's streams" if self.jpeg == "nvjpeg" else "nvImageCodec")
+            ("nvJPEG on the renderer's streams" if self._nvjpeg else "nvImageCodec")
             if self._device_jpeg
             else f"{self._host_jpeg.threads} threads"  # type: ignore[union-attr]
         )
@@ -420,9 +431,9 @@ class WarpRenderPool:
     @contextlib.contextmanager
     def _device_encoder(self, urgent: bool) -> Iterator[tuple[Any, int]]:
         """An encoder on the device and the handle of its stream, for one encode: with
-        jpeg="nvjpeg" one taken from the pool (or made) and given back after; else this
+        nvJPEG one taken from the pool (or made) and given back after; else this
         thread's nvImageCodec encoder (`_jpeg_encoder`)."""
-        if self.jpeg != "nvjpeg":
+        if not self._nvjpeg:
             yield self._jpeg_encoder(urgent)
             return
         with self._lock:
