@@ -2,7 +2,7 @@
 
     python benchmarks/jpeg_contention.py [--images 25] [--size 1280x960] [--seconds 8]
         [--encoders 4] [--encoder nvimgcodec,nvjpeg] [--busy 0,6] [--threads 0]
-        [--switch 0] [--gpu-load 0,1] [--json FILE]
+        [--switch 0] [--gpu-load 0,1] [--slices 1] [--json FILE]
 
 In the main job on an H100 a JPEG call of a render pass (~25 frames of 1280x960 already in
 device memory) took 0.23-0.36 s of wall time for ~3 ms of nvJPEG kernels, while three frames
@@ -21,6 +21,9 @@ interval and nvImageCodec's thread pools are per process):
   default, the host's cores less one: a pool woken for every call; nvimgcodec only);
 - `--switch`: Python's switch interval (0: the default 5 ms): the binding hands the lock back
   and forth ~3 times an image, and each hand-off can wait one interval;
+- `--slices`: nvJPEG only: each call's frames cut into up to this many slices encoded side by
+  side, each with an encoder and a stream of its own (`nvjpeg.encode_in_slices`, the
+  renderer's `jpeg_slices`);
 - `--gpu-load 1`: a thread keeps every SM busy with kernels of many blocks on a non-blocking
   stream of the least priority, eight queued at a time (the ray tracer's megakernels of other
   passes). Before 2026-11-27 19:30 UTC its kernels were ~0.2 ms on a blocking stream, the GPU
@@ -41,6 +44,7 @@ import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -109,21 +113,39 @@ def one_configuration(args: argparse.Namespace) -> dict:
 
     def encoder_thread() -> None:
         with wp.ScopedDevice(device):
-            stream = streams.new_stream(wp.get_device(device), "middle")
-            assert stream is not None
-            jpeg: Any = (
-                nvjpeg.NvJpeg(0)
-                if args.encoder == "nvjpeg"
-                else gpu_jpeg.DeviceJpeg(0, threads=args.threads)
-            )
-            jpeg.encode(frames, settings, stream.cuda_stream)  # warm-up
+            cuda = wp.get_device(device)
+            slices = args.slices if args.encoder == "nvjpeg" else 1
+            # an encoder and a stream a slice, as the renderer lends them (`jpeg_slices`)
+            lent: list[tuple[Any, int]] = []
+            for _ in range(slices):
+                stream = streams.new_stream(cuda, "middle")
+                assert stream is not None
+                jpeg: Any = (
+                    nvjpeg.NvJpeg(0)
+                    if args.encoder == "nvjpeg"
+                    else gpu_jpeg.DeviceJpeg(0, threads=args.threads)
+                )
+                lent.append((jpeg, stream.cuda_stream))
+            helpers = ThreadPoolExecutor(slices - 1) if slices > 1 else None
+
+            def encode(i: int, start: int, stop: int) -> list[bytes]:
+                jpeg, stream = lent[i]
+                with cuda.context_guard:
+                    return jpeg.encode(frames[start:stop], settings, stream)
+
+            def call() -> list[bytes]:
+                return nvjpeg.encode_in_slices(encode, args.images, slices, helpers)
+
+            call()  # warm-up
             ready.wait()
             while not stop.is_set():
                 t0 = time.perf_counter()
-                out = jpeg.encode(frames, settings, stream.cuda_stream)
+                out = call()
                 with lock:
                     calls.append(time.perf_counter() - t0)
                     sizes.append(len(out[0]))
+            if helpers is not None:
+                helpers.shutdown()
 
     def busy_thread() -> None:
         x = 0
@@ -192,6 +214,7 @@ def main() -> None:
     ap.add_argument("--threads", default="0")
     ap.add_argument("--switch", default="0")
     ap.add_argument("--gpu-load", default="0,1")
+    ap.add_argument("--slices", default="1")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args, _ = ap.parse_known_args()
@@ -202,6 +225,7 @@ def main() -> None:
             float(args.switch),
             int(args.gpu_load),
         )
+        args.slices = int(args.slices)
         print(json.dumps(one_configuration(args)))
         return
     grid = itertools.product(
@@ -210,6 +234,7 @@ def main() -> None:
         [int(v) for v in args.busy.split(",")],
         [int(v) for v in args.threads.split(",")],
         [float(v) for v in args.switch.split(",")],
+        [int(v) for v in args.slices.split(",")],
     )
     print(
         f"{args.encoders} encoder threads, {args.images} frames of {args.size} a call, "
@@ -217,38 +242,42 @@ def main() -> None:
     )
     print(
         f"{'encoder':>10} {'gpu load':>8} {'busy':>4} {'threads':>7} {'switch ms':>9} "
-        f"{'calls/s':>8} {'img/s':>7} {'median s':>8} {'p90 s':>7}"
+        f"{'slices':>6} {'calls/s':>8} {'img/s':>7} {'median s':>8} {'p90 s':>7}"
     )
     rows = []
-    for encoder, gpu_load, busy, threads, switch in grid:
+    for encoder, gpu_load, busy, threads, switch, slices in grid:
+        if slices > 1 and encoder != "nvjpeg":
+            continue  # slices are nvJPEG's (the renderer's `jpeg_slices`)
+        row = f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} {slices:>6}"
         cmd = [
             sys.executable, __file__, "--child", "--images", str(args.images), "--size", args.size,
             "--seconds", str(args.seconds), "--encoders", str(args.encoders), "--busy", str(busy),
             "--threads", str(threads), "--switch", str(switch), "--gpu-load", str(gpu_load),
-            "--encoder", encoder,
+            "--encoder", encoder, "--slices", str(slices),
         ]  # fmt: skip
         try:
             done = subprocess.run(
                 cmd, capture_output=True, text=True, timeout=240 + 2 * args.seconds
             )
         except subprocess.TimeoutExpired:
-            print(
-                f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} timed out"
-            )
+            print(f"{row} timed out")
             continue
         lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
         if done.returncode != 0 or not lines:
-            print(
-                f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} failed: "
-                f"{(done.stderr or done.stdout).strip().splitlines()[-1:]}"
-            )
+            print(f"{row} failed: {(done.stderr or done.stdout).strip().splitlines()[-1:]}")
             continue
         r = json.loads(lines[-1])
-        r.update(encoder=encoder, gpu_load=gpu_load, busy=busy, threads=threads, switch_s=switch)
+        r.update(
+            encoder=encoder,
+            gpu_load=gpu_load,
+            busy=busy,
+            threads=threads,
+            switch_s=switch,
+            slices=slices,
+        )
         rows.append(r)
         print(
-            f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} "
-            f"{r['calls_per_s']:>8.1f} {r['images_per_s']:>7.0f} "
+            f"{row} {r['calls_per_s']:>8.1f} {r['images_per_s']:>7.0f} "
             f"{r['median_s'] or 0:>8.3f} {r['p90_s'] or 0:>7.3f}",
             flush=True,
         )

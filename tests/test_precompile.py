@@ -221,3 +221,27 @@ def test_every_family_of_the_shipped_config_compiles_at_once_on_a_gpu_host():
     assert children(8, 16) == (8, 4)  # fewer families: more threads each
     assert children(22, 2) == (4, 2)  # a 2-core machine: 4 at a time
     assert children(1, 1) == (1, 2)
+
+
+def test_an_engine_compiles_every_family_of_its_sweep_at_once_on_a_gpu(monkeypatch):
+    """A Ray engine compiles the whole sweep's families when it starts
+    (`runner.precompile_families`): each chunk compiling its own family when it came took 372 s
+    for 14 families on a fresh 4 x H100 host, one family after another."""
+    import asyncio
+    from types import SimpleNamespace
+
+    from vabench.sweep import runner
+
+    asked: list[tuple] = []
+    monkeypatch.setattr(runner, "ensure_compiled", lambda *a: asked.append(a) or [])
+    monkeypatch.setattr(runner, "warp_device", lambda: "cuda:0")
+    engine = SimpleNamespace(
+        physics=SimpleNamespace(kind=SimpleNamespace(is_warp=True)),
+        image=SimpleNamespace(width=640, height=480),
+    )
+    choices = SimpleNamespace(renderer=SimpleNamespace(is_warp=True))
+    asyncio.run(runner.precompile_families(engine, choices, ["b", "a", "b"]))
+    assert asked == [(["a", "b"], 640, 480, "cuda:0", True)]
+    monkeypatch.setattr(runner, "warp_device", lambda: "cpu")  # nothing to compile ahead
+    asyncio.run(runner.precompile_families(engine, choices, ["c"]))
+    assert len(asked) == 1

@@ -30,6 +30,7 @@ from vabench.sweep.ray_plan import (
     CHUNKS_PER_ENGINE,
     Chunk,
     EngineHandle,
+    choose_engine,
     engine_environment,
     engine_plan,
     with_critical_path,
@@ -248,7 +249,10 @@ class ClusterSweep:
             self.shared,
             holder,
         )
-        self.engines.append(EngineHandle(index, actor, holder, actor.start.remote()))
+        tasks = sorted(
+            {k[2] for c in self.queue for k in c.keys}
+        )  # KeyTuple: (model, track, task, ...)
+        self.engines.append(EngineHandle(index, actor, holder, actor.start.remote(tasks)))
 
     def _can_start(self) -> bool:
         return any(e.starting is not None and not e.dead for e in self.engines)
@@ -321,19 +325,12 @@ class ClusterSweep:
 
     # -- chunks --------------------------------------------------------------------------------
     def _hand_out(self) -> None:
-        """Give the queue's chunks to engines with room, the least loaded first."""
+        """Give the queue's chunks to engines with room, the least loaded first
+        (`ray_plan.choose_engine`)."""
         records = self.ledger.records
         while self.queue and not self.stopped:
-            best, best_cost = None, 0
-            for e in self.engines:
-                if not e.ready or len(e.chunks) >= self.max_chunks:
-                    continue
-                left, cost = e.unfinished(records)
-                room = 2 * max(1, int(e.status.get("limit", 1)))
-                if e.chunks and left >= room:
-                    continue
-                if best is None or cost < best_cost:
-                    best, best_cost = e, cost
+            queued = sum(len(c.keys) * c.cost for c in self.queue)
+            best = choose_engine(self.engines, self.queue[0], records, queued, self.max_chunks)
             if best is None:
                 return
             chunk = self.queue.popleft()

@@ -100,6 +100,41 @@ class Chunk:
     """Of one episode (the task's step budget)."""
 
 
+def choose_engine(
+    engines: list[EngineHandle],
+    chunk: Chunk,
+    records: Mapping[KeyTuple, Any],
+    queued_cost: int,
+    max_chunks: int,
+) -> EngineHandle | None:
+    """The engine the queue's next `chunk` goes to, or None for none now: of the ready engines
+    with room, the least loaded (cost of its episodes given and not yet recorded).
+
+    Room: an engine without chunks always has some. One with chunks takes another only while
+    (1) it holds fewer than `max_chunks` chunks and fewer episodes than twice its in-flight
+    limit, and (2) its load with the chunk stays within its fair share, the whole unfinished
+    cost (`queued_cost` plus every live engine's load) over the live engines, those still
+    starting included. Without (2) the first engine ready took every chunk up to its limit
+    (2 x 1,024 episodes): on 4 x H100 (2026-11-27) two engines ran all 14 families of a
+    168-episode plan while two started later and got none (0.26 of 4x one engine). With it a
+    chunk left over waits in the queue for whichever engine's load falls first."""
+    live = [e for e in engines if not e.dead]
+    loads = {id(e): e.unfinished(records) for e in live}
+    share = (queued_cost + sum(cost for _, cost in loads.values())) / max(1, len(live))
+    best: EngineHandle | None = None
+    for e in live:
+        if not e.ready or len(e.chunks) >= max_chunks:
+            continue
+        left, cost = loads[id(e)]
+        if e.chunks:
+            room = 2 * max(1, int(e.status.get("limit", 1)))
+            if left >= room or cost + len(chunk.keys) * chunk.cost > share:
+                continue
+        if best is None or cost < loads[id(best)][1]:
+            best = e
+    return best
+
+
 @dataclass
 class EngineClock:
     """An engine's time as the driver sees it (monotonic seconds): asked for, started, ended

@@ -43,7 +43,7 @@ import contextlib
 import logging
 import statistics
 from collections import defaultdict
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -149,6 +149,17 @@ async def open_engine(
         yield Engine(choices.physics, llm, summaries, renderer, render.image_settings(), gate)
 
 
+async def precompile_families(engine: Engine, choices: Choices, tasks: Iterable[str]) -> None:
+    """Warp physics on a GPU: the kernels of every family of `tasks` compiled side by side
+    before the first episode (see `precompile`; nothing to do once they are; engines of one
+    machine wait for each other's compiling through its lock)."""
+    if not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
+        return
+    images = choices.renderer.is_warp
+    size = (engine.image.width, engine.image.height)
+    await asyncio.to_thread(ensure_compiled, sorted(set(tasks)), *size, warp_device(), images)
+
+
 class LocalSweep:
     """Runs `keys` of `config` into `run_dir` on `choices` (see the module docstring)."""
 
@@ -215,14 +226,7 @@ class LocalSweep:
         self.on_change(self.progress)
 
     async def _precompile(self, engine: Engine) -> None:
-        """Warp physics on a GPU: every family's kernels compiled side by side first (see
-        `precompile`; nothing to do once they are)."""
-        if not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
-            return
-        tasks = sorted({k.task for k in self._pending()})
-        images = self.choices.renderer.is_warp
-        size = (engine.image.width, engine.image.height)
-        await asyncio.to_thread(ensure_compiled, tasks, *size, warp_device(), images)
+        await precompile_families(engine, self.choices, {k.task for k in self._pending()})
 
     def _pending(self) -> list[Any]:
         rounds = self.config.retries.infrastructure_rounds
