@@ -22,8 +22,7 @@ interval and nvImageCodec's thread pools are per process):
 - `--switch`: Python's switch interval (0: the default 5 ms): the binding hands the lock back
   and forth ~3 times an image, and each hand-off can wait one interval;
 - `--slices`: nvJPEG only: each call's frames cut into up to this many slices encoded side by
-  side, each with an encoder and a stream of its own (`nvjpeg.encode_in_slices`, the
-  renderer's `jpeg_slices`);
+  side, each with an encoder and a stream of its own (`encode_in_slices`);
 - `--gpu-load 1`: a thread keeps every SM busy with kernels of many blocks on a non-blocking
   stream of the least priority, eight queued at a time (the ray tracer's megakernels of other
   passes). Before 2026-11-27 19:30 UTC its kernels were ~0.2 ms on a blocking stream, the GPU
@@ -44,7 +43,8 @@ import subprocess
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Executor, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +61,45 @@ def _spin(a: wp.array(dtype=wp.float32), n: int):  # type: ignore[valid-type]
     for _ in range(n):
         v = v * 0.999 + 0.001
     a[i] = v
+
+
+MIN_SLICE = 4
+"""Fewest frames of a slice (`encode_in_slices`)."""
+
+
+def slice_bounds(n: int, slices: int, least: int = MIN_SLICE) -> list[tuple[int, int]]:
+    """[start, stop) of `n` frames cut into at most `slices` runs of nearly equal length, none
+    shorter than `least` (one run for fewer than 2 x `least` frames)."""
+    k = max(1, min(slices, n // max(1, least)))
+    step, extra = divmod(n, k)
+    bounds, start = [], 0
+    for i in range(k):
+        stop = start + step + (i < extra)
+        bounds.append((start, stop))
+        start = stop
+    return bounds
+
+
+def encode_in_slices(
+    encode: Callable[[int, int, int], list[bytes]], n: int, slices: int, pool: Executor | None
+) -> list[bytes]:
+    """`n` frames' JPEGs in order, their `slice_bounds` encoded side by side: `encode(i, start,
+    stop)` for slice i, the first in this thread and the others in `pool`'s threads (each with
+    an encoder and a stream of its own). Every slice has ended when this returns or raises.
+    The question it answers: an nvJPEG encode call returns only after its frame's GPU pass
+    (in the main job the stream's wait after the calls found nothing left), so would one
+    call's frames in slices overlap on the GPU? Measured on an H100 (2026-11-27): no (under
+    the GPU load 0.223 s a call in one slice, 0.216 in 2, 0.486 in 4), so the renderer has no
+    such option."""
+    bounds = slice_bounds(n, slices) if pool is not None else [(0, n)]
+    futures = [pool.submit(encode, i, *b) for i, b in enumerate(bounds[1:], 1)] if pool else []
+    try:
+        out = encode(0, *bounds[0])
+    finally:
+        wait(futures)
+    for future in futures:
+        out += future.result()
+    return out
 
 
 def frames_on_device(n: int, width: int, height: int, device: str):
@@ -115,7 +154,7 @@ def one_configuration(args: argparse.Namespace) -> dict:
         with wp.ScopedDevice(device):
             cuda = wp.get_device(device)
             slices = args.slices if args.encoder == "nvjpeg" else 1
-            # an encoder and a stream a slice, as the renderer lends them (`jpeg_slices`)
+            # an encoder and a stream a slice (the renderer lends its encoders so)
             lent: list[tuple[Any, int]] = []
             for _ in range(slices):
                 stream = streams.new_stream(cuda, "middle")
@@ -134,7 +173,7 @@ def one_configuration(args: argparse.Namespace) -> dict:
                     return jpeg.encode(frames[start:stop], settings, stream)
 
             def call() -> list[bytes]:
-                return nvjpeg.encode_in_slices(encode, args.images, slices, helpers)
+                return encode_in_slices(encode, args.images, slices, helpers)
 
             call()  # warm-up
             ready.wait()
@@ -247,7 +286,7 @@ def main() -> None:
     rows = []
     for encoder, gpu_load, busy, threads, switch, slices in grid:
         if slices > 1 and encoder != "nvjpeg":
-            continue  # slices are nvJPEG's (the renderer's `jpeg_slices`)
+            continue  # slices are nvJPEG's
         row = f"{encoder:>10} {gpu_load:>8} {busy:>4} {threads:>7} {switch * 1e3:>9g} {slices:>6}"
         cmd = [
             sys.executable, __file__, "--child", "--images", str(args.images), "--size", args.size,

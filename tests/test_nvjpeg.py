@@ -225,3 +225,47 @@ def test_the_renderer_lends_each_encode_an_encoder_of_its_own_and_reuses_them(mo
     with pool._device_encoder(True) as d:
         assert d not in (a, b)  # the critical path's: a stream of the greatest priority
     assert [m[2] for m in made] == [False, False, True]
+
+
+def _jpeg_contention():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import jpeg_contention
+
+    return jpeg_contention
+
+
+def test_the_benchmarks_slices_cover_every_frame_once_in_order():
+    """`benchmarks/jpeg_contention.py --slices`: one call's frames cut into slices encoded side
+    by side (measured on an H100: no faster, so only the benchmark has it)."""
+    slice_bounds = _jpeg_contention().slice_bounds
+    assert slice_bounds(25, 4) == [(0, 7), (7, 13), (13, 19), (19, 25)]
+    assert slice_bounds(7, 4) == [(0, 7)]  # fewer than 2 x MIN_SLICE: one slice
+    assert slice_bounds(8, 4) == [(0, 4), (4, 8)]
+    for n in range(70):
+        for k in range(1, 6):
+            assert [i for a, b in slice_bounds(n, k) for i in range(a, b)] == list(range(n))
+
+
+def test_the_benchmarks_slices_come_back_in_order_and_a_failure_waits_for_the_others():
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    encode_in_slices = _jpeg_contention().encode_in_slices
+    with ThreadPoolExecutor(3) as threads:
+        got = encode_in_slices(lambda i, a, b: [bytes([k]) for k in range(a, b)], 16, 4, threads)
+        assert got == [bytes([k]) for k in range(16)]
+        ended: list[int] = []
+
+        def encode(i, start, stop):
+            if i == 0:
+                raise RuntimeError("slice 0 failed")
+            time.sleep(0.2)
+            ended.append(i)
+            return []
+
+        with pytest.raises(RuntimeError, match="slice 0"):
+            encode_in_slices(encode, 16, 4, threads)
+        assert sorted(ended) == [1, 2, 3]  # none still reading the frames

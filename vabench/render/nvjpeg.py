@@ -24,8 +24,6 @@ import glob
 import os
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import Executor, wait
 from typing import Any
 
 from vabench.render.images import ImageSettings
@@ -37,43 +35,6 @@ GROUP = 16
 """Images queued before the stream is waited for: each has an encoder state of its own, and a
 state keeps device buffers of its largest image (a few MB at 1280x960), so a thread keeps at
 most this many."""
-
-MIN_SLICE = 4
-"""Fewest frames of a slice (`encode_in_slices`)."""
-
-
-def slice_bounds(n: int, slices: int, least: int = MIN_SLICE) -> list[tuple[int, int]]:
-    """[start, stop) of `n` frames cut into at most `slices` runs of nearly equal length, none
-    shorter than `least` (one run for fewer than 2 x `least` frames)."""
-    k = max(1, min(slices, n // max(1, least)))
-    step, extra = divmod(n, k)
-    bounds, start = [], 0
-    for i in range(k):
-        stop = start + step + (i < extra)
-        bounds.append((start, stop))
-        start = stop
-    return bounds
-
-
-def encode_in_slices(
-    encode: Callable[[int, int, int], list[bytes]], n: int, slices: int, pool: Executor | None
-) -> list[bytes]:
-    """`n` frames' JPEGs in order, their `slice_bounds` encoded side by side: `encode(i, start,
-    stop)` for slice i, the first in this thread and the others in `pool`'s threads (each with
-    an encoder and a stream of its own). Why: an nvJPEG encode call waits for its frame's GPU
-    pass before it returns (measured on an H100 under the ray tracer's load: ~10 ms a frame
-    against ~1.3 ms idle, the stream's own wait then finding nothing left), so the frames of one
-    call never overlapped on the GPU; slices do. Every slice has ended when this returns or
-    raises (the frames stay alive until none reads them)."""
-    bounds = slice_bounds(n, slices) if pool is not None else [(0, n)]
-    futures = [pool.submit(encode, i, *b) for i, b in enumerate(bounds[1:], 1)] if pool else []
-    try:
-        out = encode(0, *bounds[0])
-    finally:
-        wait(futures)
-    for future in futures:
-        out += future.result()
-    return out
 
 
 class NvJpegError(RuntimeError):

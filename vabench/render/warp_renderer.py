@@ -56,7 +56,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -145,18 +145,9 @@ class WarpRenderPool:
     wait for the others' requests. Measured on one H100 with nvJPEG (2026-11-27): 2 no faster
     (the main job 221.9 s against 218.3 s, the basket's images 0.24 s a decision against
     0.23), so 1 stays the default and the simpler path."""
-    jpeg_slices: int = field(
-        default_factory=lambda: int(os.environ.get("VABENCH_JPEG_SLICES", "1"))
-    )
-    """With nvJPEG: a pass's frames are encoded in up to this many slices side by side, each
-    with an encoder and a stream of its own (`nvjpeg.encode_in_slices`: an encode call waits
-    for its frame's GPU pass, so one call's frames never overlapped). Default 1, or the
-    environment's VABENCH_JPEG_SLICES, until measured in the main job."""
     stats: RenderStats = field(default_factory=RenderStats)
 
     def __post_init__(self) -> None:
-        if self.jpeg_slices < 1:
-            raise ValueError(f"jpeg_slices must be >= 1, got {self.jpeg_slices}")
         if self.concurrent_requests < 1:
             raise ValueError(f"concurrent_requests must be >= 1, got {self.concurrent_requests}")
         if self.jpeg not in JPEG_CHOICES:
@@ -180,7 +171,6 @@ class WarpRenderPool:
         self._nvjpeg_pool: dict[bool, list[tuple[nvjpeg.NvJpeg, int]]] = {False: [], True: []}
         self._device_encoders: list[Any] = []  # every device encoder made (their `seconds`)
         self._nvjpeg = self.jpeg == "nvjpeg"  # resolved by `start` (jpeg="auto": on a GPU)
-        self._slice_threads: ThreadPoolExecutor | None = None  # with nvJPEG and jpeg_slices > 1
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
         self._lock_device: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
@@ -218,10 +208,6 @@ class WarpRenderPool:
         )
         if self._nvjpeg:
             self._device_jpeg = self._new_nvjpeg(False)
-            if self.jpeg_slices > 1:
-                self._slice_threads = ThreadPoolExecutor(
-                    4 * (self.jpeg_slices - 1), thread_name_prefix="jpeg-slice"
-                )
             self._nvjpeg_pool[False].append(self._device_jpeg)
         elif self.jpeg != "host" and on_gpu and gpu_jpeg.available():
             with self._lock_device:
@@ -271,9 +257,6 @@ class WarpRenderPool:
             if self._host_jpeg is not None:
                 self._host_jpeg.close()
                 self._host_jpeg = None
-            if self._slice_threads is not None:
-                self._slice_threads.shutdown(wait=True)
-                self._slice_threads = None
             for pool in self._nvjpeg_pool.values():
                 while pool:
                     with self._device.context_guard:
@@ -415,7 +398,13 @@ class WarpRenderPool:
                 p.lock.release()
                 locked = False
             if rgb is not None:  # its pixels are on the device: the wait above saw them
-                images = self._encode_on_device(rgb, n, settings, urgent)
+                # the device's context current for this thread (nvJPEG's runtime calls use it)
+                with (
+                    self._device_encoder(urgent) as (encoder, stream),
+                    streams.failing_device(),
+                    self._device.context_guard,
+                ):
+                    images = encoder.encode(rgb[:n], settings, stream)
                 if copied:
                     with self._lock_device:  # freeing device memory is device work too
                         del rgb
@@ -431,21 +420,6 @@ class WarpRenderPool:
         assert self._host_jpeg is not None
         bgrx = packed.view(np.uint8).reshape(n, settings.height, settings.width, 4)
         return self._host_jpeg.submit(bgrx, settings, colorspace="BGRX")
-
-    def _encode_on_device(self, rgb: Any, n: int, settings: Any, urgent: bool) -> list[bytes]:
-        """The JPEGs of the first `n` frames of `rgb` (on the device, complete), with nvJPEG in
-        up to `jpeg_slices` slices side by side (`nvjpeg.encode_in_slices`)."""
-
-        def encode(_: int, start: int, stop: int) -> list[bytes]:
-            # the device's context current for this thread (nvJPEG's runtime calls use it)
-            with (
-                self._device_encoder(urgent) as (encoder, stream),
-                streams.failing_device(),
-                self._device.context_guard,
-            ):
-                return encoder.encode(rgb[start:stop], settings, stream)
-
-        return nvjpeg.encode_in_slices(encode, n, self.jpeg_slices, self._slice_threads)
 
     def _count(self, n: int, source: Any, render_s: float, encode_s: float) -> None:
         with self._lock:
