@@ -23,10 +23,13 @@ writer of the ledger.
    per GPU, for CUDA MPS. When a model is not served by the embedded server, a
    limit board (`sweep.limiter.LimiterActor`, on the driver's node) keeps its RPM, TPM,
    concurrency and Retry-After pause for every engine at once;
-4. the driver hands out chunks as engines have room (pull): a started engine is given the next
-   chunk, the least loaded first, while its unfinished episodes are fewer than twice the
-   in-flight limit it last reported (and it runs fewer than `executor.max_tasks` chunks), so a
-   slow GPU or node is given less and holds nobody up;
+4. the driver hands out chunks as engines have room (pull, `ray_plan.choose_engine`): a
+   started engine is given the next chunk, the least loaded first, while its unfinished
+   episodes are fewer than twice the in-flight limit it last reported, it runs fewer than
+   `executor.max_tasks` chunks, and its load with the chunk stays within its fair share of the
+   unfinished plan (engines still starting count: the first engine ready no longer takes
+   every chunk); an engine without chunks always takes one, so a slow GPU or node is given
+   less and holds nobody up; every engine compiles the sweep's Warp kernels as it starts;
 5. each engine streams a chunk's ledger lines back as its episodes end; the driver appends them
    (`Ledger.append_line`, the only writer of results.jsonl and infrastructure.jsonl); a second
    record of an episode is refused and kept in results.duplicates.jsonl;
