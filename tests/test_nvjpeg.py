@@ -227,14 +227,41 @@ def test_the_renderer_lends_each_encode_an_encoder_of_its_own_and_reuses_them(mo
     assert [m[2] for m in made] == [False, False, True]
 
 
+def test_auto_falls_back_when_nvjpeg_loads_but_does_not_work(monkeypatch, caplog):
+    """jpeg="auto" picks nvJPEG on a GPU; where its library loads but making an encoder
+    fails (a system libnvjpeg too new for the driver) auto goes on to nvImageCodec or
+    threads, while jpeg="nvjpeg" says why it cannot."""
+    from vabench.render.images import RenderError
+    from vabench.render.warp_renderer import WarpRenderPool
+
+    def broken(urgent):
+        raise nvjpeg.NvJpegError("nvjpegCreateSimple failed with nvjpegStatus_t 9")
+
+    auto = WarpRenderPool(device="cpu", jpeg="auto")
+    monkeypatch.setattr(auto, "_new_nvjpeg", broken)
+    with caplog.at_level("WARNING"):
+        assert auto._start_nvjpeg() is False
+    assert "nvJPEG does not work here" in caplog.text and not auto._nvjpeg_pool[False]
+    asked = WarpRenderPool(device="cpu", jpeg="nvjpeg")
+    monkeypatch.setattr(asked, "_new_nvjpeg", broken)
+    with pytest.raises(RenderError, match="nvjpegStatus_t 9"):
+        asked._start_nvjpeg()
+    working = WarpRenderPool(device="cpu", jpeg="auto")
+    monkeypatch.setattr(working, "_new_nvjpeg", lambda urgent: ("encoder", 7))
+    assert working._start_nvjpeg() is True
+    assert working._nvjpeg_pool[False] == [("encoder", 7)]
+
+
 def _jpeg_contention():
-    import sys
+    import importlib.util
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import jpeg_contention
-
-    return jpeg_contention
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "jpeg_contention.py"
+    spec = importlib.util.spec_from_file_location("jpeg_contention", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_the_benchmarks_slices_cover_every_frame_once_in_order():

@@ -142,3 +142,20 @@ def _ready(engines: list[EngineHandle]) -> list[EngineHandle]:
     for e in engines:
         e.starting = None
     return engines
+
+
+def test_an_engine_that_never_starts_stops_holding_a_share():
+    """Ray may leave an engine pending for good (its GPU held by another job): after
+    `START_GRACE_S` the ready engines share the plan without it."""
+    from vabench.sweep.ray_plan import START_GRACE_S
+
+    engines = _engines(2)
+    engines[0].starting = None
+    queue = _plan(4, 12)  # 4 x 120
+    for _ in range(2):
+        engines[0].chunks[object()] = queue.pop(0)  # half the plan: its share of two
+    queued = sum(len(c.keys) * c.cost for c in queue)
+    asked = engines[1].clock.asked_at
+    soon, late = asked + START_GRACE_S - 1, asked + START_GRACE_S + 1
+    assert choose_engine(engines, queue[0], {}, queued, 8, now=soon) is None
+    assert choose_engine(engines, queue[0], {}, queued, 8, now=late) is engines[0]

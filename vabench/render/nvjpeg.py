@@ -1,11 +1,13 @@
 """JPEG on the GPU through nvJPEG itself, on the caller's CUDA stream (the Warp renderer's
-`jpeg="nvjpeg"`; not the default until measured on an H100).
+default on a GPU: its `jpeg="auto"` or `"nvjpeg"`; measured on an H100, 2026-11-27: the main
+job 218.3 s against 242.3 s with nvImageCodec, docs/PERFORMANCE.md "Tenth session").
 
 Why not nvImageCodec alone: it encodes on CUDA streams of its own, made at the default
 priority, which is CUDA's lowest, the ray tracer's megakernels' too. Under load a pass's ~25
 encodes waited behind other passes' megakernels: 0.16-0.19 s a call against ~0.03 s on an idle
 H100 with no Python thread busy (benchmarks/jpeg_contention.py, 2026-11-27), 0.23-0.36 s a pass
-in the main job for ~3 ms of kernels. Here every image is encoded on the stream the caller
+in the main job for ~3 ms of kernels; under a GPU load like the ray tracer's it made no call in
+6 s where this module made 16 a second. Here every image is encoded on the stream the caller
 names (the renderer's encode stream, above the ray tracing in priority: `streams.PRIORITIES`),
 each image with an encoder state of its own, so that a pass's encodes are queued back to back,
 waited for once, then their bytes retrieved.

@@ -11,9 +11,10 @@ once:
 2. kinematics of those worlds, then each world's camera is set to its item's pose and FOV
    (the model's FOV is batched per world, and rays are computed per world);
 3. the BVH is refit and every world is ray traced in one launch (shadows, textures, skybox);
-4. JPEG on the device with nvImageCodec where it is installed (`gpu_jpeg`), else the packed
-   pixels come to the host and a thread pool encodes them (`images.JpegThreads`), with the
-   quality and chroma subsampling of `ImageSettings` either way.
+4. JPEG on the device with nvJPEG on the renderer's own priority streams (`nvjpeg`; the
+   default where it works), else nvImageCodec where it is installed (`gpu_jpeg`), else the
+   packed pixels come to the host and a thread pool encodes them (`images.JpegThreads`), with
+   the quality and chroma subsampling of `ImageSettings` every way.
 
 Render batches ("passes", `warp_pass.RenderPass`) are made per task family, image size and
 world count (1, 2, 3, 4, 6, 8, 12, ...: `pass_size`), when first needed, and then reused: a
@@ -30,7 +31,8 @@ thread of its own). A request takes a pass for itself (`RenderPass.lock`), queue
 the pass's CUDA stream holding the device's lock (the states uploaded from the items' host
 copies; with `state_on_device`, gathered on the physics batch's stream, ordered between its
 actions: `WarpBatch.copy_qpos`), waits for it with the lock released, and encodes its JPEGs
-on the thread's own nvImageCodec encoder while other passes trace and the physics steps
+on an encoder lent for the encode (nvJPEG) or the thread's own (nvImageCodec) while other
+passes trace and the physics steps
 (`sim_mjx.warp.streams`). The pool's own lock guards only the
 passes kept and the counters; a pass is built outside it, one at a time.
 
@@ -203,12 +205,11 @@ class WarpRenderPool:
             )
         if self.jpeg == "nvjpeg" and not (on_gpu and nvjpeg.available()):
             raise RenderError(f"jpeg='nvjpeg' needs a GPU and nvJPEG: {gpu_jpeg.PACKAGE_HINT}")
-        self._nvjpeg = self.jpeg == "nvjpeg" or (
-            self.jpeg == "auto" and on_gpu and nvjpeg.available()
-        )
+        self._nvjpeg = (
+            self.jpeg == "nvjpeg" or (self.jpeg == "auto" and on_gpu and nvjpeg.available())
+        ) and self._start_nvjpeg()
         if self._nvjpeg:
-            self._device_jpeg = self._new_nvjpeg(False)
-            self._nvjpeg_pool[False].append(self._device_jpeg)
+            pass  # its first encoder is made and pooled
         elif self.jpeg != "host" and on_gpu and gpu_jpeg.available():
             with self._lock_device:
                 self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
@@ -224,6 +225,20 @@ class WarpRenderPool:
         self.info = f"warp on {self._device} ({self._device.name}; JPEG: {encoder})"
         log.info("renderer: %s", self.info)
         return self.info
+
+    def _start_nvjpeg(self) -> bool:
+        """The first nvJPEG encoder made and pooled; False where jpeg="auto" and the library
+        loads but does not work here (a system libnvjpeg too new for the driver): auto then
+        goes on to nvImageCodec or threads."""
+        try:
+            self._device_jpeg = self._new_nvjpeg(False)
+        except nvjpeg.NvJpegError as err:
+            if self.jpeg == "nvjpeg":
+                raise RenderError(f"jpeg='nvjpeg': {err}") from err
+            log.warning("renderer: nvJPEG does not work here (%s); trying nvImageCodec", err)
+            return False
+        self._nvjpeg_pool[False].append(self._device_jpeg)
+        return True
 
     def close(self) -> None:
         st = self.stats
@@ -374,8 +389,8 @@ class WarpRenderPool:
 
     def _one_pass(self, task, models, chunk, settings, source, encode) -> list[Any]:
         """One pass of up to `largest` images: queued on the pass's stream under the device
-        lock, waited for without it, then encoded (nvImageCodec on the device, or the host's
-        threads): the GPU traces other tasks' passes and steps the physics meanwhile."""
+        lock, waited for without it, then encoded (nvJPEG or nvImageCodec on the device, or the
+        host's threads): the GPU traces other tasks' passes and steps the physics meanwhile."""
         n = len(chunk)
         device_jpeg = self._device_jpeg is not None
         urgent = bool(getattr(source, "critical_path", False))  # see WarpBatch

@@ -100,12 +100,19 @@ class Chunk:
     """Of one episode (the task's step budget)."""
 
 
+START_GRACE_S = 300.0
+"""How long an engine still starting holds a fair share of the plan (`choose_engine`): one that
+never starts (its resources held elsewhere, a node that never comes) must not keep the ready
+engines below their share for the whole sweep."""
+
+
 def choose_engine(
     engines: list[EngineHandle],
     chunk: Chunk,
     records: Mapping[KeyTuple, Any],
     queued_cost: int,
     max_chunks: int,
+    now: float | None = None,
 ) -> EngineHandle | None:
     """The engine the queue's next `chunk` goes to, or None for none now: of the ready engines
     with room, the least loaded (cost of its episodes given and not yet recorded).
@@ -114,11 +121,15 @@ def choose_engine(
     (1) it holds fewer than `max_chunks` chunks and fewer episodes than twice its in-flight
     limit, and (2) its load with the chunk stays within its fair share, the whole unfinished
     cost (`queued_cost` plus every live engine's load) over the live engines, those still
-    starting included. Without (2) the first engine ready took every chunk up to its limit
-    (2 x 1,024 episodes): on 4 x H100 (2026-11-27) two engines ran all 14 families of a
-    168-episode plan while two started later and got none (0.26 of 4x one engine). With it a
-    chunk left over waits in the queue for whichever engine's load falls first."""
-    live = [e for e in engines if not e.dead]
+    starting included for their first `START_GRACE_S` (monotonic `now`). Without (2) the
+    first engine ready took every chunk up to its limit (2 x 1,024 episodes): on 4 x H100
+    (2026-11-27) two engines ran all 14 families of a 168-episode plan while two started
+    later and got none (0.26 of 4x one engine). With it a chunk left over waits in the queue
+    for whichever engine's load falls first."""
+    now = time.monotonic() if now is None else now
+    live = [
+        e for e in engines if not e.dead and (e.ready or now - e.clock.asked_at < START_GRACE_S)
+    ]
     loads = {id(e): e.unfinished(records) for e in live}
     share = (queued_cost + sum(cost for _, cost in loads.values())) / max(1, len(live))
     best: EngineHandle | None = None

@@ -153,11 +153,12 @@ async def precompile_families(engine: Engine, choices: Choices, tasks: Iterable[
     """Warp physics on a GPU: the kernels of every family of `tasks` compiled side by side
     before the first episode (see `precompile`; nothing to do once they are; engines of one
     machine wait for each other's compiling through its lock)."""
-    if not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
+    tasks = sorted(set(tasks))
+    if not tasks or not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
         return
     images = choices.renderer.is_warp
     size = (engine.image.width, engine.image.height)
-    await asyncio.to_thread(ensure_compiled, sorted(set(tasks)), *size, warp_device(), images)
+    await asyncio.to_thread(ensure_compiled, tasks, *size, warp_device(), images)
 
 
 class LocalSweep:
