@@ -205,18 +205,12 @@ class WarpRenderPool:
             )
         if self.jpeg == "nvjpeg" and not (on_gpu and nvjpeg.available()):
             raise RenderError(f"jpeg='nvjpeg' needs a GPU and nvJPEG: {gpu_jpeg.PACKAGE_HINT}")
-        self._nvjpeg = (
-            self.jpeg == "nvjpeg" or (self.jpeg == "auto" and on_gpu and nvjpeg.available())
-        ) and self._start_nvjpeg()
-        if self._nvjpeg:
-            pass  # its first encoder is made and pooled
-        elif self.jpeg != "host" and on_gpu and gpu_jpeg.available():
-            with self._lock_device:
-                self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
-        else:
-            self._host_jpeg = JpegThreads(self.jpeg_threads)
-            if on_gpu and self.jpeg == "auto":
-                log.warning(NO_DEVICE_JPEG, gpu_jpeg.PACKAGE_HINT)
+        wants_nvjpeg = self.jpeg == "nvjpeg" or (
+            self.jpeg == "auto" and on_gpu and nvjpeg.available()
+        )
+        self._nvjpeg = wants_nvjpeg and self._start_nvjpeg()
+        if not self._nvjpeg:
+            self._start_other_jpeg(on_gpu)
         encoder = (
             ("nvJPEG on the renderer's streams" if self._nvjpeg else "nvImageCodec")
             if self._device_jpeg
@@ -239,6 +233,17 @@ class WarpRenderPool:
             return False
         self._nvjpeg_pool[False].append(self._device_jpeg)
         return True
+
+    def _start_other_jpeg(self, on_gpu: bool) -> None:
+        """Without nvJPEG: nvImageCodec's first encoder on a GPU where installed (unless
+        jpeg="host"), else the host's threads (with a warning where auto found neither)."""
+        if self.jpeg != "host" and on_gpu and gpu_jpeg.available():
+            with self._lock_device:
+                self._device_jpeg = gpu_jpeg.DeviceJpeg(self._device.ordinal)
+            return
+        self._host_jpeg = JpegThreads(self.jpeg_threads)
+        if on_gpu and self.jpeg == "auto":
+            log.warning(NO_DEVICE_JPEG, gpu_jpeg.PACKAGE_HINT)
 
     def close(self) -> None:
         st = self.stats

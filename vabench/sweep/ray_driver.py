@@ -249,9 +249,8 @@ class ClusterSweep:
             self.shared,
             holder,
         )
-        tasks = sorted(
-            {k[2] for c in self.queue for k in c.keys}
-        )  # KeyTuple: (model, track, task, ...)
+        # the families left to run (a key is (model, track, task, seed, run)): compiled at start
+        tasks = sorted({key[2] for c in self.queue for key in c.keys})
         self.engines.append(EngineHandle(index, actor, holder, actor.start.remote(tasks)))
 
     def _can_start(self) -> bool:
