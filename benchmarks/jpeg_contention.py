@@ -1,7 +1,7 @@
 """What a device JPEG call waits for when its process is busy: nvImageCodec under contention.
 
     python benchmarks/jpeg_contention.py [--images 25] [--size 1280x960] [--seconds 8]
-        [--encoders 4] [--encoder nvimgcodec,nvjpeg] [--busy 0,6] [--threads 0]
+        [--encoders 4] [--encoder nvimgcodec,nvjpeg,warp] [--busy 0,6] [--threads 0]
         [--switch 0] [--gpu-load 0,1] [--slices 1] [--json FILE]
 
 In the main job on an H100 a JPEG call of a render pass (~25 frames of 1280x960 already in
@@ -14,7 +14,8 @@ interval and nvImageCodec's thread pools are per process):
   each on a stream of its own at the renderer's encode priority, as `WarpRenderPool` has);
 - `--encoder`: `nvimgcodec` (`vabench.render.gpu_jpeg.DeviceJpeg`: nvImageCodec, which encodes
   on default-priority streams of its own) or `nvjpeg` (`vabench.render.nvjpeg.NvJpeg`: nvJPEG
-  on the thread's stream);
+  on the thread's stream) or `warp` (`vabench.render.warp_jpeg.WarpJpeg`: our own kernels on
+  a stream of their own, one wait a call, from the pass's packed pixels);
 - `--busy` other Python threads keep the interpreter's lock busy (pure-Python work, as the
   engine's event loop, request building and other render threads do);
 - `--threads`: each encoder's host threads (nvImageCodec's `max_num_cpu_threads`; 0 is its
@@ -102,8 +103,10 @@ def encode_in_slices(
     return out
 
 
-def frames_on_device(n: int, width: int, height: int, device: str):
-    """`n` frames that compress like rendered scenes (smooth shading, some edges and noise)."""
+def frames_on_device(n: int, width: int, height: int, device: str, packed: bool = False):
+    """`n` frames (smooth shading, edges and noise: ~4.5 bits a pixel at quality 95, rendered
+    scenes ~1-1.5), as (n, H, W, 3) bytes or, `packed`, as a render pass holds them: (n, H * W)
+    uint32 0x00RRGGBB."""
     import numpy as np
 
     rng = np.random.default_rng(0)
@@ -114,7 +117,44 @@ def frames_on_device(n: int, width: int, height: int, device: str):
         img = 200 * base + 20 * rng.standard_normal((height, width, 1)).astype(np.float32)
         img[(x.astype(int) // (40 + i)) % 7 == 0] = 30  # edges
         out[i] = np.clip(img, 0, 255).astype(np.uint8)
+    if packed:
+        rgb = out.astype(np.uint32)
+        words = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+        return wp.array(words.reshape(n, height * width), dtype=wp.uint32, device=device)
     return wp.array(out, dtype=wp.uint8, device=device)
+
+
+def encoder_call(
+    args: argparse.Namespace, cuda: Any, frames: Any, settings: Any
+) -> tuple[Callable[[], list[bytes]], ThreadPoolExecutor | None]:
+    """One encoder thread's call (every frame encoded once) and its slices' helper threads."""
+    from vabench.render import gpu_jpeg, nvjpeg, warp_jpeg
+    from vabench.sim_mjx.warp import streams
+
+    if args.encoder == "warp":
+        height, width = settings.height, settings.width
+        own = warp_jpeg.WarpJpeg(args.images, width, height, cuda, "middle")
+        return (lambda: own.encode(frames, args.images, settings)), None
+    slices = args.slices if args.encoder == "nvjpeg" else 1
+    # an encoder and a stream a slice (the renderer lends its encoders so)
+    lent: list[tuple[Any, int]] = []
+    for _ in range(slices):
+        stream = streams.new_stream(cuda, "middle")
+        assert stream is not None
+        jpeg: Any = (
+            nvjpeg.NvJpeg(0)
+            if args.encoder == "nvjpeg"
+            else gpu_jpeg.DeviceJpeg(0, threads=args.threads)
+        )
+        lent.append((jpeg, stream.cuda_stream))
+    helpers = ThreadPoolExecutor(slices - 1) if slices > 1 else None
+
+    def encode(i: int, start: int, stop: int) -> list[bytes]:
+        jpeg, stream = lent[i]
+        with cuda.context_guard:
+            return jpeg.encode(frames[start:stop], settings, stream)
+
+    return (lambda: encode_in_slices(encode, args.images, slices, helpers)), helpers
 
 
 def one_configuration(args: argparse.Namespace) -> dict:
@@ -122,13 +162,12 @@ def one_configuration(args: argparse.Namespace) -> dict:
     if args.switch > 0:
         sys.setswitchinterval(args.switch)
     wp.init()
-    from vabench.render import gpu_jpeg, nvjpeg
     from vabench.render.images import ImageSettings
     from vabench.sim_mjx.warp import streams
 
     width, height = (int(v) for v in args.size.split("x"))
-    device = "cuda:0"
-    frames = frames_on_device(args.images, width, height, device)
+    device = args.device
+    frames = frames_on_device(args.images, width, height, device, args.encoder == "warp")
     settings = ImageSettings(width=width, height=height)
     stop = threading.Event()
     calls: list[float] = []
@@ -153,29 +192,8 @@ def one_configuration(args: argparse.Namespace) -> dict:
     def encoder_thread() -> None:
         with wp.ScopedDevice(device):
             cuda = wp.get_device(device)
-            slices = args.slices if args.encoder == "nvjpeg" else 1
-            # an encoder and a stream a slice (the renderer lends its encoders so)
-            lent: list[tuple[Any, int]] = []
-            for _ in range(slices):
-                stream = streams.new_stream(cuda, "middle")
-                assert stream is not None
-                jpeg: Any = (
-                    nvjpeg.NvJpeg(0)
-                    if args.encoder == "nvjpeg"
-                    else gpu_jpeg.DeviceJpeg(0, threads=args.threads)
-                )
-                lent.append((jpeg, stream.cuda_stream))
-            helpers = ThreadPoolExecutor(slices - 1) if slices > 1 else None
-
-            def encode(i: int, start: int, stop: int) -> list[bytes]:
-                jpeg, stream = lent[i]
-                with cuda.context_guard:
-                    return jpeg.encode(frames[start:stop], settings, stream)
-
-            def call() -> list[bytes]:
-                return encode_in_slices(encode, args.images, slices, helpers)
-
-            call()  # warm-up
+            call, helpers = encoder_call(args, cuda, frames, settings)
+            call()  # warm-up (the first compiles or allocates)
             ready.wait()
             while not stop.is_set():
                 t0 = time.perf_counter()
@@ -254,6 +272,7 @@ def main() -> None:
     ap.add_argument("--switch", default="0")
     ap.add_argument("--gpu-load", default="0,1")
     ap.add_argument("--slices", default="1")
+    ap.add_argument("--device", default="cuda:0", help="cpu: a smoke check of --encoder warp")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args, _ = ap.parse_known_args()
@@ -292,7 +311,7 @@ def main() -> None:
             sys.executable, __file__, "--child", "--images", str(args.images), "--size", args.size,
             "--seconds", str(args.seconds), "--encoders", str(args.encoders), "--busy", str(busy),
             "--threads", str(threads), "--switch", str(switch), "--gpu-load", str(gpu_load),
-            "--encoder", encoder, "--slices", str(slices),
+            "--encoder", encoder, "--slices", str(slices), "--device", args.device,
         ]  # fmt: skip
         try:
             done = subprocess.run(
