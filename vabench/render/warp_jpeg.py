@@ -30,9 +30,9 @@ How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGG
 5. The lengths come to the host (the one wait for the kernels), then the bytes (a copy: no
    multiprocessor time), and each image gets its header and end marker.
 
-An image whose entropy data would not fit its buffer (`CAP_BITS_PER_PIXEL`: rendered scenes
-take 1.0-1.5 bits a pixel at quality 95, benchmarks/jpeg_contention.py's noisy frames 4.5) is encoded on the host from its
-pixels instead (`images.encode_jpeg`), so every frame gets its JPEG.
+An image whose entropy data would not fit its buffer (`CAP_BITS_PER_PIXEL`; rendered scenes
+take 1.0-1.5 bits a pixel at quality 95, benchmarks/jpeg_contention.py's noisy frames 4.5) is
+encoded on the host from its pixels instead (`images.encode_jpeg`): every frame gets its JPEG.
 """
 
 # Warp kernels: a variable a dynamic loop changes is declared with its type (`int(0)`).
@@ -56,6 +56,11 @@ from vabench.render.images import ImageSettings, encode_jpeg
 from vabench.sim_mjx.warp import streams
 
 log = logging.getLogger(__name__)
+
+# Forward only, loops kept as loops: with Warp's defaults (adjoint kernels, loops of up to 16
+# constant iterations unrolled) this module was 21,400 lines of CUDA and took NVRTC 105 s for
+# sm_90 on this 2-core host; it must compile in seconds on a fresh GPU host.
+wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 CAP_BITS_PER_PIXEL = 8
 """Entropy data an image may take on the device, in bits a pixel; beyond it, the host encodes

@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src.bvh import compute_bvh_group_roots  # mujoco-warp 4.0.0 (pinned)
 
+from vabench.render import warp_jpeg
 from vabench.render.camera import FAR, NEAR
 from vabench.render.images import RenderItem
 from vabench.render.renderer import VIEW_CAMERA, render_spec
@@ -128,15 +129,24 @@ def pass_size(n: int) -> int:
     raise AssertionError(n)
 
 
-def pass_bytes(width: int, height: int, n_worlds: int, device_jpeg: bool) -> int:
-    """Device memory a pass needs beyond its model: packed pixels (+ RGB bytes for nvJPEG) and
-    a margin for BVH nodes and data per world."""
-    per_world = width * height * (4 + (3 if device_jpeg else 0)) + 256 * 1024
+def pass_bytes(width: int, height: int, n_worlds: int, device_jpeg: bool | str) -> int:
+    """Device memory a pass needs beyond its model: packed pixels (+ RGB bytes for nvJPEG and
+    nvImageCodec, `device_jpeg` true, or the buffers of `warp_jpeg`, "warp") and a margin for
+    BVH nodes and data per world."""
+    jpeg = 0
+    if device_jpeg == "warp":
+        jpeg = warp_jpeg.bytes_per_world(width, height)
+    elif device_jpeg:
+        jpeg = 3 * width * height
+    per_world = width * height * 4 + jpeg + 256 * 1024
     return per_world * n_worlds
 
 
 class RenderPass:
-    """A render batch of `n_worlds` worlds of one task family at one image size."""
+    """A render batch of `n_worlds` worlds of one task family at one image size. Its JPEG
+    (`device_jpeg`): on the host (False), from RGB frames it unpacks on the device (True: nvJPEG
+    or nvImageCodec), or by its own `warp_jpeg.WarpJpeg` ("warp"; `jpeg_seconds` sums where
+    that encoder's time goes)."""
 
     def __init__(
         self,
@@ -144,8 +154,9 @@ class RenderPass:
         n_worlds: int,
         width: int,
         height: int,
-        device_jpeg: bool,
+        device_jpeg: bool | str,
         high_priority: bool = False,
+        jpeg_seconds: dict[str, float] | None = None,
     ):
         self.n_worlds, self.width, self.height = n_worlds, width, height
         m0 = models[0]
@@ -161,7 +172,15 @@ class RenderPass:
         self.pos = wp.zeros(n_worlds, dtype=wp.vec3)
         self.rot = wp.zeros(n_worlds, dtype=wp.mat33)
         self.fovy = wp.zeros(n_worlds, dtype=float)
-        self.rgb = wp.zeros((n_worlds, height, width, 3), dtype=wp.uint8) if device_jpeg else None
+        self.rgb = None
+        self.jpeg: warp_jpeg.WarpJpeg | None = None
+        if device_jpeg == "warp":  # above the ray tracing in priority, as the other encoders
+            priority = "greatest" if high_priority else "middle"
+            self.jpeg = warp_jpeg.WarpJpeg(
+                n_worlds, width, height, self.d.qpos.device, priority, jpeg_seconds
+            )
+        elif device_jpeg:
+            self.rgb = wp.zeros((n_worlds, height, width, 3), dtype=wp.uint8)
         self._variants = np.zeros(n_worlds, np.int32)
         # Its own stream (the renderer queues a pass there and waits for it with the device's
         # lock released: sim_mjx.warp.streams), and who is using it: one request at a time,

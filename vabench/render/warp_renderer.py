@@ -82,11 +82,13 @@ from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
 
-JPEG_CHOICES = ("auto", "device", "host", "nvjpeg")
+JPEG_CHOICES = ("auto", "device", "host", "nvjpeg", "warp")
 """`WarpRenderPool.jpeg`: auto (on a GPU nvJPEG where it loads, else nvImageCodec where
 installed, else host threads), nvjpeg (nvJPEG on the renderer's own priority streams,
-`vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error), host (threads). The
-environment's VABENCH_WARP_JPEG sets the default (for measuring side by side).
+`vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error), host (threads), warp
+(each pass's own Warp kernels, `vabench.render.warp_jpeg`: one wait a pass instead of nvJPEG's
+waits in every frame; on any Warp device, no library needed; not yet measured in the main
+job). The environment's VABENCH_WARP_JPEG sets the default (for measuring side by side).
 
 nvJPEG first: measured on one H100 (2026-11-27, docs/PERFORMANCE.md "Tenth session") the main
 job took 218.3 s against 242.3 s with nvImageCodec on the same warm host, the basket's images
@@ -173,6 +175,7 @@ class WarpRenderPool:
         self._nvjpeg_pool: dict[bool, list[tuple[nvjpeg.NvJpeg, int]]] = {False: [], True: []}
         self._device_encoders: list[Any] = []  # every device encoder made (their `seconds`)
         self._nvjpeg = self.jpeg == "nvjpeg"  # resolved by `start` (jpeg="auto": on a GPU)
+        self._warp_jpeg_seconds: dict[str, float] = {}  # the passes' own encoders' (jpeg="warp")
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
         self._lock_device: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
@@ -199,6 +202,10 @@ class WarpRenderPool:
         self._device = wp.get_device(name)
         self._lock_device = device_lock(str(self._device))
         on_gpu = self._device.is_cuda
+        if self.jpeg == "warp":
+            self.info = f"warp on {self._device} ({self._device.name}; JPEG: Warp kernels a pass)"
+            log.info("renderer: %s", self.info)
+            return self.info
         if self.jpeg == "device" and not (on_gpu and gpu_jpeg.available()):
             raise RenderError(
                 f"JPEG on the device needs a GPU and nvImageCodec: {gpu_jpeg.PACKAGE_HINT}"
@@ -265,6 +272,8 @@ class WarpRenderPool:
         for encoder in self._device_encoders:
             for part, seconds in encoder.seconds.items():
                 parts[part] = parts.get(part, 0.0) + seconds
+        for part, seconds in self._warp_jpeg_seconds.items():
+            parts[part] = parts.get(part, 0.0) + seconds
         if parts:
             log.info(
                 "renderer: JPEG on the device: %s",
@@ -397,23 +406,34 @@ class WarpRenderPool:
         lock, waited for without it, then encoded (nvJPEG or nvImageCodec on the device, or the
         host's threads): the GPU traces other tasks' passes and steps the physics meanwhile."""
         n = len(chunk)
-        device_jpeg = self._device_jpeg is not None
+        kind = self._jpeg_kind
         urgent = bool(getattr(source, "critical_path", False))  # see WarpBatch
-        p = self._checkout(task, models, pass_size(n), settings, device_jpeg, urgent)
+        p = self._checkout(task, models, pass_size(n), settings, kind, urgent)
         locked = True
         try:
             t0 = time.perf_counter()
             with streams.queueing(self._lock_device, self._device, p.stream):
                 p.draw(chunk, source if self.state_on_device else None)
-                rgb = p.rgb_on_device() if encode and device_jpeg else None
+                pending = None
+                if encode and p.jpeg is not None:  # queued behind the ray tracing at once
+                    after = streams.record(p.stream)
+                    pending = p.jpeg.queue(p.rc.rgb_data, n, settings, after)
+                rgb = p.rgb_on_device() if encode and kind is True else None
                 copied = rgb is not None and self.concurrent_requests > 1
                 if rgb is not None and copied:  # on the pass's stream: see concurrent_requests
                     rgb = wp.clone(rgb[:n])
-                if rgb is None:
+                if rgb is None and pending is None:
                     p.queue_packed()
                 done = streams.record(p.stream)
             streams.wait(done)
             t1 = time.perf_counter()
+            if pending is not None:  # the pass stays locked: its encoder's buffers are in use
+                assert p.jpeg is not None
+                images = p.jpeg.finish(
+                    pending, lambda: streams.queueing(self._lock_device, self._device, None)
+                )
+                self._count(n, source, t1 - t0, time.perf_counter() - t1)
+                return images
             if copied:  # the pass's pixels are copied: the next request may draw
                 p.lock.release()
                 locked = False
@@ -447,6 +467,11 @@ class WarpRenderPool:
             self.stats.shared_state += n if source is not None and self.state_on_device else 0
             self.stats.render_s += render_s
             self.stats.encode_s += encode_s
+
+    @property
+    def _jpeg_kind(self) -> bool | str:
+        """What a pass keeps for its JPEG (`RenderPass`'s `device_jpeg`)."""
+        return "warp" if self.jpeg == "warp" else self._device_jpeg is not None
 
     @contextlib.contextmanager
     def _device_encoder(self, urgent: bool) -> Iterator[tuple[Any, int]]:
@@ -518,7 +543,7 @@ class WarpRenderPool:
             return CPU_MAX_PASS
         free = self._device.free_memory // gpu_share()
         fit = int(free * MEMORY_SHARE) // pass_bytes(
-            settings.width, settings.height, 1, self._device_jpeg is not None
+            settings.width, settings.height, 1, self._jpeg_kind
         )
         cap = min(MAX_PASS, MAX_PASS_PIXELS // (settings.width * settings.height))
         largest = 1 << max(0, min(cap, fit).bit_length() - 1)  # a power of two
@@ -594,7 +619,13 @@ class WarpRenderPool:
             t0 = time.perf_counter()
             victims.clear()  # their memory is freed here, with the device's lock held
             built = RenderPass(
-                models, n_worlds, settings.width, settings.height, device_jpeg, urgent
+                models,
+                n_worlds,
+                settings.width,
+                settings.height,
+                device_jpeg,
+                urgent,
+                self._warp_jpeg_seconds,
             )
             seconds = time.perf_counter() - t0
         with self._lock:
@@ -610,7 +641,7 @@ class WarpRenderPool:
     def _pass_budget(self, settings: ImageSettings) -> int:
         """Bytes all passes kept may take: decided with the first pass (from the memory free
         then, like the largest pass), and never less than the largest pass of any size."""
-        w, h, jpeg = settings.width, settings.height, self._device_jpeg is not None
+        w, h, jpeg = settings.width, settings.height, self._jpeg_kind
         if self._budget is None:
             self._budget = (
                 int(self._device.free_memory // gpu_share() * MEMORY_SHARE)
