@@ -1,25 +1,76 @@
-"""GPU check of warp_jpeg: the benchmark's frames on cuda:0, decoded and compared with libjpeg-turbo."""
-import io, sys, time
-import numpy as np, warp as wp
-sys.path.insert(0, "benchmarks")
+"""The Warp JPEG encoder on a GPU, checked and timed alone (issue 33):
+
+    python benchmarks/warp_jpeg_check.py [--device cuda:0] [--frames 25,128]
+
+For each frame count, `vabench.render.warp_jpeg.WarpJpeg` encodes jpeg_contention's frames
+(1280x960, ~4.5 bits a pixel at quality 95, heavier than rendered scenes) from packed pixels
+on the device: ms a call on an idle GPU from one thread (min and median of 5, after a first
+call that compiles), images the host had to encode, and for the first three frames the bytes
+and PSNR against libjpeg-turbo's encoding of the same pixels. The GPU under load is
+jpeg_contention.py's job (`--encoder warp`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
 from PIL import Image
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
 from jpeg_contention import frames_on_device
+
 from vabench.render.images import ImageSettings, encode_jpeg
 from vabench.render.warp_jpeg import WarpJpeg
-wp.init()
-for n in (25, 128):
-    packed = frames_on_device(n, 1280, 960, "cuda:0", packed=True)
-    rgb = frames_on_device(min(n, 3), 1280, 960, "cpu").numpy()
-    enc = WarpJpeg(n, 1280, 960, "cuda:0")
-    s = ImageSettings()
-    enc.encode(packed, n, s)
-    times = []
-    for _ in range(5):
-        t = time.perf_counter(); out = enc.encode(packed, n, s); times.append(time.perf_counter() - t)
-    print(f"n={n}: idle GPU, one thread: {min(times)*1e3:.1f} ms a call (min of 5), {np.median(times)*1e3:.1f} median; host_encoded {enc.host_encoded}; bytes {len(out[0])}")
-    for i in range(min(n, 3)):
-        dec = np.asarray(Image.open(io.BytesIO(out[i])).convert("RGB")).astype(float)
-        ref = encode_jpeg(rgb[i], 95, "420")
-        refd = np.asarray(Image.open(io.BytesIO(ref)).convert("RGB")).astype(float)
-        psnr = lambda a: 10 * np.log10(255**2 / np.mean((a - rgb[i]) ** 2))
-        print(f"  frame {i}: {len(out[i])} bytes (libjpeg {len(ref)}), PSNR {psnr(dec):.2f} dB (libjpeg {psnr(refd):.2f}), mean |diff| to libjpeg's {np.abs(dec-refd).mean():.3f}")
+
+
+def _psnr(decoded: np.ndarray, source: np.ndarray) -> float:
+    return float(10 * np.log10(255**2 / np.mean((decoded - source.astype(float)) ** 2)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--frames", default="25,128")
+    args = ap.parse_args()
+    wp.init()
+    settings = ImageSettings()
+    for n in (int(v) for v in args.frames.split(",")):
+        packed = frames_on_device(n, settings.width, settings.height, args.device, packed=True)
+        rgb = frames_on_device(min(n, 3), settings.width, settings.height, "cpu").numpy()
+        encoder = WarpJpeg(n, settings.width, settings.height, args.device)
+        t0 = time.perf_counter()
+        encoder.encode(packed, n, settings)
+        first = time.perf_counter() - t0
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            out = encoder.encode(packed, n, settings)
+            times.append(time.perf_counter() - t0)
+        print(
+            f"{n} frames: first call {first:.1f} s (compiles), then {min(times) * 1e3:.1f} ms "
+            f"a call (min of 5; median {statistics.median(times) * 1e3:.1f}), "
+            f"{n / min(times):.0f} images/s; encoded on the host: {encoder.host_encoded}",
+            flush=True,
+        )
+        for i in range(min(n, 3)):
+            ours = np.asarray(Image.open(io.BytesIO(out[i])).convert("RGB")).astype(float)
+            reference = encode_jpeg(rgb[i], settings.quality, settings.subsampling)
+            theirs = np.asarray(Image.open(io.BytesIO(reference)).convert("RGB")).astype(float)
+            print(
+                f"  frame {i}: {len(out[i])} bytes (libjpeg {len(reference)}), PSNR "
+                f"{_psnr(ours, rgb[i]):.2f} dB (libjpeg {_psnr(theirs, rgb[i]):.2f})",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()

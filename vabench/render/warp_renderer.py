@@ -14,7 +14,9 @@ once:
 4. JPEG on the device with nvJPEG on the renderer's own priority streams (`nvjpeg`; the
    default where it works), else nvImageCodec where it is installed (`gpu_jpeg`), else the
    packed pixels come to the host and a thread pool encodes them (`images.JpegThreads`), with
-   the quality and chroma subsampling of `ImageSettings` every way.
+   the quality and chroma subsampling of `ImageSettings` every way. `jpeg="warp"` encodes a
+   pass in its own Warp kernels instead (`warp_jpeg`: queued right behind the ray tracing,
+   one wait a pass, no library; measured on CPU, not yet in the main job on a GPU).
 
 Render batches ("passes", `warp_pass.RenderPass`) are made per task family, image size and
 world count (1, 2, 3, 4, 6, 8, 12, ...: `pass_size`), when first needed, and then reused: a
