@@ -5,7 +5,7 @@ What is checked: the tables are libjpeg's (quantisation at every quality, Huffma
 frames of several sizes, subsamplings and qualities decode to the pixels libjpeg's own JPEGs
 decode to, within rounding, at the same quality (PSNR) and about the same size; every image of
 a batch is independent of the others; 0xFF bytes are stuffed; an image too large for the
-device's buffer is encoded on the host, in its place; the renderer with `jpeg="warp"` gives
+device's buffer is encoded on the host, in its place; the renderer with `jpeg="kernels"` gives
 images equal to its host-encoded ones within rounding. Speed is measured on a GPU by
 benchmarks/jpeg_contention.py (`--encoder warp`), never here.
 """
@@ -177,7 +177,7 @@ def test_bad_calls_are_refused():
 
 
 def test_the_renderer_encodes_with_it(monkeypatch):
-    """`WarpRenderPool(jpeg="warp")`: a pass's frames encoded by its own kernels, as close to
+    """`WarpRenderPool(jpeg="kernels")`: a pass's frames encoded by its own kernels, as close to
     its pixels as libjpeg's encoding of them."""
     pytest.importorskip("mujoco_warp", reason="the Warp renderer needs mujoco-warp")
     from vabench.render import camera as cam
@@ -191,7 +191,7 @@ def test_the_renderer_encodes_with_it(monkeypatch):
     items = [RenderItem(qpos, variant, p) for p in cam.passive_bundle(gcs, ("right",))[:3]]
     settings = ImageSettings(160, 120, 95)
     monkeypatch.setenv("VABENCH_WARP_DEVICE", "cpu")
-    with WarpRenderPool(max_size=(160, 120), jpeg="warp") as pool:
+    with WarpRenderPool(max_size=(160, 120), jpeg="kernels") as pool:
         assert "Warp kernels" in (pool.info or "")
         jpegs = pool.render(task, items, settings)
         rgb = pool.render_rgb(task, items, settings)

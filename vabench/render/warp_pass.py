@@ -131,10 +131,10 @@ def pass_size(n: int) -> int:
 
 def pass_bytes(width: int, height: int, n_worlds: int, device_jpeg: bool | str) -> int:
     """Device memory a pass needs beyond its model: packed pixels (+ RGB bytes for nvJPEG and
-    nvImageCodec, `device_jpeg` true, or the buffers of `warp_jpeg`, "warp") and a margin for
+    nvImageCodec, `device_jpeg` true, or the buffers of `warp_jpeg`, "kernels") and a margin for
     BVH nodes and data per world."""
     jpeg = 0
-    if device_jpeg == "warp":
+    if device_jpeg == "kernels":
         jpeg = warp_jpeg.bytes_per_world(width, height)
     elif device_jpeg:
         jpeg = 3 * width * height
@@ -145,7 +145,7 @@ def pass_bytes(width: int, height: int, n_worlds: int, device_jpeg: bool | str) 
 class RenderPass:
     """A render batch of `n_worlds` worlds of one task family at one image size. Its JPEG
     (`device_jpeg`): on the host (False), from RGB frames it unpacks on the device (True: nvJPEG
-    or nvImageCodec), or by its own `warp_jpeg.WarpJpeg` ("warp"; `jpeg_seconds` sums where
+    or nvImageCodec), or by its own `warp_jpeg.WarpJpeg` ("kernels"; `jpeg_seconds` sums where
     that encoder's time goes)."""
 
     def __init__(
@@ -174,7 +174,7 @@ class RenderPass:
         self.fovy = wp.zeros(n_worlds, dtype=float)
         self.rgb = None
         self.jpeg: warp_jpeg.WarpJpeg | None = None
-        if device_jpeg == "warp":  # above the ray tracing in priority, as the other encoders
+        if device_jpeg == "kernels":  # above the ray tracing in priority, as the other encoders
             priority = "greatest" if high_priority else "middle"
             self.jpeg = warp_jpeg.WarpJpeg(
                 n_worlds, width, height, self.d.qpos.device, priority, jpeg_seconds

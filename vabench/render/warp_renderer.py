@@ -14,7 +14,7 @@ once:
 4. JPEG on the device with nvJPEG on the renderer's own priority streams (`nvjpeg`; the
    default where it works), else nvImageCodec where it is installed (`gpu_jpeg`), else the
    packed pixels come to the host and a thread pool encodes them (`images.JpegThreads`), with
-   the quality and chroma subsampling of `ImageSettings` every way. `jpeg="warp"` encodes a
+   the quality and chroma subsampling of `ImageSettings` every way. `jpeg="kernels"` encodes a
    pass in its own Warp kernels instead (`warp_jpeg`: queued right behind the ray tracing,
    one wait a pass, no library; measured on CPU, not yet in the main job on a GPU).
 
@@ -84,10 +84,10 @@ from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
 
-JPEG_CHOICES = ("auto", "device", "host", "nvjpeg", "warp")
+JPEG_CHOICES = ("auto", "device", "host", "nvjpeg", "kernels")
 """`WarpRenderPool.jpeg`: auto (on a GPU nvJPEG where it loads, else nvImageCodec where
 installed, else host threads), nvjpeg (nvJPEG on the renderer's own priority streams,
-`vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error), host (threads), warp
+`vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error), host (threads), kernels
 (each pass's own Warp kernels, `vabench.render.warp_jpeg`: one wait a pass instead of nvJPEG's
 waits in every frame; on any Warp device, no library needed; not yet measured in the main
 job). The environment's VABENCH_WARP_JPEG sets the default (for measuring side by side).
@@ -177,7 +177,7 @@ class WarpRenderPool:
         self._nvjpeg_pool: dict[bool, list[tuple[nvjpeg.NvJpeg, int]]] = {False: [], True: []}
         self._device_encoders: list[Any] = []  # every device encoder made (their `seconds`)
         self._nvjpeg = self.jpeg == "nvjpeg"  # resolved by `start` (jpeg="auto": on a GPU)
-        self._warp_jpeg_seconds: dict[str, float] = {}  # the passes' own encoders' (jpeg="warp")
+        self._warp_jpeg_seconds: dict[str, float] = {}  # the passes' own encoders' (jpeg="kernels")
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
         self._lock_device: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
@@ -204,7 +204,7 @@ class WarpRenderPool:
         self._device = wp.get_device(name)
         self._lock_device = device_lock(str(self._device))
         on_gpu = self._device.is_cuda
-        if self.jpeg == "warp":
+        if self.jpeg == "kernels":
             self.info = f"warp on {self._device} ({self._device.name}; JPEG: Warp kernels a pass)"
             log.info("renderer: %s", self.info)
             return self.info
@@ -473,7 +473,7 @@ class WarpRenderPool:
     @property
     def _jpeg_kind(self) -> bool | str:
         """What a pass keeps for its JPEG (`RenderPass`'s `device_jpeg`)."""
-        return "warp" if self.jpeg == "warp" else self._device_jpeg is not None
+        return "kernels" if self.jpeg == "kernels" else self._device_jpeg is not None
 
     @contextlib.contextmanager
     def _device_encoder(self, urgent: bool) -> Iterator[tuple[Any, int]]:
