@@ -4,7 +4,7 @@ host, episodes per second and the ratio to perfect scaling, side by side.
     python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|warp|mjx] [--seeds 20]
         [--runs 3] [--tracks active,passive,transfer,long_horizon] [--tasks base]
         [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--warmup]
-        [--json FILE]
+        [--per-gpu K] [--json FILE]
 
 The defaults are `configs/all.yaml` as shipped (2,160 episodes of the reference-servo agent
 on every track); the options shrink it (the test of this script runs it at a tiny size on CPU
@@ -16,6 +16,11 @@ other, on one local Ray instance started here:
 - without (backend c), engines of `1 + render.workers` CPUs each; Ray is told the host has as
   many CPUs as the largest count needs (more than it has, on a small machine: the engines then
   share its cores, which the printed core count shows).
+
+`--per-gpu K` (GPUs only): each count is of GPUs, each GPU shared by K engine processes
+(`executor.actors` = K x GPUs) under one CUDA MPS daemon of the sweep's on the host
+(`sweep.mps.join_node_daemon`), as the local sweep runs 4 a GPU; Ray is restarted for each
+count with only that many GPUs.
 
 `--warmup` first runs every planned (task, seed) for one step on the most engines, untimed:
 on a fresh GPU machine that compiles Warp's kernels and fills the settled-state cache
@@ -83,6 +88,7 @@ def device() -> str:
 
 
 def make_config(args: argparse.Namespace, engines: int, out: Path) -> Path:
+    """`configs/all.yaml` shrunk by the options, on `engines` engine actors."""
     doc = yaml.safe_load((ROOT / "configs/all.yaml").read_text())
     width, height = (int(v) for v in args.size.split("x"))
     doc["tracks"] = args.tracks.split(",")
@@ -103,7 +109,8 @@ def make_config(args: argparse.Namespace, engines: int, out: Path) -> Path:
 
 
 def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
-    """Run the plan on `engines` engines; returns its figures and outcomes."""
+    """Run the plan on `engines` engines (GPUs, with `--per-gpu`: that many engines each);
+    returns its figures and outcomes."""
     from vabench.config import load_config
     from vabench.run_layout import RunDir
     from vabench.sweep.choices import choose
@@ -112,7 +119,8 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     from vabench.sweep.rundir import check_run_dir
 
     out = tmp / f"engines_{engines}"
-    config = load_config(make_config(args, engines, out), overrides={"out": str(out)})
+    processes = engines * args.per_gpu
+    config = load_config(make_config(args, processes, out), overrides={"out": str(out)})
     keys = plan(config)
     check_run_dir(out, config, keys, config.document())
     report: list[dict] = []
@@ -133,7 +141,7 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
         "steady_episodes_per_s": len(recs) / (last - first),
         "success": sum(r["success"] for r in recs),
         "engine_report": report,
-        "engine_time": engine_time(report, engines, wall),
+        "engine_time": engine_time(report, processes, wall),
         "outcomes": {
             f"{r['model']}/{r['track']}/{r['task']}/{r['seed']}/{r['run']}": r["success"]
             for r in recs
@@ -186,6 +194,7 @@ def main() -> None:
     p.add_argument("--policy", default="reference_servo")
     p.add_argument("--latency", type=float, default=0.0, help="the model's reply time, seconds")
     p.add_argument("--warmup", action="store_true", help="one untimed step of every seed first")
+    p.add_argument("--per-gpu", type=int, default=1, help="engine processes a GPU (MPS)")
     p.add_argument("--json", type=Path)
     args = p.parse_args()
 
@@ -209,18 +218,28 @@ def main() -> None:
     host = device()
     print(f"device: {host}; Ray {ray.__version__}; {datetime.date.today()}", flush=True)
     results = []
+
+    def gpus_for(n: int) -> None:
+        """With engines sharing GPUs, a Ray of n GPUs: engines claim their share of those."""
+        if on_gpus and args.per_gpu > 1:
+            ray.shutdown()
+            ray.init(address="local", num_gpus=n, include_dashboard=False)
+
     with tempfile.TemporaryDirectory(prefix="vabench-ray-scaling-") as tmp:
         if args.warmup and counts:
             warm = argparse.Namespace(**{**vars(args), "tracks": "active", "runs": 1, "steps": 1})
             t0 = time.perf_counter()
             (Path(tmp) / "warmup").mkdir()
+            gpus_for(max(counts))
             one_count(warm, max(counts), Path(tmp) / "warmup")
             print(f"warm-up (untimed): {time.perf_counter() - t0:.1f} s", flush=True)
         for n in counts:
+            gpus_for(n)
             result = one_count(args, n, Path(tmp))
             results.append(result)
+            what = f"{n} GPUs x {args.per_gpu} engines" if args.per_gpu > 1 else f"{n} engines"
             print(
-                f"{n} engines: {result['episodes']} episodes in {result['wall_s']:.1f} s "
+                f"{what}: {result['episodes']} episodes in {result['wall_s']:.1f} s "
                 f"({result['episodes_per_s']:.3f}/s; steady {result['steady_episodes_per_s']:.3f}"
                 f"/s over {result['span_s']:.1f} s)",
                 flush=True,

@@ -27,6 +27,8 @@ if sys.argv[1:] == ["-d"]:
         print("An instance of this daemon is already running", file=sys.stderr)
         sys.exit(1)
     log.write(f"start {{pipe}}\\n")
+    if os.environ.get("CUDA_VISIBLE_DEVICES") is not None:
+        log.write(f"visible {{os.environ['CUDA_VISIBLE_DEVICES']}}\\n")
     if not os.environ.get("FAKE_MPS_NO_PIPE"):
         open(os.path.join(pipe, "control"), "w").close()
 else:
@@ -118,3 +120,66 @@ def test_no_control_program_is_said(monkeypatch, tmp_path):
     assert mps.control_program() is None
     with pytest.raises(mps.MpsUnavailable, match="not on PATH"), mps.private_daemon():
         pass
+
+
+# -- a Ray sweep's engines that share GPUs: one daemon a node --------------------------------
+def test_a_nodes_engines_share_one_daemon_the_last_one_quits(control, tmp_path, monkeypatch):
+    """The first engine of the sweep on a node starts the daemon (seeing every GPU: Ray's
+    CUDA_VISIBLE_DEVICES of that engine is not passed on), the others join it, and it is told
+    to quit when the last one leaves; another sweep gets a daemon of its own."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2")
+    first = mps.join_node_daemon("sweep1", "node-101")
+    second = mps.join_node_daemon("sweep1", "node-102")
+    pipe = mps.node_folder("sweep1") / "pipe"
+    assert (
+        first
+        == second
+        == {
+            mps.PIPE_VARIABLE: str(pipe),
+            mps.LOG_VARIABLE: str(mps.node_folder("sweep1") / "log"),
+        }
+    )
+    assert control.read_text().splitlines() == [f"start {pipe}"]  # once, every GPU visible
+    mps.leave_node_daemon("sweep1", "node-101")
+    assert control.read_text().splitlines() == [f"start {pipe}"]  # one engine still there
+    mps.leave_node_daemon("sweep1", "node-102")
+    assert control.read_text().splitlines() == [f"start {pipe}", f"quit {pipe}"]
+    assert not pipe.exists() and not (mps.node_folder("sweep1") / "members").exists()
+    mps.leave_node_daemon("sweep1", "node-102")  # again: nothing to do
+    other = mps.join_node_daemon("sweep2", "node-103")
+    assert other[mps.PIPE_VARIABLE] != str(pipe)
+    assert control.read_text().splitlines()[-1] == f"start {other[mps.PIPE_VARIABLE]}"
+
+
+def test_a_nodes_daemon_that_does_not_start_is_said(control, tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setenv("FAKE_MPS_FAIL", "1")
+    with pytest.raises(mps.MpsUnavailable, match="exited 1"):
+        mps.join_node_daemon("sweep1", "node-101")
+    monkeypatch.setenv(mps.PIPE_VARIABLE, "/run/their-mps")  # the user's daemon: used as it is
+    assert mps.join_node_daemon("sweep1", "node-101") == {}
+
+
+def test_an_engine_joins_its_nodes_daemon_and_leaves_it(control, tmp_path, monkeypatch):
+    """`EngineActor` (without Ray: its two MPS steps): the client variables in its process's
+    environment before it makes a CUDA context; where MPS cannot run, a warning and none."""
+    import asyncio
+
+    from vabench.sweep.ray_engine import EngineActor
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    engine = EngineActor.__new__(EngineActor)
+    engine._mps_member, engine._stack, engine._gpus = "node-7", None, None
+    monkeypatch.setenv(mps.NODE_SWEEP, "sweep9")
+    for name in (mps.PIPE_VARIABLE, mps.LOG_VARIABLE):  # unset, and unset again after the
+        monkeypatch.setenv(name, "")  # test (the engine sets them in this process)
+        monkeypatch.delenv(name)
+    engine._mps_sweep = engine._join_mps()
+    pipe = str(mps.node_folder("sweep9") / "pipe")
+    assert engine._mps_sweep == "sweep9" and os.environ[mps.PIPE_VARIABLE] == pipe
+    asyncio.run(engine.close())
+    assert control.read_text().splitlines() == [f"start {pipe}", f"quit {pipe}"]
+    monkeypatch.delenv(mps.PIPE_VARIABLE)
+    monkeypatch.setenv("FAKE_MPS_FAIL", "1")
+    assert engine._join_mps() == ""

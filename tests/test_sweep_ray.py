@@ -275,6 +275,13 @@ def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
     assert engine_plan(four, here, {"CPU": 16.0, "GPU": 1.0})[1]["num_gpus"] == 0.25
     assert engine_environment(four, 4, 4)["VABENCH_GPU_SHARE"] == "4"
     assert "VABENCH_GPU_SHARE" not in engine_environment(four, 4)
+    # ... and, unless executor.mps is off, joins its node's CUDA MPS daemon of the sweep's
+    from vabench.sweep import mps
+
+    assert engine_environment(four, 4, 4, "s1")[mps.NODE_SWEEP] == "s1"
+    assert mps.NODE_SWEEP not in engine_environment(four, 4, 1, "s1")  # a GPU each
+    off = four.model_copy(update={"executor": four.executor.model_copy(update={"mps": "off"})})
+    assert mps.NODE_SWEEP not in engine_environment(off, 4, 4, "s1")
 
 
 def test_batched_engines_get_a_chunk_per_task_across_tracks_and_models():

@@ -20,6 +20,11 @@ left running. A sweep killed by SIGKILL or SIGTERM leaves its daemon running (id
 | CUDA_MPS_PIPE_DIRECTORY=<its folder>/pipe nvidia-cuda-mps-control` ends it; the folder is
 named in the sweep's log).
 
+On Ray (`executor.actors` above the cluster's GPUs) the engines sharing a node's GPUs join one
+daemon of the sweep's on that node (`join_node_daemon`, `leave_node_daemon`): the first to
+start starts it, the last to close tells it to quit; it sees every GPU of the node, so each
+engine's Ray-given CUDA_VISIBLE_DEVICES names its GPU under it.
+
 Under MPS a fatal fault of one client (an illegal memory access) ends the work of every client
 on that GPU: the processes executor then starts new workers for the chunks it interrupted
 (`process_executor`), and nothing is recorded for their interrupted episodes
@@ -29,6 +34,7 @@ on that GPU: the processes executor then starts new workers for the chunks it in
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import os
 import shutil
@@ -82,29 +88,13 @@ def private_daemon(environ: Mapping[str, str] = os.environ) -> Iterator[dict[str
         log.info("CUDA MPS: the daemon of %s", DEFAULT_PIPE)
         yield {}
         return
-    program = control_program()
-    if program is None:
-        raise MpsUnavailable(f"{CONTROL} is not on PATH")
+    program = _program()
     folder = Path(tempfile.mkdtemp(prefix="vabench-mps-"))
     env = {PIPE_VARIABLE: str(folder / "pipe"), LOG_VARIABLE: str(folder / "log")}
-    for path in env.values():
-        Path(path).mkdir()
     full = {**environ, **env}
     try:
-        started = subprocess.run(
-            [program, "-d"], env=full, capture_output=True, text=True, timeout=30
-        )
-    except (OSError, subprocess.TimeoutExpired) as err:
-        shutil.rmtree(folder, ignore_errors=True)
-        raise MpsUnavailable(f"`{CONTROL} -d` failed: {err}") from err
-    if started.returncode != 0:
-        shutil.rmtree(folder, ignore_errors=True)
-        said = (started.stderr or started.stdout).strip()
-        raise MpsUnavailable(f"`{CONTROL} -d` exited {started.returncode}: {said}")
-    try:  # from here on a daemon may run: told to quit whatever happens (Ctrl-C included)
-        _wait_for_control(folder / "pipe")
+        _start(program, full)
     except BaseException:
-        _quit(program, full)
         shutil.rmtree(folder, ignore_errors=True)
         raise
     log.info("CUDA MPS: a daemon of the sweep's own (%s=%s)", PIPE_VARIABLE, env[PIPE_VARIABLE])
@@ -113,6 +103,108 @@ def private_daemon(environ: Mapping[str, str] = os.environ) -> Iterator[dict[str
     finally:
         _quit(program, full)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+NODE_SWEEP = "VABENCH_RAY_MPS"
+"""Set by the Ray driver in the environment of engines that share GPUs (`executor.actors` above
+the GPUs, `executor.mps` auto): the sweep's id, under which each engine joins its node's
+daemon (`join_node_daemon`) before it makes its CUDA context."""
+
+
+def node_folder(sweep: str) -> Path:
+    """Where a Ray sweep's daemon of this node keeps its pipe, log and members."""
+    return Path(tempfile.gettempdir()) / f"vabench-mps-ray-{sweep}"
+
+
+def join_node_daemon(
+    sweep: str, member: str, environ: Mapping[str, str] = os.environ
+) -> dict[str, str]:
+    """The variables that make this process a client of the MPS daemon of Ray sweep `sweep` on
+    this node: the first engine of the sweep on the node starts it, the others find it (a file
+    lock orders them), and each is listed as a member until `leave_node_daemon`. The daemon
+    sees every GPU of the node (CUDA_VISIBLE_DEVICES dropped), so a client's Ray-given
+    CUDA_VISIBLE_DEVICES names the same GPU under it. A daemon the user runs is used as it is
+    (empty variables, as `private_daemon`). Raises `MpsUnavailable`."""
+    if environ.get(PIPE_VARIABLE) or (DEFAULT_PIPE / "control").exists():
+        return {}
+    program = _program()
+    folder = node_folder(sweep)
+    folder.mkdir(exist_ok=True)
+    env = {PIPE_VARIABLE: str(folder / "pipe"), LOG_VARIABLE: str(folder / "log")}
+    with _locked(folder):
+        if not (folder / "pipe" / "control").exists():
+            daemon_env = {k: v for k, v in environ.items() if k != "CUDA_VISIBLE_DEVICES"}
+            _start(program, {**daemon_env, **env})
+            log.info("CUDA MPS: this node's daemon of the sweep (%s)", env[PIPE_VARIABLE])
+        with open(folder / "members", "a") as members:
+            members.write(member + "\n")
+    return env
+
+
+def leave_node_daemon(sweep: str, member: str, environ: Mapping[str, str] = os.environ) -> None:
+    """`member` leaves the node's daemon of `sweep`; the last member tells it to quit and
+    removes its folder. An engine killed before it leaves keeps the daemon up (idle) until the
+    node's next `quit` (`echo quit | CUDA_MPS_PIPE_DIRECTORY=<folder>/pipe
+    nvidia-cuda-mps-control`)."""
+    folder = node_folder(sweep)
+    if not (folder / "members").exists():
+        return
+    with _locked(folder):
+        listed = (folder / "members").read_text().split()
+        if member in listed:
+            listed.remove(member)
+        (folder / "members").write_text("".join(m + "\n" for m in listed))
+        if listed:
+            return
+        program = control_program()
+        if program is not None:
+            _quit(program, {**environ, PIPE_VARIABLE: str(folder / "pipe")})
+        for part in ("pipe", "log", "members"):
+            path = folder / part
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _locked(folder: Path) -> Iterator[None]:
+    """An exclusive lock of `folder` between the processes of this node."""
+    with open(folder / "lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _program() -> str:
+    program = control_program()
+    if program is None:
+        raise MpsUnavailable(f"{CONTROL} is not on PATH")
+    return program
+
+
+def _start(program: str, env: Mapping[str, str]) -> None:
+    """Start a daemon with `env` (its pipe and log folders made) and wait for its control pipe;
+    a daemon that may have started is told to quit on any failure (Ctrl-C included)."""
+    pipe = Path(env[PIPE_VARIABLE])
+    pipe.mkdir(exist_ok=True)
+    Path(env[LOG_VARIABLE]).mkdir(exist_ok=True)
+    try:
+        started = subprocess.run(
+            [program, "-d"], env=dict(env), capture_output=True, text=True, timeout=30
+        )
+    except (OSError, subprocess.TimeoutExpired) as err:
+        raise MpsUnavailable(f"`{CONTROL} -d` failed: {err}") from err
+    if started.returncode != 0:
+        said = (started.stderr or started.stdout).strip()
+        raise MpsUnavailable(f"`{CONTROL} -d` exited {started.returncode}: {said}")
+    try:
+        _wait_for_control(pipe)
+    except BaseException:
+        _quit(program, env)
+        raise
 
 
 def client_devices(gpus: tuple[str, ...]) -> tuple[dict[str, str], tuple[str, ...]]:

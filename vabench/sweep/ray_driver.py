@@ -79,7 +79,7 @@ class ClusterSweep:
             share = round(1 / self.resources["num_gpus"])  # engines sharing a GPU
             gpus = max(1, int(cluster.get("GPU", 1)))
             cores = max(1, int(cluster.get("CPU", 1)) // (gpus * share))
-        self.environ = engine_environment(config, cores, share)
+        self.environ = engine_environment(config, cores, share, uuid.uuid4().hex[:12])
         # a task the registry lacks fails in its chunk
         cost = lambda task: config.budget(task) if task in REGISTRY else 1  # noqa: E731
         # Engines on GPUs batch their physics: a chunk per task (every track and model of it)

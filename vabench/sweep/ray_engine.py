@@ -40,7 +40,7 @@ from typing import Any
 from vabench.render.backends import check_renderer
 from vabench.run_layout import RunDir
 from vabench.sim_mjx.backends import check
-from vabench.sweep import gpu_busy, precompile
+from vabench.sweep import gpu_busy, mps, precompile
 from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document, worker_logging
 from vabench.sweep.choices import Choices, configure_jax
 from vabench.sweep.plan import EpisodeKey
@@ -79,6 +79,8 @@ class EngineActor:
             console=(precompile.__name__,),
         )
         self.config = load_document(document, self.run_dir)
+        self._mps_member = f"{socket.gethostname()}-{os.getpid()}"
+        self._mps_sweep = self._join_mps()  # before this process makes its CUDA context
         # in creation, so that a node that cannot run them is not given another engine
         check(choices.physics.kind)
         check_renderer(choices.renderer)
@@ -218,9 +220,27 @@ class EngineActor:
 
     async def close(self) -> dict[str, Any]:
         """Close the engine (the driver calls this once no chunk is left); returns its GPU's
-        figures over its life (empty without a GPU)."""
+        figures over its life (empty without a GPU). The last engine of the sweep on its node
+        tells the node's MPS daemon to quit."""
         figures = self._gpu()
         if self._stack is not None:  # (stopping the GPU sampler waits for its last reading)
             stack, self._stack = self._stack, None
             await stack.aclose()
+        if self._mps_sweep:
+            sweep, self._mps_sweep = self._mps_sweep, ""
+            mps.leave_node_daemon(sweep, self._mps_member)
         return figures
+
+    def _join_mps(self) -> str:
+        """With `mps.NODE_SWEEP` set (engines sharing GPUs): this process made a client of its
+        node's daemon of the sweep; the sweep's id, or "" where MPS cannot run here (then the
+        engines sharing a GPU take turns on it, said once in the log)."""
+        sweep = os.environ.get(mps.NODE_SWEEP, "")
+        if not sweep:
+            return ""
+        try:
+            os.environ.update(mps.join_node_daemon(sweep, self._mps_member))
+        except mps.MpsUnavailable as err:
+            log.warning("CUDA MPS: %s; the engines sharing this GPU take turns on it", err)
+            return ""
+        return sweep

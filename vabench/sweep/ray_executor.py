@@ -20,7 +20,8 @@ writer of the ledger.
    render workers: CPU-only nodes take these).
    `executor.actors` sets the number; more engines than GPUs each claim their share of one
    (`num_gpus` 1/k for k engines a GPU, told `VABENCH_GPU_SHARE`): several engine processes
-   per GPU, for CUDA MPS. When a model is not served by the embedded server, a
+   per GPU, each joining its node's CUDA MPS daemon of the sweep's (`mps.join_node_daemon`;
+   not with `executor.mps: off`). When a model is not served by the embedded server, a
    limit board (`sweep.limiter.LimiterActor`, on the driver's node) keeps its RPM, TPM,
    concurrency and Retry-After pause for every engine at once;
 4. the driver hands out chunks as engines have room (pull, `ray_plan.choose_engine`): a
