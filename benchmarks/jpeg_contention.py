@@ -15,7 +15,7 @@ interval and nvImageCodec's thread pools are per process):
 - `--encoder`: `nvimgcodec` (`vabench.render.gpu_jpeg.DeviceJpeg`: nvImageCodec, which encodes
   on default-priority streams of its own) or `nvjpeg` (`vabench.render.nvjpeg.NvJpeg`: nvJPEG
   on the thread's stream) or `warp` (`vabench.render.warp_jpeg.WarpJpeg`: our own kernels on
-  a stream of their own, one wait a call, from the pass's packed pixels);
+  a stream of their own, two waits a call, from the pass's packed pixels);
 - `--busy` other Python threads keep the interpreter's lock busy (pure-Python work, as the
   engine's event loop, request building and other render threads do);
 - `--threads`: each encoder's host threads (nvImageCodec's `max_num_cpu_threads`; 0 is its
@@ -125,16 +125,19 @@ def frames_on_device(n: int, width: int, height: int, device: str, packed: bool 
 
 
 def encoder_call(
-    args: argparse.Namespace, cuda: Any, frames: Any, settings: Any
+    args: argparse.Namespace, cuda: Any, frames: Any, settings: Any, device_lock: Any
 ) -> tuple[Callable[[], list[bytes]], ThreadPoolExecutor | None]:
-    """One encoder thread's call (every frame encoded once) and its slices' helper threads."""
+    """One encoder thread's call (every frame encoded once) and its slices' helper threads.
+    `device_lock`: held around Warp launches (Warp's current stream is one a device for the
+    whole process: threads switching it at once would put kernels on each other's streams; the
+    renderer holds its device lock so)."""
     from vabench.render import gpu_jpeg, nvjpeg, warp_jpeg
     from vabench.sim_mjx.warp import streams
 
     if args.encoder == "warp":
         height, width = settings.height, settings.width
         own = warp_jpeg.WarpJpeg(args.images, width, height, cuda, "middle")
-        return (lambda: own.encode(frames, args.images, settings)), None
+        return (lambda: own.encode(frames, args.images, settings, lambda: device_lock)), None
     slices = args.slices if args.encoder == "nvjpeg" else 1
     # an encoder and a stream a slice (the renderer lends its encoders so)
     lent: list[tuple[Any, int]] = []
@@ -172,6 +175,7 @@ def one_configuration(args: argparse.Namespace) -> dict:
     stop = threading.Event()
     calls: list[float] = []
     lock = threading.Lock()
+    device_lock = threading.Lock()  # Warp's launches (see encoder_call)
     sizes: list[int] = []
     errors: list[str] = []
     # every encoder after its warm-up encode, the GPU load after its first kernels, and this
@@ -192,7 +196,7 @@ def one_configuration(args: argparse.Namespace) -> dict:
     def encoder_thread() -> None:
         with wp.ScopedDevice(device):
             cuda = wp.get_device(device)
-            call, helpers = encoder_call(args, cuda, frames, settings)
+            call, helpers = encoder_call(args, cuda, frames, settings, device_lock)
             call()  # warm-up (the first compiles or allocates)
             ready.wait()
             while not stop.is_set():
@@ -220,7 +224,7 @@ def one_configuration(args: argparse.Namespace) -> dict:
             a = wp.zeros(132 * 2048 * 16, dtype=wp.float32)
             first = True
             while not stop.is_set():
-                with wp.ScopedStream(stream):
+                with device_lock, wp.ScopedStream(stream):
                     for _ in range(8):
                         wp.launch(_spin, dim=a.shape[0], inputs=[a, 200_000])
                 wp.synchronize_stream(stream)

@@ -204,6 +204,8 @@ def main() -> None:
 
     counts = [int(n) for n in args.engines.split(",")]
     on_gpus = resolve(args.backend).batched
+    if args.per_gpu > 1 and not on_gpus:
+        p.error("--per-gpu shares GPUs between engines: it needs a GPU backend (auto, warp, mjx)")
     if on_gpus:
         ray.init(address="local", include_dashboard=False)
         gpus = int(ray.cluster_resources().get("GPU", 0))

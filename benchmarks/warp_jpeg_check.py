@@ -1,6 +1,6 @@
 """The Warp JPEG encoder on a GPU, checked and timed alone (issue 33):
 
-    python benchmarks/warp_jpeg_check.py [--device cuda:0] [--frames 25,128]
+    python benchmarks/warp_jpeg_check.py [--device cuda:0] [--frames 25,128] [--task T]
 
 For each frame count, `vabench.render.warp_jpeg.WarpJpeg` encodes jpeg_contention's frames
 (1280x960, ~4.5 bits a pixel at quality 95, heavier than rendered scenes) from packed pixels
@@ -8,6 +8,10 @@ on the device: ms a call on an idle GPU from one thread (min and median of 5, af
 call that compiles), images the host had to encode, and for the first three frames the bytes
 and PSNR against libjpeg-turbo's encoding of the same pixels. The GPU under load is
 jpeg_contention.py's job (`--encoder warp`).
+
+`--task T`: the frames are instead the passive bundle of task T at its first verified seed,
+rendered by the Warp renderer on `--device` (`render_rgb`: the pixels before any JPEG), encoded
+by both encoders: sizes and PSNR against those pixels, for every frame.
 """
 
 from __future__ import annotations
@@ -36,12 +40,57 @@ def _psnr(decoded: np.ndarray, source: np.ndarray) -> float:
     return float(10 * np.log10(255**2 / np.mean((decoded - source.astype(float)) ** 2)))
 
 
+def compare(jpegs: list[bytes], frames: np.ndarray, settings: ImageSettings) -> None:
+    """Each frame's bytes and PSNR, ours against libjpeg-turbo's encoding of the same pixels."""
+    for i, (jpeg, frame) in enumerate(zip(jpegs, frames, strict=True)):
+        ours = np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB")).astype(float)
+        reference = encode_jpeg(frame, settings.quality, settings.subsampling)
+        theirs = np.asarray(Image.open(io.BytesIO(reference)).convert("RGB")).astype(float)
+        print(
+            f"  frame {i}: {len(jpeg)} bytes (libjpeg {len(reference)}), PSNR "
+            f"{_psnr(ours, frame):.2f} dB (libjpeg {_psnr(theirs, frame):.2f}), "
+            f"{np.abs(ours - theirs).mean():.3f} grey levels apart on average",
+            flush=True,
+        )
+
+
+def renders(task: str, device: str) -> None:
+    """The passive bundle of `task` at its first verified seed, ray traced, both encodings."""
+    import os
+
+    from vabench.render import camera as cam
+    from vabench.render.__main__ import reset_state
+    from vabench.render.images import RenderItem
+    from vabench.render.warp_renderer import WarpRenderPool
+    from vabench.tasks.manifests import verified_seeds
+
+    qpos, variant, gcs = reset_state(task, verified_seeds(task)[0], "c")
+    arms = ("left", "right") if "handover" in task or task == "place_shoe" else ("right",)
+    items = [RenderItem(qpos, variant, p) for p in cam.passive_bundle(gcs, arms)]
+    settings = ImageSettings()
+    os.environ["VABENCH_WARP_DEVICE"] = device
+    with WarpRenderPool(jpeg="host") as pool:
+        frames = pool.render_rgb(task, items, settings)
+    n = len(frames)
+    rgb = frames.astype(np.uint32)
+    words = ((rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]).reshape(n, -1)
+    jpegs = WarpJpeg(n, settings.width, settings.height, device).encode(
+        wp.array(words, dtype=wp.uint32, device=device), n, settings
+    )
+    print(f"{task}: {n} rendered frames of {settings.width}x{settings.height}:")
+    compare(jpegs, frames, settings)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--frames", default="25,128")
+    ap.add_argument("--task", help="rendered frames of this task instead")
     args = ap.parse_args()
     wp.init()
+    if args.task:
+        renders(args.task, args.device)
+        return
     settings = ImageSettings()
     for n in (int(v) for v in args.frames.split(",")):
         packed = frames_on_device(n, settings.width, settings.height, args.device, packed=True)
@@ -61,15 +110,7 @@ def main() -> None:
             f"{n / min(times):.0f} images/s; encoded on the host: {encoder.host_encoded}",
             flush=True,
         )
-        for i in range(min(n, 3)):
-            ours = np.asarray(Image.open(io.BytesIO(out[i])).convert("RGB")).astype(float)
-            reference = encode_jpeg(rgb[i], settings.quality, settings.subsampling)
-            theirs = np.asarray(Image.open(io.BytesIO(reference)).convert("RGB")).astype(float)
-            print(
-                f"  frame {i}: {len(out[i])} bytes (libjpeg {len(reference)}), PSNR "
-                f"{_psnr(ours, rgb[i]):.2f} dB (libjpeg {_psnr(theirs, rgb[i]):.2f})",
-                flush=True,
-            )
+        compare(out[: len(rgb)], rgb, settings)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,9 @@ real one does, and writing what it was asked to a log."""
 from __future__ import annotations
 
 import os
+import socket
 import stat
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -123,14 +125,30 @@ def test_no_control_program_is_said(monkeypatch, tmp_path):
 
 
 # -- a Ray sweep's engines that share GPUs: one daemon a node --------------------------------
-def test_a_nodes_engines_share_one_daemon_the_last_one_quits(control, tmp_path, monkeypatch):
+@pytest.fixture
+def engines():
+    """Member names of this node's engines: "<host>-<pid>" of living processes (this one and a
+    child), and of one that has ended."""
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                           capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    host = socket.gethostname()
+    yield f"{host}-{os.getpid()}", f"{host}-{child.pid}", f"{host}-{ended}"
+    child.kill()
+    child.wait()
+
+
+def test_a_nodes_engines_share_one_daemon_the_last_one_quits(
+    control, engines, tmp_path, monkeypatch
+):
     """The first engine of the sweep on a node starts the daemon (seeing every GPU: Ray's
     CUDA_VISIBLE_DEVICES of that engine is not passed on), the others join it, and it is told
     to quit when the last one leaves; another sweep gets a daemon of its own."""
+    one, two, _ = engines
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2")
-    first = mps.join_node_daemon("sweep1", "node-101")
-    second = mps.join_node_daemon("sweep1", "node-102")
+    first = mps.join_node_daemon("sweep1", one)
+    second = mps.join_node_daemon("sweep1", two)
     pipe = mps.node_folder("sweep1") / "pipe"
     assert (
         first
@@ -141,24 +159,49 @@ def test_a_nodes_engines_share_one_daemon_the_last_one_quits(control, tmp_path, 
         }
     )
     assert control.read_text().splitlines() == [f"start {pipe}"]  # once, every GPU visible
-    mps.leave_node_daemon("sweep1", "node-101")
+    mps.leave_node_daemon("sweep1", one)
     assert control.read_text().splitlines() == [f"start {pipe}"]  # one engine still there
-    mps.leave_node_daemon("sweep1", "node-102")
+    mps.leave_node_daemon("sweep1", two)
     assert control.read_text().splitlines() == [f"start {pipe}", f"quit {pipe}"]
     assert not pipe.exists() and not (mps.node_folder("sweep1") / "members").exists()
-    mps.leave_node_daemon("sweep1", "node-102")  # again: nothing to do
-    other = mps.join_node_daemon("sweep2", "node-103")
+    mps.leave_node_daemon("sweep1", two)  # again: nothing to do
+    other = mps.join_node_daemon("sweep2", one)
     assert other[mps.PIPE_VARIABLE] != str(pipe)
     assert control.read_text().splitlines()[-1] == f"start {other[mps.PIPE_VARIABLE]}"
+
+
+def test_engines_that_died_do_not_keep_a_daemon(control, engines, tmp_path, monkeypatch):
+    """A member whose process has ended is dropped: the last living one's leaving quits the
+    daemon; a daemon left by engines all gone (this sweep's, or an earlier sweep's on this
+    node) is told to quit when an engine joins, and this sweep's is started again."""
+    one, two, dead = engines
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    mps.join_node_daemon("sweep1", one)
+    mps.join_node_daemon("sweep1", dead)  # (as if it had died after joining)
+    pipe = mps.node_folder("sweep1") / "pipe"
+    mps.leave_node_daemon("sweep1", one)  # the dead one does not hold it up
+    assert control.read_text().splitlines() == [f"start {pipe}", f"quit {pipe}"]
+
+    mps.join_node_daemon("sweep1", dead)  # a sweep whose engines all died: its daemon stays
+    assert control.read_text().splitlines()[-1] == f"start {pipe}"
+    mps.join_node_daemon("sweep1", one)  # ... until an engine joins: quit, started again
+    assert control.read_text().splitlines()[-2:] == [f"quit {pipe}", f"start {pipe}"]
+    mps.join_node_daemon("sweep2", two)  # another sweep: sweep1 has a living member, kept
+    other = mps.node_folder("sweep2") / "pipe"
+    assert control.read_text().splitlines()[-1] == f"start {other}"
+    (mps.node_folder("sweep1") / "members").write_text(dead + "\n")  # sweep1 interrupted
+    mps.join_node_daemon("sweep3", two)
+    assert f"quit {pipe}" == control.read_text().splitlines()[-2]  # reaped
+    assert not pipe.exists()
 
 
 def test_a_nodes_daemon_that_does_not_start_is_said(control, tmp_path, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     monkeypatch.setenv("FAKE_MPS_FAIL", "1")
     with pytest.raises(mps.MpsUnavailable, match="exited 1"):
-        mps.join_node_daemon("sweep1", "node-101")
+        mps.join_node_daemon("sweep1", f"node-{os.getpid()}")
     monkeypatch.setenv(mps.PIPE_VARIABLE, "/run/their-mps")  # the user's daemon: used as it is
-    assert mps.join_node_daemon("sweep1", "node-101") == {}
+    assert mps.join_node_daemon("sweep1", f"node-{os.getpid()}") == {}
 
 
 def test_an_engine_joins_its_nodes_daemon_and_leaves_it(control, tmp_path, monkeypatch):
@@ -170,7 +213,7 @@ def test_an_engine_joins_its_nodes_daemon_and_leaves_it(control, tmp_path, monke
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     engine = EngineActor.__new__(EngineActor)
-    engine._mps_member, engine._stack, engine._gpus = "node-7", None, None
+    engine._mps_member, engine._stack, engine._gpus = f"node-{os.getpid()}", None, None
     monkeypatch.setenv(mps.NODE_SWEEP, "sweep9")
     for name in (mps.PIPE_VARIABLE, mps.LOG_VARIABLE):  # unset, and unset again after the
         monkeypatch.setenv(name, "")  # test (the engine sets them in this process)

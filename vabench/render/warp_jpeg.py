@@ -1,11 +1,12 @@
-"""JPEG in Warp kernels: a render pass's frames encoded on the device with one wait a pass.
+"""JPEG in Warp kernels: a render pass's frames encoded on the device, two waits a pass.
 
 Why (issue 33, one H100, 2026-11-28, the warm suite with nvJPEG): an engine process spent
 245 s in JPEG against 110 s ray tracing for its 36,312 images, yet nvJPEG's kernels were 8 % of
 the GPU's kernel time. nvJPEG waits for the GPU inside each frame's encode call (it sizes the
 output on the host) and again to retrieve each frame's bytes, and every wait queues behind
 the ray tracer's megakernels: ~6.6 ms of wall time a frame for ~0.03 ms of kernels. Here a
-pass of n frames is a handful of launches and two waits, whatever n.
+pass of n frames is a handful of launches and two waits (its lengths, then its bytes),
+whatever n.
 
 What it writes: baseline sequential JPEG (ITU T.81, 8-bit, Huffman) with a JFIF header; the
 IJG's quality scaling of the standard quantisation tables and the standard Huffman tables of
@@ -27,8 +28,15 @@ How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGG
 4. `_count_ff`, a scan, `_sizes` and `_place`: every 0xFF byte gets its stuffed 0x00 (T.81
    B.1.1.5) while the images are copied end to end into one buffer; the last byte is padded
    with 1-bits.
-5. The lengths come to the host (the one wait for the kernels), then the bytes (a copy: no
+5. The lengths come to the host (the wait for the kernels), then the bytes (a copy: no
    multiprocessor time), and each image gets its header and end marker.
+
+Everything before the Huffman codes is integer arithmetic (libjpeg's fixed-point colour
+conversion, a DCT with 12-bit coefficients, libjpeg's rounding of halves away from zero): the
+kernel that counts a block's bits and the one that writes them compute the same coefficients
+bit for bit, which a float DCT would not promise (fused multiply-adds may be contracted
+differently in each). Where a quotient is exactly a half (synthetic patterns such as a
+checkerboard at quality 50) the two encoders may round it apart.
 
 An image whose entropy data would not fit its buffer (`CAP_BITS_PER_PIXEL`; rendered scenes
 take 1.0-1.5 bits a pixel at quality 95, benchmarks/jpeg_contention.py's noisy frames 4.5) is
@@ -165,7 +173,14 @@ def jpeg_header(width: int, height: int, settings: ImageSettings) -> bytes:
     )
 
 
-mat88 = wp.types.matrix(shape=(8, 8), dtype=wp.float32)
+imat88 = wp.types.matrix(shape=(8, 8), dtype=wp.int32)
+DCT_SCALE_BITS = 12
+"""The DCT matrix's entries are scaled by 2^12 and rounded: |entry| <= 2,048."""
+PASS_SHIFT = wp.constant(10)
+"""Bits dropped after the first (column) pass: |D f| <= 8 x 2,048 x 128 = 2^21 becomes <= 2^11,
+so the second pass stays below 8 x 2^11 x 2^11 = 2^25 (no int32 overflow)."""
+DCT_BITS = wp.constant(2 * DCT_SCALE_BITS - 10)
+"""A coefficient's scale after both passes: 2^(12 + 12 - 10) = 2^14."""
 
 
 @wp.struct
@@ -199,55 +214,67 @@ class Writer:
 
 @wp.func
 def _sample(packed: wp.array2d(dtype=wp.uint32), i: int, x: int, y: int, lay: Layout, comp: int):
-    """Level-shifted Y, Cb or Cr of pixel (x, y) of image i, the image's edge repeated beyond it."""
+    """Y, Cb or Cr (0-255) of pixel (x, y) of image i, the image's edge repeated beyond it:
+    libjpeg's fixed-point conversion (jccolor.c, 16 fraction bits, rounded)."""
     v = packed[i, wp.min(y, lay.height - 1) * lay.width + wp.min(x, lay.width - 1)]
-    r = float((v >> wp.uint32(16)) & wp.uint32(255))
-    g = float((v >> wp.uint32(8)) & wp.uint32(255))
-    b = float(v & wp.uint32(255))
+    r = int((v >> wp.uint32(16)) & wp.uint32(255))
+    g = int((v >> wp.uint32(8)) & wp.uint32(255))
+    b = int(v & wp.uint32(255))
     if comp == 0:
-        return 0.299 * r + 0.587 * g + 0.114 * b - 128.0
+        return (19595 * r + 38470 * g + 7471 * b + 32768) >> 16
     if comp == 1:
-        return -0.168735892 * r - 0.331264108 * g + 0.5 * b
-    return 0.5 * r - 0.418687589 * g - 0.081312411 * b
+        return (-11059 * r - 21709 * g + 32768 * b + (128 << 16) + 32767) >> 16
+    return (32768 * r - 27439 * g - 5329 * b + (128 << 16) + 32767) >> 16
 
 
 @wp.func
 def _samples(packed: wp.array2d(dtype=wp.uint32), i: int, mcu: int, b: int, lay: Layout):
-    """The 8x8 samples of block b of MCU `mcu` of image i (chroma: the mean of h x v pixels)."""
+    """The level-shifted 8x8 samples of block b of MCU `mcu` of image i (chroma: the rounded
+    mean of h x v pixels)."""
     mx = mcu % lay.mcus_x
     my = mcu // lay.mcus_x
     luma = lay.h * lay.v
-    f = mat88()
+    f = imat88()
     if b < luma:
         x0 = mx * 8 * lay.h + 8 * (b % lay.h)
         y0 = my * 8 * lay.v + 8 * (b // lay.h)
         for r in range(8):
             for c in range(8):
-                f[r, c] = _sample(packed, i, x0 + c, y0 + r, lay, 0)
+                f[r, c] = _sample(packed, i, x0 + c, y0 + r, lay, 0) - 128
         return f
     comp = b - luma + 1
     x0 = mx * 8 * lay.h
     y0 = my * 8 * lay.v
-    inv = 1.0 / float(luma)
     for r in range(8):
         for c in range(8):
-            s = float(0.0)
+            s = int(0)
             for dy in range(lay.v):
                 for dx in range(lay.h):
                     s += _sample(packed, i, x0 + c * lay.h + dx, y0 + r * lay.v + dy, lay, comp)
-            f[r, c] = s * inv
+            f[r, c] = (s + luma // 2) // luma - 128
     return f
 
 
 @wp.func
-def _dc(f: mat88, q0: float):
-    """The quantised DC of samples f: their sum / 8 (the DCT's (0, 0) term), always computed so
-    that a block and the one after it agree on it."""
-    s = float(0.0)
+def _quantise(value: int, q: int):
+    """round(value / (q * 2^14)), halves away from zero (libjpeg's rounding)."""
+    step = q << DCT_BITS
+    a = (wp.abs(value) + (step >> 1)) // step
+    if value < 0:
+        return -a
+    return a
+
+
+@wp.func
+def _coefficients(f: imat88, dct: imat88):
+    """The 2-D DCT of samples f scaled by 2^14 (DCT_BITS), in integers: the same bits in every
+    kernel and thread, so the kernel that counts a block's bits and the one that writes them
+    agree (a float DCT may be contracted into fused multiply-adds differently in each)."""
+    t = dct @ f
     for r in range(8):
         for c in range(8):
-            s += f[r, c]
-    return int(wp.floor(s * 0.125 / q0 + 0.5))
+            t[r, c] = (t[r, c] + (1 << (PASS_SHIFT - 1))) >> PASS_SHIFT
+    return t @ wp.transpose(dct)
 
 
 @wp.func
@@ -257,10 +284,20 @@ def _block_dc(
     mcu: int,
     b: int,
     lay: Layout,
-    quant: wp.array(dtype=float),
+    quant: wp.array(dtype=int),
+    dct: imat88,
 ):
+    """Block b of MCU `mcu`'s quantised DC: the (0, 0) term of `_coefficients` alone (integers:
+    the same value whatever the order of the sums)."""
+    f = _samples(packed, i, mcu, b, lay)
+    total = int(0)
+    for c in range(8):
+        column = int(0)
+        for r in range(8):
+            column += dct[0, r] * f[r, c]
+        total += ((column + (1 << (PASS_SHIFT - 1))) >> PASS_SHIFT) * dct[0, c]
     comp = wp.max(b - lay.h * lay.v + 1, 0)
-    return _dc(_samples(packed, i, mcu, b, lay), quant[wp.min(comp, 1) * 64])
+    return _quantise(total, quant[wp.min(comp, 1) * 64])
 
 
 @wp.func
@@ -270,16 +307,17 @@ def _previous_dc(
     mcu: int,
     b: int,
     lay: Layout,
-    quant: wp.array(dtype=float),
+    quant: wp.array(dtype=int),
+    dct: imat88,
 ):
     """The DC this block's is coded against: the same component's block before it (0 first)."""
     if b < lay.h * lay.v and b > 0:
-        return _block_dc(packed, i, mcu, b - 1, lay, quant)
+        return _block_dc(packed, i, mcu, b - 1, lay, quant, dct)
     if mcu == 0:
         return 0
     if b == 0:
-        return _block_dc(packed, i, mcu - 1, lay.h * lay.v - 1, lay, quant)
-    return _block_dc(packed, i, mcu - 1, b, lay, quant)
+        return _block_dc(packed, i, mcu - 1, lay.h * lay.v - 1, lay, quant, dct)
+    return _block_dc(packed, i, mcu - 1, b, lay, quant, dct)
 
 
 @wp.func
@@ -324,11 +362,10 @@ def _magnitude(value: int):
 
 @wp.func
 def _code_block(
-    f: mat88,
+    coef: imat88,
     dc_diff: int,
     comp: int,
-    quant: wp.array(dtype=float),
-    dct: mat88,
+    quant: wp.array(dtype=int),
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
     zigzag: wp.array(dtype=int),
@@ -338,14 +375,13 @@ def _code_block(
 ):
     """A block's Huffman codes: its DC difference, then its AC coefficients in zigzag order as
     runs of zeros and values (ZRL for 16 zeros, EOB after the last value)."""
-    coef = dct @ f @ wp.transpose(dct)
     table = wp.min(comp, 1) * 512  # DC table at +0, AC at +256
     m = _magnitude(dc_diff)
     w = _put(w, (codes[table + m[0]] << m[0]) | m[1], lengths[table + m[0]] + m[0], words, emit)
     run = int(0)
     for k in range(1, 64):
         n = zigzag[k]
-        value = int(wp.floor(coef[n // 8, n % 8] / quant[wp.min(comp, 1) * 64 + n] + 0.5))
+        value = _quantise(coef[n // 8, n % 8], quant[wp.min(comp, 1) * 64 + n])
         value = wp.clamp(value, -1023, 1023)  # baseline AC: 10 bits at most
         if value == 0:
             run += 1
@@ -362,12 +398,30 @@ def _code_block(
     return w
 
 
+@wp.func
+def _block_start(
+    packed: wp.array2d(dtype=wp.uint32),
+    i: int,
+    k: int,
+    lay: Layout,
+    quant: wp.array(dtype=int),
+    dct: imat88,
+):
+    """Block k of image i: (its coefficients, its DC difference, its component)."""
+    mcu = k // lay.blocks
+    b = k % lay.blocks
+    comp = wp.max(b - lay.h * lay.v + 1, 0)
+    coef = _coefficients(_samples(packed, i, mcu, b, lay), dct)
+    dc = _quantise(coef[0, 0], quant[wp.min(comp, 1) * 64])
+    return coef, dc - _previous_dc(packed, i, mcu, b, lay, quant, dct), comp
+
+
 @wp.kernel
 def _count_bits(
     packed: wp.array2d(dtype=wp.uint32),
     lay: Layout,
-    quant: wp.array(dtype=float),
-    dct: mat88,
+    quant: wp.array(dtype=int),
+    dct: imat88,
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
     zigzag: wp.array(dtype=int),
@@ -375,18 +429,14 @@ def _count_bits(
     bits: wp.array(dtype=wp.int64),
 ):
     i, k = wp.tid()
-    mcu = k // lay.blocks
-    b = k % lay.blocks
-    comp = wp.max(b - lay.h * lay.v + 1, 0)
-    f = _samples(packed, i, mcu, b, lay)
-    diff = _dc(f, quant[wp.min(comp, 1) * 64]) - _previous_dc(packed, i, mcu, b, lay, quant)
+    coef, diff, comp = _block_start(packed, i, k, lay, quant, dct)
     w = Writer()
     w.acc = wp.uint64(0)
     w.nacc = 0
     w.word = 0
     w.first = 0
     w.count = 0
-    w = _code_block(f, diff, comp, quant, dct, codes, lengths, zigzag, w, words, 0)
+    w = _code_block(coef, diff, comp, quant, codes, lengths, zigzag, w, words, 0)
     bits[i * lay.nblocks + k] = wp.int64(w.count)
 
 
@@ -403,8 +453,8 @@ def _image_bits(ends: wp.array(dtype=wp.int64), i: int, lay: Layout):
 def _pack(
     packed: wp.array2d(dtype=wp.uint32),
     lay: Layout,
-    quant: wp.array(dtype=float),
-    dct: mat88,
+    quant: wp.array(dtype=int),
+    dct: imat88,
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
     zigzag: wp.array(dtype=int),
@@ -417,18 +467,14 @@ def _pack(
     if total > wp.int64(lay.cap_bits):
         return  # the host encodes this image
     start = int(ends[i * lay.nblocks + k] - bits[i * lay.nblocks + k] - base)
-    mcu = k // lay.blocks
-    b = k % lay.blocks
-    comp = wp.max(b - lay.h * lay.v + 1, 0)
-    f = _samples(packed, i, mcu, b, lay)
-    diff = _dc(f, quant[wp.min(comp, 1) * 64]) - _previous_dc(packed, i, mcu, b, lay, quant)
+    coef, diff, comp = _block_start(packed, i, k, lay, quant, dct)
     w = Writer()
     w.acc = wp.uint64(0)
     w.count = 0
     w.nacc = start % 32
     w.word = i * lay.cap_words + start // 32
     w.first = 1
-    w = _code_block(f, diff, comp, quant, dct, codes, lengths, zigzag, w, words, 1)
+    w = _code_block(coef, diff, comp, quant, codes, lengths, zigzag, w, words, 1)
     if w.nacc > 0:  # the last word, shared with the next block
         wp.atomic_or(
             words, w.word, wp.uint32((w.acc << wp.uint64(32 - w.nacc)) & wp.uint64(0xFFFFFFFF))
@@ -524,10 +570,12 @@ def _place(
 
 
 def _dct_matrix() -> np.ndarray:
-    """D with D f D^T the 2-D DCT of T.81 A.3.3 (its C(u) / 2 folded into each row)."""
+    """D with D f D^T the 2-D DCT of T.81 A.3.3 (its C(u) / 2 folded into each row), scaled by
+    2^DCT_SCALE_BITS and rounded to integers."""
     u, x = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
     scale = np.where(u == 0, math.sqrt(0.5), 1.0) * 0.5
-    return (scale * np.cos((2 * x + 1) * u * np.pi / 16)).astype(np.float32)
+    exact = scale * np.cos((2 * x + 1) * u * np.pi / 16)
+    return np.round(exact * (1 << DCT_SCALE_BITS)).astype(np.int32)
 
 
 def layout(width: int, height: int, subsampling: str) -> Any:
@@ -572,7 +620,8 @@ class Pending:
     queued_s: float
 
 
-_seconds_lock = threading.Lock()
+SECONDS_LOCK = threading.Lock()
+"""Held while an encoder adds to its `seconds` (several encoders share the renderer's dict)."""
 
 
 class WarpJpeg:
@@ -595,7 +644,7 @@ class WarpJpeg:
         self.stream = streams.new_stream(self.device, priority)
         self._tables: dict[tuple[int, str], _Tables] = {}
         self._buffers: dict[str, wp.array] = {}
-        self._dct = mat88(*_dct_matrix().flatten().tolist())
+        self._dct = imat88(*_dct_matrix().flatten().tolist())
         self._zigzag = wp.array(ZIGZAG, dtype=int, device=self.device)
         self._host_out: wp.array | None = None
         self.seconds = seconds if seconds is not None else {}
@@ -633,12 +682,14 @@ class WarpJpeg:
         t0 = time.perf_counter()
         t = self._prepare(settings)
         lay, buf = t.lay, self._buffers
+        with wp.ScopedDevice(self.device):
+            writer = wp.get_stream(self.device) if self.device.is_cuda else None
         with wp.ScopedDevice(self.device), self._on_stream():
-            if self.stream is not None:
+            if self.stream is not None:  # after the frames' writer
                 if after is not None:
                     self.stream.wait_event(after)
-                else:
-                    self.stream.wait_stream(wp.get_stream(self.device))
+                elif writer is not None and writer is not self.stream:
+                    self.stream.wait_stream(writer)
             blocks, chunks = n * lay.nblocks, n * lay.chunks
             tables = [lay, t.quant, self._dct, t.codes, t.lengths, self._zigzag]
             words, ends, ff, ff_ends = buf["words"], buf["ends"], buf["ff"], buf["ff_ends"]
@@ -685,7 +736,7 @@ class WarpJpeg:
             else self._on_host(pending.packed, i, pending.settings, enter)
             for i in range(n)
         ]
-        with _seconds_lock:
+        with SECONDS_LOCK:
             for part, seconds in (
                 ("queueing", pending.queued_s),
                 ("waiting for the GPU", t2 - t1),
@@ -699,7 +750,7 @@ class WarpJpeg:
         key = (settings.quality, settings.subsampling)
         if key not in self._tables:
             lay = layout(self.width, self.height, settings.subsampling)
-            quant = np.zeros(128, np.float32)
+            quant = np.zeros(128, np.int32)
             for t, table in enumerate(quant_tables(settings.quality)):
                 quant[t * 64 + ZIGZAG] = table
             codes, lengths = np.zeros(1024, np.int32), np.zeros(1024, np.int32)
@@ -712,7 +763,7 @@ class WarpJpeg:
             d = self.device
             self._tables[key] = _Tables(
                 lay,
-                wp.array(quant, dtype=float, device=d),
+                wp.array(quant, dtype=int, device=d),
                 wp.array(codes, dtype=int, device=d),
                 wp.array(lengths, dtype=int, device=d),
                 jpeg_header(self.width, self.height, settings),
@@ -743,13 +794,14 @@ class WarpJpeg:
         return wp.ScopedStream(self.stream, sync_enter=False)
 
     def _copy_out(self, total: int, enter: Callable[[], Any]) -> bytes:
-        """The first `total` bytes of the output, through a pinned buffer on a GPU."""
-        if self._host_out is None or self._host_out.shape[0] < total:
-            size = max(total, 2 * (self._host_out.shape[0] if self._host_out is not None else 0))
-            self._host_out = wp.empty(
-                size, dtype=wp.uint8, device="cpu", pinned=self.device.is_cuda
-            )
+        """The first `total` bytes of the output, through a pinned buffer on a GPU (allocated,
+        as every device-side allocation, inside `enter`: the device's lock)."""
         with enter(), wp.ScopedDevice(self.device), self._on_stream():
+            if self._host_out is None or self._host_out.shape[0] < total:
+                kept = self._host_out.shape[0] if self._host_out is not None else 0
+                self._host_out = wp.empty(
+                    max(total, 2 * kept), dtype=wp.uint8, device="cpu", pinned=self.device.is_cuda
+                )
             wp.copy(self._host_out, self._buffers["out"], count=total)
             copied = streams.record(self.stream)
         streams.wait(copied)

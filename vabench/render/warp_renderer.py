@@ -16,7 +16,7 @@ once:
    packed pixels come to the host and a thread pool encodes them (`images.JpegThreads`), with
    the quality and chroma subsampling of `ImageSettings` every way. `jpeg="kernels"` encodes a
    pass in its own Warp kernels instead (`warp_jpeg`: queued right behind the ray tracing,
-   one wait a pass, no library; measured on CPU, not yet in the main job on a GPU).
+   two waits a pass, no library; measured on CPU, not yet in the main job on a GPU).
 
 Render batches ("passes", `warp_pass.RenderPass`) are made per task family, image size and
 world count (1, 2, 3, 4, 6, 8, 12, ...: `pass_size`), when first needed, and then reused: a
@@ -68,7 +68,7 @@ import mujoco
 import numpy as np
 import warp as wp
 
-from vabench.render import gpu_jpeg, nvjpeg
+from vabench.render import gpu_jpeg, nvjpeg, warp_jpeg
 from vabench.render.images import (
     ImageSettings,
     JpegThreads,
@@ -88,7 +88,7 @@ JPEG_CHOICES = ("auto", "device", "host", "nvjpeg", "kernels")
 """`WarpRenderPool.jpeg`: auto (on a GPU nvJPEG where it loads, else nvImageCodec where
 installed, else host threads), nvjpeg (nvJPEG on the renderer's own priority streams,
 `vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error), host (threads), kernels
-(each pass's own Warp kernels, `vabench.render.warp_jpeg`: one wait a pass instead of nvJPEG's
+(each pass's own Warp kernels, `vabench.render.warp_jpeg`: two waits a pass instead of nvJPEG's
 waits in every frame; on any Warp device, no library needed; not yet measured in the main
 job). The environment's VABENCH_WARP_JPEG sets the default (for measuring side by side).
 
@@ -205,6 +205,8 @@ class WarpRenderPool:
         self._lock_device = device_lock(str(self._device))
         on_gpu = self._device.is_cuda
         if self.jpeg == "kernels":
+            with self._lock_device:  # compiled or loaded now, not in the first pass's lock hold
+                wp.load_module(warp_jpeg, device=self._device)
             self.info = f"warp on {self._device} ({self._device.name}; JPEG: Warp kernels a pass)"
             log.info("renderer: %s", self.info)
             return self.info
@@ -274,8 +276,9 @@ class WarpRenderPool:
         for encoder in self._device_encoders:
             for part, seconds in encoder.seconds.items():
                 parts[part] = parts.get(part, 0.0) + seconds
-        for part, seconds in self._warp_jpeg_seconds.items():
-            parts[part] = parts.get(part, 0.0) + seconds
+        with warp_jpeg.SECONDS_LOCK:
+            for part, seconds in self._warp_jpeg_seconds.items():
+                parts[part] = parts.get(part, 0.0) + seconds
         if parts:
             log.info(
                 "renderer: JPEG on the device: %s",

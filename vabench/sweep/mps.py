@@ -121,50 +121,97 @@ def join_node_daemon(
 ) -> dict[str, str]:
     """The variables that make this process a client of the MPS daemon of Ray sweep `sweep` on
     this node: the first engine of the sweep on the node starts it, the others find it (a file
-    lock orders them), and each is listed as a member until `leave_node_daemon`. The daemon
-    sees every GPU of the node (CUDA_VISIBLE_DEVICES dropped), so a client's Ray-given
-    CUDA_VISIBLE_DEVICES names the same GPU under it. A daemon the user runs is used as it is
-    (empty variables, as `private_daemon`). Raises `MpsUnavailable`."""
+    lock orders them), and each is listed as a member ("<host>-<pid>") until
+    `leave_node_daemon`. The daemon sees every GPU of the node (CUDA_VISIBLE_DEVICES dropped),
+    so a client's Ray-given CUDA_VISIBLE_DEVICES names the same GPU under it. A daemon the user
+    runs is used as it is (empty variables, as `private_daemon`). Members whose process is gone
+    (an engine killed, a sweep interrupted) are dropped as others join or leave: a daemon whose
+    members are all gone is told to quit, this sweep's (then started again) and earlier
+    sweeps' alike. Raises `MpsUnavailable`."""
     if environ.get(PIPE_VARIABLE) or (DEFAULT_PIPE / "control").exists():
         return {}
     program = _program()
+    _reap_abandoned(sweep, program, environ)
     folder = node_folder(sweep)
     folder.mkdir(exist_ok=True)
     env = {PIPE_VARIABLE: str(folder / "pipe"), LOG_VARIABLE: str(folder / "log")}
     with _locked(folder):
+        members = _living_members(folder)
+        if not members and (folder / "pipe" / "control").exists():
+            _retire(folder, program, environ)  # left by engines all gone: perhaps dead itself
         if not (folder / "pipe" / "control").exists():
             daemon_env = {k: v for k, v in environ.items() if k != "CUDA_VISIBLE_DEVICES"}
             _start(program, {**daemon_env, **env})
             log.info("CUDA MPS: this node's daemon of the sweep (%s)", env[PIPE_VARIABLE])
-        with open(folder / "members", "a") as members:
-            members.write(member + "\n")
+        _write_members(folder, [*members, member])
     return env
 
 
 def leave_node_daemon(sweep: str, member: str, environ: Mapping[str, str] = os.environ) -> None:
-    """`member` leaves the node's daemon of `sweep`; the last member tells it to quit and
-    removes its folder. An engine killed before it leaves keeps the daemon up (idle) until the
-    node's next `quit` (`echo quit | CUDA_MPS_PIPE_DIRECTORY=<folder>/pipe
-    nvidia-cuda-mps-control`)."""
+    """`member` leaves the node's daemon of `sweep`; the last living member tells it to quit and
+    removes its folder. Engines that all die without leaving keep it up (idle) until an engine
+    of a later sweep joins on this node, or `echo quit | CUDA_MPS_PIPE_DIRECTORY=<folder>/pipe
+    nvidia-cuda-mps-control` ends it."""
     folder = node_folder(sweep)
     if not (folder / "members").exists():
         return
     with _locked(folder):
-        listed = (folder / "members").read_text().split()
-        if member in listed:
-            listed.remove(member)
-        (folder / "members").write_text("".join(m + "\n" for m in listed))
-        if listed:
-            return
-        program = control_program()
-        if program is not None:
-            _quit(program, {**environ, PIPE_VARIABLE: str(folder / "pipe")})
-        for part in ("pipe", "log", "members"):
-            path = folder / part
-            if path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
+        members = [m for m in _living_members(folder) if m != member]
+        _write_members(folder, members)
+        if not members:
+            _retire(folder, control_program(), environ)
+
+
+def _member_alive(member: str) -> bool:
+    """Whether the process of a member "<host>-<pid>" of this node still runs."""
+    try:
+        os.kill(int(member.rsplit("-", 1)[-1]), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, ValueError):
+        return True  # another user's process, or a name not of this form: kept
+    return True
+
+
+def _living_members(folder: Path) -> list[str]:
+    path = folder / "members"
+    listed = path.read_text().split() if path.exists() else []
+    return [m for m in listed if _member_alive(m)]
+
+
+def _write_members(folder: Path, members: list[str]) -> None:
+    (folder / "members").write_text("".join(m + "\n" for m in members))
+
+
+def _retire(folder: Path, program: str | None, environ: Mapping[str, str]) -> None:
+    """Tell a node daemon to quit and remove what it kept (the caller holds its lock)."""
+    if program is not None and (folder / "pipe" / "control").exists():
+        _quit(program, {**environ, PIPE_VARIABLE: str(folder / "pipe")})
+    for part in ("pipe", "log", "members"):
+        path = folder / part
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+
+
+def _reap_abandoned(sweep: str, program: str, environ: Mapping[str, str]) -> None:
+    """Earlier sweeps' daemons on this node whose engines are all gone: told to quit (one MPS
+    server runs a GPU at a time). A folder another process holds locked is left alone."""
+    for folder in Path(tempfile.gettempdir()).glob("vabench-mps-ray-*"):
+        if folder == node_folder(sweep) or not folder.is_dir():
+            continue
+        with open(folder / "lock", "a") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                continue
+            try:
+                if not _living_members(folder):
+                    log.info("CUDA MPS: an earlier sweep's daemon left on this node (%s)", folder)
+                    _retire(folder, program, environ)
+            finally:
+                fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 @contextlib.contextmanager

@@ -81,9 +81,13 @@ class EngineActor:
         self.config = load_document(document, self.run_dir)
         self._mps_member = f"{socket.gethostname()}-{os.getpid()}"
         self._mps_sweep = self._join_mps()  # before this process makes its CUDA context
-        # in creation, so that a node that cannot run them is not given another engine
-        check(choices.physics.kind)
-        check_renderer(choices.renderer)
+        try:  # in creation, so that a node that cannot run them is not given another engine
+            check(choices.physics.kind)
+            check_renderer(choices.renderer)
+        except BaseException:
+            if self._mps_sweep:
+                mps.leave_node_daemon(self._mps_sweep, self._mps_member)
+            raise
         self.choices = choices
         self.limiter = limiter
         self.shared = list(shared or [])
@@ -226,9 +230,9 @@ class EngineActor:
         if self._stack is not None:  # (stopping the GPU sampler waits for its last reading)
             stack, self._stack = self._stack, None
             await stack.aclose()
-        if self._mps_sweep:
+        if self._mps_sweep:  # (a `quit` may take a moment: off the event loop)
             sweep, self._mps_sweep = self._mps_sweep, ""
-            mps.leave_node_daemon(sweep, self._mps_member)
+            await asyncio.to_thread(mps.leave_node_daemon, sweep, self._mps_member)
         return figures
 
     def _join_mps(self) -> str:
