@@ -321,6 +321,18 @@ def _previous_dc(
 
 
 @wp.func
+def _writer(nacc: int, word: int, first: int):
+    """A writer with nothing of its block's written yet (`Writer`)."""
+    w = Writer()
+    w.acc = wp.uint64(0)
+    w.nacc = nacc
+    w.word = word
+    w.first = first
+    w.count = 0
+    return w
+
+
+@wp.func
 def _put(w: Writer, code: int, length: int, words: wp.array(dtype=wp.uint32), emit: int):
     """`length` bits of `code` after the writer's; a full word is written (emit only)."""
     out = Writer()
@@ -430,13 +442,7 @@ def _count_bits(
 ):
     i, k = wp.tid()
     coef, diff, comp = _block_start(packed, i, k, lay, quant, dct)
-    w = Writer()
-    w.acc = wp.uint64(0)
-    w.nacc = 0
-    w.word = 0
-    w.first = 0
-    w.count = 0
-    w = _code_block(coef, diff, comp, quant, codes, lengths, zigzag, w, words, 0)
+    w = _code_block(coef, diff, comp, quant, codes, lengths, zigzag, _writer(0, 0, 0), words, 0)
     bits[i * lay.nblocks + k] = wp.int64(w.count)
 
 
@@ -468,12 +474,7 @@ def _pack(
         return  # the host encodes this image
     start = int(ends[i * lay.nblocks + k] - bits[i * lay.nblocks + k] - base)
     coef, diff, comp = _block_start(packed, i, k, lay, quant, dct)
-    w = Writer()
-    w.acc = wp.uint64(0)
-    w.count = 0
-    w.nacc = start % 32
-    w.word = i * lay.cap_words + start // 32
-    w.first = 1
+    w = _writer(start % 32, i * lay.cap_words + start // 32, 1)
     w = _code_block(coef, diff, comp, quant, codes, lengths, zigzag, w, words, 1)
     if w.nacc > 0:  # the last word, shared with the next block
         wp.atomic_or(

@@ -201,26 +201,24 @@ def _reap_abandoned(sweep: str, program: str, environ: Mapping[str, str]) -> Non
     for folder in Path(tempfile.gettempdir()).glob("vabench-mps-ray-*"):
         if folder == node_folder(sweep) or not folder.is_dir():
             continue
-        with open(folder / "lock", "a") as handle:
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                continue
-            try:
-                if not _living_members(folder):
-                    log.info("CUDA MPS: an earlier sweep's daemon left on this node (%s)", folder)
-                    _retire(folder, program, environ)
-            finally:
-                fcntl.flock(handle, fcntl.LOCK_UN)
+        with _locked(folder, wait=False) as held:
+            if held and not _living_members(folder):
+                log.info("CUDA MPS: an earlier sweep's daemon left on this node (%s)", folder)
+                _retire(folder, program, environ)
 
 
 @contextlib.contextmanager
-def _locked(folder: Path) -> Iterator[None]:
-    """An exclusive lock of `folder` between the processes of this node."""
+def _locked(folder: Path, wait: bool = True) -> Iterator[bool]:
+    """Within: True while this process holds the exclusive lock of `folder` (between the
+    processes of this node); False at once where another holds it and not `wait`."""
     with open(folder / "lock", "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
         try:
-            yield
+            fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
