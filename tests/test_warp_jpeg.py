@@ -143,6 +143,35 @@ def test_each_image_is_its_own():
     assert first_two == together[:2]
 
 
+def test_encoders_in_threads_agree_with_one():
+    """Four encoders in four threads, each with its own stream on a GPU (the renderer's passes,
+    benchmarks/jpeg_contention.py), give the bytes one encoder gives alone. On this CPU the
+    threads check the encoder's own state; on a GPU the same run found Warp's scan racing the
+    streams (test_warp_scan.py)."""
+    import threading
+
+    frames = _packed(_scenes(3, 40, 56, seed=4))
+    settings = ImageSettings(56, 40, 95, "420")
+    alone = warp_jpeg.WarpJpeg(3, 56, 40, "cpu").encode(frames, 3, settings)
+    lock, results, errors = threading.Lock(), [], []
+
+    def work():
+        try:
+            encoder = warp_jpeg.WarpJpeg(3, 56, 40, "cpu")
+            for _ in range(3):
+                results.append(encoder.encode(frames, 3, settings, lambda: lock))
+        except Exception as err:  # reported below, not lost in the thread
+            errors.append(err)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors
+    assert len(results) == 12 and all(out == alone for out in results)
+
+
 def test_ff_bytes_are_stuffed():
     frames = _scenes(2, 64, 80, seed=1)
     settings = ImageSettings(80, 64, 100, "444")

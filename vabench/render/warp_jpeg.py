@@ -11,9 +11,8 @@ whatever n.
 What it writes: baseline sequential JPEG (ITU T.81, 8-bit, Huffman) with a JFIF header; the
 IJG's quality scaling of the standard quantisation tables and the standard Huffman tables of
 T.81 Annex K, which is what libjpeg writes without `optimize`; chroma subsampling 4:2:0,
-4:2:2 or 4:4:4 (`ImageSettings`). The coefficients are libjpeg's up to rounding: its colour
-conversion and DCT are in integers, these in floats (the decoded pixels are compared with
-libjpeg-turbo's in tests/test_warp_jpeg.py).
+4:2:2 or 4:4:4 (`ImageSettings`). The coefficients are libjpeg's up to rounding (the decoded
+pixels are compared with libjpeg-turbo's in tests/test_warp_jpeg.py).
 
 How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGGBB pixels:
 
@@ -21,7 +20,8 @@ How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGG
    colour, subsamples the chroma, transforms, quantises and sums the lengths of its Huffman
    codes. A block's DC is coded as the difference from the block before it in scan order;
    that DC is recomputed from the other block's pixels, so no launch waits for another's.
-2. An inclusive scan of those lengths: each block's bit offset in its image's entropy data.
+2. An inclusive scan of those lengths: each block's bit offset in its image's entropy data
+   (`warp_scan`: Warp's own scan frees its scratch memory unordered with our streams).
 3. `_pack`: the same blocks again, each writing its codes at its offset into its image's row
    of 32-bit words (most significant bit first): an atomic OR for the two words it may share
    with its neighbours, plain stores between.
@@ -61,6 +61,7 @@ import numpy as np
 import warp as wp
 
 from vabench.render.images import ImageSettings, encode_jpeg
+from vabench.render.warp_scan import InclusiveScan
 from vabench.sim_mjx.warp import streams
 
 log = logging.getLogger(__name__)
@@ -606,6 +607,7 @@ class _Tables:
     quant: wp.array
     codes: wp.array
     lengths: wp.array
+    zigzag: wp.array
     header: bytes
 
 
@@ -646,7 +648,8 @@ class WarpJpeg:
         self._tables: dict[tuple[int, str], _Tables] = {}
         self._buffers: dict[str, wp.array] = {}
         self._dct = imat88(*_dct_matrix().flatten().tolist())
-        self._zigzag = wp.array(ZIGZAG, dtype=int, device=self.device)
+        self._zigzag: wp.array | None = None
+        self._scans: dict[str, InclusiveScan] = {}
         self._host_out: wp.array | None = None
         self.seconds = seconds if seconds is not None else {}
         self.host_encoded = 0
@@ -681,8 +684,6 @@ class WarpJpeg:
                 f"{self.n_worlds} x {self.width}x{self.height}"
             )
         t0 = time.perf_counter()
-        t = self._prepare(settings)
-        lay, buf = t.lay, self._buffers
         with wp.ScopedDevice(self.device):
             writer = wp.get_stream(self.device) if self.device.is_cuda else None
         with wp.ScopedDevice(self.device), self._on_stream():
@@ -691,19 +692,22 @@ class WarpJpeg:
                     self.stream.wait_event(after)
                 elif writer is not None and writer is not self.stream:
                     self.stream.wait_stream(writer)
+            # tables and buffers are allocated and filled on this stream: ordered before use
+            t = self._prepare(settings)
+            lay, buf = t.lay, self._buffers
             blocks, chunks = n * lay.nblocks, n * lay.chunks
-            tables = [lay, t.quant, self._dct, t.codes, t.lengths, self._zigzag]
+            tables = [lay, t.quant, self._dct, t.codes, t.lengths, t.zigzag]
             words, ends, ff, ff_ends = buf["words"], buf["ends"], buf["ff"], buf["ff_ends"]
             wp.launch(
                 _count_bits, dim=(n, lay.nblocks), inputs=[packed, *tables, words, buf["bits"]]
             )
-            wp.utils.array_scan(buf["bits"][:blocks], ends[:blocks], inclusive=True)
+            self._scans["bits"](buf["bits"], ends, blocks)
             words[: n * lay.cap_words].zero_()
             wp.launch(
                 _pack, dim=(n, lay.nblocks), inputs=[packed, *tables, buf["bits"], ends, words]
             )
             wp.launch(_count_ff, dim=(n, lay.chunks), inputs=[words, ends, lay, ff])
-            wp.utils.array_scan(ff[:chunks], ff_ends[:chunks], inclusive=True)
+            self._scans["ff"](ff, ff_ends, chunks)
             wp.launch(_sizes, dim=1, inputs=[ends, ff_ends, lay, n, buf["sizes"]])
             wp.launch(
                 _place,
@@ -729,10 +733,10 @@ class WarpJpeg:
         lengths, starts = host[:n].copy(), host[n : 2 * n].copy()
         total = int(lengths[lengths > 0].sum())
         t2 = time.perf_counter()
-        data = self._copy_out(total, enter) if total else b""
+        data = self._copy_out(total, enter) if total else memoryview(b"")
         header = pending.tables.header
-        out = [
-            header + data[starts[i] : starts[i] + lengths[i]] + b"\xff\xd9"
+        out = [  # one copy of each image's bytes, out of the pinned buffer
+            b"".join((header, data[starts[i] : starts[i] + lengths[i]], b"\xff\xd9"))
             if lengths[i] >= 0
             else self._on_host(pending.packed, i, pending.settings, enter)
             for i in range(n)
@@ -747,7 +751,10 @@ class WarpJpeg:
         return out
 
     def _prepare(self, settings: ImageSettings) -> _Tables:
-        """The tables and buffers of `settings` (made once each)."""
+        """The tables and buffers of `settings` (made once each, on the current stream: the
+        encoder's, under the device's lock)."""
+        if self._zigzag is None:
+            self._zigzag = wp.array(ZIGZAG, dtype=int, device=self.device)
         key = (settings.quality, settings.subsampling)
         if key not in self._tables:
             lay = layout(self.width, self.height, settings.subsampling)
@@ -767,6 +774,7 @@ class WarpJpeg:
                 wp.array(quant, dtype=int, device=d),
                 wp.array(codes, dtype=int, device=d),
                 wp.array(lengths, dtype=int, device=d),
+                self._zigzag,
                 jpeg_header(self.width, self.height, settings),
             )
             self._size_buffers(lay)
@@ -778,14 +786,16 @@ class WarpJpeg:
             "bits": (n * lay.nblocks, wp.int64),
             "ends": (n * lay.nblocks, wp.int64),
             "words": (n * lay.cap_words, wp.uint32),
-            "ff": (n * lay.chunks, int),
-            "ff_ends": (n * lay.chunks, int),
+            "ff": (n * lay.chunks, wp.int32),
+            "ff_ends": (n * lay.chunks, wp.int32),
             "out": (n * lay.cap_out, wp.uint8),
             "sizes": (2 * n, int),
         }
         for name, (size, dtype) in want.items():
             if name not in self._buffers or self._buffers[name].shape[0] < size:
                 self._buffers[name] = wp.zeros(size, dtype=dtype, device=d)
+                if name in ("bits", "ff"):
+                    self._scans[name] = InclusiveScan(dtype, size, d)
         if "host_sizes" not in self._buffers:
             self._buffers["host_sizes"] = wp.zeros(2 * n, dtype=int, device="cpu", pinned=d.is_cuda)
 
@@ -794,9 +804,10 @@ class WarpJpeg:
             return contextlib.nullcontext()
         return wp.ScopedStream(self.stream, sync_enter=False)
 
-    def _copy_out(self, total: int, enter: Callable[[], Any]) -> bytes:
-        """The first `total` bytes of the output, through a pinned buffer on a GPU (allocated,
-        as every device-side allocation, inside `enter`: the device's lock)."""
+    def _copy_out(self, total: int, enter: Callable[[], Any]) -> memoryview:
+        """The first `total` bytes of the output, a view of a pinned buffer on a GPU (allocated,
+        as every device-side allocation, inside `enter`: the device's lock), valid until this
+        encoder's next call."""
         with enter(), wp.ScopedDevice(self.device), self._on_stream():
             if self._host_out is None or self._host_out.shape[0] < total:
                 kept = self._host_out.shape[0] if self._host_out is not None else 0
@@ -806,7 +817,7 @@ class WarpJpeg:
             wp.copy(self._host_out, self._buffers["out"], count=total)
             copied = streams.record(self.stream)
         streams.wait(copied)
-        return self._host_out.numpy()[:total].tobytes()
+        return memoryview(self._host_out.numpy()[:total])
 
     def _on_host(
         self, packed: wp.array, i: int, settings: ImageSettings, enter: Callable[[], Any]
