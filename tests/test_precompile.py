@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 
 import pytest
 
@@ -245,3 +246,128 @@ def test_an_engine_compiles_every_family_of_its_sweep_at_once_on_a_gpu(monkeypat
     monkeypatch.setattr(runner, "warp_device", lambda: "cpu")  # nothing to compile ahead
     asyncio.run(runner.precompile_families(engine, choices, ["c"]))
     assert len(asked) == 1
+
+
+def _hold_machine_lock(markers):
+    """The machine's compile lock taken as another process would (its own open file)."""
+    import fcntl
+
+    markers.mkdir(parents=True, exist_ok=True)
+    handle = open(markers / ".lock", "w")  # noqa: SIM115 (closed by the caller)
+    fcntl.flock(handle, fcntl.LOCK_EX)
+    return handle
+
+
+def test_a_family_is_ready_as_its_own_child_ends(markers, monkeypatch):
+    """Each family's marker is written when its child ends, not after the last: a sweep's
+    fast families start while the basket still compiles (101 s on a fresh H100, 2026-11-28,
+    the first episode waiting for all of it)."""
+    slow_may_end = threading.Event()
+
+    def child(task, size, device, threads, claims=None, stats=None):
+        if task == "put_everything_in_basket":
+            assert slow_may_end.wait(30)
+        return None
+
+    monkeypatch.setattr(precompile, "_child", child)
+    families = ["put_everything_in_basket", "lift_pot"]
+    compiling = precompile.Compiling.start(families, 64, 48, "cpu", images=False)
+    key = precompile.code_key("sm0", 0, 0)
+    assert compiling.key == key
+    deadline = time.monotonic() + 30
+    while not compiling.ready("lift_pot"):
+        assert time.monotonic() < deadline, "lift_pot never became ready"
+        time.sleep(0.05)
+    assert (markers / f"lift_pot.{key}").exists()
+    assert not compiling.ready("put_everything_in_basket")  # still compiling
+    assert precompile.compiling(markers)
+    slow_may_end.set()
+    compiling.join(30)
+    assert compiling.ready("put_everything_in_basket") and not precompile.compiling(markers)
+    assert compiling.failed == []
+
+
+def test_a_failed_family_is_ready_once_nothing_compiles(markers, monkeypatch):
+    """A family whose child failed has no marker: its episodes go once the compile is over
+    (the sweep compiles it on first use, as before)."""
+    monkeypatch.setattr(precompile, "_child", lambda task, *a, **k: "broken")
+    compiling = precompile.Compiling.start(["lift_pot"], 64, 48, "cpu", images=False)
+    compiling.join(30)
+    assert compiling.failed == ["lift_pot"]
+    assert not (markers / f"lift_pot.{compiling.key}").exists()
+    assert compiling.ready("lift_pot")
+
+
+def test_a_compile_of_another_process_is_waited_for_family_by_family(markers, monkeypatch):
+    """The processes executor's workers: the parent compiles, holding the machine's lock; a
+    worker's `Compiling.start` returns at once (it does not wait for the whole compile) and
+    each family waits for its marker."""
+    import asyncio
+
+    spawned = []
+    monkeypatch.setattr(precompile, "_child", lambda task, *a, **k: spawned.append(task))
+    handle = _hold_machine_lock(markers)
+    try:
+        t0 = time.monotonic()
+        compiling = precompile.Compiling.start(["lift_pot", "place_shoe"], 64, 48, "cpu", False)
+        assert time.monotonic() - t0 < 10  # not blocked behind the other's compile
+
+        async def scenario():
+            lift = asyncio.create_task(compiling.wait("lift_pot"))
+            shoe = asyncio.create_task(compiling.wait("place_shoe"))
+            await asyncio.sleep(2 * precompile.POLL_S)
+            assert not lift.done() and not shoe.done()
+            (markers / f"lift_pot.{compiling.key}").touch()  # the other's child ended
+            await asyncio.wait_for(lift, 10)
+            assert not shoe.done()
+            (markers / f"place_shoe.{compiling.key}").touch()
+            await asyncio.wait_for(shoe, 10)
+
+        asyncio.run(scenario())
+    finally:
+        handle.close()  # the other process's compile ends
+    compiling.join(30)
+    assert spawned == []  # both marked by the other: nothing compiled twice
+
+
+def test_first_makes_every_family_wait_for_the_whole_compile(markers, monkeypatch):
+    monkeypatch.setenv(precompile.ENV, "first")
+    key = precompile.code_key("sm0", 0, 0)
+    markers.mkdir(parents=True)
+    (markers / f"lift_pot.{key}").touch()
+    handle = _hold_machine_lock(markers)
+    try:
+        assert not precompile.family_ready("lift_pot", key, markers)
+    finally:
+        handle.close()
+    assert precompile.family_ready("lift_pot", key, markers)
+    monkeypatch.delenv(precompile.ENV)
+    handle = _hold_machine_lock(markers)
+    try:
+        assert precompile.family_ready("lift_pot", key, markers)  # marked: ready at once
+    finally:
+        handle.close()
+
+
+def test_a_sweep_starts_compiling_in_the_background_on_a_gpu(monkeypatch):
+    """`runner.start_compiling`: Warp on a GPU starts `Compiling` and returns it; elsewhere
+    nothing compiles and no family waits."""
+    import asyncio
+    from types import SimpleNamespace
+
+    from vabench.sweep import runner
+
+    started: list[tuple] = []
+    monkeypatch.setattr(
+        runner.Compiling, "start", classmethod(lambda cls, *a: started.append(a) or "handle")
+    )
+    engine = SimpleNamespace(
+        physics=SimpleNamespace(kind=SimpleNamespace(is_warp=True)),
+        image=SimpleNamespace(width=640, height=480),
+    )
+    choices = SimpleNamespace(renderer=SimpleNamespace(is_warp=True))
+    monkeypatch.setattr(runner, "warp_device", lambda: "cuda:0")
+    assert asyncio.run(runner.start_compiling(engine, choices, ["b", "a", "b"])) == "handle"
+    assert started == [(["a", "b"], 640, 480, "cuda:0", True)]
+    monkeypatch.setattr(runner, "warp_device", lambda: "cpu")
+    assert asyncio.run(runner.start_compiling(engine, choices, ["c"])) is None

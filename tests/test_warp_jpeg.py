@@ -172,6 +172,18 @@ def test_encoders_in_threads_agree_with_one():
     assert len(results) == 12 and all(out == alone for out in results)
 
 
+def test_one_encoder_across_subsamplings_is_a_fresh_one_each_time():
+    """Changing subsampling is the one path that grows an encoder's buffers and scans: its
+    bytes stay a fresh encoder's."""
+    frames = _packed(_scenes(3, 40, 56, seed=4))
+    encoder = warp_jpeg.WarpJpeg(3, 56, 40, "cpu")
+    for subsampling in ("420", "444", "422", "420", "444"):
+        for n in (3, 1):
+            settings = ImageSettings(56, 40, 90, subsampling)
+            fresh = warp_jpeg.WarpJpeg(3, 56, 40, "cpu").encode(frames, n, settings)
+            assert encoder.encode(frames, n, settings) == fresh, (subsampling, n)
+
+
 def test_ff_bytes_are_stuffed():
     frames = _scenes(2, 64, 80, seed=1)
     settings = ImageSettings(80, 64, 100, "444")

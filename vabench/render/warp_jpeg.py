@@ -791,6 +791,12 @@ class WarpJpeg:
             "out": (n * lay.cap_out, wp.uint8),
             "sizes": (2 * n, int),
         }
+        if (
+            self._buffers
+            and self.stream is not None
+            and any(self._buffers[name].shape[0] < size for name, (size, _) in want.items())
+        ):  # a freed array goes back to the pool unordered with this stream: nothing may use it
+            self.stream.synchronize()
         for name, (size, dtype) in want.items():
             if name not in self._buffers or self._buffers[name].shape[0] < size:
                 self._buffers[name] = wp.zeros(size, dtype=dtype, device=d)

@@ -94,6 +94,15 @@ class InclusiveScan:
                 f"InclusiveScan: {m} values for a capacity of {self.capacity} "
                 f"({values.shape[0]} in, {out.shape[0]} out)"
             )
+        same, apart = (
+            out.ptr == values.ptr,
+            (
+                out.ptr + m * out.strides[0] <= values.ptr
+                or values.ptr + m * values.strides[0] <= out.ptr
+            ),
+        )
+        if not (same or apart):
+            raise ValueError("InclusiveScan: `out` overlaps `values` without being it")
         if values.dtype != self.dtype or out.dtype != self.dtype:
             raise ValueError(
                 f"InclusiveScan of {self.dtype}: arrays of {values.dtype} and {out.dtype}"

@@ -36,19 +36,28 @@ the processes of one machine (the processes executor's workers) from compiling t
 twice. A child that fails only costs the time: the sweep then compiles that family itself, as
 before (its log names the family and the error); one child's failure does not stop the others.
 
-`VABENCH_WARP_PRECOMPILE=0` turns it off. The log's last line says, for all the children, how
-many modules they compiled, waited for and compiled only after the first step, and the slowest
-child's seconds in each part (modules ahead, its batch, its expert, its image): where a fresh
-machine's minutes go. The first fresh H100 run of this scheme (2026-11-27, whole expert
-episodes then): 22 families in 293 s, 16 cores busy compiling for ~125 s, then the basket's
-child alone on one core for ~130 s. The second (three actions): 232 s, and its report said
-why: 232 of 247 compiles came after the first step (92 distinct modules), because the dry
-step raised at MuJoCo Warp's first CUDA occupancy query; `warp_ahead.recording` now answers
-it. With that fixed (H100, 2026-11-27): 158 s and 170 s, 92 modules compiled once each, none
-after the first step; but in two waves, 16 children (one a core) of ~85 s each, then the other
-6 (up to 41 s), with 1.7 cores busy and the GPU idle in the second wave's tail: most of a
-child's time is waiting for modules other children hold, and every child waits for the
-largest (~60-80 s of NVRTC). All the families' children now start at once.
+The sweep does not wait for the whole compile (`Compiling`): it runs in a thread while the
+engine processes start, each family's marker is written as soon as its own child ends, and a
+family's episodes start once its marker is there (or once nothing is compiling on the machine:
+then the sweep compiles what is missing itself, as before). On a fresh H100 (2026-11-28) the
+compile took 101 s, the basket's child 97 s of it while the base families' ended earlier, and
+the first episode waited for all of it (169 s), the GPU idle meanwhile.
+
+`VABENCH_WARP_PRECOMPILE=0` turns it off; `=first` makes every family wait for the whole
+compile, as before (the A/B of the overlap on a fresh machine).
+
+The log's last line says, for all the children, how many modules they compiled, waited for and
+compiled only after the first step, and the slowest child's seconds in each part (modules ahead,
+its batch, its expert, its image): where a fresh machine's minutes go. The first fresh H100 run
+of this scheme (2026-11-27, whole expert episodes then): 22 families in 293 s, 16 cores busy
+compiling for ~125 s, then the basket's child alone on one core for ~130 s. The second (three
+actions): 232 s, and its report said why: 232 of 247 compiles came after the first step (92
+distinct modules), because the dry step raised at MuJoCo Warp's first CUDA occupancy query;
+`warp_ahead.recording` now answers it. With that fixed (H100, 2026-11-27): 158 s and 170 s, 92
+modules compiled once each, none after the first step; but in two waves, 16 children (one a
+core) of ~85 s each, then the other 6 (up to 41 s), with 1.7 cores busy and the GPU idle in the
+second wave's tail: most of a child's time is waiting for modules other children hold, and every
+child waits for the largest (~60-80 s of NVRTC). All the families' children now start at once.
 """
 
 from __future__ import annotations
@@ -64,8 +73,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -78,6 +88,8 @@ STATS_ENV = "VABENCH_PRECOMPILE_STATS"
 """A folder: each child writes <family>.json there (the modules it compiled, the seconds spent
 compiling them, summed over its threads, and its wall seconds)."""
 CHILD_TIMEOUT_S = 900
+POLL_S = 0.5
+"""How often a family waiting for its kernels looks for its marker."""
 REPORT_KEYS = {"task", "compiled", "compile_s", "s"}
 """What every child's report has (`main`); the summary reads nothing else without a default."""
 CHILDREN_PER_CORE = 2
@@ -120,14 +132,50 @@ def missing(tasks: Sequence[str], key: str, markers: Path) -> list[str]:
 
 
 @contextlib.contextmanager
-def _machine_lock(markers: Path) -> Iterator[None]:
+def _machine_lock(markers: Path, on_wait: Callable[[], None] | None = None) -> Iterator[None]:
+    """The machine's compile lock (`on_wait()` first where another process holds it)."""
     markers.mkdir(parents=True, exist_ok=True)
     with open(markers / ".lock", "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if on_wait is not None:
+                on_wait()
+            fcntl.flock(handle, fcntl.LOCK_EX)
         try:
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def compiling(markers: Path) -> bool:
+    """Whether a compile holds the machine's lock now (in any process, this one included)."""
+    markers.mkdir(parents=True, exist_ok=True)
+    with open(markers / ".lock", "w") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        return False
+
+
+def family_ready(task: str, key: str, markers: Path) -> bool:
+    """Whether `task`'s kernels may be used now: its marker for `key` is there (unless the
+    environment says `first`), or no compile is running on the machine (what is missing, the
+    sweep compiles itself on first use)."""
+    if os.environ.get(ENV) != "first" and (markers / f"{task}.{key}").exists():
+        return True
+    return not compiling(markers)
+
+
+def family_key(width: int, height: int, device: str, images: bool) -> str:
+    """The markers' key of families compiled for `device` at this image size (`images`: with
+    the Warp renderer's kernels)."""
+    import warp as wp
+
+    arch = f"sm{wp.get_device(device).arch}"
+    return code_key(arch, width if images else 0, height if images else 0)
 
 
 def ensure_compiled(
@@ -137,18 +185,37 @@ def ensure_compiled(
     device: str,
     images: bool = True,
     processes: int | None = None,
+    started: threading.Event | None = None,
 ) -> list[str]:
     """Compile the Warp kernels of `tasks` not yet compiled here (blocking; see the module
-    docstring); `images`: the Warp renderer's too. Returns the families that failed to compile
-    (the sweep compiles those itself)."""
-    if os.environ.get(ENV, "1") == "0":
-        return []
-    import warp as wp
+    docstring); `images`: the Warp renderer's too. Each family is marked as its child ends.
+    Returns the families that failed to compile (the sweep compiles those itself). `started`
+    is set once this call holds the machine's lock, or waits for another process's, or has
+    nothing to do: from then on `family_ready` answers for its families."""
+    try:
+        if os.environ.get(ENV, "1") == "0":
+            return []
+        return _compile(tasks, width, height, device, images, processes, started)
+    finally:
+        if started is not None:
+            started.set()
 
-    arch = f"sm{wp.get_device(device).arch}"
-    key = code_key(arch, width if images else 0, height if images else 0)
+
+def _compile(
+    tasks: Sequence[str],
+    width: int,
+    height: int,
+    device: str,
+    images: bool,
+    processes: int | None,
+    announce: threading.Event | None,
+) -> list[str]:
+    key = family_key(width, height, device, images)
     markers = marker_dir()
-    with _machine_lock(markers):
+    on_wait = announce.set if announce is not None else None
+    with _machine_lock(markers, on_wait):
+        if announce is not None:
+            announce.set()
         todo = missing(tasks, key, markers)
         if not todo:
             return []
@@ -167,17 +234,20 @@ def ensure_compiled(
         claims, stats = shared / "claims", Path(os.environ.get(STATS_ENV) or shared / "stats")
         claims.mkdir()
         stats.mkdir(parents=True, exist_ok=True)
+
+        def one(task: str) -> str | None:
+            err = _child(task, size, device, threads, claims, stats)
+            if not err:  # its episodes may start now (`family_ready`)
+                (markers / f"{task}.{key}").touch()
+            return err
+
         try:
             with ThreadPoolExecutor(workers) as pool:
-                done = pool.map(lambda t: _child(t, size, device, threads, claims, stats), todo)
-                errors = dict(zip(todo, done, strict=True))
+                errors = dict(zip(todo, pool.map(one, todo), strict=True))
             summary = _summary(todo, stats)
         finally:
             shutil.rmtree(shared, ignore_errors=True)
         failed = [t for t, err in errors.items() if err]
-        for task in todo:
-            if task not in failed:
-                (markers / f"{task}.{key}").touch()
         for task in failed:
             log.warning(
                 "precompile of %s failed (compiled by the sweep instead): %s", task, errors[task]
@@ -190,6 +260,59 @@ def ensure_compiled(
             summary,
         )
         return failed
+
+
+class Compiling:
+    """`ensure_compiled` of a sweep's families in a thread of its own (`start`), and the wait of
+    each family for its own kernels (`ready`): a family's episodes start while others compile."""
+
+    def __init__(self, tasks: Sequence[str], width: int, height: int, device: str, images: bool):
+        self.key = family_key(width, height, device, images)
+        self.markers = marker_dir()
+        self.failed: list[str] = []
+        self._started = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run,
+            args=(list(tasks), width, height, device, images),
+            name="precompile",
+            daemon=True,
+        )
+
+    @classmethod
+    def start(
+        cls, tasks: Sequence[str], width: int, height: int, device: str, images: bool
+    ) -> Compiling:
+        """Started, and holding the machine's lock or waiting for another process's (blocks
+        until then: seconds at most)."""
+        self = cls(tasks, width, height, device, images)
+        self._thread.start()
+        self._started.wait()
+        return self
+
+    def _run(self, tasks: list[str], width: int, height: int, device: str, images: bool) -> None:
+        try:
+            self.failed = ensure_compiled(
+                tasks, width, height, device, images, started=self._started
+            )
+        except Exception as err:  # the sweep compiles its families itself, as without this
+            log.warning("precompile failed (the sweep compiles its families itself): %s", err)
+
+    def ready(self, task: str) -> bool:
+        return family_ready(task, self.key, self.markers)
+
+    async def wait(self, task: str) -> None:
+        """Until `task`'s kernels are compiled (or nothing compiles them any more)."""
+        import asyncio
+
+        waited = time.monotonic()
+        if self.ready(task):
+            return
+        while not self.ready(task):
+            await asyncio.sleep(POLL_S)
+        log.info("%s: its kernels are compiled (waited %.0f s)", task, time.monotonic() - waited)
+
+    def join(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
 
 
 def children(families: int, cores: int) -> tuple[int, int]:

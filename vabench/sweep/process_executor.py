@@ -62,7 +62,7 @@ from vabench.children import (
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS, RunDir
 from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
-from vabench.sweep import kernel_profile, mps
+from vabench.sweep import kernel_profile, mps, precompile
 from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
     STATUS,
@@ -78,7 +78,6 @@ from vabench.sweep.cells import (
 from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.precompile import ensure_compiled
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import SweepStopped, critical_path_tasks
 from vabench.tasks import REGISTRY
@@ -379,15 +378,22 @@ def _gpu_sharing(stack: contextlib.ExitStack, choices: Choices) -> dict[str, str
 
 def _precompile(
     config: SweepConfig, parts: Sequence[tuple[str, Sequence[EpisodeKey]]], choices: Choices
-) -> None:
-    """Warp physics on a GPU: every family's kernels compiled once, here, before the workers
-    start (`precompile`; each worker would otherwise compile its own families one worker after
-    another, under the machine's compile lock, each compiling the modules the families share)."""
+) -> precompile.Compiling | None:
+    """Warp physics on a GPU: every family's kernels compiled once, here, in the background
+    (`precompile.Compiling`), started before the workers: each worker's families wait for
+    their own kernels (a worker compiling them would compile, one worker after another under
+    the machine's lock, the modules the families share). Returns once the compile holds the
+    machine's lock; with `VABENCH_WARP_PRECOMPILE=first`, once it has ended (the workers then
+    start after it, as before the overlap)."""
     if not choices.physics.is_warp or not warp_device().startswith("cuda"):
-        return
+        return None
     tasks = sorted({k.task for _, part in parts for k in part})
     render = config.render
-    ensure_compiled(tasks, render.width, render.height, warp_device(), choices.renderer.is_warp)
+    size = (render.width, render.height)
+    compiling = precompile.Compiling.start(tasks, *size, warp_device(), choices.renderer.is_warp)
+    if os.environ.get(precompile.ENV) == "first":
+        compiling.join()
+    return compiling
 
 
 def run_processes(
@@ -438,8 +444,10 @@ def run_processes(
     restarts = 0
     device_stop: str | None = None  # why a worker's GPU context failed, this pool
     gpu = contextlib.ExitStack()
+    compiling: precompile.Compiling | None = None
     try:
-        _precompile(config, parts, choices)  # before the daemon: this process is no client
+        # before the daemon: this process is no client (its CUDA context is made first)
+        compiling = _precompile(config, parts, choices)
         clients = _gpu_sharing(gpu, choices)
         env.update(clients)
         worker_gpus = machine.gpus
@@ -551,6 +559,8 @@ def run_processes(
                 pool.shutdown(wait=True, cancel_futures=True)
             writer.abandon()
         gpu.close()  # the MPS daemon quits once its clients, the workers, are gone
+        if compiling is not None:  # long over unless the sweep was: its children end theirs
+            compiling.join(timeout=precompile.CHILD_TIMEOUT_S if finished else 0)
     if failures:
         log.error(
             "processes: %d of %d cells failed: %s", len(failures), len(parts), ", ".join(failures)

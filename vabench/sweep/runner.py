@@ -66,7 +66,7 @@ from vabench.sweep import hostload
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
 from vabench.sweep.inflight import InFlight
-from vabench.sweep.precompile import ensure_compiled
+from vabench.sweep.precompile import Compiling, ensure_compiled
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -161,6 +161,19 @@ async def precompile_families(engine: Engine, choices: Choices, tasks: Iterable[
     await asyncio.to_thread(ensure_compiled, tasks, *size, warp_device(), images)
 
 
+async def start_compiling(
+    engine: Engine, choices: Choices, tasks: Iterable[str]
+) -> Compiling | None:
+    """Warp physics on a GPU: `precompile_families` in the background (`precompile.Compiling`),
+    each family's episodes waiting only for its own kernels; None where nothing compiles."""
+    tasks = sorted(set(tasks))
+    if not tasks or not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
+        return None
+    size = (engine.image.width, engine.image.height)
+    images = choices.renderer.is_warp
+    return await asyncio.to_thread(Compiling.start, tasks, *size, warp_device(), images)
+
+
 class LocalSweep:
     """Runs `keys` of `config` into `run_dir` on `choices` (see the module docstring)."""
 
@@ -194,6 +207,8 @@ class LocalSweep:
         self.gate: InFlight | None = None
         """The engine's, once `run` has one."""
         self.physics: Choice | None = None
+        self.compiling: Compiling | None = None
+        """This sweep's families' kernels compiling in the background (Warp on a GPU)."""
         for k in self.keys:
             self.progress.cells[(k.model, k.track, k.task)].planned += 1
         for key in self.ledger.records:
@@ -227,7 +242,8 @@ class LocalSweep:
         self.on_change(self.progress)
 
     async def _precompile(self, engine: Engine) -> None:
-        await precompile_families(engine, self.choices, {k.task for k in self._pending()})
+        tasks = {k.task for k in self._pending()}
+        self.compiling = await start_compiling(engine, self.choices, tasks)
 
     def _pending(self) -> list[Any]:
         rounds = self.config.retries.infrastructure_rounds
@@ -286,6 +302,8 @@ class LocalSweep:
         task_gate = asyncio.Semaphore(self.choices.executor.max_tasks)
 
         async def one_task(name: str, task_keys: list[Any], critical: bool) -> None:
+            if self.compiling is not None:  # its kernels, not every family's
+                await self.compiling.wait(name)
             async with task_gate:
                 if self.stopped is not None:
                     return
