@@ -796,7 +796,7 @@ class WarpJpeg:
             and self.stream is not None
             and any(self._buffers[name].shape[0] < size for name, (size, _) in want.items())
         ):  # a freed array goes back to the pool unordered with this stream: nothing may use it
-            self.stream.synchronize()
+            wp.synchronize_stream(self.stream)
         for name, (size, dtype) in want.items():
             if name not in self._buffers or self._buffers[name].shape[0] < size:
                 self._buffers[name] = wp.zeros(size, dtype=dtype, device=d)

@@ -68,7 +68,7 @@ import mujoco
 import numpy as np
 import warp as wp
 
-from vabench.render import gpu_jpeg, nvjpeg, warp_jpeg
+from vabench.render import gpu_jpeg, nvjpeg, warp_jpeg, warp_scan
 from vabench.render.images import (
     ImageSettings,
     JpegThreads,
@@ -206,7 +206,8 @@ class WarpRenderPool:
         on_gpu = self._device.is_cuda
         if self.jpeg == "kernels":
             with self._lock_device:  # compiled or loaded now, not in the first pass's lock hold
-                wp.load_module(warp_jpeg, device=self._device)
+                for module in (warp_jpeg, warp_scan):
+                    wp.load_module(module, device=self._device)
             self.info = f"warp on {self._device} ({self._device.name}; JPEG: Warp kernels a pass)"
             log.info("renderer: %s", self.info)
             return self.info
