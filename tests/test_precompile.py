@@ -224,30 +224,6 @@ def test_every_family_of_the_shipped_config_compiles_at_once_on_a_gpu_host():
     assert children(1, 1) == (1, 2)
 
 
-def test_an_engine_compiles_every_family_of_its_sweep_at_once_on_a_gpu(monkeypatch):
-    """A Ray engine compiles the whole sweep's families when it starts
-    (`runner.precompile_families`): each chunk compiling its own family when it came took 372 s
-    for 14 families on a fresh 4 x H100 host, one family after another."""
-    import asyncio
-    from types import SimpleNamespace
-
-    from vabench.sweep import runner
-
-    asked: list[tuple] = []
-    monkeypatch.setattr(runner, "ensure_compiled", lambda *a: asked.append(a) or [])
-    monkeypatch.setattr(runner, "warp_device", lambda: "cuda:0")
-    engine = SimpleNamespace(
-        physics=SimpleNamespace(kind=SimpleNamespace(is_warp=True)),
-        image=SimpleNamespace(width=640, height=480),
-    )
-    choices = SimpleNamespace(renderer=SimpleNamespace(is_warp=True))
-    asyncio.run(runner.precompile_families(engine, choices, ["b", "a", "b"]))
-    assert asked == [(["a", "b"], 640, 480, "cuda:0", True)]
-    monkeypatch.setattr(runner, "warp_device", lambda: "cpu")  # nothing to compile ahead
-    asyncio.run(runner.precompile_families(engine, choices, ["c"]))
-    assert len(asked) == 1
-
-
 def _hold_machine_lock(markers):
     """The machine's compile lock taken as another process would (its own open file)."""
     import fcntl
@@ -350,8 +326,10 @@ def test_first_makes_every_family_wait_for_the_whole_compile(markers, monkeypatc
 
 
 def test_a_sweep_starts_compiling_in_the_background_on_a_gpu(monkeypatch):
-    """`runner.start_compiling`: Warp on a GPU starts `Compiling` and returns it; elsewhere
-    nothing compiles and no family waits."""
+    """`runner.start_compiling` (the local sweep's and each Ray engine's start): Warp on a GPU
+    starts compiling every family of the sweep at once and returns the handle (each chunk
+    compiling its own family when it came took 372 s for 14 families on a fresh 4 x H100
+    host); elsewhere nothing compiles and no family waits."""
     import asyncio
     from types import SimpleNamespace
 

@@ -44,7 +44,7 @@ from vabench.sweep import gpu_busy, mps, precompile
 from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document, worker_logging
 from vabench.sweep.choices import Choices, configure_jax
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.runner import Engine, LocalSweep, open_engine, precompile_families
+from vabench.sweep.runner import Engine, LocalSweep, open_engine, start_compiling
 
 log = logging.getLogger(__name__)
 
@@ -96,14 +96,17 @@ class EngineActor:
         self._stack: contextlib.AsyncExitStack | None = None
         self._sweeps: dict[str, LocalSweep] = {}
         self._gpus: gpu_busy.GpuBusy | None = None
+        self._compiling: precompile.Compiling | None = None
+        """The sweep's families compiling in the background (`start`)."""
         self._gpu_start: gpu_busy.Totals | None = None
 
     async def start(self, tasks: list[str] | None = None) -> dict[str, Any]:
-        """Open the engine and, with Warp physics on a GPU, compile the Warp kernels of `tasks`
-        (the sweep's families) side by side; returns where and how it runs, for the driver's
-        log. Compiling here, before any chunk: each chunk compiled its own family when it came,
-        one after another (a fresh 4 x H100 host took 372 s for 14 families). A failure to
-        compile ahead is logged; each chunk then compiles its own."""
+        """Open the engine and, with Warp physics on a GPU, start compiling the Warp kernels of
+        `tasks` (the sweep's families) side by side in the background (`runner.start_compiling`:
+        a chunk's family waits for its own kernels, not for every family's); returns where and
+        how it runs, for the driver's log. Compiling here, before any chunk: each chunk compiled
+        its own family when it came, one after another (a fresh 4 x H100 host took 372 s for 14
+        families). A failure to compile ahead is logged; each chunk then compiles its own."""
         cfg = self.config
         configure_jax(self.choices.physics)
         import jax
@@ -131,7 +134,7 @@ class EngineActor:
             raise
         self._stack = stack
         try:
-            await precompile_families(self.engine, self.choices, tasks or [])
+            self._compiling = await start_compiling(self.engine, self.choices, tasks or [])
         except Exception as err:  # each chunk compiles its own families anyway
             log.warning("compiling the sweep's Warp kernels ahead failed (%r); chunks will", err)
         return {

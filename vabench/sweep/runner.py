@@ -66,7 +66,7 @@ from vabench.sweep import hostload
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
 from vabench.sweep.inflight import InFlight
-from vabench.sweep.precompile import Compiling, ensure_compiled
+from vabench.sweep.precompile import Compiling
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -149,23 +149,13 @@ async def open_engine(
         yield Engine(choices.physics, llm, summaries, renderer, render.image_settings(), gate)
 
 
-async def precompile_families(engine: Engine, choices: Choices, tasks: Iterable[str]) -> None:
-    """Warp physics on a GPU: the kernels of every family of `tasks` compiled side by side
-    before the first episode (see `precompile`; nothing to do once they are; engines of one
-    machine wait for each other's compiling through its lock)."""
-    tasks = sorted(set(tasks))
-    if not tasks or not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
-        return
-    images = choices.renderer.is_warp
-    size = (engine.image.width, engine.image.height)
-    await asyncio.to_thread(ensure_compiled, tasks, *size, warp_device(), images)
-
-
 async def start_compiling(
     engine: Engine, choices: Choices, tasks: Iterable[str]
 ) -> Compiling | None:
-    """Warp physics on a GPU: `precompile_families` in the background (`precompile.Compiling`),
-    each family's episodes waiting only for its own kernels; None where nothing compiles."""
+    """Warp physics on a GPU: the kernels of every family of `tasks` compiled side by side in
+    the background (`precompile.Compiling`; nothing to do once they are; engines of one machine
+    wait for each other's compiling through its lock), each family's episodes waiting only for
+    its own kernels; None where nothing compiles."""
     tasks = sorted(set(tasks))
     if not tasks or not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
         return None
