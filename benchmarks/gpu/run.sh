@@ -184,6 +184,13 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
       rm -rf /tmp/kern && export VABENCH_KERNEL_PROFILE=/tmp/kern \
         VABENCH_KERNEL_PROFILE_AT=${MAIN_KERNELS_AT:-60} VABENCH_KERNEL_PROFILE_S=${MAIN_KERNELS_S:-20}
     fi
+    # MAIN_FRESH=1: a fresh machine's caches again (Warp's kernels, vabench's markers and
+    # settled states, JAX's cache) and a new run directory: the fresh A/B on one warm host
+    # (e.g. VABENCH_WARP_PRECOMPILE=first against the background compile).
+    if [ -n "${MAIN_FRESH:-}" ]; then
+      rm -rf "$HOME/.cache/warp" "$HOME/.cache/vabench" "$VABENCH_STATE_CACHE" "$run"
+      echo "main: caches cleared (MAIN_FRESH)" | tee -a "$out/main_disk.txt"
+    fi
     start=$EPOCHREALTIME
     timeout -s INT "${MAIN_TIMEOUT_S:-520}" python3 -m vabench.sweep "$config" --out "$run" --plain \
       --progress-every 10 --no-report 2>&1 | tee "$out/main.log"
