@@ -446,7 +446,10 @@ def run_processes(
     gpu = contextlib.ExitStack()
     compiling: precompile.Compiling | None = None
     try:
-        # before the daemon: this process is no client (its CUDA context is made first)
+        # before the daemon: this process is no client (its CUDA context is made first). The
+        # compile's children, started about now, may be the daemon's clients or not: each runs
+        # a few launches (a GPU in exclusive-process mode would refuse the latter: their
+        # families then compile in the workers on first use, as after any child's failure).
         compiling = _precompile(config, parts, choices)
         clients = _gpu_sharing(gpu, choices)
         env.update(clients)
