@@ -607,7 +607,6 @@ class _Tables:
     quant: wp.array
     codes: wp.array
     lengths: wp.array
-    zigzag: wp.array
     header: bytes
 
 
@@ -696,7 +695,7 @@ class WarpJpeg:
             t = self._prepare(settings)
             lay, buf = t.lay, self._buffers
             blocks, chunks = n * lay.nblocks, n * lay.chunks
-            tables = [lay, t.quant, self._dct, t.codes, t.lengths, t.zigzag]
+            tables = [lay, t.quant, self._dct, t.codes, t.lengths, self._zigzag]
             words, ends, ff, ff_ends = buf["words"], buf["ends"], buf["ff"], buf["ff_ends"]
             wp.launch(
                 _count_bits, dim=(n, lay.nblocks), inputs=[packed, *tables, words, buf["bits"]]
@@ -774,7 +773,6 @@ class WarpJpeg:
                 wp.array(quant, dtype=int, device=d),
                 wp.array(codes, dtype=int, device=d),
                 wp.array(lengths, dtype=int, device=d),
-                self._zigzag,
                 jpeg_header(self.width, self.height, settings),
             )
             self._size_buffers(lay)

@@ -63,6 +63,7 @@ child waits for the largest (~60-80 s of NVRTC). All the families' children now 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import contextlib
 import fcntl
 import hashlib
@@ -302,11 +303,9 @@ class Compiling:
 
     async def wait(self, task: str) -> None:
         """Until `task`'s kernels are compiled (or nothing compiles them any more)."""
-        import asyncio
-
-        waited = time.monotonic()
         if self.ready(task):
             return
+        waited = time.monotonic()
         while not self.ready(task):
             await asyncio.sleep(POLL_S)
         log.info("%s: its kernels are compiled (waited %.0f s)", task, time.monotonic() - waited)

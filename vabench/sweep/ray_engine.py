@@ -96,8 +96,6 @@ class EngineActor:
         self._stack: contextlib.AsyncExitStack | None = None
         self._sweeps: dict[str, LocalSweep] = {}
         self._gpus: gpu_busy.GpuBusy | None = None
-        self._compiling: precompile.Compiling | None = None
-        """The sweep's families compiling in the background (`start`)."""
         self._gpu_start: gpu_busy.Totals | None = None
 
     async def start(self, tasks: list[str] | None = None) -> dict[str, Any]:
@@ -134,7 +132,7 @@ class EngineActor:
             raise
         self._stack = stack
         try:
-            self._compiling = await start_compiling(self.engine, self.choices, tasks or [])
+            await start_compiling(self.engine, self.choices, tasks or [])
         except Exception as err:  # each chunk compiles its own families anyway
             log.warning("compiling the sweep's Warp kernels ahead failed (%r); chunks will", err)
         return {
