@@ -59,3 +59,29 @@ def test_a_window_is_recorded_only_where_asked_and_always_leaves_its_file(tmp_pa
         assert re.match(r"\w+(Error|Exception)\b", data["error"]), data["error"]
     else:
         assert set(data) >= {"window_s", "gpu_s", "stages_s", "kernels"}
+
+
+def test_the_renderers_own_jpeg_kernels_are_jpeg_not_physics():
+    """Warp names a kernel's CUDA function by its Python name and its module's hash: the JPEG
+    kernels' short names (`_pack`, `_place`) must not be read as MuJoCo Warp's physics, and
+    `_place_cameras` (the render pass's) must stay render."""
+    assert kp.stage_of("_pack_040c6695_cuda_kernel_forward") == "jpeg"
+    assert kp.stage_of("_count_bits_a4d99693_cuda_kernel_forward") == "jpeg"
+    assert kp.stage_of("_place_9f2fcb05_cuda_kernel_forward") == "jpeg"
+    assert kp.stage_of("_kernels__locals__scan_b230974d_cuda_kernel_forward") == "jpeg"
+    assert kp.stage_of("_place_cameras_3f2a1b2c_cuda_kernel_forward") == "render"
+    assert kp.stage_of("_pack_rows_040c6695_cuda_kernel_forward") == "physics"
+
+
+def test_every_kernel_of_the_jpeg_modules_is_listed():
+    import warp as wp
+
+    from vabench.render import warp_jpeg, warp_scan
+
+    names = set()
+    for module in (warp_jpeg, warp_scan):
+        for value in vars(module).values():
+            if isinstance(value, wp.Kernel):
+                names.add(value.key)
+    names.update(k.key for k in warp_scan._kernels(wp.int32))  # the CUDA names' prefixes
+    assert names <= set(kp.WARP_JPEG_KERNELS), names - set(kp.WARP_JPEG_KERNELS)

@@ -399,16 +399,44 @@ def test_a_gpu_host_without_nvimagecodec_is_told_what_it_costs(monkeypatch, capl
     """Issue 34: on a GPU host without the JPEG extra, images were encoded on CPU threads at
     about the GL pool's rate with nothing said; the renderer's first lines now name the extra
     and the measured cost."""
-    from vabench.render import gpu_jpeg, nvjpeg
+    from vabench.render import gpu_jpeg, nvjpeg, warp_renderer
 
     monkeypatch.setattr(gpu_jpeg, "available", lambda: False)
     monkeypatch.setattr(nvjpeg, "available", lambda: False)
+    monkeypatch.setattr(warp_renderer.wp, "load_module", _no_module)  # nor our kernels
     with caplog.at_level("WARNING"), WarpRenderPool(device="cuda:0", max_size=(64, 48)) as pool:
         assert "threads" in (pool.info or "")
+    assert any("JPEG kernels do not load" in r.getMessage() for r in caplog.records)
     assert any(
         "vabench[jpeg-cu13]" in r.getMessage() and "images/s" in r.getMessage()
         for r in caplog.records
     )
+
+
+def _no_module(*args, **kwargs):
+    raise RuntimeError("NVRTC: compilation failed (made up by the test)")
+
+
+@pytest.mark.skipif(not _cuda(), reason="the GPU's default JPEG (run on the GPU host)")
+def test_a_gpu_encodes_in_the_renderers_own_kernels_by_default(monkeypatch):
+    """auto on a GPU: each pass's own Warp JPEG kernels (the main job 207.7 s against 222.6 s
+    with nvJPEG on one H100, docs/PERFORMANCE.md "Thirteenth session")."""
+    monkeypatch.delenv("VABENCH_WARP_JPEG", raising=False)
+    with WarpRenderPool(device="cuda:0", max_size=(64, 48)) as pool:
+        assert pool.jpeg == "auto" and "Warp kernels" in (pool.info or "")
+        assert pool._jpeg_kind == "kernels"
+
+
+def test_jpeg_kernels_asked_for_but_not_loading_is_one_clear_error(monkeypatch):
+    """jpeg="kernels" where they cannot load (a compiler error) names the choice, and does not
+    fall back behind the user's back (auto does: the GPU test above and the one before it)."""
+    from vabench.render import warp_renderer
+
+    monkeypatch.setattr(warp_renderer.wp, "load_module", _no_module)
+    pool = WarpRenderPool(device="cpu", max_size=(64, 48), jpeg="kernels")
+    with pytest.raises(RenderError, match=r"jpeg='kernels'.*do not load.*NVRTC"):
+        pool.start()
+    pool.close()
 
 
 def test_a_pass_s_idle_worlds_look_at_the_sky(cube_items):

@@ -1,6 +1,8 @@
 """JPEG on the GPU through nvJPEG itself, on the caller's CUDA stream (the Warp renderer's
-default on a GPU: its `jpeg="auto"` or `"nvjpeg"`; measured on an H100, 2026-11-27: the main
-job 218.3 s against 242.3 s with nvImageCodec, docs/PERFORMANCE.md "Tenth session").
+`jpeg="nvjpeg"`, and auto's fallback on a GPU where its own kernels do not load; measured on an
+H100, 2026-11-27: the main job 218.3 s against 242.3 s with nvImageCodec, docs/PERFORMANCE.md
+"Tenth session"; the renderer's own kernels, `warp_jpeg`, 207.7 s against nvJPEG's 222.6 s,
+"Thirteenth session").
 
 Why not nvImageCodec alone: it encodes on CUDA streams of its own, made at the default
 priority, which is CUDA's lowest, the ray tracer's megakernels' too. Under load a pass's ~25

@@ -6,7 +6,10 @@ the GPU's kernel time. nvJPEG waits for the GPU inside each frame's encode call 
 output on the host) and again to retrieve each frame's bytes, and every wait queues behind
 the ray tracer's megakernels: ~6.6 ms of wall time a frame for ~0.03 ms of kernels. Here a
 pass of n frames is a handful of launches and two waits (its lengths, then its bytes),
-whatever n.
+whatever n. Measured on an H100 (2026-11-28, "Thirteenth session" of docs/PERFORMANCE.md):
+the warm suite 207.7 s against nvJPEG's 222.6 s on the same host, same 2,157 successes; four
+encoders in threads beside a ray-tracer-like load 93 calls of 25 frames a second against
+nvJPEG's 17, 145 against 128 on an idle GPU. The renderer's default on a GPU since.
 
 What it writes: baseline sequential JPEG (ITU T.81, 8-bit, Huffman) with a JFIF header; the
 IJG's quality scaling of the standard quantisation tables and the standard Huffman tables of

@@ -11,12 +11,12 @@ once:
 2. kinematics of those worlds, then each world's camera is set to its item's pose and FOV
    (the model's FOV is batched per world, and rays are computed per world);
 3. the BVH is refit and every world is ray traced in one launch (shadows, textures, skybox);
-4. JPEG on the device with nvJPEG on the renderer's own priority streams (`nvjpeg`; the
-   default where it works), else nvImageCodec where it is installed (`gpu_jpeg`), else the
-   packed pixels come to the host and a thread pool encodes them (`images.JpegThreads`), with
-   the quality and chroma subsampling of `ImageSettings` every way. `jpeg="kernels"` encodes a
-   pass in its own Warp kernels instead (`warp_jpeg`: queued right behind the ray tracing,
-   two waits a pass, no library; measured on CPU, not yet in the main job on a GPU).
+4. JPEG on the device: by each pass's own Warp kernels, queued right behind its ray tracing
+   (`warp_jpeg`, two waits a pass, no library; the default on a GPU), else with nvJPEG on the
+   renderer's own priority streams (`nvjpeg`), else nvImageCodec where it is installed
+   (`gpu_jpeg`), else the packed pixels come to the host and a thread pool encodes them
+   (`images.JpegThreads`), with the quality and chroma subsampling of `ImageSettings` every
+   way (`JPEG_CHOICES`).
 
 Render batches ("passes", `warp_pass.RenderPass`) are made per task family, image size and
 world count (1, 2, 3, 4, 6, 8, 12, ...: `pass_size`), when first needed, and then reused: a
@@ -85,19 +85,22 @@ from vabench.tasks import REGISTRY
 log = logging.getLogger(__name__)
 
 JPEG_CHOICES = ("auto", "device", "host", "nvjpeg", "kernels")
-"""`WarpRenderPool.jpeg`: auto (on a GPU nvJPEG where it loads, else nvImageCodec where
-installed, else host threads), nvjpeg (nvJPEG on the renderer's own priority streams,
-`vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error), host (threads), kernels
-(each pass's own Warp kernels, `vabench.render.warp_jpeg`: two waits a pass instead of nvJPEG's
-waits in every frame; on any Warp device, no library needed; not yet measured in the main
-job). The environment's VABENCH_WARP_JPEG sets the default (for measuring side by side).
+"""`WarpRenderPool.jpeg`: auto (on a GPU each pass's own Warp kernels, falling back to nvJPEG
+where they do not load, then nvImageCodec where installed, then host threads; on the CPU host
+threads), kernels (`vabench.render.warp_jpeg`: two waits a pass instead of nvJPEG's waits in
+every frame; on any Warp device, no library needed), nvjpeg (nvJPEG on the renderer's own
+priority streams, `vabench.render.nvjpeg`, or an error), device (nvImageCodec or an error),
+host (threads). The environment's VABENCH_WARP_JPEG sets the default (for measuring side by
+side).
 
-nvJPEG first: measured on one H100 (2026-11-27, docs/PERFORMANCE.md "Tenth session") the main
-job took 218.3 s against 242.3 s with nvImageCodec on the same warm host, the basket's images
-0.23 s a decision against 0.60: nvImageCodec encodes on streams of its own at CUDA's lowest
-priority, behind the ray tracer's kernels, and hands the interpreter's lock back and forth in
-every image; under a GPU load like the ray tracer's it made no call in 6 s where nvJPEG made
-16 a second (`benchmarks/jpeg_contention.py`)."""
+The kernels first: measured on one H100 (2026-11-28, docs/PERFORMANCE.md "Thirteenth
+session") the main job took 207.7 s against 222.6 s with nvJPEG on the same warm host (2,157
+successes either way), and four encoders in threads beside a ray-tracer-like GPU load made 93
+calls a second of 25 frames against nvJPEG's 17 (`benchmarks/jpeg_contention.py`): nvJPEG
+sizes each frame's output on the host, so every frame waits behind the other passes' kernels.
+nvJPEG before nvImageCodec: the main job took 218.3 s against 242.3 s ("Tenth session");
+nvImageCodec encodes on streams of its own at CUDA's lowest priority, behind the ray tracer's
+kernels, and hands the interpreter's lock back and forth in every image."""
 MIN_PASS = 8  # the smallest largest-pass a GPU must hold (else: memory too full to render)
 MAX_PASS = 1024  # largest render batch on a GPU (memory permitting)
 MAX_PASS_PIXELS = 128 * 1280 * 960
@@ -122,8 +125,9 @@ class WarpRenderPool:
 
     `device`: "cuda:N" or "cpu" (default: VABENCH_WARP_DEVICE, else cuda:0). `max_pass`: the
     most worlds one pass holds (default: from free GPU memory, at most MAX_PASS). `jpeg`:
-    "auto" (on a GPU nvJPEG, else nvImageCodec where installed, else threads), "nvjpeg",
-    "device" (nvImageCodec) or "host" (`JPEG_CHOICES`). `memory_budget`: bytes all passes
+    "auto" (on a GPU the passes' own Warp kernels, else nvJPEG, else nvImageCodec where
+    installed, else threads), "kernels", "nvjpeg", "device" (nvImageCodec) or "host"
+    (`JPEG_CHOICES`). `memory_budget`: bytes all passes
     kept may take (default: MEMORY_SHARE of the GPU memory free when the first pass is sized;
     on the CPU, CPU_BUDGET_WORLDS worlds of the largest size).
     """
@@ -177,7 +181,8 @@ class WarpRenderPool:
         self._nvjpeg_pool: dict[bool, list[tuple[nvjpeg.NvJpeg, int]]] = {False: [], True: []}
         self._device_encoders: list[Any] = []  # every device encoder made (their `seconds`)
         self._nvjpeg = self.jpeg == "nvjpeg"  # resolved by `start` (jpeg="auto": on a GPU)
-        self._warp_jpeg_seconds: dict[str, float] = {}  # the passes' own encoders' (jpeg="kernels")
+        self._warp_jpeg_seconds: dict[str, float] = {}  # the passes' own encoders' (kernels)
+        self._kernels = self.jpeg == "kernels"  # resolved by `start` (jpeg="auto": on a GPU)
         # The device's lock (shared with the physics batches of this process): every allocation
         # and copy on the device holds it (see sim_mjx.warp_batch, Threads).
         self._lock_device: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
@@ -204,10 +209,8 @@ class WarpRenderPool:
         self._device = wp.get_device(name)
         self._lock_device = device_lock(str(self._device))
         on_gpu = self._device.is_cuda
-        if self.jpeg == "kernels":
-            with self._lock_device:  # compiled or loaded now, not in the first pass's lock hold
-                for module in (warp_jpeg, warp_scan):
-                    wp.load_module(module, device=self._device)
+        self._kernels = self.jpeg == "kernels" or (self.jpeg == "auto" and on_gpu)
+        if self._kernels and self._start_kernels():
             self.info = f"warp on {self._device} ({self._device.name}; JPEG: Warp kernels a pass)"
             log.info("renderer: %s", self.info)
             return self.info
@@ -231,6 +234,22 @@ class WarpRenderPool:
         self.info = f"warp on {self._device} ({self._device.name}; JPEG: {encoder})"
         log.info("renderer: %s", self.info)
         return self.info
+
+    def _start_kernels(self) -> bool:
+        """The JPEG kernels' modules compiled or loaded now (not in the first pass's hold of
+        the device's lock); False where jpeg="auto" and they fail to (auto then goes on to
+        nvJPEG)."""
+        try:
+            with self._lock_device:
+                for module in (warp_jpeg, warp_scan):
+                    wp.load_module(module, device=self._device)
+        except Exception as err:  # a compiler or driver error: Warp raises plain exceptions
+            if self.jpeg == "kernels":
+                raise RenderError(f"jpeg='kernels': the JPEG kernels do not load: {err}") from err
+            log.warning("renderer: the JPEG kernels do not load (%s); trying nvJPEG", err)
+            self._kernels = False
+            return False
+        return True
 
     def _start_nvjpeg(self) -> bool:
         """The first nvJPEG encoder made and pooled; False where jpeg="auto" and the library
@@ -477,7 +496,7 @@ class WarpRenderPool:
     @property
     def _jpeg_kind(self) -> bool | str:
         """What a pass keeps for its JPEG (`RenderPass`'s `device_jpeg`)."""
-        return "kernels" if self.jpeg == "kernels" else self._device_jpeg is not None
+        return "kernels" if self._kernels else self._device_jpeg is not None
 
     @contextlib.contextmanager
     def _device_encoder(self, urgent: bool) -> Iterator[tuple[Any, int]]:

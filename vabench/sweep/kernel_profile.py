@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 import threading
 import time
@@ -35,17 +36,35 @@ AT_VARIABLE = "VABENCH_KERNEL_PROFILE_AT"
 SECONDS_VARIABLE = "VABENCH_KERNEL_PROFILE_S"
 DEFAULT_AT_S, DEFAULT_S = 60.0, 20.0
 
+WARP_JPEG_KERNELS = (
+    "_count_bits",
+    "_pack",
+    "_count_ff",
+    "_sizes",
+    "_place",
+    "_kernels__locals__totals",
+    "_kernels__locals__scan",
+)
+"""The renderer's own JPEG kernels (`vabench.render.warp_jpeg`, and `warp_scan`'s, made in its
+`_kernels`): Warp names a kernel's CUDA function `<name>_<8 hex of its module>_cuda_kernel_...`,
+so they are told apart from MuJoCo Warp's by the whole name, not a word of it
+(tests/test_kernel_profile.py checks every kernel of those modules is listed)."""
+_WARP_JPEG = re.compile(rf"^(?:{'|'.join(WARP_JPEG_KERNELS)})_[0-9a-f]{{8}}_cuda_kernel_")
+
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("copies", ("memcpy", "memset")),
     ("jpeg", ("nvjpeg", "jpeg", "huffman", "dct", "nvimgcodec")),
     ("render", ("render", "bvh", "_place_cameras", "_unpack_rgb", "camlight", "refit")),
     ("physics", ("mujoco_warp", "vabench", "warp", "cuda_kernel_forward")),
 )
-"""A kernel's stage: the first whose words its name (lower case) contains; else "other".
-Kinematics launched by a render pass count as physics (same kernels as the physics')."""
+"""A kernel's stage: "jpeg" for the renderer's own JPEG kernels (`WARP_JPEG_KERNELS`), else the
+first whose words its name (lower case) contains; else "other". Kinematics launched by a render
+pass count as physics (same kernels as the physics')."""
 
 
 def stage_of(name: str) -> str:
+    if _WARP_JPEG.match(name):
+        return "jpeg"
     low = name.lower()
     for stage, words in STAGES:
         if any(w in low for w in words):
