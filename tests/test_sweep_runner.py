@@ -122,3 +122,91 @@ def test_bad_config_stops_before_any_call(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "grasp_single_cub" in err and "runz" in err
     assert not (tmp_path / "out").exists()
+
+
+def _engine_config(tmp_path: Path):
+    config = load_config(
+        write_config(tmp_path, "{policy: conversation_hash, server_processes: 1}"),
+        overrides={"out": str(tmp_path / "run")},
+    )
+    return config, choose(config)
+
+
+def test_the_renderer_starts_while_the_embedded_server_starts(tmp_path, monkeypatch):
+    """An engine's renderer and its embedded server start side by side (one after the other
+    before: ~3 s each of an engine process's start on an H100 host)."""
+    import time
+
+    from vabench.llm_pool.server import LocalServer
+    from vabench.render.worker import RenderPool
+    from vabench.sweep.runner import open_engine
+
+    server_up: list[float] = []
+    server_start, renderer_start = LocalServer.start, RenderPool.start
+
+    async def timed_server_start(self, *args, **kwargs):
+        out = await server_start(self, *args, **kwargs)
+        server_up.append(time.monotonic())
+        return out
+
+    began: list[float] = []
+
+    ended: list[float] = []
+
+    def timed_renderer_start(self):
+        began.append(time.monotonic())
+        out = renderer_start(self)
+        ended.append(time.monotonic())
+        return out
+
+    monkeypatch.setattr(LocalServer, "start", timed_server_start)
+    monkeypatch.setattr(RenderPool, "start", timed_renderer_start)
+    config, choices = _engine_config(tmp_path)
+
+    async def open_and_close():
+        async with open_engine(config, choices, tmp_path / "run"):
+            assert ended, "the engine was handed out before its renderer had started"
+
+    asyncio.run(open_and_close())
+    assert began and server_up and began[0] < server_up[0]
+
+
+def test_a_renderer_that_cannot_start_stops_the_engine_with_its_error(tmp_path, monkeypatch):
+    """The renderer's error is the engine's, and the embedded server started beside it is
+    stopped (its processes gone), the renderer closed once its start has ended."""
+    import pytest
+
+    from vabench.llm_pool.server_processes import ServingProcesses
+    from vabench.render.images import RenderError
+    from vabench.render.worker import RenderPool
+    from vabench.sweep.runner import open_engine
+
+    served: list[ServingProcesses] = []
+    closed: list[bool] = []
+    serving_start, renderer_close = ServingProcesses.start, RenderPool.close
+
+    def kept_serving_start(self, host, port):
+        served.append(self)
+        return serving_start(self, host, port)
+
+    def failing_start(self):
+        raise RenderError("no display for GL (made up by the test)")
+
+    def counted_close(self):
+        closed.append(True)
+        renderer_close(self)
+
+    monkeypatch.setattr(ServingProcesses, "start", kept_serving_start)
+    monkeypatch.setattr(RenderPool, "start", failing_start)
+    monkeypatch.setattr(RenderPool, "close", counted_close)
+    config, choices = _engine_config(tmp_path)
+
+    async def open_engine_once():
+        async with open_engine(config, choices, tmp_path / "run"):
+            raise AssertionError("the engine opened without a renderer")
+
+    with pytest.raises(RenderError, match="no display for GL"):
+        asyncio.run(open_engine_once())
+    assert closed == [True]
+    (serving,) = served
+    assert serving._processes and not any(p.is_alive() for p in serving._processes)

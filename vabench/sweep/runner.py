@@ -120,6 +120,25 @@ async def open_engine(
     cfg = config
     gate = choices.in_flight.gate()
     async with contextlib.AsyncExitStack() as stack:
+        # The renderer starts (its device, its modules, GL's processes) while the embedded
+        # server's processes start: each took ~3 s of an engine process's ~13 s before its
+        # first episode on an H100 host (2026-11-28), one after the other.
+        render = cfg.render
+        renderer, choice = make_renderer(
+            choices.renderer,
+            workers=render.workers,
+            platform=render.platform,
+            max_size=(render.width, render.height),
+        )
+        starting = asyncio.ensure_future(asyncio.to_thread(renderer.start))
+
+        async def close_renderer() -> None:
+            await asyncio.wait({starting})  # a start still running in its thread ends first
+            if not starting.cancelled():
+                starting.exception()  # raised below, or moot beside the error unwinding this
+            renderer.close()
+
+        stack.push_async_callback(close_renderer)
         endpoints = list(cfg.models)
         if cfg.embedded_models:
             server = await stack.enter_async_context(LocalServer(cfg.embedded_server))
@@ -136,15 +155,7 @@ async def open_engine(
             demo_cache=Path(cfg.learning.demo_cache),
             limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
         )
-        render = cfg.render
-        renderer, choice = make_renderer(
-            choices.renderer,
-            workers=render.workers,
-            platform=render.platform,
-            max_size=(render.width, render.height),
-        )
-        info = await asyncio.to_thread(renderer.start)
-        stack.callback(renderer.close)
+        info = await starting
         log.info("renderer: %s (%s)", info, choice.reason)
         yield Engine(choices.physics, llm, summaries, renderer, render.image_settings(), gate)
 
