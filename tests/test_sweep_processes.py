@@ -49,7 +49,7 @@ def test_processes_equal_the_local_executor_and_a_rerun_runs_nothing(tmp_path, c
     cfg = tmp_path / "processes.yaml"
     cfg.write_text(CONFIG.format(executor="{kind: processes, max_tasks: 2}"))
     out = tmp_path / "processes"
-    with caplog.at_level(logging.INFO, logger="vabench.sweep.process_executor"):
+    with caplog.at_level(logging.INFO, logger="vabench.sweep"):
         assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     assert "cells 2/2 done (0 failed) | episodes recorded 4/4" in caplog.text
     assert records(out) == records(tmp_path / "local") and len(records(out)) == 4
@@ -57,6 +57,8 @@ def test_processes_equal_the_local_executor_and_a_rerun_runs_nothing(tmp_path, c
     logs = "".join(p.read_text() for p in (out / "logs").glob("worker_*.log"))
     for task in ("grasp_single_cube", "handover_horizontal_block"):
         assert f"{task}: physics " in logs and "images" in logs  # the stage lines
+    assert "engine process: its first chunk" in logs  # its start-up, timed from its spawn
+    assert "started:   " in caplog.text  # the sweep's own start-up line
     # summaries were learned once per family, in the cells' processes
     assert sorted(p.name for p in (out / "summaries" / "local").glob("*.json")) == [
         "grasp_single_cube.json",

@@ -78,3 +78,17 @@ def exit_with_parent(parent_pid: int) -> None:
         os._exit(70)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def process_age_s(pid: int | str = "self") -> float | None:
+    """Seconds since process `pid` started (Linux: /proc's start time in clock ticks after boot
+    against the uptime); None where /proc does not say. What a start-up line measures from:
+    the interpreter's own start and every import are inside it."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()  # the name may hold spaces
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22: starttime
+    except (OSError, ValueError, IndexError):
+        return None

@@ -29,6 +29,9 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import time
+
+_LOADING = time.monotonic()  # before the imports below (seconds on a small machine)
 
 
 def _stopped_while_loading(signum: int, frame: object) -> None:
@@ -56,6 +59,7 @@ from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
+from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfigError, load_config  # noqa: E402
 from vabench.config.keys import KeySources, key_sources  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
@@ -102,6 +106,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     add_overrides(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    configuring = time.monotonic()
     try:
         given = Overrides.from_args(args)
         keys_from = key_sources(args.config, os.environ)
@@ -143,6 +148,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         return 2
     os.environ.update(keys_from.added())  # the pool and the processes it starts read them here
     configure_jax(choices.physics)
+    log.info("%s", _start_line(configuring))
     for line in choices.lines():
         log.info(line)
     display = Display(
@@ -190,6 +196,18 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     finally:
         if own_handler:
             ctrl_c.restore()
+
+
+def _start_line(configuring: float) -> str:
+    """How long the command took to get here: the process's start to this module's imports,
+    the imports, then the config, the choices (probing the GPU) and the plan."""
+    now = time.monotonic()
+    age = process_age_s()
+    before = f"{age - (now - _LOADING):.1f} s starting Python, " if age is not None else ""
+    return (
+        f"started:   {before}{configuring - _LOADING:.1f} s importing, "
+        f"{now - configuring:.1f} s reading the config, choosing and planning"
+    )
 
 
 def _print_key_sources(config: Any, keys_from: KeySources) -> None:

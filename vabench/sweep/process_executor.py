@@ -58,6 +58,7 @@ from vabench.children import (
     children_ignore_sigint,
     exit_with_parent,
     ignore_sigint,
+    process_age_s,
 )
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS, RunDir
@@ -190,6 +191,9 @@ def _run_cell_in_worker(
     # back afterwards, so that a later chunk of this process runs as the sweep's others.
     global _chunks_run
     environment = dict(environment or {})
+    age = process_age_s()
+    if not _chunks_run and age is not None:  # the spawn's start: its interpreter and imports
+        log.info("engine process: its first chunk %.1f s after the process started", age)
     if environment and _chunks_run:
         log.warning(
             "processes: the critical path's chunk runs in a worker that ran %d chunk(s) before: "
