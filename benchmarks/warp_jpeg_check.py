@@ -5,8 +5,10 @@
 For each frame count, `vabench.render.warp_jpeg.WarpJpeg` encodes jpeg_contention's frames
 (1280x960, ~4.5 bits a pixel at quality 95, heavier than rendered scenes) from packed pixels
 on the device: ms a call on an idle GPU from one thread (min and median of 5, after a first
-call that compiles), images the host had to encode, and for the first three frames the bytes
-and PSNR against libjpeg-turbo's encoding of the same pixels. The GPU under load is
+call that compiles), images the host had to encode, the GPU time of each kernel in one more
+call (CUDA events, `wp.timing_begin`: where a pass's time goes, e.g. counting the bits against
+packing them), and for the first three frames the bytes and PSNR against libjpeg-turbo's
+encoding of the same pixels. The GPU under load is
 jpeg_contention.py's job (`--encoder warp`).
 
 `--task T`: the frames are instead the passive bundle of task T at its first verified seed,
@@ -110,7 +112,26 @@ def main() -> None:
             f"{n / min(times):.0f} images/s; encoded on the host: {encoder.host_encoded}",
             flush=True,
         )
+        kernel_times(encoder, packed, n, settings)
         compare(out[: len(rgb)], rgb, settings)
+
+
+def kernel_times(encoder: WarpJpeg, packed: wp.array, n: int, settings: ImageSettings) -> None:
+    """One more call with every kernel and copy timed on the GPU (nothing on a CPU device)."""
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY)
+    encoder.encode(packed, n, settings)
+    results = wp.timing_end()
+    totals: dict[str, list[float]] = {}
+    for r in results:
+        totals.setdefault(r.name, []).append(r.elapsed)
+    if not totals:
+        print("  kernels: no CUDA timings (a CPU device)", flush=True)
+        return
+    whole = sum(sum(v) for v in totals.values())
+    for name, ms in sorted(totals.items(), key=lambda kv: -sum(kv[1])):
+        print(
+            f"  {name}: {sum(ms):.2f} ms in {len(ms)} call(s) ({sum(ms) / whole:.0%})", flush=True
+        )
 
 
 if __name__ == "__main__":
