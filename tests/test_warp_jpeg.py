@@ -4,10 +4,11 @@ runs, checked against libjpeg-turbo (`images.encode_jpeg`, the host path's encod
 What is checked: the tables are libjpeg's (quantisation at every quality, Huffman, zigzag);
 frames of several sizes, subsamplings and qualities decode to the pixels libjpeg's own JPEGs
 decode to, within rounding, at the same quality (PSNR) and about the same size; every image of
-a batch is independent of the others; 0xFF bytes are stuffed; an image too large for the
-device's buffer is encoded on the host, in its place; the renderer with `jpeg="kernels"` gives
-images equal to its host-encoded ones within rounding. Speed is measured on a GPU by
-benchmarks/jpeg_contention.py (`--encoder warp`), never here.
+a batch is independent of the others; the bytes are those of the encoder before the
+coefficients were kept between its kernels (goldens); 0xFF bytes are stuffed; an image too
+large for the device's buffer is encoded on the host, in its place; the renderer with
+`jpeg="kernels"` gives images equal to its host-encoded ones within rounding. Speed is
+measured on a GPU by benchmarks/jpeg_contention.py (`--encoder warp`), never here.
 """
 
 from __future__ import annotations
@@ -243,3 +244,55 @@ def test_the_renderer_encodes_with_it(monkeypatch):
     for jpeg, frame in zip(jpegs, rgb, strict=True):
         error = np.abs(_decode(jpeg) - frame).mean()
         assert error < 1.1 * np.abs(_decode(encode_jpeg(frame, 95, "420")) - frame).mean() + 0.1
+
+
+GOLDEN = {
+    # sha256 (first 16 hex digits) of the three JPEGs of `_golden_frames`, concatenated, as the
+    # encoder that computed every block's samples and DCT in each kernel wrote them (17c55cf,
+    # whose output is checked against libjpeg-turbo above): keeping the coefficients between
+    # the kernels must change no bit. The frames are integer arithmetic and PCG64 integers, the
+    # same on any machine; the noise frame overflows the device's buffer at the larger sizes
+    # (the host path's bytes, then).
+    (37, 29, "420", 50): "f5a7727c5bda50a0",
+    (37, 29, "420", 95): "e4261bc089faf282",
+    (37, 29, "422", 50): "9dfbf934642dcb66",
+    (37, 29, "422", 95): "575ce8866e564b02",
+    (37, 29, "444", 50): "02347efa5fe5200a",
+    (37, 29, "444", 95): "fdfee62365a0ac29",
+    (161, 120, "420", 50): "34230fed1665c079",
+    (161, 120, "420", 95): "97c35619710331c2",
+    (161, 120, "422", 50): "41f18a37a3a5affe",
+    (161, 120, "422", 95): "ba34173777932507",
+    (161, 120, "444", 50): "1c74e4706d44708d",
+    (161, 120, "444", 95): "cdc79033eaffe618",
+    (1280, 960, "420", 95): "ba870aa0aafdef5d",
+}
+
+
+def _golden_frames(width: int, height: int) -> np.ndarray:
+    y, x = np.mgrid[0:height, 0:width].astype(np.int64)
+    frames = np.empty((3, height, width, 3), np.uint8)
+    for i in range(2):
+        img = np.stack(
+            [(x * (3 + i) + y) % 256, (x * y // 7 + 40 * i) % 256, (x + 2 * y) // 3 % 256], -1
+        )
+        img[height // 5 : height // 2, width // 4 : width // 2 + i] = (230, 25, 20)
+        frames[i] = img.astype(np.uint8)
+    frames[2] = np.random.default_rng(height).integers(0, 256, (height, width, 3), dtype=np.uint8)
+    return frames
+
+
+@pytest.mark.parametrize("size", sorted({k[:2] for k in GOLDEN}))
+def test_the_bytes_are_the_golden_ones(size):
+    import hashlib
+
+    width, height = size
+    frames = _golden_frames(width, height)
+    encoder = warp_jpeg.WarpJpeg(len(frames), width, height, "cpu")
+    for (w, h, subsampling, quality), digest in GOLDEN.items():
+        if (w, h) != size:
+            continue
+        settings = ImageSettings(width, height, quality, subsampling)
+        jpegs = encoder.encode(_packed(frames), len(frames), settings)
+        got = hashlib.sha256(b"".join(jpegs)).hexdigest()[:16]
+        assert got == digest, (size, subsampling, quality)

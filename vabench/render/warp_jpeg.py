@@ -19,13 +19,15 @@ pixels are compared with libjpeg-turbo's in tests/test_warp_jpeg.py).
 
 How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGGBB pixels:
 
-1. `_count_bits`: a thread per 8x8 block (image, MCU, block of the MCU) converts its pixels'
-   colour, subsamples the chroma, transforms, quantises and sums the lengths of its Huffman
-   codes. A block's DC is coded as the difference from the block before it in scan order;
-   that DC is recomputed from the other block's pixels, so no launch waits for another's.
-2. An inclusive scan of those lengths: each block's bit offset in its image's entropy data
-   (`warp_scan`: Warp's own scan frees its scratch memory unordered with our streams).
-3. `_pack`: the same blocks again, each writing its codes at its offset into its image's row
+1. `_transform`: a thread per 8x8 block (image, MCU, block of the MCU) converts its pixels'
+   colour, subsamples the chroma, transforms and quantises, and keeps the coefficients (zigzag
+   order, 16 bits each) and the DC for the kernels after it.
+2. `_count_bits`: a thread per block sums the lengths of its Huffman codes. A block's DC is
+   coded as the difference from the same component's block before it in scan order, read
+   from the kept DCs.
+3. An inclusive scan of those lengths: each block's bit offset in its image's entropy data
+   (`warp_scan`: Warp's own scan frees its scratch memory unordered with our streams), then
+   `_pack`: the same blocks again, each writing its codes at its offset into its image's row
    of 32-bit words (most significant bit first): an atomic OR for the two words it may share
    with its neighbours, plain stores between.
 4. `_count_ff`, a scan, `_sizes` and `_place`: every 0xFF byte gets its stuffed 0x00 (T.81
@@ -35,11 +37,20 @@ How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGG
    multiprocessor time), and each image gets its header and end marker.
 
 Everything before the Huffman codes is integer arithmetic (libjpeg's fixed-point colour
-conversion, a DCT with 12-bit coefficients, libjpeg's rounding of halves away from zero): the
-kernel that counts a block's bits and the one that writes them compute the same coefficients
-bit for bit, which a float DCT would not promise (fused multiply-adds may be contracted
-differently in each). Where a quotient is exactly a half (synthetic patterns such as a
-checkerboard at quality 50) the two encoders may round it apart.
+conversion, a DCT with 12-bit coefficients, libjpeg's rounding of halves away from zero), the
+same bits on every device and compiler, which a float DCT would not promise (fused
+multiply-adds may be contracted differently). Where a quotient is exactly a half (synthetic
+patterns such as a checkerboard at quality 50) this encoder and libjpeg may round it apart.
+
+Why the coefficients are kept (2026-11-28): the kernels that count and write the bits each
+used to compute their block's samples and DCT, and its predecessor's DC again from its
+pixels: four reads and conversions of every pixel. On Warp's CPU device the DC alone was 31 %
+of `_count_bits`, the samples ~30 %, the Huffman codes ~36 %; kept, an encode of two
+1280x960 frames takes 118.8 ms against 224.2 (the same bytes: tests/test_warp_jpeg.py's
+goldens, made by the encoder before). The price: 132 bytes a block, ~3.8 MB a 1280x960
+world at 4:2:0 (`bytes_per_world`, charged to the renderer's passes). Not yet timed on a
+GPU, where the JPEG kernels were 19 % of the main job's kernel time (`_pack` and `_count_bits`
+~6.4 ms a call each; docs/PERFORMANCE.md, "Thirteenth session").
 
 An image whose entropy data would not fit its buffer (`CAP_BITS_PER_PIXEL`; rendered scenes
 take 1.0-1.5 bits a pixel at quality 95, benchmarks/jpeg_contention.py's noisy frames 4.5) is
@@ -282,46 +293,19 @@ def _coefficients(f: imat88, dct: imat88):
 
 
 @wp.func
-def _block_dc(
-    packed: wp.array2d(dtype=wp.uint32),
-    i: int,
-    mcu: int,
-    b: int,
-    lay: Layout,
-    quant: wp.array(dtype=int),
-    dct: imat88,
-):
-    """Block b of MCU `mcu`'s quantised DC: the (0, 0) term of `_coefficients` alone (integers:
-    the same value whatever the order of the sums)."""
-    f = _samples(packed, i, mcu, b, lay)
-    total = int(0)
-    for c in range(8):
-        column = int(0)
-        for r in range(8):
-            column += dct[0, r] * f[r, c]
-        total += ((column + (1 << (PASS_SHIFT - 1))) >> PASS_SHIFT) * dct[0, c]
-    comp = wp.max(b - lay.h * lay.v + 1, 0)
-    return _quantise(total, quant[wp.min(comp, 1) * 64])
-
-
-@wp.func
-def _previous_dc(
-    packed: wp.array2d(dtype=wp.uint32),
-    i: int,
-    mcu: int,
-    b: int,
-    lay: Layout,
-    quant: wp.array(dtype=int),
-    dct: imat88,
-):
-    """The DC this block's is coded against: the same component's block before it (0 first)."""
-    if b < lay.h * lay.v and b > 0:
-        return _block_dc(packed, i, mcu, b - 1, lay, quant, dct)
+def _previous_block(k: int, lay: Layout):
+    """The block whose DC block k's is coded against (T.81 F.1.1.5.1): the same component's
+    block before it in scan order, or -1 (coded against 0) for a component's first."""
+    mcu = k // lay.blocks
+    b = k % lay.blocks
+    luma = lay.h * lay.v
+    if b < luma and b > 0:
+        return k - 1
     if mcu == 0:
-        return 0
+        return -1
     if b == 0:
-        return _block_dc(packed, i, mcu - 1, lay.h * lay.v - 1, lay, quant, dct)
-    return _block_dc(packed, i, mcu - 1, b, lay, quant, dct)
+        return k - lay.blocks + luma - 1
+    return k - lay.blocks
 
 
 @wp.func
@@ -378,27 +362,25 @@ def _magnitude(value: int):
 
 @wp.func
 def _code_block(
-    coef: imat88,
+    coefs: wp.array(dtype=wp.int16),
+    base: int,
     dc_diff: int,
     comp: int,
-    quant: wp.array(dtype=int),
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
-    zigzag: wp.array(dtype=int),
     w: Writer,
     words: wp.array(dtype=wp.uint32),
     emit: int,
 ):
-    """A block's Huffman codes: its DC difference, then its AC coefficients in zigzag order as
-    runs of zeros and values (ZRL for 16 zeros, EOB after the last value)."""
+    """A block's Huffman codes: its DC difference, then its AC coefficients (quantised, in
+    zigzag order from `base`) as runs of zeros and values (ZRL for 16 zeros, EOB after the
+    last value)."""
     table = wp.min(comp, 1) * 512  # DC table at +0, AC at +256
     m = _magnitude(dc_diff)
     w = _put(w, (codes[table + m[0]] << m[0]) | m[1], lengths[table + m[0]] + m[0], words, emit)
     run = int(0)
     for k in range(1, 64):
-        n = zigzag[k]
-        value = _quantise(coef[n // 8, n % 8], quant[wp.min(comp, 1) * 64 + n])
-        value = wp.clamp(value, -1023, 1023)  # baseline AC: 10 bits at most
+        value = int(coefs[base + k])
         if value == 0:
             run += 1
         else:
@@ -414,39 +396,55 @@ def _code_block(
     return w
 
 
-@wp.func
-def _block_start(
+@wp.kernel
+def _transform(
     packed: wp.array2d(dtype=wp.uint32),
-    i: int,
-    k: int,
     lay: Layout,
     quant: wp.array(dtype=int),
     dct: imat88,
+    zigzag: wp.array(dtype=int),
+    coefs: wp.array(dtype=wp.int16),
+    dcs: wp.array(dtype=int),
 ):
-    """Block k of image i: (its coefficients, its DC difference, its component)."""
+    """Block k of image i, once: its samples, their DCT, quantised; the AC coefficients in
+    zigzag order at 64 (i * nblocks + k) + 1.., the DC in `dcs`."""
+    i, k = wp.tid()
     mcu = k // lay.blocks
     b = k % lay.blocks
-    comp = wp.max(b - lay.h * lay.v + 1, 0)
+    table = wp.min(wp.max(b - lay.h * lay.v + 1, 0), 1) * 64
     coef = _coefficients(_samples(packed, i, mcu, b, lay), dct)
-    dc = _quantise(coef[0, 0], quant[wp.min(comp, 1) * 64])
-    return coef, dc - _previous_dc(packed, i, mcu, b, lay, quant, dct), comp
+    at = i * lay.nblocks + k
+    dcs[at] = _quantise(coef[0, 0], quant[table])
+    for j in range(1, 64):
+        n = zigzag[j]
+        value = _quantise(coef[n // 8, n % 8], quant[table + n])
+        coefs[at * 64 + j] = wp.int16(wp.clamp(value, -1023, 1023))  # baseline AC: 10 bits
+
+
+@wp.func
+def _block_start(dcs: wp.array(dtype=int), i: int, k: int, lay: Layout):
+    """Block k of image i: (where its coefficients start, its DC difference, its component)."""
+    at = i * lay.nblocks + k
+    before = _previous_block(k, lay)
+    dc = dcs[at]
+    if before >= 0:
+        dc = dc - dcs[i * lay.nblocks + before]
+    return at * 64, dc, wp.max(k % lay.blocks - lay.h * lay.v + 1, 0)
 
 
 @wp.kernel
 def _count_bits(
-    packed: wp.array2d(dtype=wp.uint32),
+    coefs: wp.array(dtype=wp.int16),
+    dcs: wp.array(dtype=int),
     lay: Layout,
-    quant: wp.array(dtype=int),
-    dct: imat88,
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
-    zigzag: wp.array(dtype=int),
     words: wp.array(dtype=wp.uint32),
     bits: wp.array(dtype=wp.int64),
 ):
     i, k = wp.tid()
-    coef, diff, comp = _block_start(packed, i, k, lay, quant, dct)
-    w = _code_block(coef, diff, comp, quant, codes, lengths, zigzag, _writer(0, 0, 0), words, 0)
+    base, diff, comp = _block_start(dcs, i, k, lay)
+    w = _code_block(coefs, base, diff, comp, codes, lengths, _writer(0, 0, 0), words, 0)
     bits[i * lay.nblocks + k] = wp.int64(w.count)
 
 
@@ -461,13 +459,11 @@ def _image_bits(ends: wp.array(dtype=wp.int64), i: int, lay: Layout):
 
 @wp.kernel
 def _pack(
-    packed: wp.array2d(dtype=wp.uint32),
+    coefs: wp.array(dtype=wp.int16),
+    dcs: wp.array(dtype=int),
     lay: Layout,
-    quant: wp.array(dtype=int),
-    dct: imat88,
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
-    zigzag: wp.array(dtype=int),
     bits: wp.array(dtype=wp.int64),
     ends: wp.array(dtype=wp.int64),
     words: wp.array(dtype=wp.uint32),
@@ -477,9 +473,9 @@ def _pack(
     if total > wp.int64(lay.cap_bits):
         return  # the host encodes this image
     start = int(ends[i * lay.nblocks + k] - bits[i * lay.nblocks + k] - base)
-    coef, diff, comp = _block_start(packed, i, k, lay, quant, dct)
+    at, diff, comp = _block_start(dcs, i, k, lay)
     w = _writer(start % 32, i * lay.cap_words + start // 32, 1)
-    w = _code_block(coef, diff, comp, quant, codes, lengths, zigzag, w, words, 1)
+    w = _code_block(coefs, at, diff, comp, codes, lengths, w, words, 1)
     if w.nacc > 0:  # the last word, shared with the next block
         wp.atomic_or(
             words, w.word, wp.uint32((w.acc << wp.uint64(32 - w.nacc)) & wp.uint64(0xFFFFFFFF))
@@ -598,10 +594,12 @@ def layout(width: int, height: int, subsampling: str) -> Any:
     return lay
 
 
-def bytes_per_world(width: int, height: int) -> int:
-    """Device memory a world of a pass needs for this encoder (4:4:4, the most blocks)."""
-    lay = layout(width, height, "444")
-    return lay.nblocks * 16 + lay.cap_words * 4 + lay.chunks * 8 + lay.cap_out
+def bytes_per_world(width: int, height: int, subsampling: str = "444") -> int:
+    """Device memory a world of a pass needs for this encoder at `subsampling` (default: 4:4:4,
+    the most blocks): each block's quantised coefficients (64 x 2 bytes), DC, bit count and
+    offset (20 bytes), the entropy data, its stuffing counts and the output."""
+    lay = layout(width, height, subsampling)
+    return lay.nblocks * (128 + 20) + lay.cap_words * 4 + lay.chunks * 8 + lay.cap_out
 
 
 @dataclass
@@ -698,16 +696,17 @@ class WarpJpeg:
             t = self._prepare(settings)
             lay, buf = t.lay, self._buffers
             blocks, chunks = n * lay.nblocks, n * lay.chunks
-            tables = [lay, t.quant, self._dct, t.codes, t.lengths, self._zigzag]
             words, ends, ff, ff_ends = buf["words"], buf["ends"], buf["ff"], buf["ff_ends"]
+            blocks_in = [buf["coefs"], buf["dcs"], lay, t.codes, t.lengths]
             wp.launch(
-                _count_bits, dim=(n, lay.nblocks), inputs=[packed, *tables, words, buf["bits"]]
+                _transform,
+                dim=(n, lay.nblocks),
+                inputs=[packed, lay, t.quant, self._dct, self._zigzag, buf["coefs"], buf["dcs"]],
             )
+            wp.launch(_count_bits, dim=(n, lay.nblocks), inputs=[*blocks_in, words, buf["bits"]])
             self._scans["bits"](buf["bits"], ends, blocks)
             words[: n * lay.cap_words].zero_()
-            wp.launch(
-                _pack, dim=(n, lay.nblocks), inputs=[packed, *tables, buf["bits"], ends, words]
-            )
+            wp.launch(_pack, dim=(n, lay.nblocks), inputs=[*blocks_in, buf["bits"], ends, words])
             wp.launch(_count_ff, dim=(n, lay.chunks), inputs=[words, ends, lay, ff])
             self._scans["ff"](ff, ff_ends, chunks)
             wp.launch(_sizes, dim=1, inputs=[ends, ff_ends, lay, n, buf["sizes"]])
@@ -784,6 +783,8 @@ class WarpJpeg:
     def _size_buffers(self, lay: Any) -> None:
         n, d = self.n_worlds, self.device
         want = {
+            "coefs": (n * lay.nblocks * 64, wp.int16),
+            "dcs": (n * lay.nblocks, int),
             "bits": (n * lay.nblocks, wp.int64),
             "ends": (n * lay.nblocks, wp.int64),
             "words": (n * lay.cap_words, wp.uint32),

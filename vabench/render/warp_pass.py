@@ -129,13 +129,15 @@ def pass_size(n: int) -> int:
     raise AssertionError(n)
 
 
-def pass_bytes(width: int, height: int, n_worlds: int, device_jpeg: bool | str) -> int:
+def pass_bytes(
+    width: int, height: int, n_worlds: int, device_jpeg: bool | str, subsampling: str = "444"
+) -> int:
     """Device memory a pass needs beyond its model: packed pixels (+ RGB bytes for nvJPEG and
-    nvImageCodec, `device_jpeg` true, or the buffers of `warp_jpeg`, "kernels") and a margin for
-    BVH nodes and data per world."""
+    nvImageCodec, `device_jpeg` true, or the buffers of `warp_jpeg` at `subsampling`,
+    "kernels") and a margin for BVH nodes and data per world."""
     jpeg = 0
     if device_jpeg == "kernels":
-        jpeg = warp_jpeg.bytes_per_world(width, height)
+        jpeg = warp_jpeg.bytes_per_world(width, height, subsampling)
     elif device_jpeg:
         jpeg = 3 * width * height
     per_world = width * height * 4 + jpeg + 256 * 1024

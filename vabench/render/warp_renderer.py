@@ -568,7 +568,7 @@ class WarpRenderPool:
             return CPU_MAX_PASS
         free = self._device.free_memory // gpu_share()
         fit = int(free * MEMORY_SHARE) // pass_bytes(
-            settings.width, settings.height, 1, self._jpeg_kind
+            settings.width, settings.height, 1, self._jpeg_kind, settings.subsampling
         )
         cap = min(MAX_PASS, MAX_PASS_PIXELS // (settings.width * settings.height))
         largest = 1 << max(0, min(cap, fit).bit_length() - 1)  # a power of two
@@ -624,7 +624,9 @@ class WarpRenderPool:
         """A new pass, kept, after evicting least recently used passes not in use until it fits
         the memory budget (the caller holds `_building`)."""
         key = (task, n_worlds, settings.width, settings.height)
-        need = pass_bytes(settings.width, settings.height, n_worlds, device_jpeg)
+        need = pass_bytes(
+            settings.width, settings.height, n_worlds, device_jpeg, settings.subsampling
+        )
         victims = []
         with self._lock:
             budget = self._pass_budget(settings)
@@ -666,11 +668,11 @@ class WarpRenderPool:
     def _pass_budget(self, settings: ImageSettings) -> int:
         """Bytes all passes kept may take: decided with the first pass (from the memory free
         then, like the largest pass), and never less than the largest pass of any size."""
-        w, h, jpeg = settings.width, settings.height, self._jpeg_kind
+        w, h, jpeg, sub = settings.width, settings.height, self._jpeg_kind, settings.subsampling
         if self._budget is None:
             self._budget = (
                 int(self._device.free_memory // gpu_share() * MEMORY_SHARE)
                 if self._device.is_cuda
-                else pass_bytes(w, h, CPU_BUDGET_WORLDS, jpeg)
+                else pass_bytes(w, h, CPU_BUDGET_WORLDS, jpeg, sub)
             )
-        return max(self._budget, pass_bytes(w, h, self._largest_pass(settings), jpeg))
+        return max(self._budget, pass_bytes(w, h, self._largest_pass(settings), jpeg, sub))

@@ -37,6 +37,7 @@ SECONDS_VARIABLE = "VABENCH_KERNEL_PROFILE_S"
 DEFAULT_AT_S, DEFAULT_S = 60.0, 20.0
 
 WARP_JPEG_KERNELS = (
+    "_transform",
     "_count_bits",
     "_pack",
     "_count_ff",
