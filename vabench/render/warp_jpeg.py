@@ -21,10 +21,10 @@ How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGG
 
 1. `_transform`: a thread per 8x8 block (image, MCU, block of the MCU) converts its pixels'
    colour, subsamples the chroma, transforms and quantises, and keeps the coefficients (zigzag
-   order, 16 bits each) and the DC for the kernels after it.
+   order, 16 bits each, the DC first) for the kernels after it.
 2. `_count_bits`: a thread per block sums the lengths of its Huffman codes. A block's DC is
    coded as the difference from the same component's block before it in scan order, read
-   from the kept DCs.
+   from the kept coefficients.
 3. An inclusive scan of those lengths: each block's bit offset in its image's entropy data
    (`warp_scan`: Warp's own scan frees its scratch memory unordered with our streams), then
    `_pack`: the same blocks again, each writing its codes at its offset into its image's row
@@ -47,7 +47,7 @@ used to compute their block's samples and DCT, and its predecessor's DC again fr
 pixels: four reads and conversions of every pixel. On Warp's CPU device the DC alone was 31 %
 of `_count_bits`, the samples ~30 %, the Huffman codes ~36 %; kept, an encode of two
 1280x960 frames takes 118.8 ms against 224.2 (the same bytes: tests/test_warp_jpeg.py's
-goldens, made by the encoder before). The price: 132 bytes a block, ~3.8 MB a 1280x960
+goldens, made by the encoder before). The price: 128 bytes a block, ~3.7 MB a 1280x960
 world at 4:2:0 (`bytes_per_world`, charged to the renderer's passes). Not yet timed on a
 GPU, where the JPEG kernels were 19 % of the main job's kernel time (`_pack` and `_count_bits`
 ~6.4 ms a call each; docs/PERFORMANCE.md, "Thirteenth session").
@@ -404,17 +404,17 @@ def _transform(
     dct: imat88,
     zigzag: wp.array(dtype=int),
     coefs: wp.array(dtype=wp.int16),
-    dcs: wp.array(dtype=int),
 ):
-    """Block k of image i, once: its samples, their DCT, quantised; the AC coefficients in
-    zigzag order at 64 (i * nblocks + k) + 1.., the DC in `dcs`."""
+    """Block k of image i, once: its samples, their DCT, quantised, in zigzag order at 64 (i *
+    nblocks + k) (the DC first: at most 1,024 in magnitude, the AC clamped to baseline's 10
+    bits)."""
     i, k = wp.tid()
     mcu = k // lay.blocks
     b = k % lay.blocks
     table = wp.min(wp.max(b - lay.h * lay.v + 1, 0), 1) * 64
     coef = _coefficients(_samples(packed, i, mcu, b, lay), dct)
     at = i * lay.nblocks + k
-    dcs[at] = _quantise(coef[0, 0], quant[table])
+    coefs[at * 64] = wp.int16(_quantise(coef[0, 0], quant[table]))
     for j in range(1, 64):
         n = zigzag[j]
         value = _quantise(coef[n // 8, n % 8], quant[table + n])
@@ -422,20 +422,19 @@ def _transform(
 
 
 @wp.func
-def _block_start(dcs: wp.array(dtype=int), i: int, k: int, lay: Layout):
+def _block_start(coefs: wp.array(dtype=wp.int16), i: int, k: int, lay: Layout):
     """Block k of image i: (where its coefficients start, its DC difference, its component)."""
     at = i * lay.nblocks + k
     before = _previous_block(k, lay)
-    dc = dcs[at]
+    dc = int(coefs[at * 64])
     if before >= 0:
-        dc = dc - dcs[i * lay.nblocks + before]
+        dc = dc - int(coefs[(i * lay.nblocks + before) * 64])
     return at * 64, dc, wp.max(k % lay.blocks - lay.h * lay.v + 1, 0)
 
 
 @wp.kernel
 def _count_bits(
     coefs: wp.array(dtype=wp.int16),
-    dcs: wp.array(dtype=int),
     lay: Layout,
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
@@ -443,7 +442,7 @@ def _count_bits(
     bits: wp.array(dtype=wp.int64),
 ):
     i, k = wp.tid()
-    base, diff, comp = _block_start(dcs, i, k, lay)
+    base, diff, comp = _block_start(coefs, i, k, lay)
     w = _code_block(coefs, base, diff, comp, codes, lengths, _writer(0, 0, 0), words, 0)
     bits[i * lay.nblocks + k] = wp.int64(w.count)
 
@@ -460,7 +459,6 @@ def _image_bits(ends: wp.array(dtype=wp.int64), i: int, lay: Layout):
 @wp.kernel
 def _pack(
     coefs: wp.array(dtype=wp.int16),
-    dcs: wp.array(dtype=int),
     lay: Layout,
     codes: wp.array(dtype=int),
     lengths: wp.array(dtype=int),
@@ -473,7 +471,7 @@ def _pack(
     if total > wp.int64(lay.cap_bits):
         return  # the host encodes this image
     start = int(ends[i * lay.nblocks + k] - bits[i * lay.nblocks + k] - base)
-    at, diff, comp = _block_start(dcs, i, k, lay)
+    at, diff, comp = _block_start(coefs, i, k, lay)
     w = _writer(start % 32, i * lay.cap_words + start // 32, 1)
     w = _code_block(coefs, at, diff, comp, codes, lengths, w, words, 1)
     if w.nacc > 0:  # the last word, shared with the next block
@@ -596,10 +594,10 @@ def layout(width: int, height: int, subsampling: str) -> Any:
 
 def bytes_per_world(width: int, height: int, subsampling: str = "444") -> int:
     """Device memory a world of a pass needs for this encoder at `subsampling` (default: 4:4:4,
-    the most blocks): each block's quantised coefficients (64 x 2 bytes), DC, bit count and
-    offset (20 bytes), the entropy data, its stuffing counts and the output."""
+    the most blocks): each block's quantised coefficients (64 x 2 bytes), bit count and offset
+    (16 bytes), the entropy data, its stuffing counts and the output."""
     lay = layout(width, height, subsampling)
-    return lay.nblocks * (128 + 20) + lay.cap_words * 4 + lay.chunks * 8 + lay.cap_out
+    return lay.nblocks * (128 + 16) + lay.cap_words * 4 + lay.chunks * 8 + lay.cap_out
 
 
 @dataclass
@@ -697,11 +695,11 @@ class WarpJpeg:
             lay, buf = t.lay, self._buffers
             blocks, chunks = n * lay.nblocks, n * lay.chunks
             words, ends, ff, ff_ends = buf["words"], buf["ends"], buf["ff"], buf["ff_ends"]
-            blocks_in = [buf["coefs"], buf["dcs"], lay, t.codes, t.lengths]
+            blocks_in = [buf["coefs"], lay, t.codes, t.lengths]
             wp.launch(
                 _transform,
                 dim=(n, lay.nblocks),
-                inputs=[packed, lay, t.quant, self._dct, self._zigzag, buf["coefs"], buf["dcs"]],
+                inputs=[packed, lay, t.quant, self._dct, self._zigzag, buf["coefs"]],
             )
             wp.launch(_count_bits, dim=(n, lay.nblocks), inputs=[*blocks_in, words, buf["bits"]])
             self._scans["bits"](buf["bits"], ends, blocks)
@@ -784,7 +782,6 @@ class WarpJpeg:
         n, d = self.n_worlds, self.device
         want = {
             "coefs": (n * lay.nblocks * 64, wp.int16),
-            "dcs": (n * lay.nblocks, int),
             "bits": (n * lay.nblocks, wp.int64),
             "ends": (n * lay.nblocks, wp.int64),
             "words": (n * lay.cap_words, wp.uint32),
