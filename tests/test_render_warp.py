@@ -544,3 +544,28 @@ def test_by_default_states_come_from_the_host_copies(cube_items):
         os.environ.pop("VABENCH_WARP_DEVICE", None)
     for host, device in zip(images[False], images[True], strict=True):
         np.testing.assert_array_equal(host, device)
+
+
+def test_a_family_s_variant_fields_are_found_once_for_all_its_passes(shoe_items, monkeypatch):
+    """Comparing a family's object variants (a model on the device per variant) was most of a
+    pass's build, and a pass is built per family and size (42 a process in the warm suite on an
+    H100): the renderer does it once a family; passes of other sizes reuse it, pixel for pixel
+    as a pass that found the fields itself."""
+    from vabench.render import warp_renderer
+    from vabench.sim_mjx.warp import model
+
+    calls: list[str] = []
+
+    def counted(models, ignore=model.PHYSICS_IGNORED):
+        calls.append(ignore)
+        return model.variant_fields(models, ignore)
+
+    monkeypatch.setattr(warp_renderer, "variant_fields", counted)
+    monkeypatch.setenv("VABENCH_WARP_DEVICE", "cpu")
+    with WarpRenderPool(max_size=(320, 240), jpeg="host") as pool:
+        four = pool.render_rgb(SHOE, shoe_items, SIZE)  # a pass of 4 worlds
+        one = pool.render_rgb(SHOE, shoe_items[2:3], SIZE)  # a pass of 1 (4 serves up to 2)
+        assert pool.stats.built == 2
+    assert calls == [model.RENDER_IGNORED]
+    assert np.array_equal(four[2:3], one)
+    assert len({it.variant for it in shoe_items}) > 1  # the fields do differ between them

@@ -26,7 +26,7 @@ from vabench.render.camera import FAR, NEAR
 from vabench.render.images import RenderItem
 from vabench.render.renderer import VIEW_CAMERA, render_spec
 from vabench.sim_mjx.warp import streams
-from vabench.sim_mjx.warp.model import RENDER_IGNORED, WarpModel
+from vabench.sim_mjx.warp.model import RENDER_IGNORED, VariantFields, WarpModel
 from vabench.tasks.base import Task
 
 
@@ -148,7 +148,8 @@ class RenderPass:
     """A render batch of `n_worlds` worlds of one task family at one image size. Its JPEG
     (`device_jpeg`): on the host (False), from RGB frames it unpacks on the device (True: nvJPEG
     or nvImageCodec), or by its own `warp_jpeg.WarpJpeg` ("kernels"; `jpeg_seconds` sums where
-    that encoder's time goes)."""
+    that encoder's time goes). `variants`: `variant_fields(models, RENDER_IGNORED)`, which the
+    renderer finds once a family (most of a pass's build otherwise)."""
 
     def __init__(
         self,
@@ -159,11 +160,14 @@ class RenderPass:
         device_jpeg: bool | str,
         high_priority: bool = False,
         jpeg_seconds: dict[str, float] | None = None,
+        variants: VariantFields | None = None,
     ):
         self.n_worlds, self.width, self.height = n_worlds, width, height
         m0 = models[0]
         self.cam = mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_CAMERA, VIEW_CAMERA)
-        self.wm = WarpModel(models, n_worlds, ignore=RENDER_IGNORED, per_world=("cam_fovy",))
+        self.wm = WarpModel(
+            models, n_worlds, RENDER_IGNORED, per_world=("cam_fovy",), variants=variants
+        )
         self.m = self.wm.model
         # Kinematics only: no contacts or constraints are ever computed in these worlds.
         self.d = mjw.make_data(m0, nworld=n_worlds, nconmax=1, njmax=1)

@@ -80,6 +80,7 @@ from vabench.render.images import (
 from vabench.render.warp_pass import RenderPass, pass_bytes, pass_size, render_models
 from vabench.sim_mjx.warp import streams
 from vabench.sim_mjx.warp.device import device_lock, gpu_share, warp_device
+from vabench.sim_mjx.warp.model import RENDER_IGNORED, VariantFields, variant_fields
 from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
@@ -168,6 +169,8 @@ class WarpRenderPool:
         self._passes: OrderedDict[tuple[str, int, int, int], tuple[RenderPass, int]] = OrderedDict()
         self._budget = self.memory_budget  # bytes for all passes kept (else set with the first)
         self._models: dict[str, list[mujoco.MjModel]] = {}
+        # per task, the model fields its variants differ in (found by the first pass built)
+        self._variants: dict[str, VariantFields] = {}
         self._largest: dict[tuple[int, int], int] = {}
         self._host_jpeg: JpegThreads | None = None
         # set where JPEG is encoded on the device (nvImageCodec's first encoder, or nvjpeg's
@@ -645,6 +648,8 @@ class WarpRenderPool:
         with self._lock_device, wp.ScopedDevice(self._device):
             t0 = time.perf_counter()
             victims.clear()  # their memory is freed here, with the device's lock held
+            if task not in self._variants:  # once a family, not once a pass
+                self._variants[task] = variant_fields(models, RENDER_IGNORED)
             built = RenderPass(
                 models,
                 n_worlds,
@@ -653,6 +658,7 @@ class WarpRenderPool:
                 device_jpeg,
                 urgent,
                 self._warp_jpeg_seconds,
+                self._variants[task],
             )
             seconds = time.perf_counter() - t0
         with self._lock:

@@ -139,12 +139,49 @@ def _batchable(name: str) -> bool:
     return bool(shape) and shape[0] == "*"
 
 
+@dataclasses.dataclass(frozen=True)
+class VariantFields:
+    """The device-model fields in which a family's object variants differ, with each
+    variant's row of each (shape (n_variants, *row)); `variant_fields` finds them."""
+
+    values: dict[str, np.ndarray]
+
+
+def variant_fields(
+    models: Sequence[mujoco.MjModel], ignore: tuple[str, ...] = PHYSICS_IGNORED
+) -> VariantFields:
+    """Put every variant's model on the current device and compare their fields (`ignore`:
+    name prefixes whose differences do not matter to the user of the model). Depends on the
+    models only, not on the batch: a renderer that builds many passes of one family finds them
+    once (on an H100 a pass took ~0.47 s to build with the device's lock held, most of it
+    here; 42 a process in the warm suite, 2026-11-28)."""
+    per_variant = [mjw.put_model(m) for m in models]
+    first = _array_fields(per_variant[0])
+    varying: list[str] = []
+    for k, mw in enumerate(per_variant[1:], start=1):
+        for name, arr in _array_fields(mw).items():
+            a, b = first[name].numpy(), arr.numpy()
+            if a.shape == b.shape and np.array_equal(a, b):
+                continue
+            if name.startswith(ignore) or name in varying:
+                continue
+            if "." in name or not _batchable(name):
+                raise ValueError(
+                    f"model variant {k} differs in {name}, which MuJoCo Warp cannot hold per world"
+                )
+            varying.append(name)
+    return VariantFields(
+        {name: np.stack([getattr(mw, name).numpy()[0] for mw in per_variant]) for name in varying}
+    )
+
+
 class WarpModel:
     """The device model of a batch: variant 0's model with the fields that differ between
     variants batched per world. `assign(variants)` points every world at its slot's variant.
 
     `ignore`: name prefixes of fields whose differences do not matter to the user of the model;
-    `per_world`: fields batched whether or not they differ (the renderer's camera FOV)."""
+    `per_world`: fields batched whether or not they differ (the renderer's camera FOV);
+    `variants`: `variant_fields(models, ignore)` when already known."""
 
     def __init__(
         self,
@@ -152,29 +189,12 @@ class WarpModel:
         n_slots: int,
         ignore: tuple[str, ...] = PHYSICS_IGNORED,
         per_world: tuple[str, ...] = (),
+        variants: VariantFields | None = None,
     ):
         self.n_slots = n_slots
-        per_variant = [mjw.put_model(m) for m in models]
-        first = _array_fields(per_variant[0])
-        varying: list[str] = []
-        for k, mw in enumerate(per_variant[1:], start=1):
-            for name, arr in _array_fields(mw).items():
-                a, b = first[name].numpy(), arr.numpy()
-                if a.shape == b.shape and np.array_equal(a, b):
-                    continue
-                if name.startswith(ignore) or name in varying:
-                    continue
-                if "." in name or not _batchable(name):
-                    raise ValueError(
-                        f"model variant {k} differs in {name}, which MuJoCo Warp cannot hold "
-                        "per world"
-                    )
-                varying.append(name)
         # Per variant, the rows of each varying field (shape (n_variants, *row)).
-        self.values = {
-            name: np.stack([getattr(mw, name).numpy()[0] for mw in per_variant]) for name in varying
-        }
-        batched = {name: n_slots for name in (*varying, *per_world)}
+        self.values = (variants or variant_fields(models, ignore)).values
+        batched = {name: n_slots for name in (*self.values, *per_world)}
         self.model = mjw.put_model(models[0], batch_sizes=batched)
         self.model.opt.warn_overflow = 0  # overflow is reported per slot (failure_text)
         self.current = np.zeros(n_slots, np.int32)
