@@ -31,7 +31,6 @@ from vabench import tables
 from vabench.report import (
     active_passive,
     base_tables,
-    figures,
     html,
     spend,
     stats,
@@ -126,6 +125,10 @@ def write_report(
     bill_section = spend.spend_section(spend.bill(results.path.parent), pricing)
     if bill_section is not None:
         sections.append(bill_section)
+
+    # matplotlib (~0.7 s to import) only when a report is drawn: the sweep imports this
+    # package at its start for the bill (`spend`)
+    from vabench.report import figures
 
     pngs: list[tuple[str, html.Figure]] = [  # (its file in figures/, the figure)
         (

@@ -24,12 +24,14 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 
-from vabench.sim_mjx.interface import BatchBase
 from vabench.sim_mjx.warp.device import warp_device, warp_problem
+
+if TYPE_CHECKING:  # choosing a backend (config, --dry-run) must not import JAX
+    from vabench.sim_mjx.interface import BatchBase
 
 BACKENDS = ("auto", "warp", "mjx", "c")
 """The names `simulator.backend` and `--backend` accept."""

@@ -21,10 +21,13 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax
 
-# mujoco.mjx prints "Failed to import warp" on stdout when MuJoCo Warp is absent; keep stdout
-# clean for the CLIs that print JSON.
-with contextlib.redirect_stdout(io.StringIO()):
-    from mujoco import mjx  # noqa: F401
+
+def quiet_stdout() -> contextlib.AbstractContextManager[object]:
+    """Around `from mujoco import mjx`: it prints "Failed to import warp" on stdout when MuJoCo
+    Warp is absent; the CLIs that print JSON keep stdout clean. Only the MJX backend imports
+    mjx: it also imports its own copy of MuJoCo Warp and Warp itself, ~4 s of every process's
+    start on a 2-core machine, which the C and Warp backends never use."""
+    return contextlib.redirect_stdout(io.StringIO())
 
 
 def _enable_compilation_cache() -> None:

@@ -20,10 +20,12 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from vabench.sim_mjx import controller as ctl
-from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
+from vabench.sim_mjx import jax_setup  # JAX configured before it compiles
+
+with jax_setup.quiet_stdout():
+    from mujoco import mjx
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import BatchBase, StepInfo, hold_chunks, in_lanes

@@ -17,9 +17,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
-from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
+from vabench.sim_mjx import jax_setup  # JAX configured before it compiles
 
 # Static (numpy) MJX fields that may differ between variants because they only serve features
 # the variants do not use (height fields).
@@ -73,6 +72,8 @@ class ModelVariants:
         if not models:
             raise ValueError("need at least one model")
         check_same_structure(models)
+        with jax_setup.quiet_stdout():  # MJX's own, not imported by the other backends
+            from mujoco import mjx
         mxs = [mjx.put_model(m, impl=impl, device=device) for m in models]
         self.base = mxs[0]
         self.n = len(mxs)
@@ -90,7 +91,7 @@ class ModelVariants:
         ]
         self.stacked = tuple(jnp.stack([v[i] for v in all_leaves]) for i in self.varying)
 
-    def select(self, base: mjx.Model, stacked: tuple[jax.Array, ...], variant: jax.Array) -> Any:
+    def select(self, base: Any, stacked: tuple[jax.Array, ...], variant: jax.Array) -> Any:
         """The model of one slot (inside jit): base with the varying arrays of `variant`."""
         if not self.varying:
             return base
