@@ -177,6 +177,10 @@ class Conversation:
     _context: list[Entry] = field(default_factory=list, init=False, repr=False)
     _transcript: list[Entry] = field(default_factory=list, init=False, repr=False)
     _compactions: list[CompactionEvent] = field(default_factory=list, init=False, repr=False)
+    _built: tuple[tuple[Turn, ...], int] | None = field(default=None, init=False, repr=False)
+    """The context's turns as last built and their estimated tokens, until the context changes:
+    a decision asks for them twice (`compact_if_needed`, then `request`), and building them
+    walks the whole thread (~2.5 ms a call in a 180-call episode on a 2-core machine)."""
 
     def __post_init__(self) -> None:
         if self.protocol not in ("active", "passive"):
@@ -186,6 +190,7 @@ class Conversation:
     def _append(self, entry: Entry) -> None:
         self._context.append(entry)
         self._transcript.append(entry)
+        self._built = None
 
     def _observation_entry(
         self, kind: EntryKind, text: str, images: Image | Mapping[str, Image], step: int
@@ -276,6 +281,9 @@ class Conversation:
         """The entries' turns with the images not in `kept` replaced by placeholders."""
         turns = []
         for i, entry in enumerate(entries):
+            if len(entry.turn.content) == 1 and isinstance(entry.turn.content[0], str):
+                turns.append(entry.turn)  # most of a long thread: replies and text results
+                continue
             parts: list[Part] = []
             n_image = 0
             for j, part in enumerate(entry.turn.content):
@@ -292,14 +300,20 @@ class Conversation:
 
     def request(self, options: GenerationOptions | None = None) -> ChatRequest:
         """The next call: the system prompt and the context with images retained as above."""
-        if not self._context:
-            raise ValueError("the conversation has no turn yet")
-        turns = self._turns(self._context, self._kept_images(self._context))
-        return ChatRequest(tuple(turns), self.system, options)
+        return ChatRequest(self._build()[0], self.system, options)
+
+    def _build(self) -> tuple[tuple[Turn, ...], int]:
+        if self._built is None:
+            if not self._context:
+                raise ValueError("the conversation has no turn yet")
+            turns = tuple(self._turns(self._context, self._kept_images(self._context)))
+            tokens = estimate_input_tokens(ChatRequest(turns, self.system), self.image_rule)
+            self._built = (turns, tokens)
+        return self._built
 
     def estimate_tokens(self) -> int:
         """Estimated input tokens of `request()` (text 4 chars/token, images by `image_rule`)."""
-        return estimate_input_tokens(self.request(), self.image_rule)
+        return self._build()[1]
 
     def needs_compaction(self) -> bool:
         return self.estimate_tokens() > self.limits.compact_above
@@ -334,6 +348,7 @@ class Conversation:
         entry = Entry("summary", Turn.user(SUMMARY_HEADER + summary), step=step)
         self._context = [entry, *kept]
         self._transcript.append(entry)
+        self._built = None
         event = CompactionEvent(
             step=step,
             tokens_before=before,
