@@ -23,9 +23,6 @@ import numpy as np
 
 from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import jax_setup  # JAX configured before it compiles
-
-with jax_setup.quiet_stdout():
-    from mujoco import mjx
 from vabench.sim_mjx import kinematics as kin
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import BatchBase, StepInfo, hold_chunks, in_lanes
@@ -33,6 +30,9 @@ from vabench.sim_mjx.layout import ArmLayout, plan_from, with_refs
 from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import ModelVariants
+
+with jax_setup.quiet_stdout():  # this backend's alone (`jax_setup.quiet_stdout`)
+    from mujoco import mjx
 
 
 @pytree_dataclass

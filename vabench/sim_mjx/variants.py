@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +19,9 @@ import mujoco
 import numpy as np
 
 from vabench.sim_mjx import jax_setup  # JAX configured before it compiles
+
+if TYPE_CHECKING:
+    from mujoco import mjx
 
 # Static (numpy) MJX fields that may differ between variants because they only serve features
 # the variants do not use (height fields).
@@ -91,7 +94,7 @@ class ModelVariants:
         ]
         self.stacked = tuple(jnp.stack([v[i] for v in all_leaves]) for i in self.varying)
 
-    def select(self, base: Any, stacked: tuple[jax.Array, ...], variant: jax.Array) -> Any:
+    def select(self, base: mjx.Model, stacked: tuple[jax.Array, ...], variant: jax.Array) -> Any:
         """The model of one slot (inside jit): base with the varying arrays of `variant`."""
         if not self.varying:
             return base
