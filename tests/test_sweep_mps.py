@@ -35,6 +35,13 @@ if sys.argv[1:] == ["-d"]:
         open(os.path.join(pipe, "control"), "w").close()
 else:
     log.write(f"{{sys.stdin.read().strip()}} {{pipe}}\\n")
+    log.flush()
+    release = os.environ.get("FAKE_MPS_QUIT_UNTIL")
+    if release:  # as the real one: `quit` returns once the daemon's last client is gone
+        import time
+        deadline = time.monotonic() + 60
+        while not os.path.exists(release) and time.monotonic() < deadline:
+            time.sleep(0.05)
 """
 
 
@@ -193,6 +200,29 @@ def test_engines_that_died_do_not_keep_a_daemon(control, engines, tmp_path, monk
     mps.join_node_daemon("sweep3", two)
     assert f"quit {pipe}" == control.read_text().splitlines()[-2]  # reaped
     assert not pipe.exists()
+
+
+def test_the_last_engine_leaving_does_not_wait_for_the_daemon_to_end(
+    control, engines, tmp_path, monkeypatch, caplog
+):
+    """The last engine to leave is itself a client of the daemon (its CUDA context lives until
+    its process ends), and `quit` does not return before the daemon ends: leaving tells the
+    daemon to quit and returns, the command still running. Waiting for it held every Ray sweep
+    sharing GPUs for 30 s at its end (4 x H200, 2026-11-28)."""
+    one, _, _ = engines
+    release = tmp_path / "last-client-gone"
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setenv("FAKE_MPS_QUIT_UNTIL", str(release))
+    mps.join_node_daemon("sweep1", one)
+    pipe = mps.node_folder("sweep1") / "pipe"
+    caplog.set_level("INFO", logger=mps.__name__)
+    mps.leave_node_daemon("sweep1", one)
+    assert control.read_text().splitlines() == [f"start {pipe}", f"quit {pipe}"]  # delivered
+    assert not release.exists()  # ... and `quit` still waiting when leaving returned
+    assert "told to quit; it ends with its last client" in caplog.text
+    assert "not told to quit" not in caplog.text
+    assert not (mps.node_folder("sweep1") / "members").exists()
+    release.touch()
 
 
 def test_a_nodes_daemon_that_does_not_start_is_said(control, tmp_path, monkeypatch):

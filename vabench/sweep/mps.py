@@ -40,6 +40,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -65,6 +66,8 @@ DEFAULT_PIPE = Path("/tmp/nvidia-mps")
 """Where a daemon started without CUDA_MPS_PIPE_DIRECTORY listens (the machine's own)."""
 START_WAIT_S = 10.0
 """How long the daemon may take to open its control pipe after `-d` returns."""
+QUIT_WAIT_S = 2.0
+"""How long `_quit` waits for `quit` to return (at once where no client is left)."""
 
 
 class MpsUnavailable(RuntimeError):
@@ -273,15 +276,44 @@ def _wait_for_control(pipe: Path) -> None:
 
 
 def _quit(program: str, env: Mapping[str, str]) -> None:
-    """Tell the daemon to quit (it ends its server once the last client is gone)."""
+    """Tell the daemon to quit, without waiting for it to end: it ends once its last client is
+    gone, and the caller is often one (a Ray engine leaving its node's daemon last, its CUDA
+    context alive until the process exits). `quit` does not return before the daemon ends, so
+    waiting for it held every such engine's close for the full 30 s the call was allowed, and
+    each Ray sweep that shared GPUs with it (4 x H200, 2026-11-28: "the daemon was not told to
+    quit ... timed out after 30 seconds" at the end of every count, ~30 s of its ~115 s). The
+    control program runs in a session of its own, so it delivers the command whatever happens to
+    this process; a quick answer (no clients left) is still read and logged."""
     try:
-        done = subprocess.run(
-            [program], input="quit\n", env=dict(env), capture_output=True, text=True, timeout=30
+        proc = subprocess.Popen(
+            [program],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            env=dict(env),
+            text=True,
+            start_new_session=True,
         )
-    except (OSError, subprocess.TimeoutExpired) as err:
+        assert proc.stdin is not None
+        proc.stdin.write("quit\n")
+        proc.stdin.close()
+    except OSError as err:
         log.warning("CUDA MPS: the daemon was not told to quit: %s", err)
         return
-    if done.returncode != 0:
-        log.warning("CUDA MPS: `quit` exited %d: %s", done.returncode, done.stderr.strip())
+    try:
+        code = proc.wait(timeout=QUIT_WAIT_S)
+    except subprocess.TimeoutExpired:
+        log.info("CUDA MPS: the daemon was told to quit; it ends with its last client")
+        threading.Thread(target=_reap, args=(proc,), daemon=True).start()
+        return
+    said = proc.stderr.read().strip() if proc.stderr is not None else ""
+    if code != 0:
+        log.warning("CUDA MPS: `quit` exited %d: %s", code, said)
     else:
         log.info("CUDA MPS: the sweep's daemon quit")
+
+
+def _reap(proc: subprocess.Popen[str]) -> None:
+    """Wait for a `quit` left running (no zombie while this process lives)."""
+    with contextlib.suppress(Exception):
+        proc.communicate()
