@@ -29,7 +29,7 @@ def _hand_out(engines, queue, records, max_chunks=8):
     """The driver's loop body (`ClusterSweep._hand_out`) on plain lists."""
     given = []
     while queue:
-        queued = sum(len(c.keys) * c.cost for c in queue)
+        queued = sum(len(c.keys) * c.cost for c in queue if not c.critical)
         best = choose_engine(engines, queue[0], records, queued, max_chunks)
         if best is None:
             break
@@ -39,7 +39,7 @@ def _hand_out(engines, queue, records, max_chunks=8):
     return given
 
 
-def _run(engines, queue, ready_at, seconds_per_episode=1.0):
+def _run(engines, queue, ready_at, seconds_per_episode=1.0, watch=None):
     """Every engine steps all its chunks' episodes at once (one batch per task): each chunk
     records one episode every `seconds_per_episode` x its cost / 10. Returns the time each
     engine worked until, and every chunk's engine."""
@@ -55,6 +55,8 @@ def _run(engines, queue, ready_at, seconds_per_episode=1.0):
         for index, name in _hand_out(engines, queue, records):
             assert name not in placed, f"{name} given twice"
             placed[name] = index
+        if watch is not None:
+            watch(engines)
         for e in engines:
             for ref, chunk in list(e.chunks.items()):
                 done = progress.get(id(chunk), 0.0) + dt / (seconds_per_episode * chunk.cost / 10)
@@ -159,3 +161,90 @@ def test_an_engine_that_never_starts_stops_holding_a_share():
     soon, late = asked + START_GRACE_S - 1, asked + START_GRACE_S + 1
     assert choose_engine(engines, queue[0], {}, queued, 8, now=soon) is None
     assert choose_engine(engines, queue[0], {}, queued, 8, now=late) is engines[0]
+
+
+def _on_gpus(engines: list[EngineHandle], per_gpu: int) -> list[EngineHandle]:
+    """Engines sharing GPUs, `per_gpu` a GPU, as their start replies say (`info["gpus"]`)."""
+    for e in engines:
+        e.info = {"node": "n1", "gpus": [str(e.index // per_gpu)]}
+    return engines
+
+
+def _critical(n: int, episodes: int, cost: int) -> list[Chunk]:
+    return [
+        Chunk(
+            f"basket {i}",
+            [("m", "active", "basket", i * episodes + s, 1) for s in range(episodes)],
+            cost,
+            critical=True,
+        )
+        for i in range(n)
+    ]
+
+
+def test_the_critical_paths_chunks_run_alone_one_a_gpu():
+    """`configs/all.yaml` on 4 GPUs x 4 engines (4 x H200, 2026-11-28): the basket's four chunks
+    of 15 episodes first in the queue, then 28 chunks of the other families. Each basket chunk
+    goes to an engine of its own on a GPU of its own, even where the first engines ready share
+    a GPU, and that engine takes nothing else while it runs it; every chunk is given once and
+    every engine gets work."""
+    engines = _on_gpus(_engines(16), per_gpu=4)
+    ready_at = [8.0 + 0.1 * i for i in range(16)]  # GPU 0's engines first
+    queue = [*_critical(4, 15, 250), *_plan(28, 15, 50)]
+    alone = []
+
+    def watch(engines):
+        for e in engines:
+            kinds = [c.critical for c in e.chunks.values()]
+            if any(kinds):
+                alone.append(kinds == [True])
+
+    _, placed = _run(engines, queue, ready_at, watch=watch)
+    assert len(placed) == 32
+    gpus = [engines[placed[f"basket {i}"]].gpu for i in range(4)]
+    assert len(set(gpus)) == 4, gpus
+    assert alone and all(alone)
+    assert {placed[f"t{t}"] for t in range(28)} | {placed[f"basket {i}"] for i in range(4)} == set(
+        range(16)
+    )
+
+
+def test_a_critical_chunk_does_not_leave_the_rest_without_an_engine():
+    """One engine runs the basket with everything else. With two, the first basket chunk is
+    alone and the second is placed as any other chunk (on the other engine, the one left for
+    the rest); every engine then holding one, the rest is shared by both as before."""
+    one = _ready(_on_gpus(_engines(1), per_gpu=4))
+    queue = [*_critical(1, 15, 250), *_plan(4, 15, 50)]
+    assert [i for i, _ in _hand_out(one, queue, {})] == [0] * 5
+    two = _ready(_on_gpus(_engines(2), per_gpu=4))
+    queue = [*_critical(2, 15, 250), *_plan(4, 15, 50)]
+    given = _hand_out(two, queue, {})
+    assert given[0] == (0, "basket 0") and given[1][1] == "basket 1"
+    assert given[1] == (1, "basket 1")
+    assert {i for i, _ in given[2:]} == {0, 1} and not queue
+    three = _ready(_on_gpus(_engines(3), per_gpu=4))
+    queue = [*_critical(1, 15, 250), *_plan(4, 15, 50)]
+    given = _hand_out(three, queue, {})
+    assert given[0] == (0, "basket 0") and all(i != 0 for i, _ in given[1:]), given
+
+
+def test_a_critical_chunk_waits_for_engines_still_starting_then_doubles_up():
+    """Two engines ready on GPU 0, one of them running a basket chunk, a third engine starting:
+    the next basket chunk waits for it (it may sit on another GPU) for `CRITICAL_WAIT_S`, then
+    takes the idle engine on GPU 0."""
+    from vabench.sweep.ray_plan import CRITICAL_WAIT_S
+
+    engines = _on_gpus(_engines(4), per_gpu=2)
+    for e in engines[:2]:
+        e.starting = None
+    first, second = _critical(2, 15, 250)
+    engines[0].chunks[object()] = first
+    asked = engines[2].clock.asked_at
+    soon, late = asked + CRITICAL_WAIT_S - 1, asked + CRITICAL_WAIT_S + 1
+    assert choose_engine(engines, second, {}, 0, 8, now=soon) is None
+    assert choose_engine(engines, second, {}, 0, 8, now=late) is engines[1]
+    engines[2].starting = None
+    engines[2].info = {"node": "n1", "gpus": ["1"]}
+    assert choose_engine(engines, second, {}, 0, 8, now=soon) is engines[2]
+    other = _plan(1, 15, 50)[0]  # a chunk off the critical path never joins a basket chunk
+    assert choose_engine(engines, other, {}, 750, 8, now=soon) is engines[1]

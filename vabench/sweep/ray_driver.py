@@ -91,8 +91,15 @@ class ClusterSweep:
             budgets = {key[0]: cost(key[0]) for key in units}
             self.choices = with_critical_path(self.choices, budgets)
         parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
+        critical = set(self.choices.executor.critical_path or ()) if self.batched else set()
         self.queue: collections.deque[Chunk] = collections.deque(
-            Chunk(name, [ledger_key(k) for k in part], cost(part[0].task)) for name, part in parts
+            Chunk(
+                name,
+                [ledger_key(k) for k in part],
+                cost(part[0].task),
+                critical=part[0].task in critical,
+            )
+            for name, part in parts
         )
         self.total = len(self.queue)
         self.done = 0
@@ -279,7 +286,7 @@ class ClusterSweep:
             left = [k for k in chunk.keys if k not in self.ledger.records]
             if left:
                 name = chunk.name if chunk.name.endswith(" (again)") else f"{chunk.name} (again)"
-                self.queue.appendleft(Chunk(name, left, chunk.cost))
+                self.queue.appendleft(Chunk(name, left, chunk.cost, chunk.critical))
                 self.total += 1
                 requeued += len(left)
             self.done += 1  # this try of the chunk has ended
@@ -328,7 +335,7 @@ class ClusterSweep:
         (`ray_plan.choose_engine`)."""
         records = self.ledger.records
         while self.queue and not self.stopped:
-            queued = sum(len(c.keys) * c.cost for c in self.queue)
+            queued = sum(len(c.keys) * c.cost for c in self.queue if not c.critical)
             best = choose_engine(self.engines, self.queue[0], records, queued, self.max_chunks)
             if best is None:
                 return

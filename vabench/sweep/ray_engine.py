@@ -139,6 +139,7 @@ class EngineActor:
             "host": socket.gethostname(),
             "node": ray.get_runtime_context().get_node_id(),
             "pid": os.getpid(),
+            "gpus": [str(g) for g in ray.get_gpu_ids()],  # where critical chunks spread
             "physics": self.engine.physics.label,
             "jax": jax.default_backend(),
             "limit": self.engine.gate.limit,

@@ -107,12 +107,21 @@ class Chunk:
     keys: list[KeyTuple]
     cost: int
     """Of one episode (the task's step budget)."""
+    critical: bool = False
+    """Of a task on the sweep's critical path (`runner.critical_path_tasks`: the basket): it
+    runs alone in its engine, one such chunk a GPU where the engines allow (`choose_engine`)."""
 
 
 START_GRACE_S = 300.0
 """How long an engine still starting holds a fair share of the plan (`choose_engine`): one that
 never starts (its resources held elsewhere, a node that never comes) must not keep the ready
 engines below their share for the whole sweep."""
+
+
+CRITICAL_WAIT_S = 60.0
+"""How long a critical chunk waits, from an engine's request to Ray, for engines still
+starting (they may sit on a GPU without a critical chunk) before it takes an idle engine on a
+GPU that has one (`choose_engine`)."""
 
 
 def choose_engine(
@@ -123,26 +132,43 @@ def choose_engine(
     max_chunks: int,
     now: float | None = None,
 ) -> EngineHandle | None:
-    """The engine the queue's next `chunk` goes to, or None for none now: of the ready engines
-    with room, the least loaded (cost of its episodes given and not yet recorded).
+    """The engine the queue's next `chunk` goes to, or None for none now.
 
-    Room: an engine without chunks always has some. One with chunks takes another only while
-    (1) it holds fewer than `max_chunks` chunks and fewer episodes than twice its in-flight
-    limit, and (2) its load with the chunk stays within its fair share, the whole unfinished
-    cost (`queued_cost` plus every live engine's load) over the live engines, those still
-    starting included for their first `START_GRACE_S` (monotonic `now`). Without (2) the
-    first engine ready took every chunk up to its limit (2 x 1,024 episodes): on 4 x H100
-    (2026-11-27) two engines ran all 14 families of a 168-episode plan while two started
-    later and got none (0.26 of 4x one engine). With it a chunk left over waits in the queue
-    for whichever engine's load falls first."""
+    A chunk off the critical path (`queued_cost`: the cost of the queue's other such chunks)
+    goes to the least loaded (cost of its episodes given and not yet recorded) of the ready
+    engines with room that hold no critical chunk (where some live engine holds none). Room:
+    an engine without chunks always has some. One with chunks takes another only while (1) it
+    holds fewer than `max_chunks` chunks and fewer episodes than twice its in-flight limit, and
+    (2) its load with the chunk stays within its fair share, the unfinished cost off the
+    critical path (`queued_cost` plus those engines' loads) over the live engines holding no
+    critical chunk, those still starting included for their first `START_GRACE_S` (monotonic
+    `now`). Without (2) the first engine ready took every chunk up to its limit (2 x 1,024
+    episodes): on 4 x H100 (2026-11-27) two engines ran all 14 families of a 168-episode plan
+    while two started later and got none (0.26 of 4x one engine). With it a chunk left over
+    waits in the queue for whichever engine's load falls first.
+
+    A critical chunk (`Chunk.critical`, the basket's) goes to an idle engine, where there is
+    one and another live engine for the rest of the plan, on the GPU with the fewest critical
+    chunks; while none is idle on a GPU without one and engines are still starting (for
+    `CRITICAL_WAIT_S`), it waits for them; with no idle engine it is placed like any other.
+    Its engine then takes nothing else until it is done. On 4 x H200 (2026-11-28) one engine
+    worked 168 s on three chunks, the basket's among them, at ~0.93 s for each of the basket's
+    ~181 decisions, on the busiest of the four GPUs, while the other 15 engines had finished
+    50-120 s earlier: the basket's chain is the sweep's."""
     now = time.monotonic() if now is None else now
     live = [
         e for e in engines if not e.dead and (e.ready or now - e.clock.asked_at < START_GRACE_S)
     ]
+    holding = {id(e) for e in live if any(c.critical for c in e.chunks.values())}
+    if chunk.critical:
+        placed = _critical_engine(live, holding, max_chunks, now)
+        if placed is not None:
+            return placed if isinstance(placed, EngineHandle) else None
+    sharing = [e for e in live if id(e) not in holding] or live
     loads = {id(e): e.unfinished(records) for e in live}
-    share = (queued_cost + sum(cost for _, cost in loads.values())) / max(1, len(live))
+    share = (queued_cost + sum(loads[id(e)][1] for e in sharing)) / max(1, len(sharing))
     best: EngineHandle | None = None
-    for e in live:
+    for e in sharing:
         if not e.ready or len(e.chunks) >= max_chunks:
             continue
         left, cost = loads[id(e)]
@@ -152,6 +178,31 @@ def choose_engine(
                 continue
         if best is None or cost < loads[id(best)][1]:
             best = e
+    return best
+
+
+WAIT = object()
+"""`_critical_engine`: the critical chunk waits for engines still starting."""
+
+
+def _critical_engine(
+    live: list[EngineHandle], holding: set[int], max_chunks: int, now: float
+) -> EngineHandle | object | None:
+    """For a critical chunk: an idle ready engine on the GPU with the fewest critical chunks,
+    `WAIT` while engines starting for less than `CRITICAL_WAIT_S` may offer a GPU without one,
+    or None (no idle engine: the ordinary rule places it)."""
+    if len(live) - len(holding) < 2:  # none would be left for the rest of the plan
+        return None
+    on_gpu: dict[Any, int] = {}
+    for e in live:
+        if id(e) in holding:
+            on_gpu[e.gpu] = on_gpu.get(e.gpu, 0) + 1
+    idle = [e for e in live if e.ready and not e.chunks and max_chunks > 0]
+    best = min(idle, key=lambda e: (on_gpu.get(e.gpu, 0), e.index)) if idle else None
+    if best is not None and on_gpu.get(best.gpu, 0) == 0:
+        return best
+    if any(not e.ready and now - e.clock.asked_at < CRITICAL_WAIT_S for e in live):
+        return WAIT
     return best
 
 
@@ -221,6 +272,12 @@ class EngineHandle:
     @property
     def ready(self) -> bool:
         return self.starting is None and not self.dead
+
+    @property
+    def gpu(self) -> Any:
+        """Which GPU it runs on (its node and Ray's GPU ids, once started; else itself)."""
+        gpus = self.info.get("gpus")
+        return (self.info.get("node"), tuple(gpus)) if gpus else ("engine", self.index)
 
     def unfinished(self, records: Mapping[KeyTuple, Any]) -> tuple[int, int]:
         """(episodes given and not recorded, their cost)."""
