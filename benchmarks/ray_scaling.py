@@ -4,7 +4,7 @@ host, episodes per second and the ratio to perfect scaling, side by side.
     python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|warp|mjx] [--seeds 20]
         [--runs 3] [--tracks active,passive,transfer,long_horizon] [--tasks base]
         [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--warmup]
-        [--per-gpu K] [--json FILE]
+        [--per-gpu K] [--json FILE] [--keep DIR]
 
 The defaults are `configs/all.yaml` as shipped (2,160 episodes of the reference-servo agent
 on every track); the options shrink it (the test of this script runs it at a tiny size on CPU
@@ -47,6 +47,7 @@ set, so they are only shown.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import os
@@ -196,6 +197,13 @@ def main() -> None:
     p.add_argument("--warmup", action="store_true", help="one untimed step of every seed first")
     p.add_argument("--per-gpu", type=int, default=1, help="engine processes a GPU (MPS)")
     p.add_argument("--json", type=Path)
+    p.add_argument(
+        "--keep",
+        type=Path,
+        help="write each count's run directory here and keep it (default: a temporary folder, "
+        "removed at the end): benchmarks/episode_timeline.py then says where each count's "
+        "decisions spent their time",
+    )
     args = p.parse_args()
 
     import ray
@@ -227,7 +235,17 @@ def main() -> None:
             ray.shutdown()
             ray.init(address="local", num_gpus=n, include_dashboard=False)
 
-    with tempfile.TemporaryDirectory(prefix="vabench-ray-scaling-") as tmp:
+    if args.keep is not None:
+        args.keep.mkdir(parents=True, exist_ok=True)
+        taken = sorted(p.name for p in args.keep.iterdir())
+        if taken:
+            p.error(f"--keep {args.keep}: not empty ({', '.join(taken[:3])}): name a new folder")
+    where = (
+        contextlib.nullcontext(str(args.keep))
+        if args.keep is not None
+        else tempfile.TemporaryDirectory(prefix="vabench-ray-scaling-")
+    )
+    with where as tmp:
         if args.warmup and counts:
             warm = argparse.Namespace(**{**vars(args), "tracks": "active", "runs": 1, "steps": 1})
             t0 = time.perf_counter()
