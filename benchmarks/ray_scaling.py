@@ -173,10 +173,16 @@ def lost_time(result: dict, base: dict) -> dict[str, float]:
 def print_engines(result: dict) -> None:
     for r in result["engine_report"]:
         gpu = f"{r['gpu_busy']:.0%}" if r.get("gpu_busy") is not None else "-"
+        where = r.get("host") or "?"
+        if r.get("gpus"):
+            where += f" GPU {','.join(r['gpus'])}"
+        critical = r.get("critical_chunks") or []
         print(
-            f"    engine {r['engine']} ({r.get('host') or '?'}): start-up {r['start_up_s']:.1f} s, "
+            f"    engine {r['engine']} ({where}): start-up {r['start_up_s']:.1f} s, "
             f"working {r['working_s']:.1f} s, waiting {r['waiting_s']:.1f} s, "
-            f"{r['episodes']} episodes, GPU busy {gpu}{', died' if r['died'] else ''}",
+            f"{r['episodes']} episodes in {r.get('chunks', '?')} chunks"
+            f"{' (critical: ' + ', '.join(critical) + ')' if critical else ''}, "
+            f"GPU busy {gpu}{', died' if r['died'] else ''}",
             flush=True,
         )
 
@@ -205,6 +211,12 @@ def main() -> None:
         "decisions spent their time",
     )
     args = p.parse_args()
+
+    if args.keep is not None:  # before Ray starts
+        args.keep.mkdir(parents=True, exist_ok=True)
+        taken = sorted(f.name for f in args.keep.iterdir())
+        if taken:
+            p.error(f"--keep {args.keep}: not empty ({', '.join(taken[:3])}): name a new folder")
 
     import ray
 
@@ -235,11 +247,6 @@ def main() -> None:
             ray.shutdown()
             ray.init(address="local", num_gpus=n, include_dashboard=False)
 
-    if args.keep is not None:
-        args.keep.mkdir(parents=True, exist_ok=True)
-        taken = sorted(p.name for p in args.keep.iterdir())
-        if taken:
-            p.error(f"--keep {args.keep}: not empty ({', '.join(taken[:3])}): name a new folder")
     where = (
         contextlib.nullcontext(str(args.keep))
         if args.keep is not None

@@ -6,7 +6,7 @@ others wait, each chunk given once)."""
 
 from __future__ import annotations
 
-from vabench.sweep.ray_plan import Chunk, EngineHandle, choose_engine
+from vabench.sweep.ray_plan import Chunk, EngineHandle, choose_engine, next_placement
 
 LIMIT = 1024  # an engine's in-flight limit (its status's "limit"): large, as on a GPU
 
@@ -29,11 +29,11 @@ def _hand_out(engines, queue, records, max_chunks=8):
     """The driver's loop body (`ClusterSweep._hand_out`) on plain lists."""
     given = []
     while queue:
-        queued = sum(len(c.keys) * c.cost for c in queue if not c.critical)
-        best = choose_engine(engines, queue[0], records, queued, max_chunks)
-        if best is None:
+        placed = next_placement(engines, queue, records, max_chunks)
+        if placed is None:
             break
-        chunk = queue.pop(0)
+        at, best = placed
+        chunk = queue.pop(at)
         best.chunks[object()] = chunk
         given.append((best.index, chunk.name))
     return given
@@ -248,3 +248,36 @@ def test_a_critical_chunk_waits_for_engines_still_starting_then_doubles_up():
     assert choose_engine(engines, second, {}, 0, 8, now=soon) is engines[2]
     other = _plan(1, 15, 50)[0]  # a chunk off the critical path never joins a basket chunk
     assert choose_engine(engines, other, {}, 750, 8, now=soon) is engines[1]
+
+
+def test_the_ready_engines_work_while_a_critical_chunk_waits_for_the_others():
+    """Only GPU 0's four engines ready, twelve on three GPUs still starting: the first basket
+    chunk goes to GPU 0, the other three wait for the other GPUs' engines, and meanwhile GPU
+    0's three other engines take the chunks behind them; a late replacement engine is not
+    waited for."""
+    from vabench.sweep.ray_plan import CRITICAL_WAIT_S
+
+    engines = _on_gpus(_engines(16), per_gpu=4)
+    for e in engines[:4]:
+        e.starting = None
+    queue = [*_critical(4, 15, 250), *_plan(28, 15, 50)]
+    given = _hand_out(engines, queue, {})
+    assert given[0] == (0, "basket 0")
+    assert {i for i, _ in given[1:]} == {1, 2, 3} and all(n.startswith("t") for _, n in given[1:])
+    assert [c.name for c in queue[:3]] == ["basket 1", "basket 2", "basket 3"]
+    late = engines[0].clock.asked_at + CRITICAL_WAIT_S + 1
+    for e in engines[4:]:
+        e.clock.asked_at = late - 2  # replacements asked for after the sweep's first minute
+    engines[1].chunks.clear()  # GPU 0's engine 1 idle again
+    placed = next_placement(engines, queue, {}, 8, now=late)
+    assert placed is not None and placed[0] == 0 and placed[1] is engines[1]
+
+
+def test_a_critical_chunk_placed_as_any_other_counts_its_own_cost_in_the_share():
+    """One busy engine and the basket's chunk queued before another: both still go to it (the
+    share that judges the basket's chunk includes its cost)."""
+    engines = _ready(_on_gpus(_engines(1), per_gpu=4))
+    engines[0].chunks[object()] = _plan(1, 15, 50)[0]
+    queue = [*_critical(1, 15, 250), *_plan(1, 15, 50)]
+    queue[1].name = "t1"
+    assert [n for _, n in _hand_out(engines, queue, {})] == ["basket 0", "t1"]

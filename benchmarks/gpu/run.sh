@@ -266,13 +266,13 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     # images, model, per task) into ray_timeline.txt: the chain of the slowest task bounds a
     # count on several GPUs (4 x H200, 2026-11-28). RAY_TIMEOUT_S leaves the timelines time.
     rm -rf /tmp/rayruns
-    timeout "${RAY_TIMEOUT_S:-500}" python3 benchmarks/ray_scaling.py --engines "${RAY_ENGINES:-1,2}" \
+    timeout "${RAY_TIMEOUT_S:-480}" python3 benchmarks/ray_scaling.py --engines "${RAY_ENGINES:-1,2}" \
       --runs "${RAY_RUNS:-3}" ${RAY_ARGS:-} --json "$out/ray.json" --keep /tmp/rayruns 2>&1 \
       | grep --line-buffered -av "^Module " | tee "$out/ray.log"
     for d in /tmp/rayruns/engines_*; do
       [ -d "$d" ] || continue
       echo "== $(basename "$d")" >> "$out/ray_timeline.txt"
-      timeout 40 python3 benchmarks/episode_timeline.py "$d" --window 30 >> "$out/ray_timeline.txt" 2>&1
+      timeout 30 python3 benchmarks/episode_timeline.py "$d" --window 30 >> "$out/ray_timeline.txt" 2>&1
     done
     ;;
   *) echo "unknown phase $phase"; exit 2 ;;

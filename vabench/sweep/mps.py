@@ -294,26 +294,22 @@ def _quit(program: str, env: Mapping[str, str]) -> None:
             text=True,
             start_new_session=True,
         )
-        assert proc.stdin is not None
-        proc.stdin.write("quit\n")
-        proc.stdin.close()
     except OSError as err:
         log.warning("CUDA MPS: the daemon was not told to quit: %s", err)
         return
     try:
-        code = proc.wait(timeout=QUIT_WAIT_S)
+        _, said = proc.communicate("quit\n", timeout=QUIT_WAIT_S)
     except subprocess.TimeoutExpired:
         log.info("CUDA MPS: the daemon was told to quit; it ends with its last client")
         threading.Thread(target=_reap, args=(proc,), daemon=True).start()
         return
-    said = proc.stderr.read().strip() if proc.stderr is not None else ""
-    if code != 0:
-        log.warning("CUDA MPS: `quit` exited %d: %s", code, said)
+    if proc.returncode != 0:
+        log.warning("CUDA MPS: `quit` exited %d: %s", proc.returncode, (said or "").strip())
     else:
         log.info("CUDA MPS: the sweep's daemon quit")
 
 
 def _reap(proc: subprocess.Popen[str]) -> None:
-    """Wait for a `quit` left running (no zombie while this process lives)."""
+    """Wait for a `quit` left running (no zombie, its pipes closed, while this process lives)."""
     with contextlib.suppress(Exception):
         proc.communicate()

@@ -30,9 +30,9 @@ from vabench.sweep.ray_plan import (
     CHUNKS_PER_ENGINE,
     Chunk,
     EngineHandle,
-    choose_engine,
     engine_environment,
     engine_plan,
+    next_placement,
     with_critical_path,
 )
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
@@ -91,7 +91,11 @@ class ClusterSweep:
             budgets = {key[0]: cost(key[0]) for key in units}
             self.choices = with_critical_path(self.choices, budgets)
         parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
-        critical = set(self.choices.executor.critical_path or ()) if self.batched else set()
+        # where engines share GPUs (`executor.actors` above them), a chunk of the critical
+        # path's task runs alone in its engine (`ray_plan.choose_engine`); with one engine a
+        # GPU that would give the basket's few episodes a whole GPU
+        alone = self.batched and share > 1
+        critical = set(self.choices.executor.critical_path or ()) if alone else set()
         self.queue: collections.deque[Chunk] = collections.deque(
             Chunk(
                 name,
@@ -331,15 +335,17 @@ class ClusterSweep:
 
     # -- chunks --------------------------------------------------------------------------------
     def _hand_out(self) -> None:
-        """Give the queue's chunks to engines with room, the least loaded first
-        (`ray_plan.choose_engine`)."""
+        """Give the queue's chunks to engines with room, the least loaded first, a critical
+        chunk alone (`ray_plan.next_placement`, `choose_engine`)."""
         records = self.ledger.records
         while self.queue and not self.stopped:
-            queued = sum(len(c.keys) * c.cost for c in self.queue if not c.critical)
-            best = choose_engine(self.engines, self.queue[0], records, queued, self.max_chunks)
-            if best is None:
+            placed = next_placement(self.engines, self.queue, records, self.max_chunks)
+            if placed is None:
                 return
-            chunk = self.queue.popleft()
+            at, best = placed
+            chunk = self.queue[at]
+            del self.queue[at]
+            best.given.append(chunk)
             best.clock.work_began(time.monotonic())
             best.chunks[best.actor.run_chunk.remote(chunk.name, chunk.keys)] = chunk
             log.info("ray: chunk %s (%d episodes) to %s", chunk.name, len(chunk.keys), _host(best))
@@ -446,16 +452,20 @@ class ClusterSweep:
                 log.exception("ray: the engines' time could not be reported")
 
     def engine_report(self) -> list[dict[str, Any]]:
-        """Per engine: where it ran, its seconds of start-up, working (a chunk or more) and
-        waiting for work, the episodes it recorded, whether it died, and its GPU's busy share
-        over its life and most memory (None where not sampled)."""
+        """Per engine: where it ran (its host and GPU ids), its seconds of start-up, working (a
+        chunk or more) and waiting for work, the episodes it recorded, the chunks it was given
+        (those of the critical path apart), whether it died, and its GPU's busy share over its
+        life and most memory (None where not sampled)."""
         now = time.monotonic()
         return [
             {
                 "engine": e.index,
                 "host": e.info.get("host"),
+                "gpus": e.info.get("gpus"),
                 **e.clock.figures(now),
                 "episodes": e.clock.episodes,
+                "chunks": len(e.given),
+                "critical_chunks": [c.name for c in e.given if c.critical],
                 "died": e.dead,
                 "gpu_busy": (e.final or e.status).get("gpu_busy"),
                 "gpu_memory_mib": (e.final or e.status).get("gpu_memory_mib"),

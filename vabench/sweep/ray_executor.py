@@ -30,9 +30,9 @@ writer of the ledger.
    `executor.max_tasks` chunks, and its load with the chunk stays within its fair share of the
    unfinished plan (engines still starting count: the first engine ready no longer takes
    every chunk); an engine without chunks always takes one, so a slow GPU or node is given
-   less and holds nobody up; a chunk of the critical path's task (the basket) goes to an idle
-   engine, one a GPU where the engines allow, and that engine takes nothing else until it is
-   done; every engine compiles the sweep's Warp kernels as it starts;
+   less and holds nobody up; where engines share GPUs, a chunk of the critical path's task
+   (the basket) goes to an idle engine, one a GPU where the engines allow, and that engine
+   takes nothing else until it is done; every engine compiles the sweep's Warp kernels as it starts;
 5. each engine streams a chunk's ledger lines back as its episodes end; the driver appends them
    (`Ledger.append_line`, the only writer of results.jsonl and infrastructure.jsonl); a second
    record of an episode is refused and kept in results.duplicates.jsonl;

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -161,12 +161,14 @@ def choose_engine(
     ]
     holding = {id(e) for e in live if any(c.critical for c in e.chunks.values())}
     if chunk.critical:
-        placed = _critical_engine(live, holding, max_chunks, now)
+        since = min(e.clock.asked_at for e in engines)
+        placed = _critical_engine(live, holding, max_chunks, now, since)
         if placed is not None:
             return placed if isinstance(placed, EngineHandle) else None
     sharing = [e for e in live if id(e) not in holding] or live
     loads = {id(e): e.unfinished(records) for e in live}
-    share = (queued_cost + sum(loads[id(e)][1] for e in sharing)) / max(1, len(sharing))
+    own = len(chunk.keys) * chunk.cost if chunk.critical else 0  # not in `queued_cost`
+    share = (queued_cost + own + sum(loads[id(e)][1] for e in sharing)) / max(1, len(sharing))
     best: EngineHandle | None = None
     for e in sharing:
         if not e.ready or len(e.chunks) >= max_chunks:
@@ -186,11 +188,12 @@ WAIT = object()
 
 
 def _critical_engine(
-    live: list[EngineHandle], holding: set[int], max_chunks: int, now: float
+    live: list[EngineHandle], holding: set[int], max_chunks: int, now: float, since: float
 ) -> EngineHandle | object | None:
     """For a critical chunk: an idle ready engine on the GPU with the fewest critical chunks,
-    `WAIT` while engines starting for less than `CRITICAL_WAIT_S` may offer a GPU without one,
-    or None (no idle engine: the ordinary rule places it)."""
+    `WAIT` while engines are still starting in the sweep's first `CRITICAL_WAIT_S` (from
+    `since`, its first engine's request: a replacement engine later is not waited for) and may
+    offer a GPU without one, or None (no idle engine: the ordinary rule places it)."""
     if len(live) - len(holding) < 2:  # none would be left for the rest of the plan
         return None
     on_gpu: dict[Any, int] = {}
@@ -201,9 +204,30 @@ def _critical_engine(
     best = min(idle, key=lambda e: (on_gpu.get(e.gpu, 0), e.index)) if idle else None
     if best is not None and on_gpu.get(best.gpu, 0) == 0:
         return best
-    if any(not e.ready and now - e.clock.asked_at < CRITICAL_WAIT_S for e in live):
+    if now - since < CRITICAL_WAIT_S and any(not e.ready for e in live):
         return WAIT
     return best
+
+
+def next_placement(
+    engines: list[EngineHandle],
+    queue: Sequence[Chunk],
+    records: Mapping[KeyTuple, Any],
+    max_chunks: int,
+    now: float | None = None,
+) -> tuple[int, EngineHandle] | None:
+    """The driver's next hand-out: (the chunk's position in `queue`, its engine), or None for
+    none now. The queue's chunks in order (costliest first): a critical chunk waiting for
+    engines still starting (`choose_engine`) is passed over, so that the ready engines take
+    the chunks behind it meanwhile; the first other chunk without an engine ends the hand-out."""
+    queued = sum(len(c.keys) * c.cost for c in queue if not c.critical)
+    for i, chunk in enumerate(queue):
+        best = choose_engine(engines, chunk, records, queued, max_chunks, now)
+        if best is not None:
+            return i, best
+        if not chunk.critical:
+            return None
+    return None
 
 
 @dataclass
@@ -268,6 +292,8 @@ class EngineHandle:
     clock: EngineClock = field(default_factory=EngineClock)
     final: dict[str, Any] = field(default_factory=dict)
     """What its `close()` returned (its GPU's busy share over its life)."""
+    given: list[Chunk] = field(default_factory=list)
+    """Every chunk it was given, in order (the scaling report's placement)."""
 
     @property
     def ready(self) -> bool:
