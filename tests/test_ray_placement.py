@@ -215,6 +215,7 @@ def test_a_critical_chunk_does_not_leave_the_rest_without_an_engine():
     the rest); every engine then holding one, the rest is shared by both as before."""
     one = _ready(_on_gpus(_engines(1), per_gpu=4))
     queue = [*_critical(1, 15, 250), *_plan(4, 15, 50)]
+    assert next_placement([], queue, {}, 8) is None  # before any engine is asked for
     assert [i for i, _ in _hand_out(one, queue, {})] == [0] * 5
     two = _ready(_on_gpus(_engines(2), per_gpu=4))
     queue = [*_critical(2, 15, 250), *_plan(4, 15, 50)]

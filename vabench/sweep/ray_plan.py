@@ -161,7 +161,7 @@ def choose_engine(
     ]
     holding = {id(e) for e in live if any(c.critical for c in e.chunks.values())}
     if chunk.critical:
-        since = min(e.clock.asked_at for e in engines)
+        since = min((e.clock.asked_at for e in engines), default=now)
         placed = _critical_engine(live, holding, max_chunks, now, since)
         if placed is not None:
             return placed if isinstance(placed, EngineHandle) else None
