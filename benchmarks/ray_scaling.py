@@ -52,6 +52,7 @@ import datetime
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -150,6 +151,18 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     }
 
 
+def drop_frames(root: Path) -> None:
+    """Remove the episodes' frames under `root` (the kept run directories of `--keep`): their
+    events, results and logs are what the timelines read, and a count of `configs/all.yaml`
+    writes ~2,160 episodes' JPEGs (1 or 5 a decision), which a GPU host's disk need not hold
+    for every count."""
+    for frames in [
+        *root.glob("*/episodes/*/*/*/*/*/frames"),
+        *root.glob("warmup/*/episodes/*/*/*/*/*/frames"),
+    ]:
+        shutil.rmtree(frames, ignore_errors=True)
+
+
 PARTS = ("start_up_s", "working_s", "waiting_s", "other_s")
 
 
@@ -206,9 +219,9 @@ def main() -> None:
     p.add_argument(
         "--keep",
         type=Path,
-        help="write each count's run directory here and keep it (default: a temporary folder, "
-        "removed at the end): benchmarks/episode_timeline.py then says where each count's "
-        "decisions spent their time",
+        help="write each count's run directory here and keep it, without the episodes' frames "
+        "(default: a temporary folder, removed at the end): benchmarks/episode_timeline.py then "
+        "says where each count's decisions spent their time",
     )
     args = p.parse_args()
 
@@ -263,6 +276,8 @@ def main() -> None:
         for n in counts:
             gpus_for(n)
             result = one_count(args, n, Path(tmp))
+            if args.keep is not None:
+                drop_frames(Path(tmp))
             results.append(result)
             what = f"{n} GPUs x {args.per_gpu} engines" if args.per_gpu > 1 else f"{n} engines"
             print(
