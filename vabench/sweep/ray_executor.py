@@ -32,7 +32,8 @@ writer of the ledger.
    every chunk); an engine without chunks always takes one, so a slow GPU or node is given
    less and holds nobody up; where engines share GPUs, a chunk of the critical path's task
    (the basket) goes to an idle engine, one a GPU where the engines allow, and that engine
-   takes nothing else until it is done; every engine compiles the sweep's Warp kernels as it starts;
+   takes nothing else until it is done; every engine compiles the sweep's Warp kernels as it
+   starts;
 5. each engine streams a chunk's ledger lines back as its episodes end; the driver appends them
    (`Ledger.append_line`, the only writer of results.jsonl and infrastructure.jsonl); a second
    record of an episode is refused and kept in results.duplicates.jsonl;

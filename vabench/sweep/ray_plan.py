@@ -119,9 +119,9 @@ engines below their share for the whole sweep."""
 
 
 CRITICAL_WAIT_S = 60.0
-"""How long a critical chunk waits, from an engine's request to Ray, for engines still
-starting (they may sit on a GPU without a critical chunk) before it takes an idle engine on a
-GPU that has one (`choose_engine`)."""
+"""How long after the sweep's first engine was asked for a critical chunk may wait for engines
+still starting (they may sit on a GPU without a critical chunk) before it takes an idle engine
+on a GPU that has one (`choose_engine`)."""
 
 
 def choose_engine(
@@ -149,12 +149,12 @@ def choose_engine(
 
     A critical chunk (`Chunk.critical`, the basket's) goes to an idle engine, where there is
     one and another live engine for the rest of the plan, on the GPU with the fewest critical
-    chunks; while none is idle on a GPU without one and engines are still starting (for
-    `CRITICAL_WAIT_S`), it waits for them; with no idle engine it is placed like any other.
-    Its engine then takes nothing else until it is done. On 4 x H200 (2026-11-28) one engine
-    worked 168 s on three chunks, the basket's among them, at ~0.93 s for each of the basket's
-    ~181 decisions, on the busiest of the four GPUs, while the other 15 engines had finished
-    50-120 s earlier: the basket's chain is the sweep's."""
+    chunks; while none is idle on a GPU without one and engines are still starting (in the
+    sweep's first `CRITICAL_WAIT_S`), it waits for them; with no idle engine it is placed like
+    any other. Its engine then takes nothing else until it is done. On 4 x H200 (2026-11-28) one
+    engine worked 168 s on three chunks, the basket's among them, at ~0.93 s for each of the
+    basket's ~181 decisions, on the busiest of the four GPUs, while the other 15 engines had
+    finished 50-120 s earlier: the basket's chain is the sweep's."""
     now = time.monotonic() if now is None else now
     live = [
         e for e in engines if not e.dead and (e.ready or now - e.clock.asked_at < START_GRACE_S)
@@ -162,7 +162,7 @@ def choose_engine(
     holding = {id(e) for e in live if any(c.critical for c in e.chunks.values())}
     if chunk.critical:
         since = min((e.clock.asked_at for e in engines), default=now)
-        placed = _critical_engine(live, holding, max_chunks, now, since)
+        placed = _critical_engine(live, holding, now, since)
         if placed is not None:
             return placed if isinstance(placed, EngineHandle) else None
     sharing = [e for e in live if id(e) not in holding] or live
@@ -188,7 +188,7 @@ WAIT = object()
 
 
 def _critical_engine(
-    live: list[EngineHandle], holding: set[int], max_chunks: int, now: float, since: float
+    live: list[EngineHandle], holding: set[int], now: float, since: float
 ) -> EngineHandle | object | None:
     """For a critical chunk: an idle ready engine on the GPU with the fewest critical chunks,
     `WAIT` while engines are still starting in the sweep's first `CRITICAL_WAIT_S` (from
@@ -200,7 +200,7 @@ def _critical_engine(
     for e in live:
         if id(e) in holding:
             on_gpu[e.gpu] = on_gpu.get(e.gpu, 0) + 1
-    idle = [e for e in live if e.ready and not e.chunks and max_chunks > 0]
+    idle = [e for e in live if e.ready and not e.chunks]
     best = min(idle, key=lambda e: (on_gpu.get(e.gpu, 0), e.index)) if idle else None
     if best is not None and on_gpu.get(best.gpu, 0) == 0:
         return best
