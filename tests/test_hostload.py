@@ -5,7 +5,9 @@ processes (vabench/sweep/hostload.py): each case is made for real here and read 
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
+import os
 import subprocess
 import sys
 import threading
@@ -146,3 +148,50 @@ def test_the_device_lock_reports_its_holders_and_waiters():
     assert share > 0.3 and waiting > 0.2 and holds > 0
     assert "host-load-test lock held" in w.describe()
     assert not lock._is_owned()
+
+
+def test_the_garbage_collectors_pauses_are_counted_and_shown(caplog):
+    """Full collections stop every Python thread of the process: each is counted with its
+    duration, and the whole run's line says so."""
+    load = HostLoad(every_s=0.5)
+
+    async def main() -> None:
+        async with hostload.watching(load):
+            heap = [[i] for i in range(300_000)]  # a heap a full collection must walk
+            gc.collect()
+            gc.collect()
+            await asyncio.sleep(0.6)
+            del heap
+
+    with caplog.at_level(logging.INFO, logger="vabench.sweep.hostload"):
+        asyncio.run(main())
+    whole = load.whole_run()
+    assert whole is not None and whole.gc is not None
+    assert whole.gc.full >= 2
+    assert 0 < whole.gc.max_s <= whole.gc.seconds
+    line = next(r.getMessage() for r in caplog.records if "whole run" in r.getMessage())
+    assert "garbage collector" in line and "full collections" in line
+    # unhooked at the end
+    assert not any(getattr(cb, "__self__", None) is load.pauses for cb in gc.callbacks)
+
+
+def test_the_machines_runnable_threads_show_a_saturated_host():
+    """Processes that spin are runnable whether or not they get a core: the probe sees at
+    least as many runnable threads as there are spinners (this is what tells a loop that
+    waits for a core from one that waits for the interpreter lock)."""
+    spinners = (os.cpu_count() or 1) + 2
+    code = "import time\nend = time.time() + 1.5\nwhile time.time() < end: pass\n"
+    load = HostLoad(every_s=10.0)
+
+    async def main() -> None:
+        async with hostload.watching(load):
+            procs = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(spinners)]
+            await asyncio.sleep(1.0)
+            for p in procs:
+                p.wait()
+
+    asyncio.run(main())
+    whole = load.whole_run()
+    assert whole is not None and whole.runnable_mean is not None
+    assert whole.runnable_max >= spinners
+    assert f"for {os.cpu_count()} cores" in whole.describe()

@@ -12,6 +12,13 @@ the one sweep process paces the rest, and the candidates tell apart by these fig
 - the Warp device lock (held while a batch or a render pass queues its work): held most of
   the time, with threads waiting on it.
 
+Two more figures tell apart the causes of a late loop whose own CPU is low: the machine's
+runnable threads against its cores (`/proc/loadavg`, read at each probe: above the cores, every
+thread waits for one, the loop's too) and the time Python's cyclic garbage collector stopped
+the process (`GcPauses`: a collection holds the interpreter lock, so every Python thread waits
+it out; a full one walks every object of the heap, ~0.1 s for the ~300,000 of an engine
+process after its imports on this project's 2-core CPU).
+
 Each line also gives the GPUs' busy share where the process sees a GPU (`gpu_busy.GpuBusy`:
 the driver's utilisation, sampled every second), so a line says at once whether the GPU waits.
 
@@ -24,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import os
 import re
@@ -31,7 +39,7 @@ import sys
 import threading
 import time
 from collections import defaultdict
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -55,6 +63,60 @@ def every_s_from_env() -> float:
     except ValueError:
         log.warning("%s=%r is not a number of seconds; using %s", ENV, raw, DEFAULT_EVERY_S)
         return DEFAULT_EVERY_S
+
+
+def runnable_threads() -> int | None:
+    """Threads of the whole machine running or waiting for a core now (`/proc/loadavg`'s
+    fourth field, "running/total"), or None where it cannot be read."""
+    text = _read(_PROC / "loadavg")
+    try:
+        return int(text.split()[3].split("/")[0]) if text else None
+    except (IndexError, ValueError):
+        return None
+
+
+@dataclass
+class GcPauses:
+    """The collections of Python's cyclic garbage collector since the last `take`: how many
+    walked the whole heap (generation 2), how long all of them stopped the process, the longest.
+    `install` hooks it into `gc.callbacks` (a collection runs in whichever thread allocated, with
+    the interpreter lock held, so these plain updates do not race)."""
+
+    seconds: float = 0.0
+    full: int = 0
+    max_s: float = 0.0
+    _start: float | None = None
+
+    def callback(self, phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            self._start = time.perf_counter()
+            return
+        if self._start is None:  # hooked in during a collection
+            return
+        took = time.perf_counter() - self._start
+        self._start = None
+        self.seconds += took
+        self.max_s = max(self.max_s, took)
+        self.full += info.get("generation") == 2
+
+    def take(self) -> GcPauses:
+        """The figures so far; this one starts again from nothing."""
+        out = GcPauses(self.seconds, self.full, self.max_s)
+        self.seconds, self.full, self.max_s = 0.0, 0, 0.0
+        return out
+
+    def add(self, other: GcPauses) -> None:
+        self.seconds += other.seconds
+        self.full += other.full
+        self.max_s = max(self.max_s, other.max_s)
+
+    @contextlib.contextmanager
+    def install(self) -> Iterator[GcPauses]:
+        gc.callbacks.append(self.callback)
+        try:
+            yield self
+        finally:
+            gc.callbacks.remove(self.callback)
 
 
 def _fields(stat_line: str) -> list[str]:
@@ -152,6 +214,13 @@ class Window:
     """The visible GPUs' mean busy share (None: not sampled)."""
     gpu_memory_mib: float = 0.0
     """The most GPU memory used so far (all processes on the GPUs watched)."""
+    runnable_mean: float | None = None
+    """The machine's threads running or waiting for a core, on average over the probes (None:
+    not read)."""
+    runnable_max: int = 0
+    machine_cores: int = field(default_factory=lambda: os.cpu_count() or 1)
+    gc: GcPauses | None = None
+    """The garbage collector's pauses in the window (None: not watched)."""
 
     def describe(self) -> str:
         loop = self.cores.get("event loop", 0.0)
@@ -171,11 +240,23 @@ class Window:
             if self.gpu_busy is not None
             else ""
         )
+        machine = (
+            f"; machine: {self.runnable_mean:.1f} threads runnable on average for "
+            f"{self.machine_cores} cores (at most {self.runnable_max})"
+            if self.runnable_mean is not None
+            else ""
+        )
+        collector = (
+            f"; garbage collector {self.gc.seconds / self.seconds:.1%} of the time "
+            f"({self.gc.full} full collections, the longest {self.gc.max_s * 1e3:.0f} ms)"
+            if self.gc is not None
+            else ""
+        )
         return (
             f"event loop {loop:.0%} of a core, late {self.lag_mean_s * 1e3:.0f} ms on average "
             f"(at most {self.lag_max_s * 1e3:.0f} ms); this process {process:.1f} cores "
             f"(threads: {threads}); child processes {self.cores.get('children', 0.0):.1f} cores"
-            f"{locks}{gpu}"
+            f"{machine}{collector}{locks}{gpu}"
         )
 
 
@@ -186,14 +267,24 @@ class Lags:
     total_s: float = 0.0
     n: int = 0
     max_s: float = 0.0
+    runnable_total: int = 0
+    runnable_n: int = 0
+    runnable_max: int = 0
 
-    def add(self, late_s: float) -> None:
+    def add(self, late_s: float, runnable: int | None = None) -> None:
         self.total_s += late_s
         self.n += 1
         self.max_s = max(self.max_s, late_s)
+        if runnable is not None:
+            self.runnable_total += runnable
+            self.runnable_n += 1
+            self.runnable_max = max(self.runnable_max, runnable)
+
+    def runnable_mean(self) -> float | None:
+        return self.runnable_total / self.runnable_n if self.runnable_n else None
 
 
-def window(a: Sample, b: Sample, lags: Lags) -> Window:
+def window(a: Sample, b: Sample, lags: Lags, pauses: GcPauses | None = None) -> Window:
     seconds = max(b.at - a.at, 1e-9)
     hz = os.sysconf("SC_CLK_TCK")
     cores = {
@@ -216,6 +307,9 @@ def window(a: Sample, b: Sample, lags: Lags) -> Window:
         locks,
         busy,
         b.gpu.memory_max_mib if b.gpu is not None else 0.0,
+        runnable_mean=lags.runnable_mean(),
+        runnable_max=lags.runnable_max,
+        gc=pauses,
     )
 
 
@@ -237,6 +331,9 @@ class HostLoad:
     """The GPU sampler `watching` runs where the process sees a GPU."""
     gpu_start: Totals | None = None
     """Its sums at the first sample (the sampler is the process's, shared)."""
+    pauses: GcPauses | None = None
+    """The garbage collector's pauses since the last sample, where `watching` hooks it in."""
+    all_pauses: GcPauses = field(default_factory=GcPauses)
 
     @staticmethod
     def available() -> bool:
@@ -253,8 +350,11 @@ class HostLoad:
         if before is None:
             self.gpu_start = now.gpu
             return None
-        w = window(before, now, self.lags)
+        pauses = self.pauses.take() if self.pauses is not None else None
+        w = window(before, now, self.lags, pauses)
         self.lags = Lags()
+        if pauses is not None:
+            self.all_pauses.add(pauses)
         self.seconds += w.seconds
         for group, cores in w.cores.items():
             self.core_s[group] += cores * w.seconds
@@ -277,6 +377,9 @@ class HostLoad:
             {name: (s[0] / t, s[1] / t, s[2] / t) for name, s in self.lock_s.items()},
             gpu.mean_since(self.gpu_start) if gpu is not None else None,
             gpu.memory_max_mib if gpu is not None else 0.0,
+            runnable_mean=lags.runnable_mean(),
+            runnable_max=lags.runnable_max,
+            gc=self.all_pauses if self.pauses is not None else None,
         )
 
     async def _probe(self) -> None:
@@ -284,8 +387,9 @@ class HostLoad:
             t0 = time.monotonic()
             await asyncio.sleep(LAG_PROBE_S)
             late = max(time.monotonic() - t0 - LAG_PROBE_S, 0.0)
-            self.lags.add(late)
-            self.all_lags.add(late)
+            runnable = runnable_threads()
+            self.lags.add(late, runnable)
+            self.all_lags.add(late, runnable)
 
     async def _report(self) -> None:
         self.tick()
@@ -307,6 +411,9 @@ async def watching(load: HostLoad | None = None) -> AsyncIterator[HostLoad | Non
     gpus = contextlib.ExitStack()
     if load.gpus is None:
         load.gpus = gpus.enter_context(gpu_busy.sampling())
+    hooks = contextlib.ExitStack()
+    if load.pauses is None:
+        load.pauses = hooks.enter_context(GcPauses().install())
     tasks = [
         asyncio.create_task(load._probe(), name="hostload-lag"),
         asyncio.create_task(load._report(), name="hostload-report"),
@@ -320,6 +427,7 @@ async def watching(load: HostLoad | None = None) -> AsyncIterator[HostLoad | Non
             with contextlib.suppress(asyncio.CancelledError):
                 await t
         load.tick()
+        hooks.close()
         await asyncio.to_thread(gpus.close)
         whole = load.whole_run()
         if whole is not None:
