@@ -189,6 +189,8 @@ def print_engines(result: dict) -> None:
         where = r.get("host") or "?"
         if r.get("gpus"):
             where += f" GPU {','.join(r['gpus'])}"
+        if r.get("lead") is False:  # below its GPU's lead in MPS priority
+            where += ", below normal"
         critical = r.get("critical_chunks") or []
         print(
             f"    engine {r['engine']} ({where}): start-up {r['start_up_s']:.1f} s, "

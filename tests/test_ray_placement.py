@@ -282,3 +282,45 @@ def test_a_critical_chunk_placed_as_any_other_counts_its_own_cost_in_the_share()
     queue = [*_critical(1, 15, 250), *_plan(1, 15, 50)]
     queue[1].name = "t1"
     assert [n for _, n in _hand_out(engines, queue, {})] == ["basket 0", "t1"]
+
+
+def _ranked(engines: list[EngineHandle], per_gpu: int) -> list[EngineHandle]:
+    """Engines sharing GPUs in a ranked sweep: the first of each GPU normal, the others below
+    normal, as their start replies' environments say."""
+    from vabench.sweep import mps
+
+    for e in _on_gpus(engines, per_gpu):
+        first = e.index % per_gpu == 0
+        e.info["environment"] = {mps.PRIORITY_VARIABLE: mps.NORMAL if first else mps.BELOW_NORMAL}
+    return engines
+
+
+def test_critical_chunks_go_to_their_gpus_normal_priority_engine():
+    """A ranked sweep on 4 GPUs x 4 engines, each GPU's lead (its one normal MPS client) ready
+    last: every basket chunk waits for its GPU's lead rather than take a below-normal engine,
+    while the others take the rest; all four end on the four leads."""
+    engines = _ranked(_engines(16), per_gpu=4)
+    ready_at = [9.0 if i % 4 == 0 else 8.0 + 0.01 * i for i in range(16)]
+    queue = [*_critical(4, 15, 250), *_plan(28, 15, 50)]
+    _, placed = _run(engines, queue, ready_at)
+    leads = {placed[f"basket {i}"] for i in range(4)}
+    assert leads == {0, 4, 8, 12}, leads
+    assert all(engines[i].lead for i in leads) and not engines[1].lead
+
+
+def test_a_critical_chunk_takes_a_below_normal_engine_once_the_wait_is_over():
+    """GPU 0's lead never ready: after `CRITICAL_WAIT_S` the basket chunk takes an idle engine
+    of that GPU at below-normal priority rather than wait for the whole sweep; with every
+    engine ready (none starting) it does not wait at all."""
+    from vabench.sweep.ray_plan import CRITICAL_WAIT_S
+
+    engines = _ranked(_engines(4), per_gpu=4)
+    for e in engines[1:]:
+        e.starting = None
+    chunk = _critical(1, 15, 250)[0]
+    asked = engines[0].clock.asked_at
+    assert choose_engine(engines, chunk, {}, 0, 8, now=asked + CRITICAL_WAIT_S - 1) is None
+    late = choose_engine(engines, chunk, {}, 0, 8, now=asked + CRITICAL_WAIT_S + 1)
+    assert late is engines[1]
+    engines[0].dead = True  # gone: nothing left to wait for
+    assert choose_engine(engines, chunk, {}, 0, 8, now=asked + 1) is engines[1]

@@ -256,3 +256,30 @@ def test_an_engine_joins_its_nodes_daemon_and_leaves_it(control, tmp_path, monke
     monkeypatch.delenv(mps.PIPE_VARIABLE)
     monkeypatch.setenv("FAKE_MPS_FAIL", "1")
     assert engine._join_mps() == ""
+
+
+def test_a_ranked_sweep_makes_each_gpus_first_engine_its_normal_client(
+    control, engines, tmp_path, monkeypatch
+):
+    """With `ranked` (a sweep with a critical path), the first engine to join on a GPU is a
+    normal MPS client and later ones on that GPU below normal; another GPU has its own first.
+    A lead that left (or died) leads no more: the next engine to join on its GPU does."""
+    one, two, dead = engines
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    priority = mps.PRIORITY_VARIABLE
+
+    def join(member: str, gpu: str, ranked: bool = True) -> str | None:
+        env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpu}
+        return mps.join_node_daemon("sweep1", member, env, ranked=ranked).get(priority)
+
+    assert join(dead, "0") == mps.NORMAL  # (as if it had died after joining)
+    assert join(one, "0") == mps.NORMAL  # the lead of GPU 0 died: this one leads it
+    assert join(two, "0") == mps.BELOW_NORMAL
+    assert join(two, "1") == mps.NORMAL
+    assert join(two, "1") == mps.NORMAL  # the lead joining again stays the lead
+    mps.leave_node_daemon("sweep1", one)
+    assert join(two, "0") == mps.NORMAL  # GPU 0's lead left
+    assert join(one, "3", ranked=False) is None  # a sweep without a critical path
+    mps.leave_node_daemon("sweep1", one)
+    mps.leave_node_daemon("sweep1", two)
+    assert not (mps.node_folder("sweep1") / "leads").exists()  # retired with the daemon

@@ -282,6 +282,10 @@ def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
     assert mps.NODE_SWEEP not in engine_environment(four, 4, 1, "s1")  # a GPU each
     off = four.model_copy(update={"executor": four.executor.model_copy(update={"mps": "off"})})
     assert mps.NODE_SWEEP not in engine_environment(off, 4, 4, "s1")
+    # a sweep with a critical path ranks its engines' MPS priorities (one normal a GPU)
+    assert engine_environment(four, 4, 4, "s1", ranked=True)[mps.NODE_RANKED] == "1"
+    assert mps.NODE_RANKED not in engine_environment(four, 4, 4, "s1")
+    assert mps.NODE_RANKED not in engine_environment(off, 4, 4, "s1", ranked=True)
 
 
 def test_batched_engines_get_a_chunk_per_task_across_tracks_and_models():

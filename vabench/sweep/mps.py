@@ -108,6 +108,12 @@ def private_daemon(environ: Mapping[str, str] = os.environ) -> Iterator[dict[str
         shutil.rmtree(folder, ignore_errors=True)
 
 
+NODE_RANKED = "VABENCH_RAY_MPS_RANKED"
+"""Set beside `NODE_SWEEP` where the sweep has a critical path (the basket) run by engines
+that share GPUs: each GPU's first engine to join is a normal MPS client and the others below
+normal (`join_node_daemon`), and the driver gives the critical path's chunks to the normal
+ones (`ray_plan.choose_engine`), as the processes executor does with its critical process."""
+
 NODE_SWEEP = "VABENCH_RAY_MPS"
 """Set by the Ray driver in the environment of engines that share GPUs (`executor.actors` above
 the GPUs, `executor.mps` auto): the sweep's id, under which each engine joins its node's
@@ -120,7 +126,7 @@ def node_folder(sweep: str) -> Path:
 
 
 def join_node_daemon(
-    sweep: str, member: str, environ: Mapping[str, str] = os.environ
+    sweep: str, member: str, environ: Mapping[str, str] = os.environ, ranked: bool = False
 ) -> dict[str, str]:
     """The variables that make this process a client of the MPS daemon of Ray sweep `sweep` on
     this node: the first engine of the sweep on the node starts it, the others find it (a file
@@ -130,7 +136,10 @@ def join_node_daemon(
     runs is used as it is (empty variables, as `private_daemon`). Members whose process is gone
     (an engine killed, a sweep interrupted) are dropped as others join or leave: a daemon whose
     members are all gone is told to quit, this sweep's (then started again) and earlier
-    sweeps' alike. Raises `MpsUnavailable`."""
+    sweeps' alike. `ranked`: the variables also give this process its MPS priority
+    (`PRIORITY_VARIABLE`): normal for the first living member on its GPU (its Ray-given
+    CUDA_VISIBLE_DEVICES), below normal for the others (see `NODE_RANKED`). Raises
+    `MpsUnavailable`."""
     if environ.get(PIPE_VARIABLE) or (DEFAULT_PIPE / "control").exists():
         return {}
     program = _program()
@@ -147,7 +156,27 @@ def join_node_daemon(
             _start(program, {**daemon_env, **env})
             log.info("CUDA MPS: this node's daemon of the sweep (%s)", env[PIPE_VARIABLE])
         _write_members(folder, [*members, member])
+        if ranked:
+            gpu = environ.get("CUDA_VISIBLE_DEVICES", "")
+            env[PRIORITY_VARIABLE] = _take_lead(folder, member, gpu, [*members, member])
     return env
+
+
+def _take_lead(folder: Path, member: str, gpu: str, living: list[str]) -> str:
+    """`member`'s MPS priority on `gpu`: normal where no living member leads that GPU (it then
+    leads it), else below normal. The leads ("<gpu> <member>" lines) live beside the members,
+    under the same lock (the caller holds it)."""
+    path = folder / "leads"
+    leads: dict[str, str] = {}
+    for line in path.read_text().splitlines() if path.exists() else []:
+        lead_gpu, _, lead = line.partition(" ")
+        if lead in living:  # a lead that left or died leads no more
+            leads[lead_gpu] = lead
+    if leads.get(gpu, member) != member:
+        return BELOW_NORMAL
+    leads[gpu] = member
+    path.write_text("".join(f"{g} {m}\n" for g, m in sorted(leads.items())))
+    return NORMAL
 
 
 def leave_node_daemon(sweep: str, member: str, environ: Mapping[str, str] = os.environ) -> None:
@@ -190,7 +219,7 @@ def _retire(folder: Path, program: str | None, environ: Mapping[str, str]) -> No
     """Tell a node daemon to quit and remove what it kept (the caller holds its lock)."""
     if program is not None and (folder / "pipe" / "control").exists():
         _quit(program, {**environ, PIPE_VARIABLE: str(folder / "pipe")})
-    for part in ("pipe", "log", "members"):
+    for part in ("pipe", "log", "members", "leads"):
         path = folder / part
         if path.is_dir():
             shutil.rmtree(path, ignore_errors=True)

@@ -79,7 +79,6 @@ class ClusterSweep:
             share = round(1 / self.resources["num_gpus"])  # engines sharing a GPU
             gpus = max(1, int(cluster.get("GPU", 1)))
             cores = max(1, int(cluster.get("CPU", 1)) // (gpus * share))
-        self.environ = engine_environment(config, cores, share, uuid.uuid4().hex[:12])
         # a task the registry lacks fails in its chunk
         cost = lambda task: config.budget(task) if task in REGISTRY else 1  # noqa: E731
         # Engines on GPUs batch their physics: a chunk per task (every track and model of it)
@@ -105,6 +104,10 @@ class ClusterSweep:
             )
             for name, part in parts
         )
+        # one engine a GPU at the normal MPS priority for the critical chunks, the others
+        # below it (the processes executor's rule for its critical process)
+        ranked = any(c.critical for c in self.queue)
+        self.environ = engine_environment(config, cores, share, uuid.uuid4().hex[:12], ranked)
         self.total = len(self.queue)
         self.done = 0
         self.failures: list[Chunk] = []
@@ -454,8 +457,9 @@ class ClusterSweep:
     def engine_report(self) -> list[dict[str, Any]]:
         """Per engine: where it ran (its host and GPU ids), its seconds of start-up, working (a
         chunk or more) and waiting for work, the episodes it recorded, the chunks it was given
-        (those of the critical path apart), whether it died, and its GPU's busy share over its
-        life and most memory (None where not sampled)."""
+        (those of the critical path apart), whether it was its GPU's lead (the normal MPS
+        priority of a ranked sweep), whether it died, and its GPU's busy share over its life and
+        most memory (None where not sampled)."""
         now = time.monotonic()
         return [
             {
@@ -466,6 +470,7 @@ class ClusterSweep:
                 "episodes": e.clock.episodes,
                 "chunks": len(e.given),
                 "critical_chunks": [c.name for c in e.given if c.critical],
+                "lead": e.lead,
                 "died": e.dead,
                 "gpu_busy": (e.final or e.status).get("gpu_busy"),
                 "gpu_memory_mib": (e.final or e.status).get("gpu_memory_mib"),

@@ -239,13 +239,16 @@ class EngineActor:
 
     def _join_mps(self) -> str:
         """With `mps.NODE_SWEEP` set (engines sharing GPUs): this process made a client of its
-        node's daemon of the sweep; the sweep's id, or "" where MPS cannot run here (then the
-        engines sharing a GPU take turns on it, said once in the log)."""
+        node's daemon of the sweep (with `mps.NODE_RANKED`, at its GPU's normal priority if it
+        is the GPU's first engine, else below: its start reply's environment says which); the
+        sweep's id, or "" where MPS cannot run here (then the engines sharing a GPU take turns
+        on it, said once in the log)."""
         sweep = os.environ.get(mps.NODE_SWEEP, "")
         if not sweep:
             return ""
         try:
-            os.environ.update(mps.join_node_daemon(sweep, self._mps_member))
+            ranked = bool(os.environ.get(mps.NODE_RANKED))
+            os.environ.update(mps.join_node_daemon(sweep, self._mps_member, ranked=ranked))
         except mps.MpsUnavailable as err:
             log.warning("CUDA MPS: %s; the engines sharing this GPU take turns on it", err)
             return ""

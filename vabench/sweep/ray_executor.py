@@ -31,7 +31,8 @@ writer of the ledger.
    unfinished plan (engines still starting count: the first engine ready no longer takes
    every chunk); an engine without chunks always takes one, so a slow GPU or node is given
    less and holds nobody up; where engines share GPUs, a chunk of the critical path's task
-   (the basket) goes to an idle engine, one a GPU where the engines allow, and that engine
+   (the basket) goes to an idle engine, one a GPU where the engines allow, its GPU's one
+   engine at the normal MPS priority (the others below it: `mps.NODE_RANKED`), and that engine
    takes nothing else until it is done; every engine compiles the sweep's Warp kernels as it
    starts;
 5. each engine streams a chunk's ledger lines back as its episodes end; the driver appends them

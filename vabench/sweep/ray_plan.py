@@ -69,7 +69,7 @@ def engine_plan(
 
 
 def engine_environment(
-    config: SweepConfig, cores: int, gpu_share: int = 1, sweep: str = ""
+    config: SweepConfig, cores: int, gpu_share: int = 1, sweep: str = "", ranked: bool = False
 ) -> dict[str, str]:
     """What an engine's process is started with: the config's API keys from this process's
     environment, `VABENCH_CORES` (the engine's share of its node, which sizes the embedded
@@ -78,12 +78,16 @@ def engine_environment(
     off, the sweep's id `sweep` as `mps.NODE_SWEEP`: the engines of a node join one CUDA MPS
     daemon of the sweep's, so that their kernels run side by side instead of their contexts
     taking turns (one engine process is paced by its host side: on 4 x H100, 2026-11-28, an
-    engine's GPU was 23-35 % busy; the local sweep runs 4 processes a GPU under MPS)."""
+    engine's GPU was 23-35 % busy; the local sweep runs 4 processes a GPU under MPS). `ranked`
+    (the sweep has critical chunks): `mps.NODE_RANKED` too, so that one engine a GPU is a
+    normal MPS client for them and the others below normal."""
     env = {"VABENCH_CORES": str(max(1, cores))}
     if gpu_share > 1:
         env[GPU_SHARE] = str(gpu_share)
         if config.executor.mps == "auto" and sweep:
             env[mps.NODE_SWEEP] = sweep
+            if ranked:
+                env[mps.NODE_RANKED] = "1"
     for model in config.models:
         name = model.api_key_env
         if name and os.environ.get(name):
@@ -191,9 +195,10 @@ def _critical_engine(
     live: list[EngineHandle], holding: set[int], now: float, since: float
 ) -> EngineHandle | object | None:
     """For a critical chunk: an idle ready engine on the GPU with the fewest critical chunks,
-    `WAIT` while engines are still starting in the sweep's first `CRITICAL_WAIT_S` (from
-    `since`, its first engine's request: a replacement engine later is not waited for) and may
-    offer a GPU without one, or None (no idle engine: the ordinary rule places it)."""
+    its GPU's lead (`EngineHandle.lead`: the normal MPS priority) before the others; `WAIT`
+    while engines are still starting in the sweep's first `CRITICAL_WAIT_S` (from `since`, its
+    first engine's request: a replacement engine later is not waited for) and may offer a GPU
+    without one, or its lead; or None (no idle engine: the ordinary rule places it)."""
     if len(live) - len(holding) < 2:  # none would be left for the rest of the plan
         return None
     on_gpu: dict[Any, int] = {}
@@ -201,8 +206,8 @@ def _critical_engine(
         if id(e) in holding:
             on_gpu[e.gpu] = on_gpu.get(e.gpu, 0) + 1
     idle = [e for e in live if e.ready and not e.chunks]
-    best = min(idle, key=lambda e: (on_gpu.get(e.gpu, 0), e.index)) if idle else None
-    if best is not None and on_gpu.get(best.gpu, 0) == 0:
+    best = min(idle, key=lambda e: (on_gpu.get(e.gpu, 0), not e.lead, e.index)) if idle else None
+    if best is not None and on_gpu.get(best.gpu, 0) == 0 and best.lead:
         return best
     if now - since < CRITICAL_WAIT_S and any(not e.ready for e in live):
         return WAIT
@@ -298,6 +303,14 @@ class EngineHandle:
     @property
     def ready(self) -> bool:
         return self.starting is None and not self.dead
+
+    @property
+    def lead(self) -> bool:
+        """Whether its MPS priority is normal: its GPU's first engine of a ranked sweep
+        (`mps.NODE_RANKED`), or any engine where priorities are not ranked (or before it has
+        started)."""
+        environment = self.info.get("environment") or {}
+        return environment.get(mps.PRIORITY_VARIABLE) != mps.BELOW_NORMAL
 
     @property
     def gpu(self) -> Any:
