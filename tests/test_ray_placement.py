@@ -309,9 +309,9 @@ def test_critical_chunks_go_to_their_gpus_normal_priority_engine():
 
 
 def test_a_critical_chunk_takes_a_below_normal_engine_once_the_wait_is_over():
-    """GPU 0's lead never ready: after `CRITICAL_WAIT_S` the basket chunk takes an idle engine
-    of that GPU at below-normal priority rather than wait for the whole sweep; with every
-    engine ready (none starting) it does not wait at all."""
+    """GPU 0's lead not ready: the basket chunk waits for it within `CRITICAL_WAIT_S`, then
+    takes an idle engine of that GPU at below-normal priority rather than wait for the whole
+    sweep; with the lead gone there is nothing to wait for."""
     from vabench.sweep.ray_plan import CRITICAL_WAIT_S
 
     engines = _ranked(_engines(4), per_gpu=4)
@@ -324,3 +324,19 @@ def test_a_critical_chunk_takes_a_below_normal_engine_once_the_wait_is_over():
     assert late is engines[1]
     engines[0].dead = True  # gone: nothing left to wait for
     assert choose_engine(engines, chunk, {}, 0, 8, now=asked + 1) is engines[1]
+
+
+def test_a_critical_chunk_does_not_wait_for_a_lead_already_at_work():
+    """GPU 0's lead ready and busy with another family, GPU 1's engines still starting: an idle
+    below-normal engine of GPU 0 takes the basket chunk at once (the lead would stay busy);
+    where GPU 0's lead is the one still starting, the chunk waits instead."""
+    engines = _ranked(_engines(8), per_gpu=4)
+    for e in engines[:4]:
+        e.starting = None
+    engines[0].chunks[object()] = _plan(1, 15, 50)[0]
+    chunk = _critical(1, 15, 250)[0]
+    soon = engines[0].clock.asked_at + 1
+    assert choose_engine(engines, chunk, {}, 0, 8, now=soon) is engines[1]
+    engines[0].chunks.clear()
+    engines[0].starting = object()
+    assert choose_engine(engines, chunk, {}, 0, 8, now=soon) is None

@@ -263,22 +263,35 @@ def test_a_ranked_sweep_makes_each_gpus_first_engine_its_normal_client(
 ):
     """With `ranked` (a sweep with a critical path), the first engine to join on a GPU is a
     normal MPS client and later ones on that GPU below normal; another GPU has its own first.
-    A lead that left (or died) leads no more: the next engine to join on its GPU does."""
-    one, two, dead = engines
+    A lead that left, or whose process ended while other engines still run, leads no more: the
+    next engine to join on its GPU does. The GPU is the one given (Ray's ids), else
+    CUDA_VISIBLE_DEVICES."""
+    one, two, _ = engines
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     priority = mps.PRIORITY_VARIABLE
+    lead = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    doomed = f"{socket.gethostname()}-{lead.pid}"
 
     def join(member: str, gpu: str, ranked: bool = True) -> str | None:
         env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpu}
         return mps.join_node_daemon("sweep1", member, env, ranked=ranked).get(priority)
 
-    assert join(dead, "0") == mps.NORMAL  # (as if it had died after joining)
-    assert join(one, "0") == mps.NORMAL  # the lead of GPU 0 died: this one leads it
-    assert join(two, "0") == mps.BELOW_NORMAL
-    assert join(two, "1") == mps.NORMAL
-    assert join(two, "1") == mps.NORMAL  # the lead joining again stays the lead
-    mps.leave_node_daemon("sweep1", one)
-    assert join(two, "0") == mps.NORMAL  # GPU 0's lead left
+    try:
+        assert join(doomed, "0") == mps.NORMAL
+        assert join(one, "0") == mps.BELOW_NORMAL
+        assert join(two, "1") == mps.NORMAL
+        assert join(two, "1") == mps.NORMAL  # the lead joining again stays the lead
+    finally:
+        lead.kill()
+        lead.wait()
+    starts = control.read_text().count("start ")
+    assert join(one, "0") == mps.NORMAL  # GPU 0's lead ended; `two` still runs
+    assert control.read_text().count("start ") == starts  # the same daemon, not a new one
+    mps.leave_node_daemon("sweep1", two)
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": "7"}
+    got = mps.join_node_daemon("sweep1", two, env, ranked=True, gpu="1")
+    assert got[priority] == mps.NORMAL  # GPU 1's lead left: the next on it leads
+    assert join(one, "1") == mps.BELOW_NORMAL  # ... GPU 1 by Ray's id, not the variable's 7
     assert join(one, "3", ranked=False) is None  # a sweep without a critical path
     mps.leave_node_daemon("sweep1", one)
     mps.leave_node_daemon("sweep1", two)

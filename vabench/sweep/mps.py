@@ -126,7 +126,11 @@ def node_folder(sweep: str) -> Path:
 
 
 def join_node_daemon(
-    sweep: str, member: str, environ: Mapping[str, str] = os.environ, ranked: bool = False
+    sweep: str,
+    member: str,
+    environ: Mapping[str, str] = os.environ,
+    ranked: bool = False,
+    gpu: str | None = None,
 ) -> dict[str, str]:
     """The variables that make this process a client of the MPS daemon of Ray sweep `sweep` on
     this node: the first engine of the sweep on the node starts it, the others find it (a file
@@ -137,10 +141,12 @@ def join_node_daemon(
     (an engine killed, a sweep interrupted) are dropped as others join or leave: a daemon whose
     members are all gone is told to quit, this sweep's (then started again) and earlier
     sweeps' alike. `ranked`: the variables also give this process its MPS priority
-    (`PRIORITY_VARIABLE`): normal for the first living member on its GPU (its Ray-given
-    CUDA_VISIBLE_DEVICES), below normal for the others (see `NODE_RANKED`). Raises
-    `MpsUnavailable`."""
+    (`PRIORITY_VARIABLE`): normal for the first living member on its GPU (`gpu`: Ray's GPU ids
+    of the engine; else its CUDA_VISIBLE_DEVICES), below normal for the others (see
+    `NODE_RANKED`). Raises `MpsUnavailable`."""
     if environ.get(PIPE_VARIABLE) or (DEFAULT_PIPE / "control").exists():
+        if ranked:
+            log.info("CUDA MPS: the user's daemon: every engine at its own priority (not ranked)")
         return {}
     program = _program()
     _reap_abandoned(sweep, program, environ)
@@ -157,8 +163,8 @@ def join_node_daemon(
             log.info("CUDA MPS: this node's daemon of the sweep (%s)", env[PIPE_VARIABLE])
         _write_members(folder, [*members, member])
         if ranked:
-            gpu = environ.get("CUDA_VISIBLE_DEVICES", "")
-            env[PRIORITY_VARIABLE] = _take_lead(folder, member, gpu, [*members, member])
+            on = gpu if gpu is not None else environ.get("CUDA_VISIBLE_DEVICES", "")
+            env[PRIORITY_VARIABLE] = _take_lead(folder, member, on, [*members, member])
     return env
 
 

@@ -352,6 +352,13 @@ class ClusterSweep:
             best.clock.work_began(time.monotonic())
             best.chunks[best.actor.run_chunk.remote(chunk.name, chunk.keys)] = chunk
             log.info("ray: chunk %s (%d episodes) to %s", chunk.name, len(chunk.keys), _host(best))
+            if chunk.critical and not best.lead:  # its GPU's normal engine busy or not started
+                log.warning(
+                    "ray: critical chunk %s runs below normal MPS priority on %s: the engines "
+                    "at normal priority on its GPU go ahead of it",
+                    chunk.name,
+                    _host(best),
+                )
 
     def _next_item(self, engine: EngineHandle, stream: Any, chunk: Chunk) -> None:
         ray = self.ray

@@ -248,8 +248,22 @@ class EngineActor:
             return ""
         try:
             ranked = bool(os.environ.get(mps.NODE_RANKED))
-            os.environ.update(mps.join_node_daemon(sweep, self._mps_member, ranked=ranked))
+            joined = mps.join_node_daemon(sweep, self._mps_member, ranked=ranked, gpu=_gpu_ids())
+            os.environ.update(joined)
         except mps.MpsUnavailable as err:
             log.warning("CUDA MPS: %s; the engines sharing this GPU take turns on it", err)
             return ""
         return sweep
+
+
+def _gpu_ids() -> str | None:
+    """Ray's GPU ids of this actor ("0", "2,3"), the same ids the driver groups engines by
+    (`EngineHandle.gpu`); None outside a Ray worker (then CUDA_VISIBLE_DEVICES stands in)."""
+    try:
+        import ray
+
+        if not ray.is_initialized():
+            return None
+        return ",".join(str(g) for g in ray.get_gpu_ids())
+    except Exception:  # no Ray here, or no worker context: the variable serves
+        return None

@@ -198,7 +198,10 @@ def _critical_engine(
     its GPU's lead (`EngineHandle.lead`: the normal MPS priority) before the others; `WAIT`
     while engines are still starting in the sweep's first `CRITICAL_WAIT_S` (from `since`, its
     first engine's request: a replacement engine later is not waited for) and may offer a GPU
-    without one, or its lead; or None (no idle engine: the ordinary rule places it)."""
+    without one, or its lead (a lead ready and busy is not waited for); or None (no idle
+    engine: the ordinary rule places it). A chunk placed on a below-normal engine after the
+    wait runs behind its GPU's lead (the driver's log says so): the wait counts from the
+    sweep's first request, so that a lead slow to start costs at most a minute."""
     if len(live) - len(holding) < 2:  # none would be left for the rest of the plan
         return None
     on_gpu: dict[Any, int] = {}
@@ -207,7 +210,12 @@ def _critical_engine(
             on_gpu[e.gpu] = on_gpu.get(e.gpu, 0) + 1
     idle = [e for e in live if e.ready and not e.chunks]
     best = min(idle, key=lambda e: (on_gpu.get(e.gpu, 0), not e.lead, e.index)) if idle else None
-    if best is not None and on_gpu.get(best.gpu, 0) == 0 and best.lead:
+    # a GPU's lead already working (on other chunks) is not waited for: it stays busy
+    if (
+        best is not None
+        and on_gpu.get(best.gpu, 0) == 0
+        and (best.lead or any(e.ready and e.lead and e.gpu == best.gpu for e in live))
+    ):
         return best
     if now - since < CRITICAL_WAIT_S and any(not e.ready for e in live):
         return WAIT
