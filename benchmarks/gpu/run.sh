@@ -212,6 +212,9 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     fi
     cp "$run"/results.jsonl "$run"/infrastructure.jsonl "$run"/*.json "$out/" 2>/dev/null
     [ -d "$run/logs" ] && cp -r "$run/logs" "$out/worker_logs"  # the engine workers' own lines
+    # ... whose "host:" lines (each loop's lateness beside the machine's runnable threads and
+    # the garbage collector's share) go into main_host.txt too, each named by its log
+    grep -aH " host" "$run"/logs/*.log >> "$out/main_host.txt" 2>/dev/null
     nvidia-smi --query-gpu=memory.used --format=csv | tee "$out/main_gpu_mem.txt"
     # The device tool returns at most 8 files (a py-spy profile was lost to it on 2026-11-27):
     # all but the main ones go into main_extra.tgz.
