@@ -78,3 +78,86 @@ def test_no_driver_is_not_an_error(monkeypatch):
 
     monkeypatch.setattr(ctypes, "CDLL", missing)
     assert cuda_sync.prefer_blocking_sync() == "no CUDA driver here"
+
+
+class FakeCore:
+    """Warp's native event call, recording the flags each event was made with."""
+
+    def __init__(self) -> None:
+        self.flags: list[int] = []
+
+    def wp_cuda_event_create(self, context, flags):
+        self.flags.append(flags)
+        return 1000 + len(self.flags)
+
+
+class FakeEvent:
+    """`wp.Event` as `streams.sleeping_event` calls it."""
+
+    def __init__(self, device, cuda_event=None):
+        self.device, self.cuda_event, self.owner = device, cuda_event, cuda_event is None
+
+
+def test_the_events_a_thread_waits_on_are_made_to_sleep(monkeypatch):
+    """`streams.record` makes its events with CU_EVENT_BLOCKING_SYNC (and no timing), owned
+    like Warp's own: CUDA's documentation says a thread waiting on an event made without it
+    busy-waits, whatever the context's flag. VABENCH_CUDA_SYNC=spin keeps Warp's own events."""
+    import types
+
+    from warp._src import context
+
+    from vabench.sim_mjx.warp import streams
+
+    core = FakeCore()
+    monkeypatch.setattr(context, "runtime", types.SimpleNamespace(core=core))
+    monkeypatch.setattr(streams.wp, "Event", FakeEvent)
+    device = types.SimpleNamespace(context=7)
+    monkeypatch.delenv(cuda_sync.SYNC_VARIABLE, raising=False)
+    event = streams.sleeping_event(device)
+    assert core.flags == [0x1 | 0x2]  # CU_EVENT_BLOCKING_SYNC | CU_EVENT_DISABLE_TIMING
+    assert event.cuda_event == 1001 and event.owner  # destroyed with the object
+    recorded = []
+    stream = types.SimpleNamespace(device=device, record_event=lambda e: recorded.append(e) or e)
+    assert streams.record(stream) is recorded[0] and core.flags[-1] == 0x3
+    monkeypatch.setenv(cuda_sync.SYNC_VARIABLE, "spin")
+    plain = streams.sleeping_event(device)
+    assert plain.cuda_event is None and len(core.flags) == 2  # Warp's own event
+
+
+def _cuda() -> bool:
+    import warp as wp
+
+    return wp.is_cuda_available()
+
+
+@pytest.mark.skipif(not _cuda(), reason="event waits are CUDA's (run on the GPU host)")
+def test_a_thread_waiting_for_the_gpu_sleeps():
+    """A thread waiting (`streams.wait`) on an event `streams.record` made spends a small part
+    of the wait on its core (`benchmarks/gpu_waits.py` puts Warp's own events beside it)."""
+    import sys
+    import time
+    from pathlib import Path
+
+    import warp as wp
+
+    from vabench.sim_mjx.warp import streams
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from gpu_waits import _busy
+
+    device = wp.get_device("cuda:0")
+    stream = wp.Stream(device)
+    out = wp.zeros(1, dtype=float, device=device)
+    n = 1 << 20
+    for _ in range(6):  # until a launch lasts over 0.1 s
+        with wp.ScopedStream(stream):
+            wp.launch(_busy, dim=1, inputs=[n], outputs=[out])
+        event = streams.record(stream)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        streams.wait(event)
+        wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+        if wall > 0.1:
+            break
+        n *= 4
+    assert wall > 0.1, f"the kernel ran only {wall:.3f} s"
+    assert cpu < 0.3 * wall, f"the waiting thread used {cpu:.3f} s of CPU in {wall:.3f} s"

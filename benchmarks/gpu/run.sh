@@ -10,7 +10,7 @@
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh physics | render | render_options | jpeg | fidelity | tests | engine | main | ray |
+#        bash benchmarks/gpu/run.sh waits | physics | render | render_options | jpeg | fidelity | tests | engine | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
 #        precompile_bench (issue 33, lever 8: vabench/sweep/precompile.py's old single phase
@@ -21,7 +21,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|physics|render|render_options|jpeg|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
+phase=${1:?usage: run.sh setup|waits|physics|render|render_options|jpeg|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -62,6 +62,11 @@ from vabench.sim_mjx.backends import resolve
 print(resolve("auto"), resolve_renderer("auto"))
 PY
     ;;
+  waits)
+    # How much of a core a thread waiting for the GPU takes: Warp's events, ours (blocking
+    # sync), a stream synchronisation (issue 33: the engine threads' 0.3-0.9 cores a process)
+    timeout 120 python3 benchmarks/gpu_waits.py 2>&1 | tee "$out/waits.log"
+    ;;
   physics)
     timeout 570 python3 benchmarks/sim_throughput.py --sizes 256,1024,8192 --backends warp,c \
       --loops per_step --budget-s 300 --json "$out/sim.json" 2>&1 | tee "$out/sim.log"
@@ -77,7 +82,7 @@ PY
     ;;
   tests)
     timeout 570 python3 -m pytest -q -x -p no:cacheprovider tests/test_warp_batch.py \
-      tests/test_render_warp.py 2>&1 | tee "$out/tests.log"
+      tests/test_render_warp.py tests/test_cuda_sync.py 2>&1 | tee "$out/tests.log"
     timeout 200 python3 benchmarks/warp_gpu_checks.py --json "$out/checks.json" 2>&1 \
       | tee "$out/checks.log"
     ;;

@@ -8,7 +8,8 @@ each waiting its turn, would spin sixteen cores while the model side (the embedd
 policy, JPEG decoding, the engine's JSON) needs them. `prefer_blocking_sync` asks the driver to
 put waiting threads to sleep instead (`CU_CTX_SCHED_BLOCKING_SYNC` on every GPU's primary
 context, the context Warp uses), which costs a few microseconds of wake-up per wait: nothing
-next to an action's ~90 ms of physics.
+next to an action's ~90 ms of physics. The waits on events (`streams.wait`) need the flag on
+the event itself (`blocking_events`).
 
 It must run before the process's primary contexts become active (Warp initialises them in
 `wp.init`), so `backends.warp_problem`, the first Warp call on every path, makes it. Where the
@@ -29,6 +30,15 @@ MODES = ("block", "spin")
 CU_CTX_SCHED_BLOCKING_SYNC = 0x04
 
 _done: str | None = None
+
+
+def blocking_events() -> bool:
+    """Whether events the host waits on are made to sleep (`streams.record`): CUDA's
+    documentation of cuEventSynchronize says a thread waiting on an event created without
+    CU_EVENT_BLOCKING_SYNC busy-waits, and Warp's events are created without it, so the
+    context's blocking sync above did not cover the waits that matter (every physics action,
+    render pass and JPEG call waits on an event). Off with VABENCH_CUDA_SYNC=spin too."""
+    return os.environ.get(SYNC_VARIABLE, "block") != "spin"
 
 
 def prefer_blocking_sync() -> str:

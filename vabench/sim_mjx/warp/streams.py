@@ -5,7 +5,8 @@ queues device work holds the device's lock (`device.device_lock`) with its own s
 (`queueing`). What it then waits for is the GPU, and it waits with the lock released: each
 physics batch and each render pass has a CUDA stream of its own, queues its work there under
 the lock (a batch action is ~20 ms of host time on an H100, its GPU time ~65 ms), records an
-event, lets go of the lock and sleeps on the event (`wait`). The GPU then runs the batches'
+event (one its waiters sleep on: `sleeping_event`), lets go of the lock and sleeps on the
+event (`wait`). The GPU then runs the batches'
 actions and the renderer's passes side by side, on their streams, while the host queues the
 next ones. Before this, every action held the lock until its results were on the host, so the
 GPU ran one batch at a time and the threads of 21 other batches queued behind the lock
@@ -32,6 +33,7 @@ import numpy as np
 import warp as wp
 
 from vabench.sim_mjx.interface import device_failure
+from vabench.sim_mjx.warp import cuda_sync
 
 log = logging.getLogger(__name__)
 
@@ -197,12 +199,40 @@ def _nonblocking_stream(context: Any, priority: str = "least") -> int | None:
 
 
 def record(stream: wp.Stream | None) -> wp.Event | None:
-    """An event at the end of the work queued so far on `stream` (None on the CPU)."""
-    return stream.record_event() if stream is not None else None
+    """An event at the end of the work queued so far on `stream` (None on the CPU), made so that
+    a thread waiting on it sleeps (`sleeping_event`)."""
+    if stream is None:
+        return None
+    return stream.record_event(sleeping_event(stream.device))
+
+
+BLOCKING_SYNC = 0x1  # CU_EVENT_BLOCKING_SYNC (Warp's Event.Flags use CUDA's values)
+DISABLE_TIMING = 0x2  # CU_EVENT_DISABLE_TIMING
+
+
+def sleeping_event(device: Any) -> wp.Event:
+    """A CUDA event whose waiters sleep until it passes (CU_EVENT_BLOCKING_SYNC), without
+    timing: CUDA's documentation of cuEventSynchronize says a thread waiting on an event made
+    without that flag busy-waits, and `wp.Event` offers no way to ask for it. Each engine
+    process's batch and render threads wait on one after every action and pass; spinning,
+    they took 0.3-0.9 cores a process on an H200 host whose 16 cores were 83 % busy
+    (2026-11-29). With `VABENCH_CUDA_SYNC=spin`, or where Warp's call is missing, Warp's own
+    (spinning) event."""
+    from warp._src import context  # Warp's event call with flags; public API otherwise
+
+    core: Any = getattr(context.runtime, "core", None)
+    if not cuda_sync.blocking_events() or not hasattr(core, "wp_cuda_event_create"):
+        return wp.Event(device)
+    handle = core.wp_cuda_event_create(device.context, BLOCKING_SYNC | DISABLE_TIMING)
+    if not handle:
+        return wp.Event(device)
+    event = wp.Event(device, cuda_event=handle)
+    event.owner = True  # destroyed with the object, as Warp's own
+    return event
 
 
 def wait(event: wp.Event | None) -> None:
-    """Block this thread (without the GIL, asleep: see cuda_sync) until `event` has passed.
+    """Block this thread (without the GIL, asleep: `sleeping_event`) until `event` has passed.
 
     `wp.synchronize_event` refuses while any graph capture is open on the device, another
     thread's included; Warp captures in CUDA's thread-local mode, in which other threads may
