@@ -5,10 +5,11 @@ a stream synchronisation, in a process whose CUDA context asked for blocking syn
 
     python benchmarks/gpu_waits.py [--wait-s 0.3] [--repeats 5]
 
-Why: CUDA's documentation says a thread waiting on an event made without the flag busy-waits,
-whatever the context's scheduling; an engine process waits on an event after every physics
-action, render pass and JPEG call, and on an H200 host (2026-11-29) the engine processes' batch
-and render threads took 0.3-0.9 cores each process while the host's 16 cores were 83 % busy.
+Why: CUDA's documentation says a thread waiting on an event made without the flag busy-waits
+(whether the context's blocking sync changes that is what this measures); an engine process
+waits on an event after every physics action, render pass and JPEG call, and on an H200 host
+(2026-11-29) the engine processes' batch and render threads took 0.3-0.9 cores each process
+while the host's 16 cores were 83 % busy.
 Prints, per way of waiting, the waiting thread's CPU seconds per second waited (1.0: a core
 spinning; ~0: asleep), side by side in one run.
 """

@@ -36,8 +36,9 @@ def blocking_events() -> bool:
     """Whether events the host waits on are made to sleep (`streams.record`): CUDA's
     documentation of cuEventSynchronize says a thread waiting on an event created without
     CU_EVENT_BLOCKING_SYNC busy-waits, and Warp's events are created without it, so the
-    context's blocking sync above did not cover the waits that matter (every physics action,
-    render pass and JPEG call waits on an event). Off with VABENCH_CUDA_SYNC=spin too."""
+    context's blocking sync above may not cover the waits that matter (every physics action,
+    render pass and JPEG call waits on an event; `benchmarks/gpu_waits.py` tells on a GPU).
+    Off with VABENCH_CUDA_SYNC=spin too."""
     return os.environ.get(SYNC_VARIABLE, "block") != "spin"
 
 

@@ -6,12 +6,11 @@ queues device work holds the device's lock (`device.device_lock`) with its own s
 physics batch and each render pass has a CUDA stream of its own, queues its work there under
 the lock (a batch action is ~20 ms of host time on an H100, its GPU time ~65 ms), records an
 event (one its waiters sleep on: `sleeping_event`), lets go of the lock and sleeps on the
-event (`wait`). The GPU then runs the batches'
-actions and the renderer's passes side by side, on their streams, while the host queues the
-next ones. Before this, every action held the lock until its results were on the host, so the
-GPU ran one batch at a time and the threads of 21 other batches queued behind the lock
-(measured on an H100 on 2026-11-26: a third of the GPU busy, half of the threads' time spent
-waiting for the lock; docs/PERFORMANCE.md).
+event (`wait`). The GPU then runs the batches' actions and the renderer's passes side by side,
+on their streams, while the host queues the next ones. Before this, every action held the
+lock until its results were on the host, so the GPU ran one batch at a time and the threads of
+21 other batches queued behind the lock (measured on an H100 on 2026-11-26: a third of the
+GPU busy, half of the threads' time spent waiting for the lock; docs/PERFORMANCE.md).
 
 Results reach the host through `Readback`: device arrays mirrored into pinned host buffers by
 copies queued behind the work, so that the host reads them once the event has passed, with no
@@ -214,10 +213,10 @@ def sleeping_event(device: Any) -> wp.Event:
     """A CUDA event whose waiters sleep until it passes (CU_EVENT_BLOCKING_SYNC), without
     timing: CUDA's documentation of cuEventSynchronize says a thread waiting on an event made
     without that flag busy-waits, and `wp.Event` offers no way to ask for it. Each engine
-    process's batch and render threads wait on one after every action and pass; spinning,
-    they took 0.3-0.9 cores a process on an H200 host whose 16 cores were 83 % busy
-    (2026-11-29). With `VABENCH_CUDA_SYNC=spin`, or where Warp's call is missing, Warp's own
-    (spinning) event."""
+    process's batch and render threads wait on one after every action and pass; they took
+    0.3-0.9 cores a process on an H200 host whose 16 cores were 83 % busy (2026-11-29; how much
+    of it was spinning, `benchmarks/gpu_waits.py` measures). With `VABENCH_CUDA_SYNC=spin`, or
+    where Warp's call is missing, Warp's own event."""
     from warp._src import context  # Warp's event call with flags; public API otherwise
 
     core: Any = getattr(context.runtime, "core", None)
