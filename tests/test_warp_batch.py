@@ -22,7 +22,7 @@ pytest.importorskip("mujoco_warp", reason="the Warp backend needs mujoco-warp ([
 
 from vabench.sim_mjx import backends
 from vabench.sim_mjx.backends import BackendUnavailable
-from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase
+from vabench.sim_mjx.interface import DIVERGED, STATE_FIELDS, BatchBase
 from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.sim_mjx.warp import device
 from vabench.sim_mjx.warp.batch import WarpBatch
@@ -99,6 +99,22 @@ def test_contact_overflow_is_a_named_infrastructure_error(cube):
     assert res[0].infrastructure_error is not None
     assert "overflow" in res[0].infrastructure_error and "nconmax" in res[0].infrastructure_error
     assert res[1] is None
+
+
+def test_a_diverged_world_is_a_named_infrastructure_error(cube):
+    """A world whose state is no longer finite (a divergence carries NaN on, as one episode's
+    did on an H200, 2026-11-29) fails its action as the simulator's error; its neighbour does
+    not."""
+    _, model, q0 = cube
+    batch = WarpBatch(model, 2, device="cpu")
+    _reset(batch, q0)
+    state = batch.get_state([0])
+    state["qvel"][:] = np.nan
+    batch.set_state([0], state, [0])
+    res = batch.step([DOWN, DOWN])
+    assert res[0] is not None and res[0].infrastructure_error == DIVERGED
+    assert res[1] is not None and res[1].executed and res[1].infrastructure_error is None
+    assert np.isfinite(batch.qpos()[1]).all()
 
 
 def test_constraint_overflow_names_njmax(cube):

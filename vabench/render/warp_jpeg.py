@@ -795,7 +795,9 @@ class WarpJpeg:
             and self.stream is not None
             and any(self._buffers[name].shape[0] < size for name, (size, _) in want.items())
         ):  # a freed array goes back to the pool unordered with this stream: nothing may use it
-            wp.synchronize_stream(self.stream)
+            # (an event that sleeps: a stream synchronisation spun a core for its whole wait on
+            # an H200, blocking-sync context or not, benchmarks/gpu_waits.py, 2026-11-29)
+            streams.wait(streams.record(self.stream))
         for name, (size, dtype) in want.items():
             if name not in self._buffers or self._buffers[name].shape[0] < size:
                 self._buffers[name] = wp.zeros(size, dtype=dtype, device=d)

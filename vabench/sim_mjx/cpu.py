@@ -25,6 +25,17 @@ from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import check_same_structure
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+# What C MuJoCo counts when a world diverges (it then resets the world to the model's default
+# pose and goes on: finite numbers, wrong physics).
+_UNSTABLE = (
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+    mujoco.mjtWarning.mjWARN_BADQACC,
+)
+
+
+def _instabilities(d: mujoco.MjData) -> int:
+    return sum(int(d.warning[w].number) for w in _UNSTABLE)
 
 
 class CpuBatch(BatchBase):
@@ -59,6 +70,9 @@ class CpuBatch(BatchBase):
         )
         self._pool = rollout.Rollout(nthread=threads) if threads > 0 else None
         self._thread_data = [mujoco.MjData(model) for _ in range(threads)]
+        # Per slot: C MuJoCo reset the world during the last `_run` (serial path only: the
+        # rollout threads' warnings are not read; they serve benchmarks).
+        self._unstable = np.zeros(n_slots, bool)
         # Capture (demonstration videos; off by default): with `capture_every` = k > 0, every
         # k-th physics step of an action appends the slot's qpos to `captured[slot]`. Only
         # actions are captured, never reset or hold; it reads state and changes no result.
@@ -111,6 +125,7 @@ class CpuBatch(BatchBase):
     def _run(self, slots: list[int], controls: np.ndarray, capture: int = 0) -> None:
         """Advance `slots` through the control sequences (len(slots), n_steps, nu); with
         `capture` = k > 0, append qpos to `captured[slot]` after every k-th step."""
+        self._unstable[:] = False
         if not slots:
             return
         if capture > 0 and self._pool is not None:
@@ -120,6 +135,7 @@ class CpuBatch(BatchBase):
                 m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
                 mujoco.mj_setState(m, d, self._state[slot], _STATE)
                 d.qacc_warmstart[:] = self._warm[slot]
+                unstable = _instabilities(d)
                 for k, u in enumerate(controls[row], 1):
                     d.ctrl[:] = u
                     mujoco.mj_step(m, d)
@@ -127,6 +143,7 @@ class CpuBatch(BatchBase):
                         self.captured.setdefault(slot, []).append(d.qpos.copy())
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
                 self._warm[slot] = d.qacc_warmstart
+                self._unstable[slot] = _instabilities(d) != unstable
         else:
             # Threads (benchmarks): rollout does not return the final warm start, so each
             # action starts cold; reproducible across batching, not equal to the serial path.
@@ -159,6 +176,9 @@ class CpuBatch(BatchBase):
         return StepInfo(
             executed=go, planner_success=plan.ok, clipped=plan.clipped, executed_m=plan.executed_m
         )
+
+    def _diverged(self, slots: Sequence[int]) -> np.ndarray:
+        return super()._diverged(slots) | self._unstable[list(slots)]
 
     def qpos(self) -> np.ndarray:
         # full-physics state layout: time, qpos, qvel, act, ...

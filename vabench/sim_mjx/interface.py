@@ -96,6 +96,12 @@ class StepInfo(PyTree):
     failure: Any = None  # (N,) str | None per slot: why its physics is not to be trusted
 
 
+DIVERGED = (
+    "physics diverged (the world's state left the finite numbers during this action): the "
+    "simulator failed, not the model; the episode is re-run"
+)
+
+
 @dataclass
 class ActionResult:
     """What one slot's action did (host side)."""
@@ -348,7 +354,20 @@ class BatchBase:
             }
             if info.failure is not None and info.failure[slot]:
                 res.infrastructure_error = str(info.failure[slot])
+        acted = [s for s, r in enumerate(results) if r is not None and r.executed]
+        for slot in np.asarray(acted, int)[self._diverged(acted)]:
+            res = results[slot]
+            assert res is not None
+            res.infrastructure_error = res.infrastructure_error or DIVERGED
         return results
+
+    def _diverged(self, slots: Sequence[int]) -> np.ndarray:
+        """Per slot of `slots` (bool), whether its physics diverged in the last action: a
+        non-finite pose (GPU backends carry NaN on). C MuJoCo resets a diverging world to its
+        model's default pose instead, so its backend adds the warnings it counted."""
+        if not len(slots):
+            return np.zeros(0, bool)
+        return ~np.isfinite(self.qpos()[list(slots)]).all(axis=1)
 
     def proprio(self) -> Proprio:
         """Proprioception of every slot, as host arrays."""

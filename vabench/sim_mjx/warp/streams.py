@@ -213,10 +213,12 @@ def sleeping_event(device: Any) -> wp.Event:
     """A CUDA event whose waiters sleep until it passes (CU_EVENT_BLOCKING_SYNC), without
     timing: CUDA's documentation of cuEventSynchronize says a thread waiting on an event made
     without that flag busy-waits, and `wp.Event` offers no way to ask for it. Each engine
-    process's batch and render threads wait on one after every action and pass; they took
-    0.3-0.9 cores a process on an H200 host whose 16 cores were 83 % busy (2026-11-29; how much
-    of it was spinning, `benchmarks/gpu_waits.py` measures). With `VABENCH_CUDA_SYNC=spin`, or
-    where Warp's call is missing, Warp's own event."""
+    process's batch and render threads wait on one after every action and pass. Measured on an
+    H200 (`benchmarks/gpu_waits.py`, 2026-11-29, in a process whose context asked for blocking
+    sync): a waiter on Warp's event used 1.00 CPU second per second waited, on this one 0.00;
+    in the main job the engine processes' sim and render threads went from 0.3-0.9 cores each
+    to 0.02-0.07 with it. With `VABENCH_CUDA_SYNC=spin`, or where Warp's call is missing,
+    Warp's own event."""
     from warp._src import context  # Warp's event call with flags; public API otherwise
 
     core: Any = getattr(context.runtime, "core", None)

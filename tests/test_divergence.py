@@ -1,0 +1,50 @@
+"""A world whose physics diverges is the simulator's failure, never the model's: the acting
+slot's result carries an infrastructure error (the sweep re-runs the episode, FACTS: "failed-
+for-infrastructure episodes re-run"), its neighbours go on untouched.
+
+On a GPU a diverged world carries NaN into its pose (seen once in 2,160 episodes on an H200,
+2026-11-29: the episode ended as a harness error on a non-finite observation); C MuJoCo resets
+it to the model's default pose instead and counts a warning, which the C backend reads. The
+Warp backend's case is in test_warp_batch.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vabench.sim_mjx.cpu import CpuBatch
+from vabench.sim_mjx.interface import DIVERGED
+
+DOWN = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 20}
+
+
+def _blown_up(batch, slot: int, qvel: float) -> None:
+    """Give `slot` a velocity no physics can integrate (C MuJoCo's limit is 1e10)."""
+    state = batch.get_state([slot])
+    state["qvel"][:] = qvel
+    batch.set_state([slot], state, batch.variant()[[slot]])
+
+
+def test_c_mujoco_resetting_a_world_is_an_infrastructure_error(probe_task, probe_model):
+    batch = CpuBatch(probe_model, 2)
+    q = probe_task.initial_qpos(probe_model, 0)
+    batch.reset([0, 1], np.broadcast_to(q, (2, probe_model.nq)), settle_steps=10)
+    _blown_up(batch, 0, 1e12)
+    fine, blown = batch.step([DOWN, DOWN])[::-1]
+    assert blown is not None and blown.executed and blown.infrastructure_error == DIVERGED
+    assert fine is not None and fine.executed and fine.infrastructure_error is None
+    assert np.isfinite(batch.qpos()[0]).all()  # C MuJoCo's reset: finite, and wrong
+    # the next action of the reset world is judged by its own physics again
+    again = batch.step([DOWN, None])[0]
+    assert again is not None and again.infrastructure_error is None
+
+
+def test_a_non_finite_pose_is_an_infrastructure_error(probe_task, probe_model):
+    """The check every backend shares: a pose that is not finite after the action."""
+    batch = CpuBatch(probe_model, 2)
+    q = probe_task.initial_qpos(probe_model, 0)
+    batch.reset([0, 1], np.broadcast_to(q, (2, probe_model.nq)), settle_steps=10)
+    assert not batch._diverged([0, 1]).any()
+    batch._state[1, 1] = np.nan  # qpos[0] of slot 1 (the full-physics layout: time, qpos, ...)
+    assert batch._diverged([0, 1]).tolist() == [False, True]
+    assert batch._diverged([]).shape == (0,)
