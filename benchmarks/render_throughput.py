@@ -9,7 +9,8 @@ head view and the five semantic views. For every image size:
 
 1. throughput, images/s for a request of B images: the GL `RenderPool` with W workers (the
    best W is the baseline), the `WarpRenderPool` with JPEG on host threads (libjpeg-turbo), and
-   with JPEG on the device (nvImageCodec, where installed); with the ratio of each Warp row to
+   with JPEG on the device (nvImageCodec, where installed), and on a GPU with JPEG in our own
+   Warp kernels (`warp_jpeg`, the shipped default there); with the ratio of each Warp row to
    the best GL row of the same B;
 2. latency of one step's images for `--slots` slots: the active protocol (one image per slot)
    and the passive bundle (five per slot), `--repeats` requests each, p50 and p95;
@@ -82,6 +83,8 @@ def main() -> None:
     p.add_argument("--json")
     args = p.parse_args()
 
+    import warp as wp
+
     from vabench.render import gpu_jpeg
     from vabench.render.images import ImageSettings
     from vabench.render.warp_renderer import WarpRenderPool
@@ -103,6 +106,9 @@ def main() -> None:
         variants.append(("warp, jpeg host", WarpRenderPool(max_size=max_size, jpeg="host")))
         if gpu_jpeg.available():
             variants.append(("warp, jpeg device", WarpRenderPool(max_size=max_size, jpeg="device")))
+        if wp.is_cuda_available():  # the shipped default on a GPU: our JPEG kernels
+            pool = WarpRenderPool(max_size=max_size, jpeg="kernels")
+            variants.append(("warp, jpeg kernels", pool))
     for name, pool in variants:
         info = pool.start()  # type: ignore[attr-defined]
         print(f"{name}: {info}")
