@@ -39,6 +39,22 @@ def test_c_mujoco_resetting_a_world_is_an_infrastructure_error(probe_task, probe
     assert again is not None and again.infrastructure_error is None
 
 
+def test_every_diverging_slot_is_caught_each_time(probe_task, probe_model):
+    """C MuJoCo's reset zeroes its warning counters and counts one: two slots diverging in one
+    step (one MjData serves every slot of a model), and the same slot diverging again later,
+    are each an infrastructure error."""
+    batch = CpuBatch(probe_model, 3)
+    q = probe_task.initial_qpos(probe_model, 0)
+    batch.reset([0, 1, 2], np.broadcast_to(q, (3, probe_model.nq)), settle_steps=10)
+    _blown_up(batch, 0, 1e12)
+    _blown_up(batch, 2, 1e12)
+    errors = [r.infrastructure_error for r in batch.step([DOWN, DOWN, DOWN])]
+    assert errors == [DIVERGED, None, DIVERGED]
+    _blown_up(batch, 0, 1e12)  # again, without a reset in between
+    errors = [r.infrastructure_error if r else None for r in batch.step([DOWN, DOWN, None])]
+    assert errors == [DIVERGED, None, None]
+
+
 def test_a_non_finite_pose_is_an_infrastructure_error(probe_task, probe_model):
     """The check every backend shares: a pose that is not finite after the action."""
     batch = CpuBatch(probe_model, 2)

@@ -38,7 +38,7 @@ def _probe(**env: str) -> dict:
         capture_output=True,
         text=True,
         check=True,
-        env={**os.environ, **env},
+        env={**os.environ, "VABENCH_GC_FREEZE": "1", **env},
     )
     return json.loads(out.stdout)
 
@@ -55,3 +55,41 @@ def test_turned_off_nothing_is_frozen():
     assert got["frozen"] == got["count"] == 0
     assert got["tracked_before"] >= 200_000
     assert got["collected"] >= 2
+
+
+TASK_BATCH_PROBE = r"""
+import asyncio, gc, json, weakref
+from vabench import gc_freeze
+from vabench.agent.services import task_services
+from vabench.tasks import get_task
+
+class Pool:  # a renderer that reads its states from the physics batch, as Warp's does
+    def shares(self, batch):
+        return True
+
+async def main():
+    async with task_services(get_task("probe_cube"), 2, None, Pool(), backend="c") as svc:
+        gc_freeze.freeze("the probe's task batch")  # as the sweep does once a batch is built
+        kept = (svc.sim, svc.sim.batch, svc.sim.batch.batch, svc.render)
+        refs = [weakref.ref(o) for o in kept]
+        del kept
+    del svc
+    gc.collect()
+    return [type(r()).__name__ for r in refs if r() is not None]
+
+print(json.dumps(asyncio.run(main())))
+"""
+
+
+def test_a_task_batch_frozen_at_its_build_is_freed_when_its_task_ends():
+    """The sweep freezes each task batch once built (`runner._run_task`); whatever of it is in
+    a reference cycle could then never be collected, so its services must break their cycles
+    when they close: the batch and its services go with the task."""
+    out = subprocess.run(
+        [sys.executable, "-c", TASK_BATCH_PROBE],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "VABENCH_GC_FREEZE": "1"},
+    )
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == []

@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import inspect
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -61,7 +63,13 @@ class MicroBatcher(Generic[T, R]):
             raise ValueError(f"window_s must be >= 0, got {window_s}")
         if max_batch is not None and max_batch < 1:
             raise ValueError(f"max_batch must be >= 1, got {max_batch}")
-        self._run = run
+        # A bound method is held weakly: its object owns this batcher (the simulator and render
+        # services do), and a strong reference back would make a cycle that only the collector
+        # frees, and never once frozen (`gc_freeze` at a task batch's build), with the
+        # simulator batch in it.
+        self._run: Callable[[], Callable[[Sequence[T]], Sequence[R]] | None] = (
+            weakref.WeakMethod(run) if inspect.ismethod(run) else lambda: run
+        )
         self.window_s = window_s
         self.max_batch = max_batch
         self.name = name
@@ -123,7 +131,7 @@ class MicroBatcher(Generic[T, R]):
             if self._thread is None:
                 self._thread = ThreadPoolExecutor(self.concurrency, thread_name_prefix=self.name)
             loop = asyncio.get_running_loop()
-            results = await loop.run_in_executor(self._thread, self._run, items)
+            results = await loop.run_in_executor(self._thread, self._target(), items)
             if len(results) != len(items):
                 raise RuntimeError(
                     f"{self.name}: run returned {len(results)} results for {len(items)} items"
@@ -148,6 +156,12 @@ class MicroBatcher(Generic[T, R]):
         for (_, fut), result in zip(batch, results, strict=True):
             if not fut.done():
                 fut.set_result(result)
+
+    def _target(self) -> Callable[[Sequence[T]], Sequence[R]]:
+        run = self._run()
+        if run is None:
+            raise RuntimeError(f"{self.name}: the object whose method this batcher runs is gone")
+        return run
 
     async def close(self) -> None:
         if self._task is not None:

@@ -34,6 +34,14 @@ _UNSTABLE = (
 )
 
 
+def _clear_instabilities(d: mujoco.MjData) -> None:
+    """Zero the counters: `mj_resetData` (C MuJoCo's answer to a divergence) sets them to 0 and
+    counts 1, so a count carried over from another slot of the shared MjData would hide the
+    next divergence."""
+    for w in _UNSTABLE:
+        d.warning[w].number = 0
+
+
 def _instabilities(d: mujoco.MjData) -> int:
     return sum(int(d.warning[w].number) for w in _UNSTABLE)
 
@@ -135,7 +143,7 @@ class CpuBatch(BatchBase):
                 m, d = self.models[self._variant[slot]], self._datas[self._variant[slot]]
                 mujoco.mj_setState(m, d, self._state[slot], _STATE)
                 d.qacc_warmstart[:] = self._warm[slot]
-                unstable = _instabilities(d)
+                _clear_instabilities(d)
                 for k, u in enumerate(controls[row], 1):
                     d.ctrl[:] = u
                     mujoco.mj_step(m, d)
@@ -143,7 +151,7 @@ class CpuBatch(BatchBase):
                         self.captured.setdefault(slot, []).append(d.qpos.copy())
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
                 self._warm[slot] = d.qacc_warmstart
-                self._unstable[slot] = _instabilities(d) != unstable
+                self._unstable[slot] = _instabilities(d) > 0
         else:
             # Threads (benchmarks): rollout does not return the final warm start, so each
             # action starts cold; reproducible across batching, not equal to the serial path.
