@@ -5,6 +5,9 @@ child process compiles for real (slow: a whole expert episode on Warp's CPU devi
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -67,7 +70,7 @@ def test_every_family_compiles_side_by_side_sharing_one_folder_of_claims(markers
     guard = threading.Lock()
     together = threading.Barrier(3, timeout=30)  # fails unless all three run at once
 
-    def child(task, size, device, threads, claims=None, stats=None):
+    def child(task, size, device, threads, claims=None, stats=None, nice=0):
         assert claims is not None and claims.is_dir() and stats is not None
         with guard:
             events.append(("start", task, threads, claims))
@@ -240,7 +243,7 @@ def test_a_family_is_ready_as_its_own_child_ends(markers, monkeypatch):
     the first episode waiting for all of it)."""
     slow_may_end = threading.Event()
 
-    def child(task, size, device, threads, claims=None, stats=None):
+    def child(task, size, device, threads, claims=None, stats=None, nice=0):
         if task == "put_everything_in_basket":
             assert slow_may_end.wait(30)
         return None
@@ -346,6 +349,62 @@ def test_a_sweep_starts_compiling_in_the_background_on_a_gpu(monkeypatch):
     choices = SimpleNamespace(renderer=SimpleNamespace(is_warp=True))
     monkeypatch.setattr(runner, "warp_device", lambda: "cuda:0")
     assert asyncio.run(runner.start_compiling(engine, choices, ["b", "a", "b"])) == "handle"
-    assert started == [(["a", "b"], 640, 480, "cuda:0", True)]
+    assert started == [(["a", "b"], 640, 480, "cuda:0", True, ())]
+    started.clear()  # the sweep's critical path goes with them
+    assert asyncio.run(runner.start_compiling(engine, choices, ["b", "a"], {"b"})) == "handle"
+    assert started == [(["a", "b"], 640, 480, "cuda:0", True, {"b"})]
     monkeypatch.setattr(runner, "warp_device", lambda: "cpu")
     assert asyncio.run(runner.start_compiling(engine, choices, ["c"])) is None
+
+
+def test_the_critical_path_compiles_first_with_more_threads_and_the_others_behind():
+    """The basket's chain bounds a fresh machine's suite (its child took 99 s of a 102 s compile
+    on an H200, 2026-11-29): its child starts first, in twice the threads, the others at a
+    lower CPU priority; without a critical family (or with only critical ones) all alike."""
+    plan = precompile.child_plan(
+        ["lift_pot", "put_everything_in_basket", "place_shoe"], {"put_everything_in_basket"}, 2
+    )
+    assert list(plan) == ["put_everything_in_basket", "lift_pot", "place_shoe"]
+    assert plan["put_everything_in_basket"] == (4, 0)
+    assert plan["lift_pot"] == plan["place_shoe"] == (2, precompile.BEHIND_NICE)
+    alike = {"lift_pot": (2, 0), "place_shoe": (2, 0)}
+    assert (
+        precompile.child_plan(["lift_pot", "place_shoe"], {"put_everything_in_basket"}, 2) == alike
+    )
+    assert precompile.child_plan(["lift_pot", "place_shoe"], {"lift_pot", "place_shoe"}, 2) == alike
+
+
+def test_the_critical_familys_child_is_started_first_and_given_its_plan(markers, monkeypatch):
+    started: list[tuple[str, int, int]] = []
+    guard = threading.Lock()
+
+    def child(task, size, device, threads, claims=None, stats=None, nice=0):
+        with guard:
+            started.append((task, threads, nice))
+
+    monkeypatch.setattr(precompile, "_child", child)
+    families = ["lift_pot", "place_shoe", "put_everything_in_basket"]
+    precompile.ensure_compiled(
+        families, 64, 48, "cpu", images=False, processes=1, first={"put_everything_in_basket"}
+    )
+    # one core: children(3, 1) = 2 at a time, 2 threads each; the basket's in the first wave
+    assert ("put_everything_in_basket", 4, 0) in started[:2]
+    assert sorted(started) == sorted(
+        [("put_everything_in_basket", 4, 0), ("lift_pot", 2, 5), ("place_shoe", 2, 5)]
+    )
+
+
+def test_a_child_behind_runs_at_the_lower_cpu_priority():
+    """`--nice` is applied by the child itself, before its threads start (in a process of its
+    own: a process cannot take its priority back)."""
+    probe = (
+        "import os\n"
+        "from vabench.sweep import precompile, warp_ahead\n"
+        "def family(*a, **k):\n"
+        "    print('nice', os.nice(0))\n"
+        "    return warp_ahead.Ahead(), {}\n"
+        "precompile.compile_family = family\n"
+        "precompile.main(['lift_pot', '--nice', '3'])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert f"nice {os.nice(0) + 3}" in out.stdout

@@ -43,6 +43,14 @@ then the sweep compiles what is missing itself, as before). On a fresh H100 (202
 compile took 101 s, the basket's child 97 s of it while the base families' ended earlier, and
 the first episode waited for all of it (169 s), the GPU idle meanwhile.
 
+The families on the sweep's critical path (`first`: the basket, whose chain of ~180 decisions
+bounds the suite) come first: their children get twice the threads and the others run at a
+lower CPU priority (`BEHIND_NICE`) while the cores are oversubscribed. On a fresh H200
+(2026-11-29) the basket's child took 99 s of the compile's 102 s with 22 children of 2 threads
+on 16 cores, its first episode started at 108 s and the suite ended at 252.6 s, the basket's
+~140 s chain after the others had ended: each second its kernels come sooner is a second off a
+fresh machine's suite.
+
 `VABENCH_WARP_PRECOMPILE=0` turns it off; `=first` makes every family wait for the whole
 compile, as before (the A/B of the overlap on a fresh machine).
 
@@ -76,7 +84,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -94,6 +102,10 @@ POLL_S = 0.5
 REPORT_KEYS = {"task", "compiled", "compile_s", "s"}
 """What every child's report has (`main`); the summary reads nothing else without a default."""
 CHILDREN_PER_CORE = 2
+BEHIND_NICE = 5
+"""The CPU priority (nice) of the other families' children while a critical one compiles: at
+5 a thread gets about a third of the CPU share of one at 0 when they share a core, so the
+critical child's threads run whenever they are ready and the others take the rest."""
 """The most children a core: enough for the 22 families of `configs/all.yaml` at once on a
 16-core host (a child mostly waits for modules others hold; one a core ran them in two waves,
 the second ~40 s longer on an H100); a 2-core machine runs 4."""
@@ -187,16 +199,18 @@ def ensure_compiled(
     images: bool = True,
     processes: int | None = None,
     started: threading.Event | None = None,
+    first: Collection[str] = (),
 ) -> list[str]:
     """Compile the Warp kernels of `tasks` not yet compiled here (blocking; see the module
     docstring); `images`: the Warp renderer's too. Each family is marked as its child ends.
     Returns the families that failed to compile (the sweep compiles those itself). `started`
     is set once this call holds the machine's lock, or waits for another process's, or has
-    nothing to do: from then on `family_ready` answers for its families."""
+    nothing to do: from then on `family_ready` answers for its families. `first`: the
+    families on the sweep's critical path (see the module docstring)."""
     try:
         if os.environ.get(ENV, "1") == "0":
             return []
-        return _compile(tasks, width, height, device, images, processes, started)
+        return _compile(tasks, width, height, device, images, processes, started, first)
     finally:
         if started is not None:
             started.set()
@@ -210,6 +224,7 @@ def _compile(
     images: bool,
     processes: int | None,
     announce: threading.Event | None,
+    first: Collection[str] = (),
 ) -> list[str]:
     key = family_key(width, height, device, images)
     markers = marker_dir()
@@ -221,13 +236,19 @@ def _compile(
         if not todo:
             return []
         workers, threads = children(len(todo), max(1, processes or os.cpu_count() or 1))
+        plan = child_plan(todo, first, threads)
+        todo = list(plan)  # the critical families' children start first
+        lead = [t for t in todo if plan[t][0] > threads]
         log.info(
-            "compiling MuJoCo Warp's kernels for %d famil%s in %d processes of %d threads "
+            "compiling MuJoCo Warp's kernels for %d famil%s in %d processes of %d threads%s "
             "(first run of this code on this machine; cached for the next)",
             len(todo),
             "y" if len(todo) == 1 else "ies",
             workers,
             threads,
+            f"; {', '.join(lead)} first, in {2 * threads} threads, the others at nice {BEHIND_NICE}"
+            if lead
+            else "",
         )
         started = time.monotonic()
         size = (width, height) if images else None
@@ -237,7 +258,8 @@ def _compile(
         stats.mkdir(parents=True, exist_ok=True)
 
         def one(task: str) -> str | None:
-            err = _child(task, size, device, threads, claims, stats)
+            n_threads, nice = plan[task]
+            err = _child(task, size, device, n_threads, claims, stats, nice)
             if not err:  # its episodes may start now (`family_ready`)
                 (markers / f"{task}.{key}").touch()
             return err
@@ -267,33 +289,55 @@ class Compiling:
     """`ensure_compiled` of a sweep's families in a thread of its own (`start`), and the wait of
     each family for its own kernels (`ready`): a family's episodes start while others compile."""
 
-    def __init__(self, tasks: Sequence[str], width: int, height: int, device: str, images: bool):
+    def __init__(
+        self,
+        tasks: Sequence[str],
+        width: int,
+        height: int,
+        device: str,
+        images: bool,
+        first: Collection[str] = (),
+    ):
         self.key = family_key(width, height, device, images)
         self.markers = marker_dir()
         self.failed: list[str] = []
         self._started = threading.Event()
         self._thread = threading.Thread(
             target=self._run,
-            args=(list(tasks), width, height, device, images),
+            args=(list(tasks), width, height, device, images, tuple(first)),
             name="precompile",
             daemon=True,
         )
 
     @classmethod
     def start(
-        cls, tasks: Sequence[str], width: int, height: int, device: str, images: bool
+        cls,
+        tasks: Sequence[str],
+        width: int,
+        height: int,
+        device: str,
+        images: bool,
+        first: Collection[str] = (),
     ) -> Compiling:
         """Started, and holding the machine's lock or waiting for another process's (blocks
-        until then: seconds at most)."""
-        self = cls(tasks, width, height, device, images)
+        until then: seconds at most); `first`: the sweep's critical path (`ensure_compiled`)."""
+        self = cls(tasks, width, height, device, images, first)
         self._thread.start()
         self._started.wait()
         return self
 
-    def _run(self, tasks: list[str], width: int, height: int, device: str, images: bool) -> None:
+    def _run(
+        self,
+        tasks: list[str],
+        width: int,
+        height: int,
+        device: str,
+        images: bool,
+        first: tuple[str, ...],
+    ) -> None:
         try:
             self.failed = ensure_compiled(
-                tasks, width, height, device, images, started=self._started
+                tasks, width, height, device, images, started=self._started, first=first
             )
         except Exception as err:  # the sweep compiles its families itself, as without this
             log.warning("precompile failed (the sweep compiles its families itself): %s", err)
@@ -312,6 +356,21 @@ class Compiling:
 
     def join(self, timeout: float | None = None) -> None:
         self._thread.join(timeout)
+
+
+def child_plan(
+    todo: Sequence[str], first: Collection[str], threads: int
+) -> dict[str, tuple[int, int]]:
+    """{family: (threads, nice)} in the order the children start (so that where there are
+    more families than children at once, the critical ones are in the first wave): the
+    critical families (`first`, those of `todo`) with twice the threads at the usual priority,
+    then the others at `BEHIND_NICE`; where none of `todo` is critical, or all are, every
+    child alike."""
+    critical = [t for t in todo if t in first]
+    if not critical or len(critical) == len(todo):
+        return {t: (threads, 0) for t in todo}
+    behind = {t: (threads, BEHIND_NICE) for t in todo if t not in first}
+    return {**{t: (2 * threads, 0) for t in critical}, **behind}
 
 
 def children(families: int, cores: int) -> tuple[int, int]:
@@ -357,10 +416,11 @@ def _child(
     threads: int,
     claims: Path | None = None,
     stats: Path | None = None,
+    nice: int = 0,
 ) -> str | None:
     """Compile one family in a child process (its modules loaded ahead in `threads` threads,
-    sharing `claims` with the other children; its report written to `stats`): None, or the
-    end of its output if it failed."""
+    sharing `claims` with the other children; its report written to `stats`; at CPU priority
+    `nice` above this process's): None, or the end of its output if it failed."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "VABENCH_WARP_DEVICE": device}
     if stats is not None:
         env[STATS_ENV] = str(stats)
@@ -369,6 +429,8 @@ def _child(
         command += ["--claims", str(claims)]
     if size is not None:
         command += ["--size", f"{size[0]}x{size[1]}"]
+    if nice:
+        command += ["--nice", str(nice)]
     try:
         done = subprocess.run(
             command, env=env, capture_output=True, text=True, timeout=CHILD_TIMEOUT_S
@@ -436,7 +498,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--size", help="WxH of the images (none: physics only)")
     parser.add_argument("--threads", type=int, default=1, help="compile its modules ahead")
     parser.add_argument("--claims", type=Path, help="a folder of claims shared by processes")
+    parser.add_argument("--nice", type=int, default=0, help="lower this process's CPU priority")
     args = parser.parse_args(argv)
+    if args.nice:  # before any thread starts: threads take their creator's priority
+        os.nice(args.nice)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
     compiled: list[tuple[str, float, float]] = []

@@ -396,7 +396,14 @@ def _precompile(
     tasks = sorted({k.task for _, part in parts for k in part})
     render = config.render
     size = (render.width, render.height)
-    compiling = precompile.Compiling.start(tasks, *size, warp_device(), choices.renderer.is_warp)
+    first = (
+        critical_path_tasks({t: _cost(config, t) for t in tasks})
+        if choices.physics.batched
+        else set()
+    )
+    compiling = precompile.Compiling.start(
+        tasks, *size, warp_device(), choices.renderer.is_warp, first
+    )
     if os.environ.get(precompile.ENV) == "first":
         compiling.join()
     return compiling

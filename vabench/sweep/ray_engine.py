@@ -132,7 +132,8 @@ class EngineActor:
             raise
         self._stack = stack
         try:
-            await start_compiling(self.engine, self.choices, tasks or [])
+            first = self.choices.executor.critical_path or ()
+            await start_compiling(self.engine, self.choices, tasks or [], first)
         except Exception as err:  # each chunk compiles its own families anyway
             log.warning("compiling the sweep's Warp kernels ahead failed (%r); chunks will", err)
         return {

@@ -43,7 +43,7 @@ import contextlib
 import logging
 import statistics
 from collections import defaultdict
-from collections.abc import AsyncIterator, Callable, Iterable, Sequence
+from collections.abc import AsyncIterator, Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -162,18 +162,19 @@ async def open_engine(
 
 
 async def start_compiling(
-    engine: Engine, choices: Choices, tasks: Iterable[str]
+    engine: Engine, choices: Choices, tasks: Iterable[str], first: Collection[str] = ()
 ) -> Compiling | None:
     """Warp physics on a GPU: the kernels of every family of `tasks` compiled side by side in
     the background (`precompile.Compiling`; nothing to do once they are; engines of one machine
     wait for each other's compiling through its lock), each family's episodes waiting only for
-    its own kernels; None where nothing compiles."""
+    its own kernels, those of `first` (the sweep's critical path) ahead of the others; None
+    where nothing compiles."""
     tasks = sorted(set(tasks))
     if not tasks or not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
         return None
     size = (engine.image.width, engine.image.height)
     images = choices.renderer.is_warp
-    return await asyncio.to_thread(Compiling.start, tasks, *size, warp_device(), images)
+    return await asyncio.to_thread(Compiling.start, tasks, *size, warp_device(), images, first)
 
 
 class LocalSweep:
@@ -245,7 +246,9 @@ class LocalSweep:
 
     async def _precompile(self, engine: Engine) -> None:
         tasks = {k.task for k in self._pending()}
-        self.compiling = await start_compiling(engine, self.choices, tasks)
+        budgets = {name: self.config.budget(name) for name in tasks}
+        first = sweep_critical_path(self.choices.executor.critical_path, budgets)
+        self.compiling = await start_compiling(engine, self.choices, tasks, first)
 
     def _pending(self) -> list[Any]:
         rounds = self.config.retries.infrastructure_rounds
