@@ -12,7 +12,13 @@ the other in this run:
   at once (Warp has no cross-process lock; the last rename wins);
 - new: `precompile.ensure_compiled` (every family's child at once, its modules found and
   loaded ahead in threads, each module compiled by whichever child claims it first; the
-  others wait for it and read it from the cache).
+  others wait for it and read it from the cache);
+- critical: the same with `--first` families on the sweep's critical path (their children
+  first, in twice the threads, the others at a lower CPU priority: `precompile.child_plan`).
+
+`--schemes` picks which, in that order (default old,new); the ratio is the first's wall over
+the second's, and each scheme's line gives every family's seconds (the `--first` family's is
+what a fresh machine's suite waits for).
 
 Prints each scheme's wall time, the modules compiled in all and per family (each child reports
 them through `precompile.STATS_ENV`), and the ratio. On Warp's CPU device each child also
@@ -57,8 +63,9 @@ def run_scheme(name: str, families: list[str], args: argparse.Namespace, root: P
             )
             failed = [t for t, err in zip(families, done, strict=True) if err]
     else:
+        first = set(args.first.split(",")) if name == "critical" and args.first else set()
         failed = precompile.ensure_compiled(
-            families, width, height, args.device, processes=args.processes
+            families, width, height, args.device, processes=args.processes, first=first
         )
     wall = time.monotonic() - started
     per: dict[str, Any] = {}
@@ -87,19 +94,26 @@ def main() -> int:
     parser.add_argument("--size", default="64x48", help="WxH of the images")
     parser.add_argument("--processes", type=int, default=None, help="default: the cores")
     parser.add_argument("--json", type=Path, help="write the results here too")
+    parser.add_argument("--schemes", default="old,new", help="of old, new, critical")
+    parser.add_argument(
+        "--first", default="put_everything_in_basket", help="the critical scheme's families"
+    )
     args = parser.parse_args()
+    schemes = args.schemes.split(",")
+    if len(schemes) != 2 or not set(schemes) <= {"old", "new", "critical"}:
+        parser.error("--schemes: two of old, new, critical")
     families = args.families.split(",")
     if args.device == "cpu":
         os.environ["VABENCH_WARP_DEVICE"] = "cpu"
     root = Path(tempfile.mkdtemp(prefix="vabench-precompile-"))
     results = []
     try:
-        for name in ("old", "new"):
+        for name in schemes:
             results.append(run_scheme(name, families, args, root))
             print(json.dumps(results[-1]), flush=True)
     finally:
         shutil.rmtree(root, ignore_errors=True)
-    old, new = results
+    a, b = results
     print(f"\n{len(families)} families on {args.device}, {os.cpu_count()} cores, {args.size}")
     print("| scheme | wall s | modules compiled (distinct) | compiling, s summed", end=" ")
     print("| per family: compiled, s |")
@@ -108,11 +122,21 @@ def main() -> int:
         fam = ", ".join(f"{t} {v[0]}, {v[1]}" for t, v in r["per_family"].items() if v)
         cells = [r["scheme"], r["wall_s"], f"{r['modules_compiled']} ({r['distinct']})"]
         print("| " + " | ".join(str(c) for c in [*cells, r["compile_s"], fam]) + " |")
-    print(f"\nold / new wall: {old['wall_s'] / max(new['wall_s'], 1e-9):.2f}x", end="; ")
-    print(f"compiling: {old['compile_s'] / max(new['compile_s'], 1e-9):.2f}x")
+    print(
+        f"\n{a['scheme']} / {b['scheme']} wall: {a['wall_s'] / max(b['wall_s'], 1e-9):.2f}x",
+        end="; ",
+    )
+    print(f"compiling: {a['compile_s'] / max(b['compile_s'], 1e-9):.2f}x")
+    for family in args.first.split(","):
+        times = [r["per_family"].get(family) for r in results]
+        if all(times):
+            print(
+                f"{family}: "
+                + ", ".join(f"{r['scheme']} {t[1]} s" for r, t in zip(results, times, strict=True))
+            )
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
-    return 1 if old["failed"] or new["failed"] else 0
+    return 1 if a["failed"] or b["failed"] else 0
 
 
 if __name__ == "__main__":

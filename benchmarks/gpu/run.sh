@@ -251,8 +251,12 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
   precompile_bench)
     # Temporary Warp caches: leaves ~/.cache/warp as it was (a fresh machine stays fresh).
     fams=${PRECOMPILE_FAMILIES:-$(python3 -c "from vabench.tasks import base_tasks as b; print(','.join(t.name for t in b()[:8]))")}
+    # PRECOMPILE_SCHEMES=critical,new: the critical path first (the basket's child ahead, the
+    # others at a lower CPU priority) against all alike (use every family: the cores must be
+    # oversubscribed for the priority to matter).
     timeout 560 python3 benchmarks/precompile.py --device cuda:0 --size "${PRECOMPILE_SIZE:-1280x960}" \
-      --families "$fams" --json "$out/precompile.json" 2>&1 | tee "$out/precompile.log"
+      --families "$fams" --schemes "${PRECOMPILE_SCHEMES:-old,new}" --json "$out/precompile.json" \
+      2>&1 | grep --line-buffered -av "^Module " | tee "$out/precompile.log"
     ;;
   render_options)
     # The render megakernel's options side by side (GPU ms a pass, pixels changed).

@@ -44,12 +44,15 @@ compile took 101 s, the basket's child 97 s of it while the base families' ended
 the first episode waited for all of it (169 s), the GPU idle meanwhile.
 
 The families on the sweep's critical path (`first`: the basket, whose chain of ~180 decisions
-bounds the suite) come first: their children get twice the threads and the others run at a
-lower CPU priority (`BEHIND_NICE`) while the cores are oversubscribed. On a fresh H200
-(2026-11-29) the basket's child took 99 s of the compile's 102 s with 22 children of 2 threads
-on 16 cores, its first episode started at 108 s and the suite ended at 252.6 s, the basket's
-~140 s chain after the others had ended: each second its kernels come sooner is a second off a
-fresh machine's suite.
+bounds the suite) come first: their children start first and the others run at a lower CPU
+priority (`BEHIND_NICE`) while the cores are oversubscribed. On a fresh H200 (2026-11-29) the
+basket's child took 99 s of the compile's 102 s with 22 children of 2 threads on 16 cores, its
+first episode started at 108 s and the suite ended at 252.6 s, the basket's ~140 s chain after
+the others had ended: each second its kernels come sooner is a second off a fresh machine's
+suite. (Twice the threads for the critical child made it slower on this 2-core CPU: 111 s
+against 77 s for two families, though it ran first, on cold disk caches; with more threads it
+claims more of the shared modules itself, whose Python codegen its threads then run one at a
+time under the interpreter lock.)
 
 `VABENCH_WARP_PRECOMPILE=0` turns it off; `=first` makes every family wait for the whole
 compile, as before (the A/B of the overlap on a fresh machine).
@@ -238,7 +241,8 @@ def _compile(
         workers, threads = children(len(todo), max(1, processes or os.cpu_count() or 1))
         plan = child_plan(todo, first, threads)
         todo = list(plan)  # the critical families' children start first
-        lead = [t for t in todo if plan[t][0] > threads]
+        behind = any(nice for _, nice in plan.values())
+        lead = [t for t in todo if plan[t][1] == 0] if behind else []
         log.info(
             "compiling MuJoCo Warp's kernels for %d famil%s in %d processes of %d threads%s "
             "(first run of this code on this machine; cached for the next)",
@@ -246,9 +250,7 @@ def _compile(
             "y" if len(todo) == 1 else "ies",
             workers,
             threads,
-            f"; {', '.join(lead)} first, in {2 * threads} threads, the others at nice {BEHIND_NICE}"
-            if lead
-            else "",
+            f"; {', '.join(lead)} first, the others at nice {BEHIND_NICE}" if lead else "",
         )
         started = time.monotonic()
         size = (width, height) if images else None
@@ -363,14 +365,13 @@ def child_plan(
 ) -> dict[str, tuple[int, int]]:
     """{family: (threads, nice)} in the order the children start (so that where there are
     more families than children at once, the critical ones are in the first wave): the
-    critical families (`first`, those of `todo`) with twice the threads at the usual priority,
-    then the others at `BEHIND_NICE`; where none of `todo` is critical, or all are, every
-    child alike."""
+    critical families (`first`, those of `todo`) at the usual priority, then the others at
+    `BEHIND_NICE`; where none of `todo` is critical, or all are, every child alike."""
     critical = [t for t in todo if t in first]
     if not critical or len(critical) == len(todo):
         return {t: (threads, 0) for t in todo}
     behind = {t: (threads, BEHIND_NICE) for t in todo if t not in first}
-    return {**{t: (2 * threads, 0) for t in critical}, **behind}
+    return {**{t: (threads, 0) for t in critical}, **behind}
 
 
 def children(families: int, cores: int) -> tuple[int, int]:
