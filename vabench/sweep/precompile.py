@@ -49,10 +49,12 @@ priority (`BEHIND_NICE`) while the cores are oversubscribed. On a fresh H200 (20
 basket's child took 99 s of the compile's 102 s with 22 children of 2 threads on 16 cores, its
 first episode started at 108 s and the suite ended at 252.6 s, the basket's ~140 s chain after
 the others had ended: each second its kernels come sooner is a second off a fresh machine's
-suite. (Twice the threads for the critical child made it slower on this 2-core CPU: 111 s
-against 77 s for two families, though it ran first, on cold disk caches; with more threads it
-claims more of the shared modules itself, whose Python codegen its threads then run one at a
-time under the interpreter lock.)
+suite. Measured alone on that H200 (`benchmarks/precompile.py --schemes`, all 22 families at
+1280x960, each scheme from an empty cache, 2026-11-29): the basket's child 30.3 s with it
+against 32.1 s and 51.1 s without, the compile 33.1 s against 34.8 s and 57.4 s, the other
+children's median 28.0 s against 21.1-24.2 s (they yield). (Twice the threads for the critical
+child made it slower on this 2-core CPU: with more threads it claims more of the shared modules
+itself, whose Python codegen its threads then run one at a time under the interpreter lock.)
 
 `VABENCH_WARP_PRECOMPILE=0` turns it off; `=first` makes every family wait for the whole
 compile, as before (the A/B of the overlap on a fresh machine).
