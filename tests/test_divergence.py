@@ -64,3 +64,18 @@ def test_a_non_finite_pose_is_an_infrastructure_error(probe_task, probe_model):
     batch._state[1, 1] = np.nan  # qpos[0] of slot 1 (the full-physics layout: time, qpos, ...)
     assert batch._diverged([0, 1]).tolist() == [False, True]
     assert batch._diverged([]).shape == (0,)
+
+
+def test_a_world_c_mujoco_reset_while_settling_is_a_failure_of_its_reset(probe_task, probe_model):
+    """Settling from a pose C MuJoCo cannot integrate: it resets the world to the model's
+    default pose, which then settles finite and still; `failures` says so (the task batch's
+    reset report then carries it as an infrastructure error), and a new reset clears it."""
+    batch = CpuBatch(probe_model, 2)
+    q = np.array(probe_task.initial_qpos(probe_model, 0), float)
+    bad = q.copy()
+    bad[np.flatnonzero(np.abs(q) > 0)[-1]] = 1e12  # far beyond C MuJoCo's 1e10
+    batch.reset([0, 1], np.stack([bad, q]), settle_steps=10)
+    assert np.isfinite(batch.qpos()).all()  # reset by C MuJoCo: nothing non-finite to see
+    assert batch.failures() == [DIVERGED, None]
+    batch.reset([0], q[None], settle_steps=10)
+    assert batch.failures() == [None, None]

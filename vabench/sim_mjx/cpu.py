@@ -19,7 +19,7 @@ from mujoco import rollout
 
 from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx.actions import CommandRows
-from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase, StepInfo, in_lanes
+from vabench.sim_mjx.interface import DIVERGED, STATE_FIELDS, BatchBase, StepInfo, in_lanes
 from vabench.sim_mjx.layout import ctrl_sequence_slot
 from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import check_same_structure
@@ -78,8 +78,9 @@ class CpuBatch(BatchBase):
         )
         self._pool = rollout.Rollout(nthread=threads) if threads > 0 else None
         self._thread_data = [mujoco.MjData(model) for _ in range(threads)]
-        # Per slot: C MuJoCo reset the world during the last `_run` (serial path only: the
-        # rollout threads' warnings are not read; they serve benchmarks).
+        # Per slot: C MuJoCo reset the world since its state was last written (a reset, a
+        # loaded state) or, for a slot that acted, during its last action (serial path only:
+        # the rollout threads' warnings are not read; they serve benchmarks).
         self._unstable = np.zeros(n_slots, bool)
         # Capture (demonstration videos; off by default): with `capture_every` = k > 0, every
         # k-th physics step of an action appends the slot's qpos to `captured[slot]`. Only
@@ -109,6 +110,7 @@ class CpuBatch(BatchBase):
             self._init_qpos[slot] = state["qpos"][row]
             self._grip_open[slot] = state["grip_open"][row]
             self._variant[slot] = var[row]
+            self._unstable[slot] = False
 
     def get_state(self, slots: Sequence[int]) -> dict[str, np.ndarray]:
         slots = list(slots)
@@ -133,7 +135,6 @@ class CpuBatch(BatchBase):
     def _run(self, slots: list[int], controls: np.ndarray, capture: int = 0) -> None:
         """Advance `slots` through the control sequences (len(slots), n_steps, nu); with
         `capture` = k > 0, append qpos to `captured[slot]` after every k-th step."""
-        self._unstable[:] = False
         if not slots:
             return
         if capture > 0 and self._pool is not None:
@@ -151,7 +152,7 @@ class CpuBatch(BatchBase):
                         self.captured.setdefault(slot, []).append(d.qpos.copy())
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
                 self._warm[slot] = d.qacc_warmstart
-                self._unstable[slot] = _instabilities(d) > 0
+                self._unstable[slot] |= _instabilities(d) > 0
         else:
             # Threads (benchmarks): rollout does not return the final warm start, so each
             # action starts cold; reproducible across batching, not equal to the serial path.
@@ -177,6 +178,7 @@ class CpuBatch(BatchBase):
         seq, plan = jax.device_get((seq, plan))
         go = rows.active & plan.ok
         slots = [int(s) for s in np.flatnonzero(go)]
+        self._unstable[slots] = False  # each action judged by its own physics
         self._run(slots, np.asarray(seq[slots], float), self.capture_every)
         opens = rows.grip == 1
         keep = rows.grip < 0
@@ -187,6 +189,12 @@ class CpuBatch(BatchBase):
 
     def _diverged(self, slots: Sequence[int]) -> np.ndarray:
         return super()._diverged(slots) | self._unstable[list(slots)]
+
+    def failures(self) -> list[str | None]:
+        """Slots C MuJoCo reset since their state was written (a reset's settling included:
+        the world then settles from the model's default pose, finite and passing the gate with
+        the wrong scene) or during their last action."""
+        return [DIVERGED if bad else None for bad in self._unstable]
 
     def qpos(self) -> np.ndarray:
         # full-physics state layout: time, qpos, qvel, act, ...
