@@ -5,6 +5,7 @@ collector)."""
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import subprocess
@@ -15,6 +16,7 @@ import gc, json
 from vabench import gc_freeze
 
 kept = [[i] for i in range(200_000)]  # what a process builds to keep
+gc_freeze.own_process()
 frozen = gc_freeze.freeze("the probe's build")
 walked = []
 gc.callbacks.append(lambda phase, info: phase == "stop" and walked.append(info["collected"]))
@@ -50,6 +52,15 @@ def test_what_was_built_is_frozen_and_later_cycles_are_still_collected():
     assert got["collected"] >= 2  # the two nodes of the cycle (and their dicts)
 
 
+def test_a_process_not_our_own_is_never_frozen():
+    """The sweep's code also runs inside other programs (this test session runs sweeps in its
+    own process): only a process that says it is vabench's own worker freezes."""
+    from vabench import gc_freeze
+
+    assert gc_freeze.freeze("a test's sweep") == 0
+    assert gc.get_freeze_count() == 0
+
+
 def test_turned_off_nothing_is_frozen():
     got = _probe(VABENCH_GC_FREEZE="0")
     assert got["frozen"] == got["count"] == 0
@@ -68,6 +79,7 @@ class Pool:  # a renderer that reads its states from the physics batch, as Warp'
         return True
 
 async def main():
+    gc_freeze.own_process()
     async with task_services(get_task("probe_cube"), 2, None, Pool(), backend="c") as svc:
         gc_freeze.freeze("the probe's task batch")  # as the sweep does once a batch is built
         kept = (svc.sim, svc.sim.batch, svc.sim.batch.batch, svc.render)

@@ -19,6 +19,10 @@ counting; only a reference cycle that was alive at a freeze and becomes garbage 
 never collected, which is why the calls sit at build points (episodes of other tasks may run
 at a batch's build: their cycles, if any, stay until the process ends; bounded by the task
 batches a process builds, ~6 in the main job). `VABENCH_GC_FREEZE=0` turns it off (to compare).
+
+Only a process that says it is one of those (`own_process`: an engine worker, a Ray engine, a
+serving process) freezes: the same sweep code also runs inside other programs (a test session
+running many sweeps in its own process, a notebook), whose heaps are not ours to freeze.
 """
 
 from __future__ import annotations
@@ -32,14 +36,23 @@ log = logging.getLogger(__name__)
 
 FREEZE_VARIABLE = "VABENCH_GC_FREEZE"
 
+_owned = False
+
+
+def own_process() -> None:
+    """This process is one of vabench's own long-lived workers: `freeze` acts in it."""
+    global _owned
+    _owned = True
+
 
 def enabled() -> bool:
-    return os.environ.get(FREEZE_VARIABLE, "1") != "0"
+    return _owned and os.environ.get(FREEZE_VARIABLE, "1") != "0"
 
 
 def freeze(after: str) -> int:
     """Collect, then freeze every tracked object (see the module docstring); returns how many
-    objects are frozen now (0 when turned off). `after` says what was just built (the log)."""
+    objects are frozen now (0 when turned off, or in a process that is not vabench's own
+    worker). `after` says what was just built (the log)."""
     if not enabled():
         return 0
     started = time.perf_counter()

@@ -146,5 +146,6 @@ def _serve_in_child(
     own = config.model_copy(
         update={"server_processes": 0, "policy_processes": 0, "log_path": None, "seed": seed}
     )
+    gc_freeze.own_process()
     gc_freeze.freeze("a serving process's imports")
     asyncio.run(serve(own, index, host, port, records, stop))

@@ -202,6 +202,7 @@ def _run_cell_in_worker(
             _chunks_run,
         )
     _chunks_run += 1
+    gc_freeze.own_process()
     gc_freeze.freeze("the engine process's imports")  # nothing of an episode exists yet
     with _environment(environment):
         return _run_chunk(document, choices, run_dir, keys)
