@@ -66,16 +66,33 @@ def test_a_non_finite_pose_is_an_infrastructure_error(probe_task, probe_model):
     assert batch._diverged([]).shape == (0,)
 
 
-def test_a_world_c_mujoco_reset_while_settling_is_a_failure_of_its_reset(probe_task, probe_model):
+def test_a_world_c_mujoco_reset_while_settling_fails_its_reset(probe_task, probe_model):
     """Settling from a pose C MuJoCo cannot integrate: it resets the world to the model's
-    default pose, which then settles finite and still; `failures` says so (the task batch's
-    reset report then carries it as an infrastructure error), and a new reset clears it."""
+    default pose, which then settles finite and still; the batch says so
+    (`diverged_since_written`), a new reset clears it, and the task batch's reset gate counts
+    it a non-finite settle (deterministic on C MuJoCo: `reset_failed`, never a re-run)."""
     batch = CpuBatch(probe_model, 2)
     q = np.array(probe_task.initial_qpos(probe_model, 0), float)
     bad = q.copy()
     bad[np.flatnonzero(np.abs(q) > 0)[-1]] = 1e12  # far beyond C MuJoCo's 1e10
     batch.reset([0, 1], np.stack([bad, q]), settle_steps=10)
     assert np.isfinite(batch.qpos()).all()  # reset by C MuJoCo: nothing non-finite to see
-    assert batch.failures() == [DIVERGED, None]
-    batch.reset([0], q[None], settle_steps=10)
+    assert batch.diverged_since_written([0, 1]).tolist() == [True, False]
     assert batch.failures() == [None, None]
+    batch.reset([0], q[None], settle_steps=10)
+    assert batch.diverged_since_written([0, 1]).tolist() == [False, False]
+
+
+def test_the_reset_gate_fails_a_world_c_mujoco_reset(probe_task, monkeypatch, tmp_path):
+    from vabench.sim_mjx.reset_cache import SettledCache
+    from vabench.tasks.task_batch import TaskBatch
+
+    tb = TaskBatch(probe_task, 2, backend="c", cache=SettledCache(tmp_path))
+    monkeypatch.setattr(
+        tb.batch, "diverged_since_written", lambda slots: np.array([s == 0 for s in slots])
+    )
+    seed = 0
+    report = tb.reset([0, 1], [seed, seed + 1])
+    assert not report[0].ok and report[0].reason == "non-finite pose after settling"
+    assert report[0].infrastructure_error is None  # deterministic: not an infrastructure error
+    assert report[1].ok

@@ -19,7 +19,7 @@ from mujoco import rollout
 
 from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx.actions import CommandRows
-from vabench.sim_mjx.interface import DIVERGED, STATE_FIELDS, BatchBase, StepInfo, in_lanes
+from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase, StepInfo, in_lanes
 from vabench.sim_mjx.layout import ctrl_sequence_slot
 from vabench.sim_mjx.scene import home_qpos
 from vabench.sim_mjx.variants import check_same_structure
@@ -190,11 +190,11 @@ class CpuBatch(BatchBase):
     def _diverged(self, slots: Sequence[int]) -> np.ndarray:
         return super()._diverged(slots) | self._unstable[list(slots)]
 
-    def failures(self) -> list[str | None]:
-        """Slots C MuJoCo reset since their state was written (a reset's settling included:
-        the world then settles from the model's default pose, finite and passing the gate with
-        the wrong scene) or during their last action."""
-        return [DIVERGED if bad else None for bad in self._unstable]
+    def diverged_since_written(self, slots: Sequence[int]) -> np.ndarray:
+        """C MuJoCo reset these worlds since their states were written (a reset's settling
+        included: the world then settles from the model's default pose, finite, and would
+        pass the gate with the wrong scene)."""
+        return self._unstable[list(slots)].copy()
 
     def qpos(self) -> np.ndarray:
         # full-physics state layout: time, qpos, qvel, act, ...

@@ -379,6 +379,12 @@ class BatchBase:
         without buffers that can overflow never fail."""
         return [None] * self.n_slots
 
+    def diverged_since_written(self, slots: Sequence[int]) -> np.ndarray:
+        """Per slot of `slots`, whether its physics diverged since its state was last written
+        where the pose cannot show it (C MuJoCo resets a diverging world; GPU backends carry
+        NaN on, which the pose shows)."""
+        return np.zeros(len(slots), bool)
+
     def object_poses(self, slot: int) -> dict[str, dict[str, list[float]]]:
         """Evaluator-only object poses of one slot: {name: {pos, quat (wxyz)}}."""
         self._check_slot(slot)

@@ -107,13 +107,15 @@ POLL_S = 0.5
 REPORT_KEYS = {"task", "compiled", "compile_s", "s"}
 """What every child's report has (`main`); the summary reads nothing else without a default."""
 CHILDREN_PER_CORE = 2
-BEHIND_NICE = 5
-"""The CPU priority (nice) of the other families' children while a critical one compiles: at
-5 a thread gets about a third of the CPU share of one at 0 when they share a core, so the
-critical child's threads run whenever they are ready and the others take the rest."""
 """The most children a core: enough for the 22 families of `configs/all.yaml` at once on a
 16-core host (a child mostly waits for modules others hold; one a core ran them in two waves,
 the second ~40 s longer on an H100); a 2-core machine runs 4."""
+BEHIND_NICE = 5
+"""The CPU priority (nice) of the other families' children while a critical one compiles: at
+5 a thread gets about a third of the CPU share of one at 0 when they share a core, so the
+critical child's threads run whenever they are ready and the others take the rest. Untested
+in a live sweep, where the engines (at 0) compete too: a child at 5 that holds a shared module
+the critical child waits for compiles it slower (the next fresh main job says which wins)."""
 EXPERT_STEPS = 3
 """The expert's actions a child runs: the first reset and actions launch every kernel an
 episode does (the kernels a step launches depend on the scene, not on the state); a whole
@@ -503,8 +505,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--claims", type=Path, help="a folder of claims shared by processes")
     parser.add_argument("--nice", type=int, default=0, help="lower this process's CPU priority")
     args = parser.parse_args(argv)
-    if args.nice:  # before any thread starts: threads take their creator's priority
-        os.nice(args.nice)
+    if args.nice:  # before its compile threads start: they take their creator's priority
+        try:
+            os.nice(args.nice)
+        except (OSError, AttributeError) as err:  # a sandbox that refuses: compile anyway
+            print(f"precompile: --nice {args.nice} refused ({err}); at the usual priority")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     width, height = (int(v) for v in args.size.split("x")) if args.size else (0, 0)
     compiled: list[tuple[str, float, float]] = []

@@ -192,6 +192,9 @@ class TaskBatch:
             failures = self.batch.failures()
             before, after = self._settle_before, self.batch.qpos()
             states = self.batch.get_state([slots[r] for r in miss])
+            # a world the physics reset while settling is no settled scene: a non-finite
+            # settle, as a NaN one is (deterministic on C MuJoCo: `reset_failed`, not re-run)
+            diverged = self.batch.diverged_since_written([slots[r] for r in miss])
             for i, row in enumerate(miss):
                 slot = slots[row]
                 drift = max(
@@ -203,7 +206,7 @@ class TaskBatch:
                 )
                 st = Settled(
                     {f: v[i] for f, v in states.items()},
-                    bool(np.isfinite(after[slot]).all()),
+                    bool(np.isfinite(after[slot]).all()) and not diverged[i],
                     float(drift),
                 )
                 if failures[slot] is None:
