@@ -8,10 +8,9 @@ a stream synchronisation, in a process whose CUDA context asked for blocking syn
 Why: CUDA's documentation says a thread waiting on an event made without the flag busy-waits
 (whether the context's blocking sync changes that is what this measures: on an H200,
 2026-11-29, it did not: Warp's event 1.00, a sleeping event 0.00, a stream sync 1.00); an
-engine process
-waits on an event after every physics action, render pass and JPEG call, and on an H200 host
-(2026-11-29) the engine processes' batch and render threads took 0.3-0.9 cores each process
-while the host's 16 cores were 83 % busy.
+engine process waits on an event after every physics action, render pass and JPEG call, and
+on an H200 host (2026-11-29) the engine processes' batch and render threads took 0.3-0.9
+cores each process while the host's 16 cores were 83 % busy.
 Prints, per way of waiting, the waiting thread's CPU seconds per second waited (1.0: a core
 spinning; ~0: asleep), side by side in one run.
 """

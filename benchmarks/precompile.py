@@ -14,7 +14,7 @@ the other in this run:
   loaded ahead in threads, each module compiled by whichever child claims it first; the
   others wait for it and read it from the cache);
 - critical: the same with `--first` families on the sweep's critical path (their children
-  first, in twice the threads, the others at a lower CPU priority: `precompile.child_plan`).
+  first, the others at a lower CPU priority: `precompile.child_plan`).
 
 `--schemes` picks which, in that order (default old,new); the ratio is the first's wall over
 the second's, and each scheme's line gives every family's seconds (the `--first` family's is

@@ -362,16 +362,14 @@ def test_the_critical_path_compiles_first_and_the_others_behind():
     on an H200, 2026-11-29): its child starts first, the others at a lower CPU priority;
     without a critical family (or with only critical ones) all alike."""
     plan = precompile.child_plan(
-        ["lift_pot", "put_everything_in_basket", "place_shoe"], {"put_everything_in_basket"}, 2
+        ["lift_pot", "put_everything_in_basket", "place_shoe"], {"put_everything_in_basket"}
     )
     assert list(plan) == ["put_everything_in_basket", "lift_pot", "place_shoe"]
-    assert plan["put_everything_in_basket"] == (2, 0)
-    assert plan["lift_pot"] == plan["place_shoe"] == (2, precompile.BEHIND_NICE)
-    alike = {"lift_pot": (2, 0), "place_shoe": (2, 0)}
-    assert (
-        precompile.child_plan(["lift_pot", "place_shoe"], {"put_everything_in_basket"}, 2) == alike
-    )
-    assert precompile.child_plan(["lift_pot", "place_shoe"], {"lift_pot", "place_shoe"}, 2) == alike
+    assert plan["put_everything_in_basket"] == 0
+    assert plan["lift_pot"] == plan["place_shoe"] == precompile.BEHIND_NICE
+    alike = {"lift_pot": 0, "place_shoe": 0}
+    assert precompile.child_plan(["lift_pot", "place_shoe"], {"put_everything_in_basket"}) == alike
+    assert precompile.child_plan(["lift_pot", "place_shoe"], {"lift_pot", "place_shoe"}) == alike
 
 
 def test_the_critical_familys_child_is_started_first_and_given_its_plan(markers, monkeypatch):

@@ -6,8 +6,8 @@ with the interpreter lock held, so every thread of the process stops for it. An 
 holds ~560,000 objects after importing Warp, MuJoCo Warp and JAX (~700,000 once a task batch is
 built: ~0.3-0.4 s a full collection on this project's 2-core CPU, measured 2026-11-29), nearly
 all of them kernels' code, modules and models that live as long as the process. On an H200 the
-main job's engine processes each ran 9-15 full collections of 0.4-0.6 s (4.4-5.3 % of their
-time; the basket's process 15, the longest 605 ms: each a stalled decision for every episode
+main job's engine processes each ran 9-15 full collections of 0.5-0.8 s (4.0-5.3 % of their
+time; the basket's process 15, the longest 786 ms: each a stalled decision for every episode
 of the process), docs/PERFORMANCE.md "Seventeenth session".
 
 `freeze` collects what is garbage now and moves every surviving object to the collector's

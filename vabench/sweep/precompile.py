@@ -243,10 +243,9 @@ def _compile(
         if not todo:
             return []
         workers, threads = children(len(todo), max(1, processes or os.cpu_count() or 1))
-        plan = child_plan(todo, first, threads)
+        plan = child_plan(todo, first)
         todo = list(plan)  # the critical families' children start first
-        behind = any(nice for _, nice in plan.values())
-        lead = [t for t in todo if plan[t][1] == 0] if behind else []
+        lead = [t for t in todo if not plan[t]] if any(plan.values()) else []
         log.info(
             "compiling MuJoCo Warp's kernels for %d famil%s in %d processes of %d threads%s "
             "(first run of this code on this machine; cached for the next)",
@@ -264,8 +263,7 @@ def _compile(
         stats.mkdir(parents=True, exist_ok=True)
 
         def one(task: str) -> str | None:
-            n_threads, nice = plan[task]
-            err = _child(task, size, device, n_threads, claims, stats, nice)
+            err = _child(task, size, device, threads, claims, stats, plan[task])
             if not err:  # its episodes may start now (`family_ready`)
                 (markers / f"{task}.{key}").touch()
             return err
@@ -364,18 +362,15 @@ class Compiling:
         self._thread.join(timeout)
 
 
-def child_plan(
-    todo: Sequence[str], first: Collection[str], threads: int
-) -> dict[str, tuple[int, int]]:
-    """{family: (threads, nice)} in the order the children start (so that where there are
-    more families than children at once, the critical ones are in the first wave): the
-    critical families (`first`, those of `todo`) at the usual priority, then the others at
-    `BEHIND_NICE`; where none of `todo` is critical, or all are, every child alike."""
+def child_plan(todo: Sequence[str], first: Collection[str]) -> dict[str, int]:
+    """{family: nice} in the order the children start (so that where there are more families
+    than children at once, the critical ones are in the first wave): the critical families
+    (`first`, those of `todo`) at the usual priority, then the others at `BEHIND_NICE`; where
+    none of `todo` is critical, or all are, every child alike."""
     critical = [t for t in todo if t in first]
     if not critical or len(critical) == len(todo):
-        return {t: (threads, 0) for t in todo}
-    behind = {t: (threads, BEHIND_NICE) for t in todo if t not in first}
-    return {**{t: (threads, 0) for t in critical}, **behind}
+        return dict.fromkeys(todo, 0)
+    return {**dict.fromkeys(critical, 0), **{t: BEHIND_NICE for t in todo if t not in first}}
 
 
 def children(families: int, cores: int) -> tuple[int, int]:
