@@ -21,7 +21,7 @@ ROOT = Path(vabench.__file__).parent
 LAYERS: tuple[frozenset[str], ...] = tuple(
     frozenset(layer.split())
     for layer in (
-        "field_errors children tables run_layout gc_freeze",  # no vabench imports
+        "field_errors children tables run_layout",  # no vabench imports
         "protocol",  # the model-facing decisions
         "sim_mjx",  # physics backends and the executor
         "tasks",  # task families over the simulator

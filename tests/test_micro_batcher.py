@@ -173,3 +173,38 @@ def test_a_render_service_sends_as_many_requests_at_once_as_its_pool_serves():
     one_at_a_time = RenderService(SimpleNamespace(), "t", ImageSettings())  # GL's pool
     assert side_by_side._batcher.concurrency == 2
     assert one_at_a_time._batcher.concurrency == 1
+
+
+def test_a_task_batch_is_freed_by_reference_counting_when_its_task_ends():
+    """The simulator and render services own their batchers, and each batcher runs one of its
+    owner's methods: held strongly, that would make a cycle that only a full collection frees,
+    keeping the task's physics batch (its GPU arrays, on a GPU) alive until then, while the
+    sweep builds the next task's. With the collector off, the batch and its services must go
+    as soon as the task's services are closed and dropped."""
+    import gc
+    import weakref
+
+    from vabench.agent.services import task_services
+    from vabench.tasks import get_task
+
+    class Pool:  # a renderer that reads its states from the physics batch, as Warp's does
+        def shares(self, batch):
+            return True
+
+    async def main():
+        async with task_services(get_task("probe_cube"), 2, None, Pool(), backend="c") as svc:
+            await svc.sim.reset(0, 0)  # the batcher's dispatch and thread exist, as in a sweep
+            kept = (svc.sim, svc.sim.batch, svc.sim.batch.batch, svc.render)
+            refs = [weakref.ref(o) for o in kept]
+            del kept
+        del svc
+        return refs
+
+    gc.collect()
+    gc.disable()
+    try:
+        refs = asyncio.run(main())
+        alive = [type(r()).__name__ for r in refs if r() is not None]
+    finally:
+        gc.enable()
+    assert alive == []

@@ -64,9 +64,9 @@ class MicroBatcher(Generic[T, R]):
         if max_batch is not None and max_batch < 1:
             raise ValueError(f"max_batch must be >= 1, got {max_batch}")
         # A bound method is held weakly: its object owns this batcher (the simulator and render
-        # services do), and a strong reference back would make a cycle that only the collector
-        # frees, and never once frozen (`gc_freeze` at a task batch's build), with the
-        # simulator batch in it.
+        # services do), and a strong reference back would make a cycle, keeping the owner's
+        # task batch (its GPU arrays, on a GPU) alive after its task until a full collection
+        # (tests/test_micro_batcher.py).
         self._run: Callable[[], Callable[[Sequence[T]], Sequence[R]] | None] = (
             weakref.WeakMethod(run) if inspect.ismethod(run) else lambda: run
         )

@@ -29,7 +29,6 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import TYPE_CHECKING, Any
 
-from vabench import gc_freeze
 from vabench.children import children_ignore_sigint, exit_with_parent, ignore_sigint
 from vabench.llm_pool.request_record import RequestRecord
 
@@ -146,6 +145,4 @@ def _serve_in_child(
     own = config.model_copy(
         update={"server_processes": 0, "policy_processes": 0, "log_path": None, "seed": seed}
     )
-    gc_freeze.own_process()
-    gc_freeze.freeze("a serving process's imports")
     asyncio.run(serve(own, index, host, port, records, stop))

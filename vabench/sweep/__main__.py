@@ -59,7 +59,6 @@ from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
-from vabench import gc_freeze  # noqa: E402
 from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfigError, load_config  # noqa: E402
 from vabench.config.keys import KeySources, key_sources  # noqa: E402
@@ -300,7 +299,6 @@ def _conclude(
 
 
 if __name__ == "__main__":
-    gc_freeze.own_process()  # the command's own process (not `main` called by other programs)
     handler = CtrlC()
     handler.install()
     try:

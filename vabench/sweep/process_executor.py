@@ -53,7 +53,6 @@ from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from vabench import gc_freeze
 from vabench.children import (
     CORES_VARIABLE,
     children_ignore_sigint,
@@ -202,8 +201,6 @@ def _run_cell_in_worker(
             _chunks_run,
         )
     _chunks_run += 1
-    gc_freeze.own_process()
-    gc_freeze.freeze("the engine process's imports")  # nothing of an episode exists yet
     with _environment(environment):
         return _run_chunk(document, choices, run_dir, keys)
 

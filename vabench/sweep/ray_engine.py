@@ -37,7 +37,6 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
-from vabench import gc_freeze
 from vabench.render.backends import check_renderer
 from vabench.run_layout import RunDir
 from vabench.sim_mjx.backends import check
@@ -132,8 +131,6 @@ class EngineActor:
             await stack.aclose()
             raise
         self._stack = stack
-        gc_freeze.own_process()  # an actor is a process of its own, kept for the whole sweep
-        gc_freeze.freeze("the Ray engine's start")
         try:
             first = self.choices.executor.critical_path or ()
             await start_compiling(self.engine, self.choices, tasks or [], first)

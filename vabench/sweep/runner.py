@@ -48,7 +48,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from vabench import gc_freeze
 from vabench.agent.engine import EpisodeSpec, run_episode
 from vabench.agent.learning import LearningLimits
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
@@ -355,7 +354,6 @@ class LocalSweep:
             on_decision=on_decision,
             **sim.batch_kwargs(self.physics.kind, critical_path=critical),
         ) as svc:
-            gc_freeze.freeze(f"{name}'s task batch")  # its kernels and model live as long as it
             slots = asyncio.Semaphore(n_slots)
 
             async def one(k: Any) -> None:
