@@ -296,3 +296,51 @@ def test_the_bytes_are_the_golden_ones(size):
         jpegs = encoder.encode(_packed(frames), len(frames), settings)
         got = hashlib.sha256(b"".join(jpegs)).hexdigest()[:16]
         assert got == digest, (size, subsampling, quality)
+
+
+@wp.kernel
+def _quantise_all(
+    values: wp.array(dtype=int),
+    steps: wp.array(dtype=int),
+    reciprocals: wp.array(dtype=wp.int64),
+    out: wp.array2d(dtype=int),
+):
+    i, j = wp.tid()
+    out[i, j] = warp_jpeg._quantise(values[i], steps[j], reciprocals[j])
+
+
+def test_quantising_without_a_division_is_libjpeg_s_rounding():
+    """`_quantise` (a multiply and shifts) against round(value / (q 2^14)) with halves away
+    from zero, in exact integers: every step 1-255, values over the whole range a coefficient
+    can take (|value| < 2^25), the halves and their neighbours included."""
+    steps = np.arange(1, 256)
+    scale = 1 << int(warp_jpeg.DCT_BITS)
+    rng = np.random.default_rng(0)
+    halves = (steps[:, None] * scale * (np.arange(0, 60)[None, :] + 0.5)).astype(np.int64)
+    values = np.unique(
+        np.concatenate(
+            [
+                rng.integers(-(1 << 25) + 1, 1 << 25, 4000),
+                (halves[:, :, None] + np.array([-1, 0, 1])).ravel(),
+                [0, 1, -1, (1 << 25) - 1, -(1 << 25) + 1],
+            ]
+        )
+    )
+    values = values[np.abs(values) < 1 << 25]
+    out = wp.zeros((len(values), len(steps)), dtype=int, device="cpu")
+    wp.launch(
+        _quantise_all,
+        dim=out.shape,
+        inputs=[
+            wp.array(values, dtype=int, device="cpu"),
+            wp.array(steps, dtype=int, device="cpu"),
+            wp.array(warp_jpeg.reciprocals(steps), dtype=wp.int64, device="cpu"),
+        ],
+        outputs=[out],
+        device="cpu",
+    )
+    step = steps[None, :] * scale
+    expected = np.sign(values)[:, None] * ((np.abs(values)[:, None] + step // 2) // step)
+    np.testing.assert_array_equal(out.numpy(), expected)
+    with pytest.raises(ValueError, match="1-255"):
+        warp_jpeg.reciprocals(np.array([0, 4]))

@@ -20,8 +20,10 @@ pixels are compared with libjpeg-turbo's in tests/test_warp_jpeg.py).
 How, on the encoder's stream, for the first n worlds of a pass's packed 0x??RRGGBB pixels:
 
 1. `_transform`: a thread per 8x8 block (image, MCU, block of the MCU) converts its pixels'
-   colour, subsamples the chroma, transforms and quantises, and keeps the coefficients (zigzag
-   order, 16 bits each, the DC first) for the kernels after it.
+   colour, subsamples the chroma, transforms and quantises (a multiply, not a division), and
+   keeps the coefficients (16 bits each, zigzag order, the DC first) for the kernels after it,
+   coefficient j of every block of an image side by side (neighbouring threads write and read
+   neighbouring bytes). Its own module, loops unrolled (`_transform`).
 2. `_count_bits`: a thread per block sums the lengths of its Huffman codes. A block's DC is
    coded as the difference from the same component's block before it in scan order, read
    from the kept coefficients.
@@ -198,6 +200,21 @@ DCT_BITS = wp.constant(2 * DCT_SCALE_BITS - 10)
 """A coefficient's scale after both passes: 2^(12 + 12 - 10) = 2^14."""
 
 
+def _dct_matrix() -> np.ndarray:
+    """D with D f D^T the 2-D DCT of T.81 A.3.3 (its C(u) / 2 folded into each row), scaled by
+    2^DCT_SCALE_BITS and rounded to integers."""
+    u, x = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+    scale = np.where(u == 0, math.sqrt(0.5), 1.0) * 0.5
+    exact = scale * np.cos((2 * x + 1) * u * np.pi / 16)
+    return np.round(exact * (1 << DCT_SCALE_BITS)).astype(np.int32)
+
+
+DCT = wp.constant(imat88(*_dct_matrix().flatten().tolist()))
+"""D, known to the compiler: its entries become immediate operands of the unrolled products."""
+ZIGZAG_AT = wp.constant(imat88(*np.argsort(ZIGZAG).tolist()))
+"""Where coefficient (u, v) goes in zigzag order (the inverse of `ZIGZAG`)."""
+
+
 @wp.struct
 class Layout:
     """One image size and subsampling: blocks, MCUs and the per-image buffer sizes."""
@@ -243,53 +260,39 @@ def _sample(packed: wp.array2d(dtype=wp.uint32), i: int, x: int, y: int, lay: La
 
 
 @wp.func
-def _samples(packed: wp.array2d(dtype=wp.uint32), i: int, mcu: int, b: int, lay: Layout):
-    """The level-shifted 8x8 samples of block b of MCU `mcu` of image i (chroma: the rounded
-    mean of h x v pixels)."""
-    mx = mcu % lay.mcus_x
-    my = mcu // lay.mcus_x
-    luma = lay.h * lay.v
-    f = imat88()
-    if b < luma:
-        x0 = mx * 8 * lay.h + 8 * (b % lay.h)
-        y0 = my * 8 * lay.v + 8 * (b // lay.h)
-        for r in range(8):
-            for c in range(8):
-                f[r, c] = _sample(packed, i, x0 + c, y0 + r, lay, 0) - 128
-        return f
-    comp = b - luma + 1
-    x0 = mx * 8 * lay.h
-    y0 = my * 8 * lay.v
-    for r in range(8):
-        for c in range(8):
-            s = int(0)
-            for dy in range(lay.v):
-                for dx in range(lay.h):
-                    s += _sample(packed, i, x0 + c * lay.h + dx, y0 + r * lay.v + dy, lay, comp)
-            f[r, c] = (s + luma // 2) // luma - 128
-    return f
+def _level_sample(
+    packed: wp.array2d(dtype=wp.uint32), i: int, x: int, y: int, comp: int, lay: Layout
+):
+    """Sample (x, y) of component `comp`'s plane of image i, level-shifted: luma a pixel's,
+    chroma the rounded mean of its h x v pixels (h and v are 1 or 2: a shift divides)."""
+    if comp == 0:
+        return _sample(packed, i, x, y, lay, 0) - 128
+    s = int(0)
+    for dy in range(lay.v):
+        for dx in range(lay.h):
+            s += _sample(packed, i, x * lay.h + dx, y * lay.v + dy, lay, comp)
+    return ((s + ((lay.h * lay.v) >> 1)) >> ((lay.h >> 1) + (lay.v >> 1))) - 128
 
 
 @wp.func
-def _quantise(value: int, q: int):
-    """round(value / (q * 2^14)), halves away from zero (libjpeg's rounding)."""
-    step = q << DCT_BITS
-    a = (wp.abs(value) + (step >> 1)) // step
+def _quantise(value: int, q: int, reciprocal: wp.int64):
+    """round(value / (q * 2^14)), halves away from zero (libjpeg's rounding), without a
+    division: floor((|value| + q 2^13) / (q 2^14)) = floor(floor((|value| + q 2^13) / 2^14) /
+    q), and floor(x / q) = (x * reciprocal) >> 32 with reciprocal = floor(2^32 / q) + 1, exact
+    for x < 2^32 / q (`reciprocals`; here x < 2^12: |value| < 2^25)."""
+    x = (wp.abs(value) + (q << (DCT_BITS - 1))) >> DCT_BITS
+    a = int((wp.int64(x) * reciprocal) >> wp.int64(32))
     if value < 0:
         return -a
     return a
 
 
-@wp.func
-def _coefficients(f: imat88, dct: imat88):
-    """The 2-D DCT of samples f scaled by 2^14 (DCT_BITS), in integers: the same bits in every
-    kernel and thread, so the kernel that counts a block's bits and the one that writes them
-    agree (a float DCT may be contracted into fused multiply-adds differently in each)."""
-    t = dct @ f
-    for r in range(8):
-        for c in range(8):
-            t[r, c] = (t[r, c] + (1 << (PASS_SHIFT - 1))) >> PASS_SHIFT
-    return t @ wp.transpose(dct)
+def reciprocals(quant: np.ndarray) -> np.ndarray:
+    """`_quantise`'s multiplier of each quantisation step q (1-255): floor(2^32 / q) + 1."""
+    q = quant.astype(np.int64)
+    if q.min() < 1 or q.max() > 255:
+        raise ValueError(f"quantisation steps must be 1-255, got {q.min()}-{q.max()}")
+    return (np.int64(1) << np.int64(32)) // q + 1
 
 
 @wp.func
@@ -364,6 +367,7 @@ def _magnitude(value: int):
 def _code_block(
     coefs: wp.array(dtype=wp.int16),
     base: int,
+    stride: int,
     dc_diff: int,
     comp: int,
     codes: wp.array(dtype=int),
@@ -373,14 +377,14 @@ def _code_block(
     emit: int,
 ):
     """A block's Huffman codes: its DC difference, then its AC coefficients (quantised, in
-    zigzag order from `base`) as runs of zeros and values (ZRL for 16 zeros, EOB after the
-    last value)."""
+    zigzag order from `base`, `stride` apart) as runs of zeros and values (ZRL for 16 zeros,
+    EOB after the last value)."""
     table = wp.min(comp, 1) * 512  # DC table at +0, AC at +256
     m = _magnitude(dc_diff)
     w = _put(w, (codes[table + m[0]] << m[0]) | m[1], lengths[table + m[0]] + m[0], words, emit)
     run = int(0)
     for k in range(1, 64):
-        value = int(coefs[base + k])
+        value = int(coefs[base + k * stride])
         if value == 0:
             run += 1
         else:
@@ -396,40 +400,62 @@ def _code_block(
     return w
 
 
-@wp.kernel
+@wp.kernel(module="unique", module_options={"enable_backward": False, "max_unroll": 64})
 def _transform(
     packed: wp.array2d(dtype=wp.uint32),
     lay: Layout,
     quant: wp.array(dtype=int),
-    dct: imat88,
-    zigzag: wp.array(dtype=int),
+    reciprocal: wp.array(dtype=wp.int64),
     coefs: wp.array(dtype=wp.int16),
 ):
-    """Block k of image i, once: its samples, their DCT, quantised, in zigzag order at 64 (i *
-    nblocks + k) (the DC first: at most 1,024 in magnitude, the AC clamped to baseline's 10
-    bits)."""
+    """Block k of image i, once: its samples, their DCT (D f D^T, rounded between the two
+    products), quantised, in zigzag order: coefficient j at (i * 64 + j) * nblocks + k (the DC
+    first: at most 1,024 in magnitude, the AC clamped to baseline's 10 bits).
+
+    A module of its own, its loops unrolled (the rest of the encoder keeps its loops: compile
+    time; the products are the compiler's own loops): with constant indices the samples and
+    the products' 64 values can live in registers, D's entries are constants, and neighbouring
+    threads (blocks) write neighbouring coefficients. Integer arithmetic as before, so the bytes
+    are the encoder's before (the goldens)."""
     i, k = wp.tid()
     mcu = k // lay.blocks
     b = k % lay.blocks
-    table = wp.min(wp.max(b - lay.h * lay.v + 1, 0), 1) * 64
-    coef = _coefficients(_samples(packed, i, mcu, b, lay), dct)
-    at = i * lay.nblocks + k
-    coefs[at * 64] = wp.int16(_quantise(coef[0, 0], quant[table]))
-    for j in range(1, 64):
-        n = zigzag[j]
-        value = _quantise(coef[n // 8, n % 8], quant[table + n])
-        coefs[at * 64 + j] = wp.int16(wp.clamp(value, -1023, 1023))  # baseline AC: 10 bits
+    comp = wp.max(b - lay.h * lay.v + 1, 0)
+    x0 = (mcu % lay.mcus_x) * 8  # in the component's plane
+    y0 = (mcu // lay.mcus_x) * 8
+    if comp == 0:
+        x0 = x0 * lay.h + 8 * (b % lay.h)
+        y0 = y0 * lay.v + 8 * (b // lay.h)
+    f = imat88()
+    for r in range(8):
+        for c in range(8):
+            f[r, c] = _level_sample(packed, i, x0 + c, y0 + r, comp, lay)
+    t = DCT @ f
+    for r in range(8):
+        for c in range(8):
+            t[r, c] = (t[r, c] + (1 << (PASS_SHIFT - 1))) >> PASS_SHIFT
+    coef = t @ wp.transpose(DCT)
+    table = wp.min(comp, 1) * 64
+    at = i * 64 * lay.nblocks + k
+    for u in range(8):
+        for v in range(8):
+            n = u * 8 + v
+            value = _quantise(coef[u, v], quant[table + n], reciprocal[table + n])
+            if n > 0:
+                value = wp.clamp(value, -1023, 1023)  # baseline AC: 10 bits
+            coefs[at + ZIGZAG_AT[u, v] * lay.nblocks] = wp.int16(value)
 
 
 @wp.func
 def _block_start(coefs: wp.array(dtype=wp.int16), i: int, k: int, lay: Layout):
-    """Block k of image i: (where its coefficients start, its DC difference, its component)."""
-    at = i * lay.nblocks + k
+    """Block k of image i: (where its DC is, its DC difference, its component); its
+    coefficient j is nblocks * j further (`_transform`)."""
+    at = i * 64 * lay.nblocks + k
     before = _previous_block(k, lay)
-    dc = int(coefs[at * 64])
+    dc = int(coefs[at])
     if before >= 0:
-        dc = dc - int(coefs[(i * lay.nblocks + before) * 64])
-    return at * 64, dc, wp.max(k % lay.blocks - lay.h * lay.v + 1, 0)
+        dc = dc - int(coefs[at - k + before])
+    return at, dc, wp.max(k % lay.blocks - lay.h * lay.v + 1, 0)
 
 
 @wp.kernel
@@ -443,7 +469,9 @@ def _count_bits(
 ):
     i, k = wp.tid()
     base, diff, comp = _block_start(coefs, i, k, lay)
-    w = _code_block(coefs, base, diff, comp, codes, lengths, _writer(0, 0, 0), words, 0)
+    w = _code_block(
+        coefs, base, lay.nblocks, diff, comp, codes, lengths, _writer(0, 0, 0), words, 0
+    )
     bits[i * lay.nblocks + k] = wp.int64(w.count)
 
 
@@ -473,7 +501,7 @@ def _pack(
     start = int(ends[i * lay.nblocks + k] - bits[i * lay.nblocks + k] - base)
     at, diff, comp = _block_start(coefs, i, k, lay)
     w = _writer(start % 32, i * lay.cap_words + start // 32, 1)
-    w = _code_block(coefs, at, diff, comp, codes, lengths, w, words, 1)
+    w = _code_block(coefs, at, lay.nblocks, diff, comp, codes, lengths, w, words, 1)
     if w.nacc > 0:  # the last word, shared with the next block
         wp.atomic_or(
             words, w.word, wp.uint32((w.acc << wp.uint64(32 - w.nacc)) & wp.uint64(0xFFFFFFFF))
@@ -568,13 +596,11 @@ def _place(
             at += 1
 
 
-def _dct_matrix() -> np.ndarray:
-    """D with D f D^T the 2-D DCT of T.81 A.3.3 (its C(u) / 2 folded into each row), scaled by
-    2^DCT_SCALE_BITS and rounded to integers."""
-    u, x = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
-    scale = np.where(u == 0, math.sqrt(0.5), 1.0) * 0.5
-    exact = scale * np.cos((2 * x + 1) * u * np.pi / 16)
-    return np.round(exact * (1 << DCT_SCALE_BITS)).astype(np.int32)
+def load_modules(device: Any) -> None:
+    """Compile (or load from Warp's cache) every kernel module of this encoder on `device`:
+    this module's and `_transform`'s own."""
+    for module in (_transform.module, __name__):
+        wp.load_module(module, device=device)
 
 
 def layout(width: int, height: int, subsampling: str) -> Any:
@@ -604,6 +630,7 @@ def bytes_per_world(width: int, height: int, subsampling: str = "444") -> int:
 class _Tables:
     lay: Any
     quant: wp.array
+    reciprocal: wp.array
     codes: wp.array
     lengths: wp.array
     header: bytes
@@ -645,8 +672,6 @@ class WarpJpeg:
         self.stream = streams.new_stream(self.device, priority)
         self._tables: dict[tuple[int, str], _Tables] = {}
         self._buffers: dict[str, wp.array] = {}
-        self._dct = imat88(*_dct_matrix().flatten().tolist())
-        self._zigzag: wp.array | None = None
         self._scans: dict[str, InclusiveScan] = {}
         self._host_out: wp.array | None = None
         self.seconds = seconds if seconds is not None else {}
@@ -699,7 +724,7 @@ class WarpJpeg:
             wp.launch(
                 _transform,
                 dim=(n, lay.nblocks),
-                inputs=[packed, lay, t.quant, self._dct, self._zigzag, buf["coefs"]],
+                inputs=[packed, lay, t.quant, t.reciprocal, buf["coefs"]],
             )
             wp.launch(_count_bits, dim=(n, lay.nblocks), inputs=[*blocks_in, words, buf["bits"]])
             self._scans["bits"](buf["bits"], ends, blocks)
@@ -752,12 +777,10 @@ class WarpJpeg:
     def _prepare(self, settings: ImageSettings) -> _Tables:
         """The tables and buffers of `settings` (made once each, on the current stream: the
         encoder's, under the device's lock)."""
-        if self._zigzag is None:
-            self._zigzag = wp.array(ZIGZAG, dtype=int, device=self.device)
         key = (settings.quality, settings.subsampling)
         if key not in self._tables:
             lay = layout(self.width, self.height, settings.subsampling)
-            quant = np.zeros(128, np.int32)
+            quant = np.ones(128, np.int32)
             for t, table in enumerate(quant_tables(settings.quality)):
                 quant[t * 64 + ZIGZAG] = table
             codes, lengths = np.zeros(1024, np.int32), np.zeros(1024, np.int32)
@@ -771,6 +794,7 @@ class WarpJpeg:
             self._tables[key] = _Tables(
                 lay,
                 wp.array(quant, dtype=int, device=d),
+                wp.array(reciprocals(quant), dtype=wp.int64, device=d),
                 wp.array(codes, dtype=int, device=d),
                 wp.array(lengths, dtype=int, device=d),
                 jpeg_header(self.width, self.height, settings),

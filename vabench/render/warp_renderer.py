@@ -244,8 +244,8 @@ class WarpRenderPool:
         nvJPEG)."""
         try:
             with self._lock_device:
-                for module in (warp_jpeg, warp_scan):
-                    wp.load_module(module, device=self._device)
+                warp_jpeg.load_modules(self._device)
+                wp.load_module(warp_scan, device=self._device)
         except Exception as err:  # a compiler or driver error: Warp raises plain exceptions
             if self.jpeg == "kernels":
                 raise RenderError(f"jpeg='kernels': the JPEG kernels do not load: {err}") from err
