@@ -76,6 +76,11 @@ def main() -> None:
     p.add_argument("--batches", default="1,64,256,1024")
     p.add_argument("--workers", default="4,8", help="GL worker counts to try")
     p.add_argument("--renderers", default="gl,warp")
+    p.add_argument(
+        "--warp-jpeg",
+        default="host,device,kernels",
+        help="the Warp renderer's JPEG paths to time (host, device: nvJPEG/nvImageCodec, kernels)",
+    )
     p.add_argument("--slots", type=int, default=256)
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--seeds", type=int, default=20)
@@ -102,11 +107,13 @@ def main() -> None:
     if "gl" in renderers:
         for w in (int(x) for x in args.workers.split(",")):
             variants.append((f"gl x{w}", RenderPool(workers=w, max_size=max_size, timeout_s=900)))
+    jpegs = args.warp_jpeg.split(",")
     if "warp" in renderers:
-        variants.append(("warp, jpeg host", WarpRenderPool(max_size=max_size, jpeg="host")))
-        if gpu_jpeg.available():
+        if "host" in jpegs:
+            variants.append(("warp, jpeg host", WarpRenderPool(max_size=max_size, jpeg="host")))
+        if "device" in jpegs and gpu_jpeg.available():
             variants.append(("warp, jpeg device", WarpRenderPool(max_size=max_size, jpeg="device")))
-        if wp.is_cuda_available():  # the shipped default on a GPU: our JPEG kernels
+        if "kernels" in jpegs and wp.is_cuda_available():  # the shipped default on a GPU
             pool = WarpRenderPool(max_size=max_size, jpeg="kernels")
             variants.append(("warp, jpeg kernels", pool))
     for name, pool in variants:
