@@ -10,7 +10,8 @@
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh waits | physics | render | render_options | jpeg | fidelity | tests | engine | main | ray |
+#        bash benchmarks/gpu/run.sh waits | physics | render | render_options | jpeg | jpeg_kernels |
+#        fidelity | tests | engine | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
 #        precompile_bench (issue 33, lever 8: vabench/sweep/precompile.py's old single phase
@@ -21,7 +22,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|waits|physics|render|render_options|jpeg|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
+phase=${1:?usage: run.sh setup|waits|physics|render|render_options|jpeg|jpeg_kernels|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -272,6 +273,19 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     timeout 560 python3 benchmarks/render_options.py --worlds "${RENDER_WORLDS:-24}" \
       --json "$out/render_options.json" 2>&1 | grep --line-buffered -av "^Module " \
       | tee "$out/render_options.log"
+    ;;
+  jpeg_kernels)
+    # Our JPEG kernels (vabench/render/warp_jpeg.py) alone, `warp_jpeg_check.py`: ms a call,
+    # each kernel's GPU time, the bytes against libjpeg-turbo; then in the renderer,
+    # `render_throughput.py`'s "warp, jpeg kernels" rows against the GL pool (RENDER_ARGS
+    # replaces the sizes, batches and renderers). Warp's "Module ... took" lines stay: the
+    # first call's compile time.
+    timeout 200 python3 benchmarks/warp_jpeg_check.py --frames 25,128 2>&1 \
+      | tee "$out/jpeg_check.log"
+    # shellcheck disable=SC2086
+    timeout 360 python3 benchmarks/render_throughput.py ${RENDER_ARGS:---sizes 1280x960,640x480 \
+      --batches 256,1024 --workers 8 --renderers gl,warp --warp-jpeg kernels --repeats 5} \
+      --json "$out/render.json" 2>&1 | grep --line-buffered -av "^Module " | tee "$out/render.log"
     ;;
   jpeg)
     # Issue 33: what a device JPEG call waits for in a busy process (benchmarks/jpeg_contention.py;
