@@ -101,8 +101,8 @@ PY
     # physics + Warp images, the model served by 4 processes of its own, then C MuJoCo + GL as
     # the CPU path's figure on the same host), and the embedded server's calls/s against its
     # policy worker processes and its serving processes.
-    timeout 240 python3 benchmarks/engine.py --backend warp --renderer warp \
-      --concurrency 1,100,1000 --latency 2 --steps 5 --size 640x480 --server-processes 4 \
+    timeout 300 python3 benchmarks/engine.py --backend warp --renderer warp \
+      --concurrency 1,100,1000,2000 --latency 2 --steps 5 --size 640x480 --server-processes 4 \
       --json "$out/engine_warp.json" 2>&1 | tee "$out/engine.log"
     timeout 120 python3 benchmarks/engine.py --backend c --renderer gl --render-workers 8 \
       --concurrency 1000 --latency 2 --steps 5 --size 640x480 \
