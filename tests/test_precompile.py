@@ -70,7 +70,7 @@ def test_every_family_compiles_side_by_side_sharing_one_folder_of_claims(markers
     guard = threading.Lock()
     together = threading.Barrier(3, timeout=30)  # fails unless all three run at once
 
-    def child(task, size, device, threads, claims=None, stats=None, nice=0):
+    def child(task, size, device, threads, claims=None, stats=None, nice=0, ready=None):
         assert claims is not None and claims.is_dir() and stats is not None
         with guard:
             events.append(("start", task, threads, claims))
@@ -93,7 +93,7 @@ def test_every_family_compiles_side_by_side_sharing_one_folder_of_claims(markers
 
 def test_a_family_alone_compiles_in_threads_beyond_the_cores(markers, monkeypatch):
     calls = []
-    monkeypatch.setattr(precompile, "_child", lambda *args: calls.append(args[1:4]))
+    monkeypatch.setattr(precompile, "_child", lambda *args, **kw: calls.append(args[1:4]))
     assert precompile.ensure_compiled(["lift_pot"], 64, 48, "cpu", processes=4) == []
     assert calls == [((64, 48), "cpu", 8)]
 
@@ -243,7 +243,7 @@ def test_a_family_is_ready_as_its_own_child_ends(markers, monkeypatch):
     the first episode waiting for all of it)."""
     slow_may_end = threading.Event()
 
-    def child(task, size, device, threads, claims=None, stats=None, nice=0):
+    def child(task, size, device, threads, claims=None, stats=None, nice=0, ready=None):
         if task == "put_everything_in_basket":
             assert slow_may_end.wait(30)
         return None
@@ -376,7 +376,7 @@ def test_the_critical_familys_child_is_started_first_and_given_its_plan(markers,
     started: list[tuple[str, int, int]] = []
     guard = threading.Lock()
 
-    def child(task, size, device, threads, claims=None, stats=None, nice=0):
+    def child(task, size, device, threads, claims=None, stats=None, nice=0, ready=None):
         with guard:
             started.append((task, threads, nice))
 
@@ -406,3 +406,43 @@ def test_a_child_behind_runs_at_the_lower_cpu_priority():
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert f"nice {os.nice(0) + 3}" in out.stdout
+
+
+def test_a_child_marks_its_family_ready_once_its_modules_are_loaded_ahead(tmp_path, monkeypatch):
+    """The marker comes before the expert's check (`compile_family`'s `loaded`), so that the
+    family's episodes do not wait for it; not where a dry call failed (the expert's run then
+    compiles what it missed) nor where nothing was loaded ahead."""
+    from vabench.sweep import warp_ahead
+    from vabench.tasks import task_batch
+
+    class Checked(RuntimeError):
+        pass
+
+    def no_batch(*args, **kwargs):  # the expert's check: past the point that matters here
+        raise Checked
+
+    monkeypatch.setattr(task_batch, "TaskBatch", no_batch)
+    for failed, threads, marked in ((), "2", True), (("physics: x",), "2", False), ((), "1", False):
+        monkeypatch.setattr(
+            precompile, "load_ahead", lambda *a, failed=failed: warp_ahead.Ahead(failed=failed)
+        )
+        ready = tmp_path / f"lift_pot.{len(failed)}.{threads}"
+        with pytest.raises(Checked):
+            precompile.main(["lift_pot", "--threads", threads, "--ready", str(ready)])
+        assert ready.exists() == marked, (failed, threads)
+
+
+def test_a_family_whose_child_failed_after_marking_it_is_unmarked(markers, monkeypatch):
+    """A child that wrote its marker (its modules loaded ahead) and then failed its expert's
+    check leaves the family to the sweep's own compile, now and in the next sweep."""
+
+    def child(task, size, device, threads, claims=None, stats=None, nice=0, ready=None):
+        assert ready is not None and ready.parent == markers
+        ready.touch()
+        return "the expert's check failed"
+
+    monkeypatch.setattr(precompile, "_child", child)
+    assert precompile.ensure_compiled(["lift_pot"], 64, 48, "cpu", images=False) == ["lift_pot"]
+    assert precompile.missing(["lift_pot"], precompile.code_key("sm0", 0, 0), markers) == [
+        "lift_pot"
+    ]

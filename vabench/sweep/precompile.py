@@ -37,8 +37,9 @@ twice. A child that fails only costs the time: the sweep then compiles that fami
 before (its log names the family and the error); one child's failure does not stop the others.
 
 The sweep does not wait for the whole compile (`Compiling`): it runs in a thread while the
-engine processes start, each family's marker is written as soon as its own child ends, and a
-family's episodes start once its marker is there (or once nothing is compiling on the machine:
+engine processes start, each family's marker is written as soon as its own child has loaded
+its modules ahead (the child's check by its expert's run goes on after it: `compile_family`),
+and a family's episodes start once its marker is there (or once nothing is compiling on the machine:
 then the sweep compiles what is missing itself, as before). On a fresh H100 (2026-11-28) the
 compile took 101 s, the basket's child 97 s of it while the base families' ended earlier, and
 the first episode waited for all of it (169 s), the GPU idle meanwhile.
@@ -55,6 +56,9 @@ against 32.1 s and 51.1 s without, the compile 33.1 s against 34.8 s and 57.4 s,
 children's median 28.0 s against 21.1-24.2 s (they yield). (Twice the threads for the critical
 child made it slower on this 2-core CPU: with more threads it claims more of the shared modules
 itself, whose Python codegen its threads then run one at a time under the interpreter lock.)
+With the whole scheme in a live sweep (fresh H200s, 2026-11-29, the eighteenth session): the
+basket's child 71-77 s (its modules ahead 60 s, its expert's check 6-8 s more, which its
+episodes no longer wait for), its episodes from 78-85 s, the suite 236.4-242.9 s.
 
 `VABENCH_WARP_PRECOMPILE=0` turns it off; `=first` makes every family wait for the whole
 compile, as before (the A/B of the overlap on a fresh machine).
@@ -263,9 +267,12 @@ def _compile(
         stats.mkdir(parents=True, exist_ok=True)
 
         def one(task: str) -> str | None:
-            err = _child(task, size, device, threads, claims, stats, plan[task])
-            if not err:  # its episodes may start now (`family_ready`)
-                (markers / f"{task}.{key}").touch()
+            marker = markers / f"{task}.{key}"  # its episodes may start (`family_ready`) ...
+            err = _child(task, size, device, threads, claims, stats, plan[task], ready=marker)
+            if not err:  # ... once its modules are loaded ahead (the child's), or now
+                marker.touch()
+            else:  # compiled by the sweep instead, and again by the next one
+                marker.unlink(missing_ok=True)
             return err
 
         try:
@@ -417,10 +424,12 @@ def _child(
     claims: Path | None = None,
     stats: Path | None = None,
     nice: int = 0,
+    ready: Path | None = None,
 ) -> str | None:
     """Compile one family in a child process (its modules loaded ahead in `threads` threads,
     sharing `claims` with the other children; its report written to `stats`; at CPU priority
-    `nice` above this process's): None, or the end of its output if it failed."""
+    `nice` above this process's; `ready`, its marker, written by the child as soon as its
+    modules are in, `compile_family`): None, or the end of its output if it failed."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "VABENCH_WARP_DEVICE": device}
     if stats is not None:
         env[STATS_ENV] = str(stats)
@@ -431,6 +440,8 @@ def _child(
         command += ["--size", f"{size[0]}x{size[1]}"]
     if nice:
         command += ["--nice", str(nice)]
+    if ready is not None:
+        command += ["--ready", str(ready)]
     try:
         done = subprocess.run(
             command, env=env, capture_output=True, text=True, timeout=CHILD_TIMEOUT_S
@@ -443,13 +454,21 @@ def _child(
 
 
 def compile_family(
-    task_name: str, size: tuple[int, int] | None, threads: int = 1, claims: Path | None = None
+    task_name: str,
+    size: tuple[int, int] | None,
+    threads: int = 1,
+    claims: Path | None = None,
+    loaded: Callable[[], None] | None = None,
 ) -> tuple[Ahead, dict[str, float]]:
     """In this process: the family's expert for its first `EXPERT_STEPS` actions of one seed
     on Warp physics and (`size`) one image of its last state through the Warp renderer: every
     kernel a sweep of it launches. `threads` > 1 or `claims`: the modules they launch are
     compiled first, in that many threads, each by one of the processes sharing `claims`
-    (`warp_ahead`). Returns what loading ahead did and each part's seconds."""
+    (`warp_ahead`), and `loaded` is called as soon as they are, where every dry call found its
+    modules: the expert's run after it only checks that nothing was missed (it compiled none in
+    every run since 2026-11-27), and the sweep's episodes need not wait for it (6-8 s of the
+    basket's child on an H200, its episodes the suite's critical path). Returns what loading
+    ahead did and each part's seconds."""
     import numpy as np
 
     from vabench.render import camera as cam
@@ -469,8 +488,11 @@ def compile_family(
         clock = time.monotonic()
 
     task = REGISTRY[task_name]
-    ahead = load_ahead(task, size, threads, claims) if threads > 1 or claims else Ahead()
+    ahead_loaded = threads > 1 or claims is not None
+    ahead = load_ahead(task, size, threads, claims) if ahead_loaded else Ahead()
     lap("ahead")
+    if loaded is not None and ahead_loaded and not ahead.failed:
+        loaded()
     batch = TaskBatch(task, 1, backend=Physics.WARP)
     lap("batch")
     run_experts(batch, verified_seeds(task_name)[:1], max_steps=EXPERT_STEPS)
@@ -499,6 +521,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="compile its modules ahead")
     parser.add_argument("--claims", type=Path, help="a folder of claims shared by processes")
     parser.add_argument("--nice", type=int, default=0, help="lower this process's CPU priority")
+    parser.add_argument(
+        "--ready", type=Path, help="a marker to write once the modules are loaded ahead"
+    )
     args = parser.parse_args(argv)
     if args.nice:  # before its compile threads start: they take their creator's priority
         try:
@@ -511,7 +536,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = time.monotonic()
     with compile_log(compiled):
         size = (width, height) if args.size else None
-        ahead, seconds = compile_family(args.task, size, args.threads, args.claims)
+        ready = args.ready
+        ahead, seconds = compile_family(
+            args.task, size, args.threads, args.claims, ready.touch if ready else None
+        )
     if stats := os.environ.get(STATS_ENV):
         report = {
             "task": args.task,
