@@ -179,6 +179,25 @@ class _CudaStandIn:
     is_cuda, sm_count = True, 132
 
 
+def test_vabench_s_kernels_in_modules_of_their_own_are_loaded_ahead_with_its_modules():
+    """`warp_jpeg._transform` is in a module of its own (`module="unique"`, named after the
+    kernel, not after vabench's module) that no dry call launches (the dry render pass encodes
+    nothing): left out of what is loaded ahead, each child's check compiled it again, side by
+    side, on a fresh host (its renderer loads it). Warp's own modules are not vabench's."""
+    from warp._src import context
+
+    from vabench.render import warp_jpeg, warp_scan
+    from vabench.sweep import warp_ahead
+
+    own = warp_ahead.own_modules(list(context.user_modules.values()))
+    assert warp_jpeg._transform.module.name != warp_jpeg.__name__  # its own module
+    for module in (warp_jpeg._transform.module, warp_jpeg._count_bits.module):
+        assert any(m is module for m in own), module.name
+    assert warp_scan.__name__ in {m.name for m in own}
+    assert all(m is not _fill_seven.module for m in own)  # this test's kernel: not vabench's
+    assert not any(m.name.startswith("warp.") for m in own)
+
+
 @pytest.mark.slow
 def test_shared_modules_compile_once(markers, tmp_path, monkeypatch):
     """Two families from an empty Warp cache, side by side: no module is compiled twice (the

@@ -37,7 +37,7 @@ import fcntl
 import hashlib
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -47,7 +47,8 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 OWN_MODULES = "vabench."
-"""vabench's own Warp modules (control, rows, the render pass's): loaded ahead whole."""
+"""vabench's own Warp modules (control, rows, the render pass's, the JPEG encoder's): loaded
+ahead whole (`own_modules`)."""
 
 Found = dict[tuple[int, str, Any], tuple[Any, Any, Any]]
 BLOCKS_PER_SM = 8
@@ -148,11 +149,7 @@ def load_ahead(
                 failed.append(f"{name}: {type(err).__name__}: {str(err)[:300]}")
     launched = list(found.values())
     seen = {id(module) for module, _, _ in launched}
-    own = [
-        m
-        for m in list(context.user_modules.values())
-        if m.name.startswith(OWN_MODULES) and m.kernels and id(m) not in seen
-    ]
+    own = [m for m in own_modules(list(context.user_modules.values())) if id(m) not in seen]
 
     def load(job: tuple[Any, Any, Any] | Any) -> None:
         if isinstance(job, tuple):
@@ -175,6 +172,27 @@ def load_ahead(
         *(ahead.modules, threads, ahead.s, ahead.waited),
     )
     return ahead
+
+
+def own_modules(modules: Iterable[Any]) -> list[Any]:
+    """The Warp modules of `modules` that are vabench's own: one named after a Python module of
+    vabench, and one holding a kernel of vabench in a module of its own
+    (`module="unique"`, which Warp names after the kernel and its hash: warp_jpeg's
+    `_transform`). The renderer loads its JPEG modules when it starts, and no dry call launches
+    them (the dry pass encodes nothing): a module left out here is compiled by every process
+    that starts a renderer, side by side, from an empty cache."""
+    return [
+        m
+        for m in modules
+        if m.kernels
+        and (
+            m.name.startswith(OWN_MODULES)
+            or any(
+                getattr(getattr(k, "func", None), "__module__", "").startswith(OWN_MODULES)
+                for k in m.kernels.values()
+            )
+        )
+    ]
 
 
 def claimed(
