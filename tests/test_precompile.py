@@ -441,14 +441,22 @@ def test_a_child_marks_its_family_ready_once_its_modules_are_loaded_ahead(tmp_pa
         raise Checked
 
     monkeypatch.setattr(task_batch, "TaskBatch", no_batch)
-    for failed, threads, marked in ((), "2", True), (("physics: x",), "2", False), ((), "1", False):
+    cases = (
+        (5, (), "2", True),
+        (5, ("physics: x",), "2", False),
+        (0, (), "2", False),  # e.g. a GPU Warp cannot use: nothing loaded
+        (5, (), "1", False),  # one thread and no claims: nothing loaded ahead
+    )
+    for modules, failed, threads, marked in cases:
         monkeypatch.setattr(
-            precompile, "load_ahead", lambda *a, failed=failed: warp_ahead.Ahead(failed=failed)
+            precompile,
+            "load_ahead",
+            lambda *a, m=modules, f=failed: warp_ahead.Ahead(modules=m, failed=f),
         )
-        ready = tmp_path / f"lift_pot.{len(failed)}.{threads}"
+        ready = tmp_path / f"lift_pot.{modules}.{len(failed)}.{threads}"
         with pytest.raises(Checked):
             precompile.main(["lift_pot", "--threads", threads, "--ready", str(ready)])
-        assert ready.exists() == marked, (failed, threads)
+        assert ready.exists() == marked, (modules, failed, threads)
 
 
 def test_a_family_whose_child_failed_after_marking_it_is_unmarked(markers, monkeypatch):

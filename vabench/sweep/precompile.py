@@ -465,10 +465,10 @@ def compile_family(
     kernel a sweep of it launches. `threads` > 1 or `claims`: the modules they launch are
     compiled first, in that many threads, each by one of the processes sharing `claims`
     (`warp_ahead`), and `loaded` is called as soon as they are, where every dry call found its
-    modules: the expert's run after it only checks that nothing was missed (it compiled none in
-    every run since 2026-11-27), and the sweep's episodes need not wait for it (6-8 s of the
-    basket's child on an H200, its episodes the suite's critical path). Returns what loading
-    ahead did and each part's seconds."""
+    modules (and found some): the expert's run after it only checks that nothing was missed
+    (it compiled none in every run since 2026-11-27), and the sweep's episodes need not wait
+    for it (6-8 s of the basket's child on an H200, its episodes the suite's critical path).
+    Returns what loading ahead did and each part's seconds."""
     import numpy as np
 
     from vabench.render import camera as cam
@@ -491,7 +491,7 @@ def compile_family(
     ahead_loaded = threads > 1 or claims is not None
     ahead = load_ahead(task, size, threads, claims) if ahead_loaded else Ahead()
     lap("ahead")
-    if loaded is not None and ahead_loaded and not ahead.failed:
+    if loaded is not None and ahead_loaded and ahead.modules and not ahead.failed:
         loaded()
     batch = TaskBatch(task, 1, backend=Physics.WARP)
     lap("batch")
