@@ -47,7 +47,7 @@ WARP_JPEG_KERNELS = (
     "_kernels__locals__scan",
 )
 """The renderer's own JPEG kernels (`vabench.render.warp_jpeg`, and `warp_scan`'s, made in its
-`_kernels`): Warp names a kernel's CUDA function `<name>_<8 hex of its module>_cuda_kernel_...`,
+`_kernels`): Warp names a kernel's CUDA function `<name>_<8 hex of its hash>_cuda_kernel_...`,
 so they are told apart from MuJoCo Warp's by the whole name, not a word of it
 (tests/test_kernel_profile.py checks every kernel of those modules is listed)."""
 _WARP_JPEG = re.compile(rf"^(?:{'|'.join(WARP_JPEG_KERNELS)})_[0-9a-f]{{8}}_cuda_kernel_")
