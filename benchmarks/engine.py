@@ -2,7 +2,8 @@
 
     python benchmarks/engine.py [--backend c|warp|mjx] [--renderer gl|warp]
         [--concurrency 1,10,100,1000] [--latency 2] [--steps 5] [--size 640x480]
-        [--render-workers 2] [--task grasp_single_cube] [--shared-batch] [--json FILE]
+        [--render-workers 2] [--task grasp_single_cube] [--shared-batch]
+        [--sim-window 0.01,0.1] [--json FILE]
 
 On a GPU host the product's path is `--backend warp --renderer warp` (MuJoCo Warp physics,
 Warp's ray tracer reading the batch's state on the device; the old `--backend mjx --impl warp`
@@ -20,6 +21,11 @@ processes of its own, the embedded server; render workers excluded) and of its e
 thread alone ("loop ms/dec": the engine, the model client, the agent's bookkeeping, everything
 that holds the GIL on that thread; physics and JPEG threads excluded): 1 / the larger of the two
 bounds the decisions per second one engine process can drive.
+
+`--sim-window` (seconds, a list: each C is run once per value) is the simulator's batching
+window (`simulator.window_s` of a config): how long the first action of a physics call waits
+for others. A call steps every slot of the batch whatever the number of actions in it (idle
+slots frozen), so a longer window trades each decision's wait for fewer whole-batch calls.
 
 `--shared-batch` runs every C on one batch of max(C) slots (one MJX compile; idle slots
 frozen), as a sweep does; otherwise each C gets a batch of exactly C slots. Compilation and
@@ -106,6 +112,9 @@ async def main_async(args) -> list[dict]:
     task = get_task(args.task)
     seeds = verified_seeds(task.name)
     levels = [int(c) for c in args.concurrency.split(",")]
+    windows = [float(w) for w in args.sim_window.split(",")]
+    if args.shared_batch and len(windows) > 1:
+        raise SystemExit("--sim-window: one value with --shared-batch (the batch is built once)")
     width, height = (int(v) for v in args.size.split("x"))
     image = ImageSettings(width, height, 95)
     # random_action keeps a seeded state: served by processes it gets one per process
@@ -144,18 +153,19 @@ async def main_async(args) -> list[dict]:
                             llm,
                             rp,
                             image=image,
+                            sim_window_s=windows[0],
                             **batch_kwargs,
                         )
                     )
 
                 print(
-                    f"{'C':>5} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} {'ep/h':>9} "
+                    f"{'C':>5} {'win s':>6} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} {'ep/h':>9} "
                     f"{'ovh/dec s':>9} {'sim s/dec':>9} {'sim bat':>7} {'ren s/img':>9} "
                     f"{'ren bat':>7} {'cpu ms/dec':>10} {'loop ms/dec':>11} {'err':>4}"
                 )
-                for c in levels:
+                for c, window in [(c, w) for c in levels for w in windows]:
 
-                    def factory(c=c):
+                    def factory(c=c, window=window):
                         if shared is not None:
 
                             @contextlib.asynccontextmanager
@@ -163,11 +173,14 @@ async def main_async(args) -> list[dict]:
                                 yield shared
 
                             return reuse()
-                        return task_services(task, c, llm, rp, image=image, **batch_kwargs)
+                        return task_services(
+                            task, c, llm, rp, image=image, sim_window_s=window, **batch_kwargs
+                        )
 
                     row = await run_level(task, c, args.steps, args.latency, factory, seeds)
                     row.update(
                         concurrency=c,
+                        sim_window_s=window,
                         backend=args.physics.backend,
                         lanes=args.lanes,
                         shared_batch=args.shared_batch,
@@ -177,7 +190,7 @@ async def main_async(args) -> list[dict]:
                     )
                     rows.append(row)
                     print(
-                        f"{c:>5} {row['wall_s']:>8.1f} {row['ideal_s']:>8.1f} "
+                        f"{c:>5} {window:>6.3f} {row['wall_s']:>8.1f} {row['ideal_s']:>8.1f} "
                         f"{row['ratio']:>8.2f} {row['episodes_per_hour']:>9.0f} "
                         f"{row['overhead_per_decision_s']:>9.3f} "
                         f"{row['sim_busy_per_decision_s']:>9.4f} {row['sim_mean_batch']:>7.1f} "
@@ -204,6 +217,12 @@ def main() -> None:
     p.add_argument("--render-workers", type=int, default=2)
     p.add_argument("--platform", default="auto", choices=("auto", "egl", "osmesa"))
     p.add_argument("--shared-batch", action="store_true")
+    p.add_argument(
+        "--sim-window",
+        default="0.01",
+        help="the simulator's batching window in seconds, a comma list (default 0.01, a "
+        "config's simulator.window_s default)",
+    )
     p.add_argument(
         "--server-processes",
         type=int,
