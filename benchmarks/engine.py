@@ -159,9 +159,10 @@ async def main_async(args) -> list[dict]:
                     )
 
                 print(
-                    f"{'C':>5} {'win s':>6} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} {'ep/h':>9} "
-                    f"{'ovh/dec s':>9} {'sim s/dec':>9} {'sim bat':>7} {'ren s/img':>9} "
-                    f"{'ren bat':>7} {'cpu ms/dec':>10} {'loop ms/dec':>11} {'err':>4}"
+                    f"{'C':>5} {'win s':>6} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} "
+                    f"{'ep/h':>9} {'ovh/dec s':>9} {'sim s/dec':>9} {'sim bat':>7} "
+                    f"{'ren s/img':>9} {'ren bat':>7} {'cpu ms/dec':>10} {'loop ms/dec':>11} "
+                    f"{'err':>4}"
                 )
                 for c, window in [(c, w) for c in levels for w in windows]:
 
