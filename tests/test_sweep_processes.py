@@ -9,8 +9,6 @@ import json
 import logging
 import pstats
 
-import pytest
-
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.choices import choose
@@ -120,7 +118,6 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     from vabench.sweep import mps
     from vabench.sweep.cells import pending_cells
     from vabench.sweep.process_executor import (
-        below_the_critical_path,
         critical_environment,
         critical_tasks,
         for_chunk,
@@ -196,19 +193,6 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     }
     for _, part in parts[1:]:
         assert critical_environment(host, shared, part, critical) == {}
-    # with a share of the GPU's multiprocessors asked for the others, the basket's gets all
-    below = below_the_critical_path(critical, {mps.SHARE_SETTING: "90"})
-    assert below == {mps.PRIORITY_VARIABLE: mps.BELOW_NORMAL, mps.SHARE_VARIABLE: "90"}
-    assert below_the_critical_path(critical, {}) == {mps.PRIORITY_VARIABLE: mps.BELOW_NORMAL}
-    assert below_the_critical_path(set(), {mps.SHARE_SETTING: "90"}) == {}
-    shared_90 = worker_shares(host, len(parts)) | below
-    assert critical_environment(host, shared_90, parts[0][1], critical) == {
-        mps.PRIORITY_VARIABLE: mps.NORMAL,
-        CORES_VARIABLE: "8",
-        mps.SHARE_VARIABLE: "100",
-    }
-    for _, part in parts[1:]:
-        assert critical_environment(host, shared_90, part, critical) == {}
     assert critical_tasks(config, cells, alone) == set()  # one process: nothing set apart
     no_mps = dataclasses.replace(batched, executor=dataclasses.replace(batched.executor, mps=False))
     assert critical_tasks(config, cells, no_mps) == set()  # one engine process per GPU
@@ -224,29 +208,3 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     cut = plan_chunks(config, cells, choices)
     assert all(len({(k.track, k.task) for k in part}) == 1 for _, part in cut)
     assert for_chunk(choices, cut[0][1]) is choices
-
-
-def test_an_mps_share_holds_the_other_engines_to_part_of_the_gpu_not_the_critical_path():
-    """`VABENCH_MPS_SHARE`: the engine processes below the critical path's MPS priority get
-    CUDA_MPS_ACTIVE_THREAD_PERCENTAGE, the critical path's process every multiprocessor back;
-    unset or 100 sets nothing; anything else is refused naming the setting, before a sweep
-    starts (`choose`)."""
-    from vabench.sweep import mps
-
-    assert mps.below_normal_share({}) is None
-    assert mps.below_normal_share({mps.SHARE_SETTING: "100"}) is None
-    assert mps.below_normal_share({mps.SHARE_SETTING: " 90 "}) == "90"
-    for bad in ("0", "101", "90%", "0.9", "-5"):
-        with pytest.raises(ValueError, match=mps.SHARE_SETTING):
-            mps.below_normal_share({mps.SHARE_SETTING: bad})
-
-
-def test_a_bad_mps_share_is_refused_before_the_sweep_starts(tmp_path, monkeypatch, capsys):
-    """The command's exit 2 and one line naming the setting, nothing run."""
-    from vabench.sweep import mps
-
-    (tmp_path / "c.yaml").write_text(CONFIG.format(executor="{kind: local}"))
-    monkeypatch.setenv(mps.SHARE_SETTING, "ninety")
-    assert main([str(tmp_path / "c.yaml"), "--out", str(tmp_path / "run")]) == 2
-    assert f"{mps.SHARE_SETTING}='ninety'" in capsys.readouterr().err
-    assert not (tmp_path / "run").exists()

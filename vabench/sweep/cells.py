@@ -48,7 +48,6 @@ WORKER_ENVIRONMENT = (
     "CUDA_VISIBLE_DEVICES",
     "VABENCH_CORES",
     "CUDA_MPS_CLIENT_PRIORITY",
-    "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE",
 )
 """What a worker reports of its environment (the choices made for processes started on a GPU
 host, `sweep.choices`)."""

@@ -226,10 +226,8 @@ class Choices:
 def choose(config: Any, machine: Machine | None = None) -> Choices:
     """Resolve every `auto` of `config` (a `SweepConfig`) for this machine. Raises
     `sim_mjx.backends.BackendUnavailable` (its message naming what is missing) when the config
-    asks explicitly for a backend that cannot run here, and ValueError for a bad setting in the
-    environment (`mps.SHARE_SETTING`), before anything starts."""
+    asks explicitly for a backend that cannot run here."""
     machine = machine or this_machine()
-    mps.below_normal_share()
     ex = config.executor
     physics = resolve(config.simulator.backend)
     in_flight = in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched)

@@ -62,37 +62,12 @@ executor puts every engine process below normal but the critical path's
 alone in their process, took 1.7 s a decision, 0.49 s of it for a physics call and 0.28 s for
 a JPEG call whose kernels waited behind four other processes' (docs/PERFORMANCE.md)."""
 NORMAL, BELOW_NORMAL = "0", "1"
-SHARE_VARIABLE = "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE"
-"""The share of the GPU's multiprocessors a client's kernels may use, in percent, read when the
-process makes its CUDA context (NVIDIA's MPS documentation, "CUDA_MPS_ACTIVE_THREAD_PERCENTAGE";
-unset: all of them)."""
-SHARE_SETTING = "VABENCH_MPS_SHARE"
-"""The share (`SHARE_VARIABLE`) of the engine processes below the critical path's priority;
-the critical path's process keeps every multiprocessor. Why (2026-11-29, one H200): the
-basket's decision was 0.85 s, 0.45 s of it a physics call of ~26 worlds, small kernels that
-wait for multiprocessors behind the other processes' render megakernels (81 % of the GPU's
-kernel time); with the others held to 90 %, some are always free for it. Unset: no limit
-(the default; the lever is unmeasured)."""
 DEFAULT_PIPE = Path("/tmp/nvidia-mps")
 """Where a daemon started without CUDA_MPS_PIPE_DIRECTORY listens (the machine's own)."""
 START_WAIT_S = 10.0
 """How long the daemon may take to open its control pipe after `-d` returns."""
 QUIT_WAIT_S = 2.0
 """How long `_quit` waits for `quit` to return (at once where no client is left)."""
-
-
-def below_normal_share(environ: Mapping[str, str] = os.environ) -> str | None:
-    """`SHARE_SETTING`'s percentage for the processes below normal priority, or None where it is
-    unset or 100 (no limit). Anything but a whole number 1-100 is refused, naming the setting."""
-    raw = environ.get(SHARE_SETTING, "").strip()
-    if not raw:
-        return None
-    if not raw.isdigit() or not 1 <= int(raw) <= 100:
-        raise ValueError(
-            f"{SHARE_SETTING}={raw!r}: a whole percentage of the GPU's multiprocessors, 1-100, "
-            "for the engine processes below the critical path's priority"
-        )
-    return None if int(raw) == 100 else str(int(raw))
 
 
 class MpsUnavailable(RuntimeError):

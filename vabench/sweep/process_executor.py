@@ -345,20 +345,6 @@ def for_chunk(
     )
 
 
-def below_the_critical_path(
-    critical: set[str], environ: Mapping[str, str] = os.environ
-) -> dict[str, str]:
-    """What every engine process is told where the critical path has a process of its own
-    (`critical_environment` puts that one back): below normal MPS priority, and where
-    `mps.SHARE_SETTING` asks, a share of the GPU's multiprocessors."""
-    if not critical:
-        return {}
-    env = {mps.PRIORITY_VARIABLE: mps.BELOW_NORMAL}
-    if share := mps.below_normal_share(environ):
-        env[mps.SHARE_VARIABLE] = share
-    return env
-
-
 def critical_environment(
     choices: Choices, shared: Mapping[str, str], part: Sequence[EpisodeKey], critical: set[str]
 ) -> dict[str, str]:
@@ -367,16 +353,12 @@ def critical_environment(
     a normal client while every other worker's is below normal (`mps.PRIORITY_VARIABLE`), and
     half the host's cores (`CORES_VARIABLE`: its embedded server's processes, JPEG threads;
     its ~60 episodes' replies of a decision round were computed by 2 processes at ~32 ms each,
-    up to ~1 s on the critical path; docs/PERFORMANCE.md, "Seventh session"), and every
-    multiprocessor where the others were given a share of them (`mps.SHARE_SETTING`). Nothing
-    for the other workers."""
+    up to ~1 s on the critical path; docs/PERFORMANCE.md, "Seventh session"). Nothing for the
+    other workers."""
     if not critical or not {k.task for k in part} <= critical:
         return {}
     cores = max(int(shared.get(CORES_VARIABLE, "1")), choices.machine.cores // 2)
-    env = {mps.PRIORITY_VARIABLE: mps.NORMAL, CORES_VARIABLE: str(cores)}
-    if mps.SHARE_VARIABLE in shared:
-        env[mps.SHARE_VARIABLE] = "100"
-    return env
+    return {mps.PRIORITY_VARIABLE: mps.NORMAL, CORES_VARIABLE: str(cores)}
 
 
 def _gpu_sharing(stack: contextlib.ExitStack, choices: Choices) -> dict[str, str]:
@@ -447,7 +429,8 @@ def run_processes(
     workers = len(parts) if choices.physics.batched else min(choices.executor.max_tasks, len(parts))
     env = child_environment(choices.physics) | worker_shares(choices, workers)
     critical = critical_tasks(config, cells, choices)  # in a process of its own
-    env.update(below_the_critical_path(critical))
+    if critical:  # every engine process below the critical path's on the GPU
+        env[mps.PRIORITY_VARIABLE] = mps.BELOW_NORMAL
     decided = plan_critical_path(config, cells, choices)  # told to every worker
     seen = {k: v for k in WORKER_ENVIRONMENT if (v := env.get(k, os.environ.get(k))) is not None}
     log.info(
