@@ -104,6 +104,11 @@ PY
     timeout 300 python3 benchmarks/engine.py --backend warp --renderer warp \
       --concurrency 1,100,1000,2000 --latency 2 --steps 5 --size 640x480 --server-processes 4 \
       --json "$out/engine_warp.json" 2>&1 | tee "$out/engine.log"
+    # the same rounds over 8 engine processes under MPS, as the sweep runs them (one process is
+    # bounded by its CPU, ~2.5 ms a decision; the nineteenth session: 0.78 and 0.71 against 8)
+    timeout 200 python3 benchmarks/engine.py --backend warp --renderer warp \
+      --concurrency 1000,2000 --processes 8 --latency 2 --steps 5 --size 640x480 \
+      --server-processes 4 --json "$out/engine_processes.json" 2>&1 | tee -a "$out/engine.log"
     timeout 120 python3 benchmarks/engine.py --backend c --renderer gl --render-workers 8 \
       --concurrency 1000 --latency 2 --steps 5 --size 640x480 \
       --json "$out/engine_c.json" 2>&1 | tee -a "$out/engine.log"
