@@ -105,8 +105,9 @@ PY
       --concurrency 1,100,1000,2000 --latency 2 --steps 5 --size 640x480 --server-processes 4 \
       --json "$out/engine_warp.json" 2>&1 | tee "$out/engine.log"
     # the same rounds over 8 engine processes under MPS, as the sweep runs them (one process is
-    # bounded by its CPU, ~2.5 ms a decision; the nineteenth session: 0.78 and 0.71 against 8)
-    timeout 200 python3 benchmarks/engine.py --backend warp --renderer warp \
+    # bounded by its CPU, ~2.5 ms a decision; the nineteenth session: 0.78 and 0.71 with 8), with
+    # the simulator's window at its default and at 0.1 s (one process at C = 1,000: 0.49 -> 0.58)
+    timeout 300 python3 benchmarks/engine.py --backend warp --renderer warp --sim-window 0.01,0.1 \
       --concurrency 1000,2000 --processes 8 --latency 2 --steps 5 --size 640x480 \
       --server-processes 4 --json "$out/engine_processes.json" 2>&1 | tee -a "$out/engine.log"
     timeout 120 python3 benchmarks/engine.py --backend c --renderer gl --render-workers 8 \
