@@ -35,7 +35,9 @@ the wall time is this process's, from that start to the last one's totals. Why: 
 process is bounded by its host side, ~2-3 ms of CPU a decision (request building, base64, JSON,
 HTTP, bookkeeping) under one interpreter lock, ~350-500 decisions/s (an H200, 2026-11-29),
 while C = 2,000 at L = 2 s asks for 1,000. The CPU columns are then per decision over all the
-processes.
+engine processes, "cpu" with this process's own over the round (the embedded server's, where
+it runs here, as in a one-process row), "loop" over the engine processes' event loops. A row
+with more processes than episodes is skipped; the JSON is written after every row.
 
 `--shared-batch` runs every C on one batch of max(C) slots (one MJX compile; idle slots
 frozen), as a sweep does; otherwise each C gets a batch of exactly C slots. Compilation and
@@ -49,215 +51,9 @@ import asyncio
 import json
 import os
 import sys
-import threading
-import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-
-STAGES = ("sim_busy_s", "sim_calls", "sim_items", "render_busy_s", "render_calls", "render_items")
-
-
-async def measure(task, n_episodes, steps, latency, svc_factory, seeds, ready=None, on_totals=None):
-    """The totals of one timed round of `n_episodes` (after an untimed warm-up episode; then
-    `ready()`, when given, is awaited before the clock starts: the processes' start line;
-    `on_totals(totals)` is told them before the services close, which takes a while)."""
-    from vabench.agent.engine import EpisodeSpec, run_episodes
-
-    def stages(svc):
-        s, r = svc.sim.stats, svc.render.stats
-        return (s.busy_s, s.calls, s.items, r.busy_s, r.calls, r.items)
-
-    async with svc_factory() as svc:
-        warm = [EpisodeSpec(task.name, seeds[0], "local", step_budget=1)]
-        await run_episodes(warm, svc)  # compile and warm the workers, untimed
-        if ready is not None:
-            await ready()
-        before = stages(svc)
-        specs = [
-            EpisodeSpec(task.name, seeds[i % len(seeds)], "local", step_budget=steps)
-            for i in range(n_episodes)
-        ]
-        t0, cpu0, loop0 = time.perf_counter(), time.process_time(), time.thread_time()
-        results = await run_episodes(specs, svc)
-        wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
-        loop_cpu = time.thread_time() - loop0  # this coroutine runs on the event loop's thread
-        after = stages(svc)
-        bad = [r for r in results if not r.scored]
-        totals = dict(
-            wall_s=wall,
-            cpu_s=cpu,
-            loop_cpu_s=loop_cpu,
-            decisions=sum(r.steps_used for r in results),
-            errors=len(bad),
-            error_examples=[r.error for r in bad[:2]],
-            **{k: a - b for k, a, b in zip(STAGES, after, before, strict=True)},
-        )
-        if on_totals is not None:
-            on_totals(totals)
-    return totals
-
-
-def summarize(totals, n_episodes, steps, latency, wall):
-    """A row from the totals of one or more engine processes and the round's wall time."""
-    decisions = max(totals["decisions"], 1)
-    return dict(
-        episodes=n_episodes,
-        wall_s=wall,
-        ideal_s=steps * latency,
-        decisions=totals["decisions"],
-        episodes_per_hour=n_episodes / wall * 3600,
-        ideal_episodes_per_hour=n_episodes / (steps * latency) * 3600,
-        ratio=steps * latency / wall,
-        overhead_per_decision_s=wall / steps - latency,
-        engine_cpu_per_decision_s=totals["cpu_s"] / decisions,
-        loop_cpu_per_decision_s=totals["loop_cpu_s"] / decisions,
-        sim_busy_per_decision_s=totals["sim_busy_s"] / decisions,
-        sim_calls=totals["sim_calls"],
-        sim_mean_batch=totals["sim_items"] / max(totals["sim_calls"], 1),
-        render_busy_per_image_s=totals["render_busy_s"] / max(totals["render_items"], 1),
-        render_calls=totals["render_calls"],
-        render_mean_batch=totals["render_items"] / max(totals["render_calls"], 1),
-        errors=totals["errors"],
-        error_examples=totals["error_examples"],
-    )
-
-
-def shares(total, n):
-    """`total` episodes dealt over `n` processes as evenly as they go."""
-    return [total // n + (1 if i < total % n else 0) for i in range(n)]
-
-
-START_TIMEOUT_S = 600.0
-"""How long the engine processes may take to start, compile and warm up (a fresh machine's
-Warp kernels included)."""
-
-
-def run_in_processes(options, endpoint, n_episodes, n_processes, window):
-    """One timed round of `n_episodes` dealt over `n_processes` engine processes (each its own
-    batch, renderer and model client, as the sweep's `processes` executor runs them), started
-    together once each has warmed up: the wall time is the parent's, from that start to the
-    last process's totals. Returns the summed totals and the wall time."""
-    import multiprocessing
-
-    ctx = multiprocessing.get_context("spawn")
-    start = ctx.Barrier(n_processes + 1)
-    replies = ctx.SimpleQueue()
-    parts = [n for n in shares(n_episodes, n_processes) if n]
-    if len(parts) < n_processes:
-        raise SystemExit(
-            f"--processes {n_processes}: more processes than the {n_episodes} episodes"
-        )
-    procs = [
-        ctx.Process(
-            target=_engine_process,
-            args=(options, endpoint, part, window, offset, start, replies),
-            name=f"engine-{i}",  # not daemonic: a GL renderer starts processes of its own
-        )
-        for i, (part, offset) in enumerate(
-            zip(parts, [sum(parts[:i]) for i in range(len(parts))], strict=True)
-        )
-    ]
-    try:
-        for proc in procs:
-            proc.start()
-        got, wall = _timed_replies(procs, start, replies)
-    except BaseException:
-        for proc in procs:
-            if proc.is_alive():
-                proc.terminate()
-        raise
-    for proc in procs:
-        proc.join(timeout=60)
-    failed = [g for g in got if isinstance(g, str)]
-    if failed:
-        raise SystemExit(f"an engine process failed: {failed[0]}")
-    totals = {k: sum(g[k] for g in got) for k in ("cpu_s", "loop_cpu_s", "decisions", "errors")}
-    totals.update({k: sum(g[k] for g in got) for k in STAGES})
-    totals["error_examples"] = [e for g in got for e in g["error_examples"]][:2]
-    totals["process_walls_s"] = [round(g["wall_s"], 2) for g in got]
-    return totals, wall
-
-
-def _timed_replies(procs, start, replies):
-    """Start the processes' round together; their totals and the wall time until the last."""
-    try:
-        start.wait(timeout=START_TIMEOUT_S)
-    except threading.BrokenBarrierError:
-        for proc in procs:
-            proc.join(timeout=10)
-        why = []
-        while not replies.empty():
-            why.append(replies.get())
-        reason = next((w for w in why if isinstance(w, str)), "timed out")
-        raise SystemExit(f"the engine processes did not start: {reason}") from None
-    t0 = time.perf_counter()
-    got: list = []
-    while len(got) < len(procs):  # polled: a process that dies without a word ends the wait
-        if not replies.empty():
-            got.append(replies.get())
-            continue
-        if sum(p.exitcode is not None for p in procs) > len(got):
-            time.sleep(0.5)  # a process that has ended: its totals may still be in the pipe
-            if replies.empty():
-                raise SystemExit("an engine process ended without its totals (see its output)")
-            continue
-        time.sleep(0.005)
-    return got, time.perf_counter() - t0
-
-
-def _engine_process(options, endpoint, n_episodes, window, offset, start, replies):
-    """One engine process of `run_in_processes` (spawned: a module-level function)."""
-    try:  # the totals go to the parent as soon as they are measured (`on_totals`)
-        asyncio.run(_engine_async(options, endpoint, n_episodes, window, offset, start, replies))
-    except BaseException as err:  # the parent learns of it instead of waiting forever
-        start.abort()
-        replies.put(f"{type(err).__name__}: {err}")
-
-
-async def _engine_async(options, endpoint, n_episodes, window, offset, start, replies):
-    from vabench.agent.services import task_services
-    from vabench.llm_pool.pool import LLMPool
-    from vabench.render.backends import make_renderer
-    from vabench.render.worker import ImageSettings
-    from vabench.tasks import get_task
-    from vabench.tasks.manifests import verified_seeds
-
-    task = get_task(options["task"])
-    seeds = verified_seeds(task.name)
-    seeds = seeds[offset % len(seeds) :] + seeds[: offset % len(seeds)]
-    width, height = options["size"]
-    renderer, _ = make_renderer(
-        options["renderer"],
-        workers=options["render_workers"],
-        platform=options["platform"],
-        max_size=(width, height),
-    )
-    with renderer as rp:
-        async with LLMPool([endpoint]) as llm:
-
-            def factory():
-                return task_services(
-                    task,
-                    n_episodes,
-                    llm,
-                    rp,
-                    image=ImageSettings(width, height, 95),
-                    sim_window_s=window,
-                    **options["batch_kwargs"],
-                )
-
-            return await measure(
-                task,
-                n_episodes,
-                options["steps"],
-                options["latency"],
-                factory,
-                seeds,
-                ready=lambda: asyncio.to_thread(start.wait, START_TIMEOUT_S),
-                on_totals=replies.put,
-            )
-
+from engine_rounds import measure, run_in_processes, summarize
 
 HEADER = (
     f"{'C':>5} {'proc':>4} {'win s':>6} {'wall s':>8} {'ideal s':>8} {'x ideal':>8} "
@@ -279,22 +75,39 @@ def row_line(row) -> str:
 
 
 def gpu_clients(args, processes):
-    """CUDA MPS for the rows of several engine processes on a GPU (`vabench.sweep.mps`, as the
-    sweep's `processes` executor starts it): its variables are put in this process's
-    environment, so that the engine processes and this one's renderer are its clients."""
+    """CUDA MPS for the rows of several engine processes on a GPU, as the sweep's `processes`
+    executor runs them (`vabench.sweep.mps`: a daemon of our own; this process is no client).
+    Returns the daemon's context, what the line says of it, and `env_for(n)`: the variables each
+    of n engine processes starts with (the daemon's, its GPU numbering, and each process's share
+    of the GPU and the cores, `VABENCH_GPU_SHARE`, `VABENCH_CORES`)."""
     import contextlib
 
+    from vabench.children import CORES_VARIABLE
+    from vabench.sim_mjx.warp.device import GPU_SHARE
     from vabench.sweep import mps
+    from vabench.sweep.choices import this_machine
 
     stack = contextlib.ExitStack()
-    if args.renderer != "warp" or max(processes) < 2:
-        return stack, "no MPS"
-    try:
-        env = stack.enter_context(mps.private_daemon())
-    except mps.MpsUnavailable as err:
-        return stack, f"no MPS ({err}): the processes take turns on the GPU"
-    os.environ.update(env)
-    return stack, "CUDA MPS"
+    machine = this_machine()
+    on_gpu = args.renderer == "warp" or args.physics.is_warp
+    clients: dict = {}
+    said = "no MPS"
+    if on_gpu and max(processes) > 1:
+        try:
+            clients = stack.enter_context(mps.private_daemon())
+            said = "CUDA MPS"
+        except mps.MpsUnavailable as err:
+            said = f"no MPS ({err}): their CUDA contexts take turns on the GPU"
+        if clients:  # the daemon numbers the GPUs it sees 0..n-1 for its clients
+            clients = {**clients, **mps.client_devices(machine.gpus)[0]}
+
+    def env_for(n):
+        shares = {CORES_VARIABLE: str(max(1, machine.cores // n))}
+        if on_gpu:
+            shares[GPU_SHARE] = str(n)
+        return {**clients, **shares}
+
+    return stack, said, env_for
 
 
 async def main_async(args) -> list[dict]:
@@ -341,7 +154,7 @@ async def main_async(args) -> list[dict]:
         batch_kwargs=batch_kwargs,
     )
     rows = []
-    daemon, sharing = gpu_clients(args, processes)
+    daemon, sharing, env_for = gpu_clients(args, processes)
     with daemon:
         renderer, choice = make_renderer(
             args.renderer,
@@ -383,6 +196,12 @@ async def main_async(args) -> list[dict]:
                     for c, window, n in [
                         (c, w, n) for c in levels for w in windows for n in processes
                     ]:
+                        if n > c:
+                            print(
+                                f"{c:>5} {n:>4} {window:>6.3f}  skipped: "
+                                "more processes than episodes",
+                            )
+                            continue
 
                         def factory(c=c, window=window):
                             if shared is not None:
@@ -403,7 +222,7 @@ async def main_async(args) -> list[dict]:
                             wall = totals["wall_s"]
                         else:
                             totals, wall = await asyncio.to_thread(
-                                run_in_processes, options, endpoint, c, n, window
+                                run_in_processes, options, endpoint, c, n, window, env_for(n)
                             )
                         row = summarize(totals, c, args.steps, args.latency, wall)
                         row.update(
@@ -420,6 +239,9 @@ async def main_async(args) -> list[dict]:
                         )
                         rows.append(row)
                         print(row_line(row), flush=True)
+                        if args.json:  # after every row: a later row's failure keeps these
+                            with open(args.json, "w") as f:
+                                json.dump(rows, f, indent=1)
     return rows
 
 
@@ -460,10 +282,7 @@ def main() -> None:
     p.add_argument("--json")
     args = p.parse_args()
     args.physics = physics_of(p, args)
-    rows = asyncio.run(main_async(args))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1)
+    asyncio.run(main_async(args))
 
 
 if __name__ == "__main__":
