@@ -11,7 +11,7 @@
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
 #        bash benchmarks/gpu/run.sh waits | physics | render | render_options | jpeg | jpeg_kernels |
-#        fidelity | tests | engine | main | ray |
+#        fidelity | tests | engine | engine_processes | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
 #        precompile_bench (issue 33, lever 8: vabench/sweep/precompile.py's old single phase
@@ -22,7 +22,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|waits|physics|render|render_options|jpeg|jpeg_kernels|fidelity|tests|engine|main|ray|streams|precompile|precompile_bench}
+phase=${1:?usage: run.sh setup|waits|physics|render|render_options|jpeg|jpeg_kernels|fidelity|tests|engine|engine_processes|main|ray|streams|precompile|precompile_bench}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -104,17 +104,22 @@ PY
     timeout 300 python3 benchmarks/engine.py --backend warp --renderer warp \
       --concurrency 1,100,1000,2000 --latency 2 --steps 5 --size 640x480 --server-processes 4 \
       --json "$out/engine_warp.json" 2>&1 | tee "$out/engine.log"
-    # the same rounds over 8 engine processes under MPS, as the sweep runs them (one process is
-    # bounded by its CPU, ~2.5 ms a decision; the nineteenth session: 0.78 and 0.71 with 8), with
-    # the simulator's window at its default and at 0.1 s (one process at C = 1,000: 0.49 -> 0.58)
-    timeout 300 python3 benchmarks/engine.py --backend warp --renderer warp --sim-window 0.01,0.1 \
-      --concurrency 1000,2000 --processes 8 --latency 2 --steps 5 --size 640x480 \
-      --server-processes 4 --json "$out/engine_processes.json" 2>&1 | tee -a "$out/engine.log"
     timeout 120 python3 benchmarks/engine.py --backend c --renderer gl --render-workers 8 \
       --concurrency 1000 --latency 2 --steps 5 --size 640x480 \
       --json "$out/engine_c.json" 2>&1 | tee -a "$out/engine.log"
     timeout 200 python3 benchmarks/server_scaling.py --processes 0,8 --server-processes 4,8,15 \
       --concurrency 64 --seconds 15 --json "$out/server.json" 2>&1 | tee "$out/server.log"
+    ;;
+  engine_processes)
+    # The engine's rounds over 8 engine processes under MPS, as the sweep runs them (one process
+    # is bounded by its CPU, ~2.5 ms a decision; the nineteenth session: 0.78 at C = 1,000 and
+    # 0.71 at C = 2,000 with 8), at the simulator's default window and at 0.1 s (one process at
+    # C = 1,000: 0.49 -> 0.58). A one-process row first: on a fresh host it compiles the scene's
+    # kernels once (~80 s), not in each of the 8 processes side by side.
+    timeout 560 python3 benchmarks/engine.py --backend warp --renderer warp \
+      --sim-window 0.01,0.1 --concurrency 1000,2000 --processes 1,8 --latency 2 --steps 5 \
+      --size 640x480 --server-processes 4 --json "$out/engine_processes.json" 2>&1 \
+      | tee "$out/engine_processes.log"
     ;;
   main)
     # The product's front door as shipped, timed; the report is made from results.jsonl
