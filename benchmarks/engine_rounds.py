@@ -116,14 +116,17 @@ def run_in_processes(options, endpoint, n_episodes, n_processes, window, env=Non
         )
         for i, (part, offset) in enumerate(zip(parts, offsets, strict=True))
     ]
+    measured = False
     try:
         with _environment(env or {}):  # a spawned process starts with this environment
             for proc in procs:
                 proc.start()
         got, wall, own_cpu = _timed_replies(procs, start, replies)
-    finally:
+        measured = True
+    finally:  # measured: each closes its services; else the others' rounds are moot
         for proc in procs:
-            proc.join(timeout=JOIN_TIMEOUT_S if proc.exitcode is None else 0)
+            if measured:
+                proc.join(timeout=JOIN_TIMEOUT_S)
             if proc.is_alive():
                 proc.terminate()
                 proc.join(timeout=10)
