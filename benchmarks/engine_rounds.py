@@ -5,12 +5,12 @@ of its totals (`summarize`)."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import multiprocessing
-import os
 import sys
 import threading
 import time
+
+from vabench.children import started_with
 
 STAGES = ("sim_busy_s", "sim_calls", "sim_items", "render_busy_s", "render_calls", "render_items")
 
@@ -118,7 +118,7 @@ def run_in_processes(options, endpoint, n_episodes, n_processes, window, env=Non
     ]
     measured = False
     try:
-        with _environment(env or {}):  # a spawned process starts with this environment
+        with started_with(env or {}):  # a spawned process starts with this environment
             for proc in procs:
                 proc.start()
         got, wall, own_cpu = _timed_replies(procs, start, replies)
@@ -136,20 +136,6 @@ def run_in_processes(options, endpoint, n_episodes, n_processes, window, env=Non
     totals["error_examples"] = [e for g in got for e in g["error_examples"]][:2]
     totals["process_walls_s"] = [round(g["wall_s"], 2) for g in got]
     return totals, wall
-
-
-@contextlib.contextmanager
-def _environment(env):
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def _timed_replies(procs, start, replies):

@@ -39,6 +39,22 @@ def children_ignore_sigint() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+@contextlib.contextmanager
+def started_with(env: Mapping[str, str]) -> Iterator[None]:
+    """`env` added to os.environ while child processes are started (they copy it at start:
+    spawn, fork and exec alike); the environment as it was afterwards."""
+    before = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def ignore_sigint() -> None:
     """In a child's main thread, first: ignore SIGINT from now on (a press that arrived while
     it was blocked is discarded, not delivered)."""

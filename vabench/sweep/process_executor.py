@@ -49,7 +49,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,7 @@ from vabench.children import (
     exit_with_parent,
     ignore_sigint,
     process_age_s,
+    started_with,
 )
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS, RunDir
@@ -201,7 +202,7 @@ def _run_cell_in_worker(
             _chunks_run,
         )
     _chunks_run += 1
-    with _environment(environment):
+    with started_with(environment):
         return _run_chunk(document, choices, run_dir, keys)
 
 
@@ -225,21 +226,6 @@ def _run_chunk(
         Path(folder).mkdir(parents=True, exist_ok=True)
         first = re.sub(r"[^\w.-]+", "_", "-".join(map(str, keys[0])))
         profile.dump_stats(Path(folder) / f"{os.getpid()}-{first}.prof")
-
-
-@contextlib.contextmanager
-def _environment(env: dict[str, str]) -> Iterator[None]:
-    """`env` added to os.environ while worker processes are started (they copy it)."""
-    before = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    try:
-        yield
-    finally:
-        for k, v in before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def _end_workers(pool: cf.ProcessPoolExecutor) -> None:
@@ -469,7 +455,7 @@ def run_processes(
             devices, worker_gpus = mps.client_devices(machine.gpus)
             env.update(devices)
         while todo:
-            with _environment(env), children_ignore_sigint():
+            with started_with(env), children_ignore_sigint():
                 pool = cf.ProcessPoolExecutor(
                     max_workers=workers,
                     mp_context=context,
