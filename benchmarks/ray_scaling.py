@@ -11,16 +11,18 @@ on every track); the options shrink it (the test of this script runs it at a tin
 engines). Each engine count runs the whole plan into a fresh run directory, one after the
 other, on one local Ray instance started here:
 
-- on a host with GPUs (backend auto, warp or mjx), one engine per GPU (`num_gpus=1`): counts above
-  the GPUs present are skipped;
+- on a host with GPUs (backend auto, warp or mjx), each count is of GPUs, each GPU shared by
+  `--per-gpu` engines (default: the sweep's own, 4 under CUDA MPS where NVIDIA's control program
+  is installed, else 1); counts above the GPUs present are skipped;
 - without (backend c), engines of `1 + render.workers` CPUs each; Ray is told the host has as
   many CPUs as the largest count needs (more than it has, on a small machine: the engines then
   share its cores, which the printed core count shows).
 
-`--per-gpu K` (GPUs only): each count is of GPUs, each GPU shared by K engine processes
-(`executor.actors` = K x GPUs) under one CUDA MPS daemon of the sweep's on the host
-(`sweep.mps.join_node_daemon`), as the local sweep runs 4 a GPU; Ray is restarted for each
-count with only that many GPUs.
+`--per-gpu K` (GPUs only): each GPU shared by K engine processes (`executor.actors` = K x
+GPUs) under one CUDA MPS daemon of the sweep's on the host (`sweep.mps.join_node_daemon`), as
+the local sweep runs 4 a GPU; with K > 1 Ray is restarted for each count with only that many
+GPUs. `--per-gpu 1` is one engine a GPU (the A/B: on 2 x H200, 2026-11-29, four a GPU were
+1.42-1.45x one).
 
 `--warmup` first runs every planned (task, seed) for one step on the most engines, untimed:
 on a fresh GPU machine that compiles Warp's kernels and fills the settled-state cache
@@ -216,7 +218,13 @@ def main() -> None:
     p.add_argument("--policy", default="reference_servo")
     p.add_argument("--latency", type=float, default=0.0, help="the model's reply time, seconds")
     p.add_argument("--warmup", action="store_true", help="one untimed step of every seed first")
-    p.add_argument("--per-gpu", type=int, default=1, help="engine processes a GPU (MPS)")
+    p.add_argument(
+        "--per-gpu",
+        type=int,
+        default=None,
+        help="engine processes a GPU (MPS); default: the sweep's own (4 where NVIDIA's MPS "
+        "control program is installed, else 1: `ray_plan.engines_per_gpu`)",
+    )
     p.add_argument("--json", type=Path)
     p.add_argument(
         "--keep",
@@ -236,9 +244,13 @@ def main() -> None:
     import ray
 
     from vabench.sim_mjx.backends import resolve
+    from vabench.sweep import mps
 
     counts = [int(n) for n in args.engines.split(",")]
     on_gpus = resolve(args.backend).batched
+    if args.per_gpu is None:  # what a sweep's engines default to (`ray_plan.engines_per_gpu`)
+        shared = on_gpus and mps.control_program() is not None
+        args.per_gpu = mps.ENGINES_PER_GPU if shared else 1
     if args.per_gpu > 1 and not on_gpus:
         p.error("--per-gpu shares GPUs between engines: it needs a GPU backend (auto, warp, mjx)")
     if on_gpus:

@@ -244,7 +244,10 @@ def test_ray_client_addresses_are_refused_naming_the_field(tmp_path):
     assert "executor.address" in str(err.value) and "address: auto" in str(err.value)
 
 
-def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
+def test_engines_four_per_gpu_under_mps_else_one_per_gpu_or_cpu_share(tmp_path, monkeypatch):
+    from vabench.sweep import mps
+
+    monkeypatch.setattr(mps, "control_program", lambda: None)  # no MPS on the driver's node
     config = load_config(write(tmp_path / "ray.yaml", "{kind: ray}"))  # backend c
     cpu_engine = {"num_cpus": 2.0, "num_gpus": 0.0}  # 1 + render.workers
     here = choose(config)
@@ -254,7 +257,20 @@ def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
     )
     here = choose(auto)  # what this machine runs (C MuJoCo and GL images without a GPU)
     n, claim, engines = engine_plan(auto, here, {"CPU": 128.0, "GPU": 8.0})
-    assert (n, claim) == (8, {"num_cpus": 1.0, "num_gpus": 1.0})
+    assert (n, claim) == (8, {"num_cpus": 1.0, "num_gpus": 1.0})  # one a GPU without MPS
+    # where MPS can run, four engines share each GPU (on 2 x H200 1.42-1.45x one a GPU)
+    monkeypatch.setattr(mps, "control_program", lambda: "/usr/bin/nvidia-cuda-mps-control")
+    assert engine_plan(auto, here, {"CPU": 128.0, "GPU": 8.0})[:2] == (
+        8 * mps.ENGINES_PER_GPU,
+        {"num_cpus": 1.0, "num_gpus": 1.0 / mps.ENGINES_PER_GPU},
+    )
+    assert engine_plan(auto, here, {"CPU": 5.0})[0] == 2  # CPU engines: MPS changes nothing
+    no_mps = auto.model_copy(update={"executor": auto.executor.model_copy(update={"mps": "off"})})
+    assert engine_plan(no_mps, here, {"CPU": 128.0, "GPU": 8.0})[:2] == (
+        8,
+        {"num_cpus": 1.0, "num_gpus": 1.0},
+    )
+    monkeypatch.setattr(mps, "control_program", lambda: None)
     # what the engines run is decided for their GPUs by the driver, never again by them
     assert (
         engines.physics.is_warp
@@ -276,8 +292,6 @@ def test_engines_one_per_gpu_with_gpu_physics_else_one_per_cpu_share(tmp_path):
     assert engine_environment(four, 4, 4)["VABENCH_GPU_SHARE"] == "4"
     assert "VABENCH_GPU_SHARE" not in engine_environment(four, 4)
     # ... and, unless executor.mps is off, joins its node's CUDA MPS daemon of the sweep's
-    from vabench.sweep import mps
-
     assert engine_environment(four, 4, 4, "s1")[mps.NODE_SWEEP] == "s1"
     assert mps.NODE_SWEEP not in engine_environment(four, 4, 1, "s1")  # a GPU each
     off = four.model_copy(update={"executor": four.executor.model_copy(update={"mps": "off"})})

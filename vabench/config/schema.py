@@ -131,14 +131,16 @@ class ExecutorOptions(_Strict):
     `--dry-run` says which and why); local: one process; processes: cells of the plan as
     worker processes of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy
     embedded policies);
-    ray: engine actors over a Ray cluster, one per GPU (README, "Multi-machine sweeps")."""
+    ray: engine actors over a Ray cluster, 4 per GPU under CUDA MPS (README, "Multi-machine
+    sweeps")."""
     address: str | None = None
     """`ray.init(address=...)`: "auto" (the cluster this node belongs to) or "HOST:PORT" (its
     head); unset starts or joins a local Ray instance (ray only). Ray Client ("ray://") is
     refused: it does not carry the streamed calls the engines report through."""
     actors: int | None = Field(default=None, ge=1)
-    """Engine actors of a Ray sweep (ray only); default: one per GPU of the cluster when the
-    physics runs on GPUs, else one per `1 + render.workers` CPUs of the cluster."""
+    """Engine actors of a Ray sweep (ray only); default when the physics runs on GPUs: 4 per GPU
+    of the cluster sharing it under CUDA MPS (`mps: auto` and NVIDIA's control program on the
+    driver's node; else one per GPU), else one per `1 + render.workers` CPUs of the cluster."""
     max_tasks: int | None = Field(default=None, ge=1)
     """Task batches run at once in one process (local; default 4), cells at once (processes:
     default one per core; with `auto` on GPUs, engine processes), or chunks at once in one

@@ -6,6 +6,6 @@
 seeds x runs) deterministically and estimates calls, tokens and cost; `runner` runs them in
 one process with every task batch concurrent, resumable from `results.jsonl`
 (`process_executor`: cells in worker processes of one host; `ray_executor`: engine actors on a
-Ray cluster, one per GPU); `display` shows progress; at the end `vabench.report` writes the
+Ray cluster, four per GPU); `display` shows progress; at the end `vabench.report` writes the
 paper's tables.
 """

@@ -12,10 +12,11 @@ writer of the ledger.
    there is one, else a new local one; `"auto"`: the running one; `"HOST:PORT"`: that head
    node; Ray Client's `ray://` is refused by the config, as it cannot carry streaming actor
    calls); a driver that already called `ray.init` keeps its connection;
-3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes): by default
-   one per GPU of the cluster when the physics runs on GPUs (`simulator.backend` warp, mjx or
-   auto on a cluster with GPUs: `choices.for_engines` decides what they run), each claiming
-   `num_gpus=1` and running MuJoCo Warp and Warp's renderer for its chunks; otherwise one per
+3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes): when the
+   physics runs on GPUs (`simulator.backend` warp, mjx or auto on a cluster with GPUs:
+   `choices.for_engines` decides what they run), by default 4 per GPU of the cluster
+   (`ray_plan.engines_per_gpu`: where they can share it under CUDA MPS, else one), each
+   running MuJoCo Warp and Warp's renderer for its chunks; otherwise one per
    `1 + render.workers` CPUs of the cluster, each claiming that many CPUs (C MuJoCo and the GL
    render workers: CPU-only nodes take these).
    `executor.actors` sets the number; more engines than GPUs each claim their share of one
