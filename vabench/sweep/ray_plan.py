@@ -73,7 +73,7 @@ def engines_per_gpu(config: SweepConfig) -> int:
     stands for the cluster's: nodes of one image; an engine on a node without it warns and its
     GPU's engines take turns), else one. Measured on 2 x H200 (2026-11-29, the base families'
     1,120 episodes): four a GPU 134.2 s on one GPU and 86.6 s on two, one a GPU 190.3 s and
-    125.2 s (1.42x and 1.45x; docs/PERFORMANCE.md, "Twentieth session")."""
+    125.2 s: 1.42x and 1.45x (docs/PERFORMANCE.md, Ray, "Two NVIDIA H200 of one host")."""
     if config.executor.mps == "auto" and mps.control_program() is not None:
         return mps.ENGINES_PER_GPU
     return 1
