@@ -24,6 +24,7 @@ import ctypes
 import gc
 import itertools
 import json
+import subprocess
 import sys
 import time
 
@@ -87,6 +88,25 @@ def _sample() -> dict[str, int]:
 
 @pytest.mark.skipif(MALLINFO2 is None, reason="glibc's mallinfo2 (glibc >= 2.33) is needed")
 def test_calls_leave_no_memory_behind_once_warm():
+    """Measured in an interpreter of its own (this file run as a script): the figures are the
+    whole process's, so threads, caches and servers that earlier tests of the session leave
+    running would count as the pool's (a full CI run, 2026-11-29: 0.29 blocks a call, where
+    the test alone gives well under 0.2)."""
+    done = subprocess.run(
+        [sys.executable, __file__], capture_output=True, text=True, timeout=600, check=False
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    assert figures["wrong"] == 0
+    per_call = figures["per_call"]
+    assert per_call["blocks"] < MAX_BLOCKS_PER_CALL, per_call
+    assert per_call["in_use"] < MAX_IN_USE_PER_CALL, per_call
+    assert per_call["rss"] < MAX_RSS_PER_CALL, per_call
+
+
+def _measure() -> dict:
+    """Warm up, then the memory that `MEASURED` calls leave behind, per call, and how many
+    replies answered another call than their own."""
     for start in range(0, 200_000, 1_000):  # ~12 times the table: every slot taken
         fill = [f"fill {i}" for i in range(start, start + 1_000)]  # (small: no heap headroom)
         pydantic_core.from_json(json.dumps(fill).encode(), cache_strings=True)
@@ -150,11 +170,7 @@ def test_calls_leave_no_memory_behind_once_warm():
         return samples, wrong
 
     (before, after), wrong = asyncio.run(main())
-    assert wrong == 0
-    per_call = {k: (after[k] - before[k]) / MEASURED for k in before}
-    assert per_call["blocks"] < MAX_BLOCKS_PER_CALL, per_call
-    assert per_call["in_use"] < MAX_IN_USE_PER_CALL, per_call
-    assert per_call["rss"] < MAX_RSS_PER_CALL, per_call
+    return {"wrong": wrong, "per_call": {k: (after[k] - before[k]) / MEASURED for k in before}}
 
 
 @pytest.mark.skipif(heap.MALLOC_TRIM is None, reason="glibc's malloc_trim is needed")
@@ -176,3 +192,7 @@ def test_the_pool_keeps_a_thread_giving_the_heap_back(monkeypatch):
     heap._stop.set()  # this test's fast thread ends here, not with the test session
     first.join(timeout=5)
     heap._stop.clear()
+
+
+if __name__ == "__main__":  # the measurement, in a process of its own
+    print(json.dumps(_measure()))
