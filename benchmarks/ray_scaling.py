@@ -244,13 +244,12 @@ def main() -> None:
     import ray
 
     from vabench.sim_mjx.backends import resolve
-    from vabench.sweep import mps
+    from vabench.sweep.ray_plan import engines_per_gpu
 
     counts = [int(n) for n in args.engines.split(",")]
     on_gpus = resolve(args.backend).batched
-    if args.per_gpu is None:  # what a sweep's engines default to (`ray_plan.engines_per_gpu`)
-        shared = on_gpus and mps.control_program() is not None
-        args.per_gpu = mps.ENGINES_PER_GPU if shared else 1
+    if args.per_gpu is None:  # what a sweep's engines default to
+        args.per_gpu = engines_per_gpu() if on_gpus else 1
     if args.per_gpu > 1 and not on_gpus:
         p.error("--per-gpu shares GPUs between engines: it needs a GPU backend (auto, warp, mjx)")
     if on_gpus:

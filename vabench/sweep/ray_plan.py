@@ -59,7 +59,7 @@ def engine_plan(
     if engines.physics.batched and gpus >= 1:
         # more engines than GPUs: each claims its share of one, so that several engine
         # processes share a GPU under CUDA MPS (one process is paced by its host side)
-        n = asked or gpus * engines_per_gpu(config)
+        n = asked or gpus * engines_per_gpu(config.executor.mps)
         share = 1.0 / math.ceil(n / gpus)  # 1 / engines per GPU: all of them fit
         return n, {"num_cpus": 1.0, "num_gpus": share}, engines
     cpus = 1 + config.render.workers
@@ -67,14 +67,15 @@ def engine_plan(
     return asked or max(1, int(cluster.get("CPU", 1)) // cpus), resources, engines
 
 
-def engines_per_gpu(config: SweepConfig) -> int:
+def engines_per_gpu(mps_setting: str = "auto") -> int:
     """Engines a GPU when `executor.actors` is unset: `mps.ENGINES_PER_GPU` where they can share
-    it under CUDA MPS (`executor.mps: auto` and NVIDIA's control program on this node, which
-    stands for the cluster's: nodes of one image; an engine on a node without it warns and its
-    GPU's engines take turns), else one. Measured on 2 x H200 (2026-11-29, the base families'
-    1,120 episodes): four a GPU 134.2 s on one GPU and 86.6 s on two, one a GPU 190.3 s and
-    125.2 s: 1.42x and 1.45x (docs/PERFORMANCE.md, Ray, "Two NVIDIA H200 of one host")."""
-    if config.executor.mps == "auto" and mps.control_program() is not None:
+    it under CUDA MPS (`mps_setting`, the config's `executor.mps`, is auto and NVIDIA's control
+    program is on this node, which stands for the cluster's: nodes of one image; an engine on a
+    node without it warns and its GPU's engines take turns), else one. Measured on 2 x H200
+    (2026-11-29, the base families' 1,120 episodes): four a GPU 134.2 s on one GPU and 86.6 s
+    on two, one a GPU 190.3 s and 125.2 s: 1.42x and 1.45x (docs/PERFORMANCE.md, Ray, "Two
+    NVIDIA H200 of one host")."""
+    if mps_setting == "auto" and mps.control_program() is not None:
         return mps.ENGINES_PER_GPU
     return 1
 
