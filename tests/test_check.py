@@ -161,7 +161,7 @@ def test_the_sweep_checks_first_and_records_nothing_on_a_problem(config, tmp_pat
     out = tmp_path / "out"
     args = [str(config), "--out", str(out), "--plain", "--no-report", "--model", "one-image"]
     assert main([*args, "--dry-run"]) == 0
-    assert "check: first, one decision for each of 1 model(s)" in capsys.readouterr().out
+    assert "check:     first, one decision for each of 1 model(s)" in capsys.readouterr().out
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "error: model 'one-image': images: " in err and "--limit-mm-per-prompt" in err

@@ -226,12 +226,12 @@ def _start_line(configuring: float) -> str:
 def _check_plan(config: Any, keys: Sequence[Any], skipped: bool) -> str:
     """The dry run's line on the sweep's first step (`vabench.check`)."""
     if skipped:
-        return "check: skipped (--no-check)"
+        return "check:     skipped (--no-check)"
     models = {k.model for k in keys} - set(config.embedded_models)
     if not models:
-        return "check: none needed (every model is the embedded server's)"
+        return "check:     none needed (every model is the embedded server's)"
     return (
-        f"check: first, one decision for each of {len(models)} model(s) with the sweep's "
+        f"check:     first, one decision for each of {len(models)} model(s) with the sweep's "
         "inputs (python -m vabench.check; --no-check skips it)"
     )
 
