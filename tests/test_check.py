@@ -31,9 +31,16 @@ SERVERS = {
     "short-context": ServerTraits(served_model_name="qwen-vl", max_model_len=32768),
     "truncating": ServerTraits(num_ctx=2048),
     "llama-cpp": ServerTraits(ignored_fields=["max_completion_tokens"]),
+    "reasoning-max-tokens": ServerTraits(reasoning_model=True),
+    "reasoning-temperature": ServerTraits(reasoning_model=True),
     "healthy": ServerTraits(served_model_name="qwen-vl", max_model_len=300_000),
 }
 """Model name -> the limits of the server behind it."""
+FIELDS = {
+    "reasoning-max-tokens": ", max_tokens_field: max_tokens",
+    "reasoning-temperature": ", generation: {temperature: 0.2}",
+}
+"""Model name -> what its config entry sets besides its name and address."""
 
 CONFIG = """\
 name: check
@@ -58,14 +65,15 @@ def config(tmp_path_factory) -> Iterator[Path]:
         for name, traits in SERVERS.items():
             served = ServerConfig(imitate=traits, policy="scripted", policy_options=replies)
             url = stack.enter_context(server_in_thread(served)).base_url("openai_chat")
-            entry = f"{{name: {name}, api: openai_chat, model: qwen-vl, base_url: '{url}'}}"
+            entry = f"{{name: {name}, api: openai_chat, model: qwen-vl, base_url: '{url}'"
+            entry += FIELDS.get(name, "") + "}"
             entries.append(f"  - {entry}")
         path = tmp_path_factory.mktemp("check") / "check.yaml"
         path.write_text(CONFIG.format(models="\n".join(entries)))
         yield path
 
 
-FAULTY = ["one-image", "short-context", "truncating", "llama-cpp"]
+FAULTY = [name for name in SERVERS if name != "healthy"]
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +109,7 @@ def problem_lines(run: subprocess.CompletedProcess[str], model: str) -> list[str
 def test_every_faulty_model_has_one_problem_line(checked):
     run = checked["faulty"]
     assert run.returncode == 2, run.stderr
-    assert [len(problem_lines(run, m)) for m in FAULTY] == [1, 1, 1, 1], run.stderr
+    assert [len(problem_lines(run, m)) for m in FAULTY] == [1] * len(FAULTY), run.stderr
     assert f"{len(FAULTY)} problem(s)" in run.stderr
 
 
@@ -136,6 +144,17 @@ def test_an_unread_output_limit_field_is_named(checked):
     (line,) = problem_lines(run, "llama-cpp")
     assert line.startswith("model 'llama-cpp': output limit: ")
     assert "models[3].max_tokens_field: max_tokens" in line
+
+
+def test_a_reasoning_models_refused_parameters_are_named(checked):
+    run = checked["faulty"]
+    assert run.returncode == 2, run.stderr
+    (line,) = problem_lines(run, "reasoning-max-tokens")
+    assert line.startswith("model 'reasoning-max-tokens': output limit: the server refuses max")
+    assert "models[4].max_tokens_field: max_completion_tokens" in line
+    (line,) = problem_lines(run, "reasoning-temperature")
+    assert "'temperature' does not support 0.2" in line
+    assert "remove models[5].generation.temperature" in line
 
 
 def test_a_server_without_those_limits_passes_every_item(checked):

@@ -99,11 +99,11 @@ async def check_model(where: Where, request: Probe, environ: Mapping[str, str]) 
                 )
             ]
         except RequestRejected as err:
-            lines = [Line(name, "reachable", f"yes (HTTP {err.status})")]
-            lines.append(
-                judge.rejection(where, err.status, err.message, request.images, request.images_why)
+            refused = judge.rejection(
+                where, err.status, err.message, request.images, request.images_why
             )
-            return lines + await _output_probe(pool, where)
+            probed = [p for p in await _output_probe(pool, where) if p.item != refused.item]
+            return [Line(name, "reachable", f"yes (HTTP {err.status})"), refused, *probed]
         lines = _decision_lines(where, request, result, card)
         lines += await _output_probe(pool, where)
         lines.append(_cost_line(where, result))

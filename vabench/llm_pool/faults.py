@@ -15,7 +15,8 @@ Faults are drawn per request from `rates`, or taken in order from a script first
 `plan.script("rate_limit", None)` for "a 429, then a normal reply").
 
 A local inference server's own refusals (`server_config.ServerTraits`) are answered here too,
-in vLLM's words and its error body (`vllm_refusal`, `vllm_error`).
+in vLLM's words and its error body (`vllm_refusal`, `vllm_error`), and a reasoning model's
+refused parameters in OpenAI's (`reasoning_refusal`).
 """
 
 from __future__ import annotations
@@ -169,3 +170,24 @@ def vllm_error(status: int, message: str) -> web.Response:
     kind = {404: "NotFoundError"}.get(status, "BadRequestError")
     body = {"object": "error", "message": message, "type": kind, "param": None, "code": status}
     return error_response(status, body)
+
+
+def reasoning_refusal(body: dict[str, Any]) -> web.Response | None:
+    """OpenAI's 400 for a parameter its reasoning models refuse (`max_tokens`, a `temperature`
+    other than the default 1), or None."""
+    if body.get("max_tokens") is not None:
+        param, code = "max_tokens", "unsupported_parameter"
+        message = (
+            "Unsupported parameter: 'max_tokens' is not supported with this model. Use "
+            "'max_completion_tokens' instead."
+        )
+    elif body.get("temperature") not in (None, 1):
+        param, code = "temperature", "unsupported_value"
+        message = (
+            f"Unsupported value: 'temperature' does not support {body['temperature']} with this "
+            "model. Only the default (1) value is supported."
+        )
+    else:
+        return None
+    error = {"message": message, "type": "invalid_request_error", "param": param, "code": code}
+    return error_response(400, {"error": error})

@@ -77,6 +77,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["max_completion_tokens", "max_tokens"],
         help="an output-limit field the server does not read (llama.cpp's server)",
     )
+    traits.add_argument(
+        "--reasoning-model",
+        action="store_true",
+        default=None,
+        help="refuse max_tokens and a temperature other than 1, as OpenAI's reasoning models",
+    )
     p.add_argument(
         "--policy-processes",
         type=int,
@@ -118,6 +124,7 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
         ("max_images_per_prompt", args.limit_images),
         ("num_ctx", args.num_ctx),
         ("ignored_fields", args.ignore_field or None),
+        ("reasoning_model", args.reasoning_model),
     ):
         if value is not None:
             imitate[key] = value

@@ -55,6 +55,7 @@ from vabench.llm_pool.faults import (
     drop_connection,
     error_response,
     malformed_response,
+    reasoning_refusal,
     retry_after_headers,
     status_of,
     truncated_response,
@@ -339,8 +340,13 @@ class LocalServer:
         options = incoming.chat.options
         max_output = options.resolved_max_output_tokens if options else DEFAULT_MAX_OUTPUT_TOKENS
         traits = self.config.imitate
-        if traits.ignored_fields and _limit_fields_ignored(raw, traits.ignored_fields):
-            max_output = UNREAD_OUTPUT_LIMIT
+        if traits.ignored_fields or traits.reasoning_model:
+            fields = json.loads(raw)
+            if traits.reasoning_model and (rejected := reasoning_refusal(fields)) is not None:
+                record.error = "a parameter a reasoning model refuses"
+                return rejected
+            if _limit_fields_ignored(fields, traits.ignored_fields):
+                max_output = UNREAD_OUTPUT_LIMIT
         refused = vllm_refusal(
             incoming.model,
             traits.served_model_name,
@@ -473,9 +479,8 @@ UNREAD_OUTPUT_LIMIT = 1 << 30
 (llama.cpp's `n_predict` -1: the reply runs to its end)."""
 
 
-def _limit_fields_ignored(raw: bytes, ignored: Sequence[str]) -> bool:
+def _limit_fields_ignored(body: dict[str, Any], ignored: Sequence[str]) -> bool:
     """Whether every output-limit field the body sets is one the server does not read."""
-    body = json.loads(raw)
     given = [f for f in ("max_completion_tokens", "max_tokens") if body.get(f) is not None]
     return bool(given) and all(f in ignored for f in given)
 

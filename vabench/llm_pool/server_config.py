@@ -54,6 +54,9 @@ class ServerTraits(BaseModel):
     )
     """Output-limit fields the server does not read (llama.cpp's server read only `max_tokens`
     and `n_predict` until it took `max_completion_tokens`): the reply runs to its end."""
+    reasoning_model: bool = False
+    """An OpenAI reasoning model's parameter rules: `max_tokens` refused (it takes
+    `max_completion_tokens` only), a `temperature` other than 1 refused, in OpenAI's words."""
 
 
 class ServerConfig(BaseModel):
