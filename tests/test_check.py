@@ -232,3 +232,20 @@ def test_refusals_are_read_by_what_they_say(status, message, item, fix):
     line = judge.rejection(judge.Where(endpoint, 0), status, body, 5, "the passive bundle")
     assert (line.item, line.problem) == (item, True) and fix in (line.fix or "")
     assert message[:40] in line.text
+
+
+def test_the_server_command_takes_each_limit():
+    from vabench.llm_pool.serve import build_parser, config_from_args
+
+    flags = ["--served-model-name", "qwen-vl", "--max-model-len", "32768", "--limit-images", "1"]
+    flags += ["--num-ctx", "2048", "--ignore-field", "max_completion_tokens", "--reasoning-model"]
+    traits = config_from_args(build_parser().parse_args(flags)).imitate
+    assert traits == ServerTraits(
+        served_model_name="qwen-vl",
+        max_model_len=32768,
+        max_images_per_prompt=1,
+        num_ctx=2048,
+        ignored_fields=["max_completion_tokens"],
+        reasoning_model=True,
+    )
+    assert config_from_args(build_parser().parse_args([])).imitate == ServerTraits()
