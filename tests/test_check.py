@@ -216,6 +216,13 @@ def test_the_probe_is_the_heaviest_request_of_the_plan(config):
             "generation.temperature",
         ),
         (400, "No connected db.", "key", "check the key in OPENAI_API_KEY"),
+        (401, "Incorrect API key provided: sk-...", "key", "check the key in OPENAI_API_KEY"),
+        (
+            400,
+            "Invalid 'max_tokens': integer below minimum value.",
+            "reachable",
+            "max_tokens_field",
+        ),
         (404, "The model `qwen-vl` does not exist.", "model name", "models[0].model"),
         (
             400,

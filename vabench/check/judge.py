@@ -83,7 +83,8 @@ _NO_COMPLETION_FIELD = re.compile(
 )
 _TEMPERATURE = re.compile(r"'?temperature'?.{0,60}(?:not support|unsupported|only the default)")
 _KEY = re.compile(
-    r"api[ _-]?key|unauthori[sz]ed|authenticat|invalid.{0,20}token|no connected db|permission"
+    r"api[ _-]?key|unauthori[sz]ed|authenticat|invalid (?:access |auth |bearer )?token"
+    r"|no connected db|permission denied"
 )
 _MODEL = re.compile(
     r"model.{0,80}(?:does not exist|not found|unknown|not served)|unknown model|no such model"

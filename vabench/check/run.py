@@ -116,10 +116,21 @@ def _decision_lines(
     ep, name = where.endpoint, where.name
     max_len = card.get("max_model_len") if card is not None else None
     retried = f" after {result.attempts} attempts" if result.attempts > 1 else ""
+    renamed = result.model and result.model != ep.provider_model
+    alias = f" as {result.model!r}" if renamed else ""
     return [
         Line(name, "reachable", f"yes ({ep.resolved_base_url}{retried})"),
         Line(name, "key", f"accepted ({ep.api_key_env})" if ep.api_key_env else "none needed"),
-        Line(name, "model name", f"{ep.provider_model!r} served as {result.model!r}"),
+        Line(
+            name,
+            "model name",
+            f"{ep.provider_model!r} served"
+            + (
+                f" as {result.model!r}"
+                if result.model and result.model != ep.provider_model
+                else ""
+            ),
+        ),
         Line(
             name,
             "images",
