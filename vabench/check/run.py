@@ -121,16 +121,7 @@ def _decision_lines(
     return [
         Line(name, "reachable", f"yes ({ep.resolved_base_url}{retried})"),
         Line(name, "key", f"accepted ({ep.api_key_env})" if ep.api_key_env else "none needed"),
-        Line(
-            name,
-            "model name",
-            f"{ep.provider_model!r} served"
-            + (
-                f" as {result.model!r}"
-                if result.model and result.model != ep.provider_model
-                else ""
-            ),
-        ),
+        Line(name, "model name", f"{ep.provider_model!r} served{alias}"),
         Line(
             name,
             "images",
