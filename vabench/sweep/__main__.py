@@ -239,11 +239,11 @@ def _check_plan(config: Any, keys: Sequence[Any], skipped: bool) -> str:
 def _check_endpoints(config: Any, keys: Sequence[Any]) -> int:
     """The sweep's first step (`vabench.check`): 2, with one line per problem and its fix, when
     some model's endpoint cannot serve the sweep as configured."""
-    from vabench.check import check_sync, problems, report_text
-
     planned = {k.model for k in keys}
     if not planned - set(config.embedded_models):
         return 0  # the embedded server has none of the limits the check looks for
+    from vabench.check import check_sync, problems, report_text
+
     reports = check_sync(config, os.environ, [m.name for m in config.models if m.name in planned])
     for row in report_text(reports).splitlines():
         log.info(row)
