@@ -30,6 +30,7 @@ LAYERS: tuple[frozenset[str], ...] = tuple(
         "run_records",  # a sweep's results.jsonl read back
         "diagnostics",  # annotations and agreement statistics of recorded episodes
         "report config",  # tables of a run; the sweep's config
+        "check",  # each model's endpoint tried once with the sweep's inputs
         "sweep view episode replay",  # the commands
     )
 )

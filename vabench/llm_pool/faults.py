@@ -13,6 +13,10 @@
 
 Faults are drawn per request from `rates`, or taken in order from a script first (tests use
 `plan.script("rate_limit", None)` for "a 429, then a normal reply").
+
+A local inference server's own refusals (`server_config.ServerTraits`) are answered here too,
+in vLLM's words and its error body (`vllm_refusal`, `vllm_error`), and a reasoning model's
+refused parameters in OpenAI's (`reasoning_refusal`).
 """
 
 from __future__ import annotations
@@ -130,3 +134,60 @@ def drop_connection(request: web.Request) -> web.Response:
     if request.transport is not None:
         request.transport.close()
     return web.Response(status=500)
+
+
+# -- a local inference server's refusals, as vLLM words them ----------------------------------
+
+
+def vllm_refusal(
+    model: str,
+    served: str | None,
+    images: int,
+    max_images: int | None,
+    prompt_tokens: int,
+    max_output: int,
+    max_model_len: int | None,
+) -> tuple[int, str] | None:
+    """vLLM's (status, message) for a request it refuses before generating, or None: an
+    unknown model name (404), more images than `--limit-mm-per-prompt` allows, a prompt and
+    output limit beyond `--max-model-len` (400)."""
+    if served is not None and model != served:
+        return 404, f"The model `{model}` does not exist."
+    if max_images is not None and images > max_images:
+        return 400, f"At most {max_images} image(s) may be provided in one request."
+    if max_model_len is not None and prompt_tokens + max_output > max_model_len:
+        return 400, (
+            f"This model's maximum context length is {max_model_len} tokens. However, you "
+            f"requested {prompt_tokens + max_output} tokens ({prompt_tokens} in the messages, "
+            f"{max_output} in the completion). Please reduce the length of the messages or "
+            "completion."
+        )
+    return None
+
+
+def vllm_error(status: int, message: str) -> web.Response:
+    """vLLM's error body: the message at the top level, beside its type and code."""
+    kind = {404: "NotFoundError"}.get(status, "BadRequestError")
+    body = {"object": "error", "message": message, "type": kind, "param": None, "code": status}
+    return error_response(status, body)
+
+
+def reasoning_refusal(body: dict[str, Any]) -> web.Response | None:
+    """OpenAI's 400 for a parameter its reasoning models refuse (`max_tokens`, a `temperature`
+    other than the default 1), or None."""
+    if body.get("max_tokens") is not None:
+        param, code = "max_tokens", "unsupported_parameter"
+        message = (
+            "Unsupported parameter: 'max_tokens' is not supported with this model. Use "
+            "'max_completion_tokens' instead."
+        )
+    elif body.get("temperature") not in (None, 1):
+        param, code = "temperature", "unsupported_value"
+        message = (
+            f"Unsupported value: 'temperature' does not support {body['temperature']} with this "
+            "model. Only the default (1) value is supported."
+        )
+    else:
+        return None
+    error = {"message": message, "type": "invalid_request_error", "param": param, "code": code}
+    return error_response(400, {"error": error})

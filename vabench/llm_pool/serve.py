@@ -3,6 +3,13 @@
     python -m vabench.llm_pool.serve --port 8123 --policy random_action --latency 2 \
         --fault rate_limit=0.05 --fault drop=0.01 --rpm 600 --log requests.jsonl
 
+To answer as a local inference server with its limits (the tests of `vabench.check`):
+
+    python -m vabench.llm_pool.serve --port 8123 --served-model-name qwen-vl \
+        --max-model-len 32768 --limit-images 1      # vLLM's --limit-mm-per-prompt image=1
+    python -m vabench.llm_pool.serve --port 8123 --num-ctx 2048   # Ollama's default context
+    python -m vabench.llm_pool.serve --port 8123 --ignore-field max_completion_tokens
+
 A full configuration can also come from a YAML or JSON file (`--config`, the fields of
 `ServerConfig`); flags override it. An API key to require is read from the environment
 variable named by `--api-key-env`, never from the command line.
@@ -58,6 +65,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--api-key-env", help="require the key held by this environment variable")
     p.add_argument("--log", help="append a JSON line per request to this file")
     p.add_argument("--seed", type=int)
+    traits = p.add_argument_group("a local inference server's limits (ServerTraits)")
+    traits.add_argument("--served-model-name", help="vLLM's: the one model served")
+    traits.add_argument("--max-model-len", type=int, help="vLLM's context length")
+    traits.add_argument("--limit-images", type=int, help="vLLM's --limit-mm-per-prompt image count")
+    traits.add_argument("--num-ctx", type=int, help="Ollama's context: longer prompts are cut")
+    traits.add_argument(
+        "--ignore-field",
+        action="append",
+        default=[],
+        choices=["max_completion_tokens", "max_tokens"],
+        help="an output-limit field the server does not read (llama.cpp's server)",
+    )
+    traits.add_argument(
+        "--reasoning-model",
+        action="store_true",
+        default=None,
+        help="refuse max_tokens and a temperature other than 1, as OpenAI's reasoning models",
+    )
     p.add_argument(
         "--policy-processes",
         type=int,
@@ -92,6 +117,19 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
         if value is not None:
             faults[key] = value
     data.update(latency=latency, faults={**faults, "rates": rates})
+    imitate = dict(data.get("imitate", {}))
+    for key, value in (
+        ("served_model_name", args.served_model_name),
+        ("max_model_len", args.max_model_len),
+        ("max_images_per_prompt", args.limit_images),
+        ("num_ctx", args.num_ctx),
+        ("ignored_fields", args.ignore_field or None),
+        ("reasoning_model", args.reasoning_model),
+    ):
+        if value is not None:
+            imitate[key] = value
+    if imitate:
+        data["imitate"] = imitate
     if args.script:
         data.update(
             policy="scripted", policy_options={"replies": json.loads(args.script.read_text())}

@@ -15,9 +15,12 @@ Around the policy it simulates a provider: latency drawn from a distribution, us
 prompt caching (`simulate.py`), injected faults (`faults.py`), optional RPM/TPM enforcement
 (a strict sliding window: the requests and tokens admitted in any window of one period never
 exceed the limits; refusals are 429s with Retry-After and the API's rate-limit headers), an
-optional API key check, and a request log (in memory, and as JSONL if asked) that never holds
-a header or a key. Which policy answers is chosen per model name (`model_policies`), falling
-back to `policy`. All of it is set in a `ServerConfig` (`server_config.py`).
+optional API key check, the limits of a local inference server answered as it answers them
+(`imitate`: vLLM's image and context limits and model name, Ollama's silent truncation,
+llama.cpp's unread output-limit field), and a request log (in memory, and as JSONL if asked)
+that never holds a header or a key. Which policy answers is chosen per model name
+(`model_policies`), falling back to `policy`. All of it is set in a `ServerConfig`
+(`server_config.py`).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import os
 import random
 import socket
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import IO, Any
 
@@ -52,9 +55,12 @@ from vabench.llm_pool.faults import (
     drop_connection,
     error_response,
     malformed_response,
+    reasoning_refusal,
     retry_after_headers,
     status_of,
     truncated_response,
+    vllm_error,
+    vllm_refusal,
 )
 from vabench.llm_pool.heap import keep_trimmed
 from vabench.llm_pool.limits import RateBudget
@@ -76,7 +82,7 @@ from vabench.llm_pool.server_config import (
 )
 from vabench.llm_pool.server_processes import READY, ServingProcesses
 from vabench.llm_pool.settings import DEFAULT_MAX_OUTPUT_TOKENS
-from vabench.llm_pool.simulate import PromptCache, simulate_usage
+from vabench.llm_pool.simulate import PromptCache, simulate_usage, truncated_usage
 from vabench.llm_pool.tokens import CHARS_PER_TOKEN, block_tokens, text_tokens
 
 
@@ -242,8 +248,18 @@ class LocalServer:
 
     # -- small routes ------------------------------------------------------------------------
     async def _models(self, request: web.Request) -> web.Response:
+        traits = self.config.imitate
+        if traits.served_model_name is not None:  # vLLM's card of the one model it serves
+            name = traits.served_model_name
+            card: dict[str, Any] = {"id": name, "object": "model", "owned_by": "vllm"}
+            card |= {"root": name, "parent": None, "max_model_len": traits.max_model_len}
+            return web.json_response({"object": "list", "data": [card]})
         names = ["vabench-local", *self.config.model_policies]
-        data = [{"id": n, "object": "model", "owned_by": "vabench"} for n in names]
+        data: list[dict[str, Any]] = [
+            {"id": n, "object": "model", "owned_by": "vabench"} for n in names
+        ]
+        if traits.max_model_len is not None:
+            data = [d | {"max_model_len": traits.max_model_len} for d in data]
         return web.json_response({"object": "list", "data": data})
 
     async def _health(self, request: web.Request) -> web.Response:
@@ -323,6 +339,26 @@ class LocalServer:
         counts = block_tokens(incoming.chat, adapter.image_tokens)
         options = incoming.chat.options
         max_output = options.resolved_max_output_tokens if options else DEFAULT_MAX_OUTPUT_TOKENS
+        traits = self.config.imitate
+        if traits.ignored_fields or traits.reasoning_model:
+            fields = json.loads(raw)
+            if traits.reasoning_model and (rejected := reasoning_refusal(fields)) is not None:
+                record.error = "a parameter a reasoning model refuses"
+                return rejected
+            if _limit_fields_ignored(fields, traits.ignored_fields):
+                max_output = UNREAD_OUTPUT_LIMIT
+        refused = vllm_refusal(
+            incoming.model,
+            traits.served_model_name,
+            record.images,
+            traits.max_images_per_prompt,
+            sum(counts),
+            max_output,
+            traits.max_model_len,
+        )
+        if refused is not None:
+            record.error = refused[1]
+            return vllm_error(*refused)
         admitted, refusal = self._admit(adapter, sum(counts) + max_output)
         if refusal is not None:
             record.fault = "enforced_rate_limit"
@@ -376,6 +412,7 @@ class LocalServer:
         usage, reasoning = simulate_usage(
             incoming, reply.text, counts, self.cache, adapter.prompt_caching
         )
+        usage = truncated_usage(usage, self.config.imitate.num_ctx)
         text, finish = reply.text, reply.finish_reason
         if usage.output_tokens > max_output:  # cut the reply where max tokens would have
             reasoning_part = usage.output_tokens - text_tokens(text)
@@ -435,6 +472,17 @@ class LocalServer:
                 LimitState(limit, 0, wait) if wait > 0 else LimitState(limit, int(left), reset)
             )
         return adapter.rate_limit_headers(states)
+
+
+UNREAD_OUTPUT_LIMIT = 1 << 30
+"""The output limit of a request whose limit field the server does not read: none at all
+(llama.cpp's `n_predict` -1: the reply runs to its end)."""
+
+
+def _limit_fields_ignored(body: dict[str, Any], ignored: Sequence[str]) -> bool:
+    """Whether every output-limit field the body sets is one the server does not read."""
+    given = [f for f in ("max_completion_tokens", "max_tokens") if body.get(f) is not None]
+    return bool(given) and all(f in ignored for f in given)
 
 
 def _init_policy_worker(parent_pid: int) -> None:

@@ -1,7 +1,8 @@
 """The embedded server's settings: which policy answers which model (and in how many worker
 processes the stateless ones compute their replies), in how many processes it serves, and what
 it simulates around the policy: latency, faults, rate limits, an API key, prompt caching, the
-request log.
+request log, and the limits of a local inference server (`ServerTraits`: vLLM's image and
+context limits, Ollama's silent truncation, llama.cpp's unread output-limit field).
 """
 
 from __future__ import annotations
@@ -31,6 +32,33 @@ def policy_workers(setting: int | str, cores: int | None = None) -> int:
     return cores // 2 if cores >= 4 else 0
 
 
+class ServerTraits(BaseModel):
+    """Limits of a local inference server, answered as that server answers them, so that
+    `vabench.check` can be tested against each (every field unset: no such limit)."""
+
+    model_config = ConfigDict(extra="forbid")
+    served_model_name: str | None = None
+    """vLLM's `--served-model-name`: `/v1/models` lists this model alone, and a request for
+    another name gets vLLM's 404 "The model `NAME` does not exist."."""
+    max_model_len: int | None = Field(default=None, ge=1)
+    """vLLM's `--max-model-len`: `/v1/models` says it (`max_model_len`), and a request whose
+    prompt and output limit exceed it gets vLLM's context-length 400."""
+    max_images_per_prompt: int | None = Field(default=None, ge=0)
+    """vLLM's `--limit-mm-per-prompt` image count (older releases default to 1): a request with
+    more images gets vLLM's 400 "At most N image(s) may be provided in one request."."""
+    num_ctx: int | None = Field(default=None, ge=1)
+    """Ollama's context (2,048 or 4,096 tokens unless set): a longer prompt is cut to this many
+    tokens without an error, and the usage reports the cut prompt."""
+    ignored_fields: list[Literal["max_completion_tokens", "max_tokens"]] = Field(
+        default_factory=list
+    )
+    """Output-limit fields the server does not read (llama.cpp's server read only `max_tokens`
+    and `n_predict` until it took `max_completion_tokens`): the reply runs to its end."""
+    reasoning_model: bool = False
+    """An OpenAI reasoning model's parameter rules: `max_tokens` refused (it takes
+    `max_completion_tokens` only), a `temperature` other than 1 refused, in OpenAI's words."""
+
+
 class ServerConfig(BaseModel):
     """Everything the embedded server simulates; every field has a harmless default."""
 
@@ -54,6 +82,8 @@ class ServerConfig(BaseModel):
     log_size: int = Field(default=10_000, ge=0)
     """Requests kept in memory (`LocalServer.log`)."""
     seed: int | None = None
+    imitate: ServerTraits = Field(default_factory=ServerTraits)
+    """The limits of a local inference server to answer as it does (tests of the check)."""
     policy_processes: int | Literal["auto"] = 0
     """Worker processes that compute the replies of stateless policies (`policies.PURE_REPLIES`:
     reference_servo, conversation_hash), so a CPU-heavy policy uses several cores while this

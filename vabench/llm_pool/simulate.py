@@ -9,6 +9,9 @@ enforces TPM agree on every number. Prompt caching follows the provider's rule (
   at least 1,024 tokens long is read from the cache, in 128-token increments.
 - "explicit" (Anthropic): only prefixes ending at a `cache_control` marker are cached; the
   longest one seen before is read, and the prefix up to the last marker, if new, is written.
+
+A server with a small context that cuts prompts without a word (Ollama's `num_ctx`) reports
+the cut prompt's tokens (`truncated_usage`).
 """
 
 from __future__ import annotations
@@ -169,3 +172,18 @@ def simulate_usage(
         reasoning_tokens=reasoning_tokens,
     )
     return usage, reasoning_text
+
+
+def truncated_usage(usage: Usage, num_ctx: int | None) -> Usage:
+    """`usage` as a server that keeps only `num_ctx` tokens of a prompt reports it: the prompt
+    counted at most `num_ctx` (Ollama's `prompt_eval_count` after its "truncating input
+    prompt"), the cached share first."""
+    if num_ctx is None or usage.prompt_tokens <= num_ctx:
+        return usage
+    cached = min(usage.cached_input_tokens, num_ctx)
+    return Usage(
+        input_tokens=num_ctx - cached,
+        cached_input_tokens=cached,
+        output_tokens=usage.output_tokens,
+        reasoning_tokens=usage.reasoning_tokens,
+    )

@@ -15,6 +15,11 @@ from a `.env` file beside the config for the variables the environment does not 
 shows on a clock: a live table on a terminal, a line every 15 s otherwise (`--plain`,
 `--progress-every`).
 
+Before the first episode, each model's endpoint gets one decision with the sweep's real inputs
+(`vabench.check`: images per request, context, truncation, the output-limit field, ...); a
+problem stops the sweep with exit code 2 and its fix, before anything is recorded. The embedded
+server's models need none; `--no-check` skips it.
+
 Running the same command again resumes: finished episodes are never re-run, interrupted ones
 start again, infrastructure failures get their retry rounds. Ctrl-C stops the sweep cleanly
 (a second press at once) and says how to resume. Exit code 0 when every planned episode is in
@@ -103,6 +108,11 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         metavar="SECONDS",
         help=f"seconds between plain progress lines (default {PLAIN_EVERY_S:.0f})",
     )
+    p.add_argument(
+        "--no-check",
+        action="store_true",
+        help="skip the check of each model's endpoint before the first episode (vabench.check)",
+    )
     add_overrides(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
@@ -135,6 +145,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         _print_key_sources(config, keys_from)
         print(format_estimate(estimate(config, keys)))
         print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
+        print(f"  {_check_plan(config, keys, args.no_check)}")
         problem = run_dir_problem(run_dir, config, keys)  # what the run would refuse
         if problem is not None:
             print(f"error: {problem}", file=sys.stderr)
@@ -147,6 +158,8 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     os.environ.update(keys_from.added())  # the pool and the processes it starts read them here
+    if not args.no_check and _check_endpoints(config, keys):
+        return 2
     configure_jax(choices.physics)
     log.info("%s", _start_line(configuring))
     for line in choices.lines():
@@ -208,6 +221,41 @@ def _start_line(configuring: float) -> str:
         f"started:   {before}{configuring - _LOADING:.1f} s importing, "
         f"{now - configuring:.1f} s reading the config, choosing and planning"
     )
+
+
+def _check_plan(config: Any, keys: Sequence[Any], skipped: bool) -> str:
+    """The dry run's line on the sweep's first step (`vabench.check`)."""
+    if skipped:
+        return "check:     skipped (--no-check)"
+    models = {k.model for k in keys} - set(config.embedded_models)
+    if not models:
+        return "check:     none needed (every model is the embedded server's)"
+    return (
+        f"check:     first, one decision for each of {len(models)} model(s) with the sweep's "
+        "inputs (python -m vabench.check; --no-check skips it)"
+    )
+
+
+def _check_endpoints(config: Any, keys: Sequence[Any]) -> int:
+    """The sweep's first step (`vabench.check`): 2, with one line per problem and its fix, when
+    some model's endpoint cannot serve the sweep as configured."""
+    planned = {k.model for k in keys}
+    if not planned - set(config.embedded_models):
+        return 0  # the embedded server has none of the limits the check looks for
+    from vabench.check import check_sync, problems, report_text
+
+    reports = check_sync(config, os.environ, [m.name for m in config.models if m.name in planned])
+    for row in report_text(reports).splitlines():
+        log.info(row)
+    found = problems(reports)
+    for problem in found:
+        print(f"error: {problem.problem_line()}", file=sys.stderr)
+    if found:
+        print(
+            "stopped before the first episode; nothing recorded (--no-check skips the check)",
+            file=sys.stderr,
+        )
+    return 2 if found else 0
 
 
 def _print_key_sources(config: Any, keys_from: KeySources) -> None:
