@@ -140,11 +140,12 @@ async def run_scripted_async(
     image: ImageSettings = SMALL,
     settings: EngineSettings | None = None,
     backend: str = "c",
+    endpoint: dict[str, Any] | None = None,
     **batch_kwargs: Any,
 ) -> EpisodeRun:
     """One episode of `task_name` (its first verified seed unless `seed`) answered by
     `replies`, or by the embedded-server policy `inner` (an object with `async respond`)
-    when given; see the module docstring."""
+    when given; see the module docstring. `endpoint`: more fields of the model's config."""
     task = get_task(task_name)
     seed = verified_seeds(task_name)[0] if seed is None else seed
     policy = ProbingPolicy(replies or [STOP], cycle=cycle)
@@ -159,9 +160,11 @@ async def run_scripted_async(
         step_budget=budget,  # type: ignore[arg-type]
     )
     async with LocalServer(server_config, policy=policy, capture_bodies=True) as server:
-        endpoint = server.endpoint_config("m", api, retry={**FAST_RETRY, **(retry or {})})
+        config = server.endpoint_config(
+            "m", api, retry={**FAST_RETRY, **(retry or {})}, **(endpoint or {})
+        )
         async with (
-            LLMPool([endpoint]) as llm,
+            LLMPool([config]) as llm,
             task_services(
                 task,
                 1,

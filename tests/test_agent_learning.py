@@ -303,3 +303,53 @@ def test_demo_frames_validate():
         DemoFrames([jpeg(0)], fps=0)
     with pytest.raises(ValueError, match=r"frames\[1\]"):
         DemoFrames([jpeg(0), b""], fps=3)
+
+
+# -- replies as real models write them (agent.replies) -------------------------------------------
+
+
+def test_refusals_end_a_session_refused_with_repairs_that_name_them():
+    refusal: Any = {"text": "I won't.", "finish_reason": "refusal"}
+    s = run([refusal, refusal, refusal])
+    r = s.result
+    assert (r.status, r.stop_reason, r.invalid_outputs) == ("failed", "refused", 3)
+    assert [e["kind"] for e in s.of_type("rejection")] == ["refusal"] * 3
+    assert "your reply was a refusal (I won't.)" in user_texts(body_json(s.bodies[1]))[-1]
+
+
+def test_reasoning_only_then_the_answer_in_the_reply_goes_on():
+    thought: Any = {
+        "body": {
+            "id": "c",
+            "model": "m",
+            "choices": [
+                {
+                    "index": 0,
+                    "message": {"content": None, "reasoning": tool("expert.retrieve")},
+                    "finish_reason": "stop",
+                }
+            ],
+        }
+    }
+    s = run([thought, tool("expert.retrieve"), frames(0, 5, 11), learn()])
+    assert s.result.learned and s.result.invalid_outputs == 1
+    assert s.of_type("rejection")[0]["kind"] == "reasoning_only"
+
+
+class _ContextTooSmall:
+    async def respond(self, request: Any) -> str:
+        from vabench.llm_pool.policies import PolicyError
+
+        raise PolicyError("prompt is too long: 210000 tokens > 200000 maximum", status=400)
+
+
+def test_a_context_rejection_ends_a_session_context_exceeded_not_a_stopped_sweep():
+    async def go() -> LearningResult:
+        async with LocalServer(policy=_ContextTooSmall()) as server:
+            endpoint = server.endpoint_config("m", "anthropic", retry=FAST_RETRY)
+            async with LLMPool([endpoint]) as llm:
+                return await learn_summary(FakeTask(), DEMO, llm, "m")
+
+    r = asyncio.run(go())
+    assert (r.status, r.stop_reason) == ("failed", "context_exceeded")
+    assert r.error is not None and "prompt is too long" in r.error

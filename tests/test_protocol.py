@@ -296,21 +296,32 @@ def test_fenced_block_with_prose_around():
     assert (d.axis, d.sign, d.distance_mm) == ("x", "-", 20)
 
 
-def test_several_fenced_blocks_take_the_last_json_one():
+def test_the_first_fenced_decision_block_is_taken():
+    """The reference's rule: the first fenced block (tagged json in any case, or untagged)."""
     text = (
         'Option A:\n```json\n{"action": "gripper.open"}\n```\n'
         'Better, option B:\n```JSON\n{"action": "gripper.close"}\n```\n'
         "```python\nprint({'action': 'camera.zoom_in'})\n```"
     )
+    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.open"
+    text = '{"action": "camera.zoom_out"}\n```\n{"action": "gripper.close"}\n```'
     assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.close"
 
 
-def test_json_fence_beats_untagged_fence_and_bare_text():
+def test_a_fenced_block_that_is_no_decision_is_passed_over():
     text = (
-        '{"action": "camera.zoom_out"}\n```json\n{"action": "gripper.open"}\n```\n'
-        '```\n{"action": "gripper.close"}\n```'
+        'The state is\n```json\n{"is_open": true, "finger_center_xyz": [0, 0, 1]}\n```\n'
+        'so I close:\n```json\n{"action": "gripper.close"}\n```'
     )
-    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.open"
+    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.close"
+    only_state = '```json\n{"is_open": true}\n```'
+    assert rejected(only_state).field == "action"
+
+
+def test_a_fenced_block_that_does_not_decode_is_an_error():
+    text = '```json\n{"action": "gripper.open",}\n```\n```json\n{"action": "gripper.close"}\n```'
+    err = rejected(text)
+    assert err.field == P.REPLY and "first ```json block is not valid JSON" in str(err)
 
 
 def test_untagged_and_one_line_fences():
@@ -320,27 +331,50 @@ def test_untagged_and_one_line_fences():
     assert P.parse_decision('```json {"stop": true}```', ACTIVE_SINGLE).kind == "stop"
 
 
-def test_outermost_object_with_nested_braces_and_braces_in_strings():
+def test_bare_object_first_brace_to_last_brace_with_nested_braces_in_strings():
     obj = {
         "action": "dual_gripper.move_world",
         "left": {"axis": "x", "sign": "+", "distance_mm": 10},
         "right": {"axis": "y", "sign": "-", "distance_mm": 12},
         "reason": 'close the gap {"between" the grippers} \\ } {{ and a lone " then }',
     }
-    text = f"Plan: the handles are {{far}} apart. {json.dumps(obj)} That is all."
+    text = f"Plan: the handles need closing. {json.dumps(obj)} That is all."
     d = P.parse_decision(text, ACTIVE_DUAL)
     assert isinstance(d, P.DualMove)
     assert d.reason == obj["reason"] and d.right.distance_mm == 12
 
 
-def test_unclosed_prose_brace_does_not_swallow_the_object():
-    text = "Coordinates use { x, y, z. " + json.dumps(move()) + " done"
-    assert isinstance(P.parse_decision(text, ACTIVE_SINGLE), P.MoveWorld)
+def test_braces_in_the_prose_around_a_bare_object_break_it_as_in_the_reference():
+    text = "Coordinates use {x, y, z}. " + json.dumps(move()) + " done"
+    err = rejected(text)
+    assert err.field == P.REPLY and "first '{' to the last '}'" in str(err)
+    assert "```json block" in str(err)
 
 
 def test_reply_cut_off_after_the_object_but_before_the_closing_fence():
     text = "Lowering now.\n```json\n" + json.dumps(move("z", "-", 40))
     assert P.parse_decision(text, ACTIVE_SINGLE).distance_mm == 40
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        '<think>draft:\n```json\n{"action": "gripper.open"}\n```\n</think>\n'
+        '```json\n{"action": "gripper.close"}\n```',
+        'draft {"action": "gripper.open"} no wait</think>{"action": "gripper.close"}',
+        '<THINK>x</THINK>{"action": "gripper.close"}<think>after {"action": "gripper.open"}',
+    ],
+)
+def test_inline_reasoning_is_never_parsed(text):
+    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.close"
+
+
+def test_split_reasoning():
+    assert P.split_reasoning("<think>a</think> {b} <think>c</think>") == ("{b}", "a\nc")
+    assert P.split_reasoning("plan</think>\n{x}") == ("{x}", "plan")
+    assert P.split_reasoning("<think>cut off while thinking {") == ("", "cut off while thinking {")
+    assert P.split_reasoning('{"stop": true}') == ('{"stop": true}', None)
+    assert rejected('<think>{"stop": true}').message.startswith("the reply is empty")
 
 
 def test_decoded_objects_validate_without_text():
@@ -349,14 +383,6 @@ def test_decoded_objects_validate_without_text():
     with pytest.raises(P.DecisionError) as e:
         P.decision_from_object(["gripper.open"], ACTIVE_SINGLE)
     assert e.value.field == P.REPLY
-
-
-def test_several_bare_objects_take_the_last_decision():
-    text = (
-        '{"action": "gripper.open"} was my first idea; the state was {"is_open": true}; '
-        'final: {"action": "gripper.close"} and the gripper state {"is_open": false}'
-    )
-    assert P.parse_decision(text, ACTIVE_SINGLE).action == "gripper.close"
 
 
 # -- rejections name the field ----------------------------------------------------------------
@@ -372,7 +398,7 @@ DUAL_MOVE = {
     "reply,ctx,field,says",
     [
         (move(axis="w"), ACTIVE_SINGLE, "axis", "must be 'x', 'y' or 'z', got \"w\""),
-        (rotate(axis="x"), ACTIVE_SINGLE, "axis", "'rx', 'ry' or 'rz'"),
+        (rotate(axis="w"), ACTIVE_SINGLE, "axis", "'rx', 'ry' or 'rz'"),
         (move(sign="up"), ACTIVE_SINGLE, "sign", "got \"up\""),
         (move(sign=True), ACTIVE_SINGLE, "sign", "got true"),
         (move(mm=0), ACTIVE_SINGLE, "distance_mm", "must be between 1 and 100, got 0"),
@@ -398,7 +424,6 @@ DUAL_MOVE = {
         ({"action": "gripper.fly"}, ACTIVE_SINGLE, "action", "unknown action \"gripper.fly\""),
         ({"action": 3}, ACTIVE_SINGLE, "action", "must be a string"),
         ({"action": "stop"}, ACTIVE_SINGLE, "action", '{"stop": true}'),
-        ({"action": "geometry.verify"}, ACTIVE_SINGLE, "action", "is a tool"),
         ({"reason": "thinking"}, ACTIVE_SINGLE, "action", "required"),
         ({"action": "camera.view_topdown"}, PASSIVE_SINGLE, "action", "passive protocol"),
         ({"action": "camera.zoom_in"}, PASSIVE_DUAL, "action", "passive protocol"),
@@ -407,7 +432,7 @@ DUAL_MOVE = {
         ({"action": "camera.view_top"}, ACTIVE_SINGLE, "action", "unknown action"),
         ({"action": "camera.view_topdown", "arm": "left"}, ACTIVE_DUAL, "arm", "view_left_"),
         ({"action": "camera.zoom_in", "reason": 5}, ACTIVE_SINGLE, "reason", "must be a string"),
-        ({"stop": "yes"}, ACTIVE_SINGLE, "stop", "must be true or false"),
+        ({"stop": "yes"}, ACTIVE_SINGLE, "action", "required"),
         ({"tool": "geometry.fly"}, ACTIVE_SINGLE, "tool", "unknown tool"),
         ({"tool": ["geometry.verify"]}, ACTIVE_SINGLE, "tool", "must be a string"),
         ({"tool": "camera.zoom_in"}, ACTIVE_SINGLE, "tool", "is an action"),
@@ -595,3 +620,76 @@ def test_context_validation():
 
 def test_budget_constants():
     assert (P.MAX_REPAIRS_PER_DECISION, P.MAX_TOOL_ROUND_TRIPS, P.MAX_CAMERA_CHAIN) == (2, 20, 5)
+
+
+# -- the reference harness's spellings (PROTOCOL_FACTS 3.3) -------------------------------------
+
+
+@pytest.mark.parametrize(
+    "obj,expected",
+    [
+        ({"tool_name": "geometry.verify", "tool_args": None}, "tool geometry.verify"),
+        ({"tool_name": "camera.history", "tool_args": {"step": 2}}, "tool camera.history step=2"),
+        ({"tool": "geometry.verify", "args": None}, "tool geometry.verify"),
+        ({"tool": "history.image", "args": {"step": 1}}, "tool camera.history step=1"),
+        ({"tool": "image.history", "args": {"step": 1}}, "tool camera.history step=1"),
+        ({"tool": "robot.geometry"}, "tool geometry.verify"),
+        ({"action": "geometry.verify"}, "tool geometry.verify"),
+        ({"action": "camera.history", "step": 3}, "tool camera.history step=3"),
+        ({"action": "camera.history", "args": {"step": 4}}, "tool camera.history step=4"),
+        ({**move(), "tool": None}, "move_world z+30mm"),
+        ({**move(), "stop": None, "arm": None}, "move_world z+30mm"),
+        ({**move(), "stop": False}, "move_world z+30mm"),
+        ({**move(), "stop": "no"}, "move_world z+30mm"),
+        (move(axis="X"), "move_world x+30mm"),
+        (move(axis=" Y "), "move_world y+30mm"),
+        (move(sign="ccw"), "move_world z+30mm"),
+        (move(sign="CW"), "move_world z-30mm"),
+        (rotate(axis="x"), "rotate_local rx+15deg"),
+        (rotate(axis="Z", sign="cw"), "rotate_local rz-15deg"),
+        (rotate(axis="RY", sign="ccw"), "rotate_local ry+15deg"),
+        ({"action": "gripper.world_z_neg.20mm"}, "move_world z-20mm"),
+        ({"action": "gripper.world_x_pos.12.5mm", "reason": "r"}, "move_world x+12.5mm"),
+        ({"action": "gripper.local_rotate_ry_ccw.30deg"}, "rotate_local ry+30deg"),
+        ({"action": "right_gripper.local_rotate_rz_cw.15deg"}, "rotate_local right rz-15deg"),
+    ],
+)
+def test_reference_spellings_are_accepted(obj, expected):
+    assert P.decision_label(decide(obj)) == expected
+
+
+def test_reference_spellings_in_dual_arm_tasks():
+    d = decide({"action": "left_gripper.world_y_pos.10mm"}, ACTIVE_DUAL)
+    assert (d.arm, d.axis, d.sign) == ("left", "y", "+")
+    dual = {
+        "action": "dual_gripper.move_world",
+        "left": {"axis": "Z", "sign": "pos", "distance_mm": 10, "arm": None},
+        "right": {"axis": "z", "sign": "ccw", "distance_mm": 10},
+    }
+    assert P.decision_label(decide(dual, ACTIVE_DUAL)) == (
+        "dual_move_world left z+10mm right z+10mm"
+    )
+
+
+@pytest.mark.parametrize(
+    "obj",
+    [
+        {"action": "gripper.rotate_world", "axis": "z", "sign": "+", "angle_deg": 10},
+        {"action": "gripper.rotate_rz_ccw.30deg"},
+    ],
+)
+def test_world_rotations_are_refused_with_the_local_form(obj):
+    err = rejected(obj)
+    assert err.field == "action" and "gripper.rotate_local" in str(err)
+
+
+@pytest.mark.parametrize(
+    "name", ["gripper.image_left.small", "gripper.rotate_cw", "gripper.world_w_pos.20mm"]
+)
+def test_names_that_match_no_reference_pattern_stay_unknown(name):
+    assert "unknown action" in str(rejected({"action": name}))
+
+
+def test_the_sign_repair_lists_every_spelling():
+    message = str(rejected(move(sign="up")))
+    assert all(a in message for a in ("ccw", "cw", "pos", "negative"))

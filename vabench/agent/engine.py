@@ -8,16 +8,30 @@ harness appendix. One episode:
    views (passive);
 2. per environment step: sends the observation (text + the clean image(s), rendered through
    the `RenderService`) and asks the model for one decision, then
-   - a malformed or invalid reply gets a repair turn (the error naming the field, plus the
-     current observation), at most `MAX_REPAIRS_PER_DECISION` per decision;
+   - a reply that is no valid decision (`vabench.agent.replies`: malformed or invalid JSON, a
+     refusal, a reply cut at the output limit, an empty or reasoning-only reply, a function
+     call that converts into no decision) gets a repair turn that says what happened, plus
+     the current observation; it costs no step. At most `MAX_REPAIRS_PER_DECISION` (2)
+     repairs a decision: the next rejection ends the episode as a scored failure whose stop
+     reason names it (`refused`, `truncated`, else `invalid_output`), as in the benchmark's
+     reference harness (PROTOCOL_FACTS 3.5);
    - a tool call (`geometry.verify`, `camera.history`) is answered in the thread and the
      model is asked again; at most `MAX_TOOL_ROUND_TRIPS` model calls per decision;
    - a camera action moves only the camera (new image, one step of the budget);
    - a robot action goes to the simulator (batched with the other episodes' actions, one
      step of the budget); the success predicate and checkpoints come back with it;
    - stop ends the episode;
-3. ends on success, stop, budget exhausted, too many invalid replies or round trips, or an
-   infrastructure error (recorded as such: never a success or a failure).
+3. ends on success, stop, budget exhausted, too many invalid replies or round trips, a
+   context the model cannot hold, or an infrastructure error (recorded as such: never a
+   success or a failure).
+
+A request the endpoint rejects because it exceeds the model's context window
+(`RequestRejected.context_exceeded`) compacts the conversation at once and is sent again,
+once; rejected again (or with nothing left to compact) the episode ends as a scored failure,
+`context_exceeded`: an episode that the model's own context cannot hold is that model's
+failure (the paper's success rate averages over every seed). The window the compaction
+follows is the model's `context_window` (`models[i].context_window`), or the engine's
+`ContextLimits.window_tokens` where that is smaller.
 
 Only what `vabench.agent.visibility` lists reaches the model: the robot state goes through
 `filter_proprio`; object poses, seeds, contacts, checker state and camera numbers stay on this
@@ -34,7 +48,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vabench import protocol as P
-from vabench.agent.conversation import Conversation
+from vabench.agent.conversation import CompactionEvent, ContextLimits, Conversation
 from vabench.agent.observation import (
     PASSIVE_VIEW_NAME,
     PASSIVE_VIEWS,
@@ -43,6 +57,7 @@ from vabench.agent.observation import (
 )
 from vabench.agent.prompts import system_prompt
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
+from vabench.agent.replies import ReplyRejected, history_text, read_decision, stop_reason_of
 from vabench.agent.services import TaskServices
 from vabench.agent.session import SessionEnd, Spend, reply_fields
 from vabench.agent.simulation import SlotSnapshot
@@ -68,6 +83,9 @@ class _Counts:
     robot_actions: int = 0
     camera_actions: int = 0
     invalid_outputs: int = 0
+    refusals: int = 0
+    truncations: int = 0
+    empty_replies: int = 0
     invalid_actions: int = 0
     tool_calls: int = 0
 
@@ -92,10 +110,14 @@ class Episode:
             tools = tuple(t for t in tools if t != "camera.history")
         self.ctx = P.DecisionContext(self.arms, spec.protocol, tools)
         self.available = P.available_actions(self.arms, spec.protocol, tools)
+        endpoint = services.llm.endpoint(spec.model).config
+        self.output_limit = endpoint.generation.merge(
+            services.settings.generation
+        ).resolved_max_output_tokens
         self.conv = Conversation(
             system_prompt(self.arms, spec.protocol, list(tools)),
             protocol=spec.protocol,
-            limits=services.settings.limits,
+            limits=model_limits(services.settings.limits, endpoint.context_window),
         )
         self.rec = EpisodeRecorder(spec.out_dir)
         self.counts = _Counts()
@@ -247,8 +269,58 @@ class Episode:
         return text, bundle
 
     # -- deciding -----------------------------------------------------------------------------
-    async def _call_model(self, step: int) -> str:
-        event = await self.conv.compact_if_needed(self._summarize)
+    async def _call_model(self, step: int) -> CompletionResult:
+        await self._log_compaction(step, await self.conv.compact_if_needed(self._summarize))
+        try:
+            result = await self._request(step)
+        except RequestRejected as err:
+            if not err.context_exceeded:
+                raise
+            self.rec.event("context_exceeded", step=step, status=err.status, error=str(err))
+            try:
+                event = await self.conv.compact(self._summarize)
+            except RequestRejected as again:  # the summary request did not fit either
+                if not again.context_exceeded:
+                    raise
+                event = None
+            if event is None:
+                raise SessionEnd(
+                    "failure", "context_exceeded", f"nothing left to compact: {err}"
+                ) from None
+            await self._log_compaction(step, event)
+            try:
+                result = await self._request(step)
+            except RequestRejected as again:
+                if not again.context_exceeded:
+                    raise
+                raise SessionEnd(
+                    "failure", "context_exceeded", f"after one compaction: {again}"
+                ) from None
+        self.spend.add(result)
+        self.conv.add_reply(history_text(result))
+        self.rec.event(
+            "reply",
+            step=step,
+            **reply_fields(result),
+            raw_finish_reason=result.raw_finish_reason,
+            reasoning=result.reasoning,
+            function_calls=[dataclasses.asdict(c) for c in result.function_calls],
+            failures=list(result.failures),
+        )
+        return result
+
+    async def _request(self, step: int) -> CompletionResult:
+        request = self.conv.request(self.svc.settings.generation)
+        self.rec.event(
+            "request",
+            step=step,
+            turns=len(request.turns),
+            images=len(request.images),
+            est_tokens=self.conv.estimate_tokens(),
+        )
+        return await self.svc.llm.complete(self.spec.model, request)
+
+    async def _log_compaction(self, step: int, event: CompactionEvent | None) -> None:
         if event is not None:
             # The event's own record names its type and step; the log line takes both from
             # here (the step being decided), the rest as it is.
@@ -265,25 +337,6 @@ class Episode:
                 cost_usd=summary.cost_usd,
                 attempts=summary.attempts,
             )
-        request = self.conv.request(self.svc.settings.generation)
-        self.rec.event(
-            "request",
-            step=step,
-            turns=len(request.turns),
-            images=len(request.images),
-            est_tokens=self.conv.estimate_tokens(),
-        )
-        result = await self.svc.llm.complete(self.spec.model, request)
-        self.spend.add(result)
-        self.conv.add_reply(result.text)
-        self.rec.event(
-            "reply",
-            step=step,
-            **reply_fields(result),
-            reasoning=result.reasoning,
-            failures=list(result.failures),
-        )
-        return result.text
 
     async def _summarize(self, request: ChatRequest) -> str:
         result = await self.svc.llm.complete(self.spec.model, request)
@@ -299,14 +352,19 @@ class Episode:
             reply = await self._call_model(step)
             ctx = dataclasses.replace(self.ctx, camera_chain=P.camera_chain_length(self.kinds))
             try:
-                decision = P.parse_decision(reply, ctx)
-            except P.DecisionError as err:
-                self.counts.invalid_outputs += 1
+                decision = read_decision(reply, ctx, self.output_limit)
+            except ReplyRejected as err:
+                self._count_rejection(err)
                 self.rec.event(
-                    "rejection", step=step, field=err.field, message=str(err), repair=repairs + 1
+                    "rejection",
+                    step=step,
+                    kind=err.kind,
+                    field=err.field,
+                    message=str(err),
+                    repair=repairs + 1,
                 )
                 if repairs >= P.MAX_REPAIRS_PER_DECISION:
-                    raise SessionEnd("failure", "invalid_output", str(err)) from None
+                    raise SessionEnd("failure", stop_reason_of(err.kind), str(err)) from None
                 repairs += 1
                 self.conv.add_repair(str(err), text, images, step)
                 continue
@@ -319,6 +377,12 @@ class Episode:
             "round_trip_limit",
             f"{P.MAX_TOOL_ROUND_TRIPS} model calls without an environment decision",
         )
+
+    def _count_rejection(self, err: ReplyRejected) -> None:
+        self.counts.invalid_outputs += 1
+        self.counts.refusals += err.kind == "refusal"
+        self.counts.truncations += err.kind == "truncation"
+        self.counts.empty_replies += err.empty
 
     def _tool(self, step: int, call: P.ToolCall) -> None:
         self.counts.tool_calls += 1
@@ -412,6 +476,17 @@ class Episode:
             summary_status=self.spec.summary_status,
         )
         return self.rec.finish(result)
+
+
+def model_limits(limits: ContextLimits, context_window: int) -> ContextLimits:
+    """`limits` for a model whose context holds `context_window` tokens: the smaller window of
+    the two, with an output reserve of at most half of it (a small local window still leaves
+    room for the conversation)."""
+    window = min(limits.window_tokens, context_window)
+    if window == limits.window_tokens:
+        return limits
+    reserve = min(limits.output_reserve_tokens, window // 2)
+    return dataclasses.replace(limits, window_tokens=window, output_reserve_tokens=reserve)
 
 
 def _passive_view(camera_view: str) -> str:

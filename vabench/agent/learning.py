@@ -27,6 +27,11 @@ invalid reply in a row ends the session. A refused `expert.learn` or a bad frame
 valid tool call answered with an error: it spends model calls, never repairs. `{"stop": true}`
 ends the session without a summary ("model_stop").
 
+Replies are read as in evaluation episodes (`vabench.agent.replies`): a refusal, a reply cut
+at the output limit, an empty or reasoning-only reply each get a repair that says so, and
+repairs that run out end the session `refused`, `truncated` or `invalid_output`; a request
+beyond the model's context window ends it `context_exceeded` (the session does not compact).
+
 Expected failures come back as a `LearningResult` with `status="failed"` and a `stop_reason`;
 provider failures that outlast the pool's retries become `status="infrastructure_error"`
 (re-run, like evaluation episodes), a request the provider rejects `status="error"`.
@@ -62,11 +67,13 @@ from vabench.agent.demonstration import (
     retrieve_result,
 )
 from vabench.agent.records import RECORD_VERSION, EpisodeRecorder, TokenTotals
+from vabench.agent.replies import ReplyRejected, history_text, read_decision, stop_reason_of
 from vabench.agent.session import SessionEnd, Spend, reply_fields
 from vabench.agent.summary import DemoSummary, parse_summary, summary_text
 from vabench.agent.tools import ToolResult, tool_text
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
+from vabench.llm_pool.messages import CompletionResult
 from vabench.llm_pool.pool import LLMPool
 from vabench.run_layout import EpisodeDir
 
@@ -75,6 +82,9 @@ StopReason = Literal[
     "learned",
     "budget_exhausted",
     "invalid_output",
+    "refused",
+    "truncated",
+    "context_exceeded",
     "model_stop",
     "infrastructure_error",
     "request_rejected",
@@ -177,20 +187,27 @@ class _Session:
         while self.spend.calls < self.limits.max_model_calls:
             reply = await self._call()
             try:
-                decision = P.parse_decision(reply, self.ctx)
+                decision = read_decision(reply, self.ctx, self._output_limit())
                 if isinstance(decision, P.Stop):
                     raise SessionEnd("failed", "model_stop", "the model stopped without a summary")
                 if not isinstance(decision, P.ToolCall):
-                    raise P.DecisionError(
+                    raise ReplyRejected(
+                        "invalid",
                         "action",
                         "no actions in the learning stage (no robot or camera actions); "
                         "use expert.retrieve, expert.frame or expert.learn",
                     )
-            except P.DecisionError as err:
+            except ReplyRejected as err:
                 self.invalid += 1
-                self.event("rejection", call=self.spend.calls, field=err.field, message=str(err))
+                self.event(
+                    "rejection",
+                    call=self.spend.calls,
+                    kind=err.kind,
+                    field=err.field,
+                    message=str(err),
+                )
                 if repairs >= self.limits.max_repairs:
-                    raise SessionEnd("failed", "invalid_output", str(err)) from None
+                    raise SessionEnd("failed", stop_reason_of(err.kind), str(err)) from None
                 repairs += 1
                 self.conv.add_note(
                     f"Your previous reply was not accepted: {err}\n"
@@ -207,7 +224,11 @@ class _Session:
             f"{self.limits.max_model_calls} model calls without an accepted summary",
         )
 
-    async def _call(self) -> str:
+    def _output_limit(self) -> int:
+        endpoint = self.llm.endpoint(self.model).config
+        return endpoint.generation.merge(self.limits.generation).resolved_max_output_tokens
+
+    async def _call(self) -> CompletionResult:
         request = self.conv.request(self.limits.generation)
         self.event(
             "request",
@@ -217,9 +238,15 @@ class _Session:
         )
         result = await self.llm.complete(self.model, request)
         self.spend.add(result)
-        self.conv.add_reply(result.text)
-        self.event("reply", call=self.spend.calls, **reply_fields(result))
-        return result.text
+        self.conv.add_reply(history_text(result))
+        self.event(
+            "reply",
+            call=self.spend.calls,
+            **reply_fields(result),
+            reasoning=result.reasoning,
+            raw_finish_reason=result.raw_finish_reason,
+        )
+        return result
 
     def _tool(self, call: P.ToolCall) -> None:
         self.tools += 1
@@ -303,7 +330,10 @@ async def learn_summary(
         if err.fatal:  # the endpoint refuses every request: nothing to store, the sweep stops
             session.event("endpoint_refused", status=err.status, error=str(err))
             raise
-        status, reason, error = "error", "request_rejected", f"{err.status}: {err}"
+        if err.context_exceeded:  # no compaction here: the model's own failure, as in episodes
+            status, reason, error = "failed", "context_exceeded", str(err)
+        else:
+            status, reason, error = "error", "request_rejected", f"{err.status}: {err}"
     s = session.summary
     result = LearningResult(
         task=task.name,

@@ -64,15 +64,25 @@ class EpisodeResult(BaseModel):
     status: Status
     success: bool
     stop_reason: str
-    """success | model_stop | budget_exhausted | invalid_output | round_trip_limit |
-    infrastructure_error | request_rejected | reset_failed | harness_error"""
+    """success | model_stop | budget_exhausted | invalid_output | refused | truncated |
+    context_exceeded | round_trip_limit | infrastructure_error | request_rejected |
+    reset_failed | harness_error. `refused`, `truncated` (the repairs of a decision ran out on
+    a refusal / a reply cut at the output limit) and `context_exceeded` (the model's context
+    could not hold the episode after one compaction) are the model's failures: scored."""
     error: str | None = None
     steps_used: int = 0
     step_budget: int
     robot_actions: int = 0
     camera_actions: int = 0
     invalid_outputs: int = 0
-    """Replies rejected by the protocol (each got a repair turn, or ended the episode)."""
+    """Replies rejected by the protocol (each got a repair turn, or ended the episode); the
+    three counts below are kinds of them."""
+    refusals: int = 0
+    """Replies that were a refusal (or a provider's content filter)."""
+    truncations: int = 0
+    """Replies cut at the output limit without a whole decision."""
+    empty_replies: int = 0
+    """Replies with no answer text (nothing, or reasoning only)."""
     invalid_actions: int = 0
     """Executed robot actions the simulator refused (invalid for the scene) or could not plan."""
     tool_calls: int = 0

@@ -57,6 +57,10 @@ class ModelEndpoint(Strict):
     """US dollars per million tokens; unset: costs show as "price not set" (`spend.Pricing`),
     and `limits.max_cost_usd` is refused."""
     generation: GenerationOptions = Field(default_factory=GenerationOptions)
+    context_window: int = Field(default=262_144, ge=1024)
+    """Tokens the model's context holds (prompt and output); the episode's conversation is
+    compacted to fit it (`agent.conversation.ContextLimits`). Set it to the server's
+    `max_model_len` / `num_ctx` for a model served with a smaller window."""
     retry: RetryPolicy = Field(default_factory=RetryPolicy)
 
     @model_validator(mode="after")

@@ -7,8 +7,10 @@
   Retrying cannot help. When the refusal is the endpoint's, not the episode's (`fatal`: a
   wrong key 401/403, an unknown model 404, or a 400 before the endpoint ever answered, i.e.
   parameters it does not take), the sweep stops and records nothing for the episodes it
-  touched; otherwise (a 400 or 413 of one episode's request, e.g. its context grew too
-  long) the episode ends with that reason.
+  touched; otherwise (a 400 or 413 of one episode's request) the episode ends with that
+  reason. A rejection whose body says the request exceeds the model's context window
+  (`context_exceeded`) is never fatal, even on the first call: it is the episode's own
+  failure (the engine compacts and retries once, then scores it `context_exceeded`).
 - `SpendCapReached`: a `RequestRejected` never sent, because its cost could cross a spend cap
   (`limits.max_cost_usd`); fatal.
 - `EndpointUnreachable`: a `RequestRejected` that is always fatal: no connection could be made
@@ -25,10 +27,31 @@ Model behaviour (a refusal, hitting max tokens, an empty answer) is not an error
 
 from __future__ import annotations
 
+import re
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # a value only carried here; spend.py does not import this module either
     from vabench.llm_pool.spend import CapReached
+
+
+_CONTEXT_MARKERS = re.compile(
+    r"context[_ ]length[_ ]exceeded|exceed_context_size_error|maximum context length"
+    r"|context (?:window|length|size)|available context size|prompt is too long"
+    r"|input is too long|maximum input length|input exceeds|too many (?:input )?tokens"
+    r"|tokens? exceed|request too large|longer than the model's",
+    re.I,
+)
+"""How servers word a request too long for the model's context: OpenAI
+(`context_length_exceeded`, "maximum context length"), vLLM ("This model's maximum context
+length is N tokens"), SGLang ("longer than the model's context length"), llama.cpp
+(`exceed_context_size_error`, "available context size"), Anthropic ("prompt is too long"), and
+the other markers the benchmark's reference harness reads as one (PROTOCOL_FACTS 8)."""
+
+
+def context_exceeded(status: int, message: str) -> bool:
+    """Whether a 400/413 (or a 422, as some local servers answer) says the request does not
+    fit the model's context window."""
+    return status in (400, 413, 422) and _CONTEXT_MARKERS.search(message) is not None
 
 
 class LLMError(Exception):
@@ -82,6 +105,12 @@ class RequestRejected(LLMError):
 
     verdict = "its endpoint refused the sweep's requests"
     """How a sweep stopped by this error says what happened (before the failure line)."""
+
+    @property
+    def context_exceeded(self) -> bool:
+        """The request does not fit the model's context window (`context_exceeded`): the
+        episode's own failure, never the endpoint's (the engine compacts and retries once)."""
+        return context_exceeded(self.status, self.message)
 
     @property
     def kind(self) -> str:

@@ -228,6 +228,15 @@ class Usage:
 
 
 @dataclass(frozen=True)
+class FunctionCall:
+    """A function call a model made although no tools were offered: the function's name and
+    its arguments as the API gave them (JSON text, or an object for Anthropic's `tool_use`)."""
+
+    name: str
+    arguments: str | dict[str, object]
+
+
+@dataclass(frozen=True)
 class ParsedResponse:
     """What an API adapter reads from a successful response body."""
 
@@ -238,7 +247,8 @@ class ParsedResponse:
     model: str | None = None
     response_id: str | None = None
     reasoning: str | None = None
-    """Reasoning text when the API returns it (Anthropic thinking, Responses summaries)."""
+    """Reasoning text, kept apart from the answer (module docstring)."""
+    function_calls: tuple[FunctionCall, ...] = ()
     usage_reported: bool = True
     """False when the body had no usage (local servers omit it at times): zero tokens."""
 
@@ -261,5 +271,6 @@ class CompletionResult:
     model: str | None = None
     response_id: str | None = None
     reasoning: str | None = None
+    function_calls: tuple[FunctionCall, ...] = ()
     failures: tuple[str, ...] = field(default=())
     """One line per failed attempt before the success (status or error), for the record."""

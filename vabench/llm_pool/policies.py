@@ -32,11 +32,15 @@ from vabench.llm_pool.messages import FinishReason
 
 @dataclass(frozen=True)
 class PolicyReply:
-    """A reply with more than text: a finish reason other than "stop", or reasoning text."""
+    """A reply with more than text: a finish reason other than "stop", or reasoning text; or
+    `body`, a success body the server sends verbatim instead of its API's own shape (the
+    shapes particular servers write: content as a list of parts, `reasoning` fields, tool
+    calls); `text` then only feeds the simulated usage."""
 
-    text: str
+    text: str = ""
     finish_reason: FinishReason = "stop"
     reasoning: str | None = None
+    body: dict[str, Any] | None = None
 
 
 class PolicyError(Exception):
@@ -213,7 +217,8 @@ class RandomActionPolicy:
 class ScriptedPolicy:
     """Replays `replies` in order, one per request, whatever the request says.
 
-    A reply is a string or a mapping with `text` and optional `finish_reason` and `reasoning`.
+    A reply is a string or a mapping with `text` and optional `finish_reason` and `reasoning`,
+    or with `body`, a whole success body sent verbatim (`PolicyReply`).
     Once the script is exhausted: start again if `cycle`, else answer 400 naming the problem
     (a test that runs past its script fails at once instead of retrying).
     """

@@ -45,6 +45,7 @@ from vabench.llm_pool.errors import (
     InfrastructureError,
     RequestRejected,
     SpendCapReached,
+    context_exceeded,
 )
 from vabench.llm_pool.heap import keep_trimmed
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
@@ -284,6 +285,8 @@ class EndpointClient:
         if not decision.retry:
             status = failure.status or 0
             fatal, hint = self._refusal(status)
+            if context_exceeded(status, failure.line):  # the episode's failure, not the sweep's
+                fatal, hint = False, ""
             raise RequestRejected(
                 self.name,
                 call.failures[-1],
@@ -371,6 +374,7 @@ class EndpointClient:
             model=parsed.model,
             response_id=parsed.response_id,
             reasoning=parsed.reasoning,
+            function_calls=parsed.function_calls,
             failures=tuple(call.failures),
         )
 

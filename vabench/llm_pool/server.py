@@ -390,7 +390,7 @@ class LocalServer:
         record.output_tokens = reply.usage.output_tokens
         if admitted is not None and self._tokens is not None:
             self._tokens.settle(admitted, reply.usage.total_tokens)
-        body = adapter.build_response(reply)
+        body = reply.body if reply.body is not None else adapter.build_response(reply)
         if fault == "malformed":
             return malformed_response(body)
         if fault == "truncated":
@@ -425,6 +425,7 @@ class LocalServer:
             usage=usage,
             model=incoming.model,
             reasoning=reply.reasoning or reasoning,
+            body=reply.body,
         )
 
     # -- rate limits -------------------------------------------------------------------------

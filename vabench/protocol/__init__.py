@@ -11,7 +11,9 @@ the model as repair feedback. One concept a module:
 - `robot`: robot actions, `parse_robot_action(obj, arms)` (what the simulator uses alone);
 - `camera`: camera actions and the camera-chain rule;
 - `tools`: tool calls and their arguments;
-- `extract`: finding the decision object in free text;
+- `extract`: reasoning kept apart, and the decision object found in free text, as the
+  benchmark's reference harness finds it;
+- `aliases`: the reference's spellings of a decision rewritten into one form;
 - `context`: `DecisionContext`, what one episode allows;
 - `decision`: dispatch, `parse_decision`, labels and the vocabulary listed to the model.
 
@@ -20,17 +22,20 @@ What the episode engine calls:
 - `DecisionContext(arms, protocol, tools, camera_chain)`: what this episode allows.
   `available_tools(demonstration)` gives `tools`; `camera_chain_length(kinds)` gives
   `camera_chain` from the kinds of the decisions executed so far.
-- `parse_decision(text, ctx) -> Decision`: extraction, dispatch, validation, camera-chain rule.
+- `parse_decision(text, ctx) -> Decision`: extraction, aliases, dispatch, validation,
+  camera-chain rule. `split_reasoning(text)` gives a reply's (answer, inline reasoning).
   `decision_from_object(obj, ctx)` does the same for an already decoded JSON object.
 - `decision_label(decision)`: the compact label recorded in events and shown in the history.
 - `available_actions(arms, protocol, tools)`: the vocabulary listed in every observation.
 - `MAX_REPAIRS_PER_DECISION`, `MAX_TOOL_ROUND_TRIPS`, `MAX_CAMERA_CHAIN`: the budgets.
 
-Decisions the spec leaves open are documented where they are made: reply extraction in
-`extract`, dispatch and unknown keys in `decision`, the camera chain in `camera`, the
+Decisions the spec leaves open are documented where they are made: reply extraction and
+inline reasoning in `extract`, the accepted spellings in `aliases`, dispatch and unknown keys
+in `decision`, the camera chain in `camera`, the
 `expert.learn` summary in `tools`.
 """
 
+from vabench.protocol.aliases import SIGN_ALIASES, normalise
 from vabench.protocol.camera import (
     CameraAction,
     action_names,
@@ -47,7 +52,7 @@ from vabench.protocol.decision import (
     parse_decision,
 )
 from vabench.protocol.errors import REPLY, ActionError, DecisionError
-from vabench.protocol.extract import extract_json_object
+from vabench.protocol.extract import extract_json_object, split_reasoning
 from vabench.protocol.robot import (
     Aperture,
     Arm,
@@ -98,6 +103,7 @@ __all__ = [
     "MAX_REPAIRS_PER_DECISION",
     "MAX_TOOL_ROUND_TRIPS",
     "REPLY",
+    "SIGN_ALIASES",
     "TOOL_NAMES",
     "ActionError",
     "Aperture",
@@ -130,7 +136,9 @@ __all__ = [
     "decision_from_object",
     "decision_label",
     "extract_json_object",
+    "normalise",
     "parse_decision",
     "parse_robot_action",
     "robot_action_names",
+    "split_reasoning",
 ]

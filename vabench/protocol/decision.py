@@ -1,10 +1,13 @@
 """One decision from one reply: dispatch, validation, the camera-chain rule, labels, and the
 vocabulary listed in every observation.
 
-Dispatch: `"stop": true` first (any other key is ignored), then "tool" (a missing "args" means
-{}), then "action". A non-boolean "stop" is an error rather than a guess. Unknown keys are
-ignored, except "arm" on a camera action, which is rejected with a hint to use
-`camera.view_left_*` / `camera.view_right_*` (ignoring it would silently aim elsewhere).
+Dispatch, as the benchmark's reference harness does it (PROTOCOL_FACTS 3.3): first the
+spellings the reference accepts are rewritten into one form (`aliases.normalise`: null fields
+absent, `tool_name`/`tool_args`, tool names as actions, axis and sign spellings, legacy
+compact names); then `"stop": true` wins (the boolean only; any other key is ignored), then
+"tool" (a missing "args" means {}), then "action". Unknown keys are ignored, except "arm" on
+a camera action, which is rejected with a hint to use `camera.view_left_*` /
+`camera.view_right_*` (ignoring it would silently aim elsewhere).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import ValidationError
 
+from vabench.protocol.aliases import normalise
 from vabench.protocol.camera import (
     CameraAction,
     action_names,
@@ -21,7 +25,7 @@ from vabench.protocol.camera import (
     parse_camera_action,
 )
 from vabench.protocol.context import DecisionContext
-from vabench.protocol.errors import DecisionError, decision_error, show, unknown_action
+from vabench.protocol.errors import DecisionError, decision_error, unknown_action
 from vabench.protocol.extract import as_object, extract_json_object
 from vabench.protocol.robot import (
     ROBOT_MODELS,
@@ -51,18 +55,16 @@ Decision = MoveWorld | RotateLocal | Aperture | DualMove | CameraAction | ToolCa
 
 
 def decision_from_object(obj: Any, ctx: DecisionContext) -> Decision:
-    """Dispatch and validate one decoded decision: "stop": true, then "tool", then "action".
+    """Dispatch and validate one decoded decision (module docstring): the reference's
+    spellings rewritten, then "stop": true, then "tool", then "action".
 
     Does not apply the camera-chain rule (`parse_decision` does)."""
-    obj = as_object(obj, "the decision")
-    if "stop" in obj:
-        if not isinstance(obj["stop"], bool):
-            raise DecisionError("stop", f"must be true or false, got {show(obj['stop'])}")
-        if obj["stop"]:
-            try:
-                return Stop.model_validate(obj)
-            except ValidationError as err:
-                raise decision_error(err) from None
+    obj = normalise(as_object(obj, "the decision"))
+    if obj.get("stop") is True:
+        try:
+            return Stop.model_validate(obj)
+        except ValidationError as err:
+            raise decision_error(err) from None
     if "tool" in obj:
         return parse_tool_call(obj, ctx)
     if "action" not in obj:

@@ -69,7 +69,8 @@ def repair_message(e: ErrorDetails) -> str:
     if kind == "literal_error":
         if name == "sign":
             return (
-                "must be '+' or '-' (also accepted: pos, positive, +1, 1, neg, negative, -1), "
+                "must be '+' or '-' (also accepted: pos, positive, ccw, +1, 1, neg, negative, "
+                "cw, -1), "
                 f"got {show(got)}"
             )
         return f"must be {ctx.get('expected')}, got {show(got)}"

@@ -16,8 +16,10 @@ conversation from the cache (Anthropic looks back from a marker for the longest 
 prefix). Markers on prefixes shorter than the model's minimum (1,024 or 2,048 tokens) are
 ignored by the API at no cost.
 
-Response: `content` blocks (`thinking`, `text`), `stop_reason` (`end_turn`, `max_tokens`,
-`stop_sequence`, `refusal`, ...), a `request-id` header. Usage: `input_tokens` *excludes*
+Response: `content` blocks (`thinking` and `redacted_thinking` go to the reasoning, `text`
+blocks are joined as the answer, `tool_use` blocks are function calls), `stop_reason`
+(`end_turn`, `max_tokens`, `stop_sequence`, `refusal`, `tool_use`, ...), a `request-id`
+header. Usage: `input_tokens` *excludes*
 cache reads (`cache_read_input_tokens`) and cache writes (`cache_creation_input_tokens`);
 `output_tokens` includes thinking, reported apart in `output_tokens_details.thinking_tokens`.
 """
@@ -32,7 +34,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field
 
 from vabench.llm_pool.apis import base
-from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
+from vabench.llm_pool.messages import ChatRequest, FinishReason, FunctionCall, Part, Turn, Usage
 from vabench.llm_pool.settings import ConfigError, GenerationOptions
 from vabench.llm_pool.tokens import anthropic_image_tokens
 
@@ -129,6 +131,8 @@ class _ContentBlock(base.LooseModel):
     type: str
     text: str | None = None
     thinking: str | None = None
+    name: str | None = None
+    input: dict[str, Any] | None = None
 
 
 class _OutputDetails(base.LooseModel):
@@ -263,12 +267,18 @@ class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
     def read_answer(self, body: MessagesResponse) -> base.Answer:
         texts = [b.text for b in body.content if b.type == "text" and b.text is not None]
         thoughts = [b.thinking for b in body.content if b.type == "thinking" and b.thinking]
+        if any(b.type == "redacted_thinking" for b in body.content):
+            thoughts.append("[redacted thinking]")
+        calls = tuple(
+            FunctionCall(b.name or "", b.input or {}) for b in body.content if b.type == "tool_use"
+        )
         return base.Answer(
             text="".join(texts),
             finish_reason=_FINISH.get(body.stop_reason or "", "other"),
             raw_finish_reason=body.stop_reason,
             usage=body.usage,
-            reasoning="\n".join(thoughts) or None,
+            reasoning=base.join_reasoning(*thoughts),
+            function_calls=calls,
         )
 
     def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> base.IncomingRequest:

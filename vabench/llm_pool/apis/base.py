@@ -36,6 +36,7 @@ from vabench.llm_pool.errors import ResponseFormatError
 from vabench.llm_pool.messages import (
     ChatRequest,
     FinishReason,
+    FunctionCall,
     Image,
     ParsedResponse,
     Part,
@@ -43,6 +44,7 @@ from vabench.llm_pool.messages import (
     Usage,
 )
 from vabench.llm_pool.settings import GenerationOptions
+from vabench.protocol.extract import split_reasoning
 
 M = TypeVar("M", bound=BaseModel)
 DATA_URL_MEDIA_TYPES = ("image/jpeg", "image/png", "image/gif", "image/webp")
@@ -104,6 +106,9 @@ class ServerReply:
     usage: Usage
     model: str
     reasoning: str | None = None
+    body: dict[str, Any] | None = None
+    """A success body sent verbatim instead of the API's own shape: a scripted policy's way to
+    answer as a particular server writes its replies (`PolicyReply.body`)."""
 
 
 @dataclass(frozen=True)
@@ -183,6 +188,13 @@ class Answer:
     raw_finish_reason: str | None
     usage: UsageBody | None
     reasoning: str | None = None
+    function_calls: tuple[FunctionCall, ...] = ()
+
+
+def join_reasoning(*parts: str | None) -> str | None:
+    """Reasoning texts of one reply, joined; None when there is none."""
+    text = "\n".join(p.strip() for p in parts if p and p.strip())
+    return text or None
 
 
 _TYPE_LABELS = frozenset({"str", "int", "float", "bool", "list", "dict", "none"})
@@ -411,20 +423,24 @@ class ApiAdapter(ABC, Generic[RequestT, ResponseT]):
         """Read a 2xx body; raises `ResponseFormatError` naming the problem."""
         body = validate_response_json(self.response_model, raw, self.response_label)
         answer = self.read_answer(body)
+        text, inline = split_reasoning(answer.text)
         return ParsedResponse(
-            text=answer.text,
+            text=text,
             finish_reason=answer.finish_reason,
             raw_finish_reason=answer.raw_finish_reason,
             usage=answer.usage.to_usage() if answer.usage is not None else Usage(),
             model=body.model,
             response_id=body.id,
-            reasoning=answer.reasoning,
+            reasoning=join_reasoning(answer.reasoning, inline),
+            function_calls=answer.function_calls,
             usage_reported=answer.usage is not None,
         )
 
     @abstractmethod
     def read_answer(self, body: ResponseT) -> Answer:
-        """The answer of a validated 2xx body."""
+        """The answer of a validated 2xx body: its text parts joined, its reasoning and
+        function calls apart (`messages` module docstring); inline `<think>` blocks are split
+        off by `parse_response`, for every API alike."""
 
     # -- server half -------------------------------------------------------------------------
     def parse_request(self, raw: bytes, headers: Mapping[str, str]) -> IncomingRequest:

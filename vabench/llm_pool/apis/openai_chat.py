@@ -8,8 +8,12 @@ parts; assistant turns are plain strings. The output limit goes in `max_completi
 
 Response: `choices[0].message.content`, `finish_reason`; usage `prompt_tokens` *includes*
 `prompt_tokens_details.cached_tokens`; `completion_tokens` includes
-`completion_tokens_details.reasoning_tokens`. vLLM and SGLang return a reasoning model's
-thoughts in `message.reasoning_content`.
+`completion_tokens_details.reasoning_tokens`. How real servers write the message, all read
+here: `content` a string, null, or a list of parts (`{"type": "text", "text": ...}`, joined;
+reasoning or thinking parts go to the reasoning); a reasoning model's thoughts in
+`reasoning_content` (SGLang, older vLLM) or `reasoning` (vLLM since it renamed the field,
+OpenRouter); a refusal in `refusal` (OpenAI, with finish_reason "stop"); function calls in
+`tool_calls` or the legacy `function_call`; finish_reason "length" at the output limit.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from pydantic import Field
 
 from vabench.llm_pool.apis import base
 from vabench.llm_pool.apis import openai_common as common
-from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
+from vabench.llm_pool.messages import ChatRequest, FinishReason, FunctionCall, Part, Turn, Usage
 from vabench.llm_pool.settings import GenerationOptions, ReasoningEffort
 
 # -- request shape (as documented; the embedded server validates against it) ----------------
@@ -105,10 +109,45 @@ class _Usage(base.UsageBody):
         )
 
 
+class _Function(base.LooseModel):
+    name: str = ""
+    arguments: str | dict[str, Any] | None = None
+
+
+class _ToolCall(base.LooseModel):
+    function: _Function | None = None
+
+
 class _AnswerMessage(base.LooseModel):
-    content: str | None = None
+    content: str | list[Any] | None = None
     refusal: str | None = None
     reasoning_content: str | None = None
+    reasoning: str | None = None
+    tool_calls: list[_ToolCall] | None = None
+    function_call: _Function | None = None
+
+    def answer_and_reasoning(self) -> tuple[str, str | None]:
+        """The text parts joined, and the reasoning (fields and reasoning parts)."""
+        thoughts = [self.reasoning_content, self.reasoning]
+        if isinstance(self.content, str) or self.content is None:
+            return self.content or "", base.join_reasoning(*thoughts)
+        texts: list[str] = []
+        for part in self.content:
+            if isinstance(part, str):
+                texts.append(part)
+            elif isinstance(part, dict):
+                kind, text = part.get("type"), part.get("text")
+                if kind in ("reasoning", "thinking"):
+                    thoughts.append(text if isinstance(text, str) else part.get("thinking"))
+                elif kind in ("text", "output_text", None) and isinstance(text, str):
+                    texts.append(text)
+        return "".join(texts), base.join_reasoning(*thoughts)
+
+    def functions(self) -> tuple[FunctionCall, ...]:
+        calls = [c.function for c in self.tool_calls or [] if c.function is not None]
+        if self.function_call is not None:
+            calls.append(self.function_call)
+        return tuple(FunctionCall(f.name, f.arguments or "") for f in calls)
 
 
 class _Choice(base.LooseModel):
@@ -175,14 +214,17 @@ class OpenAIChat(common.OpenAIApi[ChatCompletionsRequest, ChatCompletionsRespons
         choice = body.choices[0]
         message = choice.message
         finish: FinishReason = _FINISH.get(choice.finish_reason or "", "other")
+        text, reasoning = message.answer_and_reasoning()
         if message.refusal:
             finish = "refusal"
+            text = message.refusal
         return base.Answer(
-            text=message.content or message.refusal or "",
+            text=text,
             finish_reason=finish,
             raw_finish_reason=choice.finish_reason,
             usage=body.usage,
-            reasoning=message.reasoning_content,
+            reasoning=reasoning,
+            function_calls=message.functions(),
         )
 
     def read_request(self, body: ChatCompletionsRequest) -> base.Prompt:

@@ -7,7 +7,9 @@ turns are plain strings. `max_output_tokens`, `reasoning: {"effort": ...}`; `sto
 so that no conversation state is kept on the provider's side (vabench resends the history).
 
 Response: `output` is a list of items; the answer is the `output_text` parts of `message`
-items, reasoning items carry optional summaries. `status` is `completed` or `incomplete`
+items joined (a `refusal` part makes the reply a refusal), reasoning items carry optional
+summaries and, from open-weight servers (vLLM's gpt-oss), `reasoning_text` content: both go
+to the reasoning; `function_call` items are function calls. `status` is `completed` or `incomplete`
 (with `incomplete_details.reason`, e.g. `max_output_tokens`). Usage: `input_tokens` *includes*
 `input_tokens_details.cached_tokens`; `output_tokens` includes
 `output_tokens_details.reasoning_tokens`.
@@ -24,7 +26,7 @@ from pydantic import Field
 from vabench.llm_pool.apis import base
 from vabench.llm_pool.apis import openai_common as common
 from vabench.llm_pool.errors import ResponseFormatError
-from vabench.llm_pool.messages import ChatRequest, FinishReason, Part, Turn, Usage
+from vabench.llm_pool.messages import ChatRequest, FinishReason, FunctionCall, Part, Turn, Usage
 from vabench.llm_pool.settings import GenerationOptions, ReasoningEffort
 
 # -- request shape ----------------------------------------------------------------------------
@@ -130,6 +132,8 @@ class _OutputItem(base.LooseModel):
     type: str
     content: list[_Content] | None = None
     summary: list[_Summary] | None = None
+    name: str | None = None
+    arguments: str | None = None
 
 
 class _Usage(base.UsageBody):
@@ -220,6 +224,7 @@ class OpenAIResponses(common.OpenAIApi[ResponsesRequest, ResponsesResponse]):
             )
         texts: list[str] = []
         summaries: list[str] = []
+        calls: list[FunctionCall] = []
         refused = False
         for item in body.output:
             if item.type == "message":
@@ -231,13 +236,17 @@ class OpenAIResponses(common.OpenAIApi[ResponsesRequest, ResponsesResponse]):
                         texts.append(c.refusal or "")
             elif item.type == "reasoning":
                 summaries.extend(s.text for s in item.summary or [])
+                summaries.extend(c.text or "" for c in item.content or [])
+            elif item.type == "function_call":
+                calls.append(FunctionCall(item.name or "", item.arguments or ""))
         finish, raw_finish = _finish_of(body, refused)
         return base.Answer(
             text="".join(texts),
             finish_reason=finish,
             raw_finish_reason=raw_finish,
             usage=body.usage,
-            reasoning="\n".join(summaries) or None,
+            reasoning=base.join_reasoning(*summaries),
+            function_calls=tuple(calls),
         )
 
     def read_request(self, body: ResponsesRequest) -> base.Prompt:
