@@ -5,7 +5,9 @@ automatic choices size for."""
 
 from __future__ import annotations
 
+import fcntl
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -60,3 +62,33 @@ def home_batch(mjx_batch, probe_task, probe_model):
     q = probe_task.initial_qpos(probe_model, 0)
     mjx_batch.reset(range(N_SLOTS), np.broadcast_to(q, (N_SLOTS, probe_model.nq)), settle_steps=25)
     return mjx_batch
+
+
+
+# Test files that start Ray clusters (in the test process or in a sweep it starts).
+RAY_CLUSTER_FILES = {"test_sweep_ray.py", "test_sweep_cluster.py", "test_ray_limiter.py"}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_ray_cluster_at_a_time(request):
+    """Under pytest-xdist (`-n 2 --dist loadfile`: the README's test command) two of these
+    files could run at once on the 2-core machine, each with clusters sized for the machine:
+    each holds this machine-wide lock for its whole module, so they take turns. Other files
+    pass through."""
+    if request.path.name not in RAY_CLUSTER_FILES:
+        yield
+        return
+    with open(Path(tempfile.gettempdir()) / "vabench-tests-ray.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        yield
+
+
+# The files that run sweeps, Ray clusters and physics rollouts (the most of the suite's time).
+LONG_FILES_FIRST = ("test_sweep_", "test_ray_", "test_engine_", "test_family_", "test_render_")
+
+
+def pytest_collection_modifyitems(items):
+    """The long files first, each file's tests in their order: under pytest-xdist each worker
+    takes the next file when it is free, so the long ones start early and short ones fill in
+    at the end (no worker left with a long file while the other idles)."""
+    items.sort(key=lambda item: not item.path.name.startswith(LONG_FILES_FIRST))

@@ -14,11 +14,11 @@ import mujoco
 import numpy as np
 import pytest
 
+from tests.expert_runs import expert_episodes
 from tests.task_states import StateBuilder
 from vabench.tasks import BASKET_DEMONSTRATIONS, get_task
 from vabench.tasks.base import advance_progress
 from vabench.tasks.manifests import load_manifest
-from vabench.tasks.task_batch import TaskBatch, run_experts
 
 NAME = "put_everything_in_basket"
 TABLE_Z = 0.741
@@ -364,8 +364,7 @@ def test_task_fields():
 def test_expert_places_all_five_on_two_verified_seeds():
     task = get_task(NAME)
     seeds = load_manifest(NAME)["retained"][:2]
-    tb = TaskBatch(task, len(seeds), backend="c")
-    for ep in run_experts(tb, seeds):
+    for ep in expert_episodes(NAME, seeds):  # run once, shared with test_tasks.py
         assert ep.success, (ep.seed, ep.end)
         assert ep.steps <= task.step_budget - 100  # margin: five placements in ~115 steps
         progress = [a["progress"] for a in ep.actions]

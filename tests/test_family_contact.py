@@ -16,12 +16,12 @@ import mujoco
 import numpy as np
 import pytest
 
+from tests.expert_runs import expert_episodes
 from tests.task_states import StateBuilder
 from vabench.sim_mjx.variants import ModelVariants
 from vabench.tasks import get_task
 from vabench.tasks.base import Evaluation, ObjectIndex, Task, quat_mul, yaw_quat
 from vabench.tasks.expert import topdown
-from vabench.tasks.task_batch import TaskBatch, run_experts
 
 TABLE = 0.741
 SEEDS = range(1000, 1200)
@@ -407,8 +407,7 @@ def test_beat_block_hammer_right_lift_latch_needs_hold():
 @pytest.mark.parametrize("name", FAMILIES)
 def test_expert_succeeds(name):
     task = get_task(name)
-    tb = TaskBatch(task, 2, backend="c")
-    for ep in run_experts(tb, [1000, 1001]):
+    for ep in expert_episodes(name, [1000, 1001]):  # run once, shared with test_tasks.py
         assert ep.success, (ep.seed, ep.end)
         assert ep.steps <= task.step_budget
         progress = [a["progress"] for a in ep.actions]

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.expert_runs import expert_episodes
 from tests.task_states import StateBuilder
 from vabench.tasks import get_task
 from vabench.tasks.base import quat_to_mat, yaw_quat
-from vabench.tasks.task_batch import TaskBatch, run_experts
 
 SEEDS = range(1000, 1200)
 TABLE_Z = 0.741
@@ -26,15 +26,14 @@ def _yaw(quat: np.ndarray) -> float:
 
 def _run_expert(name: str, seeds: list[int]):
     task = get_task(name)
-    tb = TaskBatch(task, len(seeds), backend="c")
-    episodes = run_experts(tb, seeds)
+    episodes = expert_episodes(name, seeds)  # run once, shared with test_tasks.py
     for ep in episodes:
         assert ep.success, (ep.seed, ep.end)
         progress = [a["progress"] for a in ep.actions]
         assert progress == sorted(progress), progress
         assert progress[-1] == len(task.checkpoints)
         assert ep.steps <= task.step_budget
-    return tb, episodes
+    return episodes
 
 
 # -- place_shoe -------------------------------------------------------------------------------
@@ -93,7 +92,7 @@ def test_shoe_expert_uses_the_arm_on_the_shoes_side():
     task = get_task(SHOE)
     left = next(s for s in range(1000, 1100) if task.sample(s).params["arm"] == "left")
     right = next(s for s in range(1000, 1100) if task.sample(s).params["arm"] == "right")
-    _, episodes = _run_expert(SHOE, [left, right])
+    episodes = _run_expert(SHOE, [left, right])
     for ep, arm in zip(episodes, ("left", "right"), strict=True):
         used = {a["action"].get("arm") for a in ep.actions} - {None}
         assert used == {arm}, (ep.seed, used)

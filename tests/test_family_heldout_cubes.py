@@ -10,6 +10,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from tests.expert_runs import expert_episodes
 from tests.task_states import StateBuilder
 from vabench.tasks import get_task
 from vabench.tasks.task_batch import TaskBatch, run_experts
@@ -49,8 +50,7 @@ def _differs_from_base(name: str, base: str, objects: list[str]) -> None:
 
 def _expert_quick(name: str, seeds: list[int]) -> None:
     task = get_task(name)
-    tb = TaskBatch(task, len(seeds), backend="c")
-    for ep in run_experts(tb, seeds):
+    for ep in expert_episodes(name, seeds):  # run once, shared with test_tasks.py
         assert ep.success, (ep.seed, ep.end, ep.last_checks)
         assert ep.steps <= task.step_budget
         progress = [a["progress"] for a in ep.actions]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.expert_runs import expert_episodes
 from tests.task_states import StateBuilder
 from vabench.sim_mjx import robot_constants as rc
 from vabench.tasks import get_task
@@ -216,9 +217,7 @@ def test_place_bottle_lift_latch():
 @pytest.mark.parametrize("name", [*GRASPS, "place_single_bottle_upright"])
 def test_expert_succeeds(name):
     task = get_task(name)
-    tb = TaskBatch(task, 2, backend="c")
-    episodes = run_experts(tb, [1000, 1001])
-    for ep in episodes:
+    for ep in expert_episodes(name, [1000, 1001]):  # run once, shared with test_tasks.py
         assert ep.settle.ok, ep.settle.reason
         assert ep.success, (ep.seed, ep.end)
         assert ep.steps <= task.step_budget

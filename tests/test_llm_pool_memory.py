@@ -185,7 +185,7 @@ def test_the_pool_keeps_a_thread_giving_the_heap_back(monkeypatch):
     assert first is not None and first.is_alive() and first.name == "heap-trim"
     LLMPool([])
     assert heap._trimmer is first  # one per process
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 60  # a guard against hanging, not a bound
     while len(trims) < 2 and time.monotonic() < deadline:
         time.sleep(0.05)
     assert len(trims) >= 2

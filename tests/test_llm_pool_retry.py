@@ -17,6 +17,7 @@ from vabench.llm_pool.config import RetryPolicy
 from vabench.llm_pool.policies import ScriptedPolicy
 from vabench.llm_pool.retry import backoff_delay, decide, parse_go_duration, server_retry_after
 from vabench.llm_pool.server import LocalServer, ServerConfig
+from vabench.llm_pool.transport import Transport
 
 FAST_RETRY = {"backoff_base_s": 0.01, "backoff_max_s": 0.05}
 REQUEST = ChatRequest([Turn.user("ping")])
@@ -56,8 +57,16 @@ def test_attempt_ceiling(api):
     assert "gave up after 3 attempts" in str(err) and "HTTP 500" in str(err)
 
 
-def test_total_deadline_bounds_slow_attempts():
+def test_total_deadline_bounds_slow_attempts(monkeypatch):
     retry = {"max_attempts": 100, "total_timeout_s": 1.0, "request_timeout_s": 0.3}
+    timeouts: list[float] = []  # each attempt's timeout, as the pool hands it to the transport
+    post = Transport.post
+
+    async def counted_post(self, body, timeout):
+        timeouts.append(timeout)
+        return await post(self, body, timeout)
+
+    monkeypatch.setattr(Transport, "post", counted_post)
 
     async def main():
         config = ServerConfig(faults={"rates": {"slow": 1.0}, "slow_s": 10})
@@ -68,8 +77,14 @@ def test_total_deadline_bounds_slow_attempts():
 
     err = asyncio.run(main())
     assert err.attempts >= 2 and all("timeout" in f for f in err.failures)
-    # The last attempt's timeout is clipped to the deadline; allow for a loaded machine.
-    assert err.elapsed_s < 1.0 + 0.5
+    assert len(timeouts) == err.attempts
+    # The deadline ended the call, not the attempt ceiling (100 attempts of 0.3 s) ...
+    assert "total deadline of 1 s" in str(err), str(err)
+    # ... and no attempt may run past it: each attempt starts after the one before has timed
+    # out, so the timeouts handed out add up to at most the deadline (the last one clipped to
+    # what is left), however loaded the machine. Unclipped they would add up to 0.3 a try.
+    assert all(t == 0.3 for t in timeouts[:-1]) and timeouts[-1] <= 0.3
+    assert sum(timeouts) <= 1.0 + 0.001, timeouts  # 0.001: the least timeout it hands out
 
 
 def test_a_retry_after_beyond_the_deadline_fails_at_once():
@@ -78,11 +93,12 @@ def test_a_retry_after_beyond_the_deadline_fails_at_once():
             server.faults.script("rate_limit")
             with pytest.raises(InfrastructureError) as err:
                 await _one_call(server, retry={"total_timeout_s": 5})
-            return err.value
+            return err.value, list(server.log)
 
-    err = asyncio.run(main())
+    err, log = asyncio.run(main())
+    # refused before waiting: the backoff is checked against the deadline before its sleep
     assert err.attempts == 1 and "would pass the total deadline" in str(err)
-    assert err.elapsed_s < 5
+    assert [r.status for r in log] == [429]  # one request, no retry after any wait
 
 
 @pytest.mark.parametrize("status_source", ["scripted_400", "wrong_key_401"])

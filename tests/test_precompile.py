@@ -306,9 +306,19 @@ def test_a_compile_of_another_process_is_waited_for_family_by_family(markers, mo
     monkeypatch.setattr(precompile, "_child", lambda task, *a, **k: spawned.append(task))
     handle = _hold_machine_lock(markers)
     try:
-        t0 = time.monotonic()
-        compiling = precompile.Compiling.start(["lift_pot", "place_shoe"], 64, 48, "cpu", False)
-        assert time.monotonic() - t0 < 10  # not blocked behind the other's compile
+        # It returns while the other process still holds the lock (released only below): an
+        # order, not a time. Blocked behind the other's compile it would wait for ever, so it
+        # runs in a thread whose join is a guard against hanging the suite, not a bound.
+        returned: list[precompile.Compiling] = []
+        starter = threading.Thread(
+            target=lambda: returned.append(
+                precompile.Compiling.start(["lift_pot", "place_shoe"], 64, 48, "cpu", False)
+            )
+        )
+        starter.start()
+        starter.join(300)
+        assert returned, "Compiling.start waited for the other process's compile"
+        [compiling] = returned
 
         async def scenario():
             lift = asyncio.create_task(compiling.wait("lift_pot"))

@@ -115,7 +115,7 @@ def test_concurrency_is_bounded_across_processes_and_a_dead_holders_slots_come_b
         await asyncio.sleep(0.05)
         assert not waiting.done()
         board.forget("dead")
-        await asyncio.wait_for(waiting, 1)
+        await asyncio.wait_for(waiting, 60)  # a guard against hanging, not a bound
         return peak, after, board.stats()["m"]["held"]
 
     peak, after, held = asyncio.run(main())

@@ -142,21 +142,27 @@ import sys, time
 from vabench.sweep.interrupt import CtrlC
 handler = CtrlC()
 handler.install()
-with handler.on_first(lambda: print("stopping", flush=True)):  # a stop that takes its time
+with handler.on_first(lambda: print("stopping", flush=True)):  # a stop that never ends
     print("ready", flush=True)
-    time.sleep(60)
+    time.sleep(3600)
+print("the first stop ended", flush=True)
 sys.exit(0)
 """
 
 
 def test_a_second_ctrl_c_exits_at_once_while_the_first_is_still_stopping():
+    """The first stop would take an hour: the script ends only through the second press (its
+    status, its line, and no word of the first stop's end), however loaded the machine."""
     proc = start_script(SLOW_STOP)
     os.killpg(proc.pid, signal.SIGINT)
     assert proc.stdout.readline() == "stopping\n"
-    t0 = time.monotonic()
     os.killpg(proc.pid, signal.SIGINT)
-    _, stderr = proc.communicate(timeout=30)
-    assert time.monotonic() - t0 < 10  # not the 60 s the first stop was taking
+    try:
+        stdout, stderr = proc.communicate(timeout=120)  # a guard against hanging, not a bound
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert stdout == ""
     assert proc.returncode == 130
     assert stderr.strip() == "stopped at once; run the same command to resume"
 
@@ -167,9 +173,9 @@ def test_two_quick_presses_end_the_sweep_and_its_workers_and_lose_nothing(tmp_pa
     out = tmp_path / "out"
     proc = start(cfg, out)
     wait_for(lambda: replied(out), proc, "model reply")
-    t0 = time.monotonic()
+    # ended at all: `interrupt` waits for the exit (its timeout a guard against hanging); that
+    # the second press exits at once whatever the first is doing is the test above
     status, stdout, stderr, family = interrupt(proc, presses=2, gap_s=0.05)
-    assert time.monotonic() - t0 < 30
     # 130 from the sweep; a press landing in the interpreter's last moments of exiting (the
     # first had already stopped everything) ends it by SIGINT, which a shell reports as 130 too
     assert status in (130, -signal.SIGINT), stderr

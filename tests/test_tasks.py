@@ -14,11 +14,12 @@ import sys
 import numpy as np
 import pytest
 
+from tests.expert_runs import expert_episodes
 from vabench import tasks
 from vabench.sim_mjx import scene
 from vabench.tasks import BASE_FAMILIES, BENCHMARK_FAMILIES, REGISTRY, SUITES, families, get_task
 from vabench.tasks.manifests import load_manifest
-from vabench.tasks.task_batch import TaskBatch, run_experts
+from vabench.tasks.task_batch import TaskBatch
 
 # FACTS.md, "Tasks, budgets, evaluation seeds" (transcribed independently of the modules).
 PAPER_BUDGETS = {
@@ -150,8 +151,7 @@ def test_manifest_holds_twenty_verified_seeds(name):
 
 def _expert_check(name: str, seeds: list[int]) -> None:
     task = get_task(name)
-    tb = TaskBatch(task, len(seeds), backend="c")
-    for ep in run_experts(tb, seeds):
+    for ep in expert_episodes(name, seeds):  # the family file's own test checks these too
         assert ep.success, (name, ep.seed, ep.end)
         assert ep.steps <= task.step_budget
         progress = [a["progress"] for a in ep.actions]

@@ -30,7 +30,11 @@ CHROMIUM_ARGS = [
 ]
 
 if not Path(CHROMIUM).exists() and not os.environ.get("CI"):
-    pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium)", allow_module_level=True)
+    pytest.skip(
+        f"the viewer's browser test needs Debian's chromium at {CHROMIUM} "
+        "(apt-get install chromium; .ci/run installs it)",
+        allow_module_level=True,
+    )
 sync_api = pytest.importorskip("playwright.sync_api")
 
 
