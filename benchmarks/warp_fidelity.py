@@ -73,15 +73,17 @@ def stage(name: str, what: str, t0: float) -> None:
     print(f"  {name}: {what} done at {time.perf_counter() - t0:.0f} s", flush=True)
 
 
-def family_row(name: str, n: int, cache: SettledCache) -> dict:
+def family_row(name: str, n: int, cache: SettledCache, action_end: str = "fixed") -> dict:
     t0 = time.perf_counter()
     task = get_task(name)
     seeds = verified_seeds(name)[:n]
     # C slots on threads (one per seed, up to the cores): the basket's 20 experts took 107 s
     # on one thread of the H100 host, more than half of the call's budget.
     threads = min(len(seeds), len(os.sched_getaffinity(0)))
-    c = TaskBatch(task, len(seeds), backend="c", cache=cache, threads=threads)
-    w = TaskBatch(task, len(seeds), backend="mjx", impl="warp", cache=cache)
+    c = TaskBatch(
+        task, len(seeds), backend="c", cache=cache, threads=threads, action_end=action_end
+    )
+    w = TaskBatch(task, len(seeds), backend="mjx", impl="warp", cache=cache, action_end=action_end)
     stage(name, "built both batches", t0)
     on_c = run_experts(c, seeds)
     stage(name, f"C experts ({sum(ep.steps for ep in on_c)} actions)", t0)
@@ -144,6 +146,9 @@ def main() -> int:
     p.add_argument("--json", default=None)
     p.add_argument("--md", default=None)
     p.add_argument("--budget-s", type=float, default=1e9, help="stop starting new families")
+    p.add_argument(
+        "--action-end", default="fixed", choices=("fixed", "at_rest"), help="simulator.action_end"
+    )
     args = p.parse_args()
     names = [t.name for t in benchmark_tasks()] if args.tasks == "all" else args.tasks.split(",")
     cache = SettledCache.default()
@@ -153,7 +158,7 @@ def main() -> int:
             print(f"(budget reached: {name} and later not run)", flush=True)
             break
         try:
-            row = family_row(name, args.n, cache)
+            row = family_row(name, args.n, cache, args.action_end)
         except Exception as err:  # report the family and go on with the others
             row = {"task": name, "error": f"{type(err).__name__}: {err}"}
             print(f"{name}: {row['error']}", flush=True)

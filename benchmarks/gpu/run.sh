@@ -10,7 +10,7 @@
 #      missing, carry .dep too and `mkdir -p /tmp/dep && cp .dep/* /tmp/dep/`)
 #   3. carry .wp3 .whl .gl .nvj .ray3:  bash benchmarks/gpu/run.sh setup
 #   4.. (warm machine, nothing carried):
-#        bash benchmarks/gpu/run.sh waits | physics | render | render_options | jpeg | jpeg_kernels |
+#        bash benchmarks/gpu/run.sh waits | physics | critical_path | render | render_options | jpeg | jpeg_kernels |
 #        fidelity | tests | engine | engine_processes | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
@@ -22,7 +22,7 @@
 # the project root). `main` runs configs/all.yaml as shipped; a call that ends before
 # the sweep does leaves it to the next `main` call, which resumes it (wall times add up).
 set -uo pipefail
-phase=${1:?usage: run.sh setup|waits|physics|render|render_options|jpeg|jpeg_kernels|fidelity|tests|engine|engine_processes|main|ray|streams|precompile|precompile_bench}
+phase=${1:?usage: run.sh setup|waits|physics|critical_path|render|render_options|jpeg|jpeg_kernels|fidelity|tests|engine|engine_processes|main|ray|streams|precompile|precompile_bench}
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
@@ -87,8 +87,17 @@ PY
       --json "$out/render.json" 2>&1 | tee "$out/render.log"
     ;;
   fidelity)
-    timeout 570 python3 benchmarks/warp_fidelity.py --tasks "${FIDELITY_TASKS:-all}" --n 20 --budget-s "${FIDELITY_BUDGET_S:-420}" \
+    # FIDELITY_ACTION_END=at_rest: the guard of simulator.action_end at_rest
+    timeout "${FIDELITY_TIMEOUT_S:-570}" python3 benchmarks/warp_fidelity.py --tasks "${FIDELITY_TASKS:-all}" --n 20 --budget-s "${FIDELITY_BUDGET_S:-420}" \
+      --action-end "${FIDELITY_ACTION_END:-fixed}" \
       --json "$out/fidelity.json" --md "$out/fidelity.md" 2>&1 | tee "$out/fidelity.log"
+    ;;
+  critical_path)
+    # The basket's decision physics at 15/30/60 worlds, today's action length against
+    # simulator.action_end at_rest (its Warp modules compiled in threads first)
+    timeout "${CRITICAL_TIMEOUT_S:-300}" python3 benchmarks/critical_path.py \
+      --sizes "${CRITICAL_SIZES:-15,30,60}" --actions "${CRITICAL_ACTIONS:-12}" \
+      --json "$out/critical_path.json" 2>&1 | tee "$out/critical_path.log"
     ;;
   tests)
     timeout 570 python3 -m pytest -q -x -p no:cacheprovider tests/test_warp_batch.py \
@@ -129,16 +138,18 @@ PY
     # run directory per layout (MAIN_RUN_DIR names another). Another commit's tree (`git
     # archive COMMIT vabench benchmarks configs assets pyproject.toml` into an ignored folder,
     # carried) runs from that folder: `cd FOLDER && bash ../benchmarks/gpu/run.sh main`.
-    layout=${MAIN_EXECUTOR:-}${MAIN_MAX_EPISODES:+_$MAIN_MAX_EPISODES}
+    # MAIN_ACTION_END=at_rest: the same plan with simulator.action_end at_rest
+    layout=${MAIN_EXECUTOR:-}${MAIN_MAX_EPISODES:+_$MAIN_MAX_EPISODES}${MAIN_ACTION_END:+_$MAIN_ACTION_END}
     run=${MAIN_RUN_DIR:-/tmp/run_all${layout:+_$layout}}
     config=configs/all.yaml
     if [ -n "$layout" ]; then
       config=/tmp/all_$layout.yaml
       python3 -c "import sys, yaml; d = yaml.safe_load(open('configs/all.yaml'));
-kind, n, e = sys.argv[1], int(sys.argv[3]), int(sys.argv[4]);
+kind, n, e, end = sys.argv[1], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5];
 d['executor'] = {**(d.get('executor') or {})} | ({'kind': kind} if kind else {}) | ({'max_tasks': n} if n else {}) | ({'max_episodes': e} if e else {});
+d['simulator'] = {**(d.get('simulator') or {})} | ({'action_end': end} if end else {});
 yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAIN_MAX_TASKS:-0}" \
-        "${MAIN_MAX_EPISODES:-0}" || exit 1
+        "${MAIN_MAX_EPISODES:-0}" "${MAIN_ACTION_END:-}" || exit 1
     fi
     # A run directory keeps every image the models saw (~20-30 GB for configs/all.yaml): the
     # third run on one 64 GiB host filled its disk and the machine stopped answering

@@ -84,6 +84,11 @@ class SimulatorOptions(_Strict):
     (bit-reproducible runs on a GPU, slower)."""
     window_s: float = Field(default=0.01, ge=0)
     """How long the simulator batch waits to gather actions before stepping."""
+    action_end: Literal["fixed", "at_rest"] = "fixed"
+    """How long an action's physics runs (backends c and warp; mjx always fixed): fixed, 0.8 s
+    of substeps for every action; at_rest, each slot's action ends at the first substep after
+    its references are final where every joint is at rest, 0.8 s at the latest
+    (`sim_mjx.controller.ACTION_ENDS`)."""
 
     def batch_kwargs(self, physics: Physics, critical_path: bool = False) -> dict[str, Any]:
         """The TaskBatch arguments these options ask for, on the resolved `physics`
@@ -92,6 +97,8 @@ class SimulatorOptions(_Strict):
         out: dict[str, Any] = {"backend": physics.value}
         if physics is Physics.MJX_JAX and self.lanes:
             out["lanes"] = self.lanes
+        if physics in (Physics.C, Physics.WARP) and self.action_end != "fixed":
+            out["action_end"] = self.action_end
         if physics is Physics.WARP:
             extra = {"nconmax": self.nconmax, "njmax": self.njmax}
             out.update({k: v for k, v in extra.items() if v is not None})

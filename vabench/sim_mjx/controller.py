@@ -18,6 +18,8 @@ MJX (inside a scan) and C MuJoCo (as a precomputed control sequence).
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 
@@ -132,6 +134,25 @@ def plan_slot(
 def substeps(timestep: float) -> int:
     """Physics substeps of one action at the model's timestep."""
     return int(round(rc.ACTION_SECONDS / timestep))
+
+
+ACTION_ENDS = ("fixed", "at_rest")
+"""How long an action's physics runs. fixed: every action ACTION_SECONDS of substeps. at_rest:
+a slot's action ends at the first substep, once its references are final (`rest_from`), where
+every dof is slower than REST_SPEED; its state is the one of that substep, whatever the other
+slots of the batch do, and ACTION_SECONDS bounds it."""
+
+
+def check_action_end(action_end: str) -> str:
+    if action_end not in ACTION_ENDS:
+        raise ValueError(f"action_end must be one of {ACTION_ENDS}, got {action_end!r}")
+    return action_end
+
+
+def rest_from(n_substeps: int) -> int:
+    """Substeps after which every reference of an action is final (the arm at its last
+    waypoint, the fingers at their target): from then on an action may end at rest."""
+    return int(math.ceil(max(rc.MOVE_FRACTION, rc.GRIP_FRACTION) * n_substeps))
 
 
 def _min_jerk(s: jax.Array) -> jax.Array:

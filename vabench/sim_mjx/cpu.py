@@ -17,7 +17,9 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
+from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
+from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase, StepInfo, in_lanes
 from vabench.sim_mjx.layout import ctrl_sequence_slot
@@ -54,8 +56,10 @@ class CpuBatch(BatchBase):
         model: mujoco.MjModel | Sequence[mujoco.MjModel],
         n_slots: int,
         threads: int = 0,
+        action_end: str = "fixed",
     ):
         self._setup(model, n_slots, lanes=1)
+        self.action_end = ctl.check_action_end(action_end)
         check_same_structure(self.models)
         model = self.model
         self.backend_id = f"c-mujoco-{mujoco.__version__}"
@@ -132,9 +136,14 @@ class CpuBatch(BatchBase):
         controls = np.repeat(self._ctrl[slots][:, None, :], n_steps, axis=1)
         self._run(slots, controls)
 
-    def _run(self, slots: list[int], controls: np.ndarray, capture: int = 0) -> None:
+    def _run(
+        self, slots: list[int], controls: np.ndarray, capture: int = 0, rest_from: int = 0
+    ) -> None:
         """Advance `slots` through the control sequences (len(slots), n_steps, nu); with
-        `capture` = k > 0, append qpos to `captured[slot]` after every k-th step."""
+        `capture` = k > 0, append qpos to `captured[slot]` after every k-th step; with
+        `rest_from` = r > 0 (an action ending at rest), a slot stops after the first step
+        k >= r at which every dof is slower than REST_SPEED (the threads' path computes every
+        step and takes the state of that one)."""
         if not slots:
             return
         if capture > 0 and self._pool is not None:
@@ -145,11 +154,15 @@ class CpuBatch(BatchBase):
                 mujoco.mj_setState(m, d, self._state[slot], _STATE)
                 d.qacc_warmstart[:] = self._warm[slot]
                 _clear_instabilities(d)
-                for k, u in enumerate(controls[row], 1):
+                steps = 0
+                for steps, u in enumerate(controls[row], 1):
                     d.ctrl[:] = u
                     mujoco.mj_step(m, d)
-                    if capture > 0 and k % capture == 0:
+                    if capture > 0 and steps % capture == 0:
                         self.captured.setdefault(slot, []).append(d.qpos.copy())
+                    if 0 < rest_from <= steps and np.max(np.abs(d.qvel)) < rc.REST_SPEED:
+                        break
+                self.last_substeps[slot] = steps
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
                 self._warm[slot] = d.qacc_warmstart
                 self._unstable[slot] |= _instabilities(d) > 0
@@ -164,7 +177,14 @@ class CpuBatch(BatchBase):
                 controls,
                 initial_warmstart=np.zeros((len(slots), self.model.nv)),
             )
-            self._state[slots] = states[:, -1]
+            last = np.full(len(slots), controls.shape[1] - 1)
+            if rest_from > 0:  # the same rule as the serial path, on the recorded states
+                nq, nv = self.model.nq, self.model.nv
+                still = np.max(np.abs(states[:, :, 1 + nq : 1 + nq + nv]), axis=2) < rc.REST_SPEED
+                still[:, : rest_from - 1] = False
+                last = np.where(still.any(axis=1), np.argmax(still, axis=1), last)
+            self._state[slots] = states[np.arange(len(slots)), last]
+            self.last_substeps[slots] = last + 1
         self._ctrl[slots] = controls[:, -1]
 
     def _execute(self, rows: CommandRows) -> StepInfo:
@@ -179,7 +199,9 @@ class CpuBatch(BatchBase):
         go = rows.active & plan.ok
         slots = [int(s) for s in np.flatnonzero(go)]
         self._unstable[slots] = False  # each action judged by its own physics
-        self._run(slots, np.asarray(seq[slots], float), self.capture_every)
+        self.last_substeps[:] = 0
+        rest = ctl.rest_from(self.n_substeps) if self.action_end == "at_rest" else 0
+        self._run(slots, np.asarray(seq[slots], float), self.capture_every, rest)
         opens = rows.grip == 1
         keep = rows.grip < 0
         self._grip_open[go] = np.where(keep[go], self._grip_open[go], opens[go])

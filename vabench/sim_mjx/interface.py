@@ -176,6 +176,10 @@ class BatchBase:
     n_substeps: int
     objects: list[tuple[str, int]]
     backend_id: str = "?"  # names the physics in cache keys and records, e.g. "c-mujoco-4.0.0"
+    action_end: str = "fixed"  # controller.ACTION_ENDS (backends c and warp)
+    # Physics substeps each slot's last action (or hold) ran (n_substeps for an action with
+    # action_end fixed; 0 for a slot that did not act): what ending at rest saves, per slot.
+    last_substeps: np.ndarray
 
     def _setup(
         self, models: mujoco.MjModel | Sequence[mujoco.MjModel], n_slots: int, lanes: int
@@ -197,6 +201,7 @@ class BatchBase:
         self.lanes = lanes
         self._proprio = jax.jit(in_lanes(functools.partial(proprio_slot, self.layout), 2, lanes))
         self._parsed: dict[Any, Any] = {}
+        self.last_substeps = np.zeros(n_slots, np.int32)
 
     # -- to implement -----------------------------------------------------------------------
     def _execute(self, rows: CommandRows) -> StepInfo:

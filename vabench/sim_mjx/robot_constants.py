@@ -54,6 +54,10 @@ MAX_JOINT_STEP = 0.35  # rad between waypoints; more means a wrist flip, not a s
 ACTION_SECONDS = 0.8  # simulated time of every action (fixed shape for the batch)
 MOVE_FRACTION = 0.7  # the arm reaches its target at 70 % of the action, then settles
 GRIP_FRACTION = 0.6  # finger targets ramp over the first 60 % of the action
+# An action that ends at rest (`action_end: at_rest`): once its references are final, a slot's
+# action ends at the first substep where every dof moves slower than this (rad/s or m/s), and
+# at ACTION_SECONDS at the latest.
+REST_SPEED = 1.0e-2
 
 # Action ranges of the model interface.
 MOVE_MM_RANGE = (1.0, 100.0)

@@ -44,6 +44,8 @@ import mujoco_warp as mjw
 import numpy as np
 import warp as wp
 
+from vabench.sim_mjx import controller as ctl
+from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import BatchBase, StepInfo, hold_chunks
 from vabench.sim_mjx.layout import Proprio
@@ -93,7 +95,9 @@ class WarpBatch(BatchBase):
     `graphs.LOOPS`. `critical_path`: this batch's episodes bound the sweep's wall time (the
     longest task's): its stream, and those of the render passes that read it, get the GPU's
     highest priority; other batches' streams the middle one, ahead of the render passes' ray
-    tracing (`streams.PRIORITIES`).
+    tracing (`streams.PRIORITIES`). `action_end`: `controller.ACTION_ENDS` (at_rest: each
+    slot's action ends at its own rest substep; the device loop ends when every acting slot
+    has).
     """
 
     def __init__(
@@ -107,6 +111,7 @@ class WarpBatch(BatchBase):
         graphs: bool = True,
         loop: str | None = None,
         critical_path: bool = False,
+        action_end: str = "fixed",
     ):
         keep_loaded()  # see modules: no module's code unloaded under a running kernel
         self._setup(model, n_slots, PREDICATE_LANES)
@@ -121,6 +126,7 @@ class WarpBatch(BatchBase):
         n, arms = n_slots, len(self.arms)
         self._event: wp.Event | None = None
         self.critical_path = critical_path
+        self.action_end = ctl.check_action_end(action_end)
         with self.lock, wp.ScopedDevice(self.device):
             self.stream = streams.new_stream(self.device, "greatest" if critical_path else "middle")
         with self._queued():
@@ -187,16 +193,39 @@ class WarpBatch(BatchBase):
             "act": d.act,
         }
         self._snapshot = wr.Snapshot(list(self._rows.values()), d.time)
+        self._rest = wr.RestRows(self._snapshot)
+        self._done = wp.zeros(n, dtype=int)
+        self._newly = wp.zeros(n, dtype=int)
+        self._substeps = wp.zeros(n, dtype=int)
+        self._readback.add("substeps", self._substeps)
         self._variant = np.zeros(n, np.int32)
         self._init_qpos = np.zeros((n, m0.nq))
         self._host: dict[str, np.ndarray] = {}
         self.reset(range(n), np.broadcast_to(home_qpos(m0), (n, m0.nq)))
 
     # -- device work, queued only (see graphs) -----------------------------------------
-    def _physics(self, name: str, pre: Callable, substep: Callable, post: Callable, n: int) -> None:
+    def _physics(
+        self,
+        name: str,
+        pre: Callable,
+        substep: Callable,
+        post: Callable,
+        n: int,
+        condition: Callable | None = None,
+    ) -> None:
         """pre, n x substep, post (see `Graphs.run_loop`); the caller is `_queued`."""
         self._host.clear()
-        self._graphs.run_loop(name, pre, substep, post, n, counter=self._k)
+        self._graphs.run_loop(name, pre, substep, post, n, counter=self._k, condition=condition)
+
+    def _at_rest(self) -> bool:
+        return self.action_end == "at_rest"
+
+    def _rest_condition(self, go_on: wp.array) -> None:
+        wp.launch(
+            wr.rest_condition,
+            dim=1,
+            inputs=[self._k, self.n_substeps, self._go, self._done, go_on],
+        )
 
     def _finish_queue(self) -> None:
         """After the work of a call (the caller is `_queued`): the watched contact flags at the
@@ -229,6 +258,22 @@ class WarpBatch(BatchBase):
                 wc.launch_ctrl(self._k, self.n_substeps, self._plan, self._idx, self._d.ctrl)
             mjw.step(self._m, self._d)
             wp.launch(wr.count_substep, dim=1, inputs=[self._k])
+            if with_ctrl and self._at_rest():
+                wp.launch(
+                    wr.mark_rest,
+                    dim=self.n_slots,
+                    inputs=[
+                        self._k,
+                        ctl.rest_from(self.n_substeps),
+                        rc.REST_SPEED,
+                        self._go,
+                        self._d.qvel,
+                        self._done,
+                        self._newly,
+                        self._substeps,
+                    ],
+                )
+                self._rest.save(self._newly)
 
         return substep
 
@@ -249,9 +294,17 @@ class WarpBatch(BatchBase):
         )
         self._snapshot.save()
         self._start_loop()
+        self._done.zero_()
+        self._substeps.zero_()
 
     def _action_post(self) -> None:
         self._snapshot.restore(self._go)
+        if self._at_rest():
+            self._rest.restore(self._done)
+        else:
+            wp.launch(
+                wr.fixed_substeps, dim=self.n_slots, inputs=[self._go, self._k, self._substeps]
+            )
         wp.launch(
             wr.finish_action,
             dim=(self.n_slots, len(self.arms)),
@@ -288,10 +341,12 @@ class WarpBatch(BatchBase):
                 self._step_physics(True),
                 self._action_post,
                 self.n_substeps,
+                self._rest_condition if self._at_rest() else None,
             )
             self._finish_queue()
         self._wait()
         h: dict[str, Any] = self._host
+        self.last_substeps = h["substeps"].astype(np.int32)
         failed = h["failed"]
         failure = failure_texts(failed, self.capacity)
         return StepInfo(

@@ -35,6 +35,8 @@ body refuses the loop, the batch falls back to per_step for good (logged once)."
 
 CAPTURE_FAILED = "device loop refused"
 
+Condition = Callable[[wp.array], None]
+
 
 class Arena:
     """A Warp allocator that slices one device block: the scratch arrays a captured graph
@@ -117,18 +119,27 @@ class Graphs:
         post: Callable[[], None],
         n: int,
         counter: wp.array | None = None,
+        condition: Condition | None = None,
     ) -> None:
         """pre, n x substep, post: as graphs (see LOOPS) or as plain launches. `counter`: the
         device's count of substeps done, zeroed by `pre`, incremented by `substep` (the
-        device loop's condition reads it)."""
+        device loop's condition reads it). `condition(go_on)`: queues a kernel writing 1 to
+        go_on[0] while the loop goes on (default: below n substeps); the loop may end early
+        only where it runs on the device (the device loop) or on the CPU device, else it runs
+        n substeps, so `substep` must make the extra ones change no result."""
         if not self.enabled:
             pre()
+            go_on = wp.zeros(1, dtype=wp.int32) if condition is not None else None
             for _ in range(n):
                 substep()
+                if condition is not None and go_on is not None:
+                    condition(go_on)
+                    if not int(go_on.numpy()[0]):
+                        break
             post()
             return
         if self.loop == "device" and counter is not None:
-            graph = self._device_loop(name, pre, substep, post, n, counter)
+            graph = self._device_loop(name, pre, substep, post, n, counter, condition)
             if graph is not None:
                 wp.capture_launch(graph)
                 return
@@ -147,7 +158,7 @@ class Graphs:
 
             self.run(f"{name}.{n}", body)
 
-    def _device_loop(self, name, pre, substep, post, n, counter) -> wp.Graph | None:
+    def _device_loop(self, name, pre, substep, post, n, counter, condition) -> wp.Graph | None:
         """The graph of pre, a while node of `substep` until `counter` reaches n, post:
         captured on first use with an arena for MuJoCo Warp's scratch arrays (None, and
         per_step from then on, where CUDA refuses the loop)."""
@@ -159,13 +170,19 @@ class Graphs:
             self._go_on = wp.zeros(1, dtype=wp.int32)
         go_on = self._go_on
 
+        def test() -> None:
+            if condition is None:
+                wp.launch(_loop_condition, dim=1, inputs=[counter, n, go_on])
+            else:
+                condition(go_on)
+
         def body() -> None:
             pre()
-            wp.launch(_loop_condition, dim=1, inputs=[counter, n, go_on])
+            test()
 
             def one() -> None:
                 substep()
-                wp.launch(_loop_condition, dim=1, inputs=[counter, n, go_on])
+                test()
 
             wp.capture_while(go_on, one)
             post()

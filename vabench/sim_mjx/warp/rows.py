@@ -63,6 +63,97 @@ class Snapshot:
 
 
 @wp.kernel
+def mark_rest(
+    k: wp.array(dtype=int),
+    rest_from: int,
+    rest_speed: float,
+    go: wp.array(dtype=int),
+    qvel: wp.array2d(dtype=float),
+    done: wp.array(dtype=int),
+    newly: wp.array(dtype=int),
+    substeps: wp.array(dtype=int),
+):
+    """An action ending at rest (controller.ACTION_ENDS), after substep k[0]: a slot that acts
+    and has not ended ends now when its references are final (k[0] >= rest_from) and every dof
+    is slower than rest_speed. newly[w]: it ended at this substep (its rows are saved now);
+    substeps[w]: the substeps its action ran."""
+    w = wp.tid()
+    newly[w] = 0
+    if go[w] == 0 or done[w] != 0:
+        return
+    substeps[w] = k[0]
+    if k[0] < rest_from:
+        return
+    for j in range(qvel.shape[1]):
+        if wp.abs(qvel[w, j]) >= rest_speed:
+            return
+    done[w] = 1
+    newly[w] = 1
+
+
+@wp.kernel
+def rest_condition(
+    k: wp.array(dtype=int),
+    n: int,
+    go: wp.array(dtype=int),
+    done: wp.array(dtype=int),
+    go_on: wp.array(dtype=wp.int32),
+):
+    """The device loop's condition for an action ending at rest: below n substeps and some
+    acting slot still moving (one thread: a few dozen slots)."""
+    busy = wp.int32(0)
+    if k[0] < n:
+        for w in range(go.shape[0]):
+            if go[w] != 0 and done[w] == 0:
+                busy = wp.int32(1)
+    go_on[0] = busy
+
+
+@wp.kernel
+def copy_rows_where(
+    mask: wp.array(dtype=int), src: wp.array2d(dtype=float), dst: wp.array2d(dtype=float)
+):
+    w, j = wp.tid()
+    if mask[w] != 0:
+        dst[w, j] = src[w, j]
+
+
+@wp.kernel
+def copy_where(mask: wp.array(dtype=int), src: wp.array(dtype=float), dst: wp.array(dtype=float)):
+    w = wp.tid()
+    if mask[w] != 0:
+        dst[w] = src[w]
+
+
+@wp.kernel
+def fixed_substeps(go: wp.array(dtype=int), k: wp.array(dtype=int), substeps: wp.array(dtype=int)):
+    w = wp.tid()
+    substeps[w] = wp.where(go[w] != 0, k[0], 0)
+
+
+class RestRows:
+    """The rows (as `Snapshot`'s) of each slot at the substep its action came to rest: saved
+    then, given back after the loop, so that a slot's final state is that of its own rest
+    substep however long the loop ran for the other slots."""
+
+    def __init__(self, snapshot: Snapshot):
+        self.rows = snapshot.rows
+        self.saved = [wp.empty_like(a) for a in self.rows]
+        self.time = snapshot.time
+        self.saved_time = wp.empty_like(self.time)
+
+    def save(self, mask: wp.array) -> None:
+        for src, dst in zip(self.rows, self.saved, strict=True):
+            wp.launch(copy_rows_where, dim=src.shape, inputs=[mask, src, dst])
+        wp.launch(copy_where, dim=self.time.shape[0], inputs=[mask, self.time, self.saved_time])
+
+    def restore(self, mask: wp.array) -> None:
+        for dst, saved in zip(self.rows, self.saved, strict=True):
+            wp.launch(copy_rows_where, dim=dst.shape, inputs=[mask, saved, dst])
+        wp.launch(copy_where, dim=self.time.shape[0], inputs=[mask, self.saved_time, self.time])
+
+
+@wp.kernel
 def count_substep(k: wp.array(dtype=int)):
     """One more substep done (the references of the next one read k)."""
     k[0] = k[0] + 1

@@ -1,0 +1,98 @@
+"""An action that ends at rest (`action_end: at_rest`): the rule on C MuJoCo and on Warp.
+
+A slot's action ends at the first substep, once its references are final, where every dof is
+slower than REST_SPEED, ACTION_SECONDS at the latest; its state is that substep's, whatever the
+other slots do and however long the batch's loop ran for them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vabench.config.schema import SimulatorOptions
+from vabench.sim_mjx import controller as ctl
+from vabench.sim_mjx.backends import Physics
+from vabench.sim_mjx.cpu import CpuBatch
+from vabench.sim_mjx.interface import STATE_FIELDS
+from vabench.tasks import get_task
+from vabench.tasks.manifests import verified_seeds
+
+DOWN = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 40}
+RIGHT = {"action": "gripper.move_world", "axis": "x", "sign": "+", "distance_mm": 30}
+CLOSE = {"action": "gripper.close"}
+FAR = {"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 100}
+
+
+@pytest.fixture(scope="module")
+def cube():
+    task = get_task("grasp_single_cube")
+    model = task.build_model()
+    q0 = task.initial_qpos(model, task.sample(verified_seeds(task.name)[0]))
+    return model, q0
+
+
+def _reset(batch, q0):
+    n = batch.n_slots
+    batch.reset(range(n), np.broadcast_to(q0, (n, len(q0))), settle_steps=50)
+
+
+def test_c_ends_each_action_at_the_substep_it_comes_to_rest(cube):
+    """The state after an action ending at rest is the fixed action's state at that substep."""
+    model, q0 = cube
+    rest, fixed = CpuBatch(model, 1, action_end="at_rest"), CpuBatch(model, 1)
+    fixed.capture_every = 1
+    for b in (rest, fixed):
+        _reset(b, q0)
+    ran = []
+    for action in (DOWN, CLOSE, RIGHT):
+        fixed.captured.clear()
+        fixed.set_state([0], rest.get_state([0]), rest.variant()[[0]])
+        rest.step([action])
+        fixed.step([action])
+        k = int(rest.last_substeps[0])
+        assert ctl.rest_from(rest.n_substeps) <= k <= rest.n_substeps
+        assert fixed.last_substeps[0] == fixed.n_substeps
+        np.testing.assert_array_equal(rest.qpos()[0], fixed.captured[0][k - 1])
+        ran.append(k)
+    assert min(ran) < rest.n_substeps  # some action did end early
+
+
+def test_c_threads_take_the_same_rule(cube):
+    """The rollout threads' path (cold warm start) picks its rest substep by the same rule."""
+    model, q0 = cube
+    batch = CpuBatch(model, 2, threads=2, action_end="at_rest")
+    _reset(batch, q0)
+    batch.step([DOWN, FAR])
+    k = batch.last_substeps
+    assert np.all((k >= ctl.rest_from(batch.n_substeps)) & (k <= batch.n_substeps))
+
+
+def test_the_setting_reaches_c_and_warp_only():
+    opts = SimulatorOptions(action_end="at_rest")
+    assert opts.batch_kwargs(Physics.C)["action_end"] == "at_rest"
+    assert opts.batch_kwargs(Physics.WARP)["action_end"] == "at_rest"
+    assert "action_end" not in opts.batch_kwargs(Physics.MJX_JAX)
+    assert "action_end" not in SimulatorOptions().batch_kwargs(Physics.WARP)
+    with pytest.raises(ValueError, match="action_end must be one of"):
+        CpuBatch(get_task("grasp_single_cube").build_model(), 1, action_end="soon")
+
+
+def test_warp_slot_ends_at_its_own_rest_whatever_its_neighbours(cube):
+    """On Warp (its CPU device) a slot's action ends at its own rest substep: alone, or beside
+    neighbours whose moves keep the batch's loop running longer, it moves bit for bit alike."""
+    pytest.importorskip("mujoco_warp", reason="the Warp backend needs mujoco-warp")
+    from vabench.sim_mjx.warp.batch import WarpBatch
+
+    model, q0 = cube
+    alone = WarpBatch(model, 1, device="cpu", action_end="at_rest")
+    crowd = WarpBatch(model, 3, device="cpu", action_end="at_rest")
+    for b in (alone, crowd):
+        _reset(b, q0)
+    for ours, theirs in ((DOWN, FAR), (CLOSE, RIGHT)):
+        alone.step([ours])
+        crowd.step([theirs, FAR, ours])
+        a, c = alone.get_state([0]), crowd.get_state([2])
+        assert all(np.array_equal(a[f], c[f]) for f in STATE_FIELDS)
+        assert alone.last_substeps[0] == crowd.last_substeps[2]
+        assert ctl.rest_from(alone.n_substeps) <= alone.last_substeps[0] <= alone.n_substeps
