@@ -330,6 +330,7 @@ class EndpointClient:
                 elapsed_s=loop.time() - call.started,
                 fatal=fatal,
                 hint=hint,
+                meaning=failure.meaning,
             )
         if decision.kind == "rate_limit":
             self._counters.rate_limited += 1
