@@ -195,3 +195,42 @@ def test_a_bad_request_answers_an_error_and_the_board_lives_on(method):
         board.close()
     assert ("no endpoint" in message) or ("nonexistent" in message)
     assert after[0] == 1
+
+
+SWEEP = """\
+name: board
+models:
+  - name: limited
+    api: openai_chat
+    base_url: {url}
+    limits: {{rpm: {rpm}, period_s: {period}, max_concurrency: 8}}
+    retry: {{max_attempts: 20, backoff_base_s: 0.05, backoff_max_s: 0.2}}
+tracks: [active]
+tasks: [grasp_single_cube, handover_horizontal_block]
+seeds: {{verified: 2}}
+runs: 1
+step_budget: 3
+simulator: {{backend: c}}
+render: {{width: 64, height: 48, workers: 1}}
+executor: {{kind: processes, max_tasks: 2}}
+"""
+
+
+def test_a_sweeps_two_worker_processes_keep_the_servers_rate(tmp_path, caplog):
+    """Through the sweep command: two cells in two worker processes call one server that
+    enforces 4 requests per 2 s; the parent's board keeps the model's `rpm` for both."""
+    import logging
+
+    from vabench.sweep.__main__ import main
+
+    rpm, period = 4, 2.0
+    server_config = ServerConfig(policy="conversation_hash", rpm=rpm, rate_period_s=period)
+    with server_in_thread(server_config) as server:
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text(SWEEP.format(url=server.base_url("openai_chat"), rpm=rpm, period=period))
+        with caplog.at_level(logging.INFO, logger="vabench.sweep"):
+            assert main([str(cfg), "--out", str(tmp_path / "out"), "--plain", "--no-report"]) == 0
+        log = [(r.received_s, r.status) for r in server.log]
+    assert "one limit board for every worker keeps the limits of limited" in caplog.text
+    assert len(log) >= 8 and [s for _, s in log].count(429) == 0
+    assert max_in_window([(t, 1.0) for t, _ in log], period) <= rpm
