@@ -71,8 +71,12 @@ def test_total_deadline_bounds_slow_attempts(monkeypatch):
     async def main():
         config = ServerConfig(faults={"rates": {"slow": 1.0}, "slow_s": 10})
         async with LocalServer(config) as server:
-            with pytest.raises(InfrastructureError) as err:
-                await _one_call(server, retry=retry)
+            server.faults.script(None)  # one answer first: timeouts are then transient
+            config = server.endpoint_config("m", "openai_chat", retry={**FAST_RETRY, **retry})
+            async with LLMPool([config]) as pool:
+                await pool.complete("m", REQUEST)
+                with pytest.raises(InfrastructureError) as err:
+                    await pool.complete("m", REQUEST)
             return err.value
 
     err = asyncio.run(main())

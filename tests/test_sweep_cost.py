@@ -197,21 +197,29 @@ def test_the_example_models_carry_dated_list_prices():
     assert "list prices as of" in text and "check the provider's pricing page" in text.lower()
 
 
-@pytest.mark.parametrize("kind", ["processes", "ray"])
-def test_a_cap_is_refused_where_several_processes_would_count_it(tmp_path, capsys, kind):
-    """Each worker process or engine counts its own spend, so cells running at once could
-    together cross a cap: with a cap the executor must be one process."""
-    cfg = write(tmp_path / "c.yaml", paid("priced", cap=5), f"executor: {{kind: {kind}}}\n")
-    assert main([str(cfg), "--out", str(tmp_path / "out"), "--dry-run"]) == 2
+def test_a_cap_holds_across_two_worker_processes(tmp_path, capsys):
+    """Two cells in two worker processes, one cap: every call's upper bound is reserved on
+    the sweep's limit board, so together they stop at the cap (each counting alone, each
+    would spend up to it)."""
+    two_tasks = BODY.replace("[grasp_single_cube]", "[grasp_single_cube, grasp_single_pen]")
+    out = tmp_path / "out"
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        f"name: cost\nmodels:\n{paid('paid', 5)}{two_tasks}"
+        "executor: {kind: processes, max_tasks: 2}\n"
+    )
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
     err = capsys.readouterr().err
-    assert "executor.kind" in err and "max_cost_usd" in err and "Traceback" not in err
+    assert "stopped: limits.max_cost_usd of model 'paid' ($5) reached at $" in err
+    assert 0 < bill(out).total("paid") <= 5
+    keys = [(r["task"], r["seed"]) for r in ledger(out)]
+    assert len(keys) == len(set(keys))
 
 
-def test_auto_keeps_a_capped_sweep_in_one_process_on_a_many_core_machine():
-    from vabench.config.schema import ExecutorOptions
-    from vabench.sweep.choices import Machine, resolve_executor
+def test_auto_keeps_its_layout_with_a_cap(tmp_path):
+    from vabench.config import load_config
+    from vabench.sweep.choices import Machine, choose
 
-    many = Machine(32, ())
-    assert resolve_executor(ExecutorOptions(), many).kind == "processes"
-    capped = resolve_executor(ExecutorOptions(), many, spend_capped=True)
-    assert capped.kind == "local" and "max_cost_usd" in capped.reason
+    cfg = write(tmp_path / "c.yaml", paid("priced", cap=5))
+    chosen = choose(load_config(cfg, environ={}), Machine(32, ()))
+    assert chosen.executor.kind == "processes" and chosen.executor.max_tasks == 32

@@ -218,20 +218,6 @@ def _cap_problems(parsed: SweepFile, embedded: list[str]) -> list[Problem]:
         fields = ", ".join(f"models[{i}].prices" for i, _ in unpriced)
         message = f"max_cost_usd needs prices for model {names} ({fields})"
         problems.append(Problem("limits.max_cost_usd", message))
-    capped = parsed.limits.max_cost_usd is not None or any(
-        m.limits.max_cost_usd is not None for m in models
-    )
-    if capped and parsed.executor.kind in ("processes", "ray"):
-        # Each worker process or engine keeps its own count of the spend: cells running at once
-        # could together cross a cap. One process keeps it exactly (`executor: local`; `auto`
-        # picks it when a cap is set).
-        problems.append(
-            Problem(
-                "executor.kind",
-                f"{parsed.executor.kind!r} cannot keep limits.max_cost_usd exactly (each "
-                "process counts its own spend): use local or auto with a spend cap",
-            )
-        )
     return problems
 
 

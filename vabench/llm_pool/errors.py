@@ -8,14 +8,18 @@
   wrong key 401/403, an unknown model 404, or a 400 before the endpoint ever answered, i.e.
   parameters it does not take), the sweep stops and records nothing for the episodes it
   touched; otherwise (a 400 or 413 of one episode's request) the episode ends with that
-  reason. A rejection whose body says the request exceeds the model's context window
+  reason. A body that names the key or an unknown model is read the same whatever its status
+  (`retry.meaning_of`: a gateway sends 400 or 500 for them), and is fatal like a 401 or a 404.
+  A rejection whose body says the request exceeds the model's context window
   (`context_exceeded`) is never fatal, even on the first call: it is the episode's own
   failure (the engine compacts and retries once, then scores it `context_exceeded`).
 - `SpendCapReached`: a `RequestRejected` never sent, because its cost could cross a spend cap
   (`limits.max_cost_usd`); fatal.
 - `EndpointUnreachable`: a `RequestRejected` that is always fatal: no connection could be made
-  (refused, DNS, TLS) to an endpoint that has not answered once since the pool opened, i.e.
-  nothing serves its `base_url` (a local server not started, a typo in the host). Retrying
+  (refused, DNS, TLS), a gateway answered that its upstream is unreachable, or every attempt
+  timed out (`retry.request_timeout_s`), at an endpoint that has not answered once since the
+  pool opened, i.e. nothing serves its `base_url` (a local server not started, a typo in the
+  host, a gateway's provider down). Retrying
   would only turn every episode into an infrastructure error; once the endpoint has answered,
   the same errors are transient (a server restarting) and retried as before.
 - `ResponseFormatError`: a body that is not what the API documents. Raised by the parsers,
@@ -95,9 +99,12 @@ class RequestRejected(LLMError):
         elapsed_s: float,
         fatal: bool = False,
         hint: str = "",
+        meaning: str | None = None,
     ):
         super().__init__(endpoint, message, attempts=attempts, elapsed_s=elapsed_s)
         self.status = status
+        self.meaning = meaning
+        """What the error body named (`retry.meaning_of`: key, model), whatever the status."""
         self.fatal = fatal
         """The endpoint cannot serve this sweep as configured: stop, record nothing."""
         self.hint = hint
@@ -114,7 +121,10 @@ class RequestRejected(LLMError):
 
     @property
     def kind(self) -> str:
-        """auth (401/403), not_found (404), too_large (413) or bad_request (other 4xx)."""
+        """auth (401/403, or a body naming the key), not_found (404, or a body naming an
+        unknown model), too_large (413) or bad_request (other 4xx)."""
+        if self.meaning in ("key", "model"):
+            return "auth" if self.meaning == "key" else "not_found"
         return {401: "auth", 403: "auth", 404: "not_found", 413: "too_large"}.get(
             self.status, "bad_request"
         )

@@ -4,8 +4,9 @@ A `RateBudget` enforces one rate limit two ways at once:
 
 - a sliding window: the amounts admitted in any window of one period never add up to more
   than the limit (a provider's "per minute" taken literally, whatever minute you pick). The
-  window is 1 % longer than the period, so that the jitter between our admission and the
-  provider's arrival clock does not look like an excess on its side.
+  window is 1 % longer than the period, and at least `MIN_SLACK_S` longer, so that the jitter
+  between our admission and the provider's arrival clock does not look like an excess on its
+  side (that jitter is absolute: a busy host's processes, a limit board's round trip).
 - a token bucket (refill limit/period per second, capacity `burst_s` seconds of that), which
   spreads admissions out: providers enforce per-minute limits on shorter slices (OpenAI:
   "60,000 RPM may be enforced as 1,000 requests per second"), so a whole minute's budget in
@@ -32,6 +33,8 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
 WINDOW_MARGIN = 0.01
+MIN_SLACK_S = 0.25
+"""The least a client's window exceeds the period by (short periods: tests, benchmarks)."""
 
 
 class _Entry:
@@ -55,6 +58,8 @@ class RateBudget:
         self.limit = float(limit)
         self.period_s = float(period_s)
         self.window_s = self.period_s * (1 + margin)
+        if margin > 0:
+            self.window_s = max(self.window_s, self.period_s + MIN_SLACK_S)
         self.rate = self.limit / self.period_s
         self.capacity = min(self.limit, max(1.0, self.rate * burst_s))
         self._level = self.capacity

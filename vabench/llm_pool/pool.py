@@ -27,7 +27,7 @@ import os
 import random
 import sys
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from pydantic import SecretStr
@@ -52,7 +52,7 @@ from vabench.llm_pool.limits import ConcurrencyLimiter, RateLimiter
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, ParsedResponse, Usage
 from vabench.llm_pool.retry import RetryDecision, backoff_delay
 from vabench.llm_pool.shared_limits import SharedLimits
-from vabench.llm_pool.spend import SpendCaps
+from vabench.llm_pool.spend import CapReached, Caps, LocalCaps, Reservation, SpendCaps
 from vabench.llm_pool.tokens import estimate_input_tokens
 from vabench.llm_pool.transport import Failure, Transport
 
@@ -65,6 +65,10 @@ else:
     from async_timeout import timeout
 
 log = logging.getLogger("vabench.llm_pool")
+
+TIMEOUTS_TO_STOP = 2
+"""Attempts timed out, with nothing ever answered, after which the endpoint counts as
+unreachable (one slow first answer is retried once)."""
 
 
 @dataclass
@@ -109,6 +113,8 @@ class _Call:
     attempt: int = 0
     failures: list[str] = field(default_factory=list)
     body: bytes | None = None
+    rate_waits: int = 0
+    """Attempts answered 429/529: waits, not failures (`max_attempts` counts the others)."""
 
 
 class EndpointClient:
@@ -139,13 +145,18 @@ class EndpointClient:
                 limits.rpm, limits.tpm, period_s=limits.period_s, burst_s=limits.burst_s
             )
         self._counters = CallCounts()
-        self.spend_caps: SpendCaps | None = None
-        """`limits.max_cost_usd` kept by the sweep (`LLMPool.set_spend_caps`); None: no cap."""
+        self.spend_caps: Caps | None = None
+        """`limits.max_cost_usd` kept by the sweep (`LLMPool.set_spend_caps`, or the limit
+        board's, `LLMPool(spend_caps=...)`); None: no cap."""
         self._paused_until = 0.0
         self._closed = False
         self._warned_no_usage = False
         self._answered = False
         """Whether any reply (any status) came back: connection failures are then transient."""
+        self._unanswered_timeouts = 0
+        """Attempts that timed out while the endpoint had never answered (`TIMEOUTS_TO_STOP`)."""
+        self._rate_waits = 0
+        """429s without a hint in a row: each pauses the endpoint twice as long (`_rate_wait`)."""
 
     @property
     def name(self) -> str:
@@ -180,10 +191,13 @@ class EndpointClient:
                 self.name, str(err), status=413, attempts=0, elapsed_s=0.0
             ) from None
         bound = self._upper_bound_usd(estimate, options.resolved_max_output_tokens)
-        caps = self.spend_caps
-        if caps is not None and (reached := caps.hold(self.name, bound)) is not None:
-            self._counters.rejected += 1
-            raise SpendCapReached(self.name, reached)
+        held: Reservation | None = None
+        if self.spend_caps is not None:
+            reserved = await self.spend_caps.reserve(self.name, bound)
+            if isinstance(reserved, CapReached):
+                self._counters.rejected += 1
+                raise SpendCapReached(self.name, reserved)
+            held = reserved
         self._counters.started += 1
         call = _Call(request, options, estimate, asyncio.get_running_loop().time())
         cost = 0.0
@@ -200,8 +214,8 @@ class EndpointClient:
             self._counters.cancelled += 1
             raise
         finally:
-            if caps is not None:
-                caps.settle(self.name, bound, cost)
+            if held is not None:
+                held.settle(cost)
         self._counters.succeeded += 1
         return result
 
@@ -250,7 +264,7 @@ class EndpointClient:
         self._counters.attempts += 1
         sent = loop.time()
         outcome = await self._transport.post(call.body, attempt_timeout)
-        if not (isinstance(outcome, Failure) and outcome.unreachable):
+        if not (isinstance(outcome, Failure) and (outcome.unreachable or outcome.timed_out)):
             self._answered = True
         if isinstance(outcome, Failure):
             # No usage came back; the provider may have counted the estimate: keep it.
@@ -265,6 +279,7 @@ class EndpointClient:
                 self.name,
             )
         self.concurrency.on_success()
+        self._rate_waits = 0
         return self._result(call, outcome, loop.time() - sent)
 
     def _note_failure(self, call: _Call, failure: Failure) -> RetryDecision:
@@ -272,19 +287,42 @@ class EndpointClient:
         loop = asyncio.get_running_loop()
         call.failures.append(failure.line)
         decision = failure.decision
+        where = self.config.base_url or self.url
         if failure.unreachable and not self._answered:
-            where = self.config.base_url or self.url
+            hint = (
+                f"the endpoint at {where} (base_url of model {self.name!r}) answered that it "
+                "cannot reach the server behind it: check the gateway's upstream"
+                if failure.status is not None
+                else f"check that a server is running at {where} (base_url of model "
+                f"{self.name!r}) and that this machine can reach it"
+            )
             raise EndpointUnreachable(
                 self.name,
                 failure.line,
                 attempts=call.attempt,
                 elapsed_s=loop.time() - call.started,
-                hint=f"check that a server is running at {where} (base_url of model "
-                f"{self.name!r}) and that this machine can reach it",
+                hint=hint,
             )
-        if not decision.retry:
+        if failure.timed_out and not self._answered:
+            self._unanswered_timeouts += 1
+            if self._unanswered_timeouts >= TIMEOUTS_TO_STOP:
+                timeout_s = self.config.retry.request_timeout_s
+                raise EndpointUnreachable(
+                    self.name,
+                    f"every call of model {self.name!r} timed out after {timeout_s:g} s "
+                    f"({self._unanswered_timeouts} attempts, none answered)",
+                    attempts=call.attempt,
+                    elapsed_s=loop.time() - call.started,
+                    hint=f"check that the server at {where} serves model "
+                    f"{self.config.provider_model!r}, or raise retry.request_timeout_s of "
+                    f"model {self.name!r}",
+                )
+        fatal_meaning = failure.meaning in ("key", "model") and (
+            (failure.status or 0) < 500 or self._counters.succeeded == 0
+        )
+        if not decision.retry or fatal_meaning:
             status = failure.status or 0
-            fatal, hint = self._refusal(status)
+            fatal, hint = self._refusal(status, failure.meaning)
             if context_exceeded(status, failure.line):  # the episode's failure, not the sweep's
                 fatal, hint = False, ""
             raise RequestRejected(
@@ -295,21 +333,38 @@ class EndpointClient:
                 elapsed_s=loop.time() - call.started,
                 fatal=fatal,
                 hint=hint,
+                meaning=failure.meaning,
             )
         if decision.kind == "rate_limit":
             self._counters.rate_limited += 1
             self.concurrency.on_overload(loop.time())
+            call.rate_waits += 1  # a wait, not a failure: the deadline bounds them
+            if decision.retry_after is None:  # a gateway's 429 without a hint: wait longer each
+                decision = replace(decision, retry_after=self._rate_wait())
             if decision.retry_after is not None:  # the endpoint, not just this call, waits
                 self._paused_until = max(self._paused_until, loop.time() + decision.retry_after)
                 if self._shared is not None:  # and so does every process sharing its limits
                     self._shared.pause(decision.retry_after)
         return decision
 
-    def _refusal(self, status: int) -> tuple[bool, str]:
-        """Whether a non-retryable status means the endpoint cannot serve the sweep at all
-        (see `errors.RequestRejected`), and what to check."""
+    def _rate_wait(self) -> float:
+        """The pause after a 429 that named no wait: the backoff base, doubled for each such
+        429 in a row (back to the base after a success), at most the backoff ceiling."""
+        retry = self.config.retry
+        self._rate_waits += 1
+        return min(retry.backoff_max_s, retry.backoff_base_s * 2 ** (self._rate_waits - 1))
+
+    def _refusal(self, status: int, meaning: str | None = None) -> tuple[bool, str]:
+        """Whether a refusal (a non-retryable status, or a body naming the key or the model)
+        means the endpoint cannot serve the sweep at all (see `errors.RequestRejected`), and
+        what to check: only settings of the model's API."""
         c = self.config
-        if status in (401, 403):
+        if meaning == "model":
+            return True, (
+                f"the endpoint does not know the model {c.provider_model!r}: check `model` "
+                f"(default: the name) of model {c.name!r} against the endpoint's list"
+            )
+        if status in (401, 403) or meaning == "key":
             where = (
                 f"the key in the environment variable {c.api_key_env} (api_key_env of model "
                 f"{c.name!r})"
@@ -320,16 +375,19 @@ class EndpointClient:
         if status == 404:
             return True, f"check the model id {c.provider_model!r} and the URL {self.url}"
         if status == 400 and self._counters.succeeded == 0:
+            fields = "generation options"
+            if c.api == "openai_chat":
+                fields += " and max_tokens_field"
             return True, (
                 f"the endpoint has not accepted one request of model {c.name!r}: check its "
-                "generation options and max_tokens_field against what the endpoint takes"
+                f"{fields} against what the endpoint takes"
             )
         return False, ""
 
     async def _back_off(self, call: _Call, decision: RetryDecision) -> None:
         """Wait before the next attempt, or raise if the attempts or the time are spent."""
         retry = self.config.retry
-        if call.attempt >= retry.max_attempts:
+        if call.attempt - call.rate_waits >= retry.max_attempts:
             raise self._infra(
                 call, f"gave up after {call.attempt} attempts; last: {call.failures[-1]}"
             )
@@ -405,9 +463,11 @@ class LLMPool:
         environ: Mapping[str, str] | None = None,
         seed: int | None = None,
         shared_limits: Callable[[ModelEndpoint], SharedLimits | None] | None = None,
+        spend_caps: Caps | None = None,
     ):
         """`shared_limits(endpoint)`: the limits an endpoint shares with other processes, or
-        None for its own (the default for every endpoint)."""
+        None for its own (the default for every endpoint). `spend_caps`: the spend caps kept
+        for several processes (the limit board's); `set_spend_caps` then changes nothing."""
         environ = os.environ if environ is None else environ
         keep_trimmed()  # else a long run's read buffers hold heap pages (heap.py)
         rng = random.Random(seed)
@@ -424,12 +484,19 @@ class LLMPool:
                 key = SecretStr(value)
             shared = shared_limits(ep) if shared_limits is not None else None
             self._clients[ep.name] = EndpointClient(ep, key, random.Random(rng.random()), shared)
+        self.shared_spend = spend_caps is not None
+        """Whether the spend caps are kept for several processes (`spend_caps`)."""
+        for client in self._clients.values():
+            client.spend_caps = spend_caps
 
     def set_spend_caps(self, caps: SpendCaps | None) -> None:
-        """Keep `caps` (`limits.max_cost_usd`) before every call of every endpoint from now on;
-        None lifts them."""
+        """Keep `caps` (`limits.max_cost_usd`) in this process before every call of every
+        endpoint from now on; None lifts them. A pool whose caps are shared keeps those."""
+        if self.shared_spend:
+            return
+        kept = LocalCaps(caps) if caps is not None else None
         for client in self._clients.values():
-            client.spend_caps = caps
+            client.spend_caps = kept
 
     @property
     def names(self) -> list[str]:

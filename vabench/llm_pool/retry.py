@@ -25,6 +25,28 @@ from typing import Literal
 
 from vabench.llm_pool.config import RetryPolicy
 
+ErrorMeaning = Literal["key", "model", "upstream"]
+"""What an error body says beyond its status: the key was refused (`key`), the model name is
+unknown (`model`), or a gateway could not reach its upstream (`upstream`)."""
+
+_KEY = re.compile(
+    r"api[ _-]?key|\bauth(?:entication|orization|_error)?\b|unauthori[sz]ed|credential|"
+    r"no connected db|invalid[ _-]?(?:x-)?key|permission[ _-]denied|\bforbidden\b",
+    re.IGNORECASE,
+)
+_MODEL = re.compile(
+    r"model_not_found|no such model|unknown model|invalid model|"
+    r"model\b[^.\n]{0,80}\b(?:not found|does not exist|not exist|unknown|is not supported|"
+    r"not available|invalid)",
+    re.IGNORECASE,
+)
+_UPSTREAM = re.compile(
+    r"connection error|apiconnectionerror|connecterror|connection refused|cannot connect|"
+    r"failed to connect|no fallback was attempted|upstream connect error|"
+    r"name or service not known|connection reset",
+    re.IGNORECASE,
+)
+
 RETRYABLE_STATUSES = frozenset({408, 409, 429})
 OVERLOAD_STATUSES = frozenset({429, 529})  # the endpoint says "less, please": adapt to it
 MAX_HINT_S = 3600.0  # ignore absurd hints (a clock far off, a daily quota) beyond an hour
@@ -52,6 +74,22 @@ def decide(status: int, headers: Mapping[str, str], *, now: float | None = None)
     if status in RETRYABLE_STATUSES or status >= 500:
         return RetryDecision("transient", f"HTTP {status}", hint)
     return RetryDecision("no", f"HTTP {status}")
+
+
+def meaning_of(status: int, message: str) -> ErrorMeaning | None:
+    """What an error reply's `message` (its body's error message, type and code) says, read
+    the same for a provider and for a gateway relaying it: a gateway answers a wrong key with
+    a 400 ("No connected db."), a missing one with a 500, a down upstream with a 500 naming
+    the connection error. None when it says none of these (the status decides)."""
+    if status < 400:
+        return None
+    if _UPSTREAM.search(message) and status >= 500:
+        return "upstream"
+    if _MODEL.search(message):
+        return "model"
+    if _KEY.search(message):
+        return "key"
+    return None
 
 
 _GO_DURATION = re.compile(r"(\d+(?:\.\d+)?)(ms|us|µs|ns|h|m|s)")

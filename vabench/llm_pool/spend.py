@@ -11,6 +11,11 @@ recorded (read from the run directory by the sweep when it starts or resumes) pl
 process's calls cost since, plus the upper bound of every call in flight. A call whose upper
 bound (its estimated input and its whole output limit, at the model's prices) would cross a cap
 is refused before it is sent (`SpendCapReached`), so a cap is never passed by this process.
+
+A pool reaches its caps through `Caps.reserve`, which hands back a `Reservation` to settle
+when the call ends: `LocalCaps` keeps them in this process; the sweep's limit board keeps them
+for several processes at once (`sweep.limiter.BoardSpend`), so worker processes and Ray engines
+spend against one count, exact to the reservation.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import math
 from collections import defaultdict
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Protocol
 
 from vabench.llm_pool.settings import Prices
 
@@ -127,3 +133,37 @@ class SpendCaps:
         """A held call ended: its reservation goes, what it cost (0 when it failed) stays."""
         self._held[model] -= upper_bound
         self.spent[model] += cost
+
+
+class Reservation(Protocol):
+    """A call's reserved upper bound: `settle(cost)` once it ended (0 when it failed)."""
+
+    def settle(self, cost: float) -> None: ...
+
+
+class Caps(Protocol):
+    """Where a pool reserves a call's upper bound before sending it (`LocalCaps`, or the limit
+    board's `sweep.limiter.BoardSpend`)."""
+
+    async def reserve(self, model: str, upper_bound: float) -> Reservation | CapReached: ...
+
+
+@dataclass
+class _LocalReservation:
+    caps: SpendCaps
+    model: str
+    upper_bound: float
+
+    def settle(self, cost: float) -> None:
+        self.caps.settle(self.model, self.upper_bound, cost)
+
+
+class LocalCaps:
+    """`SpendCaps` kept in this process (one process runs every call that spends)."""
+
+    def __init__(self, caps: SpendCaps):
+        self.caps = caps
+
+    async def reserve(self, model: str, upper_bound: float) -> Reservation | CapReached:
+        reached = self.caps.hold(model, upper_bound)
+        return reached if reached is not None else _LocalReservation(self.caps, model, upper_bound)

@@ -19,11 +19,11 @@ import aiohttp
 from pydantic import SecretStr
 
 from vabench.llm_pool.apis import ApiAdapter
-from vabench.llm_pool.apis.base import error_message
+from vabench.llm_pool.apis.base import error_message, error_words
 from vabench.llm_pool.config import ModelEndpoint
 from vabench.llm_pool.errors import ResponseFormatError
 from vabench.llm_pool.messages import ParsedResponse
-from vabench.llm_pool.retry import RetryDecision, decide
+from vabench.llm_pool.retry import ErrorMeaning, RetryDecision, decide, meaning_of
 
 
 @dataclass(frozen=True)
@@ -34,7 +34,11 @@ class Failure:
     decision: RetryDecision
     status: int | None = None
     unreachable: bool = False
-    """No connection was made (refused, DNS, TLS): nothing of the endpoint answered."""
+    """No connection was made (refused, DNS, TLS), or a gateway answered that it could not
+    reach its upstream: nothing that serves the model answered."""
+    meaning: ErrorMeaning | None = None
+    """What the error body says beyond its status (`retry.meaning_of`)."""
+    timed_out: bool = False
 
 
 class Transport:
@@ -72,9 +76,8 @@ class Transport:
                 raw = await resp.read()
                 status, headers = resp.status, resp.headers
         except asyncio.TimeoutError:
-            return self._failure(
-                f"timeout after {timeout:.1f} s", RetryDecision("transient", "timeout")
-            )
+            line = f"timeout after {timeout:.1f} s"
+            return self._failure(line, RetryDecision("transient", "timeout"), timed_out=True)
         except aiohttp.ClientError as err:
             line = f"{type(err).__name__}: {err}"
             # ClientConnectorError covers refused connections, DNS (ClientConnectorDNSError)
@@ -87,7 +90,9 @@ class Transport:
             except ResponseFormatError as err:
                 return self._failure(str(err), RetryDecision("transient", "malformed"), status)
         line = f"HTTP {status}: {error_message(raw)}"
-        return self._failure(line, decide(status, headers), status)
+        meaning = meaning_of(status, error_words(raw))
+        unreachable = meaning == "upstream"
+        return self._failure(line, decide(status, headers), status, unreachable, meaning)
 
     def _failure(
         self,
@@ -95,11 +100,14 @@ class Transport:
         decision: RetryDecision,
         status: int | None = None,
         unreachable: bool = False,
+        meaning: ErrorMeaning | None = None,
+        *,
+        timed_out: bool = False,
     ) -> Failure:
         # Providers sometimes echo (part of) a key in errors; never let it reach a record.
         if self._key:
             line = line.replace(self._key, "[redacted]")
-        return Failure(line, decision, status, unreachable)
+        return Failure(line, decision, status, unreachable, meaning, timed_out)
 
     async def close(self) -> None:
         if self._session is not None:

@@ -21,12 +21,13 @@ problem stops the sweep with exit code 2 and its fix, before anything is recorde
 server's models need none; `--no-check` skips it.
 
 Running the same command again resumes: finished episodes are never re-run, interrupted ones
-start again, infrastructure failures get their retry rounds. Ctrl-C stops the sweep cleanly
-(a second press at once) and says how to resume. Exit code 0 when every planned episode is in
-results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run directory of
-another plan, or an endpoint that refused the sweep's requests (a wrong key, an unknown model,
-no server at its base_url: the sweep stops at once, naming the model and what to check), 130
-after Ctrl-C.
+start again, infrastructure failures get their retry rounds, and episodes that ended as
+infrastructure errors are run again (`--no-retry-infrastructure` keeps them). Ctrl-C stops the
+sweep cleanly (a second press at once) and says how to resume. Exit code 0 when every planned
+episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run
+directory of another plan, or an endpoint that refused the sweep's requests (a wrong key, an
+unknown model, no server at its base_url: the sweep stops at once, naming the model and what to
+check), 130 after Ctrl-C.
 """
 
 from __future__ import annotations
@@ -76,7 +77,12 @@ from vabench.sweep.overrides import OverrideError, Overrides  # noqa: E402
 from vabench.sweep.overrides import add_arguments as add_overrides  # noqa: E402
 from vabench.sweep.pace import measured_pace, wall_time_line  # noqa: E402
 from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
-from vabench.sweep.results import Ledger, LedgerError, ledger_key  # noqa: E402
+from vabench.sweep.results import (  # noqa: E402
+    Ledger,
+    LedgerError,
+    ledger_key,
+    reopen_infrastructure_errors,
+)
 from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
 from vabench.sweep.runner import LocalSweep, SweepStopped  # noqa: E402
 
@@ -112,6 +118,12 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         "--no-check",
         action="store_true",
         help="skip the check of each model's endpoint before the first episode (vabench.check)",
+    )
+    p.add_argument(
+        "--no-retry-infrastructure",
+        action="store_true",
+        help="keep the episodes that ended as infrastructure errors (by default the same "
+        "command runs them again, their earlier attempts kept in the record)",
     )
     add_overrides(p)
     args = p.parse_args(argv)
@@ -157,6 +169,14 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     except RunDirMismatch as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    if not args.no_retry_infrastructure:
+        reopened = reopen_infrastructure_errors(run_dir, {ledger_key(k) for k in keys})
+        if reopened:
+            log.info(
+                "running again %d episodes that ended as infrastructure errors (their attempts "
+                "are kept; --no-retry-infrastructure keeps them as they are)",
+                len(reopened),
+            )
     os.environ.update(keys_from.added())  # the pool and the processes it starts read them here
     if not args.no_check and _check_endpoints(config, keys):
         return 2

@@ -26,11 +26,12 @@ import yaml
 
 from vabench.config import SweepConfig, SweepConfigError, load_config
 from vabench.run_layout import CONFIG, PLAN, RunDir
+from vabench.sweep.board_socket import BoardAddress, joined
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import status_of
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Sink, ledger_key
-from vabench.sweep.runner import LocalSweep, SweepProgress
+from vabench.sweep.runner import LocalSweep, SweepProgress, open_engine
 
 Cell = tuple[str, str, str]
 """(model, track, task)."""
@@ -163,6 +164,7 @@ def run_cell(
     run_dir: str,
     keys: Sequence[KeyTuple],
     sink: Sink | None = None,
+    board: BoardAddress | None = None,
 ) -> dict[str, Any]:
     """One cell, in a worker process: the episodes `keys` (all of one (model, track, task)) of
     the config `document` run by a `LocalSweep` into `run_dir`, on the sweep's `choices` (made
@@ -171,13 +173,14 @@ def run_cell(
     physics' label, the in-flight gate's reason) and the environment it ran in (JAX's
     platform, the variables of `WORKER_ENVIRONMENT`). With `sink`, ledger lines go there
     instead of the files (the parent writes them), with a `STATUS` line every second for the
-    parent's display."""
+    parent's display. With `board`, the cell's limits and spend caps are those of the sweep's
+    limit board (`board_socket`), shared with every other worker."""
     run = Path(run_dir)
     config = load_document(document, run)
     sweep = LocalSweep(config, [EpisodeKey(*k) for k in keys], run, choices, ledger_sink=sink)
     model, track, task = keys[0][:3]
     report = None if sink is None else (lambda status: sink(STATUS, status_line(keys, status)))
-    counts = asyncio.run(_run_reporting(sweep, report)).cells[(model, track, task)]
+    counts = asyncio.run(_run_reporting(sweep, report, board)).cells[(model, track, task)]
     import jax
 
     return {
@@ -196,11 +199,31 @@ def run_cell(
 
 
 async def _run_reporting(
-    sweep: LocalSweep, report: Callable[[dict[str, Any]], None] | None
+    sweep: LocalSweep,
+    report: Callable[[dict[str, Any]], None] | None,
+    board: BoardAddress | None = None,
 ) -> SweepProgress:
-    """`sweep.run()`, with `report(status)` every `STATUS_EVERY_S` and once at the end."""
+    """`sweep.run()`, with `report(status)` every `STATUS_EVERY_S` and once at the end; with
+    `board`, on an engine whose limits are the board's."""
+    if board is not None:
+        async with joined(board) as limits:
+            opened = open_engine(
+                sweep.config,
+                sweep.choices,
+                sweep.run_dir,
+                shared_limits=limits,
+                spend_caps=limits.spend,
+            )
+            async with opened as engine:
+                return await _run_reporting_in(sweep, report, engine)
+    return await _run_reporting_in(sweep, report, None)
+
+
+async def _run_reporting_in(
+    sweep: LocalSweep, report: Callable[[dict[str, Any]], None] | None, engine: Any
+) -> SweepProgress:
     if report is None:
-        return await sweep.run()
+        return await sweep.run(engine)
 
     async def every_second() -> None:
         while True:
@@ -209,7 +232,7 @@ async def _run_reporting(
 
     ticker = asyncio.create_task(every_second())
     try:
-        return await sweep.run()
+        return await sweep.run(engine)
     finally:
         ticker.cancel()
         report(cell_status(sweep.progress, finished=True))

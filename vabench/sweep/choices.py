@@ -138,15 +138,15 @@ class ExecutorChoice:
 
 
 def resolve_executor(
-    options: Any, machine: Machine, physics: Choice | None = None, spend_capped: bool = False
+    options: Any, machine: Machine, physics: Choice | None = None
 ) -> ExecutorChoice:
-    """`options` is the config's `ExecutorOptions`; `physics` the resolved simulator;
-    `spend_capped`: a `limits.max_cost_usd` is set (kept exactly by one process only)."""
+    """`options` is the config's `ExecutorOptions`; `physics` the resolved simulator. Spend
+    caps do not matter here: the limit board keeps them for every process."""
     kind, max_tasks = options.kind, options.max_tasks
     warp = physics is not None and physics.is_warp
     gpus = len(machine.gpus)
     use_mps = warp and gpus > 0 and machine.mps and options.mps == "auto"
-    if kind == "auto" and use_mps and not spend_capped:
+    if kind == "auto" and use_mps:
         engines = max_tasks or mps.ENGINES_PER_GPU * gpus
         per_gpu = math.ceil(engines / gpus)
         reason = MPS_REASON.format(
@@ -156,21 +156,12 @@ def resolve_executor(
         )
         return ExecutorChoice("processes", engines, reason, mps=per_gpu > 1, per_gpu=per_gpu)
     if kind == "auto" and warp and gpus <= 1:
-        reason = ONE_GPU_REASON
-        if spend_capped and use_mps:
-            reason = "auto: a spend cap (limits.max_cost_usd) is kept exactly by one process"
-        return ExecutorChoice("local", max_tasks or GPU_LOCAL_MAX_TASKS, reason)
-    if kind == "auto" and warp and not spend_capped:
+        return ExecutorChoice("local", max_tasks or GPU_LOCAL_MAX_TASKS, ONE_GPU_REASON)
+    if kind == "auto" and warp:
         return ExecutorChoice(
             "processes",
             max_tasks or gpus,
             MULTI_GPU_REASON.format(n=gpus, cores=machine.cores // gpus),
-        )
-    if kind == "auto" and spend_capped:
-        return ExecutorChoice(
-            "local",
-            max_tasks or LOCAL_MAX_TASKS,
-            "auto: a spend cap (limits.max_cost_usd) is kept exactly by one process",
         )
     if kind == "auto":
         if machine.cores >= PROCESSES_FROM_CORES:
@@ -231,10 +222,7 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
     ex = config.executor
     physics = resolve(config.simulator.backend)
     in_flight = in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched)
-    capped = config.limits.max_cost_usd is not None or any(
-        m.limits.max_cost_usd is not None for m in config.models
-    )
-    executor = resolve_executor(ex, machine, physics, spend_capped=capped)
+    executor = resolve_executor(ex, machine, physics)
     if executor.per_gpu > 1 and physics.batched:  # the GPU's episodes shared by its engines
         in_flight = in_flight_rule(
             ex.in_flight, max(1, ex.max_episodes // executor.per_gpu), physics.batched

@@ -1,21 +1,28 @@
-"""One place for each endpoint's limits across a Ray cluster: the limit board.
+"""One place for each endpoint's limits across a sweep's processes: the limit board.
 
-Every engine actor of a Ray sweep (`ray_engine.EngineActor`) has its own LLM pool; without
-this, N actors would each keep an endpoint's RPM, TPM and concurrency, and send N times what
-the provider allows. The `LimitBoard` holds, per endpoint of the sweep that is not served by
-the embedded server (each actor runs its own embedded server, whose limits are its own):
+Every worker process (`process_executor`) and engine actor of a Ray sweep
+(`ray_engine.EngineActor`) has its own LLM pool; without this, N of them would each keep an
+endpoint's RPM, TPM and concurrency, and send N times what the provider allows. The
+`LimitBoard` holds, per endpoint of the sweep that is not served by the embedded server (each
+process runs its own embedded server, whose limits are its own):
 
 - the endpoint's `ConcurrencyLimiter` (adaptive when the config says so, moved by the
   overloads and successes every actor reports), with the slots each actor holds;
 - its RPM and TPM windows (`RateBudget`, exactly as a single pool keeps them; the tokens of an
   admission settled to the reported usage);
-- a pause: a Retry-After seen by any actor holds every actor's next admission.
+- a pause: a Retry-After seen by any actor holds every actor's next admission;
+
+and, for the whole sweep, its spend caps (`llm_pool.spend.SpendCaps`): every call's upper bound
+is reserved on the board before it is sent (`BoardSpend`), so the caps hold exactly however many
+processes spend.
 
 The pools reach the board through `llm_pool.shared_limits.SharedLimits` (the client side, which
 batches the waiting calls of one process into one request); `LimiterActor` is the board as a
 Ray actor (one per sweep, on the driver's node, owned by the driver and gone with it), and
-`RayChannel` the client's way to it. `forget(holder)` frees what a dead actor held: the driver
-calls it when an actor dies.
+`RayChannel` the client's way to it; worker processes reach the board in their parent through a
+local socket (`board_socket`). `forget(holder)` frees what a dead process held (its slots; its
+spend reservations are counted as spent, as the provider may have billed them): the driver
+calls it when an actor dies, the socket when a worker's connection closes.
 
 Admissions are taken when the board grants them and the request leaves the actor a moment
 later (a round trip, milliseconds); the windows are the pool's own, 1 % longer than the
@@ -32,6 +39,7 @@ from typing import Any
 from vabench.llm_pool.config import Limits, ModelEndpoint
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateBudget
 from vabench.llm_pool.shared_limits import SharedLimits
+from vabench.llm_pool.spend import CapReached, Reservation, SpendCaps
 
 
 class _Endpoint:
@@ -85,11 +93,16 @@ class LimitBoard:
     """The limits of the endpoints `limits` (name -> `Limits`) for every process of a sweep
     (see the module docstring). Runs in one asyncio loop; every method is called there."""
 
-    def __init__(self, limits: Mapping[str, Limits | Mapping[str, Any]]):
+    def __init__(
+        self, limits: Mapping[str, Limits | Mapping[str, Any]], spend: SpendCaps | None = None
+    ):
         self._endpoints = {
             name: _Endpoint(v if isinstance(v, Limits) else Limits.model_validate(v))
             for name, v in limits.items()
         }
+        self.spend = spend
+        self._reserved: dict[tuple[str, int], tuple[str, float]] = {}
+        """(holder, its reservation's number) -> (model, upper bound) of the calls in flight."""
         self._forgotten: set[str] = set()
         self._next_lease = 0
 
@@ -179,12 +192,36 @@ class LimitBoard:
         ep = self._endpoint(endpoint)
         ep.paused_until = max(ep.paused_until, asyncio.get_running_loop().time() + seconds)
 
+    def hold(self, holder: str, number: int, model: str, upper_bound: float) -> CapReached | None:
+        """Reserve the `upper_bound` of a call of `model` (`holder`'s reservation `number`);
+        the cap it would cross, or None when reserved. Runs at once, in the order sent."""
+        if holder in self._forgotten:
+            raise RuntimeError(f"the board no longer serves {holder}")
+        if self.spend is None:
+            return None
+        reached = self.spend.hold(model, upper_bound)
+        if reached is None:
+            self._reserved[(holder, number)] = (model, upper_bound)
+        return reached
+
+    def settle_spend(self, holder: str, number: int, cost: float) -> None:
+        """`holder`'s reservation `number` ended, costing `cost` (an unknown one: refused, or
+        already counted when its holder was forgotten)."""
+        held = self._reserved.pop((holder, number), None)
+        if held is not None and self.spend is not None:
+            self.spend.settle(held[0], held[1], cost)
+
     def forget(self, holder: str) -> None:
-        """`holder` is gone: free its slots, and never grant it anything again."""
+        """`holder` is gone: free its slots, count its reservations as spent, and never grant
+        it anything again."""
         self._forgotten.add(holder)
         for ep in self._endpoints.values():
             for _ in range(ep.held.pop(holder, 0)):
                 ep.concurrency.release()
+        for key in [k for k in self._reserved if k[0] == holder]:
+            model, bound = self._reserved.pop(key)
+            if self.spend is not None:
+                self.spend.settle(model, bound, bound)
 
     def stats(self) -> dict[str, dict[str, Any]]:
         """Per endpoint: slots in use and by whom, the bound, admissions and slots granted."""
@@ -199,12 +236,22 @@ class LimitBoard:
             for name, ep in self._endpoints.items()
         }
 
+    def spent(self) -> dict[str, float]:
+        """US dollars per model counted by the spend caps (recorded before plus spent since)."""
+        return dict(self.spend.spent) if self.spend is not None else {}
+
 
 class LimiterActor:
     """The `LimitBoard` as a Ray actor (async: every method runs in the actor's one loop)."""
 
-    def __init__(self, limits: Mapping[str, Mapping[str, Any]]):
-        self.board = LimitBoard(limits)
+    def __init__(self, limits: Mapping[str, Mapping[str, Any]], spend: SpendCaps | None = None):
+        self.board = LimitBoard(limits, spend)
+
+    async def hold(self, *args: Any) -> CapReached | None:
+        return self.board.hold(*args)
+
+    async def settle_spend(self, *args: Any) -> None:
+        self.board.settle_spend(*args)
 
     async def slots(self, endpoint: str, holder: str, want: int, priority: bool) -> Any:
         return await self.board.slots(endpoint, holder, want, priority)
@@ -246,7 +293,8 @@ class LocalChannel:
 
     async def call(self, method: str, *args: Any) -> Any:
         await asyncio.sleep(0)  # a round trip's worth of interleaving
-        return await getattr(self.board, method)(*args)
+        answer = getattr(self.board, method)(*args)
+        return await answer if asyncio.iscoroutine(answer) else answer
 
     def send(self, method: str, *args: Any) -> None:
         getattr(self.board, method)(*args)
@@ -257,15 +305,47 @@ def shared_endpoints(models: Any, embedded: Any) -> dict[str, dict[str, Any]]:
     return {m.name: m.limits.model_dump() for m in models if m.name not in set(embedded)}
 
 
+class _BoardReservation:
+    def __init__(self, channel: Any, holder: str, number: int):
+        self.channel, self.holder, self.number = channel, holder, number
+
+    def settle(self, cost: float) -> None:
+        self.channel.send("settle_spend", self.holder, self.number, float(cost))
+
+
+class BoardSpend:
+    """A process's `LLMPool(spend_caps=...)`: every call's upper bound reserved on the board
+    (`llm_pool.spend.Caps`)."""
+
+    def __init__(self, channel: Any, holder: str):
+        self.channel = channel
+        self.holder = holder
+        self._numbers = 0
+
+    async def reserve(self, model: str, upper_bound: float) -> Reservation | CapReached:
+        self._numbers += 1
+        number = self._numbers
+        try:
+            reached = await self.channel.call("hold", self.holder, number, model, upper_bound)
+        except asyncio.CancelledError:  # granted or not: nothing of it stays held
+            self.channel.send("settle_spend", self.holder, number, 0.0)
+            raise
+        if reached is not None:
+            return reached
+        return _BoardReservation(self.channel, self.holder, number)
+
+
 class BoardLimits:
     """A process's `LLMPool(shared_limits=...)`: the board's limits for the endpoints in
-    `shared` (names), the pool's own for the others. `close()` after the pool."""
+    `shared` (names), the pool's own for the others; with `capped`, the board's spend caps
+    (`spend`, for `LLMPool(spend_caps=...)`). `close()` after the pool."""
 
-    def __init__(self, channel: Any, holder: str, shared: Iterable[str]):
+    def __init__(self, channel: Any, holder: str, shared: Iterable[str], capped: bool = False):
         self.channel = channel
         self.holder = holder
         self.shared = set(shared)
         self.made: list[SharedLimits] = []
+        self.spend = BoardSpend(channel, holder) if capped else None
 
     def __call__(self, endpoint: ModelEndpoint) -> SharedLimits | None:
         if endpoint.name not in self.shared:

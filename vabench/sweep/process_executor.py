@@ -19,6 +19,12 @@ memory, a crash in native code) breaks the whole pool: new workers take up the c
 down, up to `MAX_POOL_RESTARTS` times (an H100 run lost 46 of 72 chunks to one nvJPEG abort
 before this).
 
+One limit board for every worker (`limiter.LimitBoard`, served by the parent on a local
+socket, `board_socket`): the RPM, TPM and concurrency of each endpoint not served by the
+embedded server (each worker's embedded server keeps its own), Retry-After pauses, and the
+spend caps, so N workers send what the config allows, not N times it, and a cap holds exactly.
+A worker that dies gives back what it held when its connection closes.
+
 The workers' environment (`choices.child_environment`): JAX never preallocates GPU memory and
 stays on the CPU unless the physics is MJX on JAX; with several GPUs each worker gets one; each
 worker's `VABENCH_CORES` is its share of the host's cores, which its pools are sized to
@@ -65,6 +71,7 @@ from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS, RunDir
 from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
 from vabench.sweep import kernel_profile, mps, precompile
+from vabench.sweep.board_socket import BoardAddress, BoardServer
 from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
     STATUS,
@@ -79,9 +86,10 @@ from vabench.sweep.cells import (
 )
 from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.display import Status, Tally, with_reports
+from vabench.sweep.limiter import LimitBoard, shared_endpoints
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
-from vabench.sweep.runner import SweepStopped, critical_path_tasks
+from vabench.sweep.runner import SweepStopped, critical_path_tasks, spend_caps
 from vabench.tasks import REGISTRY
 
 log = logging.getLogger(__name__)
@@ -185,6 +193,7 @@ def _run_cell_in_worker(
     run_dir: str,
     keys: Sequence[KeyTuple],
     environment: Mapping[str, str] | None = None,
+    board: BoardAddress | None = None,
 ) -> dict[str, Any]:
     # Before anything here makes a CUDA context, which reads the MPS client priority: with
     # batched physics every chunk is submitted at once, one a worker, but the pool does not
@@ -203,7 +212,7 @@ def _run_cell_in_worker(
         )
     _chunks_run += 1
     with started_with(environment):
-        return _run_chunk(document, choices, run_dir, keys)
+        return _run_chunk(document, choices, run_dir, keys, board)
 
 
 _chunks_run = 0
@@ -211,16 +220,20 @@ _chunks_run = 0
 
 
 def _run_chunk(
-    document: dict[str, Any], choices: Choices, run_dir: str, keys: Sequence[KeyTuple]
+    document: dict[str, Any],
+    choices: Choices,
+    run_dir: str,
+    keys: Sequence[KeyTuple],
+    board: BoardAddress | None,
 ) -> dict[str, Any]:
     kernel_profile.record_in_background()  # where VABENCH_KERNEL_PROFILE asks for it
     folder = os.environ.get(PROFILE_VARIABLE)
     if not folder:
-        return run_cell(document, choices, run_dir, keys, sink=_send)
+        return run_cell(document, choices, run_dir, keys, sink=_send, board=board)
     profile = cProfile.Profile()
     profile.enable()
     try:
-        return run_cell(document, choices, run_dir, keys, sink=_send)
+        return run_cell(document, choices, run_dir, keys, sink=_send, board=board)
     finally:
         profile.disable()
         Path(folder).mkdir(parents=True, exist_ok=True)
@@ -347,6 +360,25 @@ def critical_environment(
     return {mps.PRIORITY_VARIABLE: mps.NORMAL, CORES_VARIABLE: str(cores)}
 
 
+def _start_board(
+    stack: contextlib.ExitStack, config: SweepConfig, run_dir: Path
+) -> BoardAddress | None:
+    """The sweep's limit board, served to the workers until `stack` closes: the limits of
+    every endpoint not served by the embedded server, and the spend caps over what `run_dir`
+    already spent. None when there is nothing to keep."""
+    limits = shared_endpoints(config.models, config.embedded_models)
+    caps = spend_caps(config, run_dir)
+    if not limits and caps is None:
+        return None
+    server = BoardServer(LimitBoard(limits, caps))
+    address = server.start()
+    stack.callback(server.close)
+    kept = [f"the limits of {', '.join(limits)}"] if limits else []
+    kept += ["the spend caps"] if caps is not None else []
+    log.info("processes: one limit board for every worker keeps %s", " and ".join(kept))
+    return BoardAddress(address, tuple(limits), caps is not None)
+
+
 def _gpu_sharing(stack: contextlib.ExitStack, choices: Choices) -> dict[str, str]:
     """Where engine processes share a GPU: an MPS daemon of the sweep's own for them (closed
     with `stack`), and the variables that make the workers its clients. Without it they still
@@ -448,6 +480,7 @@ def run_processes(
         # a few launches (a GPU in exclusive-process mode would refuse the latter: their
         # families then compile in the workers on first use, as after any child's failure).
         compiling = _precompile(config, parts, choices)
+        board = _start_board(gpu, config, run_dir)
         clients = _gpu_sharing(gpu, choices)
         env.update(clients)
         worker_gpus = machine.gpus
@@ -476,6 +509,7 @@ def run_processes(
                         str(run_dir),
                         [ledger_key(k) for k in part],
                         critical_environment(choices, env, part, critical),
+                        board,
                     ): (name, part)
                     for name, part in todo
                 }
@@ -558,7 +592,7 @@ def run_processes(
                 _end_workers(pool)
                 pool.shutdown(wait=True, cancel_futures=True)
             writer.abandon()
-        gpu.close()  # the MPS daemon quits once its clients, the workers, are gone
+        gpu.close()  # the MPS daemon quits once its clients, the workers, are gone; the board
         if compiling is not None:  # long over unless the sweep was: its children end theirs
             compiling.join(timeout=precompile.CHILD_TIMEOUT_S if finished else 0)
     if failures:

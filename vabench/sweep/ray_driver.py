@@ -36,6 +36,7 @@ from vabench.sweep.ray_plan import (
     with_critical_path,
 )
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
+from vabench.sweep.runner import spend_caps
 from vabench.tasks import REGISTRY
 
 # the driver's lines are `ray_executor`'s, as before the driver had a module of its own (log
@@ -117,6 +118,8 @@ class ClusterSweep:
         self.remote = ray.remote(EngineActor)
         self.document = config.document()
         self.shared = sorted(shared_endpoints(config.models, config.embedded_models))
+        self.caps = spend_caps(config, self.run_dir)
+        """The spend caps, kept by the limit board for every engine; None: no cap."""
         self.limiter: Any = None
         self.max_chunks = choices.executor.max_tasks
         self._changed = False
@@ -132,6 +135,8 @@ class ClusterSweep:
             self.resources,
             f"; limits of {', '.join(self.shared)} kept by one board" if self.shared else "",
         )
+        if self.caps is not None:
+            log.info("ray: the spend caps are kept by the limit board for every engine")
 
     # -- the loop ------------------------------------------------------------------------------
     def run(self) -> None:
@@ -214,7 +219,7 @@ class ClusterSweep:
 
     # -- engines -------------------------------------------------------------------------------
     def _start_limiter(self) -> None:
-        if not self.shared:
+        if not self.shared and self.caps is None:
             return
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
@@ -229,7 +234,7 @@ class ClusterSweep:
                 max_concurrency=10_000,
                 scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=False),
             )
-            .remote(limits)
+            .remote(limits, self.caps)
         )
 
     def _fits_a_node(self) -> bool:
@@ -262,6 +267,7 @@ class ClusterSweep:
             self.limiter,
             self.shared,
             holder,
+            self.caps is not None,
         )
         # the families left to run (a key is (model, track, task, seed, run)): compiled at start
         tasks = sorted({key[2] for c in self.queue for key in c.keys})

@@ -67,6 +67,7 @@ class EngineActor:
         limiter: Any = None,
         shared: list[str] | None = None,
         holder: str = "",
+        capped: bool = False,
     ):
         os.environ.update(environ)
         self.run_dir = Path(run_dir)
@@ -92,6 +93,8 @@ class EngineActor:
         self.limiter = limiter
         self.shared = list(shared or [])
         self.holder = holder
+        self.capped = capped
+        """Whether the limit board keeps the spend caps (`sweep.limiter.BoardSpend`)."""
         self.engine: Engine | None = None
         self._stack: contextlib.AsyncExitStack | None = None
         self._sweeps: dict[str, LocalSweep] = {}
@@ -119,14 +122,20 @@ class EngineActor:
                 self._gpus = stack.enter_context(gpu_busy.sampling())
             self._gpu_start = self._gpus.totals() if self._gpus is not None else None
             limits = None
-            if self.limiter is not None and self.shared:
+            if self.limiter is not None and (self.shared or self.capped):
                 from vabench.sweep.limiter import BoardLimits, RayChannel
 
-                limits = BoardLimits(RayChannel(self.limiter), self.holder, self.shared)
+                channel = RayChannel(self.limiter)
+                limits = BoardLimits(channel, self.holder, self.shared, self.capped)
                 stack.push_async_callback(limits.close)  # after the pool has closed
-            self.engine = await stack.enter_async_context(
-                open_engine(cfg, self.choices, self.run_dir, shared_limits=limits)
+            opened = open_engine(
+                cfg,
+                self.choices,
+                self.run_dir,
+                shared_limits=limits,
+                spend_caps=limits.spend if limits is not None else None,
             )
+            self.engine = await stack.enter_async_context(opened)
         except BaseException:
             await stack.aclose()
             raise

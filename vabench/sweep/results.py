@@ -23,6 +23,13 @@ cell workers (engine actors) hand their lines to the parent (the driver) through
 `Ledger(sink=...)`, which appends them (`append_line`), so a worker that outlives a killed
 parent cannot add a line.
 
+An `infrastructure_error` line is final for the invocation that wrote it, not for the next:
+`reopen_infrastructure_errors` (the sweep command, unless `--no-retry-infrastructure`) moves
+such lines back to RUN_DIR/infrastructure.jsonl, marked `reopened` (an episode's attempts are
+counted from its last reopened line on, so it gets its retry rounds again), and sets their
+attempts' files aside in the episode's directory: the same command re-runs them, every earlier
+attempt kept in the record, none counted in the results.
+
 A second line for an episode already in the ledger (two writers raced: a worker of a killed
 sweep and its resumption) is not fatal: `open()` keeps the first, moves the others to
 RUN_DIR/results.duplicates.jsonl (their spend still counts in the report) and reports them in
@@ -93,6 +100,9 @@ class Outcome(TypedDict, total=False):
     success: bool
     stop_reason: str
     error: str | None
+    reopened: bool
+    """On an infrastructure.jsonl line: a final infrastructure error moved back there to be run
+    again (`reopen_infrastructure_errors`); its attempts are counted afresh from it."""
 
 
 OUTCOME: tuple[str, ...] = tuple(Outcome.__annotations__)
@@ -142,7 +152,12 @@ class Ledger:
         if infra.exists():
             for line in _read_whole_lines(infra):
                 if line.strip():
-                    ledger.infra_attempts[key_of(read_outcome(line))] += 1
+                    attempt = read_outcome(line)
+                    key = key_of(attempt)
+                    if attempt.get("reopened"):  # its rounds start again after this line
+                        ledger.infra_attempts[key] = 0
+                    else:
+                        ledger.infra_attempts[key] += 1
         return ledger
 
     def finished(self, key: Key) -> bool:
@@ -318,6 +333,55 @@ def set_aside(episode_dir: Path) -> None:
     for path in files.attempt_files:
         if path.exists():
             path.rename(aside / path.name)
+
+
+def reopen_infrastructure_errors(run_dir: Path, planned: set[Key] | None = None) -> list[Key]:
+    """Move the ledger's `infrastructure_error` lines (of `planned` keys; None: all) back to
+    the attempts log, marked `reopened`, and set each one's files aside, so the sweep runs them
+    again with their retry rounds (see the module docstring). Returns their keys. Crash-safe in
+    this order: the attempts log gets the line (once, however often a crash repeats this), the
+    files go aside, then the ledger drops it."""
+    files = RunDir(run_dir)
+    if not files.results.exists():
+        return []
+    with _locked(files.results, os.O_RDWR) as fd:
+        data = _whole_data(fd)
+        keep: list[bytes] = []
+        reopen: list[tuple[Key, bytes, dict[str, Any]]] = []
+        for line in io.BytesIO(data):
+            if not line.strip():
+                continue
+            record = read_outcome(line)
+            key = key_of(record)
+            wanted = planned is None or key in planned
+            if wanted and record.get("status") == "infrastructure_error":
+                reopen.append((key, line, record))
+            else:
+                keep.append(line)
+        if not reopen:
+            return []
+        marked = [
+            (json.dumps({**json.loads(line), "reopened": True}) + "\n").encode("utf-8")
+            for _, line, _ in reopen
+        ]
+        infra = files.infrastructure
+        known = set(_read_whole_lines(infra)) if infra.exists() else set()
+        with _locked(infra, os.O_WRONLY | os.O_APPEND | os.O_CREAT) as log_fd:
+            for line in marked:
+                if line.rstrip(b"\n") not in known:
+                    os.write(log_fd, line)
+            os.fsync(log_fd)
+        for _, _, record in reopen:
+            episode = run_dir / record["episode_dir"]
+            if (episode / RESULT).exists():
+                set_aside(episode)
+        data = b"".join(keep)
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.ftruncate(fd, 0)
+        while data:
+            data = data[os.write(fd, data) :]
+        os.fsync(fd)
+    return [key for key, _, _ in reopen]
 
 
 def recover(run_dir: Path, episode_dir: str) -> EpisodeResult | None:

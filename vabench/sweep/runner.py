@@ -114,9 +114,11 @@ async def open_engine(
     run_dir: Path,
     *,
     shared_limits: Callable[[Any], Any] | None = None,
+    spend_caps: Any = None,
 ) -> AsyncIterator[Engine]:
     """The engine of `config` on `choices` for episodes of `run_dir`, open for the block.
-    `shared_limits`: `LLMPool(shared_limits=...)` (limits kept for several processes)."""
+    `shared_limits`, `spend_caps`: `LLMPool(shared_limits=..., spend_caps=...)` (limits and
+    spend caps kept for several processes, by the limit board)."""
     cfg = config
     gate = choices.in_flight.gate()
     async with contextlib.AsyncExitStack() as stack:
@@ -148,7 +150,8 @@ async def open_engine(
                 server.url,
                 f"by {server.processes} processes" if server.processes else "in this process",
             )
-        llm = await stack.enter_async_context(LLMPool(endpoints, shared_limits=shared_limits))
+        pool = LLMPool(endpoints, shared_limits=shared_limits, spend_caps=spend_caps)
+        llm = await stack.enter_async_context(pool)
         summaries = SummaryStage(
             run_dir,
             llm,
@@ -275,7 +278,8 @@ class LocalSweep:
     async def _run_in(self, engine: Engine) -> None:
         self.physics, self.gate, self.summaries = engine.physics, engine.gate, engine.summaries
         self.progress.pool, self.progress.gate = engine.llm, engine.gate
-        engine.llm.set_spend_caps(spend_caps(self.config, self.run_dir))
+        if not engine.llm.shared_spend:  # else the limit board keeps them for every process
+            engine.llm.set_spend_caps(spend_caps(self.config, self.run_dir))
         await self._precompile(engine)
         round_no = 0
         while (pending := self._pending()) and self.stopped is None:

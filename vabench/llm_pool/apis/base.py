@@ -316,15 +316,30 @@ def encode_body(payload: Any) -> bytes:
 
 def error_message(raw: bytes, limit: int = 500) -> str:
     """The provider's error message from an error body (both OpenAI's and Anthropic's put it
-    at error.message), or the start of the body."""
+    at error.message; a gateway's may be multi-line), or the start of the body: one line,
+    whatever the body."""
+    text = raw[: limit * 4].decode("utf-8", "replace")
     try:
         body = json.loads(raw)
         message = body["error"]["message"]
         if isinstance(message, str):
-            return message[:limit]
+            text = message
     except (ValueError, KeyError, TypeError):
         pass
-    return raw[:limit].decode("utf-8", "replace")
+    line = " ".join(text.split())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def error_words(raw: bytes) -> str:
+    """Everything an error body says about its cause, on one line: its message, and its
+    error's type and code where it has them (`auth_error`, `model_not_found`)."""
+    words = [error_message(raw, 2000)]
+    try:
+        error = json.loads(raw)["error"]
+        words += [str(error.get(k)) for k in ("type", "code") if error.get(k) is not None]
+    except (ValueError, KeyError, TypeError, AttributeError):
+        pass
+    return " ".join(words)
 
 
 def request_id(prefix: str) -> str:
