@@ -26,7 +26,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -38,6 +38,7 @@ from vabench.report import (
     pub_tables,
     publication,
     published,
+    results_file,
     spend,
     stats,
     suite_tables,
@@ -61,6 +62,8 @@ class Board:
     profiles: tuple[publication.Profile, ...] = ()
     marks: Mapping[str, str] = field(default_factory=dict)
     """model -> the comparability fields its sweep differs in (--allow-mismatch)."""
+    sources: tuple[Mapping[str, Any], ...] = ()
+    """Each merged run directory's `results_file.provenance`."""
 
 
 @dataclass
@@ -307,6 +310,22 @@ def write_report(
         md_parts += [text, *links]
         for table in section.csvs:
             written.append(_write(out_dir / f"{table.name}.csv", tables.to_csv(table).encode()))
+    everything = sorted(results.scored + results.unscored, key=results_file.sort_key)
+    sources = (
+        [results_file.provenance(run_dir, everything)] if board is None else list(board.sources)
+    )
+    doc = results_file.document(
+        everything, cells, task_spreads, macros, macro_spreads, sources, reference, marks
+    )
+    written.append(_write(out_dir / results_file.RESULTS_FILE, json.dumps(doc, indent=1).encode()))
+    episodes_csv = tables.Csv(
+        results_file.EPISODES_CSV,
+        results_file.EPISODE_COLUMNS,
+        results_file.episode_csv_rows(everything),
+    )
+    written.append(
+        _write(out_dir / f"{episodes_csv.name}.csv", tables.to_csv(episodes_csv).encode())
+    )
     written.append(_write(out_dir / REPORT_MD, "\n".join(md_parts).encode()))
     page = html.render(
         "VA-Bench report",
