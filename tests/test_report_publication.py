@@ -7,6 +7,7 @@ Expected numbers are worked out by hand in the comments.
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import json
 import math
@@ -14,12 +15,15 @@ import shutil
 import sys
 from pathlib import Path
 
+import aiohttp
 import pytest
 import yaml
+from aiohttp import web
 
 from vabench.report import published as P
 from vabench.report.__main__ import main
 from vabench.report.build import generate
+from vabench.view.app import Viewer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from synthetic_runs import make_run
@@ -217,6 +221,22 @@ def test_the_same_model_in_two_sweeps_pools_disjoint_runs_only(tmp_path, capsys)
     assert "model 'm' has run(s) [1] in both" in err
 
 
+def serve(app: web.Application, body):
+    async def go():
+        runner = web.AppRunner(app, access_log=None)
+        await runner.setup()
+        site = web.TCPSite(runner, "127.0.0.1", 0)
+        await site.start()
+        try:
+            url = f"http://127.0.0.1:{runner.addresses[0][1]}"
+            async with aiohttp.ClientSession(url) as http:
+                return await body(http)
+        finally:
+            await runner.cleanup()
+
+    return asyncio.run(go())
+
+
 def diag_rows(out: Path) -> dict:
     """Per condition and criterion, the diagnostics table's rate in % (its CSV)."""
     return {
@@ -244,6 +264,17 @@ def test_the_radar_numbers_are_the_diagnostics_tables(tmp_path):
     assert "<td>model-0</td><td>active</td><td>run 1</td>" in page  # the annotated run, named
     for name in ("capability_radar.png", "radar_model-0_active.png"):
         assert (out / "figures" / name).read_bytes()[:4] == b"\x89PNG"
+
+    # the viewer's run page shows the same radar beside a model's episodes, over loopback
+    async def body(http):
+        ok = await http.get("/api/radar", params={"model": "model-0"})
+        none = await http.get("/api/radar", params={"model": "nobody"})
+        page = await (await http.get("/")).text()
+        return ok.status, await ok.read(), none.status, page
+
+    status, png, missing, page = serve(Viewer(run.run_dir).app(), body)
+    assert status == 200 and png == (out / "figures" / "radar_model-0_active.png").read_bytes()
+    assert missing == 404 and 'id="radar-img"' in page
 
 
 @pytest.mark.slow
