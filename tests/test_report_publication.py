@@ -165,7 +165,7 @@ def test_results_json_validates_and_reads_back(tmp_path):
     }
     assert prov["comparability"]["seeds"][CUBE] == [0, 1, 2, 3]
     assert len(prov["config_sha256"]) == 64 and prov["protocol_version"]
-    episodes = read_csv(out / "episodes.csv")
+    episodes = read_csv(out / "episode_outcomes.csv")
     assert len(episodes) == len(lines) and {"stop_reason", "refusals"} <= set(episodes[0])
     bad = {**doc, "episodes": [{**doc["episodes"][0], "seed": "one"}]}
     with pytest.raises(jsonschema.ValidationError):
@@ -237,6 +237,14 @@ def serve(app: web.Application, body):
     return asyncio.run(go())
 
 
+def same(percent: str, expected: float | None) -> None:
+    """A capability cell equals the diagnostics table's: both NA, or the same number."""
+    if expected is None:
+        assert percent == ""
+    else:
+        assert float(percent) == pytest.approx(expected, rel=1e-12)
+
+
 def diag_rows(out: Path) -> dict:
     """Per condition and criterion, the diagnostics table's rate in % (its CSV)."""
     return {
@@ -255,9 +263,7 @@ def test_the_radar_numbers_are_the_diagnostics_tables(tmp_path):
     cap = read_csv(out / "capability.csv")
     assert {(r["model"], r["track"]) for r in cap} == {("model-0", "active"), ("model-1", "active")}
     for r in cap:
-        expected = diag[(r["model"], r["track"], r["criterion"])]
-        got = None if r["percent"] == "" else float(r["percent"])
-        assert got == pytest.approx(expected, rel=1e-12), r
+        same(r["percent"], diag[(r["model"], r["track"], r["criterion"])])
         assert r["runs"] == "1"  # the annotated run, named
     page = (out / "report.html").read_text()
     assert 'alt="Capability profile per annotated condition"' in page
@@ -288,3 +294,53 @@ def test_a_twelve_model_three_run_report_holds_the_figures_and_reference_rows(tm
     assert len({r["model"] for r in overall if r["source"] == P.REFERENCE_SHORT}) == 12
     assert len({r["model"] for r in read_csv(out / "capability.csv")}) == 12
     shutil.copytree(out / "figures", tmp_path / "figures")
+
+
+def test_the_smoke_sweeps_report_holds_the_three_views_and_the_reference_rows(tmp_path):
+    """A real run (diag_util: configs/smoke.yaml cut to one task and seed), its active episode
+    judged by three annotators as the viewer writes judgments."""
+    import random
+
+    from diag_util import ACTIVE, copy_run
+    from synthetic_runs import _judgments
+
+    from vabench.run_layout import RunDir
+
+    (tmp_path / "pristine").mkdir()
+    run_dir = copy_run(tmp_path / "pristine", tmp_path / "run")
+    files = RunDir(run_dir)
+    files.annotations.mkdir(exist_ok=True)
+    for annotator, lines in _judgments(ACTIVE, random.Random(3), 1795800000.0).items():
+        text = "".join(json.dumps(x) + "\n" for x in lines)
+        files.annotation_file(annotator).write_text(text, encoding="utf-8")
+    out = generate(run_dir).directory
+    for name in (*FIGURES, "capability_radar.png", "radar_local_active.png"):
+        assert (out / "figures" / name).read_bytes()[:4] == b"\x89PNG", name
+    overall = read_csv(out / "overall.csv")
+    assert {r["model"] for r in overall if r["source"] == "this run"} == {"local"}
+    assert len({r["model"] for r in overall if r["source"] == P.REFERENCE_SHORT}) == 12
+    (cap,) = {(r["model"], r["track"], r["runs"]) for r in read_csv(out / "capability.csv")}
+    assert cap == ("local", "active", "1")
+    diag = diag_rows(out)
+    for r in read_csv(out / "capability.csv"):
+        same(r["percent"], diag[("local", "active", r["criterion"])])
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["provenance"]["physics_backend"] == "c" and doc["provenance"]["config_sha256"]
+
+
+def test_the_config_field_reaches_the_run_directory(tmp_path):
+    """`report.reference` is a config field (refused when not a boolean), written to
+    sweep.yaml by the sweep (`SweepConfig.document`), where the report reads it."""
+    from vabench.config import SweepConfigError, load_config
+    from vabench.report.build import reference_wanted
+
+    doc = {**config_doc(["m"]), "seeds": [1000], "report": {"reference": False}}
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    config = load_config(path, environ={})
+    assert config.report.reference is False
+    write(tmp_path / "run", [], config.document())
+    assert reference_wanted(tmp_path / "run") is False
+    path.write_text(yaml.safe_dump({**doc, "report": {"reference": "maybe"}}))
+    with pytest.raises(SweepConfigError, match=r"report\.reference"):
+        load_config(path, environ={})

@@ -495,7 +495,8 @@ def test_base_sweep_report_is_unchanged(tmp_path):
                 "active_passive.md", "usage.md", "checkpoints.md", "macro_average.csv",
                 "macro_average_runs.csv", "success_per_task.csv", "active_passive.csv",
                 "sign_test.csv", "usage.csv", "checkpoints.csv", "unscored.csv",
-                "overall.md", "task_matrix.md", "overall.csv", "task_matrix.csv"}  # fmt: skip
+                "overall.md", "task_matrix.md", "overall.csv", "task_matrix.csv",
+                "results.json", "episode_outcomes.csv"}  # fmt: skip
     assert {p.name for p in out.iterdir() if p.is_file()} == expected
     # the publication's views (tests/test_report_publication.py) come first; the rest as before
     start, end = md.index("## Overall success\n"), md.index("## Macro-average success\n")

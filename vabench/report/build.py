@@ -2,13 +2,19 @@
 
 Files written (each atomically: a temporary sibling, then `os.replace`):
     report.md            every table, with the notes and the figures linked
-    <section>.md         one file per topic (success_per_task, macro_average, active_passive,
-                         checkpoints, usage, spend; and, only when the sweep holds their data,
+    <section>.md         one file per topic (overall, task_matrix, capability (with
+                         annotations): the paper's headline views, `publication`;
+                         success_per_task, macro_average, active_passive, checkpoints,
+                         usage, spend; and, only when the sweep holds their data,
                          summary_source, learning_stage, transfer, long_horizon; and,
                          when RUN_DIR/annotations/ holds judgments, diagnostics, agreement,
                          vote_rules)
     <table>.csv          raw numbers in long format
-    figures/*.png        macro-average bars, per-task bars per model/track, active vs passive
+    results.json         every episode, the aggregates and the provenance, schema-checked
+                         (`results_file`, docs/RESULTS.md); episode_outcomes.csv its episodes
+    figures/*.png        overall bars, task matrix (and the published one), capability radars
+                         (a sheet, and one per condition for the viewer), macro-average bars,
+                         per-task bars per model/track, active vs passive
     report.html          everything above in one self-contained page (figures as base64), with
                          a table of contents and each figure beside the table it draws
 An unfinished sweep (fewer scored episodes than RUN_DIR/plan.json planned) is said first, in

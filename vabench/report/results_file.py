@@ -1,4 +1,4 @@
-"""report/results.json and report/episodes.csv: a run's results in a documented, versioned
+"""report/results.json and report/episode_outcomes.csv: a run's results in a documented, versioned
 schema (docs/RESULTS.md; the JSON schema beside this module, `results.schema.json`).
 
 results.json holds every scored and unscored episode (model, track, task, run, seed, outcome,
@@ -37,7 +37,7 @@ from vabench.run_records import Record
 SCHEMA = "vabench.results"
 SCHEMA_VERSION = 1
 RESULTS_FILE = "results.json"
-EPISODES_CSV = "episodes"
+EPISODES_CSV = "episode_outcomes"
 SCHEMA_FILE = Path(__file__).with_name("results.schema.json")
 COUNTERS = ("invalid_outputs", "refusals", "truncations", "empty_replies")
 """Per-episode reply counters; a result written before a counter existed reads as 0."""
