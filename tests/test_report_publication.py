@@ -344,3 +344,14 @@ def test_the_config_field_reaches_the_run_directory(tmp_path):
     path.write_text(yaml.safe_dump({**doc, "report": {"reference": "maybe"}}))
     with pytest.raises(SweepConfigError, match=r"report\.reference"):
         load_config(path, environ={})
+
+
+def test_an_unfinished_sweep_of_a_leaderboard_is_said_first(tmp_path, capsys):
+    a = write(tmp_path / "a", sweep("m", M_RUNS), config_doc(["m"]))
+    b = write(tmp_path / "b", sweep("n", N_RUNS), config_doc(["n"]))
+    plan = {"v": 2, "fields": {}, "episodes": [f"n/active/t/{i}/1" for i in range(30)]}
+    (b / "plan.json").write_text(json.dumps(plan))  # 30 planned, 24 scored
+    assert main([str(a), str(b), "--out", str(tmp_path / "board")]) == 0
+    page = (tmp_path / "board" / "report.html").read_text()
+    assert f"{b}: incomplete sweep: 24 of 30 planned episodes scored" in page
+    assert f"{a}: incomplete" not in page

@@ -38,10 +38,12 @@ def main(argv: list[str] | None = None) -> int:
         help="merge sweeps whose settings differ, marking every affected row",
     )
     args = parser.parse_args(argv)
-    one = len(args.run_dir) == 1 and (args.run_dir[0] / RESULTS).is_file()
+    (first,) = args.run_dir[:1]
+    holds_runs = first.is_dir() and any((p / RESULTS).is_file() for p in first.iterdir())
+    one = len(args.run_dir) == 1 and ((first / RESULTS).is_file() or not holds_runs)
     try:
         if one and args.out is None:
-            out = generate(args.run_dir[0])
+            out = generate(first)  # a missing results file is its own one-line error
         else:
             if args.out is None:
                 raise ReportError(

@@ -70,6 +70,8 @@ class Board:
     """model -> the comparability fields its sweep differs in (--allow-mismatch)."""
     sources: tuple[Mapping[str, Any], ...] = ()
     """Each merged run directory's `results_file.provenance`."""
+    alerts: tuple[str, ...] = ()
+    """What a reader must know first about each merged sweep (an unfinished one)."""
 
 
 @dataclass
@@ -294,7 +296,7 @@ def write_report(
             )
         )
 
-    alerts = _alerts(results, len(unresolved))
+    alerts = _alerts(results, len(unresolved)) if board is None else list(board.alerts)
     summary = _summary(results, macro_spreads, comparisons, len(unresolved))
     written: list[Path] = []
     fig_dir = out_dir / FIGURES
@@ -424,6 +426,11 @@ def planned_episodes(run: RunDir) -> int | None:
         return None
     episodes = plan.get("episodes") if isinstance(plan, dict) else plan  # version 1: a list
     return len(episodes) if isinstance(episodes, list) else None
+
+
+def sweep_alerts(results: Results) -> list[str]:
+    """`_alerts` of one sweep's results."""
+    return _alerts(results, len(stats.unresolved(results.scored, results.unscored)))
 
 
 def _alerts(results: Results, n_unresolved: int) -> list[str]:

@@ -139,6 +139,7 @@ def generate_board(paths: Sequence[Path], out: Path, allow_mismatch: bool = Fals
     from vabench.report.build import (
         Board,
         reference_wanted,
+        sweep_alerts,
         task_arms,
         task_meta,
         write_report,
@@ -151,6 +152,7 @@ def generate_board(paths: Sequence[Path], out: Path, allow_mismatch: bool = Fals
         profiles=tuple(profiles(sweeps)),
         marks=marks,
         sources=tuple(s.provenance for s in sweeps),
+        alerts=tuple(f"{s.run_dir}: {a}" for s in sweeps for a in sweep_alerts(s.results)),
     )
     arms, order, base = task_arms()
     out.mkdir(parents=True, exist_ok=True)
