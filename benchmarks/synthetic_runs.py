@@ -279,9 +279,12 @@ def make_run(
     finished: float = 0.9,
     annotated: float = 0.02,
     seed: int = 0,
+    annotate_run: int | None = None,
 ) -> SyntheticRun:
     """Write a synthetic run of about `episodes` planned episodes under `root` (see the module
-    docstring); `finished` of them in the ledger, `annotated` of the scored ones annotated."""
+    docstring); `finished` of them in the ledger, `annotated` of the scored ones annotated.
+    `annotate_run`: annotate only that run's episodes of the active track (the paper annotates
+    one complete base run per condition)."""
     from vabench.config import load_config
     from vabench.run_layout import RunDir, episode_id
     from vabench.sweep.plan import plan
@@ -336,7 +339,7 @@ def make_run(
         path = episode_dir(k)
         _write(os.path.join(path, "events.jsonl"), events.text(dumped))
         _write(os.path.join(path, "result.json"), result.model_dump_json(indent=1))
-        if result.scored:
+        if result.scored and (annotate_run is None or (k.run, k.track) == (annotate_run, "active")):
             scored.append(episode_id(k.rel_dir))
     for k in pending[: len(pending) // 10]:  # interrupted attempts: events, no result
         stand_in = {**k.__dict__, "protocol": protocol[k.track], "step_budget": STEP_BUDGET}
@@ -371,6 +374,7 @@ if __name__ == "__main__":
     p.add_argument("--models", type=int, default=1)
     p.add_argument("--finished", type=float, default=0.9)
     p.add_argument("--annotated", type=float, default=0.02)
+    p.add_argument("--annotate-run", type=int, help="annotate only this run's active track")
     args = p.parse_args()
     t0 = time.perf_counter()
     run = make_run(
@@ -379,6 +383,7 @@ if __name__ == "__main__":
         models=args.models,
         finished=args.finished,
         annotated=args.annotated,
+        annotate_run=args.annotate_run,
     )
     print(
         f"{run.run_dir}: {run.planned} planned, {run.finished} finished, "

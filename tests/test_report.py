@@ -369,11 +369,13 @@ def test_cli_writes_every_file(tmp_path, capsys):
                  "sign_test.csv", "usage.csv", "checkpoints.csv", "unscored.csv"):  # fmt: skip
         assert (report / name).stat().st_size > 0, name
     pngs = sorted((report / "figures").glob("*.png"))
-    # 1 macro-average + 4 per-task (2 models x 2 tracks) + 2 active-vs-passive
-    assert len(pngs) == 7
+    # 1 macro-average + 4 per-task (2 models x 2 tracks) + 2 active-vs-passive, and the
+    # publication's overall bars, task matrix and its published reference (no annotations: no
+    # radar)
+    assert len(pngs) == 10
     assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
     page = (report / "report.html").read_text()
-    assert page.count('src="data:image/png;base64,') == 7
+    assert page.count('src="data:image/png;base64,') == 10
     assert "figures/" not in page and "http" not in page  # nothing outside the file
     assert not list(report.rglob("*.tmp"))
     # the CSV carries the statistics: model-a active, all families: mean 17/36 (see RUNS)

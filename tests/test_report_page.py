@@ -207,13 +207,27 @@ def test_the_page_has_margins_contents_and_figures_beside_their_tables(tmp_path)
     assert re.search(r"body \{[^}]*padding: [^;]*\dre?m", style)  # never text at the window edge
     toc = page[page.index("<nav class='toc'>") : page.index("</nav>")]
     sections = re.findall(r"<section id='(\w+)'>", page)
-    assert sections[:3] == ["macro_average", "success_per_task", "active_passive"]
+    assert sections[:5] == [
+        "overall",
+        "task_matrix",
+        "macro_average",
+        "success_per_task",
+        "active_passive",
+    ]
     assert re.findall(r"href='#(\w+)'", toc) == sections
     for table, figure in [
         ("Macro-average success (mean ± sample SD across runs)", "Macro-average success"),
         ("m — active", "m — active: per-task success"),
         ("m — passive", "m — passive: per-task success"),
         ("m — run 1", "m: active vs passive (run 1)"),
+        (
+            "Overall success per condition (%, mean ± sample SD across runs)",
+            "Overall success per condition",
+        ),
+        (
+            "Success per task and condition (%, mean ± sample SD across runs)",
+            "Success per task and condition",
+        ),
     ]:
         pair = re.search(
             rf"<div class='pair'><div class='table'><h3>{re.escape(table)}</h3>\n<table>.*?"
@@ -221,4 +235,4 @@ def test_the_page_has_margins_contents_and_figures_beside_their_tables(tmp_path)
             page,
         )
         assert pair, f"{figure!r} is not beside {table!r}"
-    assert page.count('src="data:image/png;base64,') == 4
+    assert page.count('src="data:image/png;base64,') == 7  # 4 + overall, matrix, published

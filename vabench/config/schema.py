@@ -219,6 +219,12 @@ class SweepLimits(_Strict):
     (`models[i].limits.max_cost_usd`)."""
 
 
+class ReportOptions(_Strict):
+    reference: bool = True
+    """Show the paper's published scores as greyed reference rows beside the run's
+    (`vabench.report.published`); false leaves them out."""
+
+
 class SweepFile(_Strict):
     """The document's schema. `tasks` and `seeds` have several spellings and name registry
     entries, so they are checked by `resolve.resolve_tasks` and `resolve.resolve_seeds`
@@ -241,6 +247,7 @@ class SweepFile(_Strict):
     executor: ExecutorOptions = Field(default_factory=ExecutorOptions)
     retries: RetryOptions = Field(default_factory=RetryOptions)
     limits: SweepLimits = Field(default_factory=SweepLimits)
+    report: ReportOptions = Field(default_factory=ReportOptions)
 
 
 class SweepConfig(_Strict):
@@ -267,6 +274,7 @@ class SweepConfig(_Strict):
     executor: ExecutorOptions = Field(default_factory=ExecutorOptions)
     retries: RetryOptions = Field(default_factory=RetryOptions)
     limits: SweepLimits = Field(default_factory=SweepLimits)
+    report: ReportOptions = Field(default_factory=ReportOptions)
 
     def model(self, name: str) -> ModelEndpoint:
         for endpoint in self.models:
@@ -338,6 +346,6 @@ class SweepConfig(_Strict):
             "runs": self.runs,
             "step_budget": self.step_budget,
         }
-        for key in ("learning", "simulator", "render", "executor", "retries", "limits"):
+        for key in ("learning", "simulator", "render", "executor", "retries", "limits", "report"):
             doc[key] = getattr(self, key).model_dump(mode="json")
         return doc

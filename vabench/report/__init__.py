@@ -8,7 +8,10 @@ here: statistics as pure functions: `stats` (the paper's base aggregation), `act
 are sections shown only when the sweep holds their data; sections of tables: `base_tables`,
 `summary_tables`, `suite_tables`, `spend` (the bill), and the diagnostics' sections
 (`vabench.diagnostics.sections`, from RUN_DIR/annotations/); `figures` (PNG), `html`
-(self-contained page), `build` (assembling and writing). The sweep calls `make_report(run_dir)`
+(self-contained page), `build` (assembling and writing). The paper's headline views:
+`publication` (conditions, task matrix, capability profiles), `pub_tables`, `pub_figures`,
+with `published` (the paper's scores as reference data); `results_file` (results.json and its
+schema), `leaderboard` (several sweeps in one report). The sweep calls `make_report(run_dir)`
 at its end.
 """
 

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from html import escape
 
+from vabench.report.published import REFERENCE_SHORT
 from vabench.tables import Section, Table
 
 _STYLE = """
@@ -37,6 +38,7 @@ figure { margin: 0.8em 0 1.2em; }
 img { max-width: 100%; height: auto; display: block; }
 figcaption { font-size: 0.85em; color: #555; }
 .notes li { color: #844; }
+tr.reference td { color: #888; background: #f7f7f7; font-style: italic; }
 """
 
 
@@ -50,11 +52,16 @@ class Figure:
     """The title of the table it draws; None (or no such table): at the section's end."""
 
 
+def _row(row: Sequence[str]) -> str:
+    """A published reference row (its source cell `REFERENCE_SHORT`) is greyed: never read as
+    a run's own numbers."""
+    cls = " class='reference'" if REFERENCE_SHORT in row else ""
+    return f"<tr{cls}>" + "".join(f"<td>{escape(c)}</td>" for c in row) + "</tr>"
+
+
 def _table(t: Table) -> str:
     head = "".join(f"<th>{escape(h)}</th>" for h in t.header)
-    body = "".join(
-        "<tr>" + "".join(f"<td>{escape(c)}</td>" for c in row) + "</tr>" for row in t.rows
-    )
+    body = "".join(_row(row) for row in t.rows)
     return f"<h3>{escape(t.title)}</h3>\n<table><tr>{head}</tr>{body}</table>\n"
 
 

@@ -14,6 +14,8 @@ JSON:
     GET  /api/frame?episode=ID&file=frames/..  one image the model saw
     GET  /api/rubric                           criteria, gates, rubric text
     GET  /api/annotations?episode=ID&annotator=NAME
+    GET  /api/radar?model=&track=              the model's capability radar (PNG), from the
+                                               annotations as they are now
     POST /api/judgment  {annotator, episode, item, value}
 
 Safety: the server binds 127.0.0.1 unless told otherwise (`__main__`); episode ids are looked up
@@ -120,6 +122,7 @@ class Viewer:
         app.router.add_get("/api/frame", self.frame)
         app.router.add_get("/api/rubric", self.rubric)
         app.router.add_get("/api/annotations", self.annotations)
+        app.router.add_get("/api/radar", self.radar)
         app.router.add_post("/api/judgment", self.judgment)
         return app
 
@@ -288,6 +291,15 @@ class Viewer:
         return web.json_response(self._annotation_state(body["episode"], body["annotator"]))
 
     # -- diagnostics ------------------------------------------------------------------------
+    async def radar(self, request: web.Request) -> web.Response:
+        from vabench.view.radar import radar_png
+
+        model = request.query.get("model", "")
+        png = radar_png(self.run_dir, self.index, model, request.query.get("track", ""))
+        if png is None:
+            return _error(404, f"no annotated episode of model {model!r} yet", "model")
+        return web.Response(body=png, content_type="image/png")
+
     async def diagnostics_page(self, request: web.Request) -> web.Response:
         from vabench.diagnostics import sections as diagnostics
 

@@ -63,11 +63,24 @@ async function load() {
   document.getElementById("title").textContent = `run ${run.name}`;
   document.getElementById("run-dir").textContent = run.run_dir;
   render(run);
+  showRadar(query.get("model"), query.get("track"));
   const params = new URLSearchParams();
   for (const [name, value] of chosen()) params.set("f-" + name, value);
   if (OFFSET) params.set("offset", OFFSET);
   history.replaceState(null, "", params.toString() ? "?" + params : location.pathname);
   document.body.dataset.ready = "1";
+}
+
+// The chosen model's radar beside its episodes; hidden for all models or none annotated.
+function showRadar(model, track) {
+  const figure = document.getElementById("radar");
+  const img = document.getElementById("radar-img");
+  if (!model) { figure.hidden = true; img.removeAttribute("src"); return; }
+  const query = new URLSearchParams({ model });
+  if (track) query.set("track", track);
+  img.onload = () => { figure.hidden = false; };
+  img.onerror = () => { figure.hidden = true; };
+  img.src = "api/radar?" + query;
 }
 
 function show(error) {

@@ -1,0 +1,291 @@
+"""The paper's published base results, as data: the reference rows of the report.
+
+Transcribed from paper.tex: `OVERALL` from tab:main-results (per model, the mean and sample SD
+across three runs of the run-level macro-averages over the 11 single-arm, 3 dual-arm and all
+14 base families, in %), `PER_TASK` from tab:appendix-core-a..c (per task and model, the mean
+and sample SD across runs of the per-task success over 20 seeds, in %). Models are in the
+paper's column order (descending all-14 mean); tasks in its row order (`PAPER_TASK_ORDER`).
+
+These numbers were measured on the reference simulator (RoboTwin on SAPIEN) with its robot and
+its retained seeds; vabench's simulator, robot model and seeds differ, so the report shows them
+greyed beside a run's rows, never pooled with them (`REFERENCE_LABEL`).
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+REFERENCE_LABEL: Final = (
+    "published (reference simulator, RoboTwin/SAPIEN): a different simulator, robot and seeds; "
+    "not directly comparable"
+)
+REFERENCE_SHORT: Final = "published (reference)"
+SOURCE: Final = "paper.tex: tab:main-results, tab:appendix-core-a, -b, -c"
+
+MODELS: Final = (
+    "Qwen3.8-max",
+    "Opus-5",
+    "GPT-5.6-sol",
+    "GPT-5.6-terra",
+    "Doubao-2.1",
+    "Gemini-3.6",
+    "GPT-5.6-luna",
+    "sonnet-5",
+    "Qwen3.7-max",
+    "Qwen3.7-plus",
+    "MiniMax-M3",
+    "Mimo-v2.5",
+)
+"""The 12 primary conditions (each model with its own demonstration summary)."""
+
+PAPER_TASK_ORDER: Final = (
+    "beat_block_hammer_right",
+    "click_bell_right",
+    "grasp_pen_leaning_cube",
+    "grasp_single_bottle",
+    "grasp_single_bottle_upright",
+    "grasp_single_cube",
+    "grasp_single_pen",
+    "place_cube_in_bowl",
+    "place_cube_on_cube",
+    "place_single_bottle_upright",
+    "place_single_cube",
+    "place_shoe",
+    "handover_horizontal_block",
+    "lift_pot",
+)
+"""The row order of the paper's per-task tables: 11 single-arm families, then 3 dual-arm."""
+
+PAPER_STEP_BUDGETS: Final = {
+    "beat_block_hammer_right": 100,
+    "click_bell_right": 50,
+    "grasp_pen_leaning_cube": 50,
+    "grasp_single_bottle": 50,
+    "grasp_single_bottle_upright": 50,
+    "grasp_single_cube": 50,
+    "grasp_single_pen": 50,
+    "place_cube_in_bowl": 50,
+    "place_cube_on_cube": 200,
+    "place_single_bottle_upright": 100,
+    "place_single_cube": 100,
+    "place_shoe": 100,
+    "handover_horizontal_block": 100,
+    "lift_pot": 50,
+}
+
+MeanSd = tuple[float, float]
+"""(mean, sample SD) in percent, as printed (two decimals)."""
+
+OVERALL: Final[dict[str, dict[str, MeanSd]]] = {
+    "Qwen3.8-max": {"single": (65.61, 3.81), "dual": (11.11, 2.55), "all": (53.93, 3.17)},
+    "Opus-5": {"single": (64.09, 3.18), "dual": (11.67, 1.67), "all": (52.86, 2.79)},
+    "GPT-5.6-sol": {"single": (59.55, 5.06), "dual": (22.22, 1.92), "all": (51.55, 4.31)},
+    "GPT-5.6-terra": {"single": (29.24, 1.39), "dual": (0.56, 0.96), "all": (23.10, 1.25)},
+    "Doubao-2.1": {"single": (19.09, 0.45), "dual": (0.00, 0.00), "all": (15.00, 0.36)},
+    "Gemini-3.6": {"single": (18.03, 0.26), "dual": (0.00, 0.00), "all": (14.17, 0.21)},
+    "GPT-5.6-luna": {"single": (17.42, 0.69), "dual": (1.11, 0.96), "all": (13.93, 0.71)},
+    "sonnet-5": {"single": (11.52, 1.89), "dual": (0.00, 0.00), "all": (9.05, 1.49)},
+    "Qwen3.7-max": {"single": (10.30, 1.14), "dual": (0.00, 0.00), "all": (8.10, 0.90)},
+    "Qwen3.7-plus": {"single": (9.09, 0.45), "dual": (0.00, 0.00), "all": (7.14, 0.36)},
+    "MiniMax-M3": {"single": (5.15, 0.69), "dual": (0.00, 0.00), "all": (4.05, 0.55)},
+    "Mimo-v2.5": {"single": (4.24, 0.26), "dual": (0.00, 0.00), "all": (3.33, 0.21)},
+}
+
+PER_TASK: Final[dict[str, dict[str, MeanSd]]] = {
+    "beat_block_hammer_right": {
+        "Qwen3.8-max": (3.33, 2.89),
+        "Opus-5": (8.33, 2.89),
+        "GPT-5.6-sol": (15.00, 5.00),
+        "GPT-5.6-terra": (6.67, 2.89),
+        "Doubao-2.1": (0.00, 0.00),
+        "Gemini-3.6": (0.00, 0.00),
+        "GPT-5.6-luna": (0.00, 0.00),
+        "sonnet-5": (0.00, 0.00),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "click_bell_right": {
+        "Qwen3.8-max": (73.33, 5.77),
+        "Opus-5": (68.33, 14.43),
+        "GPT-5.6-sol": (65.00, 15.00),
+        "GPT-5.6-terra": (1.67, 2.89),
+        "Doubao-2.1": (6.67, 5.77),
+        "Gemini-3.6": (13.33, 2.89),
+        "GPT-5.6-luna": (0.00, 0.00),
+        "sonnet-5": (11.67, 2.89),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "grasp_pen_leaning_cube": {
+        "Qwen3.8-max": (61.67, 2.89),
+        "Opus-5": (35.00, 5.00),
+        "GPT-5.6-sol": (45.00, 18.03),
+        "GPT-5.6-terra": (25.00, 5.00),
+        "Doubao-2.1": (6.67, 2.89),
+        "Gemini-3.6": (10.00, 5.00),
+        "GPT-5.6-luna": (18.33, 2.89),
+        "sonnet-5": (5.00, 8.66),
+        "Qwen3.7-max": (1.67, 2.89),
+        "Qwen3.7-plus": (3.33, 2.89),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "grasp_single_bottle": {
+        "Qwen3.8-max": (91.67, 2.89),
+        "Opus-5": (75.00, 0.00),
+        "GPT-5.6-sol": (76.67, 11.55),
+        "GPT-5.6-terra": (51.67, 5.77),
+        "Doubao-2.1": (86.67, 2.89),
+        "Gemini-3.6": (38.33, 2.89),
+        "GPT-5.6-luna": (3.33, 5.77),
+        "sonnet-5": (33.33, 5.77),
+        "Qwen3.7-max": (1.67, 2.89),
+        "Qwen3.7-plus": (18.33, 2.89),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "grasp_single_bottle_upright": {
+        "Qwen3.8-max": (65.00, 5.00),
+        "Opus-5": (78.33, 16.07),
+        "GPT-5.6-sol": (70.00, 10.00),
+        "GPT-5.6-terra": (68.33, 2.89),
+        "Doubao-2.1": (48.33, 2.89),
+        "Gemini-3.6": (78.33, 2.89),
+        "GPT-5.6-luna": (86.67, 5.77),
+        "sonnet-5": (40.00, 10.00),
+        "Qwen3.7-max": (76.67, 7.64),
+        "Qwen3.7-plus": (76.67, 2.89),
+        "MiniMax-M3": (46.67, 2.89),
+        "Mimo-v2.5": (41.67, 10.41),
+    },
+    "grasp_single_cube": {
+        "Qwen3.8-max": (83.33, 10.41),
+        "Opus-5": (83.33, 11.55),
+        "GPT-5.6-sol": (76.67, 17.56),
+        "GPT-5.6-terra": (31.67, 5.77),
+        "Doubao-2.1": (10.00, 5.00),
+        "Gemini-3.6": (8.33, 2.89),
+        "GPT-5.6-luna": (15.00, 5.00),
+        "sonnet-5": (16.67, 2.89),
+        "Qwen3.7-max": (20.00, 10.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (10.00, 5.00),
+        "Mimo-v2.5": (5.00, 8.66),
+    },
+    "grasp_single_pen": {
+        "Qwen3.8-max": (91.67, 10.41),
+        "Opus-5": (63.33, 15.28),
+        "GPT-5.6-sol": (28.33, 16.07),
+        "GPT-5.6-terra": (48.33, 7.64),
+        "Doubao-2.1": (26.67, 10.41),
+        "Gemini-3.6": (23.33, 7.64),
+        "GPT-5.6-luna": (8.33, 2.89),
+        "sonnet-5": (1.67, 2.89),
+        "Qwen3.7-max": (13.33, 2.89),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "place_cube_in_bowl": {
+        "Qwen3.8-max": (81.67, 2.89),
+        "Opus-5": (88.33, 10.41),
+        "GPT-5.6-sol": (85.00, 10.00),
+        "GPT-5.6-terra": (18.33, 2.89),
+        "Doubao-2.1": (6.67, 7.64),
+        "Gemini-3.6": (5.00, 5.00),
+        "GPT-5.6-luna": (6.67, 7.64),
+        "sonnet-5": (11.67, 2.89),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (1.67, 2.89),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "place_cube_on_cube": {
+        "Qwen3.8-max": (86.67, 7.64),
+        "Opus-5": (78.33, 2.89),
+        "GPT-5.6-sol": (88.33, 12.58),
+        "GPT-5.6-terra": (46.67, 2.89),
+        "Doubao-2.1": (8.33, 2.89),
+        "Gemini-3.6": (10.00, 5.00),
+        "GPT-5.6-luna": (13.33, 2.89),
+        "sonnet-5": (0.00, 0.00),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "place_single_bottle_upright": {
+        "Qwen3.8-max": (40.00, 5.00),
+        "Opus-5": (38.33, 2.89),
+        "GPT-5.6-sol": (13.33, 2.89),
+        "GPT-5.6-terra": (6.67, 5.77),
+        "Doubao-2.1": (6.67, 2.89),
+        "Gemini-3.6": (11.67, 2.89),
+        "GPT-5.6-luna": (26.67, 7.64),
+        "sonnet-5": (0.00, 0.00),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "place_single_cube": {
+        "Qwen3.8-max": (43.33, 14.43),
+        "Opus-5": (88.33, 7.64),
+        "GPT-5.6-sol": (91.67, 7.64),
+        "GPT-5.6-terra": (16.67, 2.89),
+        "Doubao-2.1": (3.33, 2.89),
+        "Gemini-3.6": (0.00, 0.00),
+        "GPT-5.6-luna": (13.33, 2.89),
+        "sonnet-5": (6.67, 2.89),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "place_shoe": {
+        "Qwen3.8-max": (33.33, 7.64),
+        "Opus-5": (35.00, 5.00),
+        "GPT-5.6-sol": (66.67, 5.77),
+        "GPT-5.6-terra": (0.00, 0.00),
+        "Doubao-2.1": (0.00, 0.00),
+        "Gemini-3.6": (0.00, 0.00),
+        "GPT-5.6-luna": (3.33, 2.89),
+        "sonnet-5": (0.00, 0.00),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "handover_horizontal_block": {
+        "Qwen3.8-max": (0.00, 0.00),
+        "Opus-5": (0.00, 0.00),
+        "GPT-5.6-sol": (0.00, 0.00),
+        "GPT-5.6-terra": (0.00, 0.00),
+        "Doubao-2.1": (0.00, 0.00),
+        "Gemini-3.6": (0.00, 0.00),
+        "GPT-5.6-luna": (0.00, 0.00),
+        "sonnet-5": (0.00, 0.00),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+    "lift_pot": {
+        "Qwen3.8-max": (0.00, 0.00),
+        "Opus-5": (0.00, 0.00),
+        "GPT-5.6-sol": (0.00, 0.00),
+        "GPT-5.6-terra": (1.67, 2.89),
+        "Doubao-2.1": (0.00, 0.00),
+        "Gemini-3.6": (0.00, 0.00),
+        "GPT-5.6-luna": (0.00, 0.00),
+        "sonnet-5": (0.00, 0.00),
+        "Qwen3.7-max": (0.00, 0.00),
+        "Qwen3.7-plus": (0.00, 0.00),
+        "MiniMax-M3": (0.00, 0.00),
+        "Mimo-v2.5": (0.00, 0.00),
+    },
+}
