@@ -92,3 +92,14 @@ def pytest_collection_modifyitems(items):
     takes the next file when it is free, so the long ones start early and short ones fill in
     at the end (no worker left with a long file while the other idles)."""
     items.sort(key=lambda item: not item.path.name.startswith(LONG_FILES_FIRST))
+
+
+@pytest.fixture(autouse=True)
+def _endpoint_check_only_where_tested(request, monkeypatch):
+    """The sweep's first step tries each model's endpoint once (vabench.check). Tests whose
+    subject is something else (a fault-injecting server, a rerun, a limit) call the sweep as
+    `--no-check` would; the tests of the check itself carry `@pytest.mark.endpoint_check`."""
+    if request.node.get_closest_marker("endpoint_check") is None:
+        import vabench.sweep.__main__ as sweep_main
+
+        monkeypatch.setattr(sweep_main, "_check_endpoints", lambda config, keys: 0)

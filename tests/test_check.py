@@ -174,6 +174,7 @@ def test_the_embedded_server_needs_no_call(checked):
     assert "check: model 'embedded'\n  reachable     the embedded server: nothing" in run.stdout
 
 
+@pytest.mark.endpoint_check
 def test_the_sweep_checks_first_and_records_nothing_on_a_problem(config, tmp_path, capsys):
     from vabench.sweep.__main__ import main
 
