@@ -154,11 +154,11 @@ def test_the_sweeps_cap_stops_every_model_counting_the_recorded_spend(tmp_path, 
 @pytest.mark.parametrize(
     ("extra", "model", "expected"),
     [
-        ("limits: {max_cost_usd: -1}\n", "", "limits.max_cost_usd: Input should be greater than 0"),
+        ("limits: {max_cost_usd: -1}\n", "", "limits.max_cost_usd: must be more than 0"),
         (
             "limits: {max_cost_usd: lots}\n",
             "",
-            "limits.max_cost_usd: Input should be a valid number",
+            "limits.max_cost_usd: must be a number",
         ),
         (
             "limits: {max_cost_usd: 5}\n",
@@ -170,7 +170,7 @@ def test_the_sweeps_cap_stops_every_model_counting_the_recorded_spend(tmp_path, 
             ", limits: {max_cost_usd: 5}",
             "models[0].limits.max_cost_usd: max_cost_usd needs prices for model 'gpt'",
         ),
-        ("", ", limits: {max_cost_usd: 0}", "models[0].limits.max_cost_usd: Input should be"),
+        ("", ", limits: {max_cost_usd: 0}", "models[0].limits.max_cost_usd: must be more than 0"),
     ],
 )
 def test_a_bad_cap_is_one_line_naming_the_field(tmp_path, capsys, extra, model, expected):

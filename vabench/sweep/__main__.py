@@ -54,10 +54,11 @@ if __name__ == "__main__":
 
 import argparse  # noqa: E402  (after the handler above: these imports take seconds)
 import asyncio  # noqa: E402
+import difflib  # noqa: E402
 import logging  # noqa: E402
 from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
+from typing import Any, NoReturn  # noqa: E402
 
 from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfigError, load_config  # noqa: E402
@@ -84,10 +85,11 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     """The command. `ctrl_c`: a handler already installed for the life of the process (the
     command line's, so a press after `main` returns still exits at once); without one, `main`
     installs its own for the run and restores the previous handler on return."""
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="python -m vabench.sweep",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False,  # `--seed 2` taken silently as `--seeds 2` plans another sweep
     )
     p.add_argument("config", type=Path)
     p.add_argument(
@@ -196,6 +198,23 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     finally:
         if own_handler:
             ctrl_c.restore()
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the command's one form of error, "error: WHAT: WHY; FIX", and a "did you
+    mean" for a flag it does not know (abbreviations included: they are refused)."""
+
+    def error(self, message: str) -> NoReturn:
+        unknown = message.removeprefix("unrecognized arguments: ")
+        if unknown != message:
+            flag = unknown.split()[0]
+            known = [o for o in self._option_string_actions if o.startswith("--")]
+            close = difflib.get_close_matches(flag.split("=")[0], known, n=1, cutoff=0.75)
+            fix = f"did you mean {close[0]}?" if close else "see --help for the flags"
+            message = f"{flag}: unknown flag (flags are written in full); {fix}"
+        else:
+            message = f"{message.removeprefix('argument ')}; see --help"
+        self.exit(2, f"error: {message}\n")
 
 
 def _start_line(configuring: float) -> str:

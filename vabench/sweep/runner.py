@@ -124,7 +124,7 @@ async def open_engine(
         # server's processes start: each took ~3 s of an engine process's ~13 s before its
         # first episode on an H100 host (2026-11-28), one after the other.
         render = cfg.render
-        renderer, choice = make_renderer(
+        renderer, _choice = make_renderer(
             choices.renderer,
             workers=render.workers,
             platform=render.platform,
@@ -156,7 +156,7 @@ async def open_engine(
             limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
         )
         info = await starting
-        log.info("renderer: %s (%s)", info, choice.reason)
+        log.info("renderer started: %s", info)  # the choice and its reason: a start line
         yield Engine(choices.physics, llm, summaries, renderer, render.image_settings(), gate)
 
 
