@@ -60,3 +60,13 @@ def home_batch(mjx_batch, probe_task, probe_model):
     q = probe_task.initial_qpos(probe_model, 0)
     mjx_batch.reset(range(N_SLOTS), np.broadcast_to(q, (N_SLOTS, probe_model.nq)), settle_steps=25)
     return mjx_batch
+
+
+@pytest.fixture(autouse=True)
+def _own_pace_file(tmp_path, monkeypatch):
+    """Each test's sweeps keep their measured pace in a file of their own, never the user's
+    (`vabench.sweep.pace.pace_file`), so a dry run's estimate depends on the test alone."""
+    from vabench.sweep import pace
+
+    path = tmp_path / "pace_cache" / "pace.json"
+    monkeypatch.setattr(pace, "pace_file", lambda: path)

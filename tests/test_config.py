@@ -110,11 +110,12 @@ def test_shipped_configs_load_without_keys():
     smoke = load_config(CONFIGS / "smoke.yaml", environ={})
     assert sorted(len(get_task(t).arms) for t in smoke.tasks) == [1, 2]
     assert smoke.track_names == ("active", "passive") and smoke.runs == 1
-    assert all(len(s) == 2 for s in smoke.seeds.values())
-    assert smoke.step_budget == 5 and all(smoke.budget(t) == 5 for t in smoke.tasks)
+    assert all(len(s) == 1 for s in smoke.seeds.values())
+    assert smoke.step_budget is None  # the tasks' own budgets: the agent needs 15-27 steps
     assert smoke.simulator.backend == "c"
-    assert (smoke.render.width, smoke.render.height, smoke.render.workers) == (320, 240, 1)
-    assert smoke.embedded_models == ("local",)
+    assert (smoke.render.width, smoke.render.height, smoke.render.workers) == (640, 480, 1)
+    assert smoke.embedded_models == ("reference-servo",)
+    assert smoke.embedded_server.policy == "reference_servo"
 
 
 def test_step_budget_caps_but_never_raises_a_task_budget(tmp_path):

@@ -97,7 +97,7 @@ class Episode:
             protocol=spec.protocol,
             limits=services.settings.limits,
         )
-        self.rec = EpisodeRecorder(spec.out_dir)
+        self.rec = EpisodeRecorder(spec.out_dir, frames=spec.frames)
         self.counts = _Counts()
         self.spend = Spend()  # every model call, compaction summaries included
         self.kinds: list[str] = []  # decision kinds executed, for the camera-chain rule

@@ -182,6 +182,7 @@ def _check(
         "executor",
         "retries",
         "limits",
+        "records",
     )
     config = SweepConfig(
         **{key: getattr(parsed, key) for key in as_written},

@@ -387,6 +387,7 @@ class LocalSweep:
                     summary_from=use.source,
                     summary_status=use.status,
                     step_budget=cfg.step_budget,
+                    frames=cfg.records.frames,
                 )
                 if use.unavailable is not None:
                     self._finish(k, _unavailable(spec, cfg.budget(name), use.unavailable))
