@@ -162,7 +162,7 @@ def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp
     out = capsys.readouterr().out
     assert f"output: {runs / 'first'} (new)" in out
     assert "summaries: active: own, active_none: none" in out
-    assert "wall time (embedded conversation_hash): no measured pace of this model kind" in out
+    assert "wall time (embedded conversation_hash at 64x48): no measured pace of this" in out
 
     assert main([str(cfg), "--out", str(runs / "first"), "--plain", "--no-report"]) == 0
     assert main([str(cfg), "--out", str(runs / "first"), "--dry-run"]) == 0
@@ -177,15 +177,19 @@ def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp
     ends = sorted((r["started_at"], r["started_at"] + r["wall_s"]) for r in records)
     busy = ends[0][1] - ends[0][0] + max(0.0, ends[1][1] - max(ends[1][0], ends[0][1]))
     rate = sum(r["steps_used"] for r in records) / busy
-    (line,) = [x for x in out.splitlines() if x.startswith("wall time (embedded")]
+    (line,) = [
+        x
+        for x in out.splitlines()
+        if x.startswith("wall time (embedded conversation_hash at 64x48)")
+    ]
     assert f"pace {rate:.2g} decisions a second, 2 episodes in {runs / 'first'}" in line
     assert "expected (2 episodes at the 2.0 decisions an episode measured), at most" in line
     (disk,) = [x for x in out.splitlines() if x.startswith("disk: about")]
-    assert "an episode of embedded conversation_hash; records.frames: all)" in disk
+    assert "an episode of embedded conversation_hash at 64x48; records.frames: all)" in disk
 
     assert main([str(SMOKE), "--out", str(runs / "second"), "--dry-run"]) == 0
     out = capsys.readouterr().out
-    assert "wall time (embedded reference_servo): no measured pace of this model kind" in out
+    assert "wall time (embedded reference_servo at 640x480): no measured pace of this" in out
 
 
 def test_the_pace_leaves_out_the_time_between_a_stop_and_its_resumption():

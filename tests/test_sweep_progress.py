@@ -93,7 +93,8 @@ def test_a_limit_lowered_below_the_running_episodes_says_it_only_holds_back_new_
     quiet = Display("all", live=False, out=out, clock=clock)  # without --verbose: the limit
     quiet.update(lowered, force=True)
     last = out.getvalue().splitlines()[-1]
-    assert "6 running (at most 3 at once) |" in last and "decisions" not in last
+    assert "6 running (limit now 3; the 3 above it finish before a new one starts) |" in last
+    assert "decisions" not in last
 
 
 def test_one_success_is_singular_and_the_eta_waits_for_a_pace():

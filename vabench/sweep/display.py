@@ -325,8 +325,9 @@ class Display:
             # limit and why it moves (the adaptive gate's words) are for --verbose
             why = f": {status.reason}" if status.reason and self.verbose else ""
             above = total.running - status.limit  # the gate's slots: the same episodes
-            if above > 0 and self.verbose:
-                # a limit lowered below the episodes already running ends none of them
+            if above > 0:
+                # a limit lowered below the episodes already running ends none of them:
+                # "3 running (at most 2 at once)" reads as a bug unless said
                 episodes += (
                     f" (limit now {status.limit}{why}; the {above} above it finish before a "
                     "new one starts)"

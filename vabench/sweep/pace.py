@@ -64,12 +64,14 @@ def pace_file() -> Path:
 
 
 def model_kind(config: Any, model: str) -> str:
-    """What decides a model's pace: the embedded server's policy, or the API and provider
-    model (a random-action pace says nothing of a paid model)."""
+    """What decides a model's pace and its records' size: the embedded server's policy, or
+    the API and provider model (a random-action pace says nothing of a paid model), and the
+    image size (rendering time, MB an episode)."""
     m = config.model(model)
+    size = f"{config.render.width}x{config.render.height}"
     if model in config.embedded_models:
-        return f"embedded {config.embedded_server.policy}"
-    return f"{m.api} {m.provider_model}"
+        return f"embedded {config.embedded_server.policy} at {size}"
+    return f"{m.api} {m.provider_model} at {size}"
 
 
 @dataclass(frozen=True)
