@@ -167,9 +167,16 @@ def test_a_success_keeps_no_frames_under_failed(tmp_path):
     assert len(list(run(False).rglob("*.jpg"))) == 1
 
 
-def test_the_sweep_stops_with_one_line_before_the_disk_is_full(tmp_path, capsys, monkeypatch):
+def test_the_sweep_stops_with_one_line_before_the_disk_is_full(
+    tmp_path, capsys, monkeypatch, caplog
+):
     """Free disk below the reserve once the first episode is recorded: one line, exit 2, the
-    record kept, and the same command resumes without running it again."""
+    record kept, and the same command resumes without running it again, saying so, its
+    output directory named at the start and the statistics in the run directory's log."""
+    import logging
+    import re
+
+    caplog.set_level(logging.INFO)
     import vabench.sweep.__main__ as command
 
     cfg, out = _tiny(tmp_path), tmp_path / "out"
@@ -185,7 +192,13 @@ def test_the_sweep_stops_with_one_line_before_the_disk_is_full(tmp_path, capsys,
     assert len(err) == 1 and err[0].startswith("stopped: disk: ") and "resume" in err[0], err
     first = (out / "results.jsonl").read_text().splitlines()
     assert 1 <= len(first) <= 2
+    assert f"output:    {out} (new)" in caplog.messages
     monkeypatch.setattr(command, "disk_short", real)
+    caplog.clear()
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    assert f"output:    {out}" in caplog.messages
+    assert any(re.fullmatch(r"resuming:  [12] of 2 already recorded", m) for m in caplog.messages)
+    logged = (out / "logs" / "sweep.log").read_text()
+    assert "started:" in logged and "resuming:" in logged and "host, whole run" in logged
     assert (out / "results.jsonl").read_text().splitlines()[: len(first)] == first
     assert len((out / "results.jsonl").read_text().splitlines()) == 2
