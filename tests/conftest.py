@@ -103,3 +103,13 @@ def _endpoint_check_only_where_tested(request, monkeypatch):
         import vabench.sweep.__main__ as sweep_main
 
         monkeypatch.setattr(sweep_main, "_check_endpoints", lambda config, keys: 0)
+
+
+@pytest.fixture(autouse=True)
+def _own_pace_file(tmp_path, monkeypatch):
+    """Each test's sweeps keep their measured pace in a file of their own, never the user's
+    (`vabench.sweep.pace.pace_file`), so a dry run's estimate depends on the test alone."""
+    from vabench.sweep import pace
+
+    path = tmp_path / "pace_cache" / "pace.json"
+    monkeypatch.setattr(pace, "pace_file", lambda: path)

@@ -21,6 +21,14 @@ def smoke_run(base: Path) -> Path:
     if "run" not in _PRISTINE:
         config = yaml.safe_load((REPO / "configs" / "smoke.yaml").read_text())
         config.update(tasks=["grasp_single_cube"], seeds={"verified": 1}, step_budget=4)
+        # the random actor at small images (the smoke config runs the reference agent): a
+        # run of seconds whose episodes fail, as these tests read them
+        config.update(
+            models=[{"name": "local", "api": "openai_chat", "base_url": "embedded"}],
+            embedded_server={"policy": "random_action"},
+            tracks=["active", "passive"],
+            render={"width": 320, "height": 240, "workers": 1},
+        )
         path = base / "smoke.yaml"
         path.write_text(yaml.safe_dump(config))
         out = base / "run"

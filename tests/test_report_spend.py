@@ -60,11 +60,21 @@ def test_the_bill_counts_the_calls_of_attempts_that_were_run_again(tmp_path):
 
     rows = list(csv.DictReader((out / "report" / "spend.csv").open()))
     by_source = {r["source"]: r for r in rows if r["model"] == "local"}
+    total = by_source.pop("total")  # the last row of each model sums its sources
     billed = math.fsum(float(r["cost_usd"]) for r in by_source.values())
+    assert float(total["cost_usd"]) == pytest.approx(billed, abs=1e-9)
+    for column in ("items", "tokens_input", "tokens_output"):
+        assert int(total[column]) == sum(int(r[column]) for r in by_source.values()), column
     assert billed == pytest.approx(truth, abs=1e-5)  # results round cost to 1e-6 per episode
     run_again = by_source["infrastructure failures run again"]
     assert int(run_again["items"]) == len(retried) and float(run_again["cost_usd"]) > 0
     tokens = sum(int(r["tokens_input"]) + int(r["tokens_output"]) for r in by_source.values())
     assert tokens == sum(r["input_tokens"] + r["output_tokens"] for r in answered)
-    assert "Spend of every call" in (out / "report" / "report.md").read_text()
+    report = (out / "report" / "report.md").read_text()
+    assert "Spend of every call" in report
+    (total_row,) = [x for x in report.splitlines() if x.startswith("| local | total |")]
+    cells = [c.strip() for c in total_row.strip("|").split("|")]
+    assert cells[2] == total["items"] and cells[3] and cells[3] != "0"  # records, tokens
+    html = (out / "report" / "report.html").read_text()
+    assert f"<td>total</td><td>{total['items']}</td><td>{cells[3]}</td>" in html
     assert Path(out / "report" / "spend.md").exists()

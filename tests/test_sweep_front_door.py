@@ -39,7 +39,7 @@ def test_dry_run_refuses_a_changed_plan_like_the_run(tmp_path, capsys):
     config = load_config(SMOKE, overrides={"out": str(out)})
     check_run_dir(out, config, plan(config), config.document())  # a run directory of smoke
     changed = yaml.safe_load(SMOKE.read_text())
-    changed["step_budget"] = int(changed["step_budget"]) + 1
+    changed["step_budget"] = 5  # the tasks' own budgets before
     edited = tmp_path / "smoke_6.yaml"
     edited.write_text(yaml.safe_dump(changed))
     assert main([str(edited), "--out", str(out), "--dry-run"]) == 2
@@ -88,7 +88,7 @@ def test_dry_run_warns_of_a_missing_key_and_prints_the_plan(tmp_path, capsys, mo
     assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     unset = "environment variable VABENCH_DOOR_KEY is not set"
-    assert err == [f"{cfg}: models[0].api_key_env: {unset}"]
+    assert err == [f"error: {cfg}: models[0].api_key_env: {unset}"]
     assert not out.exists()
 
 
@@ -131,7 +131,7 @@ def test_a_malformed_dotenv_line_is_named_by_number_not_shown(tmp_path, capsys, 
     (tmp_path / ".env").write_text("# ok\nsk-secret-without-a-name\n")
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--dry-run"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == f"{tmp_path / '.env'}: line 2: expected NAME=VALUE (a # starts a comment)"
+    assert err == f"error: {tmp_path / '.env'}: line 2: expected NAME=VALUE (a # starts a comment)"
 
 
 TINY = """\
@@ -152,8 +152,9 @@ render: {width: 64, height: 48, workers: 1}
 
 def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp_path, capsys):
     """Issue 34: the dry run showed no output directory, no summary mode and no wall time.
-    With no earlier sweep beside the planned directory it says it has no pace; after one, it
-    estimates from that sweep's decisions per second of episode time."""
+    With no earlier sweep of the model kind on this machine it says it has no pace; after one,
+    wherever `--out` points, it estimates from that sweep's decisions per second of episode
+    time, and the disk from its records; another model kind's pace is never used."""
     runs = tmp_path / "runs"
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(TINY)
@@ -161,7 +162,7 @@ def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp
     out = capsys.readouterr().out
     assert f"output: {runs / 'first'} (new)" in out
     assert "summaries: active: own, active_none: none" in out
-    assert "wall time: no measured pace on this machine yet (run configs/smoke.yaml" in out
+    assert "wall time (embedded conversation_hash at 64x48): no measured pace of this" in out
 
     assert main([str(cfg), "--out", str(runs / "first"), "--plain", "--no-report"]) == 0
     assert main([str(cfg), "--out", str(runs / "first"), "--dry-run"]) == 0
@@ -169,16 +170,26 @@ def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp
     assert f"output: {runs / 'first'}: 2 of 2 episodes already finished" in out
     assert "wall time: nothing left to run" in out
 
-    assert main([str(SMOKE), "--out", str(runs / "second"), "--dry-run"]) == 0
+    elsewhere = tmp_path / "elsewhere" / "x"  # not beside the first: the pace is the machine's
+    assert main([str(cfg), "--out", str(elsewhere), "--dry-run"]) == 0
     out = capsys.readouterr().out
     records = [json.loads(x) for x in (runs / "first" / "results.jsonl").read_text().splitlines()]
     ends = sorted((r["started_at"], r["started_at"] + r["wall_s"]) for r in records)
     busy = ends[0][1] - ends[0][0] + max(0.0, ends[1][1] - max(ends[1][0], ends[0][1]))
     rate = sum(r["steps_used"] for r in records) / busy
-    (line,) = [x for x in out.splitlines() if x.startswith("wall time:")]
-    assert f"(40 decisions at {rate:.2g} a second, the pace of 2 episodes in {runs / 'first'}" in (
-        line
-    )
+    (line,) = [
+        x
+        for x in out.splitlines()
+        if x.startswith("wall time (embedded conversation_hash at 64x48)")
+    ]
+    assert f"pace {rate:.2g} decisions a second, 2 episodes in {runs / 'first'}" in line
+    assert "expected (2 episodes at the 2.0 decisions an episode measured), at most" in line
+    (disk,) = [x for x in out.splitlines() if x.startswith("disk: about")]
+    assert "an episode of embedded conversation_hash at 64x48; records.frames: all)" in disk
+
+    assert main([str(SMOKE), "--out", str(runs / "second"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "wall time (embedded reference_servo at 640x480): no measured pace of this" in out
 
 
 def test_the_pace_leaves_out_the_time_between_a_stop_and_its_resumption():

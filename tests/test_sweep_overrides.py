@@ -78,9 +78,9 @@ def test_dry_run_lists_the_overrides_and_the_plan_they_give(config, tmp_path, ca
         (["--model", "gpt"], "error: --model gpt: no model 'gpt' in the config; its models: "),
         (["--tasks", "grasp_single_cub"], "tasks[0]: unknown task 'grasp_single_cub'; did you"),
         (["--tracks", "activ"], "tracks[0]: "),
-        (["--runs", "0"], "runs: Input should be greater than or equal to 1, got 0 (from --runs"),
+        (["--runs", "0"], "runs: must be at least 1, got 0 (from --runs"),
         (["--seeds", "x"], "seeds.verified: expected a whole number >= 1, got 'x' (from --seeds"),
-        (["--max-episodes", "0"], "executor.max_episodes: Input should be greater than or equal"),
+        (["--max-episodes", "0"], "executor.max_episodes: must be at least 1"),
         (["--max-connections", "2"], "models[1].limits: "),  # below other's min_concurrency 4
         (["--limit", "0"], "error: --limit: expected a whole number >= 1, got '0'"),
         (["--model-base-url", "http://127.0.0.1:9/v1"], "--model-base-url needs --model NAME"),

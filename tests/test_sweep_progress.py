@@ -59,7 +59,7 @@ def test_plain_lines_come_on_the_clock_with_every_count():
     last = lines[-1]
     for words in (
         "all: episodes 15/110 (14%): 15 successes, 0 unscored, 0 retried, 3 running",
-        "in flight 3 (limit 4: decisions at 1.20x their unloaded time: growing)",
+        "3 running (at most 4 at once)",
         "calls 10.0/s",
         "12,345 tokens, $0.50",
         "elapsed 15s, ETA 1m35s",  # 95 left at 1 episode/s
@@ -73,22 +73,47 @@ def test_plain_lines_come_on_the_clock_with_every_count():
 
 def test_a_limit_lowered_below_the_running_episodes_says_it_only_holds_back_new_ones():
     clock, out = Clock(), io.StringIO()
-    display = Display("all", live=False, out=out, clock=clock)
+    display = Display("all", live=False, out=out, clock=clock, verbose=True)
     lowered = status(5)
+    lowered.tracks[("m", "active")].running = 6
     lowered.in_flight, lowered.limit = 6, 3
     display.update(lowered)
     # issue 34: "in flight 3 (limit 1: ...)" read as a bug
-    assert "in flight 6 (limit now 3: decisions at 1.20x their unloaded time: growing; " in (
+    assert "6 running (limit now 3: decisions at 1.20x their unloaded time: growing; " in (
         out.getvalue()
     )
     assert "; the 3 above it finish before a new one starts)" in out.getvalue()
-    display.update(status(6), force=True)  # 3 in flight under a limit of 4: nothing added
+    display.update(status(6), force=True)  # 3 running under a limit of 4: nothing added
     last = out.getvalue().splitlines()[-1]
-    assert "in flight 3 (limit 4: " in last and "above it" not in last
+    assert "3 running (at most 4 at once: " in last and "above it" not in last
     unknown = status(6)
     unknown.in_flight, unknown.limit, unknown.reason = 0, 0, ""  # a worker stopped early
     display.update(unknown, force=True)
-    assert "| in flight 0 (limit 0) |" in out.getvalue().splitlines()[-1]
+    assert "3 running (limit now 0; the 3 above it finish" in out.getvalue().splitlines()[-1]
+    quiet = Display("all", live=False, out=out, clock=clock)  # without --verbose: the limit
+    quiet.update(lowered, force=True)
+    last = out.getvalue().splitlines()[-1]
+    assert "6 running (limit now 3; the 3 above it finish before a new one starts) |" in last
+    assert "decisions" not in last
+
+
+def test_one_success_is_singular_and_the_eta_waits_for_a_pace():
+    """A newcomer read "1 successes", and first ETAs of 33 h, 18 h, 9 h."""
+    clock, out = Clock(), io.StringIO()
+    display = Display("all", live=False, out=out, clock=clock)
+    display.update(status(1))
+    assert "1 success, " in out.getvalue() and "ETA after 5 more episodes" in out.getvalue()
+    clock.now = 30
+    display.update(status(6), force=True)
+    assert re.search(r"ETA \d+m\d+s", out.getvalue().splitlines()[-1])
+
+
+def test_a_resumed_sweeps_clock_continues():
+    clock, out = Clock(), io.StringIO()
+    display = Display("all", live=False, out=out, clock=clock, elapsed_before_s=3_600)
+    clock.now = 15
+    display.update(status(0))
+    assert "elapsed 1h00m" in out.getvalue()
 
 
 def test_the_last_line_is_not_printed_twice():
@@ -170,6 +195,8 @@ def test_the_eta_holds_steady_when_episodes_finish_in_bursts():
         display.update(status(10 * (t // 50), planned=2_000))
     later = []  # (ETA, episodes left) from the fourth minute on
     for line in out.getvalue().splitlines():
+        if "ETA after" in line:  # the first episodes: no pace yet
+            continue
         m = re.search(r"episodes (\d+)/(\d+).* elapsed (\S+), ETA (\S+) \|", line)
         assert m, line
         done, planned, elapsed, eta = m.groups()
@@ -245,7 +272,7 @@ def test_plain_progress_lines_count_episodes_as_they_finish(tmp_path, capsys):
     assert counts[0] == 0 and counts[-1] == 5 and counts == sorted(counts), text
     assert any(0 < c < 5 for c in counts), text  # lines came while the sweep ran
     last = text.strip().splitlines()[-1]
-    for words in ("successes", "unscored", "retried", "in flight", "calls", "tokens", "ETA"):
+    for words in ("successes", "unscored", "retried", "running", "calls", "tokens", "ETA"):
         assert words in last, last
 
 

@@ -356,6 +356,7 @@ def test_missing_package_is_named(monkeypatch):
         return None if name == "mujoco_warp" else real(name, *args, **kwargs)
 
     monkeypatch.setattr(importlib.util, "find_spec", find_spec)
+    monkeypatch.setattr(device, "nvidia_driver_present", lambda: True)
     problem = device.warp_problem("cuda:0")
     assert problem is not None
     assert "mujoco-warp" in problem and "pip install 'vabench[gpu]'" in problem
@@ -363,6 +364,24 @@ def test_missing_package_is_named(monkeypatch):
         backends.resolve("mjx", "warp")
     auto = backends.resolve("auto")
     assert auto.kind is backends.Physics.C and "mujoco-warp" in auto.reason
+
+
+def test_no_gpu_is_the_reason_without_a_driver(monkeypatch):
+    """Without an NVIDIA driver the reason is the missing GPU, not a package: installing
+    warp-lang would not help."""
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a, **k: None if name == "warp" else real(name, *a, **k),
+    )
+    monkeypatch.setattr(device, "nvidia_driver_present", lambda: False)
+    problem = device.warp_problem("cuda:0")
+    assert problem is not None and "needs an NVIDIA GPU" in problem
+    assert "warp-lang" not in problem
+    auto = backends.resolve("auto")
+    assert auto.kind is backends.Physics.C and "needs an NVIDIA GPU" in auto.reason
+    assert "Use backend c" not in auto.reason  # auto already fell back to it
 
 
 def _cuda() -> bool:

@@ -25,6 +25,9 @@ directory name spelled anywhere else in vabench. docs/DESIGN.md, "Run directory"
                                        figures/*.png (`vabench.report.build`)
     RUN_DIR/logs/worker_<pid>.log      an engine worker process's log (the processes executor;
                                        a Ray engine's: worker_<host>-<pid>.log)
+    RUN_DIR/logs/sweep.log             SWEEP_LOG: the command's whole log (the terminal shows
+                                       the researcher's lines; statistics are kept here)
+    RUN_DIR/logs/clock.json            CLOCK: the seconds the sweep's invocations have run
 
 Paths are `Path`s; the one path recorded as text, the ledger's `episode_dir`, is
 `episode_rel`'s POSIX string relative to the run directory, so a run directory moved or mounted
@@ -51,6 +54,8 @@ ANNOTATIONS = "annotations"
 REPORT = "report"
 LOGS = "logs"
 WORKER_LOG_PREFIX = "worker_"
+SWEEP_LOG = "sweep.log"
+CLOCK = "clock.json"
 
 EVENTS = "events.jsonl"
 RESULT = "result.json"
@@ -220,6 +225,14 @@ class RunDir:
     @property
     def logs(self) -> Path:
         return self.path / LOGS
+
+    @property
+    def sweep_log(self) -> Path:
+        return self.logs / SWEEP_LOG
+
+    @property
+    def clock(self) -> Path:
+        return self.logs / CLOCK
 
     def worker_log(self, pid: int | str) -> Path:
         """The log of the engine worker process `pid` (its tasks' stage and host lines; a Ray

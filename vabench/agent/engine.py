@@ -119,7 +119,7 @@ class Episode:
             protocol=spec.protocol,
             limits=model_limits(services.settings.limits, endpoint.context_window),
         )
-        self.rec = EpisodeRecorder(spec.out_dir)
+        self.rec = EpisodeRecorder(spec.out_dir, frames=spec.frames)
         self.counts = _Counts()
         self.spend = Spend()  # every model call, compaction summaries included
         self.kinds: list[str] = []  # decision kinds executed, for the camera-chain rule

@@ -26,6 +26,7 @@ import contextlib
 import json
 import os
 import queue
+import shutil
 import threading
 import time
 from pathlib import Path
@@ -174,8 +175,10 @@ class EpisodeRecorder:
     them, so a result.json never exists without its frames, and a write error surfaces at the
     episode's next frame or at its end."""
 
-    def __init__(self, directory: Path | str | None):
+    def __init__(self, directory: Path | str | None, frames: str = "all"):
+        """`frames`: which episodes keep their images (`all`, `failed`, `none`)."""
         self.directory = Path(directory) if directory is not None else None
+        self.keep_frames = frames
         self.events: list[dict[str, Any]] = []
         self._file = None
         self._seq = 0
@@ -222,7 +225,7 @@ class EpisodeRecorder:
     ) -> str:
         """Store one model image; returns its path relative to the episode directory."""
         rel = frame_path(step, view, index)
-        if self.directory is not None:
+        if self.directory is not None and self.keep_frames != "none":
             if self._writes.error is not None:
                 self._writes.wait()  # raises the earlier write's error in this episode
             _FRAMES.submit(self.directory / rel, jpeg, self._writes)
@@ -242,6 +245,8 @@ class EpisodeRecorder:
             tmp = path.with_name(f"{path.name}.tmp")
             tmp.write_text(result.model_dump_json(indent=1), encoding="utf-8")
             os.replace(tmp, path)
+            if self.keep_frames == "failed" and result.success:  # after the result: kept whole
+                shutil.rmtree(EpisodeDir(self.directory).frames, ignore_errors=True)
         self.close()
         return result
 

@@ -34,3 +34,5 @@ class EpisodeSpec:
     step_budget: int | None = None
     """Override of the task's step budget for smoke runs and benchmarks (None: the task's;
     the record states the budget used)."""
+    frames: str = "all"
+    """Which episodes keep their frames on disk: all, failed, none (`records.frames`)."""

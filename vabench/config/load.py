@@ -183,6 +183,7 @@ def _check(
         "retries",
         "limits",
         "report",
+        "records",
     )
     config = SweepConfig(
         **{key: getattr(parsed, key) for key in as_written},

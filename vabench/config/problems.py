@@ -1,4 +1,5 @@
-"""Everything wrong with a config file, one line a problem: `<file>: <field>: <problem>`.
+"""Everything wrong with a config file, one line a problem: `error: <file>: <field>: <problem>`
+(the one form of the command's errors: "error: WHAT: WHY; FIX").
 
 Pydantic's and YAML's errors are turned into `Problem`s here; a misspelt key or name gets a
 "did you mean" from the fields or names that exist.
@@ -28,13 +29,14 @@ class Problem:
 
 
 class SweepConfigError(ValueError):
-    """Everything wrong with one config file: one line `<file>: <field>: <problem>` each."""
+    """Everything wrong with one config file: one line `error: <file>: <field>: <problem>`
+    each."""
 
     def __init__(self, file: str, problems: Iterable[Problem]):
         self.file = file
         self.problems = list(problems)
         lines = [
-            f"{file}: {p.path}: {p.message}" if p.path else f"{file}: {p.message}"
+            f"error: {file}: {p.path}: {p.message}" if p.path else f"error: {file}: {p.message}"
             for p in self.problems
         ]
         super().__init__("\n".join(lines))

@@ -206,6 +206,14 @@ class LearningOptions(_Strict):
     """Model calls one learning session may use (`agent.learning.LearningLimits`)."""
 
 
+class RecordOptions(_Strict):
+    frames: Literal["all", "failed", "none"] = "all"
+    """The images the model saw, kept under each episode's `frames/` (about 6 MB an episode
+    at 1280x960): `all`, those of the episodes that `failed` (a success's are removed once its
+    result is written), or `none`. Events and results are always kept; the viewer says which
+    frames a run kept."""
+
+
 class RetryOptions(_Strict):
     infrastructure_rounds: int = Field(default=3, ge=0)
     """How many times episodes ended by an infrastructure error are re-run (FACTS: 3)."""
@@ -248,6 +256,7 @@ class SweepFile(_Strict):
     retries: RetryOptions = Field(default_factory=RetryOptions)
     limits: SweepLimits = Field(default_factory=SweepLimits)
     report: ReportOptions = Field(default_factory=ReportOptions)
+    records: RecordOptions = Field(default_factory=RecordOptions)
 
 
 class SweepConfig(_Strict):
@@ -275,6 +284,7 @@ class SweepConfig(_Strict):
     retries: RetryOptions = Field(default_factory=RetryOptions)
     limits: SweepLimits = Field(default_factory=SweepLimits)
     report: ReportOptions = Field(default_factory=ReportOptions)
+    records: RecordOptions = Field(default_factory=RecordOptions)
 
     def model(self, name: str) -> ModelEndpoint:
         for endpoint in self.models:
@@ -346,6 +356,8 @@ class SweepConfig(_Strict):
             "runs": self.runs,
             "step_budget": self.step_budget,
         }
-        for key in ("learning", "simulator", "render", "executor", "retries", "limits", "report"):
+        for key in (
+            "learning", "simulator", "render", "executor", "retries", "limits", "report", "records"
+        ):
             doc[key] = getattr(self, key).model_dump(mode="json")
         return doc

@@ -81,7 +81,8 @@ def resolve_renderer(
         return RenderChoice("warp", f"MuJoCo Warp's ray tracer on {device}")
     if problem is None:
         return RenderChoice("warp", f"auto: MuJoCo Warp's ray tracer on {device}")
-    return RenderChoice("gl", f"auto: {problem}")  # shown after the title: not repeated
+    # the reason alone: the fix it ends with ("Use render backend gl") is what auto just did
+    return RenderChoice("gl", f"auto: {problem.split('. Use ')[0]}")
 
 
 def check_renderer(choice: RenderChoice, device: str | None = None) -> None:

@@ -182,7 +182,7 @@ class RenderPool:
                 continue
             self.resolved, self.gl_info = platform, first.info
             self._pool = [first] + [self._spawn(i, platform) for i in range(1, self.workers)]
-            log.info("render workers: %d x %s", self.workers, self.gl_info)
+            log.debug("render workers: %d x %s", self.workers, self.gl_info)
             return first.info  # type: ignore[return-value]
         raise RenderError("no off-screen OpenGL platform works here: " + "; ".join(reasons))
 

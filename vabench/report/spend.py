@@ -217,7 +217,13 @@ def spend_section(b: Bill, pricing: Mapping[str, Pricing] | None = None) -> Sect
             rows.append([model, r.source, str(r.items), f"{tokens:,}", usd(r.cost_usd, model)])
             cell = cost_cell(r.cost_usd, known.get(model))
             csv_rows.append([model, r.source, r.items, *(r.tokens[n] for n in TOKEN_FIELDS), cell])
-        rows.append([model, "total", "", "", usd(b.total(model), model)])
+        # the total row sums every column (its records and tokens too: they read as blanks)
+        items = sum(r.items for r in mine)
+        token_sums = {n: sum(r.tokens[n] for r in mine) for n in TOKEN_FIELDS}
+        shown = sum(token_sums.values()) - token_sums["reasoning"]
+        rows.append([model, "total", str(items), f"{shown:,}", usd(b.total(model), model)])
+        total_cell = cost_cell(b.total(model), known.get(model))
+        csv_rows.append([model, "total", items, *(token_sums[n] for n in TOKEN_FIELDS), total_cell])
     notes = [
         "every call the sweep made, by where its trace lies: the usage table counts scored "
         "episodes only; this is the bill"

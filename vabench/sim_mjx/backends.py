@@ -164,7 +164,8 @@ def resolve(
         return Choice(Physics.WARP, f"MuJoCo Warp on {device}")
     if problem is None:
         return Choice(Physics.WARP, f"auto: MuJoCo Warp on {device}")
-    return Choice(Physics.C, f"auto: {problem}")  # shown after the title: not repeated
+    # the reason alone: the fix it ends with ("Use backend c") is what auto just did
+    return Choice(Physics.C, f"auto: {problem.split('. Use ')[0]}")
 
 
 def check(physics: Physics, device: str | None = None) -> None:

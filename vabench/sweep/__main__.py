@@ -60,10 +60,14 @@ if __name__ == "__main__":
 
 import argparse  # noqa: E402  (after the handler above: these imports take seconds)
 import asyncio  # noqa: E402
+import contextlib  # noqa: E402
+import difflib  # noqa: E402
+import json  # noqa: E402
 import logging  # noqa: E402
+import shutil  # noqa: E402
 from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
+from typing import Any, NoReturn  # noqa: E402
 
 from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfigError, load_config  # noqa: E402
@@ -75,7 +79,7 @@ from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
 from vabench.sweep.overrides import OverrideError, Overrides  # noqa: E402
 from vabench.sweep.overrides import add_arguments as add_overrides  # noqa: E402
-from vabench.sweep.pace import measured_pace, wall_time_line  # noqa: E402
+from vabench.sweep.pace import estimate_lines, keep_pace, machine_paces  # noqa: E402
 from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import (  # noqa: E402
     Ledger,
@@ -95,10 +99,11 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     """The command. `ctrl_c`: a handler already installed for the life of the process (the
     command line's, so a press after `main` returns still exits at once); without one, `main`
     installs its own for the run and restores the previous handler on return."""
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="python -m vabench.sweep",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False,  # `--seed 2` taken silently as `--seeds 2` plans another sweep
     )
     p.add_argument("config", type=Path)
     p.add_argument(
@@ -125,9 +130,19 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         help="keep the episodes that ended as infrastructure errors (by default the same "
         "command runs them again, their earlier attempts kept in the record)",
     )
+    p.add_argument(
+        "--verbose",
+        action="store_true",
+        help="also show the engine's statistics (host load, stages, the episodes' limit and "
+        f"why); they are always in {RunDir(Path('RUN_DIR')).sweep_log}",
+    )
     add_overrides(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    _RESEARCHER_LINES.show_all = args.verbose
+    for handler in logging.getLogger().handlers:  # the terminal's (not a test's capture)
+        if type(handler) is logging.StreamHandler and _RESEARCHER_LINES not in handler.filters:
+            handler.addFilter(_RESEARCHER_LINES)
     configuring = time.monotonic()
     try:
         given = Overrides.from_args(args)
@@ -181,20 +196,31 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     if not args.no_check and _check_endpoints(config, keys):
         return 2
     configure_jax(choices.physics)
+    layout = RunDir(run_dir)
+    layout.logs.mkdir(parents=True, exist_ok=True)
+    to_file = logging.FileHandler(layout.sweep_log, encoding="utf-8")
+    to_file.setFormatter(logging.Formatter("%(asctime)s %(name)s %(message)s", "%H:%M:%S"))
+    logging.getLogger().addHandler(to_file)
+    tally = Tally(run_dir, keys)  # its spend: this invocation's records, for the last line
+    recorded = tally.status().total().done
     log.info("%s", _start_line(configuring))
     for line in choices.lines():
         log.info(line)
+    log.info("output:    %s%s", run_dir, " (new)" if recorded == 0 else "")
+    if recorded:
+        log.info("resuming:  %d of %d already recorded", recorded, len(keys))
     display = Display(
         config.name,
         live=False if args.plain else None,
         every_s=max(args.progress_every, 0.1),
         pricing=config.pricing(),
+        verbose=args.verbose,
+        elapsed_before_s=_clock_before(layout) if recorded else 0.0,
     )
     own_handler = ctrl_c is None
     if ctrl_c is None:
         ctrl_c = CtrlC()
         ctrl_c.install()
-    tally = Tally(run_dir, keys)  # its spend: this invocation's records, for the last line
     last: list[Status] = [tally.status()]
 
     def show(status: Status) -> None:
@@ -215,7 +241,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         return _conclude(records, keys, run_dir, args.no_report)
     except Interrupted:
         ctrl_c.stopped()
-        display.close(last[0])
+        display.close(last[0], show=False)  # the one line below says it
         done = Tally(run_dir, keys).status().total().done
         print(
             f"stopped; {done} of {len(keys)} episodes recorded; run the same command to resume",
@@ -227,8 +253,71 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         print(f"{'stopped' if isinstance(err, SweepStopped) else 'error'}: {err}", file=sys.stderr)
         return 2
     finally:
+        _keep_clock(layout, display.elapsed_s())
+        keep_pace(run_dir, config)  # this machine's pace of each model kind, for dry runs
+        logging.getLogger().removeHandler(to_file)
+        to_file.close()
         if own_handler:
             ctrl_c.restore()
+
+
+class _ResearcherLines(logging.Filter):
+    """What the terminal shows of the log without --verbose: warnings and errors, and this
+    command's own lines (the choices, the output directory) and the demonstration summaries';
+    the engine's statistics (host load, stages, render workers, GPU waits) go to the run
+    directory's log only."""
+
+    SHOWN = ("vabench.sweep", "vabench.sweep.summaries")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.show_all = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return self.show_all or record.levelno >= logging.WARNING or record.name in self.SHOWN
+
+
+_RESEARCHER_LINES = _ResearcherLines()
+
+
+def _clock_before(layout: RunDir) -> float:
+    """The seconds earlier invocations ran (`logs/clock.json`); where it was never written
+    (a process killed), the span of the recorded episodes."""
+    try:
+        return float(json.loads(layout.clock.read_text())["elapsed_s"])
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    spans = []
+    for record in Ledger.open(layout.path).records.values():
+        start = record.get("started_at")
+        if isinstance(start, int | float):
+            spans.append((start, start + float(record.get("wall_s") or 0.0)))
+    return max(e for _, e in spans) - min(s for s, _ in spans) if spans else 0.0
+
+
+def _keep_clock(layout: RunDir, elapsed_s: float) -> None:
+    """The sweep's clock for the next invocation (written whole: a rename)."""
+    part = layout.clock.with_suffix(".part")
+    with contextlib.suppress(OSError):
+        part.write_text(json.dumps({"elapsed_s": round(elapsed_s, 1)}))
+        part.replace(layout.clock)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the command's one form of error, "error: WHAT: WHY; FIX", and a "did you
+    mean" for a flag it does not know (abbreviations included: they are refused)."""
+
+    def error(self, message: str) -> NoReturn:
+        unknown = message.removeprefix("unrecognized arguments: ")
+        if unknown != message:
+            flag = unknown.split()[0]
+            known = [o for o in self._option_string_actions if o.startswith("--")]
+            close = difflib.get_close_matches(flag.split("=")[0], known, n=1, cutoff=0.75)
+            fix = f"did you mean {close[0]}?" if close else "see --help for the flags"
+            message = f"{flag}: unknown flag (flags are written in full); {fix}"
+        else:
+            message = f"{message.removeprefix('argument ')}; see --help"
+        self.exit(2, f"error: {message}\n")
 
 
 def _start_line(configuring: float) -> str:
@@ -294,7 +383,8 @@ def _print_key_sources(config: Any, keys_from: KeySources) -> None:
 
 def _print_where_and_how_long(config: Any, keys: Sequence[Any], run_dir: Path) -> None:
     """The dry run's last lines: the output directory (and what it holds), each track's
-    summary mode, and the wall time at this machine's measured pace (`sweep.pace`)."""
+    summary mode, the wall time at this machine's measured pace of each model kind and the
+    disk the run directory takes (`sweep.pace`)."""
     done: dict[Any, Any] = {}
     if RunDir(run_dir).results.exists():
         done = Ledger.open(run_dir).records
@@ -303,8 +393,18 @@ def _print_where_and_how_long(config: Any, keys: Sequence[Any], run_dir: Path) -
         print(f"\noutput: {run_dir} (new)")
     modes = ", ".join(f"{t.name}: {t.summaries}" for t in config.tracks)
     print(f"summaries: {modes}")
-    left = sum(config.budget(k.task) for k in keys if ledger_key(k) not in done)
-    print(wall_time_line(measured_pace(run_dir.parent), left))
+    left: dict[str, list[int]] = {}
+    for k in keys:
+        if ledger_key(k) not in done:
+            left.setdefault(k.model, []).append(config.budget(k.task))
+    if not left:
+        print("wall time: nothing left to run")
+        return
+    lines, warnings = estimate_lines(config, left, run_dir, machine_paces())
+    for line in lines:
+        print(line)
+    for line in warnings:
+        print(line, file=sys.stderr)
 
 
 def _run_local(
@@ -318,6 +418,7 @@ def _run_local(
     """The local executor under the display's clock; Ctrl-C cancels it at the next await
     (raises `Interrupted` once it has cleaned up)."""
     sweep = LocalSweep(config, keys, run_dir, choices)
+    full: list[str] = []
 
     async def run() -> None:
         loop = asyncio.get_running_loop()
@@ -327,6 +428,10 @@ def _run_local(
         async def tick() -> None:
             while True:
                 show(status_of(sweep.progress))
+                if (why := disk_short(run_dir)) is not None:  # before a write fails
+                    full.append(why)
+                    task.cancel()
+                    return
                 await asyncio.sleep(TICK_S)
 
         with ctrl_c.on_first(lambda: loop.call_soon_threadsafe(task.cancel)):
@@ -334,6 +439,8 @@ def _run_local(
             try:
                 await sweep.run()
             except asyncio.CancelledError:
+                if full:  # the episodes cut short are run again on resume, as after Ctrl-C
+                    raise SweepStopped(full[0]) from None
                 if not ctrl_c.pressed:
                     raise
                 raise Interrupted() from None
@@ -345,6 +452,27 @@ def _run_local(
     if sweep.stopped is not None:
         raise SweepStopped(sweep.stopped)
     return sweep.ledger.records
+
+
+DISK_RESERVE_BYTES = 200e6
+"""Free disk below which the sweep stops (every recorded episode whole): a few episodes'
+frames and the report fit in it."""
+
+
+def disk_short(run_dir: Path, reserve: float | None = None) -> str | None:
+    """Why the sweep must stop before its disk is full (None while there is room)."""
+    reserve = DISK_RESERVE_BYTES if reserve is None else reserve
+    try:
+        free = shutil.disk_usage(run_dir).free
+    except OSError:
+        return None
+    if free >= reserve:
+        return None
+    return (
+        f"disk: {free / 1e6:.0f} MB free where {run_dir} lies, below the {reserve / 1e6:.0f} MB "
+        "the sweep keeps; every recorded episode is kept: free space (or set records.frames: "
+        "failed), then run the same command to resume"
+    )
 
 
 def _conclude(

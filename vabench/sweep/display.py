@@ -49,6 +49,15 @@ from vabench.sweep.results import key_of
 PLAIN_EVERY_S = 15.0
 RATE_WINDOW_S = 60.0
 ETA_MIN_EPISODES = 30
+ETA_SHOWN_AFTER = 5
+"""Episodes this invocation finishes before an ETA shows (fewer where a quarter of what is
+left is fewer): the first ones come in bursts, and a small machine's first ETAs read 33 h, 18
+h, 9 h before settling near 5 h."""
+
+
+def plural(n: int, word: str, many: str | None = None) -> str:
+    """ "1 success", "2 successes"."""
+    return f"{n} {word if n == 1 else (many or word + 's')}"
 
 
 @dataclass
@@ -219,10 +228,17 @@ class Display:
         out: TextIO | None = None,
         clock: Any = time.monotonic,
         pricing: Mapping[str, Pricing] | None = None,
+        verbose: bool = False,
+        elapsed_before_s: float = 0.0,
     ):
         """`pricing`: how each model's cost is shown (`SweepConfig.pricing`); without it the
-        cost shows as dollars."""
+        cost shows as dollars. `verbose`: say why the episodes' limit is what it is.
+        `elapsed_before_s`: the time earlier invocations of this run directory ran (a resumed
+        sweep's clock continues)."""
         self.title = title
+        self.verbose = verbose
+        self.elapsed_before_s = elapsed_before_s
+        self._done_at_start: int | None = None
         self.pricing = dict(pricing or {})
         self.out = out or sys.stdout
         self.live_mode = self.out.isatty() if live is None else live
@@ -276,10 +292,22 @@ class Display:
         return episodes_per_s, (calls - calls0) / span if span > 0 else 0.0
 
     def _eta(self, total: Counts, episodes_per_s: float) -> str:
+        """The time the remaining episodes take at the current pace, once this invocation has
+        finished enough episodes for the pace to mean something (`ETA_SHOWN_AFTER`)."""
         left = total.planned - total.done
         if left <= 0:
             return "done"
+        if self._done_at_start is None:
+            self._done_at_start = total.done
+        wanted = min(ETA_SHOWN_AFTER, max(1, (total.planned - self._done_at_start) // 4))
+        finished = total.done - self._done_at_start
+        if finished < wanted:
+            return f"after {plural(wanted - finished, 'more episode')}"
         return _duration(left / episodes_per_s) if episodes_per_s > 0 else "-"
+
+    def elapsed_s(self) -> float:
+        """The sweep's clock: earlier invocations' time and this one's."""
+        return self.elapsed_before_s + self.clock() - self.t0
 
     # -- output ----------------------------------------------------------------------------
     def line(self, status: Status) -> str:
@@ -287,26 +315,31 @@ class Display:
         total = status.total()
         per_s, calls_per_s = self._rates(total.done, status.calls)
         pct = 100.0 * total.done / total.planned if total.planned else 100.0
-        parts = [
-            f"episodes {total.done}/{total.planned} ({pct:.0f}%): {total.success} successes, "
-            f"{total.unscored} unscored, {total.retried} retried, {total.running} running",
-        ]
+        episodes = (
+            f"episodes {total.done}/{total.planned} ({pct:.0f}%): "
+            f"{plural(total.success, 'success', 'successes')}, {total.unscored} unscored, "
+            f"{total.retried} retried, {total.running} running"
+        )
         if status.limit is not None:
-            # a limit lowered below the episodes already running ends none of them: it only
-            # holds back new ones, which reads as a bug ("3 (limit 1") unless said
-            above = (status.in_flight or 0) - status.limit
-            why = f": {status.reason}" if status.reason else ""  # a worker not yet timing
-            parts.append(
-                f"in flight {status.in_flight} (limit now {status.limit}{why}; "
-                f"the {above} above it finish before a new one starts)"
-                if above > 0
-                else f"in flight {status.in_flight} (limit {status.limit}{why})"
-            )
+            # "in flight" is the model calls awaiting a reply, nothing else; the episodes'
+            # limit and why it moves (the adaptive gate's words) are for --verbose
+            why = f": {status.reason}" if status.reason and self.verbose else ""
+            above = total.running - status.limit  # the gate's slots: the same episodes
+            if above > 0:
+                # a limit lowered below the episodes already running ends none of them:
+                # "3 running (at most 2 at once)" reads as a bug unless said
+                episodes += (
+                    f" (limit now {status.limit}{why}; the {above} above it finish before a "
+                    "new one starts)"
+                )
+            else:
+                episodes += f" (at most {status.limit} at once{why})"
+        parts = [episodes]
         parts.append(
             f"calls {calls_per_s:.1f}/s, {status.calls_in_flight} in flight, "
             f"{status.tokens:,} tokens, {cost_text(status.cost, self.pricing)}"
         )
-        parts.append(f"elapsed {_duration(self.clock() - self.t0)}, ETA {self._eta(total, per_s)}")
+        parts.append(f"elapsed {_duration(self.elapsed_s())}, ETA {self._eta(total, per_s)}")
         if len(status.tracks) > 1:
             parts.append(
                 ", ".join(
@@ -351,8 +384,10 @@ class Display:
             )
         return Group(head, table)
 
-    def close(self, status: Status) -> None:
-        if self.live_mode or self.line(status) != self._last_line:  # not the same line twice
+    def close(self, status: Status, show: bool = True) -> None:
+        """The last line (not the one just printed again); `show=False`: none, the caller
+        says how it ended (Ctrl-C's one line)."""
+        if show and (self.live_mode or self.line(status) != self._last_line):
             self.update(status, force=True)
         if self._live is not None:
             self._live.stop()

@@ -1,89 +1,34 @@
-"""The dry run's wall-time estimate: the pace measured by earlier sweeps on this machine.
+"""The dry run's wall time and disk: what earlier sweeps on this machine measured.
 
-No model of the machine predicts a sweep's wall time honestly (it depends on the cores, the
-GPU, the endpoints' latency, the episodes in flight), so the dry run reads what this machine
-did: the most recently written run directory beside the one planned (the same `runs/` parent,
-the planned one included) whose ledger holds episodes. Its pace is decisions (steps) per second
-of episode time: the steps of its recorded episodes over the union of their
-`[started_at, started_at + wall_s]` intervals, so the pauses between a stopped sweep and its
-resumption do not count, and neither do learning sessions.
+Kept per machine and per model kind (`model_kind`: the embedded server's policy, or an API
+model): each sweep's end writes its run directory's pace and its records' size, by kind, to
+`pace_file()` (the user's cache, keyed by host name), so a dry run reads the pace of the same
+kind of model on this machine wherever `--out` points; a random-action pace is never applied
+to a paid model. The dry run shows an expected time (the episodes left at the decisions an
+episode measured for that kind) beside the upper bound (each at its whole budget), and the
+disk the run directory will take (MB an episode measured for that kind) against the free
+disk; where this machine has measured no such kind it says so.
 
-The estimate is the planned episodes not yet recorded, each at its whole step budget (as the
-cost estimate assumes), at that pace. It is a guide, not a promise: a pace measured with
-another endpoint (the embedded server answers in milliseconds; a real model in seconds), size or
-number of episodes in flight does not carry over, and the line says which run it comes from.
-With no such run it says so and names the command that measures one.
+A pace is decisions (steps) per second of episode time: the steps of the recorded episodes
+over the union of their `[started_at, started_at + wall_s]` intervals, so the pauses between a
+stopped sweep and its resumption do not count, and neither do learning sessions. It is a
+guide, not a promise: another size or number of episodes in flight changes it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import shutil
+import socket
 import time
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
-from vabench.run_layout import RESULTS
-
-NO_PACE = "wall time: no measured pace on this machine yet (run configs/smoke.yaml to measure one)"
-
-
-@dataclass(frozen=True)
-class Pace:
-    """What an earlier sweep on this machine measured."""
-
-    run_dir: Path
-    episodes: int
-    decisions: int
-    busy_s: float
-    """The union of its episodes' wall-time intervals."""
-    finished_at: float
-
-    @property
-    def decisions_per_s(self) -> float:
-        return self.decisions / self.busy_s if self.busy_s > 0 else 0.0
-
-
-def measured_pace(runs_parent: Path) -> Pace | None:
-    """The pace of the most recently written ledger under `runs_parent` (see the module
-    docstring), or None when there is none with a measurable episode."""
-    try:
-        ledgers = [d / RESULTS for d in runs_parent.iterdir() if (d / RESULTS).is_file()]
-    except OSError:  # no runs/ yet, or unreadable: nothing measured
-        return None
-    for path in sorted(ledgers, key=_mtime, reverse=True):
-        pace = _pace_of(path)
-        if pace is not None:
-            return pace
-    return None
-
-
-def _mtime(path: Path) -> float:
-    try:
-        return path.stat().st_mtime
-    except OSError:
-        return 0.0
-
-
-def _pace_of(ledger: Path) -> Pace | None:
-    intervals, decisions = [], 0
-    try:
-        lines = ledger.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError):
-        return None
-    for line in lines:
-        try:
-            record = json.loads(line)
-            start, wall, steps = record["started_at"], record["wall_s"], record["steps_used"]
-        except (ValueError, KeyError, TypeError):
-            continue  # a cut last line, an older record: not measured
-        if isinstance(start, int | float) and isinstance(wall, int | float) and wall > 0:
-            intervals.append((float(start), float(start) + float(wall)))
-            decisions += int(steps or 0)
-    busy = _union_length(intervals)
-    if not intervals or decisions == 0 or busy <= 0:
-        return None
-    return Pace(ledger.parent, len(intervals), decisions, busy, max(e for _, e in intervals))
+from vabench.run_layout import EPISODES, RESULTS
 
 
 def _union_length(intervals: Iterable[tuple[float, float]]) -> float:
@@ -96,22 +41,6 @@ def _union_length(intervals: Iterable[tuple[float, float]]) -> float:
     return total
 
 
-def wall_time_line(pace: Pace | None, decisions_left: int) -> str:
-    """The dry run's line (see the module docstring)."""
-    if decisions_left == 0:
-        return "wall time: nothing left to run"
-    if pace is None:
-        return NO_PACE
-    seconds = decisions_left / pace.decisions_per_s
-    when = time.strftime("%Y-%m-%d %H:%M", time.localtime(pace.finished_at))
-    return (
-        f"wall time: about {_duration(seconds)} if every episode uses its whole budget "
-        f"({decisions_left:,} decisions at {pace.decisions_per_s:.2g} a second, the pace of "
-        f"{pace.episodes:,} episodes in {pace.run_dir}, the last ended {when}); another "
-        "endpoint, size or number in flight changes it"
-    )
-
-
 def _duration(seconds: float) -> str:
     minutes = round(seconds / 60)
     if minutes < 1:
@@ -119,3 +48,214 @@ def _duration(seconds: float) -> str:
     if minutes < 60:
         return f"{minutes} min"
     return f"{minutes // 60} h {minutes % 60:02d} min"
+
+
+# -- the pace kept per machine and per model kind ------------------------------------------
+
+DISK_MARGIN = 1.2
+"""The dry run warns where the free disk holds less than this times the estimate."""
+
+
+def pace_file() -> Path:
+    """Where this user's measured paces live (every host's, keyed by host name)."""
+    return (
+        Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vabench" / ("pace.json")
+    )
+
+
+def model_kind(config: Any, model: str) -> str:
+    """What decides a model's pace and its records' size: the embedded server's policy, or
+    the API and provider model (a random-action pace says nothing of a paid model), and the
+    image size (rendering time, MB an episode)."""
+    m = config.model(model)
+    size = f"{config.render.width}x{config.render.height}"
+    if model in config.embedded_models:
+        return f"embedded {config.embedded_server.policy} at {size}"
+    return f"{m.api} {m.provider_model} at {size}"
+
+
+@dataclass(frozen=True)
+class KindPace:
+    """One model kind's pace and record size on one machine, from one run directory."""
+
+    kind: str
+    run_dir: str
+    episodes: int
+    decisions: int
+    busy_s: float
+    bytes_per_episode: float
+    frames: str
+    finished_at: float
+
+    @property
+    def decisions_per_s(self) -> float:
+        return self.decisions / self.busy_s if self.busy_s > 0 else 0.0
+
+    @property
+    def decisions_per_episode(self) -> float:
+        return self.decisions / self.episodes if self.episodes else 0.0
+
+
+def _tree_bytes(path: Path) -> int:
+    total = 0
+    for root, _dirs, files in os.walk(path):
+        for name in files:
+            with contextlib.suppress(OSError):
+                total += os.stat(os.path.join(root, name)).st_size
+    return total
+
+
+def measure_kinds(run_dir: Path, config: Any) -> list[KindPace]:
+    """The pace and bytes an episode of each model kind of `config` in `run_dir`'s ledger."""
+    records: dict[str, list[dict[str, Any]]] = {}
+    with contextlib.suppress(OSError, UnicodeDecodeError):
+        for line in (run_dir / RESULTS).read_text(encoding="utf-8").splitlines():
+            with contextlib.suppress(ValueError):
+                record = json.loads(line)
+                records.setdefault(str(record.get("model")), []).append(record)
+    by_kind: dict[str, list[tuple[str, dict[str, Any]]]] = {}
+    for m in config.models:
+        for record in records.get(m.name, []):
+            by_kind.setdefault(model_kind(config, m.name), []).append((m.name, record))
+    out = []
+    for kind, pairs in by_kind.items():
+        intervals, decisions = [], 0
+        for _, r in pairs:
+            start, wall = r.get("started_at"), r.get("wall_s")
+            if isinstance(start, int | float) and isinstance(wall, int | float) and wall > 0:
+                intervals.append((float(start), float(start) + float(wall)))
+                decisions += int(r.get("steps_used") or 0)
+        busy = _union_length(intervals)
+        if not intervals or decisions == 0 or busy <= 0:
+            continue
+        models = {name for name, _ in pairs}
+        size = sum(_tree_bytes(run_dir / EPISODES / name) for name in models)
+        out.append(
+            KindPace(
+                kind,
+                str(run_dir),
+                len(intervals),
+                decisions,
+                busy,
+                size / len(pairs),
+                config.records.frames,
+                max(e for _, e in intervals),
+            )
+        )
+    return out
+
+
+def keep_pace(run_dir: Path, config: Any, path: Path | None = None) -> None:
+    """Write `run_dir`'s measured kinds to this machine's entries of the pace file (the
+    latest measurement of a kind replaces the one before). Never fails a sweep."""
+    path = path or pace_file()
+    measured = measure_kinds(Path(run_dir), config)
+    if not measured:
+        return
+    with contextlib.suppress(OSError, ValueError, TypeError):
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            doc = {}
+        host = doc.setdefault(socket.gethostname(), {})
+        for k in measured:
+            host[k.kind] = asdict(k)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        part = path.with_name(f"{path.name}.{os.getpid()}.part")
+        part.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+        part.replace(path)
+
+
+def machine_paces(path: Path | None = None) -> dict[str, KindPace]:
+    """This machine's measured kinds (empty where none)."""
+    try:
+        doc = json.loads((path or pace_file()).read_text(encoding="utf-8"))
+        return {kind: KindPace(**v) for kind, v in doc.get(socket.gethostname(), {}).items()}
+    except (OSError, ValueError, TypeError, AttributeError):
+        return {}
+
+
+def estimate_lines(
+    config: Any,
+    left: Mapping[str, Sequence[int]],
+    run_dir: Path,
+    paces: Mapping[str, KindPace],
+) -> tuple[list[str], list[str]]:
+    """(lines, warnings) of the dry run: per model kind with episodes `left` (their step
+    budgets, by model), the expected and longest wall time at this machine's pace of that
+    kind, and the disk the run directory takes against the free disk where it lies."""
+    lines, warnings = [], []
+    kinds: dict[str, list[int]] = {}
+    for model, budgets in left.items():
+        kinds.setdefault(model_kind(config, model), []).extend(budgets)
+    need_bytes = 0.0
+    unmeasured_disk = []
+    for kind, budgets in sorted(kinds.items()):
+        if not budgets:
+            continue
+        pace = paces.get(kind)
+        if pace is None or pace.decisions_per_s <= 0:
+            lines.append(
+                f"wall time ({kind}): no measured pace of this model kind on this machine yet "
+                "(a short run of it measures one, e.g. --limit 4)"
+            )
+            unmeasured_disk.append(kind)
+            continue
+        expected = len(budgets) * min(pace.decisions_per_episode, max(budgets))
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(pace.finished_at))
+        lines.append(
+            f"wall time ({kind}): about {_duration(expected / pace.decisions_per_s)} expected "
+            f"({len(budgets):,} episodes at the {pace.decisions_per_episode:.1f} decisions an "
+            f"episode measured), at most {_duration(sum(budgets) / pace.decisions_per_s)} if "
+            f"every episode uses its whole budget; pace {pace.decisions_per_s:.2g} decisions "
+            f"a second, {pace.episodes:,} episodes in {pace.run_dir}, the last ended {when}"
+        )
+        per_episode = pace.bytes_per_episode
+        if pace.frames != config.records.frames:
+            unmeasured_disk.append(kind)  # another frames setting: its size says little
+            continue
+        need_bytes += per_episode * len(budgets)
+    free = _free_bytes(run_dir)
+    if need_bytes:
+        per = ", ".join(
+            f"{paces[k].bytes_per_episode / 1e6:.1f} MB an episode of {k}"
+            for k in sorted(kinds)
+            if k in paces and k not in unmeasured_disk
+        )
+        where = f"; {free / 1e9:.1f} GB free there" if free is not None else ""
+        lines.append(
+            f"disk: about {_size(need_bytes)} for the run directory ({per}; records.frames: "
+            f"{config.records.frames}){where}"
+        )
+        if free is not None and free < DISK_MARGIN * need_bytes:
+            warnings.append(
+                f"warning: disk: the run directory needs about {_size(need_bytes)} and "
+                f"{_existing(run_dir)} has {_size(free)} free; point --out at a larger disk "
+                "or keep fewer frames (records.frames: failed or none)"
+            )
+    if unmeasured_disk:
+        lines.append(
+            f"disk: not measured for {', '.join(unmeasured_disk)} at records.frames: "
+            f"{config.records.frames} (the suite's images take about 6 MB an episode at "
+            "1280x960 with every frame kept)"
+        )
+    return lines, warnings
+
+
+def _existing(path: Path) -> Path:
+    """`path` or its nearest existing parent (a run directory not made yet)."""
+    path = path.absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def _free_bytes(path: Path) -> float | None:
+    try:
+        return float(shutil.disk_usage(_existing(path)).free)
+    except OSError:
+        return None
+
+
+def _size(n: float) -> str:
+    return f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB"

@@ -98,6 +98,7 @@ from vabench.sweep.ray_plan import (
     engine_environment,
     engine_plan,
     project_runtime_env,
+    upload_failure,
 )
 from vabench.sweep.results import Ledger
 from vabench.sweep.runner import SweepStopped
@@ -115,6 +116,7 @@ __all__ = [
     "engine_plan",
     "project_runtime_env",
     "run_ray",
+    "upload_failure",
 ]
 
 log = logging.getLogger(__name__)
@@ -142,7 +144,12 @@ def run_ray(
 
     started_here = not ray.is_initialized()
     if started_here:  # (a connection made by the caller keeps its own runtime environment)
-        ray.init(address=config.executor.address, runtime_env=project_runtime_env() or None)
+        try:
+            ray.init(address=config.executor.address, runtime_env=project_runtime_env() or None)
+        except Exception as err:  # Ray's own traceback says the size, not what to do
+            if "working_dir" not in str(err) and "Package size" not in str(err):
+                raise
+            raise SweepStopped(upload_failure(err)) from None
     try:
         sweep = ClusterSweep(ray, config, choices, keys, run_dir, cells, on_status)
         try:

@@ -25,26 +25,40 @@ from vabench.sweep.runner import critical_path_tasks
 
 CHUNKS_PER_ENGINE = 8
 """Chunks per engine the plan is cut into: enough that engines finish close together."""
-SHIP_EXCLUDES = [
-    ".git",
-    ".venv",
-    "runs",
-    ".cache",
-    "__pycache__",
-    "*.egg-info",
-    ".pytest_cache",
-    ".ruff_cache",
-    ".mypy_cache",
-]
+SHIPPED = ("vabench", "configs", "assets", "pyproject.toml")
+"""What an engine needs of the checkout; every other top-level entry stays home (a second
+virtual environment, run directories, caches: one checkout's 1.46 GB `venv/` passed Ray's
+512 MiB limit on the package it uploads)."""
+SHIP_EXCLUDES = ["__pycache__", "*.pyc", "*.egg-info", ".cache", ".*_cache"]
+"""Left out inside what ships."""
+
+
+def ship_excludes(root: Path) -> list[str]:
+    """Ray's `excludes` (gitignore patterns; a leading / anchors at `root`) that leave out every
+    top-level entry of `root` but `SHIPPED`, and the caches inside those."""
+    others = sorted(p.name for p in root.iterdir() if p.name not in SHIPPED)
+    return [f"/{name}" for name in others] + SHIP_EXCLUDES
 
 
 def project_runtime_env() -> dict[str, Any]:
-    """Ray's runtime environment that ships this checkout to the engines (vabench, assets,
-    configs), or nothing for an installed vabench (then every node has its own)."""
+    """Ray's runtime environment that ships this checkout to the engines (`SHIPPED`), or
+    nothing for an installed vabench (then every node has its own)."""
     root = Path(vabench.__file__).resolve().parents[1]
     if not ((root / "pyproject.toml").is_file() and (root / "assets").is_dir()):
         return {}
-    return {"working_dir": str(root), "excludes": SHIP_EXCLUDES}
+    return {"working_dir": str(root), "excludes": ship_excludes(root)}
+
+
+def upload_failure(err: BaseException) -> str:
+    """One line for Ray's failure to upload the checkout: its cause (Ray's last line) and the
+    fix."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    cause = next((x for x in reversed(lines) if "size" in x.lower()), lines[-1] if lines else "")
+    return (
+        f"ray: the checkout could not be uploaded to the cluster as the engines' working "
+        f"directory: {cause}; move what is not {', '.join(SHIPPED)} out of the checkout, or "
+        "install vabench on every node (pip install .) so that nothing is uploaded"
+    )
 
 
 def engine_plan(

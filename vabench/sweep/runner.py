@@ -126,7 +126,7 @@ async def open_engine(
         # server's processes start: each took ~3 s of an engine process's ~13 s before its
         # first episode on an H100 host (2026-11-28), one after the other.
         render = cfg.render
-        renderer, choice = make_renderer(
+        renderer, _choice = make_renderer(
             choices.renderer,
             workers=render.workers,
             platform=render.platform,
@@ -159,7 +159,7 @@ async def open_engine(
             limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
         )
         info = await starting
-        log.info("renderer: %s (%s)", info, choice.reason)
+        log.info("renderer started: %s", info)  # the choice and its reason: a start line
         yield Engine(choices.physics, llm, summaries, renderer, render.image_settings(), gate)
 
 
@@ -391,6 +391,7 @@ class LocalSweep:
                     summary_from=use.source,
                     summary_status=use.status,
                     step_budget=cfg.step_budget,
+                    frames=cfg.records.frames,
                 )
                 if use.unavailable is not None:
                     self._finish(k, _unavailable(spec, cfg.budget(name), use.unavailable))

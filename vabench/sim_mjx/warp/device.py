@@ -120,13 +120,27 @@ def _failed_context(name: str) -> str | None:
     return None if failure is None else f"the CUDA context of {name} failed ({failure})"
 
 
+def nvidia_driver_present(proc: str = "/proc/driver/nvidia") -> bool:
+    """An NVIDIA kernel driver is loaded (its /proc directory exists): without one no CUDA
+    device can exist, whatever packages are installed."""
+    return os.path.isdir(proc)
+
+
 def warp_problem(device: str | None = None) -> str | None:
     """Why the Warp backend cannot run here (None when it can). Cheap: imports warp only when
     the packages are installed."""
+    device = device or warp_device()
+    if device.startswith("cuda") and not nvidia_driver_present():
+        # the true reason, before any package hint (installing one would give no GPU) and
+        # before wp.init (which prints its own warning of the missing driver)
+        return (
+            "the Warp backend needs an NVIDIA GPU with a CUDA driver; this machine has none "
+            "(no NVIDIA driver loaded). Use backend c, or set VABENCH_WARP_DEVICE=cpu to run "
+            "Warp on the CPU (slow)"
+        )
     for module, package in (("warp", "warp-lang"), ("mujoco_warp", "mujoco-warp")):
         if importlib.util.find_spec(module) is None:
             return f"the Warp backend needs the package {package} ({GPU_EXTRA})"
-    device = device or warp_device()
     prefer_blocking_sync()  # before wp.init makes the GPUs' contexts active
     import warp as wp
 
