@@ -82,13 +82,3 @@ def one_ray_cluster_at_a_time(request):
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
         yield
 
-
-# The files that run sweeps, Ray clusters and physics rollouts (the most of the suite's time).
-LONG_FILES_FIRST = ("test_sweep_", "test_ray_", "test_engine_", "test_family_", "test_render_")
-
-
-def pytest_collection_modifyitems(items):
-    """The long files first, each file's tests in their order: under pytest-xdist each worker
-    takes the next file when it is free, so the long ones start early and short ones fill in
-    at the end (no worker left with a long file while the other idles)."""
-    items.sort(key=lambda item: not item.path.name.startswith(LONG_FILES_FIRST))
