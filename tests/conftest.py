@@ -82,3 +82,30 @@ def one_ray_cluster_at_a_time(request):
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
         yield
 
+
+
+# The files that hold most of the suite's time (sweeps and Ray clusters started for real, expert
+# rollouts, whole engine episodes), in the order a worker should start them.
+LONG_FILES_FIRST = (
+    "test_sweep_",
+    "test_ray_",
+    "test_tasks.py",
+    "test_family_",
+    "test_engine_",
+    "test_render_warp.py",
+    "test_warp_batch.py",
+)
+
+
+def _long_first(item: pytest.Item) -> int:
+    name = item.path.name
+    return next((i for i, p in enumerate(LONG_FILES_FIRST) if name.startswith(p)), 99)
+
+
+def pytest_collection_modifyitems(items):
+    """Under pytest-xdist (`--dist loadfile --no-loadscope-reorder`, the README's command) each
+    worker takes the next file when it is free: the long files go first, so that short ones
+    fill in at the end instead of one worker running a long file while the other idles. A run
+    in one process keeps the files' order."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        items.sort(key=_long_first)  # stable: each file's tests keep their order
