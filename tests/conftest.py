@@ -83,15 +83,32 @@ def one_ray_cluster_at_a_time(request):
         yield
 
 
-# The files that run sweeps, Ray clusters and physics rollouts (the most of the suite's time).
-LONG_FILES_FIRST = ("test_sweep_", "test_ray_", "test_engine_", "test_family_", "test_render_")
+
+# The files that hold most of the suite's time (sweeps and Ray clusters started for real, expert
+# rollouts, whole engine episodes), in the order a worker should start them.
+LONG_FILES_FIRST = (
+    "test_sweep_",
+    "test_ray_",
+    "test_tasks.py",
+    "test_family_",
+    "test_engine_",
+    "test_render_warp.py",
+    "test_warp_batch.py",
+)
+
+
+def _long_first(item: pytest.Item) -> int:
+    name = item.path.name
+    return next((i for i, p in enumerate(LONG_FILES_FIRST) if name.startswith(p)), 99)
 
 
 def pytest_collection_modifyitems(items):
-    """The long files first, each file's tests in their order: under pytest-xdist each worker
-    takes the next file when it is free, so the long ones start early and short ones fill in
-    at the end (no worker left with a long file while the other idles)."""
-    items.sort(key=lambda item: not item.path.name.startswith(LONG_FILES_FIRST))
+    """Under pytest-xdist (`--dist loadfile --no-loadscope-reorder`, the README's command) each
+    worker takes the next file when it is free: the long files go first, so that short ones
+    fill in at the end instead of one worker running a long file while the other idles. A run
+    in one process keeps the files' order."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        items.sort(key=_long_first)  # stable: each file's tests keep their order
 
 
 @pytest.fixture(autouse=True)

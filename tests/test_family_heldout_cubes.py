@@ -140,6 +140,10 @@ def test_grasp_heldout_predicate_reads_the_red_box_only():
     assert bool(b.evaluate().success)
 
 
+# slow: test_tasks.py::test_expert_solves_first_two_verified_seeds[grasp_single_cube_heldout]
+# runs this expert on the same seeds (1000, 1001) in the default run, with these assertions
+# and more.
+@pytest.mark.slow
 def test_grasp_heldout_expert_quick():
     _expert_quick(GSC, [1000, 1001])
 
@@ -311,6 +315,10 @@ def test_place_heldout_lift_latch_sets_from_the_state_and_persists():
     assert not bool(b2.evaluate().latched[0])
 
 
+# slow: test_tasks.py::test_expert_solves_first_two_verified_seeds[place_single_cube_heldout]
+# runs this expert on the same seeds (1000, 1001) in the default run, with these assertions
+# and more.
+@pytest.mark.slow
 def test_place_heldout_expert_quick():
     _expert_quick(PSC, [1000, 1001])
 
@@ -488,6 +496,10 @@ def test_basin_lift_latch():
     assert not bool(b2.evaluate().latched[0])
 
 
+# slow: test_tasks.py::test_expert_solves_first_two_verified_seeds[place_cube_in_bowl_heldout]
+# runs this expert on the same seeds (1000, 1001) in the default run, with these assertions
+# and more.
+@pytest.mark.slow
 def test_basin_expert_quick():
     _expert_quick(PCB, [1000, 1001])
 
@@ -608,5 +620,9 @@ def test_support_lift_latch():
     assert not bool(b2.evaluate().latched[0])
 
 
+# slow: test_tasks.py::test_expert_solves_first_two_verified_seeds[place_cube_on_cube_heldout]
+# runs this expert on the same seeds (1000, 1001) in the default run, with these assertions
+# and more.
+@pytest.mark.slow
 def test_support_expert_quick():
     _expert_quick(PCC, [1000, 1001])

@@ -214,6 +214,10 @@ def test_place_bottle_lift_latch():
 
 
 # -- (3) experts through the batch (C MuJoCo) ------------------------------------------------
+# slow: test_tasks.py::test_expert_solves_first_two_verified_seeds[name] runs this expert on
+# the same seeds (1000, 1001) in the default run, with these assertions and more (a seed
+# whose reset gate fails is not run: no success).
+@pytest.mark.slow
 @pytest.mark.parametrize("name", [*GRASPS, "place_single_bottle_upright"])
 def test_expert_succeeds(name):
     task = get_task(name)
