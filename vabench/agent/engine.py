@@ -35,6 +35,7 @@ from typing import Any
 
 from vabench import protocol as P
 from vabench.agent.conversation import Conversation
+from vabench.agent.generation import request_options
 from vabench.agent.observation import (
     PASSIVE_VIEW_NAME,
     PASSIVE_VIEWS,
@@ -50,6 +51,7 @@ from vabench.agent.spec import EpisodeSpec
 from vabench.agent.tools import camera_history, geometry_result
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image
+from vabench.protocol.version import PROTOCOL_VERSION
 from vabench.render import camera as cam
 from vabench.render.images import RenderError, RenderItem
 from vabench.sim_mjx.interface import (
@@ -93,9 +95,12 @@ class Episode:
         self.ctx = P.DecisionContext(self.arms, spec.protocol, tools)
         self.available = P.available_actions(self.arms, spec.protocol, tools)
         self.conv = Conversation(
-            system_prompt(self.arms, spec.protocol, list(tools)),
+            system_prompt(self.arms, spec.protocol, list(tools), task=spec.task),
             protocol=spec.protocol,
             limits=services.settings.limits,
+        )
+        self.options = request_options(
+            services.llm.endpoint(spec.model).config, services.settings.generation
         )
         self.rec = EpisodeRecorder(spec.out_dir)
         self.counts = _Counts()
@@ -123,6 +128,8 @@ class Episode:
             step_budget=self.budget,
             arms=list(self.arms),
             tools=list(self.ctx.tools),
+            protocol_version=PROTOCOL_VERSION,
+            request_options=self.options.model_dump(exclude_none=True),
         )
         slot = self.svc.sim.acquire()
         try:
@@ -222,13 +229,13 @@ class Episode:
             step=step,
             step_budget=self.budget,
             instruction=self.task.instruction,
-            view=view,
             proprio=snap.proprio,
             arms=self.arms,
             feedback=self.feedback,
             executed_actions=self.executed,
             demonstration_summary=self.spec.demonstration_summary,
             available_actions=self.available,
+            history_steps=list(self.frames) if "camera.history" in self.ctx.tools else None,
         )
         if self.spec.protocol == "active":
             image = Image(jpegs[0])
@@ -265,7 +272,7 @@ class Episode:
                 cost_usd=summary.cost_usd,
                 attempts=summary.attempts,
             )
-        request = self.conv.request(self.svc.settings.generation)
+        request = self.conv.request(self.options)
         self.rec.event(
             "request",
             step=step,
@@ -345,7 +352,7 @@ class Episode:
             self.camera, action.action, self.snapshot.gcs, self.arms
         )
         self.counts.camera_actions += 1
-        self.feedback = ActionFeedback(valid=True, planner_success=None)
+        self.feedback = ActionFeedback(valid=True, planner_success=True)
         self.rec.event(
             "camera", step=step, label=action.action, reason=action.reason, view=self.camera.label
         )

@@ -1,4 +1,4 @@
-"""One decision from one reply: dispatch, validation, the camera-chain rule, labels, and the
+"""One decision from one reply: dispatch, validation, labels, and the
 vocabulary listed in every observation.
 
 Dispatch: `"stop": true` first (any other key is ignored), then "tool" (a missing "args" means
@@ -17,7 +17,6 @@ from pydantic import ValidationError
 from vabench.protocol.camera import (
     CameraAction,
     action_names,
-    check_camera_chain,
     parse_camera_action,
 )
 from vabench.protocol.context import DecisionContext
@@ -51,9 +50,7 @@ Decision = MoveWorld | RotateLocal | Aperture | DualMove | CameraAction | ToolCa
 
 
 def decision_from_object(obj: Any, ctx: DecisionContext) -> Decision:
-    """Dispatch and validate one decoded decision: "stop": true, then "tool", then "action".
-
-    Does not apply the camera-chain rule (`parse_decision` does)."""
+    """Dispatch and validate one decoded decision: "stop": true, then "tool", then "action"."""
     obj = as_object(obj, "the decision")
     if "stop" in obj:
         if not isinstance(obj["stop"], bool):
@@ -81,11 +78,10 @@ def decision_from_object(obj: Any, ctx: DecisionContext) -> Decision:
 def parse_decision(text: str, ctx: DecisionContext) -> Decision:
     """The validated decision of one model reply, or `DecisionError` with repair text.
 
-    Extraction (`extract_json_object`), dispatch and validation (`decision_from_object`),
-    then the camera-chain rule (`check_camera_chain` with `ctx.camera_chain`)."""
-    decision = decision_from_object(extract_json_object(text), ctx)
-    check_camera_chain(decision, ctx.camera_chain)
-    return decision
+    Extraction (`extract_json_object`), dispatch and validation (`decision_from_object`).
+    The camera-chain limit is an instruction of the system prompt, not a rejection (paper,
+    "the agent instruction limits camera-only chains"; the reference enforces none)."""
+    return decision_from_object(extract_json_object(text), ctx)
 
 
 def decision_label(decision: Decision) -> str:
