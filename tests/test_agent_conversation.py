@@ -28,7 +28,7 @@ def placeholders(request: ChatRequest) -> list[int]:
 
 
 def active_episode(n_steps: int) -> tuple[Conversation, list]:
-    conv = Conversation("system", protocol="active")
+    conv = Conversation("system", protocol="active", limits=ContextLimits(max_images=4))
     images = []
     for step in range(1, n_steps + 1):
         image = synthetic_image(seed=step)
@@ -126,7 +126,7 @@ class Summarizer:
 
 def limits_at(threshold: int) -> ContextLimits:
     """Limits whose compaction threshold 0.5 * (window - reserve) is exactly `threshold`."""
-    return ContextLimits(window_tokens=2 * threshold + 8192, compact_fraction=0.5)
+    return ContextLimits(window_tokens=2 * threshold + 8192, compact_fraction=0.5, max_images=4)
 
 
 def test_token_estimate_counts_text_and_images_by_the_tile_rule():
@@ -139,7 +139,7 @@ def test_default_limits_are_the_facts_numbers():
     limits = ContextLimits()
     assert (limits.window_tokens, limits.output_reserve_tokens) == (262_144, 8_192)
     assert limits.compact_above == int(0.8 * (262_144 - 8_192))
-    assert (limits.keep_user_turns, limits.max_images) == (6, 4)
+    assert (limits.keep_user_turns, limits.max_images) == (6, 1)  # the current image only
 
 
 def test_compaction_triggers_above_the_threshold_and_keeps_the_last_six_user_turns():

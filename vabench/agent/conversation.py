@@ -14,9 +14,10 @@ Image retention, applied when a request is built (the thread itself keeps every 
 
 - the newest five-image bundle (passive) is always sent whole, and so are the images of the
   newest user turn (the observation or tool result the model is answering);
-- other images are kept newest first while the request holds at most `max_images` (4) in
-  all; earlier passive bundles are never kept; an image already kept (the same `Image`
-  object re-sent by a repair turn) is not sent twice;
+- other images are kept newest first while the request holds at most `max_images` in all
+  (1: the paper's active request holds only the current image); earlier passive bundles are
+  never kept; an image already kept (the same `Image` object re-sent by a repair turn) is not
+  sent twice;
 - every dropped image becomes a text placeholder such as "[image from step 7 omitted]" (one
   per dropped bundle), so the thread keeps its order and its step references.
 
@@ -61,7 +62,9 @@ class ContextLimits:
     compact_fraction: float = 0.8
     output_reserve_tokens: int = 8_192
     keep_user_turns: int = 6
-    max_images: int = 4
+    max_images: int = 1
+    """Images per request besides the newest user turn's and the newest passive bundle: the
+    paper's "each active API request contains only the current RGB image"."""
 
     def __post_init__(self) -> None:
         if self.window_tokens <= self.output_reserve_tokens:
