@@ -51,9 +51,8 @@ TOOL_DOCS: dict[str, str] = {
         "demonstration frames (at most 8 per call)."
     ),
     "expert.learn": (
-        '{"tool": "expert.learn", "args": {"grasp_object_part": ..., ...}}: stores your '
-        "summary of the demonstration; accepted after you have inspected at least 3 distinct "
-        "frames."
+        '{"tool": "expert.learn", "args": {"summary": {...}}}: stores your summary of the '
+        "demonstration; accepted after you have inspected at least 3 distinct frames."
     ),
 }
 
