@@ -2,7 +2,8 @@
 mid-episode decision of five episodes (active single-arm, passive, dual-arm, held-out, the
 basket), with each image reduced to its size. A protocol change (prompt, observation text,
 image retention, API defaults) shows as a diff of tests/golden/*.json: deliberate, reviewed,
-and paired with a new `PROTOCOL_VERSION`.
+and paired with a new `PROTOCOL_VERSION`, which every run directory's plan records (tested
+here too).
 
 The bodies are built by the engine's own parts (system prompt, observation text, conversation,
 request options, the Chat Completions adapter) from a fixed robot state and fixed replies, so
@@ -27,11 +28,15 @@ from vabench.agent.conversation import Conversation
 from vabench.agent.generation import request_options
 from vabench.agent.observation import PASSIVE_VIEWS, ActionFeedback, observation_text
 from vabench.agent.prompts import system_prompt
+from vabench.config.load import load_config
 from vabench.llm_pool import ModelEndpoint
 from vabench.llm_pool.apis import ADAPTERS
 from vabench.llm_pool.apis.base import encode_body
 from vabench.llm_pool.testing import synthetic_image
 from vabench.protocol.version import PROTOCOL_VERSION
+from vabench.run_layout import RunDir
+from vabench.sweep.plan import plan as plan_episodes
+from vabench.sweep.rundir import check_run_dir, run_dir_problem
 from vabench.tasks import get_task
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -187,6 +192,19 @@ def test_golden_requests_show_the_protocol():
     assert "# Held-out evaluation" in held
     basket = golden_requests(*EPISODES["active_basket"])["first"]["messages"][0]["content"]
     assert "# Task profile: put_everything_in_basket" in basket
+
+
+def test_the_plan_of_a_run_directory_records_the_protocol_version(tmp_path):
+    config = load_config(Path(__file__).parents[1] / "configs" / "smoke.yaml", require_keys=False)
+    keys = plan_episodes(config)
+    check_run_dir(tmp_path, config, keys, config.document())
+    plan = json.loads(RunDir(tmp_path).plan.read_text(encoding="utf-8"))
+    assert plan["fields"]["protocol_version"] == PROTOCOL_VERSION
+    # a run directory of another protocol is refused on resume, naming the field
+    plan["fields"]["protocol_version"] = "vabench-0"
+    RunDir(tmp_path).plan.write_text(json.dumps(plan), encoding="utf-8")
+    problem = run_dir_problem(tmp_path, config, keys)
+    assert problem is not None and "protocol_version: " in problem
 
 
 if __name__ == "__main__":
