@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from vabench.agent.engine import Episode, EpisodeSpec
+from vabench.agent.observation import GRIPPER_STATE_FIELDS
 from vabench.agent.records import EpisodeResult
 from vabench.agent.services import EngineSettings, task_services
 from vabench.agent.simulation import SimCounters
@@ -267,14 +268,30 @@ def user_texts(body: dict[str, Any]) -> list[str]:
     return out
 
 
-_ROBOT_BLOCK = re.compile(r"Robot state[^\n]*\n```json\n(.*?)\n```", re.DOTALL)
+_GRIPPER_LINE = re.compile(r"^Gripper state: (\{.*\})$", re.M)
+_GEOMETRY_LINE = re.compile(r"^Robot self-geometry[^\n]*\n(\{.*\})$", re.M)
 
 
 def robot_state(text: str) -> dict[str, Any]:
-    """The robot state of an observation text (its ```json block after "Robot state")."""
-    m = _ROBOT_BLOCK.search(text)
-    assert m is not None, f"no robot state block in: {text[:300]}"
-    return json.loads(m.group(1))
+    """The robot state of an observation text, per arm: the gripper state's fields
+    (`GRIPPER_STATE_FIELDS`), the episode's feedback flags and the self-geometry's
+    `local_axes_world`."""
+    state, geometry = _GRIPPER_LINE.search(text), _GEOMETRY_LINE.search(text)
+    assert state is not None and geometry is not None, f"no robot state in: {text[:300]}"
+    gripper, geo = json.loads(state.group(1)), json.loads(geometry.group(1))
+    flags = {k: gripper[k] for k in ("last_action_valid", "last_planner_success")}
+    if gripper["active_arm"] != "both":
+        arms = {gripper["active_arm"]: (gripper, geo)}
+    else:
+        arms = {a: (gripper[a], geo[a]) for a in ("left", "right")}
+    return {
+        arm: {
+            **{k: v for k, v in fields.items() if k in GRIPPER_STATE_FIELDS},
+            **flags,
+            "local_axes_world": g["local_axes_world"],
+        }
+        for arm, (fields, g) in arms.items()
+    }
 
 
 def camera_positions(

@@ -28,7 +28,7 @@ def placeholders(request: ChatRequest) -> list[int]:
 
 
 def active_episode(n_steps: int) -> tuple[Conversation, list]:
-    conv = Conversation("system", protocol="active")
+    conv = Conversation("system", protocol="active", limits=ContextLimits(max_images=4))
     images = []
     for step in range(1, n_steps + 1):
         image = synthetic_image(seed=step)
@@ -125,8 +125,8 @@ class Summarizer:
 
 
 def limits_at(threshold: int) -> ContextLimits:
-    """Limits whose compaction threshold 0.5 * (window - reserve) is exactly `threshold`."""
-    return ContextLimits(window_tokens=2 * threshold + 8192, compact_fraction=0.5)
+    """Limits whose compaction threshold 0.5 * window - reserve is exactly `threshold`."""
+    return ContextLimits(window_tokens=2 * (threshold + 8192), compact_fraction=0.5, max_images=4)
 
 
 def test_token_estimate_counts_text_and_images_by_the_tile_rule():
@@ -138,21 +138,23 @@ def test_token_estimate_counts_text_and_images_by_the_tile_rule():
 def test_default_limits_are_the_facts_numbers():
     limits = ContextLimits()
     assert (limits.window_tokens, limits.output_reserve_tokens) == (262_144, 8_192)
-    assert limits.compact_above == int(0.8 * (262_144 - 8_192))
-    assert (limits.keep_user_turns, limits.max_images) == (6, 4)
+    assert limits.compact_above == int(0.8 * 262_144) - 8_192 == 201_523  # the reference's
+    assert (limits.keep_user_turns, limits.max_images) == (6, 1)  # the current image only
 
 
 def test_compaction_triggers_above_the_threshold_and_keeps_the_last_six_user_turns():
     conv, images = active_episode(10)
     conv.add_observation("observation 11", last := synthetic_image(seed=11), step=11)
-    estimate = conv.estimate_tokens()
+    estimate = conv.history_tokens()
+    # every image of the thread counts, the ones the request leaves out included
+    assert estimate > conv.estimate_tokens()
     summarize = Summarizer()
 
-    conv.limits = limits_at(estimate)  # at the threshold: nothing happens
+    conv.limits = limits_at(estimate + 1)  # one token below the threshold: nothing happens
     assert asyncio.run(conv.compact_if_needed(summarize)) is None
     assert summarize.requests == []
 
-    conv.limits = limits_at(estimate - 1)  # one token above it
+    conv.limits = limits_at(estimate)  # at it
     kept_turns = [e.turn for e in conv.context[-11:]]  # the last 6 user turns, replies between
     event = asyncio.run(conv.compact_if_needed(summarize))
     assert event is not None and len(summarize.requests) == 1
@@ -170,8 +172,8 @@ def test_compaction_triggers_above_the_threshold_and_keeps_the_last_six_user_tur
     assert request.turns[0].text.endswith("observation 6\n[image from step 6 omitted]")
     assert [id(im) for im in request.images] == [id(im) for im in [*images[-3:], last]]
     assert event.messages_summarised == 10 and event.user_turns_kept == 6
-    assert event.tokens_before == estimate > event.compact_above
-    assert event.tokens_after == conv.estimate_tokens() <= conv.limits.compact_above
+    assert event.tokens_before == estimate >= event.compact_above
+    assert event.tokens_after == conv.history_tokens() < conv.limits.compact_above
     assert event.record()["event"] == "compaction" and event.record()["under_limit"]
     assert conv.compactions == (event,)
     # The transcript is append-only: all 21 messages, then the summary.
@@ -200,7 +202,7 @@ def test_passive_compaction_keeps_the_current_bundle_whole():
         conv.add_observation(f"observation {step}", views, step=step)
         conv.add_reply('{"action": "gripper.open"}')
     conv.add_observation("observation 9", last := bundle(9), step=9)
-    conv.limits = limits_at(conv.estimate_tokens() - 1)
+    conv.limits = limits_at(conv.history_tokens())
     summarize = Summarizer()
     event = asyncio.run(conv.compact_if_needed(summarize))
     assert event is not None and summarize.requests[0].images == []

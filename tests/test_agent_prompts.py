@@ -12,15 +12,17 @@ import pytest
 from vabench.agent.observation import (
     INITIAL_VIEW,
     PASSIVE_VIEWS,
+    SELF_GEOMETRY_HEADER,
     ActionFeedback,
     build_observation,
     observation_turn,
     render_observation,
+    self_geometry,
 )
+from vabench.agent.prompt_rules import GENERIC_RULES, HELDOUT_RULES, TASK_PROFILES
 from vabench.agent.prompts import TOOL_DOCS, system_prompt
 from vabench.agent.tools import camera_history, geometry_result, geometry_verify
 from vabench.agent.visibility import (
-    ARM_FIELDS,
     OBSERVATION_FIELDS,
     PROPRIO_FIELDS,
     PrivilegeLeak,
@@ -72,23 +74,66 @@ def test_active_single_arm_prompt_states_the_metric_and_camera_interface():
         "ry = finger-closing",
         "rz = palm-side",
         "right-hand rotation",
-        "GC stays fixed",
+        "GC is held in place",
+        "refused as a whole",
         "5 cm",
         "8 cm",
         "10 deg",
-        "At most 5 camera actions",
+        "turns in place",
+        "tilts the view downwards",
+        "at most 5 camera actions in a row",
         "costs one step",
+        "does not name the current\nview",
         INITIAL_VIEW,
         '"reason"',
         '{"stop": true',
         '"tool"',
-        "exactly one JSON object",
+        "exactly one JSON command",
         *CAMERA_NAMES,
         *(TOOL_DOCS[t] for t in ACTIVE_TOOLS),
     ):
         assert required in text, required
     assert '"arm"' not in text and "dual_gripper" not in text and "view_left_" not in text
     assert "expert." not in text  # only the offered tools
+    assert "budget" not in text.replace("[camera_action_budget]", "")  # no step budget stated
+    assert "lift a little" not in text  # the completion lift replaces a test lift
+
+
+def test_generic_rules_come_in_order_under_their_ids_in_both_protocols():
+    for protocol in ("active", "passive"):
+        text = system_prompt(SINGLE, protocol, ["geometry.verify"])
+        positions = [text.index(f"- [{rule_id}] ") for rule_id, _ in GENERIC_RULES]
+        assert positions == sorted(positions)
+    assert len(GENERIC_RULES) == 18
+
+
+@pytest.mark.parametrize(
+    "task, arms, profile",
+    [
+        ("lift_pot", DUAL, "one_side_handle_per_arm"),
+        ("handover_horizontal_block", DUAL, "verticalize_before_handover"),
+        ("put_everything_in_basket", SINGLE, "basket_capacity_management"),
+    ],
+)
+def test_task_profiles_go_only_to_their_task(task, arms, profile):
+    text = system_prompt(arms, "active", ACTIVE_TOOLS, task=task)
+    assert f"# Task profile: {task}" in text
+    for rule_id, _ in TASK_PROFILES[task]:
+        assert f"- [{rule_id}] " in text
+    others = [t for t in TASK_PROFILES if t != task]
+    for other in others:
+        assert f"Task profile: {other}" not in text
+    for plain in ("place_shoe", "grasp_single_cube", None):
+        bare = system_prompt(arms, "active", ACTIVE_TOOLS, task=plain)
+        assert "Task profile" not in bare and profile not in bare
+
+
+def test_heldout_policy_goes_only_to_heldout_tasks():
+    held = system_prompt(SINGLE, "active", ACTIVE_TOOLS, task="grasp_single_cube_heldout")
+    base = system_prompt(SINGLE, "active", ACTIVE_TOOLS, task="grasp_single_cube")
+    for rule_id, _ in HELDOUT_RULES:
+        assert f"- [{rule_id}] " in held and rule_id not in base
+    assert "Task profile" not in held
 
 
 def test_dual_arm_prompt_requires_the_arm_and_adds_dual_actions_and_view_targets():
@@ -110,12 +155,13 @@ def test_dual_arm_prompt_requires_the_arm_and_adds_dual_actions_and_view_targets
 @pytest.mark.parametrize("arms", [SINGLE, DUAL])
 def test_passive_prompt_has_the_five_views_in_order_and_no_camera_interface(arms):
     text = system_prompt(arms, "passive", ["geometry.verify"])
-    assert "camera." not in text
-    for word in ("zoom", "yaw_", "pitch_", "5 cm", "8 cm", INITIAL_VIEW, "At most 5 camera"):
+    # the generic rules keep their words on views (as the reference's passive prompt does),
+    # but no camera action is named or described
+    for word in (*CAMERA_NAMES, "zoom", "yaw_", "pitch_", "5 cm", "8 cm", INITIAL_VIEW, "# Camera"):
         assert word not in text, word
     positions = [text.index(f"{i}. {v}:") for i, v in enumerate(PASSIVE_VIEWS, 1)]
     assert positions == sorted(positions)
-    assert "no labels" in text and "no camera actions" in text
+    assert "no labels" in text and "Issue no camera.* action" in text
 
 
 def test_prompt_arguments_are_checked_by_name():
@@ -133,8 +179,9 @@ def test_prompt_arguments_are_checked_by_name():
 @pytest.mark.parametrize("protocol", ["active", "passive"])
 def test_system_prompt_passes_the_leak_checker(arms, protocol):
     tools = [t for t in ALL_TOOLS if protocol == "active" or t != "camera.history"]
-    text = system_prompt(arms, protocol, tools)
-    assert find_leaks(text) == []
+    for task in (None, *TASK_PROFILES, "place_cube_on_cube_heldout"):
+        text = system_prompt(arms, protocol, tools, task=task)
+        assert find_leaks(text) == [], task
     assert "table top" not in text.lower() and "0.741" not in text  # no scene coordinates
 
 
@@ -162,13 +209,13 @@ def observation(arms=SINGLE, **overrides):
         step=3,
         step_budget=50,
         instruction="Pick up the red cube and lift it off the table.",
-        view="topdown",
         proprio=sim_proprio(arms),
         arms=arms,
         feedback=ActionFeedback(valid=True, planner_success=False),
         executed_actions=["move_world z-30mm", "camera.view_topdown"],
         demonstration_summary={"grasp_region": "middle", "pre_close_checks": ["centred"]},
         available_actions=['{"action": "gripper.close"}', '{"stop": true}'],
+        history_steps=[1, 2],
     )
     fields.update(overrides)
     return build_observation(**fields)
@@ -178,11 +225,39 @@ def observation(arms=SINGLE, **overrides):
 def test_observation_has_exactly_the_visible_fields(arms):
     obs = observation(arms)
     assert tuple(obs) == OBSERVATION_FIELDS
-    assert tuple(obs["robot"]) == arms
-    for fields in obs["robot"].values():
-        assert tuple(fields) == ARM_FIELDS
-        assert fields["last_action_valid"] is True and fields["last_planner_success"] is False
+    state, geometry = obs["gripper_state"], obs["self_geometry"]
+    arm_states = [state] if len(arms) == 1 else [state[a] for a in arms]
+    for fields in arm_states:
+        assert fields["is_open"] is True and fields["is_closed"] is False
+        assert "local_axes_world" not in fields  # the axes are in the self-geometry block
+    assert state["active_arm"] == (arms[0] if len(arms) == 1 else "both")
+    assert state["last_action_valid"] is True and state["last_planner_success"] is False
+    if len(arms) > 1:
+        assert geometry["active_arm"] == "both" and set(geometry) == {"active_arm", *arms}
     assert set(sim_proprio(arms)[arms[0]]) == set(PROPRIO_FIELDS)  # simulator and list agree
+
+
+def test_self_geometry_is_derived_from_the_visible_state():
+    geometry = self_geometry(filter_proprio(sim_proprio(SINGLE), SINGLE)["right"])
+    # GC lies 5 cm from the control point along +y: 90 deg from the table's downward normal
+    assert geometry["grip_center_direction_world"] == [0.0, 1.0, 0.0]
+    assert geometry["grip_center_direction_source"] == "finger_center_minus_eepose"
+    assert geometry["grip_center_length_m"] == pytest.approx(0.05)
+    assert geometry["grip_center_angle_to_world_axes_deg"]["+Y"] == 0.0
+    assert geometry["grip_center_angle_to_table_down_deg"] == 90.0
+    assert geometry["topdown_posture_ok_30deg"] is False
+    assert geometry["topdown_posture_ok_45deg"] is False
+    assert geometry["local_axes_world"]["rz"] == [0.0, 0.0, -1.0]
+    down = self_geometry(
+        filter_proprio(sim_proprio(SINGLE, gc=(0.28, -0.25, 0.90)), SINGLE)["right"]
+    )
+    assert down["grip_center_angle_to_table_down_deg"] == 0.0
+    assert down["topdown_posture_ok_30deg"] and down["topdown_posture_ok_45deg"]
+    same = self_geometry(
+        filter_proprio(sim_proprio(SINGLE, gc=(0.28, -0.25, 0.95)), SINGLE)["right"]
+    )
+    assert same["grip_center_direction_source"] == "local_rx_fallback"
+    assert same["grip_center_direction_world"] == [0.0, 1.0, 0.0]  # rx, column 0
 
 
 def test_filter_rejects_any_field_outside_the_visible_set_naming_it():
@@ -209,30 +284,41 @@ def test_filter_rejects_any_field_outside_the_visible_set_naming_it():
 def test_rendered_observation_holds_the_fields_and_nothing_else():
     obs = observation()
     text = render_observation(obs)
-    block = re.search(r"```json\n(.*?)\n```", text, re.S)
-    assert block is not None
-    assert json.loads(block.group(1)) == obs["robot"]
-    outside = (text[: block.start()] + text[block.end() :]).splitlines()
-    assert outside == [
-        "Step 3 of 50 (48 left, this one included).",
-        "Instruction: Pick up the red cube and lift it off the table.",
-        "Current view: topdown",
-        "Robot state (world frame: positions in metres, angles in degrees, quaternion w x y z):",
+    assert text.splitlines() == [
+        "Observation step: 3",
+        "Task instruction: Pick up the red cube and lift it off the table.",
+        f"Gripper state: {json.dumps(obs['gripper_state'])}",
+        SELF_GEOMETRY_HEADER,
+        json.dumps(obs["self_geometry"]),
+        'Executed actions: ["move_world z-30mm", "camera.view_topdown"]',
+        "Historical image steps available: [1, 2]",
         "",
-        "Executed actions (2):",
-        "1. move_world z-30mm",
-        "2. camera.view_topdown",
-        "Demonstration summary:",
-        "```json",
-        *json.dumps(obs["demonstration_summary"], indent=1).splitlines(),
-        "```",
-        "Available actions:",
+        "Available decisions (one JSON form a line; numbers within the ranges shown):",
         '{"action": "gripper.close"}',
         '{"stop": true}',
+        "",
+        "Reply with exactly one JSON command.",
+        "",
+        "Demonstration summary (saved for this run; keep it as additive experience unless "
+        "later images disprove an item):",
+        *json.dumps(obs["demonstration_summary"], indent=2).splitlines(),
     ]
-    first = render_observation(observation(step=1, executed_actions=[], demonstration_summary=None))
-    assert "Executed actions: none" in first and "Demonstration summary: none" in first
-    assert '"last_action_valid": null' not in first  # feedback given above
+    first = render_observation(
+        observation(
+            step=1,
+            executed_actions=[],
+            demonstration_summary=None,
+            history_steps=[],
+            feedback=ActionFeedback(),
+        )
+    )
+    assert "Executed actions: []" in first and "Demonstration summary" not in first
+    assert "Historical image steps available: none" in first
+    assert '"last_action_valid": true, "last_planner_success": true' in first  # at reset
+    passive = render_observation(observation(history_steps=None))
+    assert "Historical image steps" not in passive  # camera.history not offered
+    for hidden in ("50", "budget", "Current view", "topdown\n"):
+        assert hidden not in text.replace("camera.view_topdown", ""), hidden
     assert render_observation(obs) == text  # stable
 
 

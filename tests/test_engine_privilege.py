@@ -34,8 +34,9 @@ from engine_util import (
 )
 
 from vabench.agent.conversation import ContextLimits
+from vabench.agent.observation import GRIPPER_STATE_FIELDS
 from vabench.agent.visibility import (
-    ARM_FIELDS,
+    FEEDBACK_FIELDS,
     LOCAL_AXES,
     find_leaks,
 )
@@ -141,7 +142,7 @@ def _check_episode(run: EpisodeRun, protocol: str) -> None:
     robot = robot_state(last)
     assert list(robot) == list(run.task.arms)
     for arm, fields in robot.items():
-        assert list(fields) == list(ARM_FIELDS), arm
+        assert list(fields) == [*GRIPPER_STATE_FIELDS, *FEEDBACK_FIELDS, "local_axes_world"], arm
         assert list(fields["local_axes_world"]) == list(LOCAL_AXES), arm
         # after the move: the feedback of an executed action, not the None of step 1
         assert fields["last_action_valid"] is not None

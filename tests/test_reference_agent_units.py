@@ -120,7 +120,7 @@ def _arm(gc, rx, ry, is_open=True) -> Arm:
 
 def _obs(arms: dict[str, Arm], memo: dict) -> Observation:
     image = _jpeg(Image.new("RGB", (W, H), TABLE_RGB))
-    return Observation(1, 50, "Lift the pot.", "both_topdown", arms, 0, image, memo, (image,))
+    return Observation(1, "Lift the pot.", "both_topdown", arms, 0, image, memo, (image,))
 
 
 DOWN_X = {"rx": (0, 0, -1), "ry": (1, 0, 0)}  # fingers down, closing along x
@@ -197,7 +197,7 @@ def test_an_empty_grasp_opens_and_starts_over():
     image = _jpeg(Image.fromarray(np.asarray(Image.new("RGB", (W, H), TABLE_RGB))))
     memo = {"f": "cube", "plan": [["hold", [["retry"]]], ["go", 0.2, -0.1, 0.9, "z"]], "i": 0}
     obs = Observation(
-        9, 50, "Pick up the red cube.", "side", {"right": right}, 8, image, memo, (image,)
+        9, "Pick up the red cube.", "side", {"right": right}, 8, image, memo, (image,)
     )
     action, _, memo = decide(obs, "cube")
     assert action == {"action": "gripper.open"}

@@ -137,7 +137,7 @@ def test_yaw_turns_exactly_10deg_about_world_z(oblique, action):
     a, b = oblique.forward, after.forward
     turn = a[0] * b[1] - a[1] * b[0]
     assert np.sign(turn) == sign
-    np.testing.assert_allclose(after.focus_point, oblique.focus_point, atol=1e-12)
+    np.testing.assert_allclose(after.pos, oblique.pos, atol=1e-12)  # turns in place
     assert is_rotation(after.rot)
 
 
@@ -146,9 +146,10 @@ def test_pitch_turns_exactly_10deg_about_camera_left(oblique, action):
     after = cam.increment(oblique, action)
     assert angle_between(after.forward, oblique.forward) == pytest.approx(10.0, abs=1e-9)
     np.testing.assert_allclose(after.right, oblique.right, atol=1e-12)  # axis unchanged
-    higher = after.forward[2] > oblique.forward[2]
-    assert higher == (action == "pitch_up")
-    np.testing.assert_allclose(after.focus_point, oblique.focus_point, atol=1e-12)
+    # pitch_up is the positive right-hand turn about camera-left: the view tilts down
+    lower = after.forward[2] < oblique.forward[2]
+    assert lower == (action == "pitch_up")
+    np.testing.assert_allclose(after.pos, oblique.pos, atol=1e-12)  # turns in place
 
 
 def test_increments_clamp_position_to_the_workspace():

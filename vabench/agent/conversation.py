@@ -14,17 +14,19 @@ Image retention, applied when a request is built (the thread itself keeps every 
 
 - the newest five-image bundle (passive) is always sent whole, and so are the images of the
   newest user turn (the observation or tool result the model is answering);
-- other images are kept newest first while the request holds at most `max_images` (4) in
-  all; earlier passive bundles are never kept; an image already kept (the same `Image`
-  object re-sent by a repair turn) is not sent twice;
+- other images are kept newest first while the request holds at most `max_images` in all
+  (1: the paper's active request holds only the current image); earlier passive bundles are
+  never kept; an image already kept (the same `Image` object re-sent by a repair turn) is not
+  sent twice;
 - every dropped image becomes a text placeholder such as "[image from step 7 omitted]" (one
   per dropped bundle), so the thread keeps its order and its step references.
 
-Compaction: when the estimated input tokens of the next request exceed
-`compact_fraction * (window_tokens - output_reserve_tokens)`, the messages before the last
-`keep_user_turns` user turns are replaced by a summary that the same model writes from a
-text-only request (`summarize`, injected so that the engine routes it through the pool).
-The transcript is never compacted.
+Compaction (the reference's rule, spec PROTOCOL_FACTS.md 8): when the estimated tokens of the
+context with every image counted (those a request leaves out included), plus
+`output_reserve_tokens`, reach `compact_fraction * window_tokens`, the messages before the
+last `keep_user_turns` user turns are replaced by a handoff summary that the same model writes
+from a text-only request (`summarize`, injected so that the engine routes it through the
+pool). The transcript is never compacted.
 """
 
 from __future__ import annotations
@@ -41,16 +43,25 @@ from vabench.llm_pool.tokens import ImageTokenRule, estimate_input_tokens, opena
 EntryKind = Literal["observation", "repair", "tool_result", "reply", "summary", "note"]
 Summarizer = Callable[[ChatRequest], Awaitable[str]]
 
-SUMMARY_HEADER = "Summary of the earlier part of this episode (written by you):\n"
+SUMMARY_HEADER = (
+    "Summary of the earlier part of this episode, written by you (memory, not a new "
+    "instruction: the system prompt and the recent observations take precedence):\n"
+)
 SUMMARY_INSTRUCTION = """\
-The messages above are the earlier part of the current episode; images were removed. They are
-about to be replaced by your summary to keep the conversation within the context limit, so
-write everything you will need to continue:
-1. Progress: what the robot has achieved so far and the current state of each gripper.
-2. What was tried: the key actions and the numbers that mattered.
-3. What failed: rejected actions, planner failures, misjudged positions, and what each taught.
-4. The current plan: the next steps and what to check before each.
-Write plain text, at most about 400 words. Do not reply with a decision."""
+The messages above are the earlier part of the current episode; images were removed (a
+bracketed label only names an image, it shows nothing). They are about to be replaced by
+your summary to keep the conversation within the context limit. Write a short structured
+handoff for yourself:
+1. Goal, Progress so far and the current phase of the task.
+2. Constraints stated or learned, and the role of each arm.
+3. The latest robot state and what the images last showed of the objects.
+4. Attempts so far and their outcomes: rejected actions, planner failures, failed
+   hypotheses, and what each taught.
+5. Validated facts, open ambiguities and risks.
+6. The next checks and steps, and the key steps, views and errors worth remembering.
+Keep what was done apart from what is planned. Invent no coordinates, contacts, successes or
+visual facts. Leave out the action schema. Plain text, at most about 400 words; do not reply
+with a decision."""
 
 
 @dataclass(frozen=True)
@@ -61,7 +72,9 @@ class ContextLimits:
     compact_fraction: float = 0.8
     output_reserve_tokens: int = 8_192
     keep_user_turns: int = 6
-    max_images: int = 4
+    max_images: int = 1
+    """Images per request besides the newest user turn's and the newest passive bundle: the
+    paper's "each active API request contains only the current RGB image"."""
 
     def __post_init__(self) -> None:
         if self.window_tokens <= self.output_reserve_tokens:
@@ -73,8 +86,9 @@ class ContextLimits:
 
     @property
     def compact_above(self) -> int:
-        """Compaction starts when the estimated input tokens exceed this."""
-        return int(self.compact_fraction * (self.window_tokens - self.output_reserve_tokens))
+        """Compaction starts when the estimate reaches this: the estimate plus the output
+        reserve then reaches `compact_fraction` of the window (the reference's rule)."""
+        return int(self.compact_fraction * self.window_tokens) - self.output_reserve_tokens
 
 
 @dataclass(frozen=True)
@@ -127,7 +141,7 @@ class CompactionEvent:
 
     @property
     def under_limit(self) -> bool:
-        return self.tokens_after <= self.compact_above
+        return self.tokens_after < self.compact_above
 
     def record(self) -> dict[str, Any]:
         return {
@@ -181,6 +195,8 @@ class Conversation:
     """The context's turns as last built and their estimated tokens, until the context changes:
     a decision asks for them twice (`compact_if_needed`, then `request`), and building them
     walks the whole thread (1.5-2.6 ms a call in a 180-call episode on a 2-core machine)."""
+    _history_tokens: int | None = field(default=None, init=False, repr=False)
+    """`history_tokens()` until the context changes."""
 
     def __post_init__(self) -> None:
         if self.protocol not in ("active", "passive"):
@@ -191,6 +207,7 @@ class Conversation:
         self._context.append(entry)
         self._transcript.append(entry)
         self._built = None
+        self._history_tokens = None
 
     def _observation_entry(
         self, kind: EntryKind, text: str, images: Image | Mapping[str, Image], step: int
@@ -312,8 +329,24 @@ class Conversation:
         """Estimated input tokens of `request()` (text 4 chars/token, images by `image_rule`)."""
         return self._build()[1]
 
+    def history_tokens(self) -> int:
+        """Estimated tokens of the context with every image counted, those a request leaves
+        out included: the reference's estimate, which decides compaction."""
+        if self._history_tokens is None:
+            every = {
+                (i, j)
+                for i, e in enumerate(self._context)
+                for j, part in enumerate(e.turn.content)
+                if isinstance(part, Image)
+            }
+            turns = tuple(self._turns(self._context, every))
+            self._history_tokens = estimate_input_tokens(
+                ChatRequest(turns, self.system), self.image_rule
+            )
+        return self._history_tokens
+
     def needs_compaction(self) -> bool:
-        return self.estimate_tokens() > self.limits.compact_above
+        return self.history_tokens() >= self.limits.compact_above
 
     # -- compaction -----------------------------------------------------------------------
     def summary_request(self, entries: Sequence[Entry]) -> ChatRequest:
@@ -337,7 +370,7 @@ class Conversation:
             return None
         cut = users[-keep]
         old, kept = self._context[:cut], self._context[cut:]
-        before = self.estimate_tokens()
+        before = self.history_tokens()
         summary = (await summarize(self.summary_request(old))).strip()
         if not summary:
             raise ValueError("summarize returned an empty summary")
@@ -346,10 +379,11 @@ class Conversation:
         self._context = [entry, *kept]
         self._transcript.append(entry)
         self._built = None
+        self._history_tokens = None
         event = CompactionEvent(
             step=step,
             tokens_before=before,
-            tokens_after=self.estimate_tokens(),
+            tokens_after=self.history_tokens(),
             compact_above=self.limits.compact_above,
             messages_summarised=len(old),
             user_turns_kept=keep,
@@ -359,7 +393,7 @@ class Conversation:
         return event
 
     async def compact_if_needed(self, summarize: Summarizer) -> CompactionEvent | None:
-        """`compact` when the next request's estimate exceeds `limits.compact_above`."""
+        """`compact` when `history_tokens()` reaches `limits.compact_above`."""
         if not self.needs_compaction():
             return None
         return await self.compact(summarize)

@@ -49,6 +49,7 @@ from typing import Any
 
 from vabench import protocol as P
 from vabench.agent.conversation import CompactionEvent, ContextLimits, Conversation
+from vabench.agent.generation import request_options
 from vabench.agent.observation import (
     PASSIVE_VIEW_NAME,
     PASSIVE_VIEWS,
@@ -65,6 +66,7 @@ from vabench.agent.spec import EpisodeSpec
 from vabench.agent.tools import camera_history, geometry_result
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
 from vabench.llm_pool.messages import ChatRequest, CompletionResult, Image
+from vabench.protocol.version import PROTOCOL_VERSION
 from vabench.render import camera as cam
 from vabench.render.images import RenderError, RenderItem
 from vabench.sim_mjx.interface import (
@@ -115,10 +117,11 @@ class Episode:
             services.settings.generation
         ).resolved_max_output_tokens
         self.conv = Conversation(
-            system_prompt(self.arms, spec.protocol, list(tools)),
+            system_prompt(self.arms, spec.protocol, list(tools), task=spec.task),
             protocol=spec.protocol,
             limits=model_limits(services.settings.limits, endpoint.context_window),
         )
+        self.options = request_options(endpoint, services.settings.generation)
         self.rec = EpisodeRecorder(spec.out_dir, frames=spec.frames)
         self.counts = _Counts()
         self.spend = Spend()  # every model call, compaction summaries included
@@ -145,6 +148,8 @@ class Episode:
             step_budget=self.budget,
             arms=list(self.arms),
             tools=list(self.ctx.tools),
+            protocol_version=PROTOCOL_VERSION,
+            request_options=self.options.model_dump(exclude_none=True),
         )
         slot = self.svc.sim.acquire()
         try:
@@ -244,13 +249,13 @@ class Episode:
             step=step,
             step_budget=self.budget,
             instruction=self.task.instruction,
-            view=view,
             proprio=snap.proprio,
             arms=self.arms,
             feedback=self.feedback,
             executed_actions=self.executed,
             demonstration_summary=self.spec.demonstration_summary,
             available_actions=self.available,
+            history_steps=list(self.frames) if "camera.history" in self.ctx.tools else None,
         )
         if self.spec.protocol == "active":
             image = Image(jpegs[0])
@@ -310,7 +315,7 @@ class Episode:
         return result
 
     async def _request(self, step: int) -> CompletionResult:
-        request = self.conv.request(self.svc.settings.generation)
+        request = self.conv.request(self.options)
         self.rec.event(
             "request",
             step=step,
@@ -409,7 +414,7 @@ class Episode:
             self.camera, action.action, self.snapshot.gcs, self.arms
         )
         self.counts.camera_actions += 1
-        self.feedback = ActionFeedback(valid=True, planner_success=None)
+        self.feedback = ActionFeedback(valid=True, planner_success=True)
         self.rec.event(
             "camera", step=step, label=action.action, reason=action.reason, view=self.camera.label
         )

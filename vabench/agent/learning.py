@@ -19,8 +19,8 @@ and answered in the same thread:
   counts once) and (b) `parse_summary` accepts the summary. A refusal lists every reason at
   once (gate and schema) and the session goes on.
 
-Budgets (`LearningLimits`): at most `max_model_calls` model calls in all (30 by default: a
-diligent model needs about 3-8; the rest is room for refusals and repairs), and at most
+Budgets (`LearningLimits`): at most `max_model_calls` model calls in all (20 by default, the
+reference's one learning decision: a diligent model needs about 3-8), and at most
 `max_repairs` repair turns in a row for replies that are not a valid decision here (unparsable
 JSON, a robot or camera action, stop-less junk), as in the evaluation engine: the third
 invalid reply in a row ends the session. A refused `expert.learn` or a bad frame request is a
@@ -106,7 +106,7 @@ class LearningTask(Protocol):
 class LearningLimits:
     """The budgets of one session (module docstring) and its context bounds."""
 
-    max_model_calls: int = 30
+    max_model_calls: int = 20
     max_repairs: int = P.MAX_REPAIRS_PER_DECISION
     context: ContextLimits = field(default_factory=lambda: ContextLimits(max_images=8))
     """Up to 8 older frames stay visible, so that a model can compare what it inspected."""

@@ -1,22 +1,25 @@
 """The observation sent at each decision: its text, and the user turn that carries it.
 
-The text holds exactly the fields of `visibility.OBSERVATION_FIELDS` (spec FACTS.md,
-"Observation sent each decision") and nothing else:
+The text holds exactly the fields of `visibility.OBSERVATION_FIELDS` and nothing else, in the
+reference's order (spec PROTOCOL_FACTS.md 2.1-2.5; docs/PROTOCOL.md):
 
-    Step 3 of 50 (48 left, this one included).
-    Instruction: Pick up the red cube and lift it off the table.
-    Current view: center_high
-    Robot state (world frame: positions in metres, angles in degrees, quaternion w x y z):
-    ```json
-    {"right": {"is_open": true, "finger_center_xyz": [...], ..., "last_planner_success": true}}
-    ```
-    Executed actions (2):
-    1. move_world z-30mm
-    2. camera.view_topdown
-    Demonstration summary: ...
-    Available actions:
-    {"action": "gripper.move_world", ...}
+    Observation step: 3
+    Task instruction: Pick up the red cube and lift it off the table.
+    Gripper state: {"is_open": true, "is_closed": false, "finger_center_xyz": [...], ...}
+    Robot self-geometry (robot state only: not object positions, not proof of contact):
+    {"control_eepose_xyz": [...], ..., "topdown_posture_ok_45deg": true}
+    Executed actions: ["move_world z-30mm", "camera.view_topdown"]
+    Historical image steps available: [1, 2]
+    Available actions (gripper moves and rotations in the numeric JSON forms):
+    gripper.open
     ...
+    Reply with exactly one JSON command.
+    Demonstration summary (kept as additive experience unless the images disprove it):
+    ...
+
+No step budget and no view name are shown: the model knows its view from its own camera
+actions. The self-geometry block is derived here from the visible robot state alone
+(`self_geometry`). The history line appears only where `camera.history` is offered.
 
 The turn puts the text first and the image after it; in the passive protocol the five images
 follow in the fixed order of `PASSIVE_VIEWS` with no text between or beside them (the order is
@@ -26,6 +29,7 @@ the model's only cue to which view is which).
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -37,18 +41,85 @@ from vabench.render.camera import VIEWS
 PASSIVE_VIEWS: tuple[str, ...] = VIEWS
 """The passive protocol's views, in the order their images follow the text."""
 PASSIVE_VIEW_NAME = "the five fixed views, images in the order " + ", ".join(PASSIVE_VIEWS)
-"""What the "Current view" line says in the passive protocol (text above the images, never a
-label beside one)."""
+"""What the records call the passive bundle's view (never shown to the model)."""
 INITIAL_VIEW = "center_high"
 """The head camera: the active protocol's view after reset."""
+SELF_GEOMETRY_HEADER = (
+    "Robot self-geometry (robot state only: not object positions, not proof of contact):"
+)
+GRIPPER_STATE_FIELDS: tuple[str, ...] = (
+    "is_open",
+    "is_closed",
+    "finger_center_xyz",
+    "control_eepose_xyz",
+    "control_eepose_rpy_deg",
+    "control_eepose_quat",
+)
+"""One arm's fields of the gripper state line, in order (the axes are in the self-geometry)."""
+TOPDOWN_LIMITS_DEG = (30, 45)
+"""The top-down posture flags: GC direction within this angle of the table's downward normal."""
+_AXIS_DIRECTIONS = {
+    "+X": (1.0, 0.0, 0.0),
+    "-X": (-1.0, 0.0, 0.0),
+    "+Y": (0.0, 1.0, 0.0),
+    "-Y": (0.0, -1.0, 0.0),
+    "+Z": (0.0, 0.0, 1.0),
+    "-Z": (0.0, 0.0, -1.0),
+}
 
 
 @dataclass(frozen=True)
 class ActionFeedback:
-    """Outcome of the previous environment action; None before the first one."""
+    """Outcome of the previous environment action; both true before the first one and after a
+    camera action (nothing was refused)."""
 
-    valid: bool | None = None
-    planner_success: bool | None = None
+    valid: bool = True
+    planner_success: bool = True
+
+
+def _angle_deg(u: Sequence[float], v: Sequence[float]) -> float:
+    dot = sum(a * b for a, b in zip(u, v, strict=True))
+    return math.degrees(math.acos(max(-1.0, min(1.0, dot))))
+
+
+def self_geometry(fields: Mapping[str, Any]) -> dict[str, Any]:
+    """The self-geometry of one arm from its visible fields (`filter_proprio`'s): where GC lies
+    from the control point, how that direction sits against the world axes and the table's
+    downward normal, and whether the posture is top-down within 30 and 45 deg. A GC closer
+    than 1 um to the control point falls back on the approach axis rx."""
+    ee, gc = fields["control_eepose_xyz"], fields["finger_center_xyz"]
+    offset = [g - e for g, e in zip(gc, ee, strict=True)]
+    length = math.sqrt(sum(c * c for c in offset))
+    if length >= 1e-6:
+        direction, source = [c / length for c in offset], "finger_center_minus_eepose"
+    else:
+        direction, source = list(fields["local_axes_world"]["rx"]), "local_rx_fallback"
+    angles = {
+        name: round(_angle_deg(direction, axis), 1) for name, axis in _AXIS_DIRECTIONS.items()
+    }
+    down = angles["-Z"]
+    geometry: dict[str, Any] = {
+        "control_eepose_xyz": [round(c, 4) for c in ee],
+        "finger_center_xyz": [round(c, 4) for c in gc],
+        "control_eepose_quat_wxyz": [round(c, 5) for c in fields["control_eepose_quat"]],
+        "control_eepose_rpy_deg": [round(c, 2) for c in fields["control_eepose_rpy_deg"]],
+        "local_axes_world": {
+            k: [round(c, 4) for c in v] for k, v in fields["local_axes_world"].items()
+        },
+        "grip_center_direction_world": [round(c, 4) for c in direction],
+        "grip_center_direction_source": source,
+        "grip_center_length_m": round(length, 4),
+        "grip_center_angle_to_world_axes_deg": angles,
+        "grip_center_angle_to_table_down_deg": down,
+    }
+    for limit in TOPDOWN_LIMITS_DEG:
+        geometry[f"topdown_posture_ok_{limit}deg"] = down <= limit
+    return geometry
+
+
+def _gripper_state(fields: Mapping[str, Any]) -> dict[str, Any]:
+    state = {"is_closed": not fields["is_open"], **fields}
+    return {k: state[k] for k in GRIPPER_STATE_FIELDS}
 
 
 def build_observation(
@@ -56,82 +127,91 @@ def build_observation(
     step: int,
     step_budget: int,
     instruction: str,
-    view: str,
     proprio: Mapping[str, Mapping[str, Any]],
     arms: Sequence[str],
     feedback: ActionFeedback,
     executed_actions: Sequence[str],
     demonstration_summary: str | Mapping[str, Any] | None,
     available_actions: Sequence[str],
+    history_steps: Sequence[int] | None = None,
 ) -> dict[str, Any]:
     """The observation as a dict whose keys are exactly `OBSERVATION_FIELDS`.
 
     `step` is the 1-based index of the environment step about to be chosen (so `step - 1`
-    steps are used); `proprio` is `sim_mjx.layout.proprio_fields(...)` of the episode's slot,
-    filtered by `visibility.filter_proprio` (an extra key raises `VisibilityError`); the
-    feedback flags are added to every arm (the simulator reports them per episode).
+    steps are used; `step_budget` only bounds it: the budget is never shown); `proprio` is
+    `sim_mjx.layout.proprio_fields(...)` of the episode's slot, filtered by
+    `visibility.filter_proprio` (an extra key raises `VisibilityError`). The gripper state has
+    the reference's shape: one arm's fields with `active_arm`, or both arms' under `left` and
+    `right` with `active_arm: "both"`; the feedback flags follow once, for the episode.
+    `history_steps`: the earlier observation steps `camera.history` can show (None: the tool
+    is not offered, and the line is left out).
     """
     if not 1 <= step <= step_budget:
         raise VisibilityError("step", f"must be in [1, {step_budget}], got {step}")
     robot = filter_proprio(proprio, arms)
-    for fields in robot.values():
-        fields["last_action_valid"] = feedback.valid
-        fields["last_planner_success"] = feedback.planner_success
+    flags = {
+        "last_action_valid": feedback.valid,
+        "last_planner_success": feedback.planner_success,
+    }
+    if len(arms) == 1:
+        (arm,) = arms
+        gripper = {**_gripper_state(robot[arm]), "active_arm": arm, **flags}
+        geometry = self_geometry(robot[arm])
+    else:
+        gripper = {"active_arm": "both", **{a: _gripper_state(robot[a]) for a in arms}, **flags}
+        geometry = {"active_arm": "both", **{a: self_geometry(robot[a]) for a in arms}}
     summary = demonstration_summary
     if isinstance(summary, Mapping):
         summary = dict(summary)
     observation = {
         "step": step,
-        "step_budget": step_budget,
         "instruction": instruction,
-        "view": view,
-        "robot": robot,
+        "gripper_state": gripper,
+        "self_geometry": geometry,
         "executed_actions": [str(a) for a in executed_actions],
-        "demonstration_summary": summary,
+        "history_steps": None if history_steps is None else [int(s) for s in history_steps],
         "available_actions": [str(a) for a in available_actions],
+        "demonstration_summary": summary,
     }
     assert tuple(observation) == OBSERVATION_FIELDS  # one list of fields, in visibility.py
     return observation
 
 
-def _robot_json(robot: Mapping[str, Any]) -> str:
-    """One line per arm field: compact, stable, and short enough to repeat every step."""
-    lines = []
-    for i, (arm, fields) in enumerate(robot.items()):
-        lines.append(f"  {json.dumps(arm)}: {{")
-        items = list(fields.items())
-        for j, (key, value) in enumerate(items):
-            comma = "," if j < len(items) - 1 else ""
-            lines.append(f"    {json.dumps(key)}: {json.dumps(value)}{comma}")
-        lines.append("  }" + ("," if i < len(robot) - 1 else ""))
-    return "{\n" + "\n".join(lines) + "\n}"
-
-
 def render_observation(observation: Mapping[str, Any]) -> str:
     """The text of an observation made by `build_observation` (see the module docstring)."""
-    step, budget = observation["step"], observation["step_budget"]
-    executed = observation["executed_actions"]
+    history = observation["history_steps"]
     summary = observation["demonstration_summary"]
-    if summary is None:
-        summary_text = " none"
-    elif isinstance(summary, str):
-        summary_text = f" {summary}"
-    else:
-        summary_text = "\n```json\n" + json.dumps(summary, indent=1) + "\n```"
     lines = [
-        f"Step {step} of {budget} ({budget - step + 1} left, this one included).",
-        f"Instruction: {observation['instruction']}",
-        f"Current view: {observation['view']}",
-        "Robot state (world frame: positions in metres, angles in degrees, quaternion w x y z):",
-        "```json",
-        _robot_json(observation["robot"]),
-        "```",
-        f"Executed actions ({len(executed)}):" if executed else "Executed actions: none",
-        *(f"{i}. {label}" for i, label in enumerate(executed, 1)),
-        f"Demonstration summary:{summary_text}",
-        "Available actions:",
-        *observation["available_actions"],
+        f"Observation step: {observation['step']}",
+        f"Task instruction: {observation['instruction']}",
+        f"Gripper state: {json.dumps(observation['gripper_state'])}",
+        SELF_GEOMETRY_HEADER,
+        json.dumps(observation["self_geometry"]),
+        f"Executed actions: {json.dumps(observation['executed_actions'])}",
     ]
+    if history is not None:
+        lines.append(
+            f"Historical image steps available: {json.dumps(history) if history else 'none'}"
+        )
+    lines += [
+        "",
+        "Available decisions (one JSON form a line; numbers within the ranges shown):",
+        *observation["available_actions"],
+        "",
+        "Reply with exactly one JSON command.",
+    ]
+    if summary is not None:
+        shown = (
+            summary
+            if isinstance(summary, str)
+            else json.dumps(summary, indent=2, ensure_ascii=False)
+        )
+        lines += [
+            "",
+            "Demonstration summary (saved for this run; keep it as additive experience unless "
+            "later images disprove an item):",
+            shown,
+        ]
     return "\n".join(lines)
 
 

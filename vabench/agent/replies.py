@@ -117,9 +117,7 @@ def read_decision(
     if result.function_calls:
         call = result.function_calls[0]
         try:
-            decision = P.decision_from_object(function_call_object(call), ctx)
-            P.check_camera_chain(decision, ctx.camera_chain)
-            return decision
+            return P.decision_from_object(function_call_object(call), ctx)
         except P.DecisionError as err:
             raise ReplyRejected(
                 "function_call",

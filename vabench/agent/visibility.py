@@ -54,15 +54,16 @@ LOCAL_AXES: tuple[str, ...] = ("rx", "ry", "rz")
 
 OBSERVATION_FIELDS: tuple[str, ...] = (
     "step",
-    "step_budget",
     "instruction",
-    "view",
-    "robot",
+    "gripper_state",
+    "self_geometry",
     "executed_actions",
-    "demonstration_summary",
+    "history_steps",
     "available_actions",
+    "demonstration_summary",
 )
-"""The fields of one observation (besides its image or images); `robot` maps arm -> ARM_FIELDS."""
+"""The fields of one observation (besides its image or images): the gripper state and the
+self-geometry are derived from `ARM_FIELDS` alone (`observation.self_geometry`)."""
 
 _VECTOR_LENGTHS = {
     "finger_center_xyz": 3,
@@ -242,8 +243,12 @@ _BASE64_RUN = re.compile(r"[A-Za-z0-9+/=]{200,}")
 # the object it grasps); their values are removed before number matching, keys kept.
 _VISIBLE_VALUES = re.compile(
     r"""(["']?(?:finger_center_xyz|control_eepose_xyz|control_eepose_rpy_deg|"""
-    r"""control_eepose_quat)["']?\s*[:=]\s*)\[[^\]]*\]"""
-    r"""|(["']?local_axes_world["']?\s*[:=]\s*)\{[^}]*\}"""
+    r"""control_eepose_quat|control_eepose_quat_wxyz|grip_center_direction_world)"""
+    r"""["']?\s*[:=]\s*)\[[^\]]*\]"""
+    r"""|(["']?(?:local_axes_world|grip_center_angle_to_world_axes_deg)["']?\s*[:=]\s*)"""
+    r"""\{[^}]*\}"""
+    r"""|(["']?(?:grip_center_length_m|grip_center_angle_to_table_down_deg)["']?\s*:\s*)"""
+    r"""-?[\d.]+"""
 )
 
 
@@ -413,7 +418,7 @@ def _secret_match(secret: Secret, numbers: Sequence[tuple[str, float]]) -> int |
 
 
 def _value_leaks(text: str, where: str, secrets: Sequence[Secret]) -> Iterator[Leak]:
-    text = _VISIBLE_VALUES.sub(lambda m: m.group(1) or m.group(2), text)
+    text = _VISIBLE_VALUES.sub(lambda m: m.group(1) or m.group(2) or m.group(3), text)
     tokens = list(_NUMBER.finditer(text))
     numbers = [(t.group(), float(t.group())) for t in tokens]
     for secret in secrets:

@@ -22,8 +22,8 @@ What the episode engine calls:
 - `DecisionContext(arms, protocol, tools, camera_chain)`: what this episode allows.
   `available_tools(demonstration)` gives `tools`; `camera_chain_length(kinds)` gives
   `camera_chain` from the kinds of the decisions executed so far.
-- `parse_decision(text, ctx) -> Decision`: extraction, aliases, dispatch, validation,
-  camera-chain rule. `split_reasoning(text)` gives a reply's (answer, inline reasoning).
+- `parse_decision(text, ctx) -> Decision`: extraction, aliases, dispatch, validation.
+  `split_reasoning(text)` gives a reply's (answer, inline reasoning).
   `decision_from_object(obj, ctx)` does the same for an already decoded JSON object.
 - `decision_label(decision)`: the compact label recorded in events and shown in the history.
 - `available_actions(arms, protocol, tools)`: the vocabulary listed in every observation.
@@ -40,7 +40,6 @@ from vabench.protocol.camera import (
     CameraAction,
     action_names,
     camera_chain_length,
-    check_camera_chain,
 )
 from vabench.protocol.context import DecisionContext
 from vabench.protocol.decision import (
@@ -132,7 +131,6 @@ __all__ = [
     "available_tools",
     "camera_action_names",
     "camera_chain_length",
-    "check_camera_chain",
     "decision_from_object",
     "decision_label",
     "extract_json_object",

@@ -1,9 +1,9 @@
 """Camera actions: they move the observation camera, never the robot (active protocol only).
 
 The names are the camera model's (`vabench.render.camera` implements them); here they are
-parsed, and the camera-chain rule is kept: at most `MAX_CAMERA_CHAIN` camera actions in a row,
-and only a robot action resets the chain (tool calls and rejected replies neither break nor
-extend it, so they cannot launder a long chain).
+parsed. The chain of at most `MAX_CAMERA_CHAIN` camera actions in a row is an instruction of
+the system prompt, never a rejection (the paper's "agent instruction"; the reference enforces
+none); `camera_chain_length` counts it for the records.
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ from vabench.protocol.vocabulary import (
     CAMERA_INCREMENTS,
     CAMERA_TARGETS,
     CAMERA_VIEWS,
-    MAX_CAMERA_CHAIN,
     DecisionKind,
     ObservationProtocol,
     camera_action_names,
@@ -112,13 +111,3 @@ def camera_chain_length(kinds: Sequence[str]) -> int:
             break
         count += kind == "camera"
     return count
-
-
-def check_camera_chain(decision: Any, chain: int) -> None:
-    """Reject a camera action that would make the chain longer than `MAX_CAMERA_CHAIN`."""
-    if isinstance(decision, CameraAction) and chain >= MAX_CAMERA_CHAIN:
-        raise DecisionError(
-            "action",
-            f"at most {MAX_CAMERA_CHAIN} camera actions in a row; {chain} camera actions since the "
-            "last robot action, so the next decision must be a robot action, a tool call or stop",
-        )

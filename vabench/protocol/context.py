@@ -15,8 +15,9 @@ class DecisionContext:
     `protocol`: "active" (camera actions allowed) or "passive" (five fixed views, none).
     `tools`: the tool names offered, `available_tools(demonstration)`.
     `camera_chain`: camera actions executed since the last robot action,
-    `camera_chain_length(kinds)`; a camera action is rejected once it reaches
-    `MAX_CAMERA_CHAIN`. Per decision: `dataclasses.replace(ctx, camera_chain=...)`.
+    `camera_chain_length(kinds)`, for the records; the limit of `MAX_CAMERA_CHAIN` is an
+    instruction of the system prompt, never a rejection. Per decision:
+    `dataclasses.replace(ctx, camera_chain=...)`.
     """
 
     arms: tuple[str, ...]

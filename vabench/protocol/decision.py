@@ -1,4 +1,4 @@
-"""One decision from one reply: dispatch, validation, the camera-chain rule, labels, and the
+"""One decision from one reply: dispatch, validation, labels, and the
 vocabulary listed in every observation.
 
 Dispatch, as the benchmark's reference harness does it (PROTOCOL_FACTS 3.3): first the
@@ -21,7 +21,6 @@ from vabench.protocol.aliases import normalise
 from vabench.protocol.camera import (
     CameraAction,
     action_names,
-    check_camera_chain,
     parse_camera_action,
 )
 from vabench.protocol.context import DecisionContext
@@ -56,9 +55,7 @@ Decision = MoveWorld | RotateLocal | Aperture | DualMove | CameraAction | ToolCa
 
 def decision_from_object(obj: Any, ctx: DecisionContext) -> Decision:
     """Dispatch and validate one decoded decision (module docstring): the reference's
-    spellings rewritten, then "stop": true, then "tool", then "action".
-
-    Does not apply the camera-chain rule (`parse_decision` does)."""
+    spellings rewritten, then "stop": true, then "tool", then "action"."""
     obj = normalise(as_object(obj, "the decision"))
     if obj.get("stop") is True:
         try:
@@ -83,11 +80,10 @@ def decision_from_object(obj: Any, ctx: DecisionContext) -> Decision:
 def parse_decision(text: str, ctx: DecisionContext) -> Decision:
     """The validated decision of one model reply, or `DecisionError` with repair text.
 
-    Extraction (`extract_json_object`), dispatch and validation (`decision_from_object`),
-    then the camera-chain rule (`check_camera_chain` with `ctx.camera_chain`)."""
-    decision = decision_from_object(extract_json_object(text), ctx)
-    check_camera_chain(decision, ctx.camera_chain)
-    return decision
+    Extraction (`extract_json_object`), dispatch and validation (`decision_from_object`).
+    The camera-chain limit is an instruction of the system prompt, not a rejection (paper,
+    "the agent instruction limits camera-only chains"; the reference enforces none)."""
+    return decision_from_object(extract_json_object(text), ctx)
 
 
 def decision_label(decision: Decision) -> str:

@@ -7,13 +7,16 @@ the next request holds it. Only the last assistant turn is read, so history comp
 keeps the recent turns) never loses it.
 
 The observation text is the one `vabench.agent.observation.render_observation` writes
-("Step k of N ...", "Instruction: ...", "Current view: ...", the robot state JSON block); a
-repair turn repeats it after the error message, so the same patterns apply.
+("Observation step: k", "Task instruction: ...", the gripper state and the robot
+self-geometry as one-line JSON, the executed actions as a JSON list); a repair turn repeats it
+after the error message, so the same patterns apply.
 
-Images: the active protocol sends one image per observation, from the view the "Current view"
-line names; the passive protocol sends five, always in the order the system prompt and that
-line list (topdown, side, front_side_45, side_top_45, oblique_45), all centred on the GC (the
-midpoint of both GCs in dual-arm tasks).
+Images: the active protocol sends one image per observation, from the view the agent's own
+camera actions chose: the observation never names it, so it is read off the executed actions
+(the last `camera.*` one; the head camera before any). The passive protocol sends five,
+always in the order the system prompt lists (topdown, side, front_side_45, side_top_45,
+oblique_45), all centred on the GC (the midpoint of both GCs in dual-arm tasks), and offers no
+camera action.
 """
 
 from __future__ import annotations
@@ -27,11 +30,13 @@ import numpy as np
 
 MEMO_MARK = " | memo "
 
-_STEP = re.compile(r"Step (\d+) of (\d+)")
-_INSTRUCTION = re.compile(r"^Instruction: (.*)$", re.M)
-_VIEW = re.compile(r"^Current view: (.*)$", re.M)
-_ROBOT = re.compile(r"Robot state[^\n]*\n```json\n(.*?)\n```", re.S)
-_EXECUTED = re.compile(r"^Executed actions \((\d+)\):", re.M)
+_STEP = re.compile(r"^Observation step: (\d+)$", re.M)
+_INSTRUCTION = re.compile(r"^Task instruction: (.*)$", re.M)
+_GRIPPER = re.compile(r"^Gripper state: (\{.*\})$", re.M)
+_GEOMETRY = re.compile(r"^Robot self-geometry[^\n]*\n(\{.*\})$", re.M)
+_EXECUTED = re.compile(r"^Executed actions: (\[.*\])$", re.M)
+_CAMERA_OFFERED = '{"action": "camera.'
+HEAD_VIEW = "center_high"
 _FENCE = re.compile(r"```json\s*(\{.*?\})\s*```", re.S)
 
 
@@ -51,13 +56,11 @@ class Arm:
 
 
 PASSIVE_VIEWS = ("topdown", "side", "front_side_45", "side_top_45", "oblique_45")
-_PASSIVE_LINE = "the five fixed views"
 
 
 @dataclass(frozen=True)
 class Observation:
     step: int
-    budget: int
     instruction: str
     view: str
     arms: dict[str, Arm]
@@ -71,10 +74,6 @@ class Observation:
     passive: bool = False
 
     @property
-    def steps_left(self) -> int:
-        return self.budget - self.step + 1
-
-    @property
     def dual(self) -> bool:
         return len(self.arms) > 1
 
@@ -85,17 +84,40 @@ class Observation:
         return self.images[PASSIVE_VIEWS.index(view)]
 
 
-def _arm(fields: dict[str, Any]) -> Arm:
-    axes = fields["local_axes_world"]
+def _arm(state: dict[str, Any], geometry: dict[str, Any], flags: dict[str, Any]) -> Arm:
+    axes = geometry["local_axes_world"]
     return Arm(
-        gc=np.array(fields["finger_center_xyz"], float),
+        gc=np.array(state["finger_center_xyz"], float),
         rx=np.array(axes["rx"], float),
         ry=np.array(axes["ry"], float),
         rz=np.array(axes["rz"], float),
-        is_open=bool(fields["is_open"]),
-        last_valid=fields.get("last_action_valid"),
-        last_planner=fields.get("last_planner_success"),
+        is_open=bool(state["is_open"]),
+        last_valid=flags.get("last_action_valid"),
+        last_planner=flags.get("last_planner_success"),
     )
+
+
+def _arms(state: dict[str, Any], geometry: dict[str, Any]) -> dict[str, Arm]:
+    """Both blocks in the reference's shape: one arm's fields with `active_arm`, or
+    `active_arm: "both"` with the arms under `left` and `right` (the flags at the top)."""
+    if state.get("active_arm") == "both":
+        return {a: _arm(state[a], geometry[a], state) for a in ("left", "right")}
+    return {str(state["active_arm"]): _arm(state, geometry, state)}
+
+
+def current_view(executed: list[Any], dual: bool) -> str:
+    """The view the last camera action chose ("topdown"; in dual-arm tasks "both_side",
+    "left_topdown", ...: the generic views centre on both arms), "adjusted" after a move, zoom
+    or turn, the head camera's before any camera action: the camera stays where the last
+    camera action put it."""
+    for label in reversed(executed):
+        if isinstance(label, str) and label.startswith("camera."):
+            name = label.removeprefix("camera.")
+            if not name.startswith("view_"):
+                return "adjusted"
+            view = name.removeprefix("view_")
+            return f"both_{view}" if dual and view in PASSIVE_VIEWS else view
+    return HEAD_VIEW
 
 
 def parse_memo(reply: str) -> dict[str, Any]:
@@ -132,29 +154,29 @@ def parse_request(request: Any) -> Observation:
         raise RequestError("no user turn")
     text, images = _text_and_images(users[-1])
     step = _STEP.search(text)
-    robot = _ROBOT.search(text)
-    if step is None or robot is None:
-        raise RequestError("the last user turn has no observation (step line, robot state)")
+    gripper = _GRIPPER.search(text)
+    geometry = _GEOMETRY.search(text)
+    if step is None or gripper is None or geometry is None:
+        raise RequestError(
+            "the last user turn has no observation (step line, gripper state, self-geometry)"
+        )
     try:
-        arms = {name: _arm(f) for name, f in json.loads(robot.group(1)).items()}
+        arms = _arms(json.loads(gripper.group(1)), json.loads(geometry.group(1)))
     except (json.JSONDecodeError, KeyError, TypeError) as err:
         raise RequestError(f"robot state: {err}") from None
     assistants = [t for t in turns if t.role == "assistant"]
     memo = parse_memo(_text_and_images(assistants[-1])[0]) if assistants else {}
     instruction = _INSTRUCTION.search(text)
-    view = _VIEW.search(text)
-    view_name = view.group(1).strip() if view else ""
-    executed = _EXECUTED.search(text)
-    passive = view_name.startswith(_PASSIVE_LINE)
-    if passive:
-        view_name = "topdown"  # the bundle's first image is the one the agent locates in
+    executed_line = _EXECUTED.search(text)
+    executed = json.loads(executed_line.group(1)) if executed_line else []
+    passive = _CAMERA_OFFERED not in text
     return Observation(
         step=int(step.group(1)),
-        budget=int(step.group(2)),
         instruction=instruction.group(1).strip() if instruction else "",
-        view=view_name,
+        # the passive bundle's first image is the one the agent locates in
+        view="topdown" if passive else current_view(executed, len(arms) > 1),
         arms=arms,
-        executed=int(executed.group(1)) if executed else 0,
+        executed=len(executed),
         image=(images[0] if passive else images[-1]) if images else None,
         memo=memo,
         images=images,

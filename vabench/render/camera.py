@@ -17,22 +17,25 @@ Spec (FACTS.md "Semantic camera views", paper appendix "Bounded active camera ac
   `yaw_left/right` rotate 10 deg about world z; `pitch_up/down` rotate 10 deg about the
   camera-left axis. The result is clamped to the workspace (orientation kept).
 
-Where the spec is silent, vabench decides (and tests) this:
-- A rotation turns the camera about an axis through its focus point (the point it was aimed at,
-  carried along by moves and zooms) rather than about the lens: the view direction changes by
-  exactly the step, as the paper says, and the point of interest stays in the middle of the
-  image. This gives the "horizontal/vertical parallax and side exposure" the paper lists as the
-  purpose of yaw and pitch; a turn about the lens would only slide the scene sideways.
-- `yaw_left` turns the view direction to the left (+10 deg about world +z, counter-clockwise
-  seen from above); `pitch_up` tilts it upwards (so the camera orbits down and looks up).
+Where the paper is silent, the reference harness's behaviour holds (spec PROTOCOL_FACTS.md
+4.4; docs/PROTOCOL.md):
+- A rotation turns the camera in place, about its own position: yaw about world +z, pitch
+  about the camera-left axis; the point it looks at moves. `yaw_left` is +10 deg about world +z
+  (the view turns left, counter-clockwise seen from above). `pitch_up` is +10 deg right-hand
+  about camera-left, which tilts the view direction down (the reference's sign); `pitch_down`
+  tilts it up.
 - Zooming moves the camera, not the lens (the FOV is fixed); the focus distance shrinks with
   `zoom_in` down to 5 cm, never through the focus point.
-- The view name reported to the model is the last selected view; after increments it reads
-  e.g. "topdown (adjusted)".
+- The camera never follows the gripper: a view is centred on GC at the moment it is taken.
+  The view's name is recorded (after increments e.g. "topdown (adjusted)") but never shown to
+  the model, which knows its view from its own camera actions.
+
+The passive bundle is the five semantic views on the current GC, clamped like the active ones:
+the paper's text (a strict subset of the viewpoints reachable in active mode) wins over the
+reference harness's fixed world topdown and control-point anchors.
 
 Everything here is a pure function over `CameraPose`; camera actions never touch physics. The
-camera's numbers (pose, FOV) are evaluator-side calibration and never reach a prompt; only the
-view name does.
+camera's numbers (pose, FOV) are evaluator-side calibration and never reach a prompt.
 """
 
 from __future__ import annotations
@@ -274,15 +277,13 @@ def increment(camera: CameraPose, name: str) -> CameraPose:
         sign = 1.0 if direction == "in" else -1.0
         pos = pos + sign * ZOOM_STEP * camera.forward
         focus = max(MIN_FOCUS, focus - sign * ZOOM_STEP)
-    else:
+    else:  # a turn in place: the position stays, the view direction turns
         if kind == "yaw":  # +z turns the view direction to the left (counter-clockwise)
             angle = TURN_STEP if direction == "left" else -TURN_STEP
             turn = rotation_about(np.array([0.0, 0.0, 1.0]), angle)
-        else:  # a positive turn about camera-left tilts the view direction down
-            angle = TURN_STEP if direction == "down" else -TURN_STEP
+        else:  # a positive turn about camera-left (pitch_up) tilts the view direction down
+            angle = TURN_STEP if direction == "up" else -TURN_STEP
             turn = rotation_about(-camera.right, angle)
-        pivot = camera.focus_point
-        pos = pivot + turn @ (pos - pivot)
         rot = turn @ rot
     return CameraPose(
         pos=clamp_to_workspace(pos),

@@ -4,8 +4,10 @@ Every action, whatever its kind, is a per-arm command (`ArmCommand`): a world tr
 end effector, a rotation vector about the current gripper-local axes (GC held fixed), and an
 aperture command. A slot's plan is
   1. the Cartesian target: translate, or rotate about GC (R' = R exp(rotvec), so the rotation is
-     about the current local axis, right-handed); the end-effector target is clipped to the
-     workspace bounds of the reference and the clipping reported;
+     about the current local axis, right-handed); a translation's end-effector target is
+     clipped to the workspace bounds of the reference and the clipping reported; a rotation
+     is refused whole (planner failure, nothing moves) when the control point of any of its
+     waypoints of at most 10 deg lies outside the bounds;
   2. N_WAYPOINTS poses along the straight line / the geodesic from the start, each solved in
      closed form (kinematics.ik) and checked: reachable, within joint limits, no wrist flip
      between neighbours, and every gripper collision box above the table;
@@ -75,9 +77,20 @@ def _plan_arm(
     rot_end = rot @ kin.axis_angle(rotvec)
     ee_end = gc + delta - rot_end @ gc_local
     lo, hi = jnp.asarray(rc.EE_BOUNDS_LO), jnp.asarray(rc.EE_BOUNDS_HI)
-    ee_clipped = jnp.clip(ee_end, lo, hi)
+    turns = jnp.any(rotvec != 0.0)
+    # A translation's target is clipped to the bounds; a rotation is never clipped (that would
+    # move GC): it is refused whole when any of its waypoints of at most ROTATION_WAYPOINT_RAD
+    # takes the control point outside them (the reference's rule).
+    ee_clipped = jnp.where(turns, ee_end, jnp.clip(ee_end, lo, hi))
     shift = ee_clipped - ee_end
     clipped = jnp.any(jnp.abs(shift) > 1e-9)
+    n_turn = jnp.maximum(jnp.ceil(jnp.linalg.norm(rotvec) / rc.ROTATION_WAYPOINT_RAD - 1e-9), 1.0)
+
+    def turn_inside(k: jax.Array) -> jax.Array:
+        ee_k = gc - rot @ kin.axis_angle(jnp.minimum(k / n_turn, 1.0) * rotvec) @ gc_local
+        return jnp.all((ee_k >= lo - 1e-9) & (ee_k <= hi + 1e-9))
+
+    turn_ok = jnp.all(jax.vmap(turn_inside)(jnp.arange(1.0, rc.MAX_ROTATION_WAYPOINTS + 1.0)))
 
     t = jnp.linspace(0.0, 1.0, rc.N_WAYPOINTS)
 
@@ -94,7 +107,7 @@ def _plan_arm(
 
     _, (wps, oks) = jax.lax.scan(solve, q, t)
     moves = jnp.any(delta != 0.0) | jnp.any(rotvec != 0.0)
-    ok = jnp.all(oks)
+    ok = jnp.all(oks) & (turn_ok | ~turns)
     wps = jnp.where(moves, wps, jnp.broadcast_to(q, wps.shape))
     executed = jnp.linalg.norm(delta + shift)
     return wps, jnp.where(moves, ok, True), moves, clipped & moves, jnp.where(moves, executed, 0.0)

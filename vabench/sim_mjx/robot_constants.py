@@ -36,6 +36,8 @@ FINGER_CLOSED = 0.0
 # End-effector target bounds of the reference (FACTS.md); vabench reports clipping.
 EE_BOUNDS_LO = (-0.55, -0.45, 0.74)
 EE_BOUNDS_HI = (0.55, 0.35, 1.35)
+ROTATION_WAYPOINT_RAD = math.radians(10.0)  # the reference's bounds check of a rotation
+MAX_ROTATION_WAYPOINTS = 9  # ceil(90 deg / 10 deg): the largest rotation's checked waypoints
 
 # Gripper collision boxes in the gripper frame (origin at the wrist centre, x = approach):
 # (centre, half-size). Fingers are given at zero opening; finger a is displaced by +q along y,

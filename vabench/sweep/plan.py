@@ -43,8 +43,6 @@ from typing import Any, cast
 from vabench import protocol as P
 from vabench.agent.conversation import Conversation
 from vabench.agent.observation import (
-    INITIAL_VIEW,
-    PASSIVE_VIEW_NAME,
     PASSIVE_VIEWS,
     ActionFeedback,
     observation_text,
@@ -266,7 +264,7 @@ async def _replay(
     # The engine's Conversation estimates with the OpenAI rule when deciding to compact, so
     # this one does too; the billed tokens below use the API's own rule.
     protocol = cast(Track, track)
-    conv = Conversation(system_prompt(arms, track, list(tools)), protocol=protocol)
+    conv = Conversation(system_prompt(arms, track, list(tools), task=task_name), protocol=protocol)
     available = P.available_actions(arms, protocol, tools)
     jpeg = stand_in_jpeg(*image_size)
     reply = "x" * int(a.output_tokens * CHARS_PER_TOKEN)
@@ -283,7 +281,6 @@ async def _replay(
             step=step,
             step_budget=budget,
             instruction=task.instruction,
-            view=INITIAL_VIEW if track == "active" else PASSIVE_VIEW_NAME,
             proprio={arm: _TYPICAL_PROPRIO for arm in arms},
             arms=arms,
             feedback=ActionFeedback(True, True) if step > 1 else ActionFeedback(),

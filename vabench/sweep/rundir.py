@@ -11,7 +11,9 @@ compares field by field:
 its answers counts (name, API, provider model id, generation options); its limits, retries,
 prices, headers and key variable do not, so a run may resume with a new key or a higher rate
 limit. For models served by the embedded server its policy counts too (the policy is the
-model). Everything else (executor, render workers, retries) may change between invocations.
+model). The protocol's version (`vabench.protocol.version`) counts as well: episodes a model
+played under another protocol are not the same measurement. Everything else (executor, render
+workers, retries) may change between invocations.
 
 A plan.json of version 1 (a bare list of episode ids, before the fields were stored) is
 compared by ids and then upgraded in place.
@@ -27,11 +29,12 @@ from typing import Any
 import yaml
 
 from vabench.config import SweepConfig
+from vabench.protocol.version import PROTOCOL_VERSION
 from vabench.run_layout import RunDir
 from vabench.sweep.plan import EpisodeKey
 
 PLAN_VERSION = 2
-PLAN_FIELDS = ("models", "tracks", "tasks", "seeds", "runs", "step_budget")
+PLAN_FIELDS = ("models", "tracks", "tasks", "seeds", "runs", "step_budget", "protocol_version")
 """The config fields that decide the plan (see the module docstring)."""
 _MODEL_FIELDS = ("name", "api", "model", "generation")
 
@@ -63,6 +66,7 @@ def plan_identity(config: SweepConfig) -> dict[str, Any]:
         "seeds": doc["seeds"],
         "runs": doc["runs"],
         "step_budget": doc["step_budget"],
+        "protocol_version": PROTOCOL_VERSION,
     }
 
 

@@ -34,6 +34,8 @@ _MAX_JOINT_STEP = wp.constant(rc.MAX_JOINT_STEP)
 _N_WAYPOINTS = wp.constant(W)
 _EE_LO = wp.constant(wp.vec3(*rc.EE_BOUNDS_LO))
 _EE_HI = wp.constant(wp.vec3(*rc.EE_BOUNDS_HI))
+_TURN_STEP = wp.constant(rc.ROTATION_WAYPOINT_RAD)
+_TURN_CHECKS = wp.constant(rc.MAX_ROTATION_WAYPOINTS)
 _FINGER_OPEN = wp.constant(rc.FINGER_OPEN)
 _FINGER_CLOSED = wp.constant(rc.FINGER_CLOSED)
 
@@ -101,18 +103,30 @@ def plan_kernel(
     gc_local = wp.transpose(rot) @ (gc - ee)  # GC seen from the ee frame: fixed in a rotation
     rot_end = rot @ axis_angle(rotvec)
     ee_end = gc + delta - rot_end @ gc_local
+    turns = (rotvec[0] != 0.0) or (rotvec[1] != 0.0) or (rotvec[2] != 0.0)
     ee_clipped = wp.vec3(
         wp.clamp(ee_end[0], _EE_LO[0], _EE_HI[0]),
         wp.clamp(ee_end[1], _EE_LO[1], _EE_HI[1]),
         wp.clamp(ee_end[2], _EE_LO[2], _EE_HI[2]),
     )
+    if turns:  # a rotation is never clipped: refused whole when a waypoint leaves the bounds
+        ee_clipped = ee_end
     shift = ee_clipped - ee_end
+    turn_ok = wp.bool(True)
+    if turns:
+        n_turn = wp.max(wp.ceil(wp.length(rotvec) / _TURN_STEP - 1.0e-9), 1.0)
+        for k in range(_TURN_CHECKS):
+            tk = wp.min(float(k + 1) / n_turn, 1.0)
+            ee_k = gc - (rot @ axis_angle(tk * rotvec)) @ gc_local
+            for j in range(3):
+                if ee_k[j] < _EE_LO[j] - 1.0e-9 or ee_k[j] > _EE_HI[j] + 1.0e-9:
+                    turn_ok = False
     clipped = (wp.abs(shift[0]) > 1.0e-9) or (wp.abs(shift[1]) > 1.0e-9)
     clipped = clipped or (wp.abs(shift[2]) > 1.0e-9)
     moves = (delta[0] != 0.0) or (delta[1] != 0.0) or (delta[2] != 0.0)
     moves = moves or (rotvec[0] != 0.0) or (rotvec[1] != 0.0) or (rotvec[2] != 0.0)
 
-    ok = wp.bool(True)
+    ok = turn_ok
     q_prev = vec6(q)
     for i in range(_N_WAYPOINTS):
         t = float(i) / float(_N_WAYPOINTS - 1)
