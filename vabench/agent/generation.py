@@ -10,21 +10,22 @@ thinking budget is not defaulted where the model's output limit leaves no room f
 
 from __future__ import annotations
 
+from vabench.llm_pool.apis import get_adapter
 from vabench.llm_pool.config import ModelEndpoint
 from vabench.llm_pool.settings import GenerationOptions, ReasoningEffort
 
 REASONING_EFFORT: ReasoningEffort = "medium"
 THINKING_BUDGET = 1024
-_OPENAI_APIS = ("openai_chat", "openai_responses")
 
 
 def protocol_defaults(endpoint: ModelEndpoint) -> GenerationOptions:
     """The defaults `endpoint`'s config leaves unset (empty options where it sets them all)."""
     own = endpoint.generation
-    if endpoint.api in _OPENAI_APIS and own.reasoning_effort is None:
+    option = get_adapter(endpoint.api).reasoning_option
+    if option == "reasoning_effort" and own.reasoning_effort is None:
         return GenerationOptions(reasoning_effort=REASONING_EFFORT)
     if (
-        endpoint.api == "anthropic"
+        option == "thinking_budget"
         and own.thinking_budget is None
         and own.resolved_max_output_tokens > THINKING_BUDGET
     ):

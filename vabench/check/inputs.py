@@ -24,8 +24,6 @@ from vabench import protocol as P
 from vabench.agent.conversation import ContextLimits
 from vabench.agent.learning import LearningLimits
 from vabench.agent.observation import (
-    INITIAL_VIEW,
-    PASSIVE_VIEW_NAME,
     PASSIVE_VIEWS,
     ActionFeedback,
     observation_text,
@@ -107,7 +105,6 @@ def first_step_prompt(config: SweepConfig, track: str, task_name: str) -> tuple[
         step=1,
         step_budget=config.budget(task_name),
         instruction=task.instruction,
-        view=INITIAL_VIEW if protocol == "active" else PASSIVE_VIEW_NAME,
         proprio={arm: _STAND_IN_PROPRIO for arm in arms},
         arms=arms,
         feedback=ActionFeedback(),
@@ -115,7 +112,7 @@ def first_step_prompt(config: SweepConfig, track: str, task_name: str) -> tuple[
         demonstration_summary=None,
         available_actions=P.available_actions(arms, protocol, tools),
     )
-    return system_prompt(arms, protocol, list(tools)), text
+    return system_prompt(arms, protocol, list(tools), task=task_name), text
 
 
 def scene_jpeg(

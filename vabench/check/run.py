@@ -140,7 +140,7 @@ def _decision_lines(
 async def _output_probe(pool: LLMPool, where: Where) -> list[Line]:
     """Chat Completions only: whether the server reads the output limit's field (the other
     APIs have one field, which their servers read)."""
-    if where.endpoint.api != "openai_chat":
+    if not get_adapter(where.endpoint.api).output_field_choice:
         return []
     options = GenerationOptions(max_output_tokens=judge.OUTPUT_PROBE_TOKENS)
     request = ChatRequest(turns=(Turn.user(PROBE_PROMPT),), options=options)

@@ -376,7 +376,7 @@ class EndpointClient:
             return True, f"check the model id {c.provider_model!r} and the URL {self.url}"
         if status == 400 and self._counters.succeeded == 0:
             fields = "generation options"
-            if c.api == "openai_chat":
+            if self.adapter.output_field_choice:
                 fields += " and max_tokens_field"
             return True, (
                 f"the endpoint has not accepted one request of model {c.name!r}: check its "

@@ -195,6 +195,7 @@ def rfc3339_in(seconds: float) -> str:
 
 class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
     name = "anthropic"
+    reasoning_option = "thinking_budget"
     route = "/v1/messages"
     default_host = "https://api.anthropic.com"
     base_path = ""

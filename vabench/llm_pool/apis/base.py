@@ -386,6 +386,12 @@ class ApiAdapter(ABC, Generic[RequestT, ResponseT]):
     """Rate-limit header names, with `{limit}` (requests, tokens) and `{field}` (limit,
     remaining, reset)."""
     request_id_header: ClassVar[str] = "x-request-id"
+    reasoning_option: ClassVar[str] = "reasoning_effort"
+    """The generation option that asks this API's models to reason (`reasoning_effort` or
+    `thinking_budget`): the protocol's default is set through it (`agent.generation`)."""
+    output_field_choice: ClassVar[bool] = False
+    """Whether servers of this API differ in the output limit's field
+    (`ModelEndpoint.max_tokens_field`), so that a refusal or a probe should name it."""
 
     @abstractmethod
     def image_tokens(self, width: int, height: int) -> int:

@@ -185,6 +185,7 @@ def _text_of(content: str | list[_ContentPart], field: str) -> str:
 
 class OpenAIChat(common.OpenAIApi[ChatCompletionsRequest, ChatCompletionsResponse]):
     name = "openai_chat"
+    output_field_choice = True  # max_completion_tokens or max_tokens (local servers)
     route = "/v1/chat/completions"
     request_model = ChatCompletionsRequest
     response_model = ChatCompletionsResponse
