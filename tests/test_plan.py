@@ -155,8 +155,8 @@ def test_image_tokens_follow_retention_and_the_api_rule(api, per_image):
         small = episode_usage("grasp_single_cube", track, 5, (320, 240), api, a)
         return big.input_tokens - small.input_tokens
 
-    # active: calls 1..5 carry 1, 2, 3, 4, 4 images (the last four are retained)
-    assert diff("active") == (1 + 2 + 3 + 4 + 4) * per_image
+    # active: every call carries the current image only (docs/PROTOCOL.md)
+    assert diff("active") == 5 * per_image
     # passive: every call carries the current five-view bundle only
     assert diff("passive") == 5 * 5 * per_image
 
