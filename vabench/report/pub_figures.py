@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from vabench.report.figures import SUBSET_COLOURS, _png
-from vabench.report.publication import CRITERIA, Profile
+from vabench.report.publication import CRITERIA, Bars, Profile
 from vabench.report.published import REFERENCE_LABEL
 from vabench.report.stats import SUBSET_TITLES, SUBSETS
 
@@ -25,17 +24,6 @@ REFERENCE_COLOURS = {"single": "#B8B8B8", "dual": "#D6D6D6", "all": "#999999"}
 _GREY_TEXT = "#777777"
 RADAR_RANGE = (0.0, 100.0)
 """Fixed for every condition (no min-max normalisation, as the paper plots them)."""
-
-
-@dataclass(frozen=True)
-class Bars:
-    """One condition's bars: subset -> (mean %, SD %; None with one run); `reference`: a
-    published row, drawn grey; `mark`: a flag after its label (a comparability mismatch)."""
-
-    label: str
-    values: Mapping[str, tuple[float, float | None]]
-    reference: bool = False
-    mark: str = ""
 
 
 def overall_figure(rows: Sequence[Bars]) -> bytes:

@@ -10,8 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 from vabench.report import published as P
-from vabench.report.pub_figures import Bars
-from vabench.report.publication import CRITERIA, Condition, Matrix, Profile, label
+from vabench.report.publication import CRITERIA, Bars, Condition, Matrix, Profile, label
 from vabench.report.stats import SUBSET_TITLES, SUBSETS, Spread
 from vabench.tables import Csv, Section, Table, mean_sd_text, pct
 

@@ -73,6 +73,17 @@ def task_order(tasks: set[str] | Sequence[str]) -> list[str]:
 
 
 @dataclass(frozen=True)
+class Bars:
+    """One condition's bars: subset -> (mean %, SD %; None with one run); `reference`: a
+    published row, drawn grey; `mark`: a flag after its label (a comparability mismatch)."""
+
+    label: str
+    values: Mapping[str, tuple[float, float | None]]
+    reference: bool = False
+    mark: str = ""
+
+
+@dataclass(frozen=True)
 class Matrix:
     tasks: tuple[str, ...]
     conditions: tuple[Condition, ...]
