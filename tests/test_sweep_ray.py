@@ -78,6 +78,13 @@ def records(run_dir: Path) -> dict[tuple, dict]:
     return out
 
 
+def with_sweep_log(terminal: str, out: Path) -> str:
+    """What the driver printed and what it logged: the engines' and chunks' lines go to
+    RUN_DIR/logs/sweep.log (the terminal shows them with --verbose)."""
+    path = out / "logs" / "sweep.log"
+    return terminal + (path.read_text() if path.exists() else "")
+
+
 def ray_sweep(config: Path, out: Path) -> str:
     proc = subprocess.run(
         [sys.executable, "-m", "vabench.sweep", str(config), "--out", str(out), "--plain"]
@@ -98,7 +105,7 @@ def test_ray_sweep_equals_the_local_one_and_a_rerun_runs_nothing(cluster, tmp_pa
     ray_cfg = write(tmp_path / "ray.yaml", f"{{kind: ray, address: '{cluster}', max_tasks: 2}}")
     out = tmp_path / "ray"
 
-    log = ray_sweep(ray_cfg, out)
+    log = with_sweep_log(ray_sweep(ray_cfg, out), out)
     assert re.search(
         r"ray: chunks 4/4 done \(0 failed\), 0 running on \d engines \| episodes "
         r"recorded 8/8",
@@ -183,9 +190,8 @@ def test_a_killed_driver_takes_its_engines_and_the_rerun_records_each_episode_on
         while not (out / "results.jsonl").exists() or not (out / "results.jsonl").read_text():
             assert proc.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
             time.sleep(0.1)
-        engines = [
-            int(p) for p in re.findall(r"engine \d+ started: .*?'pid': (\d+)", log.read_text())
-        ]
+        said = with_sweep_log(log.read_text(), out)
+        engines = [int(p) for p in re.findall(r"engine \d+ started: .*?'pid': (\d+)", said)]
         assert engines
         proc.send_signal(signal.SIGKILL)
         proc.wait()
