@@ -125,8 +125,8 @@ def test_ray_sweep_equals_the_local_one_and_a_rerun_runs_nothing(cluster, tmp_pa
     ledger = (out / "results.jsonl").read_bytes()
     results = {p: p.stat().st_mtime_ns for p in out.glob("episodes/**/result.json")}
     assert len(results) == PLANNED
-    log = ray_sweep(ray_cfg, out)
-    assert "nothing to run" in log, log[-4000:]
+    log = with_sweep_log(ray_sweep(ray_cfg, out), out)
+    assert "resuming:  8 of 8 already recorded" in log and "nothing to run" in log, log[-4000:]
     assert (out / "results.jsonl").read_bytes() == ledger
     assert {p: p.stat().st_mtime_ns for p in out.glob("episodes/**/result.json")} == results
 
