@@ -122,6 +122,22 @@ def _gripper_state(fields: Mapping[str, Any]) -> dict[str, Any]:
     return {k: state[k] for k in GRIPPER_STATE_FIELDS}
 
 
+TYPICAL_PROPRIO = {
+    "is_open": True,
+    "finger_center_xyz": [0.1234, -0.1234, 0.9123],
+    "control_eepose_xyz": [0.1234, -0.1234, 1.0123],
+    "control_eepose_rpy_deg": [-179.12, 12.34, 90.12],
+    "control_eepose_quat": [0.1234, -0.7012, 0.7012, 0.0123],
+    "local_axes_world": {
+        "rx": [0.0123, -0.0123, -0.9998],
+        "ry": [0.9998, 0.0123, 0.0123],
+        "rz": [-0.0123, 0.9998, -0.0123],
+    },
+}
+"""One arm's state as an observation shows it, with realistic digits: what the dry run's
+estimates and the endpoint check's probe put in an observation they build without a scene."""
+
+
 def build_observation(
     *,
     step: int,

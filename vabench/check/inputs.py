@@ -25,6 +25,7 @@ from vabench.agent.conversation import ContextLimits
 from vabench.agent.learning import LearningLimits
 from vabench.agent.observation import (
     PASSIVE_VIEWS,
+    TYPICAL_PROPRIO,
     ActionFeedback,
     observation_text,
 )
@@ -50,18 +51,6 @@ TEXT_SHARE_COUNTED = 0.75
 """The share of our text estimate every tokenizer counts at least (ours: 4 characters a
 token; real tokenizers count English prose and JSON at 3-5)."""
 
-_STAND_IN_PROPRIO = {
-    "is_open": True,
-    "finger_center_xyz": [0.1234, -0.1234, 0.9123],
-    "control_eepose_xyz": [0.1234, -0.1234, 1.0123],
-    "control_eepose_rpy_deg": [-179.12, 12.34, 90.12],
-    "control_eepose_quat": [0.1234, -0.7012, 0.7012, 0.0123],
-    "local_axes_world": {
-        "rx": [0.0123, -0.0123, -0.9998],
-        "ry": [0.9998, 0.0123, 0.0123],
-        "rz": [-0.0123, 0.9998, -0.0123],
-    },
-}
 """A robot state of the real one's length (numbers as the observation prints them)."""
 
 
@@ -105,7 +94,7 @@ def first_step_prompt(config: SweepConfig, track: str, task_name: str) -> tuple[
         step=1,
         step_budget=config.budget(task_name),
         instruction=task.instruction,
-        proprio={arm: _STAND_IN_PROPRIO for arm in arms},
+        proprio={arm: TYPICAL_PROPRIO for arm in arms},
         arms=arms,
         feedback=ActionFeedback(),
         executed_actions=[],

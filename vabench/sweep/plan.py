@@ -44,6 +44,7 @@ from vabench import protocol as P
 from vabench.agent.conversation import Conversation
 from vabench.agent.observation import (
     PASSIVE_VIEWS,
+    TYPICAL_PROPRIO,
     ActionFeedback,
     observation_text,
 )
@@ -281,7 +282,7 @@ async def _replay(
             step=step,
             step_budget=budget,
             instruction=task.instruction,
-            proprio={arm: _TYPICAL_PROPRIO for arm in arms},
+            proprio={arm: TYPICAL_PROPRIO for arm in arms},
             arms=arms,
             feedback=ActionFeedback(True, True) if step > 1 else ActionFeedback(),
             executed_actions=[_TYPICAL_ACTION] * (step - 1),
@@ -301,18 +302,6 @@ async def _replay(
 
 
 _TYPICAL_ACTION = "move_world z-30mm"
-_TYPICAL_PROPRIO = {
-    "is_open": True,
-    "finger_center_xyz": [0.1234, -0.1234, 0.9123],
-    "control_eepose_xyz": [0.1234, -0.1234, 1.0123],
-    "control_eepose_rpy_deg": [-179.12, 12.34, 90.12],
-    "control_eepose_quat": [0.1234, -0.7012, 0.7012, 0.0123],
-    "local_axes_world": {
-        "rx": [0.0123, -0.0123, -0.9998],
-        "ry": [0.9998, 0.0123, 0.0123],
-        "rz": [-0.0123, 0.9998, -0.0123],
-    },
-}
 
 
 def stand_in_jpeg(width: int, height: int) -> bytes:
