@@ -417,8 +417,16 @@ def _run_local(
 ) -> dict[Any, dict[str, Any]]:
     """The local executor under the display's clock; Ctrl-C cancels it at the next await
     (raises `Interrupted` once it has cleaned up)."""
-    sweep = LocalSweep(config, keys, run_dir, choices)
     full: list[str] = []
+
+    def check_disk(_: Any = None) -> None:
+        """Before a write fails: on each record and start and on each tick. Once short, no
+        episode starts; the tick cuts the running ones short."""
+        if not full and (why := disk_short(run_dir)) is not None:
+            full.append(why)
+            sweep.stopped = sweep.stopped or why
+
+    sweep = LocalSweep(config, keys, run_dir, choices, on_change=check_disk)
 
     async def run() -> None:
         loop = asyncio.get_running_loop()
@@ -428,8 +436,8 @@ def _run_local(
         async def tick() -> None:
             while True:
                 show(status_of(sweep.progress))
-                if (why := disk_short(run_dir)) is not None:  # before a write fails
-                    full.append(why)
+                check_disk()
+                if full:
                     task.cancel()
                     return
                 await asyncio.sleep(TICK_S)
@@ -449,6 +457,8 @@ def _run_local(
                 show(status_of(sweep.progress))
 
     asyncio.run(run())
+    if full:  # the last record found the disk short: the sweep ended, but it must say so
+        raise SweepStopped(full[0])
     if sweep.stopped is not None:
         raise SweepStopped(sweep.stopped)
     return sweep.ledger.records
