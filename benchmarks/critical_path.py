@@ -15,7 +15,7 @@ action time to the first variant's at the same size, all measured in one run.
 
 Variants (`VARIANTS`): `fixed` (every action 0.8 s of substeps: today's), `at_rest` (an action
 ends at its rest substep, `sim_mjx.controller.ACTION_ENDS`). Warp's kernels are compiled in
-threads before anything is timed (`sweep.warp_ahead`), and a warm-up action of each batch is
+threads before anything is timed (`tuning.warp_ahead`), and a warm-up action of each batch is
 left out of the figures; each row is printed and written to `--json` as soon as it is measured,
 so a run stopped by a time limit keeps the rows it made. The basket's decision split (images,
 model, engine) comes from the main job's timeline, not from here.
@@ -106,7 +106,7 @@ def measure(
 
 
 def compile_first(threads: int) -> None:
-    from vabench.sweep.warp_ahead import load_ahead
+    from vabench.tuning.warp_ahead import load_ahead
 
     t0 = time.perf_counter()
     ahead = load_ahead(get_task(TASK), None, threads)

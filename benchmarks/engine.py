@@ -76,7 +76,7 @@ def row_line(row) -> str:
 
 def gpu_clients(args, processes):
     """CUDA MPS for the rows of several engine processes on a GPU, as the sweep's `processes`
-    executor runs them (`vabench.sweep.mps`: a daemon of our own; this process is no client).
+    executor runs them (`vabench.tuning.mps`: a daemon of our own; this process is no client).
     Returns the daemon's context, what the line says of it, and `env_for(n)`: the variables each
     of n engine processes starts with (the daemon's, its GPU numbering, and each process's share
     of the GPU and the cores, `VABENCH_GPU_SHARE`, `VABENCH_CORES`)."""
@@ -84,8 +84,8 @@ def gpu_clients(args, processes):
 
     from vabench.children import CORES_VARIABLE
     from vabench.sim_mjx.warp.device import GPU_SHARE
-    from vabench.sweep import mps
     from vabench.sweep.choices import this_machine
+    from vabench.tuning import mps
 
     stack = contextlib.ExitStack()
     machine = this_machine()

@@ -1,5 +1,5 @@
 """How long does a fresh machine take to compile Warp's kernels for K families, the old way
-against the new (vabench/sweep/precompile.py)?
+against the new (vabench/tuning/precompile.py)?
 
     python benchmarks/precompile.py [--families grasp_single_cube,lift_pot,place_shoe]
         [--device cpu] [--size 64x48] [--processes N] [--json OUT]
@@ -41,7 +41,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from vabench.sweep import precompile
+from vabench.tuning import precompile
 
 
 def run_scheme(name: str, families: list[str], args: argparse.Namespace, root: Path) -> dict:

@@ -19,7 +19,7 @@ other, on one local Ray instance started here:
   share its cores, which the printed core count shows).
 
 `--per-gpu K` (GPUs only): each GPU shared by K engine processes (`executor.actors` = K x
-GPUs) under one CUDA MPS daemon of the sweep's on the host (`sweep.mps.join_node_daemon`), as
+GPUs) under one CUDA MPS daemon of the sweep's on the host (`tuning.mps.join_node_daemon`), as
 the local sweep runs 4 a GPU; with K > 1 Ray is restarted for each count with only that many
 GPUs. `--per-gpu 1` is one engine a GPU (the A/B: on 2 x H200, 2026-11-29, four a GPU were
 1.42-1.45x one).

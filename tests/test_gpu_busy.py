@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from vabench.sweep import gpu_busy, hostload
-from vabench.sweep.gpu_busy import GpuBusy, Totals, parse
-from vabench.sweep.hostload import HostLoad
+from vabench.tuning import gpu_busy, hostload
+from vabench.tuning.gpu_busy import GpuBusy, Totals, parse
+from vabench.tuning.hostload import HostLoad
 
 LISTING = (
     "0, GPU-aaaa1111-0000-0000-0000-000000000000, 10, 1000\n"
@@ -105,7 +105,7 @@ def test_a_missing_or_failing_tool_is_said_once_and_reads_nothing(tmp_path, capl
         (str(tmp_path / "none"), "No such file"),
     ]:
         sampler = GpuBusy(every_s=0.01, environ={"CUDA_VISIBLE_DEVICES": "0"}, command=command)
-        with caplog.at_level(logging.INFO, logger="vabench.sweep.gpu_busy"), sampler:
+        with caplog.at_level(logging.INFO, logger="vabench.tuning.gpu_busy"), sampler:
             sampler._thread.join(timeout=30)  # it ends by itself after the failure
         assert not sampler._thread.is_alive()
         assert sampler.totals().readings == 0
@@ -169,7 +169,7 @@ def test_one_failed_reading_is_not_the_end_and_n_a_is_said_as_such(tmp_path, cap
     # a GPU that reports no utilisation: said as such, and given up after MAX_FAILURES
     na = fake_smi(tmp_path / "na", 'echo "0, GPU-aaaa, [N/A], 100"\n')
     sampler = GpuBusy(every_s=0.01, environ={"CUDA_VISIBLE_DEVICES": "0"}, command=str(na))
-    with caplog.at_level(logging.INFO, logger="vabench.sweep.gpu_busy"), sampler:
+    with caplog.at_level(logging.INFO, logger="vabench.tuning.gpu_busy"), sampler:
         sampler._thread.join(timeout=30)
     assert not sampler._thread.is_alive() and sampler.totals().readings == 0
     assert "no utilisation ([N/A])" in (sampler.failed or "")

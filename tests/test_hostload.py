@@ -1,5 +1,5 @@
 """The sweep's host-load lines tell apart a busy event loop, busy batch threads and busy child
-processes (vabench/sweep/hostload.py): each case is made for real here and read back from
+processes (vabench/tuning/hostload.py): each case is made for real here and read back from
 /proc."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import time
 
 import pytest
 
-from vabench.sweep import hostload
-from vabench.sweep.hostload import HostLoad, thread_group
+from vabench.tuning import hostload
+from vabench.tuning.hostload import HostLoad, thread_group
 
 pytestmark = pytest.mark.skipif(not HostLoad.available(), reason="needs Linux's /proc")
 
@@ -92,7 +92,7 @@ def test_a_blocked_loop_shows_late_wake_ups_and_its_own_cpu(caplog):
             spin(0.6)  # the loop itself busy: every callback waits
             await asyncio.sleep(0.8)
 
-    with caplog.at_level(logging.INFO, logger="vabench.sweep.hostload"):
+    with caplog.at_level(logging.INFO, logger="vabench.tuning.hostload"):
         asyncio.run(main())
     whole = [r.getMessage() for r in caplog.records if "whole run" in r.getMessage()]
     assert len(whole) == 1
@@ -114,7 +114,7 @@ def test_off_by_environment(monkeypatch, caplog):
         async with hostload.watching() as load:
             assert load is None
 
-    with caplog.at_level(logging.INFO, logger="vabench.sweep.hostload"):
+    with caplog.at_level(logging.INFO, logger="vabench.tuning.hostload"):
         asyncio.run(main())
     assert not caplog.records
 
@@ -172,7 +172,7 @@ def test_the_garbage_collectors_pauses_are_counted_and_shown(caplog):
             await asyncio.sleep(0.6)
             del heap
 
-    with caplog.at_level(logging.INFO, logger="vabench.sweep.hostload"):
+    with caplog.at_level(logging.INFO, logger="vabench.tuning.hostload"):
         asyncio.run(main())
     whole = load.whole_run()
     assert whole is not None and whole.gc is not None

@@ -7,7 +7,7 @@ import json
 import os
 import re
 
-from vabench.sweep import kernel_profile as kp
+from vabench.tuning import kernel_profile as kp
 
 
 def test_kernels_are_put_in_their_stage_and_summed():

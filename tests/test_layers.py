@@ -26,7 +26,8 @@ LAYERS: tuple[frozenset[str], ...] = tuple(
         "sim_mjx",  # physics backends and the executor
         "tasks",  # task families over the simulator
         "render llm_pool reference_agent",  # images, model calls, the non-LLM agent
-        "agent seeds demos",  # episodes, learning sessions; seed screening; demonstrations
+        "agent seeds demos tuning",  # episodes, learning sessions; seed screening; demonstrations;
+        # the GPU and host tuning beneath the sweep
         "run_records",  # a sweep's results.jsonl read back
         "diagnostics",  # annotations and agreement statistics of recorded episodes
         "report config",  # tables of a run; the sweep's config

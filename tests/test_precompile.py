@@ -1,4 +1,4 @@
-"""Warp's kernels compiled side by side before a sweep (vabench/sweep/precompile.py): a family
+"""Warp's kernels compiled side by side before a sweep (vabench/tuning/precompile.py): a family
 is compiled once per code and machine, a failure is reported and left to the sweep, and the
 child process compiles for real (slow: a whole expert episode on Warp's CPU device)."""
 
@@ -18,7 +18,7 @@ pytest.importorskip("mujoco_warp", reason="the Warp backend needs mujoco-warp ([
 
 import warp as wp
 
-from vabench.sweep import precompile
+from vabench.tuning import precompile
 
 
 @wp.kernel
@@ -102,7 +102,7 @@ def test_a_claimed_module_is_loaded_by_its_holder_and_waited_for_by_the_others(t
     """Two loaders of the same modules (threads here; the lock is per open file, so processes
     behave alike): a module the first holds is set aside by the second, which loads every
     free one first, then waits for the held one and loads it after its holder is done."""
-    from vabench.sweep import warp_ahead
+    from vabench.tuning import warp_ahead
 
     holding, release = threading.Event(), threading.Event()
     order: list[tuple[str, str]] = []
@@ -131,7 +131,7 @@ def test_a_claimed_module_is_loaded_by_its_holder_and_waited_for_by_the_others(t
 
 
 def test_without_claims_every_module_is_loaded_at_once(tmp_path):
-    from vabench.sweep import warp_ahead
+    from vabench.tuning import warp_ahead
 
     loaded: list[str] = []
     assert warp_ahead.claimed(["a", "b"], loaded.append, str, None, 2) == 0
@@ -143,7 +143,7 @@ def test_a_recorded_launch_names_its_module_and_runs_nothing():
     recording, a launch records its kernel's module and block size and launches nothing."""
     import warp as wp
 
-    from vabench.sweep import warp_ahead
+    from vabench.tuning import warp_ahead
 
     out = wp.zeros(4, dtype=int, device="cpu")
     found: warp_ahead.Found = {}
@@ -161,7 +161,7 @@ def test_a_recorded_occupancy_query_names_its_module_and_answers():
     answered (and its module recorded) instead of raising and ending the dry step there."""
     import warp as wp
 
-    from vabench.sweep import warp_ahead
+    from vabench.tuning import warp_ahead
 
     found: warp_ahead.Found = {}
     with warp_ahead.recording(found):
@@ -187,7 +187,7 @@ def test_vabench_s_kernels_in_modules_of_their_own_are_loaded_ahead_with_its_mod
     from warp._src import context
 
     from vabench.render import warp_jpeg, warp_scan
-    from vabench.sweep import warp_ahead
+    from vabench.tuning import warp_ahead
 
     own = warp_ahead.own_modules(list(context.user_modules.values()))
     assert warp_jpeg._transform.module.name != warp_jpeg.__name__  # its own module
@@ -238,7 +238,7 @@ def test_the_summary_reads_the_childrens_reports_and_skips_a_broken_one(tmp_path
 def test_every_family_of_the_shipped_config_compiles_at_once_on_a_gpu_host():
     """On a 16-core H100 one child a core ran configs/all.yaml's 22 families in two waves (the
     second ~40 s longer, 1.7 cores busy): every child starts at once now, up to two a core."""
-    from vabench.sweep.precompile import children
+    from vabench.tuning.precompile import children
 
     assert children(22, 16) == (22, 2)
     assert children(8, 16) == (8, 4)  # fewer families: more threads each
@@ -426,7 +426,7 @@ def test_a_child_behind_runs_at_the_lower_cpu_priority():
     own: a process cannot take its priority back)."""
     probe = (
         "import os\n"
-        "from vabench.sweep import precompile, warp_ahead\n"
+        "from vabench.tuning import precompile, warp_ahead\n"
         "def family(*a, **k):\n"
         "    print('nice', os.nice(0))\n"
         "    return warp_ahead.Ahead(), {}\n"
@@ -441,8 +441,8 @@ def test_a_child_marks_its_family_ready_once_its_modules_are_loaded_ahead(tmp_pa
     """The marker comes before the expert's check (`compile_family`'s `loaded`), so that the
     family's episodes do not wait for it; not where a dry call failed (the expert's run then
     compiles what it missed) nor where nothing was loaded ahead."""
-    from vabench.sweep import warp_ahead
     from vabench.tasks import task_batch
+    from vabench.tuning import warp_ahead
 
     class Checked(RuntimeError):
         pass

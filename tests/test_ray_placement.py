@@ -287,7 +287,7 @@ def test_a_critical_chunk_placed_as_any_other_counts_its_own_cost_in_the_share()
 def _ranked(engines: list[EngineHandle], per_gpu: int) -> list[EngineHandle]:
     """Engines sharing GPUs in a ranked sweep: the first of each GPU normal, the others below
     normal, as their start replies' environments say."""
-    from vabench.sweep import mps
+    from vabench.tuning import mps
 
     for e in _on_gpus(engines, per_gpu):
         first = e.index % per_gpu == 0

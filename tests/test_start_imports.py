@@ -21,7 +21,7 @@ ENTRIES: dict[str, tuple[str, ...]] = {
     "vabench.sweep.__main__": MJX_AND_FIGURES,  # the sweep (and `--dry-run`, `--help`)
     "vabench.sweep.process_executor": MJX_AND_FIGURES,  # an engine process
     "vabench.sweep.ray_engine": MJX_AND_FIGURES,  # an engine on a Ray cluster
-    "vabench.sweep.precompile": MJX_AND_FIGURES,  # a fresh machine's compiling children
+    "vabench.tuning.precompile": MJX_AND_FIGURES,  # a fresh machine's compiling children
     "vabench.sim_mjx.warp.batch": MJX_AND_FIGURES,  # Warp physics
     "vabench.render.warp_renderer": MJX_AND_FIGURES,  # Warp images
     "vabench.sim_mjx.cpu": MJX_AND_FIGURES,  # C MuJoCo

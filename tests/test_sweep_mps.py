@@ -1,4 +1,4 @@
-"""The sweep's own CUDA MPS daemon (vabench.sweep.mps): started with a private pipe folder, its
+"""The sweep's own CUDA MPS daemon (vabench.tuning.mps): started with a private pipe folder, its
 clients' variables handed out, told to quit when the block ends (errors too), a start that
 fails said in one line, a daemon the user runs left alone. NVIDIA's control program cannot
 run here (no driver): a real executable of that name on PATH stands in, answering `-d` by
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from vabench.sweep import mps
+from vabench.tuning import mps
 
 FAKE_CONTROL = """\
 #!{python}

@@ -115,7 +115,6 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
 
     from vabench.children import CORES_VARIABLE
     from vabench.sim_mjx.warp.device import GPU_SHARE
-    from vabench.sweep import mps
     from vabench.sweep.cells import pending_cells
     from vabench.sweep.process_executor import (
         critical_environment,
@@ -126,6 +125,7 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
         worker_shares,
     )
     from vabench.sweep.results import ledger_key
+    from vabench.tuning import mps
 
     text = CONFIG.format(executor="{kind: processes, max_tasks: 2}")
     text = text.replace("tracks: [active]", "tracks: [active, passive]")

@@ -251,7 +251,7 @@ def test_ray_client_addresses_are_refused_naming_the_field(tmp_path):
 
 
 def test_engines_four_per_gpu_under_mps_else_one_per_gpu_or_cpu_share(tmp_path, monkeypatch):
-    from vabench.sweep import mps
+    from vabench.tuning import mps
 
     monkeypatch.setattr(mps, "control_program", lambda: None)  # no MPS on the driver's node
     config = load_config(write(tmp_path / "ray.yaml", "{kind: ray}"))  # backend c

@@ -25,6 +25,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator, Mapping
+from pathlib import Path
 
 
 @contextlib.contextmanager
@@ -108,3 +109,19 @@ def process_age_s(pid: int | str = "self") -> float | None:
         return uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22: starttime
     except (OSError, ValueError, IndexError):
         return None
+
+
+def visible_gpus(environ: Mapping[str, str] = os.environ) -> tuple[str, ...]:
+    """The CUDA devices processes started here would see: CUDA_VISIBLE_DEVICES when set (up to
+    its first hidden entry, as CUDA reads it), else the GPUs of the NVIDIA driver."""
+    listed = environ.get("CUDA_VISIBLE_DEVICES")
+    if listed is not None:
+        out: list[str] = []
+        for entry in (x.strip() for x in listed.split(",")):
+            if not entry or entry.startswith("-"):
+                break
+            out.append(entry)
+        return tuple(out)
+    driver = Path("/proc/driver/nvidia/gpus")
+    n = len(list(driver.iterdir())) if driver.is_dir() else 0
+    return tuple(str(i) for i in range(n))

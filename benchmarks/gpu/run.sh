@@ -14,7 +14,7 @@
 #        fidelity | tests | engine | engine_processes | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
-#        precompile_bench (issue 33, lever 8: vabench/sweep/precompile.py's old single phase
+#        precompile_bench (issue 33, lever 8: vabench/tuning/precompile.py's old single phase
 #        against its two phases, each from an empty Warp cache; PRECOMPILE_FAMILIES=a,b,c)
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
 # benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh, .ray1-3 (Ray
@@ -182,7 +182,7 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     # a run with dumps is not a timing run.
     # MAIN_PYSPY=gil: only the thread holding the interpreter lock, each sample (what paces a
     # process whose event loop waits for the lock: the "host:" lines tell when).
-    # Always: the sweep's "host:" lines every 15 s (vabench/sweep/hostload.py).
+    # Always: the sweep's "host:" lines every 15 s (vabench/tuning/hostload.py).
     export VABENCH_HOSTLOAD_S=${VABENCH_HOSTLOAD_S:-15}
     spy_mode="--idle"
     [ "${MAIN_PYSPY:-}" = gil ] && spy_mode="--gil"
@@ -216,7 +216,7 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     export VABENCH_PRECOMPILE_STATS=$out/precompile_stats
     # MAIN_KERNELS=1: every engine worker records MAIN_KERNELS_S (20) seconds of its GPU
     # kernels from MAIN_KERNELS_AT (60) s after its start (CUPTI through PyTorch, which the
-    # image has: vabench/sweep/kernel_profile.py), summed into main_kernels.txt; not a timing run.
+    # image has: vabench/tuning/kernel_profile.py), summed into main_kernels.txt; not a timing run.
     if [ -n "${MAIN_KERNELS:-}" ]; then
       rm -rf /tmp/kern && export VABENCH_KERNEL_PROFILE=/tmp/kern \
         VABENCH_KERNEL_PROFILE_AT=${MAIN_KERNELS_AT:-60} VABENCH_KERNEL_PROFILE_S=${MAIN_KERNELS_S:-20}
@@ -240,7 +240,7 @@ yaml.safe_dump(d, open(sys.argv[2], 'w'))" "${MAIN_EXECUTOR:-}" "$config" "${MAI
     # where each decision's time went (physics, images, model, engine), per task and over time
     timeout 120 python3 benchmarks/episode_timeline.py "$run" --window 20 \
       --t0 "$(head -1 "$out/main_util.txt" | cut -d' ' -f1)" > "$out/main_timeline.txt" 2>&1
-    [ -n "${MAIN_KERNELS:-}" ] && python3 -m vabench.sweep.kernel_profile /tmp/kern \
+    [ -n "${MAIN_KERNELS:-}" ] && python3 -m vabench.tuning.kernel_profile /tmp/kern \
       > "$out/main_kernels.txt" 2>&1
     if [ -n "${MAIN_PROFILE:-}" ]; then
       python3 -c "import glob, pstats; s = pstats.Stats(*glob.glob('/tmp/prof/*.prof'));

@@ -156,7 +156,7 @@ class ExecutorOptions(_Strict):
     """auto: where several engine processes share a GPU (`auto` with MuJoCo Warp, when NVIDIA's
     `nvidia-cuda-mps-control` is installed: 4 per GPU; on Ray, `actors` above the GPUs), the
     sweep runs a CUDA MPS daemon of its own for them (on Ray one a node), so that their kernels
-    run side by side (`sweep.mps`); off: never (one engine process per GPU with `auto`)."""
+    run side by side (`tuning.mps`); off: never (one engine process per GPU with `auto`)."""
     max_episodes: int = Field(default=256, ge=1)
     """The most episodes in flight at once in one process (and simulator slots per task
     batch); where engine processes share a GPU under MPS, on that GPU (each of its processes

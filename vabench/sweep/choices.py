@@ -35,15 +35,14 @@ import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
-from vabench.children import CORES_VARIABLE, usable_cores
+from vabench.children import CORES_VARIABLE, usable_cores, visible_gpus
 from vabench.llm_pool.server_config import serving_description
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
-from vabench.sweep import mps
 from vabench.sweep.inflight import InFlightRule, in_flight_rule
+from vabench.tuning import mps
 
 PROCESSES_FROM_CORES = 4
 """From this many cores on, `executor: auto` runs cells in worker processes: below it the
@@ -84,28 +83,12 @@ class Machine:
     """Visible CUDA devices (ids as CUDA_VISIBLE_DEVICES names them)."""
     cores_from: str = "CPUs this process may use"
     mps: bool = False
-    """NVIDIA's MPS control program is installed (`sweep.mps`)."""
+    """NVIDIA's MPS control program is installed (`tuning.mps`)."""
 
     def describe(self) -> str:
         n = len(self.gpus)
         gpus = f"{n} GPU{'s' if n != 1 else ''}" if n else "no GPU"
         return f"{self.cores} cores ({self.cores_from}), {gpus}"
-
-
-def visible_gpus(environ: Mapping[str, str] = os.environ) -> tuple[str, ...]:
-    """The CUDA devices processes started here would see: CUDA_VISIBLE_DEVICES when set (up to
-    its first hidden entry, as CUDA reads it), else the GPUs of the NVIDIA driver."""
-    listed = environ.get("CUDA_VISIBLE_DEVICES")
-    if listed is not None:
-        out: list[str] = []
-        for entry in (x.strip() for x in listed.split(",")):
-            if not entry or entry.startswith("-"):
-                break
-            out.append(entry)
-        return tuple(out)
-    driver = Path("/proc/driver/nvidia/gpus")
-    n = len(list(driver.iterdir())) if driver.is_dir() else 0
-    return tuple(str(i) for i in range(n))
 
 
 def this_machine(environ: Mapping[str, str] = os.environ) -> Machine:
@@ -122,7 +105,7 @@ class ExecutorChoice:
     max_tasks: int
     reason: str
     mps: bool = False
-    """The processes executor runs a CUDA MPS daemon for its workers (`sweep.mps`)."""
+    """The processes executor runs a CUDA MPS daemon for its workers (`tuning.mps`)."""
     per_gpu: int = 1
     """Engine processes sharing each GPU (processes executor, batched physics on GPUs)."""
     critical_path: tuple[str, ...] | None = None

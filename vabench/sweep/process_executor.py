@@ -70,7 +70,6 @@ from vabench.children import (
 from vabench.config import SweepConfig
 from vabench.run_layout import RESULTS, RunDir
 from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
-from vabench.sweep import kernel_profile, mps, precompile
 from vabench.sweep.board_socket import BoardAddress, BoardServer
 from vabench.sweep.cells import (
     PROGRESS_EVERY_S,
@@ -91,6 +90,7 @@ from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Ledger, LedgerError, ledger_key
 from vabench.sweep.runner import SweepStopped, critical_path_tasks, spend_caps
 from vabench.tasks import REGISTRY
+from vabench.tuning import kernel_profile, mps, precompile
 
 log = logging.getLogger(__name__)
 

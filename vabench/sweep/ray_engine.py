@@ -40,11 +40,11 @@ from typing import Any
 from vabench.render.backends import check_renderer
 from vabench.run_layout import RunDir
 from vabench.sim_mjx.backends import check
-from vabench.sweep import gpu_busy, mps, precompile
 from vabench.sweep.cells import WORKER_ENVIRONMENT, KeyTuple, load_document, worker_logging
 from vabench.sweep.choices import Choices, configure_jax
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.runner import Engine, LocalSweep, open_engine, start_compiling
+from vabench.tuning import gpu_busy, mps, precompile
 
 log = logging.getLogger(__name__)
 

@@ -18,10 +18,10 @@ from typing import Any
 import vabench
 from vabench.config import SweepConfig
 from vabench.sim_mjx.warp.device import GPU_SHARE
-from vabench.sweep import mps
 from vabench.sweep.cells import KeyTuple
 from vabench.sweep.choices import Choices, for_engines
 from vabench.sweep.runner import critical_path_tasks
+from vabench.tuning import mps
 
 CHUNKS_PER_ENGINE = 8
 """Chunks per engine the plan is cut into: enough that engines finish close together."""

@@ -62,14 +62,14 @@ from vabench.report.spend import recorded_spend
 from vabench.sim_mjx.backends import Choice
 from vabench.sim_mjx.interface import DeviceFailure, device_failure
 from vabench.sim_mjx.warp.device import warp_device
-from vabench.sweep import hostload
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
 from vabench.sweep.inflight import InFlight
-from vabench.sweep.precompile import Compiling
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
+from vabench.tuning import hostload
+from vabench.tuning.precompile import Compiling
 
 log = logging.getLogger(__name__)
 

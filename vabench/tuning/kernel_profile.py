@@ -13,7 +13,7 @@ Set `VABENCH_KERNEL_PROFILE` to a folder (and `VABENCH_KERNEL_PROFILE_AT` / `_S`
 after the process's chunk starts / of the window; 60 and 20 by default): each engine worker
 of the processes executor writes `kernels_<pid>.json` there (`record_in_background`), with the
 window's seconds, each kernel's calls and GPU microseconds, and the sums per stage
-(`stage_of`). `python -m vabench.sweep.kernel_profile FOLDER` prints them, every process
+(`stage_of`). `python -m vabench.tuning.kernel_profile FOLDER` prints them, every process
 together. Recording costs the process time (each kernel's record), so a profiled run is not a
 timing run. Without PyTorch, or where CUPTI cannot record, the file says why instead.
 """

@@ -97,7 +97,7 @@ from collections.abc import Callable, Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from vabench.sweep.warp_ahead import Ahead, compile_log, load_ahead
+from vabench.tuning.warp_ahead import Ahead, compile_log, load_ahead
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ import threading
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
-from vabench.sweep.choices import visible_gpus
+from vabench.children import visible_gpus
 
 log = logging.getLogger(__name__)
 

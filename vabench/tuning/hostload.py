@@ -43,8 +43,8 @@ from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from vabench.sweep import gpu_busy
-from vabench.sweep.gpu_busy import GpuBusy, Totals
+from vabench.tuning import gpu_busy
+from vabench.tuning.gpu_busy import GpuBusy, Totals
 
 log = logging.getLogger(__name__)
 
