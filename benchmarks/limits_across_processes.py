@@ -88,18 +88,46 @@ def main() -> None:
     p.add_argument("--latency", type=float, default=0.05, help="the server's seconds per reply")
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     p.add_argument("--no-baseline", action="store_true", help="skip each process's own limits")
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="append the largest count's busiest window to benchmarks/results/limits.json",
+    )
     args = p.parse_args()
+    rows = {}
     print(f"limit {args.rpm:g} requests per {args.period:g} s; {args.calls} calls per process")
     print(f"{'processes':>9} {'limits':>13} {'busiest window':>15} {'requests':>9} {'429s':>6}")
     for workers in args.workers:
         for shared in (True, False) if not args.no_baseline else (True,):
             row = measure(workers, shared, args)
+            rows[workers, shared] = row
             print(
                 f"{workers:>9} {'one board' if shared else 'own each':>13} "
                 f"{row['busiest']:>10.0f} / {args.rpm:<3g} {row['requests']:>9} "
                 f"{row['429s']:>6}",
                 flush=True,
             )
+    if args.record:
+        record_headline(rows, args)
+
+
+def record_headline(rows: dict, args: argparse.Namespace) -> None:
+    """The busiest window over the limit at the most processes, one board against own limits."""
+    import results_log
+
+    workers = max(w for w, _ in rows)
+    board = rows[workers, True]
+    own = rows.get((workers, False))
+    extra = {}
+    if own is not None:
+        extra = {
+            "baseline": "own limits each",
+            "ratio": round(board["busiest"] / own["busiest"], 3),
+        }
+    figure = f"busiest window over the limit, {workers} processes, one board"
+    note = f"{args.rpm:g} requests per {args.period:g} s; {board['429s']} 429s"
+    value = board["busiest"] / args.rpm
+    results_log.append("limits", results_log.record(figure, value, "x limit", note, **extra))
 
 
 if __name__ == "__main__":

@@ -289,6 +289,11 @@ def main() -> int:
     p.add_argument("--skip", choices=["a", "b"], help="skip one part")
     p.add_argument("--json", type=Path)
     p.add_argument("--quick", action="store_true")
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="append each point's calls/s against C/L to benchmarks/results/llm_pool.json",
+    )
     args = p.parse_args()
     if args.quick:
         args.latency, args.rate_period, args.measure_periods = 1.0, 10.0, 2
@@ -318,7 +323,31 @@ def main() -> int:
     )
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
+    if args.record:
+        record_results(out, args)
     return 0
+
+
+def record_results(out: dict, args: argparse.Namespace) -> None:
+    """Part (a)'s calls/s against the ideal, one record a concurrency (a --quick run is not)."""
+    import results_log
+
+    if args.quick:
+        print("--record: a --quick run is a smoke run; nothing recorded", file=sys.stderr)
+        return
+    body = f"~{out['body_kb']:.0f} KB bodies; load {out['load_before'][0]:.2f} before"
+    for row in out.get("concurrency", []):
+        results_log.append(
+            "llm_pool",
+            results_log.record(
+                f"pool calls/s at L = {args.latency:g} s, C = {row['concurrency']:,}",
+                round(row["achieved_per_s"], 1),
+                "calls/s",
+                f"{body}; {row['errors']} errors",
+                baseline="ideal C/L",
+                ratio=round(row["ratio"], 3),
+            ),
+        )
 
 
 if __name__ == "__main__":

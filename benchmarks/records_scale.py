@@ -368,6 +368,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--root", type=Path, help="where the synthetic runs are kept (default: temp)")
     p.add_argument("--ops", default=",".join(OPS), help=f"of {', '.join(OPS)}")
     p.add_argument("--json", type=Path, help="write the figures here")
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="append the seconds to benchmarks/results/records.json",
+    )
     p.add_argument("--child", nargs=2, metavar=("OP", "RUN"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
@@ -394,7 +399,35 @@ def main(argv: list[str] | None = None) -> int:
     print(table(results))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=str))
+    if args.record:
+        record_results(results)
     return 0
+
+
+RECORDED = {
+    "resume": "resume decision",
+    "dry_run": "--dry-run",
+    "report": "report",
+    "diagnostics": "diagnostics summary",
+}
+"""The operations whose seconds `--record` keeps, by their figure's name."""
+
+
+def record_results(results: list[dict[str, Any]]) -> None:
+    """Each recorded operation's seconds as a dated record (benchmarks/results/records.json)."""
+    import results_log
+
+    for r in results:
+        if r["op"] in RECORDED:
+            results_log.append(
+                "records",
+                results_log.record(
+                    f"{RECORDED[r['op']]}, {r['finished']:,} episodes",
+                    round(r["seconds"], 3),
+                    "s",
+                    f"synthetic run directory; peak RSS {r['peak_rss_mb']:.0f} MB",
+                ),
+            )
 
 
 if __name__ == "__main__":
