@@ -1,7 +1,8 @@
 """Waiting for the GPU blocks instead of spinning (vabench.sim_mjx.warp.cuda_sync): the flag goes to
 every GPU's primary context through the driver API, a refusal is reported, the variable is
 checked, and a machine without a driver just says so. The driver is a stand-in here (CI has no
-GPU); the effect on a GPU host is measured by the runbook (docs/PERFORMANCE.md)."""
+GPU); the effect on a GPU host is measured by `benchmarks/gpu_waits.py` (docs/PERFORMANCE.md,
+"Engine processes on one GPU")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Getting votes in (issue 35): a plain votes file imports in any row order, twice changes
+"""Getting votes in: a plain votes file imports in any row order, twice changes
 nothing with or without times, a missing gate is explained in words, the import's work grows
 with the rows (not rows x store), and `python -m vabench.diagnostics agreement VOTES.csv`
 computes the agreement table from the file alone.

@@ -235,7 +235,7 @@ def test_compaction_inside_an_episode_is_logged_and_the_episode_goes_on(pool, tm
 
 
 def test_the_command_line_prints_no_dollars_for_a_model_without_prices(tmp_path):
-    """`python -m vabench.episode` printed `$0.0000` for every model (issue 34): the embedded
+    """`python -m vabench.episode` printed `$0.0000` for every model: the embedded
     server reads "no cost (embedded server)"."""
     cmd = [
         *(sys.executable, "-m", "vabench.episode"),

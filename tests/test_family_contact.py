@@ -351,7 +351,7 @@ def test_beat_block_hammer_right_success_and_each_condition():
 def test_beat_block_hammer_right_thrown_hammer_does_not_pass():
     """Lifted while held earlier (latched), the gripper still closed, the face on the block's
     top with hammer-block contact, but the hammer is out of the fingers: "lifted with contact"
-    no longer holds (issue #26: C MuJoCo threw seed 1001's hammer while carrying it)."""
+    no longer holds (C MuJoCo once threw seed 1001's hammer while carrying it)."""
     task = get_task("beat_block_hammer_right")
     ev = evaluate(strike_state(task).touch("hammer", "right_gripper", False))
     assert not ev.success and not ev.checks["held"] and ev.checks["gripper_closed"]

@@ -1,4 +1,4 @@
-"""Grasps hold and nothing is thrown (issue #26), on C MuJoCo, MJX and MuJoCo Warp.
+"""Grasps hold and nothing is thrown, on C MuJoCo, MJX and MuJoCo Warp.
 
 For every family whose expert grasps, the expert runs on retained seeds under a `HoldMonitor`
 (tests/hold_monitor.py): from the action that closes a gripper on an object to the action that

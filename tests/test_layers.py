@@ -1,4 +1,4 @@
-"""The packages of vabench form layers, and no import runs upward (issue 24).
+"""The packages of vabench form layers, and no import runs upward.
 
 A package may import its own modules, the packages of lower layers and, within its layer, none
 of the others: a change to a lower layer never needs a higher one, and the dependency graph has
@@ -90,7 +90,7 @@ def test_the_checker_sees_lazy_imports(tmp_path):
     assert imports_of(module) == [(2, "sweep")]
 
 
-# -- the run directory's names, spelled in one module (issue 32) ----------------------------------
+# -- the run directory's names, spelled in one module ----------------------------------------
 
 RUN_LAYOUT = "run_layout.py"
 NOT_IN_A_RUN_DIR = {
@@ -256,7 +256,7 @@ def f(run_dir, d, k, m, n, seed, step, parts, row):
     }
 
 
-# -- the physics choice is a typed value: no backend name is tested as a string (issue 32) ----
+# -- the physics choice is a typed value: no backend name is tested as a string ----------
 BACKEND_NAMES = frozenset({"c", "mjx", "warp", "jax", "mjx/warp", "mjx/jax"})
 """Physics and renderer backend names: the config's and the command lines' spellings, and the
 two-part labels records carry."""
@@ -295,7 +295,7 @@ def backend_string_tests(path: Path) -> list[tuple[int, str]]:
 def test_no_backend_name_is_compared_outside_the_backends_modules():
     """The physics and renderer choices are made in `sim_mjx/backends.py` and
     `render/backends.py` and passed on as typed values (`Choice.kind`, `batched`, `is_warp`,
-    ...): a string test elsewhere is a second copy of a decision, which drifts (issue 32: the
+    ...): a string test elsewhere is a second copy of a decision, which drifts (the
     auto rule was resolved five times and tested as strings twelve times)."""
     problems = []
     for path in sorted(ROOT.rglob("*.py")):
@@ -330,7 +330,7 @@ def test_the_backend_checker_sees_every_spelling_of_a_test(tmp_path):
     ]
 
 
-# -- no import cycle between modules, inside a package too (issue 32) ----------------------------
+# -- no import cycle between modules, inside a package too ----------------------------------
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:

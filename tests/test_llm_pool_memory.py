@@ -1,5 +1,5 @@
 """Memory per call: thousands of calls through the real pool and the real embedded server (20 %
-faults of every kind) leave nothing behind once warm (issue 36's soak).
+faults of every kind) leave nothing behind once warm (docs/RELIABILITY.md, "Soak").
 
 Three figures per call, measured between two points after a warm-up, each taken once the calls
 in flight have ended (new ones wait):

@@ -1,4 +1,4 @@
-"""One registration per model API (issue 32): `apis.ADAPTERS` is the only list of the APIs,
+"""One registration per model API: `apis.ADAPTERS` is the only list of the APIs,
 and the config schema, the pool, the embedded server, its prompt-cache simulation and the
 dry-run's estimate all derive from it. A fake API registered in one test shows up in every one
 of them; a source scan fails on any module that names the APIs by hand instead (a per-API

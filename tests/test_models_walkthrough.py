@@ -1,4 +1,4 @@
-"""The example model entries work as written (issue 34): every entry of
+"""The example model entries work as written: every entry of
 configs/models.example.yaml (OpenAI, Anthropic, a local vLLM and Ollama through their
 OpenAI-compatible endpoints), copied verbatim into a sweep config with only its `base_url`
 pointed at a real server on loopback (the embedded server's code, run as an outside endpoint,

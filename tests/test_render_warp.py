@@ -6,7 +6,7 @@ rendered in, of its position and of its neighbours' variants and cameras; passes
 without changing a pixel; the state read on the device from a Warp physics batch equal to its
 host copy, for each of two batches of one task; passes kept within their memory budget; JPEG
 with the same settings as the GL path. Throughput is measured on a GPU by
-benchmarks/render_throughput.py (docs/PERFORMANCE.md), never here.
+benchmarks/render_throughput.py (docs/PERFORMANCE.md, "Renderer"), never here.
 """
 
 from __future__ import annotations
@@ -419,8 +419,8 @@ def _no_module(*args, **kwargs):
 
 @pytest.mark.skipif(not _cuda(), reason="the GPU's default JPEG (run on the GPU host)")
 def test_a_gpu_encodes_in_the_renderers_own_kernels_by_default(monkeypatch):
-    """auto on a GPU: each pass's own Warp JPEG kernels (the main job 207.7 s against 222.6 s
-    with nvJPEG on one H100, docs/PERFORMANCE.md "Thirteenth session")."""
+    """auto on a GPU: each pass's own Warp JPEG kernels (faster in the suite than nvJPEG:
+    docs/PERFORMANCE.md, "JPEG on the GPU")."""
     monkeypatch.delenv("VABENCH_WARP_JPEG", raising=False)
     with WarpRenderPool(device="cuda:0", max_size=(64, 48)) as pool:
         assert pool.jpeg == "auto" and "Warp kernels" in (pool.info or "")

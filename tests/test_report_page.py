@@ -1,4 +1,4 @@
-"""What a reader sees first (issue 35): an unfinished sweep says so before any number, the
+"""What a reader sees first: an unfinished sweep says so before any number, the
 headline reads "number unit (runs)", each learning session is one row, the macro figure's
 legend stays true when a subset has no data, and report.html has margins, a table of contents
 and each figure beside its table. Hand-made records and task maps, as in test_report_tracks."""

@@ -396,7 +396,7 @@ def base_sweep() -> list[dict]:
 
 # report.md of base_sweep() written by the code before the track sections (commit 7a84126's
 # vabench/report, the parent of 4ce55dd), with the results path replaced by {RESULTS}, and
-# the headline's macro-averages worded "number unit (runs)" since issue 35.
+# the headline's macro-averages worded "number unit (runs)".
 BASE_REPORT_MD = """\
 # VA-Bench report
 

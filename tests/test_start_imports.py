@@ -1,4 +1,4 @@
-"""What a sweep's processes import at their start (issue 33, the start-up).
+"""What a sweep's processes import at their start.
 
 Every process of a sweep imports its entry module before doing anything: the sweep itself,
 each engine process, each embedded-server process. `mujoco.mjx` is the MJX backend's alone (it

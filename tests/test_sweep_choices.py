@@ -87,9 +87,9 @@ def test_warp_physics_on_one_gpu_runs_in_one_process(options, gpus, kind, max_ta
 def test_engine_processes_share_a_gpu_under_mps_where_it_is_installed(
     options, gpus, kind, max_tasks, per_gpu
 ):
-    """On an H100, 4 engine processes under CUDA MPS recorded 2,100 episodes in 302 s against
-    1,187 in 325 s for one process (2026-11-27): `auto` runs them where NVIDIA's MPS control
-    program is installed, and says so; `mps: off` keeps the one-process layout."""
+    """Engine processes under CUDA MPS keep a GPU busier than one process (docs/PERFORMANCE.md,
+    "Engine processes on one GPU"): `auto` runs them where NVIDIA's MPS control program is
+    installed, and says so; `mps: off` keeps the one-process layout."""
     warp, c = Choice(Physics.WARP, ""), Choice(Physics.C, "")
     machine = Machine(16, gpus, mps=True)
     choice = resolve_executor(ExecutorOptions(**options), machine, warp)
@@ -164,7 +164,7 @@ def test_dry_run_says_what_was_picked_and_why(tmp_path, capsys):
     section = text[text.index("Runs with:") :]
     assert "machine:   2 cores (VABENCH_CORES)" in section
     # no CUDA GPU here: C MuJoCo and the GL workers, each with the reason, the choice named
-    # once (issue 34: `C MuJoCo (auto: C MuJoCo (the Warp backend needs ... (pip install ...)))`
+    # once (`C MuJoCo (auto: C MuJoCo (the Warp backend needs ... (pip install ...)))`
     # nested parentheses three deep)
     assert "physics:   C MuJoCo (auto: the Warp backend needs" in section
     assert "renderer:  GL worker processes (auto: the Warp renderer needs" in section

@@ -1,4 +1,4 @@
-"""What a sweep costs, through the command (issue 34): a model without prices shows "price not
+"""What a sweep costs, through the command: a model without prices shows "price not
 set", never "$0.00", in the dry-run, the live display and the report; the embedded server's
 unpriced models show "no cost"; `limits.max_cost_usd` (of the sweep, of a model) sends no call
 that could cross it, stops without recording the episodes it ends, says which cap and at what

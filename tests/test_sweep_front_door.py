@@ -1,6 +1,6 @@
 """The sweep's front door: what the real run refuses, `--dry-run` refuses too, in one line.
 
-Seen by a new user (issue 34): `--out` naming a file ended in a FileExistsError traceback, and
+Seen by a new user: `--out` naming a file ended in a FileExistsError traceback, and
 the same with `--dry-run` exited 0 saying nothing; a dry-run after a change to the plan
 (`step_budget` 5 -> 6) printed "8 of 8 episodes already finished" while the real run refused.
 """

@@ -78,7 +78,7 @@ def test_a_limit_lowered_below_the_running_episodes_says_it_only_holds_back_new_
     lowered.tracks[("m", "active")].running = 6
     lowered.in_flight, lowered.limit = 6, 3
     display.update(lowered)
-    # issue 34: "in flight 3 (limit 1: ...)" read as a bug
+    # "in flight 3 (limit 1: ...)" read as a bug
     assert "6 running (limit now 3: decisions at 1.20x their unloaded time: growing; " in (
         out.getvalue()
     )

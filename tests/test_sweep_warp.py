@@ -4,7 +4,7 @@ process stepping every task's batch) through the real sweep, engine, embedded se
 ledger. The unit tests of tests/test_warp_batch.py and tests/test_render_warp.py check the
 parts; this checks they hold together as the product runs them: every planned episode recorded
 once, none lost to an infrastructure error, the images as asked for. Speed is measured on a GPU
-(docs/PERFORMANCE.md), never here."""
+(docs/PERFORMANCE.md, "Whole suite on one GPU"), never here."""
 
 from __future__ import annotations
 

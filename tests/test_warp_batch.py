@@ -5,7 +5,7 @@ machine without a GPU (or without the packages) gets.
 Warp's CPU device runs the very kernels the GPU runs (one CUDA graph per action there, plain
 launches here), thread after thread, so what is tested here is the backend's logic and
 numerics; speed and the GPU-only paths are measured by benchmarks/ on a GPU host
-(docs/PERFORMANCE.md, docs/FIDELITY.md).
+(docs/PERFORMANCE.md, "Simulator throughput"; docs/FIDELITY.md).
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ TURN = {"action": "gripper.rotate_local", "axis": "rz", "sign": "+", "angle_deg"
 CLOSE = {"action": "gripper.close"}
 FAR = {"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 100}
 
-# The finger centre after every action of an expert episode, Warp against C MuJoCo (issue 18's
-# fidelity target). Both integrate the same model in float32 (Warp) and float64 (C) with
+# The finger centre after every action of an expert episode, Warp against C MuJoCo (the target
+# of docs/FIDELITY.md). Both integrate the same model in float32 (Warp) and float64 (C) with
 # different contact generation code; 2 mm is what a grasp or a placement can tolerate.
 GC_TOLERANCE_M = 0.002
 

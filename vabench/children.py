@@ -12,9 +12,9 @@ its children itself.
 Cores: `usable_cores()` is what a process sizes its thread and process pools for (policy
 workers, JPEG threads, worker processes). `VABENCH_CORES` overrides it: the sweep sets it in
 each of its worker processes to that worker's share of the host (`executor: processes`), so
-that 16 workers on 16 cores do not each start pools sized for all 16 (on an H100 host, 16
-cell workers each started 8 policy processes of the embedded server: 128 processes on 16
-cores); the test suite pins it so that its sweeps run the same way on any machine.
+that 16 workers on 16 cores do not each start pools sized for all 16 (16 cell workers each
+starting 8 policy processes of the embedded server would be 128 processes on 16 cores); the
+test suite pins it so that its sweeps run the same way on any machine.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ a renderer that serves requests side by side may take more, so that one group's 
 wait for another's whole call), on threads of the batcher's own: a sweep runs dozens of
 batchers at once, and on asyncio's shared default pool (cores + 4 threads) their calls queued
 for a thread, so that on a 16-core GPU host some tasks never started while others held every
-thread (measured on an H100, 2026-11-26). Items that arrive meanwhile form the next batch,
+thread (seen in a profile of the suite). Items that arrive meanwhile form the next batch,
 so under load the window costs nothing: the next batch is already waiting when a call returns
 (a batch is formed only when a call may start, so items keep gathering while every call is
 busy).

@@ -139,7 +139,7 @@ class _Writes:
 class _FrameWriter:
     """One thread writing every episode's frames: a frame is ~150 KB of JPEG at 1280x960, a
     sweep writes ~140,000 of them, and written on the event loop they were a fifth of its busy
-    time (py-spy of the main job on an H100, 2026-11-26). A write releases the GIL; the loop
+    time (py-spy of the suite on a GPU). A write releases the GIL; the loop
     only hands the bytes over."""
 
     def __init__(self) -> None:

@@ -2,7 +2,7 @@
 
 It is its own module, below both the engine (`engine.Episode` runs a spec) and the task's
 services (`services.TaskServices.on_decision` is told the spec of each decision it times): the
-engine imports the services, which would import the engine back for it (issue 32). Callers
+engine imports the services, which would import the engine back for it. Callers
 outside the package take it from `vabench.agent.engine`, with the engine that runs it.
 """
 

@@ -1,5 +1,5 @@
 """Give back to the system what a long run of HTTP reads leaves in glibc's heap (the soak's
-creep, issue 36).
+creep: docs/RELIABILITY.md, "Soak").
 
 asyncio's socket transport reads for a plain `Protocol` (aiohttp's client and server protocols
 are such) with `sock.recv(256 KiB)` and shrinks the result to what arrived. glibc serves a
@@ -14,7 +14,7 @@ heap did.
 Fixing the threshold at 128 KiB (`mallopt(M_MMAP_THRESHOLD)`) stopped it (the 30-minute soak
 at 0.075 MB/min), but it is process-wide: every allocation of 128 KiB or more then costs an
 mmap, page faults and an munmap, and the embedded server's image decoding (a 1280x960 JPEG to
-RGB and HSV) took 40-70 % longer with it (this 2-core CPU, 2026-11-26). So instead a thread
+RGB and HSV) took 40-70 % longer with it. So instead a thread
 returns the heap's free pages to the system every `TRIM_EVERY_S` (`malloc_trim(0)`, which
 releases whole free pages inside the heap too, not only at its top): allocation stays as fast
 as glibc makes it, and what fragmentation holds is given back. `keep_trimmed` starts it once

@@ -2,8 +2,8 @@
 
 The server fills one per request (`server.LocalServer`); a serving process sends each of its
 records to the parent through a pipe (`server_processes.ServingProcesses`), which the server
-starts. The record sits below both, so the processes need not import the server for it: the two
-imported each other (issue 32).
+starts. The record sits below both, so the processes need not import the server for it (else
+the two would import each other).
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ and exit when their parent is gone (`vabench.children`); `stop` ends them.
 
 This module sits below the server, which starts the processes: what each process runs (the
 server's `_serve_in_process`) is passed in, and the record it sends is `request_record`'s, so
-nothing here imports the server back (issue 32: the two imported each other).
+nothing here imports the server back.
 """
 
 from __future__ import annotations

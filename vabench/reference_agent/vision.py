@@ -55,7 +55,7 @@ def decode(jpeg: bytes) -> np.ndarray:
     mode does, and converted through PIL's own HSV conversion tabulated (`hsv_table`): the
     same pixels as PIL's decode and `convert("HSV")` (tests/test_reference_agent_units.py), in
     ~4 ms less an image (the embedded server's call cost 12.4-13.7 ms of CPU at 1280x960, ~70 %
-    decode and conversion; measured on the 2-core sandbox, 2026-11-27). Anything else through
+    decode and conversion; docs/PERFORMANCE.md, "Embedded server"). Anything else through
     PIL (`decode_with_pil`)."""
     try:
         height, width = simplejpeg.decode_jpeg_header(jpeg)[:2]

@@ -3,7 +3,7 @@ renderer (`backends.resolve_renderer`, `check_renderer`) and the renderer itself
 (`warp_renderer.WarpRenderPool.start`) make.
 
 It sits below both: `backends` builds the Warp renderer, so the renderer asking `backends` would
-make the two modules import each other (issue 32).
+make the two modules import each other.
 """
 
 from __future__ import annotations

@@ -31,8 +31,8 @@ class DeviceJpeg:
 
     def __init__(self, device_id: int, threads: int = 0):
         """`threads`: the encoder's host threads (nvImageCodec's `max_num_cpu_threads`; 0, its
-        default, is the host's cores less one). 1 (no pool) measured no better on an H100 under
-        load (benchmarks/jpeg_contention.py, docs/PERFORMANCE.md "Ninth session")."""
+        default, is the host's cores less one). 1 (no pool) measured no better under load
+        (benchmarks/jpeg_contention.py; docs/PERFORMANCE.md, "JPEG on the GPU")."""
         from nvidia import nvimgcodec
 
         self._nv = nvimgcodec
@@ -61,8 +61,8 @@ class DeviceJpeg:
         array of shape (n, H, W, 3)), complete or written by earlier work on `cuda_stream` (the
         handle of the stream the encode runs on; it returns once that stream has caught up).
         Warp reports the default stream's handle as None (a NULL pointer through ctypes), which
-        nvImageCodec refuses: it is stream 0 to CUDA (every episode of a sweep on an H100 failed
-        on it before this)."""
+        nvImageCodec refuses: it is stream 0 to CUDA (every episode of a GPU sweep would fail
+        on it)."""
         stream = int(cuda_stream or 0)
         t0 = time.perf_counter()
         # The image is tied to the encode's stream: by default nvImageCodec ties it to stream 0,
@@ -92,9 +92,9 @@ class DeviceJpeg:
         every call made a new pinned host buffer for every image (and dropped the last call's),
         and allocating page-locked memory is one of CUDA's implicit synchronisations (the CUDA
         programming guide, "Implicit Synchronization"). A kept buffer grows to its largest
-        image once. Measured in the main job on an H100 (2026-11-27): an encode's wall time
-        did not change with it (0.34-0.37 s a pass against 0.32-0.35 s; ~3 ms of kernels): what
-        a JPEG call waits for under load is elsewhere (docs/PERFORMANCE.md, "Eighth session")."""
+        image once. Measured in the suite: an encode's wall time did not change with it; what
+        a JPEG call waits for under load is elsewhere (docs/PERFORMANCE.md, "JPEG on the
+        GPU")."""
         while len(self._outputs) < n:
             self._outputs.append(self._nv.CodeStream(pre_allocated_size=0, pin_memory=True))
         return self._outputs[:n]

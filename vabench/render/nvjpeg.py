@@ -1,15 +1,14 @@
 """JPEG on the GPU through nvJPEG itself, on the caller's CUDA stream (the Warp renderer's
-`jpeg="nvjpeg"`, and auto's fallback on a GPU where its own kernels do not load; measured on an
-H100, 2026-11-27: the main job 218.3 s against 242.3 s with nvImageCodec, docs/PERFORMANCE.md
-"Tenth session"; the renderer's own kernels, `warp_jpeg`, 207.7 s against nvJPEG's 222.6 s,
-"Thirteenth session").
+`jpeg="nvjpeg"`, and auto's fallback on a GPU where its own kernels do not load: faster than
+nvImageCodec in the suite, slower than the renderer's own kernels, `warp_jpeg`;
+docs/PERFORMANCE.md, "JPEG on the GPU").
 
 Why not nvImageCodec alone: it encodes on CUDA streams of its own, made at the default
 priority, which is CUDA's lowest, the ray tracer's megakernels' too. Under load a pass's ~25
-encodes waited behind other passes' megakernels: 0.16-0.19 s a call against ~0.03 s on an idle
-H100 with no Python thread busy (benchmarks/jpeg_contention.py, 2026-11-27), 0.23-0.36 s a pass
-in the main job for ~3 ms of kernels; under a GPU load like the ray tracer's it made no call in
-6 s where this module made 16 a second. Here every image is encoded on the stream the caller
+encodes waited behind other passes' megakernels, a call several times as long as on an idle
+GPU for a few milliseconds of kernels; under a GPU load like the ray tracer's it made no call
+where this module made 16 a second (benchmarks/jpeg_contention.py). Here every image is
+encoded on the stream the caller
 names (the renderer's encode stream, above the ray tracing in priority: `streams.PRIORITIES`),
 each image with an encoder state of its own, so that a pass's encodes are queued back to back,
 waited for once, then their bytes retrieved.
@@ -77,7 +76,7 @@ def _find_library() -> Any:
             # may block on the GPU (a first allocation syncs the device; parts of its pipeline
             # are synchronous), and a block with the lock held stops every thread of the
             # engine's process; the hand-offs did not bind in the main job (a shorter switch
-            # interval changed nothing there: docs/PERFORMANCE.md, "Ninth session").
+            # interval changed nothing there: docs/PERFORMANCE.md, "JPEG on the GPU").
             return ctypes.CDLL(path)
         except OSError as err:
             problems.append(str(err))

@@ -1,15 +1,12 @@
 """JPEG in Warp kernels: a render pass's frames encoded on the device, two waits a pass.
 
-Why (issue 33, one H100, 2026-11-28, the warm suite with nvJPEG): an engine process spent
-245 s in JPEG against 110 s ray tracing for its 36,312 images, yet nvJPEG's kernels were 8 % of
-the GPU's kernel time. nvJPEG waits for the GPU inside each frame's encode call (it sizes the
-output on the host) and again to retrieve each frame's bytes, and every wait queues behind
-the ray tracer's megakernels: ~6.6 ms of wall time a frame for ~0.03 ms of kernels. Here a
-pass of n frames is a handful of launches and two waits (its lengths, then its bytes),
-whatever n. Measured on an H100 (2026-11-28, "Thirteenth session" of docs/PERFORMANCE.md):
-the warm suite 207.7 s against nvJPEG's 222.6 s on the same host, same 2,157 successes; four
-encoders in threads beside a ray-tracer-like load 93 calls of 25 frames a second against
-nvJPEG's 17, 145 against 128 on an idle GPU. The renderer's default on a GPU since.
+Why: with nvJPEG an engine process spent twice as long in JPEG as in ray tracing, for a few
+per cent of the GPU's kernel time. nvJPEG waits for the GPU inside each frame's encode call (it
+sizes the output on the host) and again to retrieve each frame's bytes, and every wait queues
+behind the ray tracer's megakernels. Here a pass of n frames is a handful of launches and two
+waits (its lengths, then its bytes), whatever n: beside a ray-tracer-like load several times
+nvJPEG's calls, and a shorter suite (docs/PERFORMANCE.md, "JPEG on the GPU"). The renderer's
+default on a GPU.
 
 What it writes: baseline sequential JPEG (ITU T.81, 8-bit, Huffman) with a JFIF header; the
 IJG's quality scaling of the standard quantisation tables and the standard Huffman tables of
@@ -44,15 +41,12 @@ same bits on every device and compiler, which a float DCT would not promise (fus
 multiply-adds may be contracted differently). Where a quotient is exactly a half (synthetic
 patterns such as a checkerboard at quality 50) this encoder and libjpeg may round it apart.
 
-Why the coefficients are kept (2026-11-28): the kernels that count and write the bits each
-used to compute their block's samples and DCT, and its predecessor's DC again from its
-pixels: four reads and conversions of every pixel. On Warp's CPU device the DC alone was 31 %
-of `_count_bits`, the samples ~30 %, the Huffman codes ~36 %; kept, an encode of two
-1280x960 frames takes 118.8 ms against 224.2 (the same bytes: tests/test_warp_jpeg.py's
-goldens, made by the encoder before). The price: 128 bytes a block, ~3.7 MB a 1280x960
-world at 4:2:0 (`bytes_per_world`, charged to the renderer's passes). Not yet timed on a
-GPU, where the JPEG kernels were 19 % of the main job's kernel time (`_pack` and `_count_bits`
-~6.4 ms a call each; docs/PERFORMANCE.md, "Thirteenth session").
+Why the coefficients are kept: otherwise the kernels that count and write the bits each
+compute their block's samples and DCT, and its predecessor's DC again from its pixels: four
+reads and conversions of every pixel. Kept, the kernels take about a third of the GPU time
+(the same bytes: tests/test_warp_jpeg.py's goldens; docs/PERFORMANCE.md, "JPEG on the GPU").
+The price: 128 bytes a block, ~3.7 MB a 1280x960 world at 4:2:0 (`bytes_per_world`, charged
+to the renderer's passes).
 
 An image whose entropy data would not fit its buffer (`CAP_BITS_PER_PIXEL`; rendered scenes
 take 1.0-1.5 bits a pixel at quality 95, benchmarks/jpeg_contention.py's noisy frames 4.5) is
@@ -819,8 +813,8 @@ class WarpJpeg:
             and self.stream is not None
             and any(self._buffers[name].shape[0] < size for name, (size, _) in want.items())
         ):  # a freed array goes back to the pool unordered with this stream: nothing may use it
-            # (an event that sleeps: a stream synchronisation spun a core for its whole wait on
-            # an H200, blocking-sync context or not, benchmarks/gpu_waits.py, 2026-11-29)
+            # (an event that sleeps: a stream synchronisation spins a core for its whole wait,
+            # blocking-sync context or not, benchmarks/gpu_waits.py)
             streams.wait(streams.record(self.stream))
         for name, (size, dtype) in want.items():
             if name not in self._buffers or self._buffers[name].shape[0] < size:

@@ -63,18 +63,16 @@ IDLE_CAMERA_HEIGHT = 100.0
 request's items) look straight up: every world of a pass is ray traced, and an idle camera left
 at the origin looking down hit the floor in every pixel and cast a shadow ray through the
 scene, as costly as an image. Looking up, a ray leaves the scene's bounds at once and reads
-the sky. The render megakernel was 84 % of the engine processes' GPU kernel time (H100,
-2026-11-27) and a pass is up to a third larger than its request (`pass_size`)."""
+the sky. The render megakernel is most of the engine processes' GPU kernel time
+(docs/PERFORMANCE.md, "Whole suite on one GPU") and a pass is up to a third larger than its
+request (`pass_size`)."""
 IDLE_CAMERA_ROT = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
 """A camera looks along its -z axis: this frame's -z is the world's +z (up)."""
 
 RENDER_BLOCK_DIM = 256
-"""Threads a block of the render megakernel (MuJoCo Warp's default: 64). Same pixels; on an
-H100 (2026-11-27, `benchmarks/render_options.py`), 24 worlds at 1280x960, ms a pass for
-blocks of 64 / 128 / 256: the basket 21.2-22.0 / 19.5-19.7 / 18.9, place_shoe 15.4-16.1 /
-13.2-14.6 / 14.5 (runs differ by ~1 ms), grasp_single_cube 11.7-12.3 / 9.7 / -. 128 and 256
-are alike; with the posed BVH (`_rebuild_bvh`) only 128 was measured ("shipped" measures
-this pair)."""
+"""Threads a block of the render megakernel (MuJoCo Warp's default: 64). Same pixels, a pass
+of the basket ~13 % shorter; 128 and 256 are alike (`benchmarks/render_options.py`;
+docs/PERFORMANCE.md, "Renderer")."""
 
 
 def render_context(
@@ -206,7 +204,7 @@ class RenderPass:
         n, nq = len(items), self.d.qpos.shape[1]
         # Every upload first, while the pass's stream is idle: a copy from pageable host memory
         # waits for the stream's queued work, and after the gather that is the source batch's
-        # action in flight, waited for with the device lock held (measured on an H100).
+        # action in flight, waited for with the device lock held (seen in a GPU profile).
         variants = self._variants.copy()
         variants[:n] = [it.variant for it in items]
         self.wm.assign(variants)
@@ -245,9 +243,9 @@ class RenderPass:
         refit). MuJoCo Warp builds it at qpos0, where every free object sits at the world's
         origin, and afterwards only refits it: the tree keeps grouping the objects as if they
         were together, and rays visit more nodes. Built around a scene as the episodes set it,
-        the tree stays good while things move: on an H100 (2026-11-27) the basket's pass 21.8 ->
-        18.2 ms, place_shoe's 15.4 -> 14.7 ms, the same pixels but 1 in 30 million
-        (`benchmarks/render_options.py`). Once a pass: the build copies the bounds to the host,
+        the tree stays good while things move: the basket's pass ~17 % shorter, the same pixels
+        but 1 in 30 million (`benchmarks/render_options.py`; docs/PERFORMANCE.md, "Renderer").
+        Once a pass: the build copies the bounds to the host,
         which waits for the pass's queued work with the device's lock held (with
         `state_on_device`, that includes the source batch's queued action)."""
         rebuild_scene_bvh(self.rc, self.n_worlds)

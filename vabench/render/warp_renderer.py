@@ -25,8 +25,8 @@ object variant and FOV. A request larger than the largest pass the GPU's memory 
 split into several passes, with a log message, never an out-of-memory crash. The passes kept
 share one memory budget (`MEMORY_SHARE` of the GPU's free memory when the first is sized): a
 pass that would not fit evicts the least recently used ones. Without it a sweep's memory grew
-with every task family and request size it met until the GPU ran out (measured on an H100:
-14 GB to 81 GB in four minutes, then CUDA out-of-memory errors; docs/PERFORMANCE.md).
+with every task family and request size it met until the GPU ran out (CUDA out-of-memory
+errors within minutes of a suite).
 
 Threads and streams: requests of several tasks run at once (each task's render service has a
 thread of its own). A request takes a pass for itself (`RenderPass.lock`), queues the pass on
@@ -44,7 +44,8 @@ and each request's slots index its own batch.
 
 Scene look: the same render model as the GL path (`renderer.render_spec`: visual geom groups
 0-2, the scene's lights, materials and skybox; near and far planes as GL's), so images match
-GL's to a few grey levels on average (tests/test_render_warp.py, docs/PERFORMANCE.md). Debug
+GL's to a few grey levels on average (tests/test_render_warp.py; docs/PERFORMANCE.md,
+"Renderer"). Debug
 overlays are drawn by GL only (`render_debug` says so).
 
 On the CPU (`VABENCH_WARP_DEVICE=cpu`, tests) the same kernels run on Warp's CPU device.
@@ -94,14 +95,11 @@ priority streams, `vabench.render.nvjpeg`, or an error), device (nvImageCodec or
 host (threads). The environment's VABENCH_WARP_JPEG sets the default (for measuring side by
 side).
 
-The kernels first: measured on one H100 (2026-11-28, docs/PERFORMANCE.md "Thirteenth
-session") the main job took 207.7 s against 222.6 s with nvJPEG on the same warm host (2,157
-successes either way), and four encoders in threads beside a ray-tracer-like GPU load made 93
-calls a second of 25 frames against nvJPEG's 17 (`benchmarks/jpeg_contention.py`): nvJPEG
-sizes each frame's output on the host, so every frame waits behind the other passes' kernels.
-nvJPEG before nvImageCodec: the main job took 218.3 s against 242.3 s ("Tenth session");
-nvImageCodec encodes on streams of its own at CUDA's lowest priority, behind the ray tracer's
-kernels, and hands the interpreter's lock back and forth in every image."""
+The kernels first: beside a ray-tracer-like GPU load they make several times nvJPEG's calls,
+and the suite ends sooner with them (docs/PERFORMANCE.md, "JPEG on the GPU"): nvJPEG sizes each
+frame's output on the host, so every frame waits behind the other passes' kernels. nvJPEG
+before nvImageCodec, which encodes on streams of its own at CUDA's lowest priority, behind the
+ray tracer's kernels, and hands the interpreter's lock back and forth in every image."""
 MIN_PASS = 8  # the smallest largest-pass a GPU must hold (else: memory too full to render)
 MAX_PASS = 1024  # largest render batch on a GPU (memory permitting)
 MAX_PASS_PIXELS = 128 * 1280 * 960
@@ -115,8 +113,8 @@ CPU_BUDGET_WORLDS = 2 * CPU_MAX_PASS  # the pass budget on the CPU, in worlds of
 
 NO_DEVICE_JPEG = (
     "renderer: JPEG on CPU threads, not on the GPU: neither nvJPEG nor nvImageCodec loads (%s). "
-    "Measured on an H100 host at 1280x960: ~230 images/s on 16 cores against ~1,200 with it "
-    "(docs/PERFORMANCE.md, 'Rendering on the GPU')"
+    "JPEG on the host's cores is several times slower at 1280x960 "
+    "(docs/PERFORMANCE.md, 'Renderer')"
 )
 
 
@@ -144,8 +142,8 @@ class WarpRenderPool:
     device, instead of uploading the host copy every `RenderItem` carries. Off by default: the
     gather is queued on the batch's stream after every action already queued there
     (`WarpBatch.copy_qpos`), so a group of episodes' images waited for another group's whole
-    action (the basket's episodes drift into ~3 groups a round; its action takes ~0.4 s on an
-    H100); the upload is a few kB a pass."""
+    action (the basket's episodes drift into ~3 groups a round; its action takes ~0.4 s in
+    the suite); the upload is a few kB a pass."""
     concurrent_requests: int = field(
         default_factory=lambda: int(os.environ.get("VABENCH_RENDER_CONCURRENCY", "1"))
     )
@@ -153,9 +151,8 @@ class WarpRenderPool:
     environment's VABENCH_RENDER_CONCURRENCY). With more than one, a pass's frames are copied
     on the device after its ray tracing and the pass is free for the next request while they
     are encoded: the basket's episodes drift into ~2.4 groups a round, and each group's images
-    wait for the others' requests. Measured on one H100 with nvJPEG (2026-11-27): 2 no faster
-    (the main job 221.9 s against 218.3 s, the basket's images 0.24 s a decision against
-    0.23), so 1 stays the default and the simpler path."""
+    wait for the others' requests. Measured: 2 no faster in the suite (docs/PERFORMANCE.md,
+    "JPEG on the GPU"), so 1 stays the default and the simpler path."""
     stats: RenderStats = field(default_factory=RenderStats)
 
     def __post_init__(self) -> None:

@@ -6,10 +6,9 @@ current stream and frees it at once with `cudaFreeAsync(ptr, 0)`, ordered on the
 stream, on the assumption that the legacy stream waits for the others. A stream made with
 `cudaStreamNonBlocking` (ours: `streams.new_stream`) is not waited for, so the scratch goes back
 to the memory pool while the scan may still be running, and another thread's scan on its own
-stream can be handed the same block. On an H100 (2026-11-28) four encoders in four threads
-(benchmarks/jpeg_contention.py `--encoder warp`) and the main job with `VABENCH_WARP_JPEG=
-kernels` stopped with CUDA error 700 (an illegal address) and corrupt JPEGs; one encoder alone
-(benchmarks/warp_jpeg_check.py) was right. Here nothing is allocated or freed per call.
+stream can be handed the same block: four encoders in four threads (benchmarks/
+jpeg_contention.py `--encoder warp`) stopped with CUDA error 700 (an illegal address) and
+corrupt JPEGs where one encoder alone was right. Here nothing is allocated or freed per call.
 
 How: values in chunks of `CHUNK`, a thread a chunk. A level sums each chunk (`_totals`), the
 chunk totals are scanned the same way one level up (in place), and each chunk is then scanned

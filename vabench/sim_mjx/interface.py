@@ -73,8 +73,8 @@ def device_failure(err: BaseException) -> DeviceFailure | None:
     """`err` as a `DeviceFailure` when a device this process uses has a failed context, else
     None. The one test an episode's error passes before it is recorded: after a sticky CUDA
     error every later call fails wherever it is made (an allocation, a module load, a JPEG
-    encode), and no call site can be trusted to wrap its own (an H100 run with 8 engine
-    processes under MPS recorded 136 such errors as harness errors, 2026-11-27). Synchronises
+    encode), and no call site can be trusted to wrap its own (a run of 8 engine processes
+    under MPS recorded 136 such errors as harness errors before this). Synchronises
     the devices checked: for error paths only."""
     if isinstance(err, DeviceFailure):
         return err

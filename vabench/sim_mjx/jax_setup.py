@@ -43,7 +43,7 @@ def _enable_compilation_cache() -> None:
 def _full_precision_matmuls() -> None:
     """JAX computes float32 matmuls in TF32 on recent NVIDIA GPUs by default (10-bit mantissa).
     Contact dynamics and the planner's IK are not neural networks and need float32 products
-    (measured on an H200: see docs/PERFORMANCE.md, "Seed screening"). VABENCH_MATMUL_PRECISION
+    (docs/PERFORMANCE.md, "Seed screening"). VABENCH_MATMUL_PRECISION
     overrides the choice ("default" restores JAX's)."""
     value = os.environ.get("VABENCH_MATMUL_PRECISION", "highest")
     if value != "default":

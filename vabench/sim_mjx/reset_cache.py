@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 
 FORMAT = 2  # bump when what an entry holds changes (2: C MuJoCo's silent resets while
-# settling are non-finite settles, 2026-11-29; format 1 may hold such worlds as clean ones)
+# settling are non-finite settles; format 1 may hold such worlds as clean ones)
 
 
 @dataclass(frozen=True)

@@ -22,8 +22,8 @@ process may run on); the test suite pins it so that its sweeps run the same way 
 
 Processes the sweep starts get an environment chosen here (`child_environment`, also applied
 to the sweep's own process by `configure_jax`): JAX never preallocates GPU memory
-(XLA_PYTHON_CLIENT_PREALLOCATE=false: on one H100 host, 16 worker processes that each took
-75 % of the GPU lost 1,140 of 1,320 episodes), and JAX stays on the CPU unless the physics is
+(XLA_PYTHON_CLIENT_PREALLOCATE=false: 16 worker processes that each took 75 % of one GPU lost
+most of their episodes), and JAX stays on the CPU unless the physics is
 MJX on JAX (JAX_PLATFORMS=cpu: C MuJoCo and Warp use JAX only for small host-side functions).
 With several GPUs, each worker process is given one of them (`gpu_for_worker`). Values the user
 set in the environment are kept.
@@ -56,23 +56,20 @@ GPU_LOCAL_MAX_TASKS = 64
 22): every batch of the plan steps on the GPU, none waits for another to finish."""
 ONE_GPU_REASON = (
     "auto: Warp physics on one GPU, no CUDA MPS (executor.mps: off, or nvidia-cuda-mps-control "
-    "not installed): one process steps every task's batch (on an H100, 5.7 "
-    "episodes/s against 3.4 for a worker process per core, whose CUDA contexts take turns on "
-    "the GPU; docs/PERFORMANCE.md)"
+    "not installed): one process steps every task's batch (faster than a worker process per "
+    "core, whose CUDA contexts take turns on the GPU)"
 )
 MPS_REASON = (
     "auto: Warp physics on {gpus}: {per_gpu} engine processes share each GPU under a CUDA MPS "
     "daemon of the sweep's own ({cores} cores each), whole task families dealt over them by "
     "cost, a task on the critical path (the basket) in one more of its own; one process is "
-    "paced by its host side (on an H100: 2,100 episodes in 302 s for 4 "
-    "processes against 1,187 in 325 s for one, GPU busy 76-89 % against 34-60 %; "
-    "docs/PERFORMANCE.md)"
+    "paced by its host side (docs/PERFORMANCE.md, 'Engine processes on one GPU')"
 )
 MULTI_GPU_REASON = (
     "auto: Warp physics on {n} GPUs: one engine process per GPU ({cores} cores each), whole "
     "task families dealt over them by cost, each stepping its tasks' batches as one process "
     "does on one GPU (a process per core would put several CUDA contexts on each GPU, taking "
-    "turns: 3.4 episodes/s against 5.7 on one H100)"
+    "turns)"
 )
 
 

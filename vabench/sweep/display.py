@@ -22,7 +22,7 @@ episodes per second over the last minute too, widened back to the last `ETA_MIN_
 finished episodes where the minute holds fewer (a small machine finishes a few per minute, in
 bursts, and over one minute its ETA swung between 1 and 7 hours). A call count that goes
 backwards (a reporter's spend lost with its process) is a drop the rate leaves out, never a
-negative pace: an H100 run's last line read "calls -878.5/s".
+negative pace (such a line once read "calls -878.5/s").
 
 The last line, once the processes or engines have ended, is `Tally.ended`: the ledger's final
 counts with the spend of the last status shown (their reports). A fresh `Tally`'s status, which

@@ -28,8 +28,9 @@ pass through; `reason` says why the limit is what it is (the display shows it).
 
 Batched physics (MuJoCo Warp, MJX) is the exception: one step of the batch costs about the same
 for one acting slot as for all of them, so the only way to use it is to fill it, and a
-decision's time measures the other processes sharing the GPU more than this one's load (on one
-H100, 16 sweep processes held at 1-2 episodes each by this controller made 5 decisions/s). There
+decision's time measures the other processes sharing the GPU more than this one's load (16
+sweep processes sharing one GPU, held at 1-2 episodes each by this controller, made a few
+decisions a second). There
 `auto` holds the ceiling (`BATCHED`).
 """
 

@@ -9,7 +9,7 @@ press exits at once, with the same status and the same guarantees (nothing the s
 ever half a record).
 
 Work already queued on the simulator or the renderer cannot be cancelled, only waited for:
-short on a GPU (one batch action took ~90 ms on an H100), minutes where a slow device renders
+short on a GPU (one batch action takes ~90 ms), minutes where a slow device renders
 a large request (Warp on the CPU: 10.5 minutes for configs/all.yaml's first images, during which
 the display went on printing as if nothing had been pressed). A stop still under way after
 `STOP_NOTICE_S` says so, once, with what a second press does.

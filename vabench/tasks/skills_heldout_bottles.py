@@ -31,7 +31,7 @@ SQUARE_HALF_W = 0.025  # half the side of the square section
 SQUARE_HALF_H = 0.090  # half the body height: origin above the bottom face
 SQUARE_HEIGHT = 0.220  # bottom to the top of the cap
 
-HELDOUT_STREAM = 10  # mixed into every variant seed (issue 10)
+HELDOUT_STREAM = 10  # mixed into every variant seed: held-out seeds are their own stream
 
 # Lying shampoo at yaw 0: axis (local z) along world +x, thickness (local y) up, so the width
 # (local x) runs along world +y. Columns are the images of the local axes.

@@ -1,8 +1,8 @@
 """How busy the GPUs this process sees are, sampled by the NVIDIA driver while a sweep runs.
 
-Why: "the GPU is half idle" was read so far from `nvidia-smi` run beside the sweep by the GPU
-runbook (issue 33). A Ray engine on a node of several GPUs, or a user's own run, had no such
-figure; the scaling benchmark of issue 37 asks for each engine's GPU busy share. `GpuBusy`
+Why: "the GPU is half idle" is otherwise read from `nvidia-smi` run beside the sweep; a Ray
+engine on a node of several GPUs, or a user's own run, has no such figure, and the scaling
+benchmark (`benchmarks/ray_scaling.py`) reports each engine's GPU busy share. `GpuBusy`
 asks `nvidia-smi` every `every_s` in a thread of its own for the utilisation of the GPUs
 CUDA_VISIBLE_DEVICES names (by index or UUID, as CUDA reads it; every GPU when unset) and
 keeps running sums: the mean busy share between any two readings of `totals()`, and the most

@@ -1,9 +1,9 @@
 """Where a sweep process's time goes while it runs: the event loop's lag and CPU, the CPU of
 each group of threads, and of the child processes (the embedded server's, the render workers).
 
-Why: on an H100 the main job ran with the GPU ~45 % busy and 5 of 16 cores busy, ~7.5 s a
-decision at 1,024 episodes in flight (2026-11-26, docs/PERFORMANCE.md, issue 33): something in
-the one sweep process paces the rest, and the candidates tell apart by these figures:
+Why: a sweep process can run with the GPU half idle and most cores idle while its decisions
+take seconds (docs/PERFORMANCE.md, "Engine processes on one GPU"): something in the process
+paces the rest, and the candidates tell apart by these figures:
 
 - the event loop saturated: its thread's CPU near 100 % and its lag large;
 - the interpreter lock: the loop's lag large while its CPU is low (it waits for the lock held

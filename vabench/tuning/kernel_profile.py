@@ -2,12 +2,12 @@
 recorded by NVIDIA's CUPTI (through PyTorch's profiler, which the GPU image has), summed by
 kernel and by stage.
 
-Why: the GPU sampler (`gpu_busy`) says whether a kernel ran, not whose. On an H100 the warm
-suite kept the GPU 92-96 % busy while a physics call of ~20 worlds took 0.5-1.1 s and a JPEG
-call ~0.3 s (docs/PERFORMANCE.md, "Sixth" and "Seventh session"): which of physics, ray
-tracing, JPEG and copies fills the GPU decides the next lever, and no GPU profiler is on the
-device image. CUPTI records every kernel of the process whoever launched it (Warp, its CUDA
-graphs' nodes, nvImageCodec), with its time on the GPU.
+Why: the GPU sampler (`gpu_busy`) says whether a kernel ran, not whose. The warm suite keeps
+the GPU nearly always busy while a physics call of a few dozen worlds takes far longer than its
+kernels: which of physics, ray tracing, JPEG and copies fills the GPU decides where to cut
+(docs/PERFORMANCE.md, "Whole suite on one GPU"), and a GPU host need not have a profiler.
+CUPTI records every kernel of the process whoever launched it (Warp, its CUDA graphs' nodes,
+nvImageCodec), with its time on the GPU.
 
 Set `VABENCH_KERNEL_PROFILE` to a folder (and `VABENCH_KERNEL_PROFILE_AT` / `_S`, seconds
 after the process's chunk starts / of the window; 60 and 20 by default): each engine worker

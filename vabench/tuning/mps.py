@@ -1,15 +1,13 @@
 """CUDA's multi-process service (MPS) for the engine processes that share one GPU.
 
 Why several engine processes on one GPU: one process is paced by its host side, not by the
-GPU. On an H100 host (16 cores, 2026-11-27, configs/all.yaml warm) the one process held its
-device lock 70 % of the time with 5.3 threads waiting on average, its event loop woke 271 ms
-late on average, and the GPU was busy 34-60 %; four engine processes (whole task families dealt
-over them, 256 episodes in flight each) recorded 2,100 episodes in 302 s against 1,187 in
-325 s, the GPU 76-89 % busy and 12-14 cores working (docs/PERFORMANCE.md, "Fifth session").
+GPU: its threads queue their work through one device lock and one interpreter while the GPU
+idles; four engine processes (whole task families dealt over them) keep it busy
+(docs/PERFORMANCE.md, "Engine processes on one GPU").
 
 Why MPS: without it the CUDA contexts of several processes take turns on the GPU in time
-slices (16 worker processes on one H100 made 3.4 episodes/s against 5.7 for one process);
-under MPS their kernels run side by side as one context's streams would.
+slices (16 worker processes made fewer episodes a second than one process); under MPS their
+kernels run side by side as one context's streams would.
 
 The sweep starts a daemon of its own (`private_daemon`): its pipe and log folders in a new
 temporary folder, given to the sweep's workers alone (`CUDA_MPS_PIPE_DIRECTORY`), so that no
@@ -51,16 +49,16 @@ CONTROL = "nvidia-cuda-mps-control"
 PIPE_VARIABLE = "CUDA_MPS_PIPE_DIRECTORY"
 LOG_VARIABLE = "CUDA_MPS_LOG_DIRECTORY"
 ENGINES_PER_GPU = 4
-"""Engine processes per GPU under MPS with `executor: auto` (measured: 4 on one H100; more
-were not measured to completion: 8 processes hit the fault above within 10 s)."""
+"""Engine processes per GPU under MPS with `executor: auto` (4 measured best; 8, each with
+fewer cores for its embedded server, were slower)."""
 PRIORITY_VARIABLE = "CUDA_MPS_CLIENT_PRIORITY"
 """A client's priority under MPS, read when the process makes its CUDA context: "0" normal (the
 default), "1" below normal (NVIDIA's MPS documentation, "CUDA_MPS_CLIENT_PRIORITY"): the GPU
 runs a normal client's kernels ahead of those waiting from below-normal ones. The processes
 executor puts every engine process below normal but the critical path's
-(`process_executor.critical_environment`): on an H100 (2026-11-27) the basket's 60 episodes,
-alone in their process, took 1.7 s a decision, 0.49 s of it for a physics call and 0.28 s for
-a JPEG call whose kernels waited behind four other processes' (docs/PERFORMANCE.md)."""
+(`process_executor.critical_environment`): alone in their process at the default priority,
+the basket's decisions waited behind the other processes' kernels (docs/PERFORMANCE.md,
+"Critical path: the basket")."""
 NORMAL, BELOW_NORMAL = "0", "1"
 DEFAULT_PIPE = Path("/tmp/nvidia-mps")
 """Where a daemon started without CUDA_MPS_PIPE_DIRECTORY listens (the machine's own)."""
@@ -315,8 +313,8 @@ def _quit(program: str, env: Mapping[str, str]) -> None:
     gone, and the caller is often one (a Ray engine leaving its node's daemon last, its CUDA
     context alive until the process exits). `quit` does not return before the daemon ends, so
     waiting for it held every such engine's close for the full 30 s the call was allowed, and
-    each Ray sweep that shared GPUs with it (4 x H200, 2026-11-28: "the daemon was not told to
-    quit ... timed out after 30 seconds" at the end of every count, ~30 s of its ~115 s). The
+    each Ray sweep that shared GPUs with it ("the daemon was not told to quit ... timed out
+    after 30 seconds" at the end of every count). The
     control program runs in a session of its own, so it delivers the command whatever happens to
     this process; a quick answer (no clients left) is still read and logged."""
     try:

@@ -1,80 +1,21 @@
 """MuJoCo Warp's kernels for a sweep's families, compiled in parallel before the sweep needs them.
 
-Warp compiles a module's kernels on first use (MuJoCo Warp specialises many on the scene), one
-to two minutes a family on a fresh machine, then caches them (`~/.cache/warp`). In a sweep the
-first uses come one family after another in one process, with the device's lock held: on a
-fresh H100 the first episode waited 6.5 minutes (docs/PERFORMANCE.md, issue 33), while the
-runbook's 14 processes compiling the base families side by side took 147 s in all.
+Warp compiles a module's kernels on first use (MuJoCo Warp specialises some on the scene) and
+caches them (`~/.cache/warp`); met one family after another in a sweep, with the device's lock
+held, a fresh machine's first episodes would wait minutes. `ensure_compiled` compiles, at the
+sweep's start, every family not yet compiled for this code on this machine: a child process a
+family, all at once, each loading its family's modules ahead (`warp_ahead.load_ahead`), then
+stepping its expert a few actions and rendering one image to compile whatever that missed. Most
+modules are shared by every family, so the children claim modules through a folder of file
+locks: the first to reach one compiles it, the others read it from the cache. The critical
+path's families start first, the others at a lower CPU priority (`BEHIND_NICE`).
 
-`ensure_compiled` does it at the sweep's start, for the families not yet compiled for this
-code on this machine: every family in a child process of its own, all side by side (up to
-`CHILDREN_PER_CORE` a core), each child in a few threads. A child first finds every module its
-family launches without running anything and loads them ahead (`warp_ahead.load_ahead`), then
-runs its family's expert's first few actions (`EXPERT_STEPS`) for one seed in a batch of one
-slot (the reset's settle graphs, the action's device loop, the observation) and one image of it
-through the Warp renderer at the sweep's size, compiling whatever the first step missed, and
-exits.
-
-Most of a family's modules are the same module (same hash, same entry in Warp's cache) in every
-family; a few are specialised on its scene. Measured for CUDA (sm_90, NVRTC, which runs without
-a GPU) on this 2-core CPU, 2026-11-27, families in `configs/all.yaml`'s order in one cache:
-grasp_single_cube launches 42 modules (64 s of NVRTC, one of them, MuJoCo Warp's convex
-collision kernel, 31 s; 11 s of Warp's Python codegen), the next families 0-5 new ones each (up
-to 79 s where a scene needs its own convex collision kernel), the basket 17: 89 distinct
-modules, 317 s of NVRTC in all. Warp has no lock between processes: children started together
-from an empty cache each compiled every shared module (the last rename wins), so the first
-scheme's 22 children on a fresh 16-core H100 compiled ~22 x 43 modules: "compiled 22 of 22
-families in 310 s", first episode at 328 s (2026-11-26). The children now share a folder of
-claims (a file lock per module): the first to reach a module compiles it, the others compile
-what nobody holds and then wait for the rest, reading it from the cache. (The scheme before this
-one compiled the first family alone in threads, then the rest side by side: 316-332 s on the
-H100, its first phase alone 133-142 s with ~1.2 cores busy, 2026-11-27.)
-
-A marker per family (`~/.cache/vabench/warp_compiled/`, keyed by the Warp, MuJoCo Warp and
-vabench code, the GPU's architecture and the image size) says it was done; a file lock keeps
-the processes of one machine (the processes executor's workers) from compiling the same family
-twice. A child that fails only costs the time: the sweep then compiles that family itself, as
-before (its log names the family and the error); one child's failure does not stop the others.
-
-The sweep does not wait for the whole compile (`Compiling`): it runs in a thread while the
-engine processes start, each family's marker is written as soon as its own child has loaded
-its modules ahead (the child's check by its expert's run goes on after it: `compile_family`),
-and a family's episodes start once its marker is there (or once nothing is compiling on the machine:
-then the sweep compiles what is missing itself, as before). On a fresh H100 (2026-11-28) the
-compile took 101 s, the basket's child 97 s of it while the base families' ended earlier, and
-the first episode waited for all of it (169 s), the GPU idle meanwhile.
-
-The families on the sweep's critical path (`first`: the basket, whose chain of ~180 decisions
-bounds the suite) come first: their children start first and the others run at a lower CPU
-priority (`BEHIND_NICE`) while the cores are oversubscribed. On a fresh H200 (2026-11-29) the
-basket's child took 99 s of the compile's 102 s with 22 children of 2 threads on 16 cores, its
-first episode started at 108 s and the suite ended at 252.6 s, the basket's ~140 s chain after
-the others had ended: each second its kernels come sooner is a second off a fresh machine's
-suite. Measured alone on that H200 (`benchmarks/precompile.py --schemes`, all 22 families at
-1280x960, each scheme from an empty cache, 2026-11-29): the basket's child 30.3 s with it
-against 32.1 s and 51.1 s without, the compile 33.1 s against 34.8 s and 57.4 s, the other
-children's median 28.0 s against 21.1-24.2 s (they yield). (Twice the threads for the critical
-child made it slower on this 2-core CPU: with more threads it claims more of the shared modules
-itself, whose Python codegen its threads then run one at a time under the interpreter lock.)
-With the whole scheme in a live sweep (fresh H200s, 2026-11-29, the eighteenth session): the
-basket's child 71-77 s (its modules ahead 60 s, its expert's check 6-8 s more, which its
-episodes no longer wait for), its episodes from 78-85 s, the suite 236.4-242.9 s.
-
-`VABENCH_WARP_PRECOMPILE=0` turns it off; `=first` makes every family wait for the whole
-compile, as before (the A/B of the overlap on a fresh machine).
-
-The log's last line says, for all the children, how many modules they compiled, waited for and
-compiled only after the first step, and the slowest child's seconds in each part (modules ahead,
-its batch, its expert, its image): where a fresh machine's minutes go. The first fresh H100 run
-of this scheme (2026-11-27, whole expert episodes then): 22 families in 293 s, 16 cores busy
-compiling for ~125 s, then the basket's child alone on one core for ~130 s. The second (three
-actions): 232 s, and its report said why: 232 of 247 compiles came after the first step (92
-distinct modules), because the dry step raised at MuJoCo Warp's first CUDA occupancy query;
-`warp_ahead.recording` now answers it. With that fixed (H100, 2026-11-27): 158 s and 170 s, 92
-modules compiled once each, none after the first step; but in two waves, 16 children (one a
-core) of ~85 s each, then the other 6 (up to 41 s), with 1.7 cores busy and the GPU idle in the
-second wave's tail: most of a child's time is waiting for modules other children hold, and every
-child waits for the largest (~60-80 s of NVRTC). All the families' children now start at once.
+A marker per family (keyed by the Warp, MuJoCo Warp and vabench code, the GPU's architecture
+and the image size) says it is done; a file lock keeps one machine's processes from compiling a
+family twice; a child's failure costs only time (the sweep compiles that family itself). The
+sweep does not wait for the whole compile (`Compiling`): a family's episodes start once its own
+marker is written. `VABENCH_WARP_PRECOMPILE=0` turns it off, `=first` waits for all of it. The
+figures: docs/PERFORMANCE.md, "Start-up and compile".
 """
 
 from __future__ import annotations
@@ -113,18 +54,18 @@ REPORT_KEYS = {"task", "compiled", "compile_s", "s"}
 CHILDREN_PER_CORE = 2
 """The most children a core: enough for the 22 families of `configs/all.yaml` at once on a
 16-core host (a child mostly waits for modules others hold; one a core ran them in two waves,
-the second ~40 s longer on an H100); a 2-core machine runs 4."""
+the second one slower); a 2-core machine runs 4."""
 BEHIND_NICE = 5
 """The CPU priority (nice) of the other families' children while a critical one compiles: at
 5 a thread gets about a third of the CPU share of one at 0 when they share a core, so the
-critical child's threads run whenever they are ready and the others take the rest. Untested
-in a live sweep, where the engines (at 0) compete too: a child at 5 that holds a shared module
-the critical child waits for compiles it slower (the next fresh main job says which wins)."""
+critical child's threads run whenever they are ready and the others take the rest (a child
+at 5 that holds a shared module the critical child waits for compiles it slower; measured the
+better of the two: docs/PERFORMANCE.md, "Start-up and compile")."""
 EXPERT_STEPS = 3
 """The expert's actions a child runs: the first reset and actions launch every kernel an
 episode does (the kernels a step launches depend on the scene, not on the state); a whole
-episode only costs time (the basket's on a fresh H100: its child ran ~130 s on one core after
-the others had ended, 2026-11-27)."""
+episode only costs time (the basket's whole episode kept its child running on one core long
+after the others had ended)."""
 
 
 def marker_dir() -> Path:
@@ -466,8 +407,8 @@ def compile_family(
     compiled first, in that many threads, each by one of the processes sharing `claims`
     (`warp_ahead`), and `loaded` is called as soon as they are, where every dry call found its
     modules (and found some): the expert's run after it only checks that nothing was missed
-    (it compiled none in every run since 2026-11-27), and the sweep's episodes need not wait
-    for it (6-8 s of the basket's child on an H200, its episodes the suite's critical path).
+    (it compiles none where loading ahead found every module), and the sweep's episodes need
+    not wait for it (seconds of the basket's child, whose episodes are the critical path).
     Returns what loading ahead did and each part's seconds."""
     import numpy as np
 

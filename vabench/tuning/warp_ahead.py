@@ -6,10 +6,8 @@ anything: while `Module.load` answers None, `wp.launch` returns before launching
 path for a module without code), so a batch's build, one physics step and one render pass of
 the family, on the family's real models and arrays, record every module (and block size) they
 would launch. Those then load in a thread pool: Warp's compilers (clang for the CPU,
-NVRTC for CUDA) run outside the GIL. Measured on Warp's CPU device, 2 shared cores, 2026-11-26:
-67 modules in 185 s with 2 threads against 366 s of compiles one by one; grasp_single_cube from
-an empty cache, 2 threads: 44 modules found and loaded ahead in 55 s, and its real run after it
-compiled none (docs/PERFORMANCE.md, issue 33).
+NVRTC for CUDA) run outside the GIL, so two threads compile about twice as fast as one, and a
+family's real run after it compiles nothing (docs/PERFORMANCE.md, "Start-up and compile").
 
 Only ever an optimisation: a module it misses, or a call that fails (logged), is compiled by
 the family's real run after it, as before. The batch built for it has CUDA graphs off (a graph
@@ -52,7 +50,7 @@ ahead whole (`own_modules`)."""
 
 Found = dict[tuple[int, str, Any], tuple[Any, Any, Any]]
 BLOCKS_PER_SM = 8
-"""Resident 256-thread blocks per SM (2,048 threads on an H100): the recorded occupancy."""
+"""Resident 256-thread blocks per SM (2,048 threads on a Hopper GPU): the recorded occupancy."""
 
 
 class Ahead(NamedTuple):
@@ -75,11 +73,10 @@ def recording(found: Found) -> Iterator[None]:
     changes the flag); an occupancy query on a CUDA device (`wp.get_suggested_block_size`,
     which MuJoCo Warp makes before its broadphase, convex collision and solver launches)
     records its kernel's module at the block size the query loads and answers a plausible
-    size (a whole H100's worth of 256-thread blocks; where the answer shapes a kernel, e.g.
-    under `deterministic`, the real run compiles its own variant). Warp's own query raises on
-    CUDA when the module does not load: on the H100 the first dry physics step ended at the
-    broadphase, and a fresh machine's precompile found almost none of the modules ahead (232
-    of 247 compiled only in the experts' runs, one after another, 2026-11-27). On the CPU
+    size (a whole large GPU's worth of 256-thread blocks; where the answer shapes a kernel,
+    e.g. under `deterministic`, the real run compiles its own variant). Warp's own query raises
+    on CUDA when the module does not load: the dry physics step would end at the broadphase,
+    and a fresh machine's precompile would find almost none of the modules ahead. On the CPU
     Warp answers (1, 1) without loading anything, and so does the recording."""
     import warp as wp
     from warp._src import context  # the loader; no public hook exists

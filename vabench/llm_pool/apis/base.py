@@ -67,8 +67,8 @@ class Endpoint(Protocol):
     """What a request body needs of the endpoint it goes to: a `config.ModelEndpoint` is one.
 
     A structural type, so that the adapters need not import `config.py`, which sits above
-    their registry (it derives `ApiName` from `apis.ADAPTERS`): the two imported each other
-    (issue 32)."""
+    their registry (it derives `ApiName` from `apis.ADAPTERS`): else the two would import each
+    other."""
 
     @property
     def provider_model(self) -> str:

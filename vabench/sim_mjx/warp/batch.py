@@ -12,7 +12,8 @@ the substeps: `graphs`.
 On the CPU device (tests) the same kernels run without a graph: Warp's CPU backend executes
 every thread of a launch in order, so a slot's trajectory does not depend on the batch size,
 its index or its neighbours. On a GPU, MuJoCo Warp's contact and constraint ordering uses
-atomics unless `deterministic` asks for its stable orderings (slower; see docs/PERFORMANCE.md).
+atomics unless `deterministic` asks for its stable orderings (slower; docs/PERFORMANCE.md,
+"Simulator throughput").
 
 Threads and streams (`streams`): every batch has a CUDA stream of its own. A method queues its
 device work holding the device's lock with that stream current (Warp's current stream is the
@@ -90,7 +91,7 @@ class WarpBatch(BatchBase):
     `device`: a Warp device ("cuda:0" by default; "cpu" runs the same kernels on the CPU, for
     tests). `nconmax` / `njmax`: per-world contact and constraint-row capacity (default: sized
     from the scene). `deterministic`: MuJoCo Warp's stable contact and constraint orderings on
-    GPUs (slower; closer run to run, but measured not bit-identical on an H100). `graphs`:
+    GPUs (slower; closer run to run, but measured not bit-identical on a GPU). `graphs`:
     capture CUDA graphs (GPU only; off = launch kernel by kernel, for debugging). `loop`: see
     `graphs.LOOPS`. `critical_path`: this batch's episodes bound the sweep's wall time (the
     longest task's): its stream, and those of the render passes that read it, get the GPU's
@@ -385,8 +386,7 @@ class WarpBatch(BatchBase):
             # no non-blocking stream (this batch's): freed at the end of this block, an upload
             # went back to the pool while its scatter was still queued, and another stream's
             # next allocation could take it, so that `idx` held another array's bytes when
-            # the scatter wrote `dst[idx[i]]`: the likely illegal address of the H100 runs
-            # (docs/PERFORMANCE.md, "Fifth session").
+            # the scatter wrote `dst[idx[i]]`: an illegal address (CUDA error 700) under MPS.
             uploads = [idx := wp.array(np.asarray(slots, np.int32), dtype=int)]
             for name, dst in self._rows.items():
                 if dst.shape[1]:

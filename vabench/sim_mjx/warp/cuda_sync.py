@@ -8,8 +8,8 @@ each waiting its turn, would spin sixteen cores while the model side (the embedd
 policy, JPEG decoding, the engine's JSON) needs them. `prefer_blocking_sync` asks the driver to
 put waiting threads to sleep instead (`CU_CTX_SCHED_BLOCKING_SYNC` on every GPU's primary
 context, the context Warp uses), which costs a few microseconds of wake-up per wait: nothing
-next to an action's ~90 ms of physics. Measured on an H200 (2026-11-29,
-`benchmarks/gpu_waits.py`), the flag set and confirmed by the driver did not make a stream
+next to an action's ~90 ms of physics. Measured (`benchmarks/gpu_waits.py`; docs/PERFORMANCE.md,
+"Engine processes on one GPU"), the flag set and confirmed by the driver did not make a stream
 synchronisation or a wait on Warp's events sleep (1.00 CPU second per second waited each):
 what sleeps is an event made with its own flag (`blocking_events`, `streams.sleeping_event`,
 0.00), on which every wait of the engine's hot paths now is. The context flag stays: harmless,
@@ -40,9 +40,9 @@ def blocking_events() -> bool:
     """Whether events the host waits on are made to sleep (`streams.record`): CUDA's
     documentation of cuEventSynchronize says a thread waiting on an event created without
     CU_EVENT_BLOCKING_SYNC busy-waits, and Warp's events are created without it. The context's
-    blocking sync above does not cover them, nor, measured, a stream synchronisation: on an
-    H200 (`benchmarks/gpu_waits.py`, 2026-11-29; the driver confirmed the context's flag) a
-    waiter on Warp's event and one in `wp.synchronize_stream` each used 1.00 CPU second per
+    blocking sync above does not cover them, nor, measured, a stream synchronisation
+    (`benchmarks/gpu_waits.py`, the driver confirming the context's flag): a waiter on Warp's
+    event and one in `wp.synchronize_stream` each used 1.00 CPU second per
     second waited, one on a sleeping event 0.00. So every wait of the engine's hot paths is on
     a sleeping event. Off with VABENCH_CUDA_SYNC=spin too."""
     return os.environ.get(SYNC_VARIABLE, "block") != "spin"

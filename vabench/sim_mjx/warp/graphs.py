@@ -22,8 +22,9 @@ device (default on a GPU): one graph per action whose substeps run in a CUDA whi
 (`wp.capture_while`): the host queues one graph launch per action, whatever its substeps.
 per_step: a graph of one substep launched n times between a graph before and one after;
 nothing returns to the host between substeps, but the host queues n graph launches, and the
-cost of a launch grows with its nodes: ~48 ms of an H100 host's time per 200-substep action
-(docs/PERFORMANCE.md, issue 33), during which the device's lock is held and no other batch
+cost of a launch grows with its nodes: tens of ms of host time per 200-substep action
+(docs/PERFORMANCE.md, "Engine processes on one GPU"), during which the device's lock is held
+and no other batch
 can queue. unrolled: one graph holding every substep (3.5-5 s of capture per batch shape and
 each distinct hold length, and no faster to launch).
 

@@ -63,7 +63,7 @@ def capacity(
     leans on it), 8 per arm. Measured on C MuJoCo over the experts of every family, the most
     contacts at once were 12 for one object (grasp_single_cube), 24 for four
     (place_single_cube_heldout) and 32 for five (the basket); without the per-geom term the
-    basket's 96 overflowed under the reference agent on an H100 (6 of 60 episodes), which
+    basket's 96 overflowed under the reference agent on a GPU (6 of 60 episodes), which
     piles objects against the walls as the expert does not. Rows: each contact takes `condim`
     rows with elliptic cones and 2 (condim - 1) with pyramidal ones, plus one per limited joint.
     """
@@ -153,8 +153,8 @@ def variant_fields(
     """Put every variant's model on the current device and compare their fields (`ignore`:
     name prefixes whose differences do not matter to the user of the model). Depends on the
     models only, not on the batch: a renderer that builds many passes of one family finds them
-    once (on an H100 a pass took ~0.47 s to build with the device's lock held, most of it
-    here; 42 a process in the warm suite, 2026-11-28)."""
+    once (a pass took about half a second to build with the device's lock held, most of it
+    here, and a process of the warm suite builds dozens)."""
     per_variant = [mjw.put_model(m) for m in models]
     first = _array_fields(per_variant[0])
     varying: list[str] = []

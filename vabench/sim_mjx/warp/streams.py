@@ -4,13 +4,12 @@ Warp keeps one current stream per device for the whole process, not per thread, 
 queues device work holds the device's lock (`device.device_lock`) with its own stream current
 (`queueing`). What it then waits for is the GPU, and it waits with the lock released: each
 physics batch and each render pass has a CUDA stream of its own, queues its work there under
-the lock (a batch action is ~20 ms of host time on an H100, its GPU time ~65 ms), records an
+the lock (a batch action is a few tens of ms of host time, less than its GPU time), records an
 event (one its waiters sleep on: `sleeping_event`), lets go of the lock and sleeps on the
 event (`wait`). The GPU then runs the batches' actions and the renderer's passes side by side,
 on their streams, while the host queues the next ones. Before this, every action held the
 lock until its results were on the host, so the GPU ran one batch at a time and the threads of
-21 other batches queued behind the lock (measured on an H100 on 2026-11-26: a third of the
-GPU busy, half of the threads' time spent waiting for the lock; docs/PERFORMANCE.md).
+the other batches queued behind the lock (docs/PERFORMANCE.md, "Engine processes on one GPU").
 
 Results reach the host through `Readback`: device arrays mirrored into pinned host buffers by
 copies queued behind the work, so that the host reads them once the event has passed, with no
@@ -61,8 +60,8 @@ def failing_device() -> Iterator[None]:
 
     After a sticky CUDA error (an illegal memory access in any kernel of the process) every
     later call on the device fails: allocations ('Failed to allocate 4 bytes'), module loads,
-    nvImageCodec. Recorded as each episode's harness error, one such error ended every episode
-    of a sweep on an H100 in 26 s (2,160 records, none re-run by a resume; 2026-11-26). The
+    nvImageCodec. Recorded as each episode's harness error, one such error would end every
+    episode of a sweep within seconds, none re-run by a resume. The
     check (`interface.device_failure`: the context checks `device.device_lock` registered for
     each device queued on) runs only once something has already failed."""
     try:
@@ -126,11 +125,12 @@ PRIORITIES = ("least", "middle", "greatest")
 """The stream priorities the engine uses, within the device's range (`priority_value`):
 
 - least: the render passes' ray tracing. Its megakernel (one thread a pixel, ~50 ms a pass of
-  ~60 worlds at 1280x960) was 84 % of the engine processes' recorded GPU kernel time on an
-  H100 (2026-11-27), and a kernel of another stream waited behind its pending blocks;
+  ~60 worlds at 1280x960) is most of the engine processes' GPU kernel time
+  (docs/PERFORMANCE.md, "Whole suite on one GPU"), and a kernel of another stream waits
+  behind its pending blocks;
 - middle: the physics batches' actions and the JPEG encodes, chains of small kernels whose
-  every link waited behind those blocks (a JPEG call of ~20 images took ~0.25 s of wall time
-  for ~3 ms of kernels, a physics call 0.5-1.5 s);
+  every link waited behind those blocks (a JPEG call took about a hundred times its kernels'
+  time);
 - greatest: the sweep's critical path (`WarpBatch.critical_path`), physics and images alike.
 
 The GPU dispatches pending blocks of a higher-priority stream first (never preempting running
@@ -140,7 +140,7 @@ the same."""
 
 def priority_value(level: str, least: int, greatest: int) -> int:
     """CUDA's priority number for `level` (one of `PRIORITIES`) on a device whose range is
-    `least` (CUDA's default, 0) to `greatest` (a smaller number: -5 on an H100): middle halfway,
+    `least` (CUDA's default, 0) to `greatest` (a smaller number, e.g. -5): middle halfway,
     rounded towards greatest (a range of two levels has no middle: greatest)."""
     if level not in PRIORITIES:
         raise ValueError(f"stream priority must be one of {PRIORITIES}, got {level!r}")
@@ -159,8 +159,8 @@ def new_stream(device: wp.context.Device, priority: str = "least") -> wp.Stream 
     work. Warp makes blocking streams, and with them nvImageCodec's encodes (which synchronise
     through the legacy stream) broke the graph capture of any batch capturing at that moment
     ("operation would make the legacy stream depend on a capturing blocking stream", then
-    CUDA error 901 in every launch of that capture: 729 episodes lost their harness on an
-    H100, 2026-11-26). Made through the driver API and handed to Warp as an external stream;
+    CUDA error 901 in every launch of that capture, hundreds of episodes lost to harness
+    errors). Made through the driver API and handed to Warp as an external stream;
     where the driver refuses, a blocking Warp stream (logged)."""
     if priority not in PRIORITIES:  # on every device, the CPU's too
         raise ValueError(f"stream priority must be one of {PRIORITIES}, got {priority!r}")
@@ -213,11 +213,11 @@ def sleeping_event(device: Any) -> wp.Event:
     """A CUDA event whose waiters sleep until it passes (CU_EVENT_BLOCKING_SYNC), without
     timing: CUDA's documentation of cuEventSynchronize says a thread waiting on an event made
     without that flag busy-waits, and `wp.Event` offers no way to ask for it. Each engine
-    process's batch and render threads wait on one after every action and pass. Measured on an
-    H200 (`benchmarks/gpu_waits.py`, 2026-11-29, in a process whose context asked for blocking
-    sync): a waiter on Warp's event used 1.00 CPU second per second waited, on this one 0.00;
-    in the main job the engine processes' sim and render threads went from 0.3-0.9 cores each
-    to 0.02-0.07 with it. With `VABENCH_CUDA_SYNC=spin`, or where Warp's call is missing,
+    process's batch and render threads wait on one after every action and pass. Measured
+    (`benchmarks/gpu_waits.py`, in a process whose context asked for blocking sync): a waiter
+    on Warp's event spins a core for its whole wait, on this one it sleeps, and the suite's
+    host gets cores back (docs/PERFORMANCE.md, "Engine processes on one GPU"). With
+    `VABENCH_CUDA_SYNC=spin`, or where Warp's call is missing,
     Warp's own event."""
     from warp._src import context  # Warp's event call with flags; public API otherwise
 
