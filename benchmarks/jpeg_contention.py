@@ -6,9 +6,9 @@
 
 In the main job on an H100 a JPEG call of a render pass (~25 frames of 1280x960 already in
 device memory) took 0.23-0.36 s of wall time for ~3 ms of nvJPEG kernels, while three frames
-encode in 15-18 ms on an idle GPU (docs/PERFORMANCE.md). This benchmark rebuilds the engine
-process's conditions one at a time, each configuration in a fresh process (Python's switch
-interval and nvImageCodec's thread pools are per process):
+encode in 15-18 ms on an idle GPU (docs/PERFORMANCE.md, "JPEG on the GPU"). This benchmark
+rebuilds the engine process's conditions one at a time, each configuration in a fresh process
+(Python's switch interval and nvImageCodec's thread pools are per process):
 
 - `--encoders` threads each encode `--images` frames again and again (one encoder a thread,
   each on a stream of its own at the renderer's encode priority, as `WarpRenderPool` has);
@@ -26,8 +26,7 @@ interval and nvImageCodec's thread pools are per process):
   side, each with an encoder and a stream of its own (`encode_in_slices`);
 - `--gpu-load 1`: a thread keeps every SM busy with kernels of many blocks on a non-blocking
   stream of the least priority, eight queued at a time (the ray tracer's megakernels of other
-  passes). Before 2026-11-27 19:30 UTC its kernels were ~0.2 ms on a blocking stream, the GPU
-  idle at each of its waits (the first table in docs/PERFORMANCE.md's "Ninth session").
+  passes), so that the GPU never idles between them.
 
 Prints, per configuration, JPEG calls a second, images a second and the median and 90th
 percentile wall time of a call. Run it on the GPU (`bash benchmarks/gpu/run.sh jpeg`).

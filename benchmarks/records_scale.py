@@ -23,8 +23,8 @@ resident memory (VmHWM) is its own:
 Times are measured after the imports (which every size pays alike; `process_s` includes them).
 The table gives each operation's seconds and peak RSS per size, and how each grows per 10x
 episodes between consecutive sizes: (t2 / t1) ** (1 / log10(n2 / n1)); 10x is linear, 100x
-quadratic. Speed targets (docs/PERFORMANCE.md) are read off this table; nothing here asserts a
-time.
+quadratic. Speed targets (docs/PERFORMANCE.md, "Records at scale") are read off this table;
+nothing here asserts a time.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ passes), for each option set, with the share of pixels that differ from the firs
   what an image shows; measured to know their price, not shipped).
 
 Run it on the GPU (`bash benchmarks/gpu/run.sh render_options`); `--device cpu` works for a
-smoke check at small sizes. Results: docs/PERFORMANCE.md with the device and date.
+smoke check at small sizes. Results: docs/PERFORMANCE.md, "Renderer", with the device and date.
 """
 
 from __future__ import annotations

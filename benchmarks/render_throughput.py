@@ -17,7 +17,7 @@ head view and the five semantic views. For every image size:
 3. the split of a Warp request: ray tracing (incl. BVH refit and kinematics) vs JPEG.
 
 Run it on a GPU host (`VABENCH_WARP_DEVICE` picks the device; `cpu` works, slowly, with small
-sizes for a smoke check). Results go to docs/PERFORMANCE.md with the device and date.
+sizes for a smoke check). Results go to docs/PERFORMANCE.md, "Renderer", with the device and date.
 """
 
 from __future__ import annotations

@@ -3,12 +3,13 @@
     python benchmarks/warp_streams.py [--tasks 14] [--worlds 30,150] [--substeps 200] [--json OUT]
 
 Why: on an H100 one action of a Warp batch takes ~90 ms whatever its size up to 256 slots
-(docs/PERFORMANCE.md): MuJoCo Warp's kernels over a few dozen worlds occupy a few of the GPU's
-132 SMs, and an action is 200 substeps of ~100 small kernels each. A sweep runs one batch per
-task family and track (dozens); today every batch of a process queues its work on the device's
-one stream under the device lock, so they run one after the other, and the processes executor's
-16 CUDA contexts time-slice the GPU (one context at a time). This measures what one process
-would gain by giving each batch its own CUDA stream: the same captured substep graphs, launched
+(docs/PERFORMANCE.md, "Simulator throughput"): MuJoCo Warp's kernels over a few dozen worlds
+occupy a few of the GPU's 132 SMs, and an action is 200 substeps of ~100 small kernels each. A
+sweep runs one batch per task family and track (dozens); today every batch of a process queues
+its work on the device's one stream under the device lock, so they run one after the other, and
+the processes executor's 16 CUDA contexts time-slice the GPU (one context at a time). This
+measures what one process would gain by giving each batch its own CUDA stream: the same captured
+substep graphs, launched
 
 - serial: every batch's action on one stream, batch after batch (today's layout);
 - streams: each batch on its own stream, the launches interleaved substep by substep, one
