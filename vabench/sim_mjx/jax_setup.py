@@ -21,6 +21,8 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax
 
+from vabench import switches
+
 
 def quiet_stdout() -> contextlib.AbstractContextManager[object]:
     """Around `from mujoco import mjx`: it prints "Failed to import warp" on stdout when MuJoCo
@@ -33,8 +35,8 @@ def quiet_stdout() -> contextlib.AbstractContextManager[object]:
 def _enable_compilation_cache() -> None:
     if jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
         return
-    path = os.environ.get("VABENCH_JAX_CACHE") or str(Path.home() / ".cache" / "vabench" / "jax")
-    if path.lower() in ("", "0", "off", "none"):
+    path = switches.get("jax_cache") or str(Path.home() / ".cache" / "vabench" / "jax")
+    if path == switches.OFF:
         return
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
@@ -45,7 +47,7 @@ def _full_precision_matmuls() -> None:
     Contact dynamics and the planner's IK are not neural networks and need float32 products
     (measured on an H200: see docs/PERFORMANCE.md, "Seed screening"). VABENCH_MATMUL_PRECISION
     overrides the choice ("default" restores JAX's)."""
-    value = os.environ.get("VABENCH_MATMUL_PRECISION", "highest")
+    value = switches.get("matmul_precision")
     if value != "default":
         jax.config.update("jax_default_matmul_precision", value)
 
