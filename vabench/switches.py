@@ -393,7 +393,7 @@ class Effective:
     def overrides(self) -> list[str]:
         """`field=value (VARIABLE)` for each switch the environment overrode."""
         return [
-            f"{SWITCHES[n].field}={self.values[n]} ({SWITCHES[n].env})"
+            f"{SWITCHES[n].field}={as_text(self.values[n])} ({SWITCHES[n].env})"
             for n in self.from_environment
         ]
 
@@ -417,7 +417,8 @@ def current(environ: Mapping[str, str] = os.environ) -> dict[str, Any]:
     return {name: get(name, environ) for name in SWITCHES}
 
 
-def _text(value: Any) -> str:
+def as_text(value: Any) -> str:
+    """`value` as its variable spells it (what `Switch.read` reads back)."""
     if isinstance(value, bool):
         return "1" if value else "0"
     if isinstance(value, float) and value.is_integer():
@@ -429,7 +430,7 @@ def environment(values: Mapping[str, Any]) -> dict[str, str]:
     """The variables that carry `values` of the behaviour and measurement switches to another
     process: those that differ from their default (an unset variable means the default)."""
     return {
-        SWITCHES[n].env: _text(v)
+        SWITCHES[n].env: as_text(v)
         for n, v in values.items()
         if SWITCHES[n].field is not None and v is not None and v != SWITCHES[n].default
     }
@@ -455,7 +456,7 @@ def table() -> str:
         "|---|---|---|---|---|---|",
     ]
     for s in SWITCHES.values():
-        default = "unset" if s.default is None else f"`{_text(s.default)}`"
+        default = "unset" if s.default is None else f"`{as_text(s.default)}`"
         where = f"`{s.field}`" if s.field else "(environment only)"
         lines.append(
             f"| `{s.env}` | {s.kind} | {where} | {default} | {s.parse.allowed} | {s.doc} |"
