@@ -316,8 +316,8 @@ def test_one_resolution_per_command_and_the_local_executor_runs_what_the_dry_run
     chosen: list[Choices] = []
     sweeps: list[LocalSweep] = []
 
-    def choose_three(config):
-        chosen.append(replace(choose(config), in_flight=InFlightRule(256, 3)))
+    def choose_three(config, **kwargs):
+        chosen.append(replace(choose(config, **kwargs), in_flight=InFlightRule(256, 3)))
         return chosen[-1]
 
     class Recorded(LocalSweep):

@@ -198,6 +198,32 @@ def test_the_config_values_reach_this_process_and_its_children():
     assert not any(k.startswith("VABENCH_") for k in child_environment(c, {}))
 
 
+def test_jax_is_set_again_from_switches_that_arrive_after_its_import(tmp_path):
+    """The sweep's process imports JAX's set-up before its config is read; `configure_jax`
+    sets the cache and precision again (in a process of its own: JAX's config is global)."""
+    script = (
+        "import os, jax\n"
+        "from vabench.sim_mjx import jax_setup\n"
+        "from vabench.sim_mjx.backends import resolve\n"
+        "from vabench.sweep.choices import configure_jax\n"
+        "def now():\n"
+        "    return jax.config.jax_default_matmul_precision, jax.config.jax_compilation_cache_dir\n"
+        "before = now()\n"
+        "os.environ['VABENCH_MATMUL_PRECISION'] = 'default'\n"
+        "os.environ['VABENCH_JAX_CACHE'] = os.environ['AT']\n"
+        "configure_jax(resolve('c'))\n"
+        "print((before, now()))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("VABENCH_", "JAX_"))}
+    env |= {"PYTHONPATH": str(ROOT), "AT": str(tmp_path), "HOME": str(tmp_path / "home")}
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    home_cache = str(tmp_path / "home" / ".cache" / "vabench" / "jax")
+    assert done.stdout.strip() == str((("highest", home_cache), (None, str(tmp_path))))
+
+
 # -- the run directory --------------------------------------------------------------------------
 
 TINY = """\

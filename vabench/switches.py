@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 Kind = Literal["behaviour", "measurement", "message"]
-KINDS: tuple[Kind, ...] = ("behaviour", "measurement", "message")
 
 
 class SwitchError(ValueError):

@@ -32,13 +32,23 @@ def quiet_stdout() -> contextlib.AbstractContextManager[object]:
     return contextlib.redirect_stdout(io.StringIO())
 
 
+_USERS_CACHE = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]
+"""A cache the user configured for JAX itself (JAX_COMPILATION_CACHE_DIR), kept as it is."""
+
+
+def configure() -> None:
+    """Set the cache and the precision from the switches (`vabench.switches`): on import, and
+    again in the sweep's process once its config's switches are in its environment
+    (`sweep.choices.configure_jax`), before its first compilation."""
+    _enable_compilation_cache()
+    _full_precision_matmuls()
+
+
 def _enable_compilation_cache() -> None:
-    if jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
+    if _USERS_CACHE:
         return
     path = switches.get("jax_cache") or str(Path.home() / ".cache" / "vabench" / "jax")
-    if path == switches.OFF:
-        return
-    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_compilation_cache_dir", None if path == switches.OFF else path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
@@ -48,9 +58,7 @@ def _full_precision_matmuls() -> None:
     (measured on an H200: see docs/PERFORMANCE.md, "Seed screening"). VABENCH_MATMUL_PRECISION
     overrides the choice ("default" restores JAX's)."""
     value = switches.get("matmul_precision")
-    if value != "default":
-        jax.config.update("jax_default_matmul_precision", value)
+    jax.config.update("jax_default_matmul_precision", None if value == "default" else value)
 
 
-_enable_compilation_cache()
-_full_precision_matmuls()
+configure()

@@ -154,8 +154,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
             require_keys=not args.dry_run,  # a dry run warns of them (below)
             edit=given.edit,
         )
-        choices = choose(config)
-        apply_switches(choices)  # the config's switches, for this process and its children
+        choices = choose(config, effective=apply_switches(config))  # and for its children
     except OverrideError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -205,15 +205,19 @@ class Choices:
 
 
 def choose(
-    config: Any, machine: Machine | None = None, environ: Mapping[str, str] = os.environ
+    config: Any,
+    machine: Machine | None = None,
+    environ: Mapping[str, str] = os.environ,
+    effective: Effective | None = None,
 ) -> Choices:
     """Resolve every `auto` of `config` (a `SweepConfig`) for this machine, and its switches
-    against `environ` (before `apply_switches`, which makes the config's values the
-    environment's). Raises `sim_mjx.backends.BackendUnavailable` (its message naming what is
-    missing) when the config asks explicitly for a backend that cannot run here."""
+    against `environ` (unless `effective` says them). Raises
+    `sim_mjx.backends.BackendUnavailable` (its message naming what is missing) when the config
+    asks explicitly for a backend that cannot run here."""
     machine = machine or this_machine(environ)
     ex = config.executor
-    device = config.simulator.warp_device
+    effective = effective or switches.resolve(config.switch_values(), environ)
+    device = effective.values["warp_device"]
     physics = resolve(config.simulator.backend, device=device)
     in_flight = in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched)
     executor = resolve_executor(ex, machine, physics)
@@ -234,15 +238,18 @@ def choose(
             f"{share} core{'s' if share != 1 else ''})"
         )
     renderer = resolve_renderer(config.render.backend, device)
-    effective = switches.resolve(config.switch_values(), environ)
     return Choices(machine, physics, renderer, executor, in_flight, server, effective)
 
 
-def apply_switches(choices: Choices) -> dict[str, str]:
-    """Set the switches' variables in this process's environment (where it sets none of its
-    own), so that this process and every process it starts read the sweep's values
-    (`vabench.switches.apply`); returns the variables set."""
-    return switches.apply(choices.switches.values)
+def apply_switches(config: Any) -> Effective:
+    """The switches of `config` (a `SweepConfig`) against this process's environment, then
+    set in it (where it sets none of its own: `vabench.switches.apply`), so that this process
+    and every process it starts read the sweep's values. Called by the sweep's parent before
+    `choose(config, effective=...)`: its first Warp call fixes how the process's threads wait
+    for the GPU, and which switches the environment overrode is read before they are set."""
+    effective = switches.resolve(config.switch_values())
+    switches.apply(effective.values)
+    return effective
 
 
 ENGINE_GPU = "each engine's GPU"
@@ -284,9 +291,14 @@ def child_environment(physics: Choice, environ: Mapping[str, str] = os.environ) 
 
 def configure_jax(physics: Choice) -> None:
     """Apply `child_environment` to this process; JAX reads these when it first creates a
-    backend, which nothing in the sweep has done before its choices are made."""
+    backend, which nothing in the sweep has done before its choices are made. JAX's cache and
+    matmul precision are set again from the switches (`sim_mjx.jax_setup`, imported before
+    the config's switches were in the environment)."""
     env = child_environment(physics)
     os.environ.update(env)
+    from vabench.sim_mjx import jax_setup
+
+    jax_setup.configure()
     if "JAX_PLATFORMS" in env:
         import jax
 
