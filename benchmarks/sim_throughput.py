@@ -33,7 +33,7 @@ from vabench.sim_mjx.actions import CommandRows, encode
 from vabench.sim_mjx.backends import make_batch
 from vabench.sim_mjx.interface import BatchBase
 from vabench.sim_mjx.reset_cache import SettledCache
-from vabench.sim_mjx.warp.device import warp_problem
+from vabench.sim_mjx.warp.device import warp_device, warp_problem
 from vabench.tasks import get_task
 from vabench.tasks.manifests import manifest_path, verified_seeds
 from vabench.tasks.task_batch import TaskBatch
@@ -222,7 +222,7 @@ def main() -> int:
     if "warp" in args.backends:
         import warp as wp
 
-        gpu = wp.get_device(os.environ.get("VABENCH_WARP_DEVICE", "cuda:0")).name
+        gpu = wp.get_device(warp_device()).name
     print(f"GPU: {gpu}; C threads: {threads}; backends: {args.backends}")
     doc: dict = {"gpu": gpu, "threads": threads, "rows": throughput(args, threads)}
     if args.reset_slots:

@@ -21,7 +21,8 @@ ROOT = Path(vabench.__file__).parent
 LAYERS: tuple[frozenset[str], ...] = tuple(
     frozenset(layer.split())
     for layer in (
-        "field_errors children tables run_layout",  # no vabench imports
+        "switches",  # the VABENCH_* environment variables: no vabench imports
+        "field_errors children tables run_layout",  # none but switches
         "protocol",  # the model-facing decisions
         "sim_mjx",  # physics backends and the executor
         "tasks",  # task families over the simulator

@@ -121,7 +121,7 @@ def test_the_episodes_in_flight_on_a_gpu_are_shared_by_its_engine_processes(monk
 
 def test_the_machine_is_read_from_the_environment():
     assert this_machine({"VABENCH_CORES": "12"}).cores == 12
-    with pytest.raises(ValueError, match="VABENCH_CORES must be a whole number, got 'many'"):
+    with pytest.raises(ValueError, match="VABENCH_CORES must be a whole number >= 1, got 'many'"):
         this_machine({"VABENCH_CORES": "many"})
     assert visible_gpus({"CUDA_VISIBLE_DEVICES": "0,1"}) == ("0", "1")
     assert visible_gpus({"CUDA_VISIBLE_DEVICES": "2,-1,3"}) == ("2",)  # CUDA stops at -1
@@ -316,8 +316,8 @@ def test_one_resolution_per_command_and_the_local_executor_runs_what_the_dry_run
     chosen: list[Choices] = []
     sweeps: list[LocalSweep] = []
 
-    def choose_three(config):
-        chosen.append(replace(choose(config), in_flight=InFlightRule(256, 3)))
+    def choose_three(config, **kwargs):
+        chosen.append(replace(choose(config, **kwargs), in_flight=InFlightRule(256, 3)))
         return chosen[-1]
 
     class Recorded(LocalSweep):

@@ -27,6 +27,8 @@ import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
+from vabench import switches
+
 
 @contextlib.contextmanager
 def children_ignore_sigint() -> Iterator[None]:
@@ -63,22 +65,15 @@ def ignore_sigint() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-CORES_VARIABLE = "VABENCH_CORES"
+CORES_VARIABLE = switches.variable("cores")
 
 
 def usable_cores(environ: Mapping[str, str] = os.environ) -> int:
     """The cores this process sizes its pools for: `VABENCH_CORES` when set (its share, given by
-    the sweep, or pinned by the user), else the CPUs it may run on."""
-    pinned = environ.get(CORES_VARIABLE)
-    if not pinned:
-        return len(os.sched_getaffinity(0))
-    try:
-        cores = int(pinned)
-    except ValueError:
-        raise ValueError(f"{CORES_VARIABLE} must be a whole number, got {pinned!r}") from None
-    if cores < 1:
-        raise ValueError(f"{CORES_VARIABLE} must be >= 1, got {cores}")
-    return cores
+    the sweep, or pinned by the user), else the CPUs it may run on. Raises
+    `switches.SwitchError` for a value that is no whole number >= 1."""
+    pinned: int | None = switches.get("cores", environ)
+    return len(os.sched_getaffinity(0)) if pinned is None else pinned
 
 
 PARENT_CHECK_S = 0.2

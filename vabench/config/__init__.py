@@ -23,6 +23,10 @@
     executor: {kind: auto, address: null, actors: null, max_tasks: null, max_episodes: 256,
                in_flight: auto, slots_per_task: null}  # kind: auto | local | processes | ray
     retries: {infrastructure_rounds: 3}
+    profiling: {hostload_s: 60}    # what the sweep measures of itself (profiles, "host:" lines)
+
+The fields a `VABENCH_*` variable overrides (`simulator.warp_loop`, `render.warp_jpeg`, ...) are
+listed by `vabench.switches`; `load_config` gives them the environment's values where set.
 
 `load_config` reads and checks the whole file before anything is called: unknown keys (typos),
 wrong types, bad ranges, unknown tasks (with a "did you mean"), unusable seed specs, missing
@@ -56,6 +60,7 @@ from vabench.config.schema import (
     TRACKS,
     ExecutorOptions,
     LearningOptions,
+    ProfilingOptions,
     RenderOptions,
     RetryOptions,
     SimulatorOptions,
@@ -75,6 +80,7 @@ __all__ = [
     "ExecutorOptions",
     "LearningOptions",
     "Problem",
+    "ProfilingOptions",
     "RenderOptions",
     "RetryOptions",
     "SimulatorOptions",

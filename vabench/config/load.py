@@ -19,6 +19,7 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
+from vabench import switches
 from vabench.config.problems import Problem, SweepConfigError, pydantic_problems, yaml_problem
 from vabench.config.resolve import (
     model_problems,
@@ -36,6 +37,7 @@ from vabench.config.schema import (
 )
 from vabench.llm_pool.server_config import ServerConfig
 from vabench.sim_mjx.backends import BACKENDS, backend_name
+from vabench.switches import SWITCHES, SwitchError
 
 log = logging.getLogger(__name__)
 
@@ -53,9 +55,10 @@ def load_config(
     `overrides` replace values of the document before it is checked; keys are dotted field
     paths (`out`, `executor.kind`), as the command line sets them. `environ` is where the
     models' `api_key_env` variables must be set (and non-empty), unless `require_keys` is false
-    (`--dry-run`, which warns of them instead: `keys.KeySources.unset`). `edit` rewrites the
-    document after the overrides, before it is checked (the command line's quick-trial flags,
-    `sweep.overrides`, which edit lists such as `models:`).
+    (`--dry-run`, which warns of them instead: `keys.KeySources.unset`), and where the
+    `VABENCH_*` variables that override config fields are read (`vabench.switches`). `edit`
+    rewrites the document after the overrides, before it is checked (the command line's
+    quick-trial flags, `sweep.overrides`, which edit lists such as `models:`).
 
     Raises `SweepConfigError` listing every problem found (see the module docstring).
     """
@@ -82,12 +85,41 @@ def load_config(
         doc = edit(doc)
     doc, old_spelling = _old_physics_spelling(doc, file)
     config, problems = _check(doc, path.stem, environ if require_keys else None)
+    if config is not None:
+        config, problems = _with_environment(config, environ)
     problems = old_spelling + problems
     if problems or config is None:
         order = {key: i for i, key in enumerate(doc)}  # report in the order the file reads
         problems.sort(key=lambda p: _position(p.path, order))
         raise SweepConfigError(file, problems)
     return config
+
+
+def _with_environment(
+    config: SweepConfig, environ: Mapping[str, str]
+) -> tuple[SweepConfig | None, list[Problem]]:
+    """`config` with the fields whose `VABENCH_*` variable `environ` sets overridden by it
+    (`vabench.switches.value`: the environment wins); a problem for each bad value."""
+    problems, overridden = [], {}
+    for name, configured in config.switch_values().items():
+        field = str(SWITCHES[name].field)
+        try:
+            value, from_env = switches.value(name, configured, environ)
+        except SwitchError as err:
+            problems.append(Problem(field, f"{err} (the variable overrides this field)"))
+            continue
+        if not from_env:
+            continue
+        try:  # the field's own checks too (a declaration that disagrees with its field)
+            config.with_switch_values({name: value})
+        except ValidationError as err:
+            message = "; ".join(e["msg"] for e in err.errors())
+            problems.append(Problem(field, f"{SWITCHES[name].env}={value!r}: {message}"))
+            continue
+        overridden[name] = value
+    if problems:
+        return None, problems
+    return config.with_switch_values(overridden), []
 
 
 def _old_physics_spelling(doc: dict[str, Any], file: str) -> tuple[dict[str, Any], list[Problem]]:
@@ -184,6 +216,7 @@ def _check(
         "limits",
         "report",
         "records",
+        "profiling",
     )
     config = SweepConfig(
         **{key: getattr(parsed, key) for key in as_written},

@@ -19,6 +19,7 @@ from vabench.llm_pool.server_config import ServerConfig
 from vabench.llm_pool.spend import EMBEDDED_BASE_URL, Pricing, pricing_of
 from vabench.render.images import ImageSettings
 from vabench.sim_mjx.backends import Physics
+from vabench.switches import BY_FIELD, DEVICE, SWITCHES
 from vabench.tasks import REGISTRY, SUITES
 
 Track = Literal["active", "passive"]
@@ -89,6 +90,31 @@ class SimulatorOptions(_Strict):
     of substeps for every action; at_rest, each slot's action ends at the first substep after
     its references are final where every joint is at rest, 0.8 s at the latest
     (`sim_mjx.controller.ACTION_ENDS`)."""
+    warp_device: str = Field(default="cuda:0", pattern=DEVICE.pattern)
+    """The Warp device of the physics and the Warp renderer: "cuda" or "cuda:N" (a worker
+    process given one of several GPUs sees it as cuda:0), or "cpu", Warp's CPU device (slow;
+    for tests). `VABENCH_WARP_DEVICE` overrides it, as the variables named below do their field
+    (`vabench.switches`)."""
+    warp_loop: Literal["device", "per_step", "unrolled"] = "device"
+    """How a Warp action's CUDA graphs hold its substeps (`sim_mjx.warp.graphs.LOOPS`):
+    device, one graph whose substeps run in a CUDA while loop; per_step, a graph per substep;
+    unrolled, every substep in one graph (`VABENCH_WARP_LOOP`)."""
+    cuda_sync: Literal["block", "spin"] = "block"
+    """How threads wait for the GPU (`sim_mjx.warp.cuda_sync`): block, they sleep on events
+    made with CU_EVENT_BLOCKING_SYNC; spin, CUDA's default, a core busy per waiting thread
+    (`VABENCH_CUDA_SYNC`)."""
+    matmul_precision: Literal[
+        "highest", "high", "default", "float32", "tensorfloat32", "bfloat16"
+    ] = "highest"
+    """JAX's float32 matmul precision (`sim_mjx.jax_setup`): contact dynamics and the IK need
+    full float32 products; "default" restores JAX's, TF32 on recent NVIDIA GPUs
+    (`VABENCH_MATMUL_PRECISION`)."""
+    jax_cache: str | None = Field(default=None, min_length=1)
+    """JAX's persistent compilation cache: a folder, or "off" (default
+    `~/.cache/vabench/jax`; `VABENCH_JAX_CACHE`)."""
+    state_cache: str | None = Field(default=None, min_length=1)
+    """The cache of settled reset states (`sim_mjx.reset_cache`): a folder, or "off" (default
+    `~/.cache/vabench/settled`; `VABENCH_STATE_CACHE`)."""
 
     def batch_kwargs(self, physics: Physics, critical_path: bool = False) -> dict[str, Any]:
         """The TaskBatch arguments these options ask for, on the resolved `physics`
@@ -124,6 +150,14 @@ class RenderOptions(_Strict):
     """GL render worker processes per sweep process (backend gl)."""
     platform: Literal["auto", "egl", "osmesa"] = "auto"
     """The GL platform (backend gl)."""
+    warp_jpeg: Literal["auto", "kernels", "nvjpeg", "device", "host"] = "auto"
+    """How the Warp renderer encodes its JPEGs (`render.warp_renderer.JPEG_CHOICES`): auto, on
+    a GPU its own JPEG kernels, else nvJPEG, else nvImageCodec, else CPU threads (on the CPU,
+    threads); kernels; nvjpeg; device (nvImageCodec); host (threads) (`VABENCH_WARP_JPEG`)."""
+    concurrency: int = Field(default=1, ge=1)
+    """Render requests of one task an engine sends to the Warp renderer side by side; with
+    more than one, a pass's frames are copied on the device and the pass is free for the next
+    request while they are encoded (`VABENCH_RENDER_CONCURRENCY`)."""
 
     def image_settings(self) -> ImageSettings:
         return ImageSettings(self.width, self.height, self.quality, self.subsampling)
@@ -168,6 +202,14 @@ class ExecutorOptions(_Strict):
     slots_per_task: int | None = Field(default=None, ge=1)
     """Simulator slots of one task batch; default: the task's planned episodes, at most
     `max_episodes`."""
+    precompile: Literal["on", "off", "first"] = "on"
+    """Warp physics on a GPU: on, every family's kernels are compiled side by side in the
+    background when the sweep starts (once per code and machine), each family's episodes
+    starting as soon as its own are in (`tuning.precompile`); off, each family compiles on
+    first use; first, every family waits for the whole compile (`VABENCH_WARP_PRECOMPILE`)."""
+    cache_dir: str | None = Field(default=None, min_length=1)
+    """Where the precompile keeps its markers, under `warp_compiled/` (default
+    `~/.cache/vabench`; `VABENCH_CACHE`)."""
 
     @field_validator("in_flight", mode="plain")
     @classmethod
@@ -181,6 +223,29 @@ class ExecutorOptions(_Strict):
         if self.slots_per_task is not None:
             return self.slots_per_task
         return max(1, min(planned, self.max_episodes))
+
+
+class ProfilingOptions(_Strict):
+    """What the sweep measures of itself beside its episodes; a profiled run is not a timing
+    run."""
+
+    hostload_s: float = Field(default=60.0, ge=0, allow_inf_nan=False)
+    """Seconds between the sweep's "host:" log lines (`tuning.hostload`); 0 turns them off
+    (`VABENCH_HOSTLOAD_S`)."""
+    cprofile_dir: str | None = Field(default=None, min_length=1)
+    """A folder where each worker of `executor: processes` writes a cProfile of each chunk
+    (`VABENCH_PROFILE_DIR`)."""
+    kernel_dir: str | None = Field(default=None, min_length=1)
+    """A folder where each worker of `executor: processes` writes a window of its GPU kernels
+    (`tuning.kernel_profile`; `VABENCH_KERNEL_PROFILE`)."""
+    kernel_at_s: float = Field(default=60.0, ge=0, allow_inf_nan=False)
+    """When the kernel window starts, in seconds after the worker's chunk
+    (`VABENCH_KERNEL_PROFILE_AT`)."""
+    kernel_s: float = Field(default=20.0, gt=0, allow_inf_nan=False)
+    """How long the kernel window lasts, in seconds (`VABENCH_KERNEL_PROFILE_S`)."""
+    precompile_stats: str | None = Field(default=None, min_length=1)
+    """A folder where each child of the precompile writes what it compiled (default: a
+    temporary folder; `VABENCH_PRECOMPILE_STATS`)."""
 
 
 class TrackSpec(_Strict):
@@ -257,6 +322,7 @@ class SweepFile(_Strict):
     limits: SweepLimits = Field(default_factory=SweepLimits)
     report: ReportOptions = Field(default_factory=ReportOptions)
     records: RecordOptions = Field(default_factory=RecordOptions)
+    profiling: ProfilingOptions = Field(default_factory=ProfilingOptions)
 
 
 class SweepConfig(_Strict):
@@ -285,6 +351,31 @@ class SweepConfig(_Strict):
     limits: SweepLimits = Field(default_factory=SweepLimits)
     report: ReportOptions = Field(default_factory=ReportOptions)
     records: RecordOptions = Field(default_factory=RecordOptions)
+    profiling: ProfilingOptions = Field(default_factory=ProfilingOptions)
+
+    def switch_values(self) -> dict[str, Any]:
+        """The values of the fields that environment variables may override, by switch name
+        (`vabench.switches.BY_FIELD`)."""
+        out = {}
+        for path, switch in BY_FIELD.items():
+            section, leaf = path.split(".")
+            out[switch.name] = getattr(getattr(self, section), leaf)
+        return out
+
+    def with_switch_values(self, values: dict[str, Any]) -> SweepConfig:
+        """This config with the switch fields of `values` (by switch name) set, each section
+        validated again; raises pydantic's ValidationError for a value its field refuses."""
+        sections: dict[str, dict[str, Any]] = {}
+        for name, value in values.items():
+            section, leaf = str(SWITCHES[name].field).split(".")
+            sections.setdefault(section, {})[leaf] = value
+        update = {
+            section: type(getattr(self, section)).model_validate(
+                {**getattr(self, section).model_dump(), **fields}
+            )
+            for section, fields in sections.items()
+        }
+        return self.model_copy(update=update)
 
     def model(self, name: str) -> ModelEndpoint:
         for endpoint in self.models:
@@ -357,7 +448,15 @@ class SweepConfig(_Strict):
             "step_budget": self.step_budget,
         }
         for key in (
-            "learning", "simulator", "render", "executor", "retries", "limits", "report", "records"
+            "learning",
+            "simulator",
+            "render",
+            "executor",
+            "retries",
+            "limits",
+            "report",
+            "records",
+            "profiling",
         ):
             doc[key] = getattr(self, key).model_dump(mode="json")
         return doc

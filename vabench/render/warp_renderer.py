@@ -56,7 +56,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 import threading
 import time
 from collections import OrderedDict
@@ -69,6 +68,7 @@ import mujoco
 import numpy as np
 import warp as wp
 
+from vabench import switches
 from vabench.render import gpu_jpeg, nvjpeg, warp_jpeg, warp_scan
 from vabench.render.images import (
     ImageSettings,
@@ -134,7 +134,7 @@ class WarpRenderPool:
     device: str | None = None
     max_size: tuple[int, int] = (1280, 960)
     max_pass: int | None = None
-    jpeg: str = field(default_factory=lambda: os.environ.get("VABENCH_WARP_JPEG", "auto"))
+    jpeg: str = field(default_factory=lambda: str(switches.get("warp_jpeg")))
     jpeg_threads: int | None = None
     memory_budget: int | None = None
     state_on_device: bool = False
@@ -145,7 +145,7 @@ class WarpRenderPool:
     action (the basket's episodes drift into ~3 groups a round; its action takes ~0.4 s in
     the suite); the upload is a few kB a pass."""
     concurrent_requests: int = field(
-        default_factory=lambda: int(os.environ.get("VABENCH_RENDER_CONCURRENCY", "1"))
+        default_factory=lambda: int(switches.get("render_concurrency"))
     )
     """Requests of one task an engine sends side by side (`RenderService`; default 1, or the
     environment's VABENCH_RENDER_CONCURRENCY). With more than one, a pass's frames are copied

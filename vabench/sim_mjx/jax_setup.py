@@ -21,6 +21,8 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax
 
+from vabench import switches
+
 
 def quiet_stdout() -> contextlib.AbstractContextManager[object]:
     """Around `from mujoco import mjx`: it prints "Failed to import warp" on stdout when MuJoCo
@@ -30,13 +32,23 @@ def quiet_stdout() -> contextlib.AbstractContextManager[object]:
     return contextlib.redirect_stdout(io.StringIO())
 
 
+_USERS_CACHE = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]
+"""A cache the user configured for JAX itself (JAX_COMPILATION_CACHE_DIR), kept as it is."""
+
+
+def configure() -> None:
+    """Set the cache and the precision from the switches (`vabench.switches`): on import, and
+    again in the sweep's process once its config's switches are in its environment
+    (`sweep.choices.configure_jax`), before its first compilation."""
+    _enable_compilation_cache()
+    _full_precision_matmuls()
+
+
 def _enable_compilation_cache() -> None:
-    if jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
+    if _USERS_CACHE:
         return
-    path = os.environ.get("VABENCH_JAX_CACHE") or str(Path.home() / ".cache" / "vabench" / "jax")
-    if path.lower() in ("", "0", "off", "none"):
-        return
-    jax.config.update("jax_compilation_cache_dir", path)
+    path = switches.get("jax_cache") or str(Path.home() / ".cache" / "vabench" / "jax")
+    jax.config.update("jax_compilation_cache_dir", None if path == switches.OFF else path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
@@ -45,10 +57,8 @@ def _full_precision_matmuls() -> None:
     Contact dynamics and the planner's IK are not neural networks and need float32 products
     (docs/PERFORMANCE.md, "Seed screening"). VABENCH_MATMUL_PRECISION
     overrides the choice ("default" restores JAX's)."""
-    value = os.environ.get("VABENCH_MATMUL_PRECISION", "highest")
-    if value != "default":
-        jax.config.update("jax_default_matmul_precision", value)
+    value = switches.get("matmul_precision")
+    jax.config.update("jax_default_matmul_precision", None if value == "default" else value)
 
 
-_enable_compilation_cache()
-_full_precision_matmuls()
+configure()

@@ -25,6 +25,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from vabench import switches
+
 FORMAT = 2  # bump when what an entry holds changes (2: C MuJoCo's silent resets while
 # settling are non-finite settles; format 1 may hold such worlds as clean ones)
 
@@ -57,8 +59,8 @@ def settle_key(
 
 
 def default_root() -> Path | None:
-    value = os.environ.get("VABENCH_STATE_CACHE")
-    if value is not None and value.strip().lower() in ("", "0", "off", "none"):
+    value = switches.get("state_cache")
+    if value == switches.OFF:
         return None
     return Path(value) if value else Path.home() / ".cache" / "vabench" / "settled"
 

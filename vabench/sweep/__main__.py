@@ -74,7 +74,7 @@ from vabench.config import SweepConfigError, load_config  # noqa: E402
 from vabench.config.keys import KeySources, key_sources  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
-from vabench.sweep.choices import Choices, choose, configure_jax  # noqa: E402
+from vabench.sweep.choices import Choices, apply_switches, choose, configure_jax  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
 from vabench.sweep.overrides import OverrideError, Overrides  # noqa: E402
@@ -154,7 +154,7 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
             require_keys=not args.dry_run,  # a dry run warns of them (below)
             edit=given.edit,
         )
-        choices = choose(config)
+        choices = choose(config, effective=apply_switches(config))  # and for its children
     except OverrideError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

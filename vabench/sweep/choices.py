@@ -34,14 +34,16 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-from vabench.children import CORES_VARIABLE, usable_cores, visible_gpus
+from vabench import switches
+from vabench.children import usable_cores, visible_gpus
 from vabench.llm_pool.server_config import serving_description
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
 from vabench.sweep.inflight import InFlightRule, in_flight_rule
+from vabench.switches import Effective
 from vabench.tuning import mps
 
 PROCESSES_FROM_CORES = 4
@@ -91,8 +93,8 @@ class Machine:
 def this_machine(environ: Mapping[str, str] = os.environ) -> Machine:
     cores, gpus = usable_cores(environ), visible_gpus(environ)
     has_mps = bool(gpus) and mps.control_program() is not None
-    if environ.get(CORES_VARIABLE):
-        return Machine(cores, gpus, CORES_VARIABLE, mps=has_mps)
+    if switches.is_set("cores", environ):
+        return Machine(cores, gpus, switches.variable("cores"), mps=has_mps)
     return Machine(cores, gpus, mps=has_mps)
 
 
@@ -182,8 +184,12 @@ class Choices:
     in_flight: InFlightRule
     model_server: str | None = None
     """Where the embedded server works, when a model uses it."""
+    switches: Effective = field(default_factory=lambda: Effective({}))
+    """The `VABENCH_*` switches the sweep runs with (`vabench.switches.resolve`)."""
 
     def lines(self) -> list[str]:
+        overrides = self.switches.overrides()
+        switched = f"{', '.join(overrides)}: the environment over the config"
         return [
             f"machine:   {self.machine.describe()}",
             f"physics:   {self.physics.title} ({self.physics.reason})",
@@ -191,16 +197,25 @@ class Choices:
             f"executor:  {self.executor.label} ({self.executor.reason})",
             f"in flight: {self.in_flight.describe()}",
             *([f"server:    {self.model_server}"] if self.model_server else []),
+            *([f"switches:  {switched}"] if overrides else []),
         ]
 
 
-def choose(config: Any, machine: Machine | None = None) -> Choices:
-    """Resolve every `auto` of `config` (a `SweepConfig`) for this machine. Raises
+def choose(
+    config: Any,
+    machine: Machine | None = None,
+    environ: Mapping[str, str] = os.environ,
+    effective: Effective | None = None,
+) -> Choices:
+    """Resolve every `auto` of `config` (a `SweepConfig`) for this machine, and its switches
+    against `environ` (unless `effective` says them). Raises
     `sim_mjx.backends.BackendUnavailable` (its message naming what is missing) when the config
     asks explicitly for a backend that cannot run here."""
-    machine = machine or this_machine()
+    machine = machine or this_machine(environ)
     ex = config.executor
-    physics = resolve(config.simulator.backend)
+    effective = effective or switches.resolve(config.switch_values(), environ)
+    device = effective.values["warp_device"]
+    physics = resolve(config.simulator.backend, device=device)
     in_flight = in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched)
     executor = resolve_executor(ex, machine, physics)
     if executor.per_gpu > 1 and physics.batched:  # the GPU's episodes shared by its engines
@@ -219,9 +234,19 @@ def choose(config: Any, machine: Machine | None = None) -> Choices:
             f"embedded, {serving_description(config.embedded_server, share)} ({where} "
             f"{share} core{'s' if share != 1 else ''})"
         )
-    return Choices(
-        machine, physics, resolve_renderer(config.render.backend), executor, in_flight, server
-    )
+    renderer = resolve_renderer(config.render.backend, device)
+    return Choices(machine, physics, renderer, executor, in_flight, server, effective)
+
+
+def apply_switches(config: Any) -> Effective:
+    """The switches of `config` (a `SweepConfig`) against this process's environment, then
+    set in it (where it sets none of its own: `vabench.switches.apply`), so that this process
+    and every process it starts read the sweep's values. Called by the sweep's parent before
+    `choose(config, effective=...)`: its first Warp call fixes how the process's threads wait
+    for the GPU, and which switches the environment overrode is read before they are set."""
+    effective = switches.resolve(config.switch_values())
+    switches.apply(effective.values)
+    return effective
 
 
 ENGINE_GPU = "each engine's GPU"
@@ -251,18 +276,26 @@ def for_engines(choices: Choices, config: Any, gpus: int) -> Choices:
 
 def child_environment(physics: Choice, environ: Mapping[str, str] = os.environ) -> dict[str, str]:
     """The variables to add to the environment of processes the sweep starts (see the module
-    docstring); variables already set in `environ` are left as they are."""
+    docstring); variables already set in `environ` are left as they are. With them the
+    switches' variables as this process reads them (`vabench.switches.environment`: those of
+    a value other than the default), so that its children read the same."""
     wanted = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     if not physics.jax_simulates:
         wanted["JAX_PLATFORMS"] = "cpu"
-    return {k: v for k, v in wanted.items() if k not in environ}
+    own = switches.environment(switches.current(environ))
+    return {k: v for k, v in wanted.items() if k not in environ} | own
 
 
 def configure_jax(physics: Choice) -> None:
     """Apply `child_environment` to this process; JAX reads these when it first creates a
-    backend, which nothing in the sweep has done before its choices are made."""
+    backend, which nothing in the sweep has done before its choices are made. JAX's cache and
+    matmul precision are set again from the switches (`sim_mjx.jax_setup`, imported before
+    the config's switches were in the environment)."""
     env = child_environment(physics)
     os.environ.update(env)
+    from vabench.sim_mjx import jax_setup
+
+    jax_setup.configure()
     if "JAX_PLATFORMS" in env:
         import jax
 

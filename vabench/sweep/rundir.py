@@ -5,7 +5,8 @@ would put episodes of two sweeps in one table (a changed `step_budget` keeps eve
 and silently mixes budgets), so the first run stores the plan's identity and every later run
 compares field by field:
 
-    {"v": 2, "fields": {PLAN_FIELD: value, ...}, "episodes": ["model/track/task/seed/run", ...]}
+    {"v": 2, "fields": {PLAN_FIELD: value, ...}, "episodes": ["model/track/task/seed/run", ...],
+     "switches": {name: value, ...}}
 
 `PLAN_FIELDS` are what decide the episodes and their outcomes. Of each model only what changes
 its answers counts (name, API, provider model id, generation options); its limits, retries,
@@ -13,7 +14,9 @@ prices, headers and key variable do not, so a run may resume with a new key or a
 limit. For models served by the embedded server its policy counts too (the policy is the
 model). The protocol's version (`vabench.protocol.version`) counts as well: episodes a model
 played under another protocol are not the same measurement. Everything else (executor, render
-workers, retries) may change between invocations.
+workers, retries) may change between invocations, and so may the `VABENCH_*` switches
+(`vabench.switches`): "switches" holds those of the latest invocation, each earlier setting
+kept in "earlier_switches", so the run directory says how its episodes were run.
 
 A plan.json of version 1 (a bare list of episode ids, before the fields were stored) is
 compared by ids and then upgraded in place.
@@ -28,6 +31,7 @@ from typing import Any
 
 import yaml
 
+from vabench import switches
 from vabench.config import SweepConfig
 from vabench.protocol.version import PROTOCOL_VERSION
 from vabench.run_layout import RunDir
@@ -130,16 +134,30 @@ def check_run_dir(
         raise RunDirMismatch(problem)
     files = RunDir(run_dir)
     path = files.plan
-    if path.exists() and isinstance(json.loads(path.read_text(encoding="utf-8")), dict):
+    now = switches.resolve(config.switch_values()).values
+    before = json.loads(path.read_text(encoding="utf-8")) if path.exists() else None
+    if isinstance(before, dict):
+        if before.get("switches") != now:
+            record = {**before, "switches": now}
+            if "switches" in before:  # a plan.json written before switches were kept has none
+                record["earlier_switches"] = [
+                    *before.get("earlier_switches", []),
+                    before["switches"],
+                ]
+            _write_plan(path, record)
         files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
         return
     run_dir.mkdir(parents=True, exist_ok=True)
     ids = [k.as_id() for k in keys]
-    record = {"v": PLAN_VERSION, "fields": plan_identity(config), "episodes": ids}
+    fields = plan_identity(config)
+    _write_plan(path, {"v": PLAN_VERSION, "fields": fields, "episodes": ids, "switches": now})
+    files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
+
+
+def _write_plan(path: Path, record: dict[str, Any]) -> None:
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(record), encoding="utf-8")
     tmp.replace(path)
-    files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
 
 
 def _refusal(run_dir: Path, diff: list[str]) -> str:

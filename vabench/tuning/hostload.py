@@ -43,12 +43,13 @@ from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vabench import switches
 from vabench.tuning import gpu_busy
 from vabench.tuning.gpu_busy import GpuBusy, Totals
 
 log = logging.getLogger(__name__)
 
-ENV = "VABENCH_HOSTLOAD_S"
+ENV = switches.variable("hostload_s")
 DEFAULT_EVERY_S = 60.0
 LAG_PROBE_S = 0.1
 """The loop's lag is how late a sleep of this length wakes up."""
@@ -57,12 +58,7 @@ _PROC = Path("/proc")
 
 
 def every_s_from_env() -> float:
-    raw = os.environ.get(ENV, "")
-    try:
-        return float(raw) if raw else DEFAULT_EVERY_S
-    except ValueError:
-        log.warning("%s=%r is not a number of seconds; using %s", ENV, raw, DEFAULT_EVERY_S)
-        return DEFAULT_EVERY_S
+    return float(switches.get("hostload_s"))
 
 
 def runnable_threads() -> int | None:

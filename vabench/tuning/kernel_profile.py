@@ -31,10 +31,13 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-FOLDER_VARIABLE = "VABENCH_KERNEL_PROFILE"
-AT_VARIABLE = "VABENCH_KERNEL_PROFILE_AT"
-SECONDS_VARIABLE = "VABENCH_KERNEL_PROFILE_S"
-DEFAULT_AT_S, DEFAULT_S = 60.0, 20.0
+from vabench import switches
+
+FOLDER_VARIABLE = switches.variable("kernel_profile")
+AT_VARIABLE = switches.variable("kernel_profile_at")
+SECONDS_VARIABLE = switches.variable("kernel_profile_s")
+DEFAULT_AT_S = switches.SWITCHES["kernel_profile_at"].default
+DEFAULT_S = switches.SWITCHES["kernel_profile_s"].default
 
 WARP_JPEG_KERNELS = (
     "_transform",
@@ -115,11 +118,11 @@ def record_in_background(environ: Mapping[str, str] = os.environ) -> threading.T
     """Where `FOLDER_VARIABLE` is set: a daemon thread that waits `AT_VARIABLE` seconds, records
     `SECONDS_VARIABLE` seconds of this process's kernels and writes `kernels_<pid>.json` (or,
     when recording fails, the reason) into the folder. None where it is not set."""
-    folder = environ.get(FOLDER_VARIABLE)
+    folder = switches.get("kernel_profile", environ)
     if not folder:
         return None
-    at = float(environ.get(AT_VARIABLE, DEFAULT_AT_S))
-    seconds = float(environ.get(SECONDS_VARIABLE, DEFAULT_S))
+    at = float(switches.get("kernel_profile_at", environ))
+    seconds = float(switches.get("kernel_profile_s", environ))
     path = Path(folder) / f"kernels_{os.getpid()}.json"
 
     def run() -> None:

@@ -43,6 +43,8 @@ import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
+from vabench import switches
+
 log = logging.getLogger(__name__)
 
 CONTROL = "nvidia-cuda-mps-control"
@@ -106,13 +108,13 @@ def private_daemon(environ: Mapping[str, str] = os.environ) -> Iterator[dict[str
         shutil.rmtree(folder, ignore_errors=True)
 
 
-NODE_RANKED = "VABENCH_RAY_MPS_RANKED"
+NODE_RANKED = switches.variable("ray_mps_ranked")
 """Set beside `NODE_SWEEP` where the sweep has a critical path (the basket) run by engines
 that share GPUs: each GPU's first engine to join is a normal MPS client and the others below
 normal (`join_node_daemon`), and the driver gives the critical path's chunks to the normal
 ones (`ray_plan.choose_engine`), as the processes executor does with its critical process."""
 
-NODE_SWEEP = "VABENCH_RAY_MPS"
+NODE_SWEEP = switches.variable("ray_mps")
 """Set by the Ray driver in the environment of engines that share GPUs (`executor.actors` above
 the GPUs, `executor.mps` auto): the sweep's id, under which each engine joins its node's
 daemon (`join_node_daemon`) before it makes its CUDA context."""

@@ -38,12 +38,13 @@ from collections.abc import Callable, Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from vabench import switches
 from vabench.tuning.warp_ahead import Ahead, compile_log, load_ahead
 
 log = logging.getLogger(__name__)
 
-ENV = "VABENCH_WARP_PRECOMPILE"
-STATS_ENV = "VABENCH_PRECOMPILE_STATS"
+ENV = switches.variable("warp_precompile")
+STATS_ENV = switches.variable("precompile_stats")
 """A folder: each child writes <family>.json there (the modules it compiled, the seconds spent
 compiling them, summed over its threads, and its wall seconds)."""
 CHILD_TIMEOUT_S = 900
@@ -69,9 +70,7 @@ after the others had ended)."""
 
 
 def marker_dir() -> Path:
-    return Path(os.environ.get("VABENCH_CACHE", Path.home() / ".cache" / "vabench")) / (
-        "warp_compiled"
-    )
+    return Path(switches.get("cache") or Path.home() / ".cache" / "vabench") / "warp_compiled"
 
 
 def code_key(arch: str, width: int, height: int) -> str:
@@ -129,7 +128,7 @@ def family_ready(task: str, key: str, markers: Path) -> bool:
     """Whether `task`'s kernels may be used now: its marker for `key` is there (unless the
     environment says `first`), or no compile is running on the machine (what is missing, the
     sweep compiles itself on first use)."""
-    if os.environ.get(ENV) != "first" and (markers / f"{task}.{key}").exists():
+    if switches.get("warp_precompile") != "first" and (markers / f"{task}.{key}").exists():
         return True
     return not compiling(markers)
 
@@ -160,7 +159,7 @@ def ensure_compiled(
     nothing to do: from then on `family_ready` answers for its families. `first`: the
     families on the sweep's critical path (see the module docstring)."""
     try:
-        if os.environ.get(ENV, "1") == "0":
+        if switches.get("warp_precompile") == "off":
             return []
         return _compile(tasks, width, height, device, images, processes, started, first)
     finally:
@@ -203,7 +202,10 @@ def _compile(
         started = time.monotonic()
         size = (width, height) if images else None
         shared = Path(tempfile.mkdtemp(prefix="vabench-precompile-"))
-        claims, stats = shared / "claims", Path(os.environ.get(STATS_ENV) or shared / "stats")
+        claims, stats = (
+            shared / "claims",
+            Path(switches.get("precompile_stats") or shared / "stats"),
+        )
         claims.mkdir()
         stats.mkdir(parents=True, exist_ok=True)
 
@@ -371,7 +373,7 @@ def _child(
     sharing `claims` with the other children; its report written to `stats`; at CPU priority
     `nice` above this process's; `ready`, its marker, written by the child as soon as its
     modules are in, `compile_family`): None, or the end of its output if it failed."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "VABENCH_WARP_DEVICE": device}
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", switches.variable("warp_device"): device}
     if stats is not None:
         env[STATS_ENV] = str(stats)
     command = [sys.executable, "-m", __name__, task, "--threads", str(threads)]
@@ -481,7 +483,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ahead, seconds = compile_family(
             args.task, size, args.threads, args.claims, ready.touch if ready else None
         )
-    if stats := os.environ.get(STATS_ENV):
+    if stats := switches.get("precompile_stats"):
         report = {
             "task": args.task,
             "compiled": [name for name, _, _ in compiled],

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import os
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
@@ -45,6 +44,7 @@ import mujoco_warp as mjw
 import numpy as np
 import warp as wp
 
+from vabench import switches
 from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
@@ -78,7 +78,7 @@ def on_device(method: F) -> F:
     return locked  # type: ignore[return-value]
 
 
-LOOP_ENV = "VABENCH_WARP_LOOP"
+LOOP_ENV = switches.variable("warp_loop")
 """Environment variable: how graphs hold an action's substeps (`graphs.LOOPS`; default device)."""
 
 HOLD_CHUNK = 100  # physics steps per settle graph (see interface.hold_chunks)
@@ -122,7 +122,7 @@ class WarpBatch(BatchBase):
         self.lock = device_lock(str(self.device))
         self.capacity = capacity(m0, nconmax, njmax)
         self.backend_id = f"mjx-warp-{mjw.__version__}-{mujoco.__version__}-{self.device.arch}"
-        loop = loop or os.environ.get(LOOP_ENV, "device")
+        loop = loop or switches.get("warp_loop")
         self._graphs = Graphs(self.device, graphs and self.device.is_cuda, loop)
         n, arms = n_slots, len(self.arms)
         self._event: wp.Event | None = None

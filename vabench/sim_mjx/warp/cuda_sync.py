@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import os
+
+from vabench import switches
 
 log = logging.getLogger(__name__)
 
-SYNC_VARIABLE = "VABENCH_CUDA_SYNC"
+SYNC_VARIABLE = switches.variable("cuda_sync")
 MODES = ("block", "spin")
 CU_CTX_SCHED_BLOCKING_SYNC = 0x04
 
@@ -45,7 +46,7 @@ def blocking_events() -> bool:
     event and one in `wp.synchronize_stream` each used 1.00 CPU second per
     second waited, one on a sleeping event 0.00. So every wait of the engine's hot paths is on
     a sleeping event. Off with VABENCH_CUDA_SYNC=spin too."""
-    return os.environ.get(SYNC_VARIABLE, "block") != "spin"
+    return switches.get("cuda_sync") != "spin"
 
 
 def prefer_blocking_sync() -> str:
@@ -53,7 +54,7 @@ def prefer_blocking_sync() -> str:
     words. Raises ValueError for a VABENCH_CUDA_SYNC that is neither block nor spin."""
     global _done
     if _done is None:
-        _done = _set_flags(os.environ.get(SYNC_VARIABLE, "block"))
+        _done = _set_flags(switches.get("cuda_sync"))
         log.info("GPU waits: %s", _done)
     return _done
 

@@ -17,25 +17,25 @@ import time
 
 import mujoco
 
+from vabench import switches
 from vabench.sim_mjx.warp.cuda_sync import prefer_blocking_sync
 from vabench.sim_mjx.warp.modules import keep_loaded
 
 GPU_EXTRA = "pip install 'vabench[gpu]'"
 
-GPU_SHARE = "VABENCH_GPU_SHARE"
+GPU_SHARE = switches.variable("gpu_share")
 """Environment variable: how many processes share each GPU (set by the processes executor for
 its workers). GPU buffers sized from the memory free (the Warp renderer's passes) take
 1 / share of it, so that processes sizing at the same moment do not overcommit the card."""
 
 
 def gpu_share() -> int:
-    value = os.environ.get(GPU_SHARE, "1")
-    return max(1, int(value)) if value.isdigit() else 1
+    return int(switches.get("gpu_share"))
 
 
 def warp_device() -> str:
     """The Warp device the Warp backend uses: VABENCH_WARP_DEVICE, else the first CUDA GPU."""
-    return os.environ.get("VABENCH_WARP_DEVICE", "cuda:0")
+    return str(switches.get("warp_device"))
 
 
 class TimedLock:
