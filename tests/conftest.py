@@ -130,3 +130,15 @@ def _own_pace_file(tmp_path, monkeypatch):
 
     path = tmp_path / "pace_cache" / "pace.json"
     monkeypatch.setattr(pace, "pace_file", lambda: path)
+
+
+@pytest.fixture(autouse=True)
+def _switches_stay_in_their_test():
+    """A sweep run in the test's process sets its config's switches in this process's
+    environment (`vabench.switches.apply`, for the processes it starts): put the `VABENCH_*`
+    variables back as they were, so that no later test runs on another test's switches."""
+    before = {k: v for k, v in os.environ.items() if k.startswith("VABENCH_")}
+    yield
+    for k in [k for k in os.environ if k.startswith("VABENCH_") and k not in before]:
+        del os.environ[k]
+    os.environ.update(before)
