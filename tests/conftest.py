@@ -54,17 +54,6 @@ def cpu_batch(probe_model):
     return CpuBatch(probe_model, N_SLOTS)
 
 
-@pytest.fixture
-def home_batch(mjx_batch, probe_task, probe_model):
-    """The 18-slot MJX batch with every slot reset to seed 0 of probe_cube at home."""
-    import numpy as np
-
-    q = probe_task.initial_qpos(probe_model, 0)
-    mjx_batch.reset(range(N_SLOTS), np.broadcast_to(q, (N_SLOTS, probe_model.nq)), settle_steps=25)
-    return mjx_batch
-
-
-
 # Test files that start Ray clusters (in the test process or in a sweep it starts).
 RAY_CLUSTER_FILES = {"test_sweep_ray.py", "test_sweep_cluster.py", "test_ray_limiter.py"}
 

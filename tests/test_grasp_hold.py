@@ -134,7 +134,9 @@ def _batch(task_name: str, n: int, backend: str) -> TaskBatch:
 # MuJoCo Warp on its CPU device takes 2-3 minutes for the grasp and the expert episode (the
 # GPU path runs the same kernels), hence slow: measured on 2026-11-25, grasped point within
 # 0.95 mm of GC on seed 1003, expert solved, nothing thrown.
-@pytest.mark.parametrize("backend", ["c", "mjx", pytest.param("warp", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "backend", ["c", *(pytest.param(b, marks=pytest.mark.slow) for b in ("mjx", "warp"))]
+)
 def test_issue_grasp_holds_the_cube(backend):
     seeds = ISSUE_SEEDS if backend == "c" else ISSUE_SEEDS[1:2]  # MJX: one compile, one seed
     tb = _batch("grasp_single_cube", len(seeds), backend)

@@ -1,14 +1,56 @@
-"""The Must-holds of the simulator core, on MJX (CPU) with real MuJoCo physics."""
+"""The Must-holds of the simulator core with real MuJoCo physics: on C MuJoCo, and on MJX (JAX
+on the CPU; `slow`: its compile alone takes minutes here), through the batch interface both
+share (`get_state` compares a slot's whole state)."""
 
 from __future__ import annotations
 
 import itertools
 
-import jax
 import numpy as np
 import pytest
 
 from tests.conftest import N_SLOTS
+from vabench.sim_mjx.cpu import CpuBatch
+
+BACKENDS = ["c", pytest.param("mjx", marks=pytest.mark.slow)]
+
+
+@pytest.fixture(scope="module", params=BACKENDS)
+def backend(request):
+    return request.param
+
+
+@pytest.fixture(scope="module")
+def batches(backend, request, probe_model):
+    """(the 18-slot batch, the 1-slot batch) of `backend`."""
+    if backend == "mjx":
+        return request.getfixturevalue("mjx_batch"), request.getfixturevalue("mjx_single")
+    return CpuBatch(probe_model, N_SLOTS), CpuBatch(probe_model, 1)
+
+
+@pytest.fixture
+def home_batch(batches, probe_task, probe_model):
+    """The 18-slot batch with every slot reset to seed 0 of probe_cube at home."""
+    q = probe_task.initial_qpos(probe_model, 0)
+    batch = batches[0]
+    batch.reset(range(N_SLOTS), np.broadcast_to(q, (N_SLOTS, probe_model.nq)), settle_steps=25)
+    return batch
+
+
+@pytest.fixture
+def single(batches):
+    return batches[1]
+
+
+def _state(batch, slot=0):
+    return batch.get_state([slot])
+
+
+def _assert_same_state(a, b):
+    assert a.keys() == b.keys()
+    for field in a:
+        np.testing.assert_array_equal(a[field], b[field], err_msg=field)
+
 
 AXES = {"x": 0, "y": 1, "z": 2}
 LOCAL = {"rx": 0, "ry": 1, "rz": 2}
@@ -91,17 +133,15 @@ def _home_single(sb, task, model):
     return sb
 
 
-def test_unreachable_target_leaves_state_unchanged(mjx_single, probe_task, probe_model):
+def test_unreachable_target_leaves_state_unchanged(single, probe_task, probe_model):
     """A move into the table and one out of reach both fail to plan; the slot is bit-identical."""
-    sb = _home_single(mjx_single, probe_task, probe_model)
+    sb = _home_single(single, probe_task, probe_model)
     down = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm": 100}
     assert sb.step([down])[0].planner_success
-    before = jax.device_get(sb.state)
+    before = _state(sb)
     result = sb.step([down])[0]
     assert result.valid and not result.planner_success and not result.executed
-    after = jax.device_get(sb.state)
-    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after), strict=True):
-        np.testing.assert_array_equal(a, b)
+    _assert_same_state(before, _state(sb))
     # out of reach: far along +y, repeated until the planner refuses; the refusal moves nothing
     far = [{"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 100}]
     for _ in range(6):
@@ -114,9 +154,9 @@ def test_unreachable_target_leaves_state_unchanged(mjx_single, probe_task, probe
         pytest.fail("600 mm along +y from home never failed to plan")
 
 
-def test_workspace_clipping_is_reported(mjx_single, probe_task, probe_model):
+def test_workspace_clipping_is_reported(single, probe_task, probe_model):
     """A target beyond the end-effector bounds is clipped to them, and the result says so."""
-    sb = _home_single(mjx_single, probe_task, probe_model)
+    sb = _home_single(single, probe_task, probe_model)
     for _ in range(4):
         res = sb.step(
             [{"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 100}]
@@ -127,9 +167,9 @@ def test_workspace_clipping_is_reported(mjx_single, probe_task, probe_model):
     assert ee[2] == pytest.approx(1.35, abs=2e-3)
 
 
-def test_probe_cube_grasp_lift_hold(mjx_single, probe_task, probe_model):
+def test_probe_cube_grasp_lift_hold(single, probe_task, probe_model):
     """Top-down approach, close, +100 mm: the cube rises >= 90 mm and slips < 5 mm in 1 s."""
-    sb = mjx_single
+    sb = single
     sb.reset(
         [0], probe_task.initial_qpos(probe_model, 7)[None], settle_steps=probe_task.settle_steps
     )
@@ -176,14 +216,14 @@ def test_probe_cube_grasp_lift_hold(mjx_single, probe_task, probe_model):
 
 
 def test_determinism_across_batch_size_slot_and_neighbours(
-    mjx_single, home_batch, probe_task, probe_model
+    single, home_batch, probe_task, probe_model
 ):
     """The same slot state and action give bit-identical results whatever the batch size, the
     slot index and the other slots' actions."""
     action = {"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 42}
-    single = _home_single(mjx_single, probe_task, probe_model)
+    _home_single(single, probe_task, probe_model)
     single.step([action])
-    reference = jax.device_get(single.state)
+    reference = _state(single)
     neighbours = [
         {"action": "gripper.rotate_local", "axis": "rz", "sign": "-", "angle_deg": 30},
         {"action": "gripper.close"},
@@ -199,9 +239,7 @@ def test_determinism_across_batch_size_slot_and_neighbours(
         actions = [neighbours[(i + slot) % len(neighbours)] for i in range(N_SLOTS)]
         actions[slot] = action
         home_batch.step(actions)
-        state = jax.device_get(home_batch.state)
-        for ref, got in zip(jax.tree.leaves(reference), jax.tree.leaves(state), strict=True):
-            np.testing.assert_array_equal(got[slot], ref[0])
+        _assert_same_state(reference, _state(home_batch, slot))
 
 
 @pytest.mark.parametrize(
@@ -236,11 +274,9 @@ def test_determinism_across_batch_size_slot_and_neighbours(
         ),
     ],
 )
-def test_bad_action_rejected_without_touching_state(mjx_single, action, field):
-    before = jax.device_get(mjx_single.state)
-    result = mjx_single.step([action])[0]
+def test_bad_action_rejected_without_touching_state(single, action, field):
+    before = _state(single)
+    result = single.step([action])[0]
     assert not result.valid and not result.executed
     assert f"field '{field}'" in result.error
-    after = jax.device_get(mjx_single.state)
-    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after), strict=True):
-        np.testing.assert_array_equal(a, b)
+    _assert_same_state(before, _state(single))

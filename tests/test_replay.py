@@ -16,7 +16,7 @@ ACTIONS = [
 ]
 
 
-@pytest.mark.parametrize("backend", ["c", "mjx"])
+@pytest.mark.parametrize("backend", ["c", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_replay_cli(tmp_path, backend):
     path = tmp_path / "actions.json"
     path.write_text(json.dumps(ACTIONS))

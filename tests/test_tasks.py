@@ -204,7 +204,7 @@ def test_idle_slots_keep_their_predicate_state():
     np.testing.assert_array_equal(tb.batch.qpos()[1], q1)
 
 
-@pytest.mark.parametrize("backend", ["c", "mjx"])
+@pytest.mark.parametrize("backend", ["c", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_model_variants_are_per_slot(backend):
     """Two cube sizes in one batch: each slot rests at its own variant's height."""
     from vabench.sim_mjx.scene import add_free_box

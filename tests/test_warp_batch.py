@@ -134,7 +134,7 @@ def test_overflow_at_reset_is_reported_and_not_cached(cube, tmp_path):
     assert not list(tmp_path.rglob("*.npz"))
 
 
-@pytest.mark.parametrize("backend", ["c", "warp"])
+@pytest.mark.parametrize("backend", ["c", pytest.param("warp", marks=pytest.mark.slow)])
 def test_cached_reset_equals_a_fresh_settle(cube, tmp_path, backend):
     """A reset served by the settled-state cache continues exactly as the settled one did."""
     task, _, _ = cube
