@@ -64,7 +64,6 @@ def home_batch(mjx_batch, probe_task, probe_model):
     return mjx_batch
 
 
-
 # Test files that start Ray clusters (in the test process or in a sweep it starts).
 RAY_CLUSTER_FILES = {"test_sweep_ray.py", "test_sweep_cluster.py", "test_ray_limiter.py"}
 
@@ -81,7 +80,6 @@ def one_ray_cluster_at_a_time(request):
     with open(Path(tempfile.gettempdir()) / "vabench-tests-ray.lock", "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
         yield
-
 
 
 # The files that hold most of the suite's time (sweeps and Ray clusters started for real, expert
