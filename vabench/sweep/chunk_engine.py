@@ -190,7 +190,9 @@ class ChunkEngine:
             if not running.done():
                 running.cancel()
 
-    def _summary(self, sweep: LocalSweep, keys: Sequence[EpisodeKey], retried: int) -> dict:
+    def _summary(
+        self, sweep: LocalSweep, keys: Sequence[EpisodeKey], retried: int
+    ) -> dict[str, Any]:
         records = [sweep.ledger.records.get(ledger_key(k)) for k in keys]
         return {
             "episodes": len(keys),

@@ -293,7 +293,7 @@ class Driver:
                 requeued += len(left)
             self.done += 1  # this try of the chunk has ended
         engine.chunks.clear()
-        engine.engine.kill()
+        _engine(engine).kill()
         restart = replace and self.restarts < MAX_ENGINE_RESTARTS
         self._say(
             logging.WARNING,
@@ -327,7 +327,7 @@ class Driver:
             if not e.dead and e.starting:
                 e.dead = True
                 e.clock.end(time.monotonic())
-                e.engine.kill()
+                _engine(e).kill()
 
     # -- chunks --------------------------------------------------------------------------------
     def _hand_out(self) -> None:
@@ -344,7 +344,7 @@ class Driver:
             best.given.append(chunk)
             best.chunks[chunk.name] = chunk
             best.clock.work_began(time.monotonic())
-            best.engine.run_chunk(chunk)
+            _engine(best).run_chunk(chunk)
             self._say(
                 logging.INFO,
                 "chunk %s (%d episodes) to %s",
@@ -417,7 +417,7 @@ class Driver:
             closing = {id(e) for e in live if e.ready}
             for e in live:
                 if e.ready:
-                    e.engine.close()
+                    _engine(e).close()
             deadline = now + CLOSE_TIMEOUT_S
             while closing and time.monotonic() < deadline:
                 with contextlib.suppress(queue.Empty):
@@ -428,7 +428,7 @@ class Driver:
                     elif event == LINE and not engine.dead:
                         self._append(*payload)
         for e in live:
-            e.engine.kill()
+            _engine(e).kill()
         with contextlib.suppress(queue.Empty):
             while True:
                 engine, event, *payload = self.events.get_nowait()
@@ -494,6 +494,11 @@ class Driver:
                 100 * sum(r["working_s"] for r in report) / total,
                 100 * sum(r["waiting_s"] for r in report) / total,
             )
+
+
+def _engine(handle: EngineHandle) -> Engine:
+    assert handle.engine is not None, "started by `Driver._start_engine`"
+    return handle.engine
 
 
 def _host(engine: EngineHandle) -> str:

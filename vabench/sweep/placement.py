@@ -8,11 +8,14 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, ledger_key
 from vabench.tuning import mps
+
+if TYPE_CHECKING:
+    from vabench.sweep.driver import Engine
 
 
 @dataclass
@@ -85,8 +88,8 @@ class EngineHandle:
     """The driver's view of one engine (`driver.Engine`: a worker process or a Ray actor)."""
 
     index: int
-    engine: Any = None
-    """The `driver.Engine` it drives."""
+    engine: Engine | None = None
+    """The worker process or actor it drives."""
     slot: int = 0
     """The place in the plan it fills (an engine started for a dead one takes its slot)."""
     starting: bool = True

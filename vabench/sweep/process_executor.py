@@ -203,7 +203,11 @@ async def _serve(
         loop.call_soon_threadsafe(inbox.put_nowait, None)
 
     threading.Thread(target=receive, name="commands", daemon=True).start()
-    send = lines.send  # from this loop's thread only
+
+    def send(item: tuple[Any, ...]) -> None:  # from this loop's thread only
+        with contextlib.suppress(OSError):  # the driver is gone: this process ends with it
+            lines.send(item)
+
     try:
         engine = ChunkEngine(spec.config, spec.choices, spec.run_dir)
     except Exception:  # would fail the same way in another process
@@ -242,6 +246,7 @@ async def _serve(
     ticker.cancel()
     for task in running:  # the driver is gone: nothing of them would be recorded
         task.cancel()
+    await asyncio.gather(*running, return_exceptions=True)
     figures = await engine.close()
     send((CLOSED, figures))
 
@@ -324,7 +329,13 @@ class ProcessEngines:
     log = log
     max_chunks = 1
 
-    def __init__(self, config: SweepConfig, choices: Choices, run_dir: Path, cells: dict):
+    def __init__(
+        self,
+        config: SweepConfig,
+        choices: Choices,
+        run_dir: Path,
+        cells: dict[Cell, list[EpisodeKey]],
+    ):
         self.config = config
         self.run_dir = run_dir
         self.cells = cells
