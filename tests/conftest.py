@@ -54,6 +54,7 @@ def cpu_batch(probe_model):
     return CpuBatch(probe_model, N_SLOTS)
 
 
+
 # Test files that start Ray clusters (in the test process or in a sweep it starts).
 RAY_CLUSTER_FILES = {"test_sweep_ray.py", "test_sweep_cluster.py", "test_ray_limiter.py"}
 
@@ -70,7 +71,6 @@ def one_ray_cluster_at_a_time(request):
     with open(Path(tempfile.gettempdir()) / "vabench-tests-ray.lock", "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
         yield
-
 
 
 # The files that hold most of the suite's time (sweeps and Ray clusters started for real, expert

@@ -231,6 +231,6 @@ def test_a_sweeps_two_worker_processes_keep_the_servers_rate(tmp_path, caplog):
         with caplog.at_level(logging.INFO, logger="vabench.sweep"):
             assert main([str(cfg), "--out", str(tmp_path / "out"), "--plain", "--no-report"]) == 0
         log = [(r.received_s, r.status) for r in server.log]
-    assert "one limit board for every worker keeps the limits of limited" in caplog.text
+    assert "one limit board for every engine keeps the limits of limited" in caplog.text
     assert len(log) >= 8 and [s for _, s in log].count(429) == 0
     assert max_in_window([(t, 1.0) for t, _ in log], period) <= rpm

@@ -1,5 +1,5 @@
 """Where a Ray sweep's engine-time goes: the driver's clock of each engine
-(`ray_plan.EngineClock`) and the scaling benchmark's split of the shortfall from perfect
+(`placement.EngineClock`) and the scaling benchmark's split of the shortfall from perfect
 scaling (benchmarks/ray_scaling.py), on given times (the live accounting is tested on a Ray
 cluster in test_sweep_ray.py)."""
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from vabench.sweep.ray_plan import EngineClock
+from vabench.sweep.placement import EngineClock
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import ray_scaling

@@ -1,4 +1,4 @@
-"""Where a Ray sweep's driver sends the queue's next chunk (`ray_plan.choose_engine`), on
+"""Where a Ray sweep's driver sends the queue's next chunk (`placement.choose_engine`), on
 given engines and records: the live hand-out is tested on a Ray cluster in
 test_sweep_ray.py; here a small clock-driven model of batched engines checks what the
 placement promises (every engine that starts gets work, none holds more than its share while
@@ -6,27 +6,26 @@ others wait, each chunk given once)."""
 
 from __future__ import annotations
 
-from vabench.sweep.ray_plan import Chunk, EngineHandle, choose_engine, next_placement
+from vabench.sweep.placement import Chunk, EngineHandle, choose_engine, next_placement
+from vabench.sweep.plan import EpisodeKey
+from vabench.sweep.results import ledger_key
 
 LIMIT = 1024  # an engine's in-flight limit (its status's "limit"): large, as on a GPU
 
 
 def _engines(n: int) -> list[EngineHandle]:
-    return [
-        EngineHandle(index=i, actor=None, holder="node", starting=object(), status={"limit": LIMIT})
-        for i in range(n)
-    ]
+    return [EngineHandle(index=i, status={"limit": LIMIT}) for i in range(n)]
 
 
 def _plan(tasks: int, episodes: int, cost: int = 10) -> list[Chunk]:
     return [
-        Chunk(f"t{t}", [("m", "active", f"t{t}", s, 1) for s in range(episodes)], cost)
+        Chunk(f"t{t}", [EpisodeKey("m", "active", f"t{t}", s, 1) for s in range(episodes)], cost)
         for t in range(tasks)
     ]
 
 
 def _hand_out(engines, queue, records, max_chunks=8):
-    """The driver's loop body (`ClusterSweep._hand_out`) on plain lists."""
+    """The driver's loop body (`Driver._hand_out`) on plain lists."""
     given = []
     while queue:
         placed = next_placement(engines, queue, records, max_chunks)
@@ -50,8 +49,8 @@ def _run(engines, queue, ready_at, seconds_per_episode=1.0, watch=None):
     t, dt = 0.0, 0.1
     while queue or any(e.chunks for e in engines):
         for e in engines:
-            if e.starting is not None and t >= ready_at[e.index]:
-                e.starting = None
+            if e.starting and t >= ready_at[e.index]:
+                e.starting = False
         for index, name in _hand_out(engines, queue, records):
             assert name not in placed, f"{name} given twice"
             placed[name] = index
@@ -62,7 +61,7 @@ def _run(engines, queue, ready_at, seconds_per_episode=1.0, watch=None):
                 done = progress.get(id(chunk), 0.0) + dt / (seconds_per_episode * chunk.cost / 10)
                 progress[id(chunk)] = done
                 for k in chunk.keys[: int(done)]:
-                    records[k] = True
+                    records[ledger_key(k)] = True
                 if int(done) >= len(chunk.keys):
                     del e.chunks[ref]
                     busy_until[e.index] = t + dt
@@ -89,7 +88,7 @@ def test_engines_that_start_later_still_get_their_share_of_the_plan():
 
 def test_the_first_engine_ready_takes_only_its_fair_share():
     engines = _engines(4)
-    engines[0].starting = None  # ready; the other three still starting
+    engines[0].starting = False  # ready; the other three still starting
     queue = _plan(14, 12)
     given = _hand_out(engines, queue, {})
     assert [i for i, _ in given] == [0, 0, 0]  # 3 x 120 <= 1,680 / 4 < 4 x 120
@@ -98,7 +97,7 @@ def test_the_first_engine_ready_takes_only_its_fair_share():
 
 def test_one_engine_takes_the_whole_plan_up_to_its_limits():
     engines = _engines(1)
-    engines[0].starting = None
+    engines[0].starting = False
     queue = _plan(6, 12)
     assert len(_hand_out(engines, queue, {})) == 6
     queue = _plan(12, 12)
@@ -112,7 +111,7 @@ def test_an_idle_engine_takes_a_chunk_larger_than_its_share():
     """The basket: 60 long episodes cost more than a fair share of the whole plan; the engine
     it goes to holds it alone while the others share the rest."""
     engines = _ready(_engines(3))
-    basket = Chunk("basket", [("m", "active", "basket", s, 1) for s in range(60)], 100)
+    basket = Chunk("basket", [EpisodeKey("m", "active", "basket", s, 1) for s in range(60)], 100)
     queue = [basket, *_plan(6, 12)]
     given = _hand_out(engines, queue, {})
     assert given[0] == (0, "basket")
@@ -135,24 +134,24 @@ def test_recorded_episodes_lighten_an_engines_load():
     _hand_out(engines, queue, {})
     assert len(queue) == 1  # 2 + 2 chunks, the fifth over both shares
     first = next(iter(engines[0].chunks.values()))
-    records = dict.fromkeys(first.keys, True)  # engine 0's first chunk recorded
+    records = dict.fromkeys(map(ledger_key, first.keys), True)  # engine 0's first chunk recorded
     given = _hand_out(engines, queue, records)
     assert given == [(0, "t4")]
 
 
 def _ready(engines: list[EngineHandle]) -> list[EngineHandle]:
     for e in engines:
-        e.starting = None
+        e.starting = False
     return engines
 
 
 def test_an_engine_that_never_starts_stops_holding_a_share():
     """Ray may leave an engine pending for good (its GPU held by another job): after
     `START_GRACE_S` the ready engines share the plan without it."""
-    from vabench.sweep.ray_plan import START_GRACE_S
+    from vabench.sweep.placement import START_GRACE_S
 
     engines = _engines(2)
-    engines[0].starting = None
+    engines[0].starting = False
     queue = _plan(4, 12)  # 4 x 120
     for _ in range(2):
         engines[0].chunks[object()] = queue.pop(0)  # half the plan: its share of two
@@ -174,7 +173,7 @@ def _critical(n: int, episodes: int, cost: int) -> list[Chunk]:
     return [
         Chunk(
             f"basket {i}",
-            [("m", "active", "basket", i * episodes + s, 1) for s in range(episodes)],
+            [EpisodeKey("m", "active", "basket", i * episodes + s, 1) for s in range(episodes)],
             cost,
             critical=True,
         )
@@ -233,18 +232,18 @@ def test_a_critical_chunk_waits_for_engines_still_starting_then_doubles_up():
     """Two engines ready on GPU 0, one of them running a basket chunk, a third engine starting:
     the next basket chunk waits for it (it may sit on another GPU) for `CRITICAL_WAIT_S`, then
     takes the idle engine on GPU 0."""
-    from vabench.sweep.ray_plan import CRITICAL_WAIT_S
+    from vabench.sweep.placement import CRITICAL_WAIT_S
 
     engines = _on_gpus(_engines(4), per_gpu=2)
     for e in engines[:2]:
-        e.starting = None
+        e.starting = False
     first, second = _critical(2, 15, 250)
     engines[0].chunks[object()] = first
     asked = engines[2].clock.asked_at
     soon, late = asked + CRITICAL_WAIT_S - 1, asked + CRITICAL_WAIT_S + 1
     assert choose_engine(engines, second, {}, 0, 8, now=soon) is None
     assert choose_engine(engines, second, {}, 0, 8, now=late) is engines[1]
-    engines[2].starting = None
+    engines[2].starting = False
     engines[2].info = {"node": "n1", "gpus": ["1"]}
     assert choose_engine(engines, second, {}, 0, 8, now=soon) is engines[2]
     other = _plan(1, 15, 50)[0]  # a chunk off the critical path never joins a basket chunk
@@ -256,11 +255,11 @@ def test_the_ready_engines_work_while_a_critical_chunk_waits_for_the_others():
     chunk goes to GPU 0, the other three wait for the other GPUs' engines, and meanwhile GPU
     0's three other engines take the chunks behind them; a late replacement engine is not
     waited for."""
-    from vabench.sweep.ray_plan import CRITICAL_WAIT_S
+    from vabench.sweep.placement import CRITICAL_WAIT_S
 
     engines = _on_gpus(_engines(16), per_gpu=4)
     for e in engines[:4]:
-        e.starting = None
+        e.starting = False
     queue = [*_critical(4, 15, 250), *_plan(28, 15, 50)]
     given = _hand_out(engines, queue, {})
     assert given[0] == (0, "basket 0")
@@ -312,11 +311,11 @@ def test_a_critical_chunk_takes_a_below_normal_engine_once_the_wait_is_over():
     """GPU 0's lead not ready: the basket chunk waits for it within `CRITICAL_WAIT_S`, then
     takes an idle engine of that GPU at below-normal priority rather than wait for the whole
     sweep; with the lead gone there is nothing to wait for."""
-    from vabench.sweep.ray_plan import CRITICAL_WAIT_S
+    from vabench.sweep.placement import CRITICAL_WAIT_S
 
     engines = _ranked(_engines(4), per_gpu=4)
     for e in engines[1:]:
-        e.starting = None
+        e.starting = False
     chunk = _critical(1, 15, 250)[0]
     asked = engines[0].clock.asked_at
     assert choose_engine(engines, chunk, {}, 0, 8, now=asked + CRITICAL_WAIT_S - 1) is None
@@ -332,11 +331,11 @@ def test_a_critical_chunk_does_not_wait_for_a_lead_already_at_work():
     where GPU 0's lead is the one still starting, the chunk waits instead."""
     engines = _ranked(_engines(8), per_gpu=4)
     for e in engines[:4]:
-        e.starting = None
+        e.starting = False
     engines[0].chunks[object()] = _plan(1, 15, 50)[0]
     chunk = _critical(1, 15, 250)[0]
     soon = engines[0].clock.asked_at + 1
     assert choose_engine(engines, chunk, {}, 0, 8, now=soon) is engines[1]
     engines[0].chunks.clear()
-    engines[0].starting = object()
+    engines[0].starting = True
     assert choose_engine(engines, chunk, {}, 0, 8, now=soon) is None

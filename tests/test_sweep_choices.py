@@ -203,11 +203,11 @@ def test_auto_runs_worker_processes_on_a_cuda_like_host_and_loses_nothing(
         assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
     assert "executor:  processes, 4 cells at once (auto: 4 cores" in caplog.text
     assert "one of GPUs 0,1 each" in caplog.text
-    summaries = [r.args for r in caplog.records if "cell %s done: %s" in str(r.msg)]
-    assert len(summaries) == 2
-    for _cell, summary in summaries:
-        assert summary["jax"] == "cpu"
-        env = summary["environment"]
+    started = [r.args for r in caplog.records if "engine %d started: %s" in str(r.msg)]
+    assert len(started) == 2
+    for _engine, info in started:
+        assert info["jax"] == "cpu"
+        env = info["environment"]
         assert env["JAX_PLATFORMS"] == "cpu" and env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
         assert env["CUDA_VISIBLE_DEVICES"] in ("0", "1")
         assert env["VABENCH_CORES"] == "2"  # 4 cores, 2 workers: each sizes its pools to 2
@@ -357,6 +357,8 @@ def test_worker_processes_run_on_the_choices_they_are_sent(tmp_path, monkeypatch
     with caplog.at_level(logging.INFO, logger="vabench.sweep.process_executor"):
         assert len(run_processes(config, keys, run_dir, sent)) == len(keys) == 2
     assert counts == {"physics": 0, "renderer": 0}
-    ((_cell, summary),) = [r.args for r in caplog.records if "cell %s done: %s" in str(r.msg)]
+    ((_chunk, _engine, summary),) = [
+        r.args for r in caplog.records if "chunk %s done on %s: %s" in str(r.msg)
+    ]
     assert summary["in_flight"] == "executor.in_flight = 3"
     assert summary["physics"] == sent.physics.label

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import pstats
+import re
 
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
@@ -51,7 +52,11 @@ def test_processes_equal_the_local_executor_and_a_rerun_runs_nothing(tmp_path, c
     out = tmp_path / "processes"
     with caplog.at_level(logging.INFO, logger="vabench.sweep"):
         assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
-    assert "cells 2/2 done (0 failed) | episodes recorded 4/4" in caplog.text
+    assert re.search(
+        r"processes: chunks 2/2 done \(0 failed\), 0 running on \d engines \| episodes "
+        r"recorded 4/4",
+        caplog.text,
+    ), caplog.text
     assert records(out) == records(tmp_path / "local") and len(records(out)) == 4
     # each worker's own INFO lines (lost before: a spawned process has no logging set up)
     logs = "".join(p.read_text() for p in (out / "logs").glob("worker_*.log"))
@@ -85,13 +90,13 @@ def test_a_failing_cell_is_reported_and_the_others_finish(tmp_path, caplog):
     assert sorted(got) == sorted(
         (k.model, k.track, k.task, k.seed, k.run) for k in keys if k.task != "no_such_task"
     )
-    assert "cell local/active/no_such_task failed" in caplog.text
-    assert "1 of 2 cells failed: local/active/no_such_task" in caplog.text
+    assert "chunk local/active/no_such_task failed" in caplog.text
+    assert "1 chunks failed (1 episodes not run): local/active/no_such_task" in caplog.text
 
 
 def test_workers_write_a_profile_of_each_chunk_when_asked(tmp_path, monkeypatch):
-    """VABENCH_PROFILE_DIR: each worker leaves a cProfile of its chunk (how a GPU host without
-    a sampling profiler shows where a worker's time goes)."""
+    """VABENCH_PROFILE_DIR: each engine process leaves a cProfile of its life, named after its
+    first chunk (how a GPU host without a sampling profiler shows where its time goes)."""
     path = tmp_path / "processes.yaml"
     path.write_text(CONFIG.format(executor="{kind: processes, max_tasks: 1}"))
     run_dir, folder = tmp_path / "out", tmp_path / "profiles"
@@ -104,7 +109,7 @@ def test_workers_write_a_profile_of_each_chunk_when_asked(tmp_path, monkeypatch)
     (profile,) = folder.glob("*.prof")
     assert "local-active-grasp_single_cube" in profile.name
     functions = {name for _, _, name in pstats.Stats(str(profile)).stats}  # type: ignore[attr-defined]
-    assert {"_run_reporting", "open_engine", "_run_task"} <= functions  # the chunk's engine
+    assert {"run_chunk", "open_engine", "_run_task"} <= functions  # the chunk's engine
 
 
 def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_its(tmp_path):
@@ -116,10 +121,11 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     from vabench.children import CORES_VARIABLE
     from vabench.sim_mjx.warp.device import GPU_SHARE
     from vabench.sweep.cells import pending_cells
+    from vabench.sweep.chunk_engine import for_chunk
     from vabench.sweep.process_executor import (
+        ProcessEngines,
         critical_environment,
         critical_tasks,
-        for_chunk,
         plan_chunks,
         plan_critical_path,
         worker_shares,
@@ -177,13 +183,12 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     four_tasks = [k for _, part in parts[1:] for k in part]
     assert for_chunk(batched, four_tasks).executor.max_tasks == 4  # every task of it at once
     assert for_chunk(batched, parts[0][1]).executor.max_tasks == 2  # never lowered
-    # the critical path as the parent found it, in every worker (each sees only its tasks)
+    # the critical path as the parent found it, in every engine (each sees only its tasks)
     critical = critical_tasks(config, cells, batched)
     assert critical == {"put_everything_in_basket"}
+    told = ProcessEngines(config, host, tmp_path, cells).sent
     for _, part in parts:
-        assert for_chunk(host, part, critical).executor.critical_path == (
-            "put_everything_in_basket",
-        )
+        assert for_chunk(told, part).executor.critical_path == ("put_everything_in_basket",)
     # the basket's process: a normal MPS client with half the host's cores for its server;
     # the others stay below normal with their share (the shared environment)
     shared = worker_shares(host, len(parts)) | {mps.PRIORITY_VARIABLE: mps.BELOW_NORMAL}
@@ -196,12 +201,10 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     assert critical_tasks(config, cells, alone) == set()  # one process: nothing set apart
     no_mps = dataclasses.replace(batched, executor=dataclasses.replace(batched.executor, mps=False))
     assert critical_tasks(config, cells, no_mps) == set()  # one engine process per GPU
-    # ... but every worker of batched physics is told the sweep's critical path
-    decided = plan_critical_path(config, cells, no_mps)
-    assert decided == {"put_everything_in_basket"}
-    assert for_chunk(no_mps, parts[1][1], decided).executor.critical_path == (
-        "put_everything_in_basket",
-    )
+    # ... but every engine of batched physics is told the sweep's critical path
+    assert plan_critical_path(config, cells, no_mps) == {"put_everything_in_basket"}
+    told = ProcessEngines(config, no_mps, tmp_path, cells).sent
+    assert for_chunk(told, parts[1][1]).executor.critical_path == ("put_everything_in_basket",)
     assert plan_critical_path(config, cells, choices) == set()  # C MuJoCo: no batches
 
     # C MuJoCo: cells cut as before, one (model, track, task) each at most

@@ -7,17 +7,15 @@ from __future__ import annotations
 
 import io
 import json
-import queue
 import re
 
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
-from vabench.sweep.cells import STATUS, status_line
 from vabench.sweep.choices import choose
 from vabench.sweep.display import Counts, Display, Status, Tally
+from vabench.sweep.driver import merged_status
 from vabench.sweep.plan import EpisodeKey, plan
-from vabench.sweep.process_executor import LedgerWriter, run_processes
-from vabench.sweep.results import ledger_key
+from vabench.sweep.process_executor import run_processes
 from vabench.sweep.rundir import check_run_dir
 
 
@@ -299,19 +297,16 @@ def test_the_processes_executor_counts_each_episode_when_its_line_arrives(tmp_pa
 
 
 def test_chunks_of_one_cell_running_at_once_are_all_counted(tmp_path):
-    """A cell cut into two chunks (two workers): both chunks' running episodes, calls and
-    in-flight counts add up in the display (on an H100 the two halves of each cell hid each
-    other: 240 shown running of 480)."""
+    """A cell cut into two chunks running in two engines: both engines' running episodes,
+    calls and in-flight counts add up in the display (the two halves of each cell must not
+    hide each other)."""
     keys = [EpisodeKey("m", "active", "t", seed, 1) for seed in range(4)]
-    lines: queue.SimpleQueue = queue.SimpleQueue()
-    writer = LedgerWriter(tmp_path, lines)
-    for part, running, calls in ((keys[:2], 2, 10), (keys[2:], 1, 7)):
-        status = {"finished": False, "running": running, "in_flight": running, "limit": 4}
+    reports = []
+    for running, calls in ((2, 10), (1, 7)):
+        status = {"running": {"m/active": running}, "in_flight": running, "limit": 4}
         status |= {"reason": "r", "calls": calls, "tokens": 5, "cost": 0.0, "calls_in_flight": 1}
-        lines.put((STATUS, status_line([ledger_key(k) for k in part], status)))
-    lines.put(None)
-    writer._thread.join(timeout=10)
-    shown = writer.status(Tally(tmp_path, keys))
+        reports.append(status)
+    shown = merged_status(Tally(tmp_path, keys).status(), reports, reports, "worker processes")
     assert shown.total().running == 3 and shown.in_flight == 3 and shown.limit == 8
     assert shown.calls == 17 and shown.tokens == 10 and shown.calls_in_flight == 2
 

@@ -383,7 +383,7 @@ def test_each_engines_time_is_accounted_and_logged(cluster, tmp_path, caplog):
 def test_engines_are_told_the_whole_sweeps_critical_path(tmp_path):
     """Each chunk runs in a LocalSweep of its own tasks: the basket's chunks, alone, would
     find nothing to stand out from, and its batches never got the GPU's first priority."""
-    from vabench.sweep.ray_plan import with_critical_path
+    from vabench.sweep.chunk_engine import with_critical_path
     from vabench.sweep.runner import sweep_critical_path
 
     choices = choose(load_config(write(tmp_path / "ray.yaml", "{kind: ray}")))

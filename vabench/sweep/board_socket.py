@@ -210,6 +210,10 @@ class BoardAddress:
     shared: tuple[str, ...]
     capped: bool
 
+    def joined(self, holder: str = "") -> contextlib.AbstractAsyncContextManager[BoardLimits]:
+        """`joined(self, holder)`: the limits of this board for the block."""
+        return joined(self, holder or None)
+
 
 @contextlib.asynccontextmanager
 async def joined(board: BoardAddress, holder: str | None = None) -> AsyncIterator[BoardLimits]:

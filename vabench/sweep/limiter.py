@@ -33,7 +33,9 @@ from __future__ import annotations
 
 import asyncio
 import collections
-from collections.abc import Iterable, Mapping
+import contextlib
+from collections.abc import AsyncIterator, Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from vabench.llm_pool.config import Limits, ModelEndpoint
@@ -283,6 +285,26 @@ class RayChannel:
 
     def send(self, method: str, *args: Any) -> None:
         getattr(self.handle, method).remote(*args)
+
+
+@dataclass(frozen=True)
+class RayBoard:
+    """What an engine actor needs to take its limits from the sweep's `LimiterActor`: its
+    handle, the endpoints it keeps (names), and whether it keeps the spend caps."""
+
+    handle: Any
+    shared: tuple[str, ...]
+    capped: bool
+
+    @contextlib.asynccontextmanager
+    async def joined(self, holder: str) -> AsyncIterator[BoardLimits]:
+        """This engine's `BoardLimits` on the board, as `holder`, for the block (close the pool
+        inside it)."""
+        limits = BoardLimits(RayChannel(self.handle), holder, self.shared, self.capped)
+        try:
+            yield limits
+        finally:
+            await limits.close()
 
 
 class LocalChannel:

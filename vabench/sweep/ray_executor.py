@@ -1,59 +1,26 @@
-"""`executor: ray`: a sweep over a Ray cluster, one engine actor per GPU, the driver the only
-writer of the ledger.
+"""`executor: ray`: a sweep over a Ray cluster, engine actors under the one driver
+(`driver.Driver`, the only writer of the ledger).
 
-`run_ray(config, keys, run_dir)` is what `python -m vabench.sweep` calls for `kind: ray`:
+`run_ray(config, keys, run_dir, choices)` is what `python -m vabench.sweep` calls for
+`kind: ray`:
 
 1. the planned episodes not yet in results.jsonl are grouped into cells, one per (model, track,
-   task), or, where engines batch their physics (Warp or MJX, `Physics.batched`), one per
-   task (`cells.task_groups`: every track and model of a task in one simulator batch), and
-   cut into chunks (`cells.chunks`, about `CHUNKS_PER_ENGINE` per engine, costliest first);
-   when none is left nothing starts;
+   task), or, where engines batch their physics (Warp or MJX), one per task (`cells.task_groups`:
+   every track and model of a task in one simulator batch), and cut into chunks (`cells.chunks`,
+   about `CHUNKS_PER_ENGINE` per engine, costliest first); when none is left nothing starts;
 2. `ray.init(address=executor.address)` joins the cluster (`None`: the running local one if
    there is one, else a new local one; `"auto"`: the running one; `"HOST:PORT"`: that head
    node; Ray Client's `ray://` is refused by the config, as it cannot carry streaming actor
    calls); a driver that already called `ray.init` keeps its connection;
-3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes): when the
-   physics runs on GPUs (`simulator.backend` warp, mjx or auto on a cluster with GPUs:
-   `choices.for_engines` decides what they run), by default 4 per GPU of the cluster
-   (`ray_plan.engines_per_gpu`: where they can share it under CUDA MPS, else one), each
-   running MuJoCo Warp and Warp's renderer for its chunks; otherwise one per
-   `1 + render.workers` CPUs of the cluster, each claiming that many CPUs (C MuJoCo and the GL
-   render workers: CPU-only nodes take these).
-   `executor.actors` sets the number; more engines than GPUs each claim their share of one
-   (`num_gpus` 1/k for k engines a GPU, told `VABENCH_GPU_SHARE`): several engine processes
-   per GPU, each joining its node's CUDA MPS daemon of the sweep's (`mps.join_node_daemon`;
-   not with `executor.mps: off`). When a model is not served by the embedded server, a
-   limit board (`sweep.limiter.LimiterActor`, on the driver's node) keeps its RPM, TPM,
-   concurrency and Retry-After pause for every engine at once;
-4. the driver hands out chunks as engines have room (pull, `ray_plan.choose_engine`): a
-   started engine is given the next chunk, the least loaded first, while its unfinished
-   episodes are fewer than twice the in-flight limit it last reported, it runs fewer than
-   `executor.max_tasks` chunks, and its load with the chunk stays within its fair share of the
-   unfinished plan (engines still starting count: the first engine ready no longer takes
-   every chunk); an engine without chunks always takes one, so a slow GPU or node is given
-   less and holds nobody up; where engines share GPUs, a chunk of the critical path's task
-   (the basket) goes to an idle engine, one a GPU where the engines allow, its GPU's one
-   engine at the normal MPS priority (the others below it: `mps.NODE_RANKED`), and that engine
-   takes nothing else until it is done; every engine compiles the sweep's Warp kernels as it
-   starts;
-5. each engine streams a chunk's ledger lines back as its episodes end; the driver appends them
-   (`Ledger.append_line`, the only writer of results.jsonl and infrastructure.jsonl); a second
-   record of an episode is refused and kept in results.duplicates.jsonl;
-6. an engine that dies (its node lost, killed, out of memory) costs only its unfinished
-   episodes: those of its chunks without a record go back to the front of the queue, the limit
-   board frees its slots, and another engine is started in its place (at most
-   `MAX_ENGINE_RESTARTS` in a sweep); an episode it finished without reporting it is adopted
-   from its result.json where its chunk runs again;
-7. a chunk that raises is logged with its traceback and the others run on (its episodes are
-   listed as missing; the next invocation resumes them); a chunk stopped by an endpoint that
-   refuses the sweep's requests (`LocalSweep.stopped`) ends the handing out: chunks in flight
-   finish, and `run_ray` raises `SweepStopped`;
-8. the driver logs a line when an engine starts or dies, when a chunk ends and every
-   `PROGRESS_EVERY_S`, and at the end one per engine: its seconds of start-up, working (a
-   chunk or more) and waiting for work, its episodes and its GPU's busy share (sampled by the
-   engine, `gpu_busy`), then their sums; Ctrl-C ends every engine at once (no episode goes on
-   calling a model);
-9. the ledger's records are returned, `{(model, track, task, seed, run): record}`.
+3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes,
+   `ray_plan.engine_plan`): where the physics runs on GPUs, by default 4 per GPU where they can
+   share it under CUDA MPS (each joining its node's MPS daemon of the sweep's), else one;
+   otherwise one per `1 + render.workers` CPUs of the cluster (C MuJoCo and the GL render
+   workers). `executor.actors` sets the number. The limit board is a `limiter.LimiterActor`
+   on the driver's node;
+4. the driver hands out chunks, streams their ledger lines back, replaces dead engines and
+   logs each engine's time (`driver`), up to `executor.max_tasks` chunks at once in an engine;
+5. the ledger's records are returned, `{(model, track, task, seed, run): record}`.
 
 A killed driver takes its engines with it (Ray ends the actors a driver owns when the driver
 exits): nothing writes the ledger after it, and the same command resumes from results.jsonl,
@@ -62,64 +29,245 @@ adopting the result.json of episodes that finished in the instant before.
 The run directory must be one that every node sees at the same absolute path (a shared mount):
 engines write the episodes' directories and the learning stage's summaries there, and refuse
 to start where they cannot see the plan. The project is shipped from the driver's checkout
-when `run_ray` connects to the cluster itself (`project_runtime_env`: the job's `working_dir`,
-i.e. vabench, assets and configs, without run directories or caches); the nodes need the same
-Python packages. API keys travel from the
-driver's environment to the engines' in memory (`ray_engine`), never in a file.
-
-`ray_plan` holds the engines' plan and the driver's bookkeeping, `ray_driver` the driver's
-loop (`ClusterSweep`); their names are importable from here too.
+when `run_ray` connects to the cluster itself (`project_runtime_env`: vabench, assets and
+configs, without run directories or caches); the nodes need the same Python packages. API keys
+travel from the driver's environment to the engines' in memory (`ray_engine`), never in a file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
+import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
-from vabench.run_layout import RESULTS
-from vabench.sweep.cells import KeyTuple, pending_cells
+from vabench.llm_pool.spend import SpendCaps
+from vabench.sweep.cells import Cell, chunks, task_cost, task_groups
 from vabench.sweep.choices import Choices
+from vabench.sweep.chunk_engine import DONE, LINE, BoardLink, with_critical_path
 from vabench.sweep.display import Status
-from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.ray_driver import (
-    ENGINE_START_TIMEOUT_S,
-    MAX_ENGINE_RESTARTS,
+from vabench.sweep.driver import (
+    CLOSE_TIMEOUT_S,
+    CLOSED,
+    FAILED,
+    LOST,
+    STARTED,
+    STATUS,
     TICK_S,
-    ClusterSweep,
+    Driver,
+    Emit,
+    pending,
 )
+from vabench.sweep.limiter import LimiterActor, RayBoard
+from vabench.sweep.placement import Chunk
+from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_plan import (
     CHUNKS_PER_ENGINE,
-    SHIP_EXCLUDES,
-    Chunk,
-    EngineHandle,
     engine_environment,
     engine_plan,
     project_runtime_env,
     upload_failure,
 )
-from vabench.sweep.results import Ledger
+from vabench.sweep.results import Key, Ledger
 from vabench.sweep.runner import SweepStopped
 
-__all__ = [
-    "CHUNKS_PER_ENGINE",
-    "ENGINE_START_TIMEOUT_S",
-    "MAX_ENGINE_RESTARTS",
-    "SHIP_EXCLUDES",
-    "TICK_S",
-    "Chunk",
-    "ClusterSweep",
-    "EngineHandle",
-    "engine_environment",
-    "engine_plan",
-    "project_runtime_env",
-    "run_ray",
-    "upload_failure",
-]
-
 log = logging.getLogger(__name__)
+
+
+class RayEngine:
+    """The driver's handle on one engine actor (`driver.Engine`): a thread of the driver waits
+    on each of its calls and reports what comes back."""
+
+    def __init__(self, ray: Any, actor: Any, holder: str, limiter: Any, emit: Emit):
+        self.ray = ray
+        self.actor = actor
+        self.holder = holder
+        self.limiter = limiter
+        self.emit = emit
+        self.ended = threading.Event()
+        self.threads: list[threading.Thread] = []
+
+    def _thread(self, target: Callable[..., None], *args: Any) -> None:
+        thread = threading.Thread(target=target, args=args, daemon=True)
+        self.threads.append(thread)
+        thread.start()
+
+    def start(self, tasks: Sequence[str]) -> None:
+        self._thread(self._started, self.actor.start.remote(list(tasks)))
+
+    def _started(self, ref: Any) -> None:
+        try:
+            info = self.ray.get(ref)
+        except Exception as err:  # its config does not load there, or it died starting
+            # an engine that could not even be created (no run directory there) would fail
+            # the same way again: not replaced
+            self._lost(err, replace=not _in_creation(err))
+            return
+        self.emit(STARTED, info)
+        while not self.ended.wait(TICK_S):  # its status for the display
+            try:
+                status = self.ray.get(self.actor.engine_status.remote())
+            except Exception as err:
+                self._lost(err)
+                return
+            self.emit(STATUS, status)
+
+    def run_chunk(self, chunk: Chunk) -> None:
+        self._thread(self._stream, chunk.name, self.actor.run_chunk.remote(chunk.name, chunk.keys))
+
+    def _stream(self, name: str, stream: Any) -> None:
+        summary: dict[str, Any] = {}
+        try:
+            for ref in stream:
+                item = self.ray.get(ref)
+                if item[0] == LINE:
+                    self.emit(*item)
+                elif item[0] == DONE:
+                    summary = item[1]
+        except self.ray.exceptions.RayTaskError as err:  # the chunk's own error
+            self.emit(FAILED, name, str(err))
+            return
+        except Exception as err:  # the engine (or its node) is gone
+            self._lost(err)
+            return
+        self.emit(DONE, name, summary)
+
+    def _lost(self, err: BaseException, replace: bool = True) -> None:
+        if not self.ended.is_set():
+            self.emit(LOST, _why(err), replace)
+
+    def close(self) -> None:
+        def closing(ref: Any) -> None:
+            figures: dict[str, Any] = {}
+            with contextlib.suppress(Exception):
+                figures = self.ray.get(ref, timeout=CLOSE_TIMEOUT_S) or {}
+            self.emit(CLOSED, figures)
+
+        self._thread(closing, self.actor.close.remote())
+
+    def kill(self) -> None:
+        self.ended.set()
+        with contextlib.suppress(Exception):
+            self.ray.kill(self.actor, no_restart=True)
+        if self.limiter is not None:  # the board frees what it held
+            with contextlib.suppress(Exception):
+                self.limiter.forget.remote(self.holder)
+        for thread in self.threads:  # none of them may call Ray once the driver has left it
+            if thread is not threading.current_thread():
+                thread.join(timeout=5)
+
+
+class RayEngines:
+    """`driver.Engines` of engine actors on a Ray cluster, and their plan."""
+
+    label = "ray"
+    unit = "engines"
+    log = log
+
+    def __init__(
+        self,
+        ray: Any,
+        config: SweepConfig,
+        choices: Choices,
+        run_dir: Path,
+        cells: dict[Cell, list[EpisodeKey]],
+    ):
+        from vabench.sweep.ray_engine import EngineActor
+
+        self.ray = ray
+        self.config = config
+        self.run_dir = run_dir
+        self.max_chunks = choices.executor.max_tasks
+        cluster = ray.cluster_resources()
+        self.engines_wanted, self.resources, self.choices = engine_plan(config, choices, cluster)
+        cores, share = int(self.resources["num_cpus"]), 1
+        if self.resources["num_gpus"]:
+            share = round(1 / self.resources["num_gpus"])  # engines sharing a GPU
+            gpus = max(1, int(cluster.get("GPU", 1)))
+            cores = max(1, int(cluster.get("CPU", 1)) // (gpus * share))
+        cost = lambda task: task_cost(config, task)  # noqa: E731
+        # engines on GPUs batch their physics: a chunk per task (every track and model of it)
+        # is one batch per action instead of one per cell
+        batched = self.choices.physics.batched
+        units = task_groups(cells) if batched else cells
+        if batched:  # where batches have stream priorities
+            self.choices = with_critical_path(self.choices, {k[0]: cost(k[0]) for k in units})
+        parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
+        # where engines share GPUs, a chunk of the critical path's task runs alone in its
+        # engine (`placement.choose_engine`); with one engine a GPU that would give the
+        # basket's few episodes a whole GPU
+        alone = batched and share > 1
+        critical = set(self.choices.executor.critical_path or ()) if alone else set()
+        self.chunks = [
+            Chunk(name, part, cost(part[0].task), part[0].task in critical) for name, part in parts
+        ]
+        # one engine a GPU at the normal MPS priority for the critical chunks, the others
+        # below it
+        ranked = any(c.critical for c in self.chunks)
+        self.environ = engine_environment(config, cores, share, uuid.uuid4().hex[:12], ranked)
+        self.remote = ray.remote(EngineActor)
+        self.limiter: Any = None
+        log.info(
+            "ray: %d chunks (%d episodes; %s) on a cluster of %s: %d engines, each %s",
+            len(self.chunks),
+            sum(len(c.keys) for c in self.chunks),
+            "a chunk per task: batched physics" if batched else "a chunk per cell",
+            {k: v for k, v in cluster.items() if k in ("CPU", "GPU")},
+            self.engines_wanted,
+            self.resources,
+        )
+
+    def fits(self) -> bool:
+        """Whether some node of the cluster has what one engine claims (else say so: the
+        engines would wait for resources that never come)."""
+        wanted = {"CPU": self.resources["num_cpus"], "GPU": self.resources["num_gpus"]}
+        nodes = [n["Resources"] for n in self.ray.nodes() if n.get("Alive")]
+        if any(all(node.get(k, 0) >= v for k, v in wanted.items() if v) for node in nodes):
+            return True
+        log.error(
+            "ray: no node of the cluster has what one engine claims (%s; nodes: %s): lower "
+            "render.workers (a CPU engine claims 1 + render.workers CPUs) or add such a node",
+            self.resources,
+            [{k: v for k, v in node.items() if k in ("CPU", "GPU")} for node in nodes],
+        )
+        return False
+
+    def serve_board(
+        self, stack: contextlib.ExitStack, limits: dict[str, dict[str, Any]], caps: SpendCaps | None
+    ) -> BoardLink:
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        here = self.ray.get_runtime_context().get_node_id()
+        self.limiter = (
+            self.ray.remote(LimiterActor)
+            .options(
+                num_cpus=0,
+                max_concurrency=10_000,
+                scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=False),
+            )
+            .remote(limits, caps)
+        )
+
+        def end() -> None:
+            with contextlib.suppress(Exception):
+                self.ray.kill(self.limiter, no_restart=True)
+
+        stack.callback(end)
+        return RayBoard(self.limiter, tuple(limits), caps is not None)
+
+    def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
+        """Nothing: each engine compiles the sweep's kernels as it starts."""
+
+    def new_engine(self, index: int, slot: int, emit: Emit, board: BoardLink | None) -> RayEngine:
+        holder = f"engine-{index}-{uuid.uuid4().hex[:8]}"
+        actor = self.remote.options(
+            **self.resources, scheduling_strategy="SPREAD", max_restarts=0
+        ).remote(self.config, self.choices, str(self.run_dir), self.environ, board, holder)
+        return RayEngine(self.ray, actor, holder, self.limiter, emit)
 
 
 def run_ray(
@@ -129,15 +277,14 @@ def run_ray(
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
     on_engines: Callable[[list[dict[str, Any]]], None] | None = None,
-) -> dict[KeyTuple, dict[str, Any]]:
+) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` on the engines of a Ray cluster, for a sweep whose
     command chose `choices`, and return the ledger's records afterwards (see the module
     docstring). `on_status` is called about once a second; `on_engines` once at the end with
-    `ClusterSweep.engine_report()` (each engine's time and GPU busy share)."""
+    `Driver.engine_report()` (each engine's time and GPU busy share)."""
     run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
-    cells = pending_cells(keys, Ledger.open(run_dir).records)
+    cells = pending(keys, run_dir, log, "ray")
     if not cells:
-        log.info("ray: every planned episode is already in %s; nothing to run", RESULTS)
         return Ledger.open(run_dir).records
 
     import ray  # the `ray` extra; only this executor needs it
@@ -151,26 +298,29 @@ def run_ray(
                 raise
             raise SweepStopped(upload_failure(err)) from None
     try:
-        sweep = ClusterSweep(ray, config, choices, keys, run_dir, cells, on_status)
+        kind = RayEngines(ray, config, choices, run_dir, cells)
+        driver = Driver(kind, config, keys, run_dir, kind.chunks, on_status)
         try:
-            sweep.run()
+            return driver.run()
         finally:
             if on_engines is not None:
                 try:
-                    on_engines(sweep.engine_report())
+                    on_engines(driver.engine_report())
                 except Exception:  # the caller's report must not hide the sweep's own error
                     log.exception("ray: on_engines failed")
     finally:
         if started_here:
             ray.shutdown()
-    if sweep.failures:
-        lost = sum(len(c.keys) for c in sweep.failures)
-        log.error(
-            "ray: %d chunks failed (%d episodes not run): %s",
-            len(sweep.failures),
-            lost,
-            ", ".join(c.name for c in sweep.failures),
-        )
-    if sweep.stopped:
-        raise SweepStopped(sweep.stopped[0])
-    return Ledger.open(run_dir).records
+
+
+def _in_creation(err: BaseException) -> bool:
+    return "error raised in its creation task" in str(err)
+
+
+def _why(err: BaseException) -> str:
+    """One line: the error an engine's creation raised (the last line of Ray's report), else
+    the first line of Ray's."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    if not lines:
+        return type(err).__name__
+    return lines[-1] if _in_creation(err) else f"{type(err).__name__}: {lines[0]}"

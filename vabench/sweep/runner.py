@@ -2,7 +2,7 @@
 
 One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
 it, one render pool (together, with the in-flight gate below: the `Engine` that `open_engine`
-opens, which a Ray engine actor keeps open for every chunk it runs), and up to
+opens, which an engine of the driver keeps open for every chunk it runs), and up to
 `executor.max_tasks` task batches at once; each batch serves
 every model and track of its task (the simulator does not care who decides). Episodes in
 flight are bounded per batch by its slots and overall by the `inflight.InFlight` gate: a limit
@@ -123,8 +123,7 @@ async def open_engine(
     gate = choices.in_flight.gate()
     async with contextlib.AsyncExitStack() as stack:
         # The renderer starts (its device, its modules, GL's processes) while the embedded
-        # server's processes start: each took ~3 s of an engine process's ~13 s before its
-        # first episode on an H100 host (2026-11-28), one after the other.
+        # server's processes start: each takes seconds of an engine's start-up.
         render = cfg.render
         renderer, _choice = make_renderer(
             choices.renderer,
@@ -462,12 +461,11 @@ class LocalSweep:
 def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
     """The tasks whose episodes bound a round's wall time: those of the largest step budget,
     when it is at least twice the median of the other tasks' (the basket's 250 steps against
-    50: its episodes take ~166 decisions, the base families' 13-37, and on an H100 they ran
-    ~2.3 s a decision behind 21 other families and finished last, docs/PERFORMANCE.md). The
-    median, not the largest other: `configs/all.yaml` also gives place_cube_on_cube 200 steps
-    (its episodes still end in ~37 decisions), and against that the basket went unnoticed until
-    2026-11-27 (it then ended its run ~150 s after everything else). Where budgets are alike,
-    none: a priority for everyone is a priority for no one."""
+    50: its episodes take several times the others' decisions and would finish last,
+    docs/PERFORMANCE.md). The median, not the largest other: `configs/all.yaml` also gives
+    place_cube_on_cube 200 steps, whose episodes still end in as few decisions as the base
+    families'. Where budgets are alike, none: a priority for everyone is a priority for no
+    one."""
     if not budgets:
         return set()
     top = max(budgets.values())
@@ -478,10 +476,9 @@ def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
 
 
 def sweep_critical_path(decided: Sequence[str] | None, budgets: dict[str, int]) -> set[str]:
-    """The tasks of `budgets` (this process's) on the critical path: those a parent decided for
-    the whole sweep (`ExecutorChoice.critical_path`, set by the processes executor for its
-    workers and the Ray driver for its engines), else those `critical_path_tasks` finds among
-    them."""
+    """The tasks of `budgets` (this process's) on the critical path: those the driver decided
+    for the whole sweep (`ExecutorChoice.critical_path`, `chunk_engine.with_critical_path`),
+    else those `critical_path_tasks` finds among them."""
     if decided is None:
         return critical_path_tasks(budgets)
     return set(decided) & set(budgets)
