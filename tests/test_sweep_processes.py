@@ -10,11 +10,12 @@ import logging
 import pstats
 import re
 
+from vabench import switches
 from vabench.config import load_config
 from vabench.sweep.__main__ import main
 from vabench.sweep.choices import choose
 from vabench.sweep.plan import EpisodeKey, plan
-from vabench.sweep.process_executor import PROFILE_VARIABLE, run_processes
+from vabench.sweep.process_executor import run_processes
 
 CONFIG = """\
 name: processes
@@ -104,7 +105,7 @@ def test_workers_write_a_profile_of_each_chunk_when_asked(tmp_path, monkeypatch)
     keys = plan(config)
     run_dir.mkdir()
     (run_dir / "plan.json").write_text(json.dumps([k.as_id() for k in keys]))
-    monkeypatch.setenv(PROFILE_VARIABLE, str(folder))
+    monkeypatch.setenv(switches.variable("profile_dir"), str(folder))
     assert len(run_processes(config, keys, run_dir, choose(config))) == len(keys)
     (profile,) = folder.glob("*.prof")
     assert "local-active-grasp_single_cube" in profile.name

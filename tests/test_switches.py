@@ -276,12 +276,8 @@ def test_plan_json_of_a_tiny_sweep_holds_every_switch(tmp_path, monkeypatch, env
 
 # -- reads go through the module ----------------------------------------------------------------
 
-ALLOWED = {
-    # Rewritten by another change; their reads move to `vabench.switches` after it is merged.
-    # Remove an entry once its file reads through the module (the test says when).
-    "vabench/sweep/process_executor.py": "VABENCH_PROFILE_DIR, VABENCH_WARP_PRECOMPILE",
-    "vabench/sweep/ray_engine.py": "VABENCH_RAY_MPS, VABENCH_RAY_MPS_RANKED",
-}
+ALLOWED: dict[str, str] = {}
+"""Files that may read a `VABENCH_*` variable themselves, with which (none)."""
 SCANNED = ("vabench", "benchmarks")
 
 

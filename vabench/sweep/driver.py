@@ -36,7 +36,7 @@ from vabench.sweep.cells import PROGRESS_EVERY_S, Cell, pending_cells
 from vabench.sweep.chunk_engine import DONE, LINE, BoardLink
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.limiter import shared_endpoints
-from vabench.sweep.placement import Chunk, EngineHandle, next_placement
+from vabench.sweep.placement import Chunk, Engine, EngineHandle, next_placement
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, Ledger, LedgerError, key_of, ledger_key
 from vabench.sweep.runner import SweepStopped, spend_caps
@@ -56,22 +56,6 @@ CLOSE_TIMEOUT_S = 60.0
 
 Emit = Callable[..., None]
 """An engine's way to report an event (its items after the engine)."""
-
-
-class Engine(Protocol):
-    """The driver's handle on one engine; each call returns at once, its outcome an event."""
-
-    def start(self, tasks: Sequence[str]) -> None:
-        """Open the engine (compiling the kernels of `tasks` ahead): STARTED, or LOST."""
-
-    def run_chunk(self, chunk: Chunk) -> None:
-        """Run `chunk`: its LINE events, then DONE or FAILED (or the engine's LOST)."""
-
-    def close(self) -> None:
-        """Close the engine: CLOSED with its figures."""
-
-    def kill(self) -> None:
-        """End it at once; lines it sent before come first."""
 
 
 class Engines(Protocol):

@@ -8,14 +8,11 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, ledger_key
 from vabench.tuning import mps
-
-if TYPE_CHECKING:
-    from vabench.sweep.driver import Engine
 
 
 @dataclass
@@ -27,6 +24,22 @@ class Chunk:
     critical: bool = False
     """Of a task on the sweep's critical path (`runner.critical_path_tasks`: the basket): it
     runs alone in its engine, one such chunk a GPU where the engines allow (`choose_engine`)."""
+
+
+class Engine(Protocol):
+    """The driver's handle on one engine; each call returns at once, its outcome an event."""
+
+    def start(self, tasks: Sequence[str]) -> None:
+        """Open the engine (compiling the kernels of `tasks` ahead): STARTED, or LOST."""
+
+    def run_chunk(self, chunk: Chunk) -> None:
+        """Run `chunk`: its LINE events, then DONE or FAILED (or the engine's LOST)."""
+
+    def close(self) -> None:
+        """Close the engine: CLOSED with its figures."""
+
+    def kill(self) -> None:
+        """End it at once; lines it sent before come first."""
 
 
 START_GRACE_S = 300.0
@@ -85,7 +98,7 @@ class EngineClock:
 
 @dataclass
 class EngineHandle:
-    """The driver's view of one engine (`driver.Engine`: a worker process or a Ray actor)."""
+    """The driver's view of one engine (`Engine`: a worker process or a Ray actor)."""
 
     index: int
     engine: Engine | None = None

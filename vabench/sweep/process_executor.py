@@ -44,6 +44,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from vabench import switches
 from vabench.children import (
     CORES_VARIABLE,
     children_ignore_sigint,
@@ -80,10 +81,6 @@ log = logging.getLogger(__name__)
 
 STATUS_EVERY_S = 1.0
 """How often an engine process sends its status."""
-PROFILE_VARIABLE = "VABENCH_PROFILE_DIR"
-"""Set to a folder: every engine process writes there a cProfile of its event loop's thread
-over its life (`<pid>-<first episode>.prof`): the engine, the model client, an embedded server
-in its process, the agent's decisions. For hosts with no sampling profiler."""
 
 
 def plan_chunks(
@@ -175,7 +172,10 @@ def _worker(spec: WorkerSpec, commands: Connection, lines: Connection) -> None:
     exit_with_parent(spec.parent)  # its own children (render workers) see their pipes close
     worker_logging(RunDir(spec.run_dir))
     kernel_profile.record_in_background()  # where VABENCH_KERNEL_PROFILE asks for it
-    folder = os.environ.get(PROFILE_VARIABLE)
+    # `profiling.cprofile_dir`: a cProfile of this process's event loop thread over its life
+    # (`<pid>-<first episode>.prof`): the engine, the model client, an embedded server in its
+    # process, the agent's decisions; for hosts with no sampling profiler
+    folder = switches.get("profile_dir")
     profile = cProfile.Profile() if folder else None
     first: list[EpisodeKey] = []
     if profile is not None:
@@ -252,7 +252,7 @@ async def _serve(
 
 
 class ProcessEngine:
-    """The driver's handle on one engine process (`driver.Engine`)."""
+    """The driver's handle on one engine process (`placement.Engine`)."""
 
     def __init__(self, index: int, emit: Emit, spec: WorkerSpec, env: Mapping[str, str]):
         self.index = index
@@ -456,7 +456,7 @@ def _precompile(
     compiling = precompile.Compiling.start(
         tasks, render.width, render.height, warp_device(), choices.renderer.is_warp, first
     )
-    if os.environ.get(precompile.ENV) == "first":
+    if switches.get("warp_precompile") == "first":
         compiling.join()
     return compiling
 

@@ -24,6 +24,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from vabench import switches
 from vabench.config import SweepConfig
 from vabench.render.backends import check_renderer
 from vabench.run_layout import RunDir
@@ -99,11 +100,11 @@ class EngineActor(ChunkEngine):
         is the GPU's first engine, else below: its start reply's environment says which); the
         sweep's id, or "" where MPS cannot run here (then the engines sharing a GPU take turns
         on it, said once in the log)."""
-        sweep = os.environ.get(mps.NODE_SWEEP, "")
+        sweep = switches.get("ray_mps") or ""
         if not sweep:
             return ""
         try:
-            ranked = bool(os.environ.get(mps.NODE_RANKED))
+            ranked = bool(switches.get("ray_mps_ranked"))
             joined = mps.join_node_daemon(sweep, self._mps_member, ranked=ranked, gpu=_gpu_ids())
             os.environ.update(joined)
         except mps.MpsUnavailable as err:

@@ -79,7 +79,7 @@ log = logging.getLogger(__name__)
 
 
 class RayEngine:
-    """The driver's handle on one engine actor (`driver.Engine`): a thread of the driver waits
+    """The driver's handle on one engine actor (`placement.Engine`): a thread of the driver waits
     on each of its calls and reports what comes back."""
 
     def __init__(self, ray: Any, actor: Any, holder: str, limiter: Any, emit: Emit):

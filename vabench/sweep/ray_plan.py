@@ -12,6 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import vabench
+from vabench import switches
+from vabench.children import CORES_VARIABLE
 from vabench.config import SweepConfig
 from vabench.sim_mjx.warp.device import GPU_SHARE
 from vabench.sweep.choices import Choices, for_engines
@@ -98,7 +100,8 @@ def engine_environment(
     taking turns (one engine process is paced by its host side, docs/PERFORMANCE.md). `ranked`
     (the sweep has critical chunks): `mps.NODE_RANKED` too, so that one engine a GPU is a
     normal MPS client for them and the others below normal."""
-    env = {"VABENCH_CORES": str(max(1, cores))}
+    # the sweep's switches as this process reads them (config and environment: `switches`)
+    env = switches.environment(switches.current()) | {CORES_VARIABLE: str(max(1, cores))}
     if gpu_share > 1:
         env[GPU_SHARE] = str(gpu_share)
         if config.executor.mps == "auto" and sweep:
