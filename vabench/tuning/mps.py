@@ -112,7 +112,7 @@ NODE_RANKED = switches.variable("ray_mps_ranked")
 """Set beside `NODE_SWEEP` where the sweep has a critical path (the basket) run by engines
 that share GPUs: each GPU's first engine to join is a normal MPS client and the others below
 normal (`join_node_daemon`), and the driver gives the critical path's chunks to the normal
-ones (`ray_plan.choose_engine`), as the processes executor does with its critical process."""
+ones (`sweep.placement.choose_engine`), as the processes executor does with its critical process."""
 
 NODE_SWEEP = switches.variable("ray_mps")
 """Set by the Ray driver in the environment of engines that share GPUs (`executor.actors` above
