@@ -139,7 +139,7 @@ def killed_mid_sweep(tmp: Path, url: str, port: int, proc: subprocess.Popen) -> 
         "exit": child.returncode,
         "seconds_after_kill": round(time.monotonic() - killed, 1),
         "seconds": round(time.monotonic() - started, 1),
-        "unscored": err.count("infrastructure_error"),
+        "unscored": sum(x.startswith("unscored:") for x in err.splitlines()),
     }
     records = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     first["statuses"] = [r["status"] for r in records]
