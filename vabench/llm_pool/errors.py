@@ -9,7 +9,9 @@
   parameters it does not take), the sweep stops and records nothing for the episodes it
   touched; otherwise (a 400 or 413 of one episode's request) the episode ends with that
   reason. A body that names the key or an unknown model is read the same whatever its status
-  (`retry.meaning_of`: a gateway sends 400 or 500 for them), and is fatal like a 401 or a 404.
+  (`retry.meaning_of`: a gateway sends 400 or 500 for them), and is fatal like a 401 or a 404;
+  so is a bare text 500 to a call sent without a key before any success (a LiteLLM proxy's
+  answer to a missing key).
   A rejection whose body says the request exceeds the model's context window
   (`context_exceeded`) is never fatal, even on the first call: it is the episode's own
   failure (the engine compacts and retries once, then scores it `context_exceeded`).

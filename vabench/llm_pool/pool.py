@@ -365,12 +365,15 @@ class EndpointClient:
                 f"(default: the name) of model {c.name!r} against the endpoint's list"
             )
         if status in (401, 403) or meaning == "key":
-            where = (
-                f"the key in the environment variable {c.api_key_env} (api_key_env of model "
-                f"{c.name!r})"
-                if c.api_key_env
-                else f"model {c.name!r} has no api_key_env: the endpoint wants a key"
-            )
+            if c.api_key_env:
+                where = (
+                    f"the key in the environment variable {c.api_key_env} (api_key_env of "
+                    f"model {c.name!r})"
+                )
+            else:
+                where = f"model {c.name!r} has no api_key_env: the endpoint wants a key"
+                if status >= 500:  # read from a bare 500 to a keyless call (`Transport`)
+                    where += " (if it needs none, the server's log says what failed)"
             return True, f"check {where}"
         if status == 404:
             return True, f"check the model id {c.provider_model!r} and the URL {self.url}"

@@ -11,6 +11,10 @@ this order (the first present wins):
    Anthropic `anthropic-ratelimit-{requests,tokens,input-tokens,output-tokens}-reset`
    (RFC 3339 timestamps). When no `remaining` header says which limit is exhausted, the
    latest reset is used.
+
+A LiteLLM proxy relays its upstream's headers under an `llm_provider-` prefix (and sends its
+own 429's wait as `llm_provider-retry-after`): when the headers above say nothing, the same
+headers under that prefix are read in the same order.
 """
 
 from __future__ import annotations
@@ -40,9 +44,11 @@ _MODEL = re.compile(
     r"not available|invalid)",
     re.IGNORECASE,
 )
+# Not LiteLLM's "No fallback was attempted": it ends every error the proxy relays, an upstream's
+# own 500 and its rate limits included.
 _UPSTREAM = re.compile(
     r"connection error|apiconnectionerror|connecterror|connection refused|cannot connect|"
-    r"failed to connect|no fallback was attempted|upstream connect error|"
+    r"failed to connect|upstream connect error|"
     r"name or service not known|connection reset",
     re.IGNORECASE,
 )
@@ -175,11 +181,27 @@ def _reset_hint(headers: Mapping[str, str], now: float) -> float | None:
     return _plausible(max(exhausted or [s for _, s in resets]))
 
 
+RELAYED_PREFIX = "llm_provider-"
+"""How a LiteLLM proxy names the upstream's headers it relays (and its own 429's wait)."""
+
+
 def server_retry_after(headers: Mapping[str, str], *, now: float | None = None) -> float | None:
-    """How long the server asked us to wait, in seconds, or None if it did not say."""
+    """How long the server asked us to wait, in seconds, or None if it did not say; a
+    gateway's relayed hint (`RELAYED_PREFIX`) when the server's own headers say nothing."""
     now = datetime.now(timezone.utc).timestamp() if now is None else now
     hint = _retry_after(headers, now)
-    return hint if hint is not None else _reset_hint(headers, now)
+    if hint is None:
+        hint = _reset_hint(headers, now)
+    if hint is None:
+        relayed = {
+            name.lower().removeprefix(RELAYED_PREFIX): value
+            for name, value in headers.items()
+            if name.lower().startswith(RELAYED_PREFIX)
+        }
+        if relayed:
+            hint = _retry_after(relayed, now)
+            hint = hint if hint is not None else _reset_hint(relayed, now)
+    return hint
 
 
 def backoff_delay(

@@ -13,6 +13,7 @@ cancellation propagates.
 from __future__ import annotations
 
 import asyncio
+import json
 from dataclasses import dataclass
 
 import aiohttp
@@ -39,6 +40,14 @@ class Failure:
     meaning: ErrorMeaning | None = None
     """What the error body says beyond its status (`retry.meaning_of`)."""
     timed_out: bool = False
+
+
+def _is_json(raw: bytes) -> bool:
+    try:
+        json.loads(raw)
+    except ValueError:
+        return False
+    return True
 
 
 class Transport:
@@ -91,6 +100,13 @@ class Transport:
                 return self._failure(str(err), RetryDecision("transient", "malformed"), status)
         line = f"HTTP {status}: {error_message(raw)}"
         meaning = meaning_of(status, error_words(raw))
+        if meaning is None and status == 500 and not self._key and not _is_json(raw):
+            # A LiteLLM proxy installed with pip answers a call without a key with a bare
+            # text 500 (its key check fails on a missing database client): the one thing
+            # the reply says is that a call sent without a key failed. Fatal only before
+            # any success (`EndpointClient`), as for a 500 naming the key.
+            meaning = "key"
+            line += " (the request carried no API key)"
         unreachable = meaning == "upstream"
         return self._failure(line, decide(status, headers), status, unreachable, meaning)
 
