@@ -54,7 +54,6 @@ def cpu_batch(probe_model):
     return CpuBatch(probe_model, N_SLOTS)
 
 
-
 # Test files that start Ray clusters (in the test process or in a sweep it starts).
 RAY_CLUSTER_FILES = {"test_sweep_ray.py", "test_sweep_cluster.py", "test_ray_limiter.py"}
 
@@ -83,6 +82,7 @@ LONG_FILES_FIRST = (
     "test_engine_",
     "test_render_warp.py",
     "test_warp_batch.py",
+    "test_gateway_litellm.py",
 )
 
 
