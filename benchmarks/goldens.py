@@ -1,4 +1,4 @@
-"""Goldens for a refactor that must not change behaviour (issue 32): capture, then compare.
+"""Goldens for a refactor that must not change behaviour: capture, then compare.
 
     python benchmarks/goldens.py capture OUT_DIR [--repo DIR] [--python EXE] [--only PARTS]
         [--force]

@@ -1,4 +1,4 @@
-"""The Warp JPEG encoder on a GPU, checked and timed alone (issue 33):
+"""The Warp JPEG encoder on a GPU, checked and timed alone:
 
     python benchmarks/warp_jpeg_check.py [--device cuda:0] [--frames 25,128] [--task T]
 

@@ -14,7 +14,7 @@
 #        fidelity | tests | engine | engine_processes | main | ray |
 #        streams |
 #        precompile (first on a fresh machine: Warp kernels of every family, in parallel)
-#        precompile_bench (issue 33, lever 8: vabench/tuning/precompile.py's old single phase
+#        precompile_bench (vabench/tuning/precompile.py's single phase
 #        against its two phases, each from an empty Warp cache; PRECOMPILE_FAMILIES=a,b,c)
 # .whl .wp1 .wp2 .wp3 .gl come from ../shared/device/make_parts.sh, .nvj from
 # benchmarks/gpu/make_jpeg_part.sh, .dep from benchmarks/gpu/make_deps_part.sh, .ray1-3 (Ray
@@ -55,8 +55,8 @@ case "$phase" in
     # Python's bytecode, as `pip install` writes it (the parts install with --no-compile): without
     # it a fresh machine's first sweep compiled every module's bytecode in each of its 22
     # precompile children at once, a measuring artefact no user has. Suspected, unproven: the
-    # first precompile of a process ran 1.7-2.3x slower than the second in both of the
-    # seventeenth session's calls (57-79 s against 33-35 s). SETUP_BYTECODE=0 leaves it out.
+    # first precompile of a process ran 1.7-2.3x slower than the second (57-79 s against
+    # 33-35 s, H200). SETUP_BYTECODE=0 leaves it out.
     if [ "${SETUP_BYTECODE:-1}" != 0 ]; then
       t0=$(date +%s); python3 -m compileall -q -j 0 /tmp/site "$PWD/vabench" >/dev/null 2>&1
       echo "setup: bytecode compiled in $(($(date +%s) - t0)) s"
@@ -74,7 +74,7 @@ PY
     ;;
   waits)
     # How much of a core a thread waiting for the GPU takes: Warp's events, ours (blocking
-    # sync), a stream synchronisation (issue 33: the engine threads' 0.3-0.9 cores a process)
+    # sync), a stream synchronisation (the engine threads' 0.3-0.9 cores a process)
     timeout 120 python3 benchmarks/gpu_waits.py 2>&1 | tee "$out/waits.log"
     ;;
   physics)
@@ -121,7 +121,7 @@ PY
     ;;
   engine_processes)
     # The engine's rounds over 8 engine processes under MPS, as the sweep runs them (one process
-    # is bounded by its CPU, ~2.5 ms a decision; the nineteenth session: 0.78 at C = 1,000 and
+    # is bounded by its CPU, ~2.5 ms a decision; measured: 0.78 at C = 1,000 and
     # 0.71 at C = 2,000 with 8), at the simulator's default window and at 0.1 s (one process at
     # C = 1,000: 0.49 -> 0.58). A one-process row first: on a fresh host it compiles the scene's
     # kernels once (~80 s), not in each of the 8 processes side by side.
