@@ -34,7 +34,7 @@ import urllib.request
 from pathlib import Path
 
 KEY = "sk-vabench-bench"
-KEY_ENV = "VABENCH_GATEWAY_KEY"
+KEY_ENV = "GATEWAY_TEST_KEY"
 SWEEP = """\
 name: gateway
 models:

@@ -37,7 +37,7 @@ from vabench.run_layout import INFRASTRUCTURE, RESULTS
 from vabench.sweep.__main__ import main
 
 MASTER_KEY = "sk-vabench-gateway-test"
-KEY_ENV = "VABENCH_GATEWAY_KEY"
+KEY_ENV = "GATEWAY_TEST_KEY"
 LIMITED_RPM = 8
 """The `limited` deployment's rpm. LiteLLM's usage-based routing counts a calendar minute and
 refuses the call that would reach the limit, so `LIMITED_RPM - 1` calls pass a minute."""

@@ -398,3 +398,32 @@ def test_engines_are_told_the_whole_sweeps_critical_path(tmp_path):
     }
     assert sweep_critical_path(path, {"place_cube_on_cube": 200, "a": 50}) == set()
     assert with_critical_path(choices, {"a": 50, "b": 50}).executor.critical_path == ()
+
+
+def test_a_spend_cap_holds_across_ray_engines(cluster, tmp_path):
+    """Two tasks on two engines, one cap: every call's upper bound is reserved on the driver's
+    limit board (each engine counting alone would spend up to it), so together they stop at
+    the cap, in one line, each recorded episode once."""
+    from tests.test_sweep_cost import BODY, ledger, paid
+    from vabench.report.spend import bill
+
+    two_tasks = BODY.replace("[grasp_single_cube]", "[grasp_single_cube, grasp_single_pen]")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        f"name: cost\nmodels:\n{paid('paid', 5)}{two_tasks}"
+        f"executor: {{kind: ray, address: '{cluster}', max_tasks: 2}}\n"
+    )
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "vabench.sweep", str(cfg), "--out", str(out), "--plain"]
+        + ["--no-report", "--no-check"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        timeout=240,
+    )
+    assert proc.returncode == 2, (proc.stdout + proc.stderr)[-4000:]
+    assert "stopped: limits.max_cost_usd of model 'paid' ($5) reached at $" in proc.stderr
+    assert 0 < bill(out).total("paid") <= 5
+    keys = [(r["task"], r["seed"]) for r in ledger(out)]
+    assert len(keys) == len(set(keys))
