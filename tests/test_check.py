@@ -242,6 +242,15 @@ def test_refusals_are_read_by_what_they_say(status, message, item, fix):
     assert message[:40] in line.text
 
 
+def test_a_refusal_that_is_no_json_error_names_its_status_once():
+    """A gateway's plain-text answer (the failure line is `HTTP 400: <its words>`): the
+    problem line quotes the words, its status named once."""
+    endpoint = ModelEndpoint(name="m", api="openai_chat", api_key_env="OPENAI_API_KEY")
+    line = judge.rejection(judge.Where(endpoint, 0), 400, "HTTP 400: No connected db.", 5, "")
+    assert 'HTTP 400 "No connected db."' in line.text and line.text.count("HTTP 400") == 1
+    assert line.item == "key" and "OPENAI_API_KEY" in (line.fix or "")
+
+
 def test_the_server_command_takes_each_limit():
     from vabench.llm_pool.serve import build_parser, config_from_args
 

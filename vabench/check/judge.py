@@ -95,7 +95,9 @@ _MODEL = re.compile(
 def server_message(message: str) -> str:
     """The server's own words from a failure line (`HTTP 400: {...}`), quoted short."""
     found = re.search(r'"message"\s*:\s*"((?:[^"\\]|\\.)*)"', message)
-    text = found.group(1) if found else message
+    # a body that is no JSON error: the line's own words, without its "HTTP 400: " (the
+    # problem line names the status itself)
+    text = found.group(1) if found else re.sub(r"^HTTP \d{3}:\s*", "", message.strip())
     return text if len(text) <= 200 else text[:197] + "..."
 
 
