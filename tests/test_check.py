@@ -266,3 +266,52 @@ def test_the_server_command_takes_each_limit():
         reasoning_model=True,
     )
     assert config_from_args(build_parser().parse_args([])).imitate == ServerTraits()
+
+
+PASSIVE_ONLY = """\
+name: check
+models:
+  - {{name: small, api: openai_chat, model: qwen-vl, base_url: '{small}'}}
+  - {{name: roomy, api: openai_chat, model: qwen-vl, base_url: '{roomy}'}}
+tracks: [{{name: passive, protocol: passive, summaries: none}}]
+tasks: [grasp_single_cube]
+seeds: [1000]
+runs: 1
+step_budget: 3
+render: {{width: 320, height: 240}}
+"""
+
+
+def test_a_context_cut_above_the_first_steps_floor_is_caught_by_the_long_probe(tmp_path):
+    """A passive-only sweep on a server that cuts prompts at 4,096 tokens without an error
+    (Ollama's num_ctx) and reports no context: the first step's count (4,096) is above the
+    fewest tokens an honest server could count for it, so it passes; the long text probe is
+    counted at 4,096 and named, with the context to start the server with. A server that cuts
+    nothing passes."""
+    import asyncio
+
+    from vabench.check.run import check_config
+
+    replies = {"replies": ["ok"], "cycle": True}
+    small = ServerConfig(
+        imitate=ServerTraits(num_ctx=4096), policy="scripted", policy_options=replies
+    )
+    roomy = ServerConfig(policy="scripted", policy_options=replies)
+    with server_in_thread(small) as s, server_in_thread(roomy) as r:
+        path = tmp_path / "check.yaml"
+        text = PASSIVE_ONLY.format(small=s.base_url("openai_chat"), roomy=r.base_url("openai_chat"))
+        path.write_text(text)
+        config = load_config(path, require_keys=False)
+        first = probe(config, "small")
+        # the first step's honest floor is below the cut: its count alone cannot tell
+        assert first.least_tokens < 4096
+        reports = asyncio.run(check_config(config, {}))
+    prompt = next(line for line in reports["small"] if line.item == "prompt tokens")
+    assert not prompt.problem, prompt
+    (context,) = [line for line in reports["small"] if line.item == "context"]
+    assert context.problem and "counted as 4,096" in context.text, context
+    assert "OLLAMA_CONTEXT_LENGTH=" in (context.fix or "")
+    problems = [line for line in reports["roomy"] if line.problem]
+    assert not problems, problems
+    (whole,) = [line for line in reports["roomy"] if line.item == "context"]
+    assert "was counted whole" in whole.text, whole

@@ -33,6 +33,7 @@ from vabench.agent.prompts import system_prompt
 from vabench.config import SweepConfig, Track
 from vabench.demos.store import load_demo
 from vabench.llm_pool.apis import get_adapter
+from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.messages import ChatRequest, Image, Turn
 from vabench.llm_pool.tokens import estimate_input_tokens, image_size, text_tokens
 from vabench.render.images import encode_jpeg
@@ -50,6 +51,10 @@ LEAST_PIXELS_PER_TOKEN = 800
 TEXT_SHARE_COUNTED = 0.75
 """The share of our text estimate every tokenizer counts at least (ours: 4 characters a
 token; real tokenizers count English prose and JSON at 3-5)."""
+CONTEXT_PROBE_TOKENS = 16_384
+"""The fewest tokens the context probe's prompt holds (at most what an episode may reach): a
+silent cut below it (Ollama's default num_ctx of 2,048-8,192, llama.cpp's -c) shows in the
+count, at the price of one long text-only prompt."""
 
 """A robot state of the real one's length (numbers as the observation prints them)."""
 
@@ -172,3 +177,18 @@ def probe(config: SweepConfig, model: str, tracks: list[str] | None = None) -> P
         text_tokens(system) + text_tokens(text),
         int(least),
     )
+
+
+def context_probe(least: int) -> tuple[ChatRequest, int]:
+    """A text-only request that every tokenizer counts at `least` tokens or more, and that
+    floor: numbered lines of plain prose, so that no cache or tokenizer shortcut shrinks it."""
+    lines: list[str] = []
+    size = 0
+    while TEXT_SHARE_COUNTED * text_tokens("".join(lines)) < least:
+        line = f"Line {len(lines) + 1}: the gripper moves {size % 97 + 3} millimetres along x.\n"
+        lines.append(line)
+        size += len(line)
+    prompt = "".join(lines) + "Reply with the number of the last line only."
+    options = GenerationOptions(max_output_tokens=16)
+    request = ChatRequest(turns=(Turn.user(prompt),), options=options)
+    return request, int(TEXT_SHARE_COUNTED * text_tokens(prompt))

@@ -204,6 +204,36 @@ def context_line(where: Where, max_model_len: int | None) -> Line:
     )
 
 
+def context_probe_line(where: Where, reported: int, least: int) -> Line:
+    """The context probe's count (a server that reports no context): a text prompt of at
+    least `least` tokens counted far lower was cut, and an episode's later requests would be
+    cut the same way, without an error."""
+    need = context_need(where.endpoint)
+    if reported <= 0:
+        return Line(
+            where.name, "context", "not reported (no max_model_len; the reply has no usage)"
+        )
+    if reported >= least:
+        held = "" if least >= need else f" of the {need:,} an episode may reach"
+        return Line(
+            where.name,
+            "context",
+            f"not reported (no max_model_len); a prompt of {least:,}+ tokens{held} was counted "
+            f"whole ({reported:,})",
+        )
+    return Line(
+        where.name,
+        "context",
+        f"a text prompt of at least {least:,} tokens was counted as {reported:,}: the server "
+        f"cuts prompts near {reported:,} tokens without an error, and an episode's requests "
+        f"reach {need:,}",
+        f"give the server a context of at least {need:,} tokens: Ollama cuts prompts to its "
+        "num_ctx and its OpenAI endpoint ignores one in the request: start it with "
+        f"OLLAMA_CONTEXT_LENGTH={need} (or PARAMETER num_ctx in a Modelfile); llama.cpp: -c "
+        f"{need}; or set {where.field}.context_window below what it holds",
+    )
+
+
 def prompt_tokens_line(where: Where, reported: int, estimate: int, least: int) -> Line:
     """The prompt tokens the server counted against ours: far fewer than the request holds
     means the server cut it."""

@@ -7,7 +7,11 @@ server itself, with none of the limits the check looks for. Every other model ge
 2. one decision, the heaviest request of the sweep (`inputs.probe`), through the pool as an
    episode's would go (its key, headers, options, at most 3 attempts);
 3. on Chat Completions, a text-only probe whose output limit is `judge.OUTPUT_PROBE_TOKENS`:
-   a reply longer than that says the server does not read the limit's field.
+   a reply longer than that says the server does not read the limit's field;
+4. where the server reports no context (no `max_model_len`), the model has no prices and the
+   decision's prompt was counted whole, a long text-only prompt (`inputs.context_probe`): a
+   server that cuts prompts without an error (Ollama's num_ctx) cuts it too, though the
+   first step's request fit.
 
 The answers become `judge.Line`s, ten items a model, a fix on every problem.
 """
@@ -21,7 +25,7 @@ from typing import Any
 import aiohttp
 
 from vabench.check import judge
-from vabench.check.inputs import Probe, probe
+from vabench.check.inputs import CONTEXT_PROBE_TOKENS, Probe, context_probe, probe
 from vabench.check.judge import Line, Where
 from vabench.config import SweepConfig
 from vabench.llm_pool.apis import get_adapter
@@ -105,6 +109,9 @@ async def check_model(where: Where, request: Probe, environ: Mapping[str, str]) 
             probed = [p for p in await _output_probe(pool, where) if p.item != refused.item]
             return [Line(name, "reachable", f"yes (HTTP {err.status})"), refused, *probed]
         lines = _decision_lines(where, request, result, card)
+        if _wants_context_probe(where, card, lines):
+            lines = [line for line in lines if line.item != "context"]
+            lines.append(await _context_probe(pool, where))
         lines += await _output_probe(pool, where)
         lines.append(_cost_line(where, result))
     return sorted(lines, key=lambda line: judge.ITEMS.index(line.item))
@@ -135,6 +142,28 @@ def _decision_lines(
         judge.reasoning_line(where, result.reasoning, result.text),
         Line(name, "latency", f"{result.latency_s:.2f} s for one decision"),
     ]
+
+
+def _wants_context_probe(where: Where, card: dict[str, Any] | None, lines: list[Line]) -> bool:
+    """A context the server does not report, on an endpoint without prices (a paid provider
+    states its window, and the probe's long prompt costs there), where the first step's prompt
+    was not already found cut."""
+    reported = card is not None and isinstance(card.get("max_model_len"), int)
+    cut = any(line.problem for line in lines if line.item == "prompt tokens")
+    return not reported and where.endpoint.prices is None and not cut
+
+
+async def _context_probe(pool: LLMPool, where: Where) -> Line:
+    least = min(CONTEXT_PROBE_TOKENS, judge.context_need(where.endpoint))
+    request, floor = context_probe(least)
+    try:
+        result = await pool.complete(where.name, request)
+    except RequestRejected as err:
+        line = judge.rejection(where, err.status, err.message, 0, "")
+        return line if line.item == "context" else Line(where.name, "context", "not reported")
+    except InfrastructureError:
+        return Line(where.name, "context", "not reported (no max_model_len; the probe failed)")
+    return judge.context_probe_line(where, result.usage.prompt_tokens, floor)
 
 
 async def _output_probe(pool: LLMPool, where: Where) -> list[Line]:
