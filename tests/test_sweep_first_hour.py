@@ -202,3 +202,29 @@ def test_the_sweep_stops_with_one_line_before_the_disk_is_full(
     assert "started:" in logged and "resuming:" in logged and "host, whole run" in logged
     assert (out / "results.jsonl").read_text().splitlines()[: len(first)] == first
     assert len((out / "results.jsonl").read_text().splitlines()) == 2
+
+
+def test_worker_processes_stop_with_one_line_before_the_disk_is_full(tmp_path, capsys, monkeypatch):
+    """The same stop through the one driver (`executor: processes`): checked on each of the
+    driver's ticks and after its last record; the engines ended at once, every recorded episode
+    kept, and the same command resumes with each episode recorded once."""
+    from vabench.sweep import rundir
+
+    cfg, out = _tiny(tmp_path), tmp_path / "out"
+    cfg.write_text(cfg.read_text() + "executor: {kind: processes, max_tasks: 2}\n")
+    real = rundir.disk_short
+
+    def short_after_one(run_dir, reserve=None):
+        recorded = (run_dir / "results.jsonl").exists()
+        return real(run_dir, reserve=1e18) if recorded else None
+
+    monkeypatch.setattr(rundir, "disk_short", short_after_one)
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("stopped: disk: ") and "resume" in err[0], err
+    first = (out / "results.jsonl").read_text().splitlines()
+    assert 1 <= len(first) <= 2
+    monkeypatch.setattr(rundir, "disk_short", real)
+    assert main([str(cfg), "--out", str(out), "--plain", "--no-report"]) == 0
+    lines = (out / "results.jsonl").read_text().splitlines()
+    assert lines[: len(first)] == first and len(lines) == 2

@@ -64,7 +64,6 @@ import contextlib  # noqa: E402
 import difflib  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
-import shutil  # noqa: E402
 from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, NoReturn  # noqa: E402
@@ -87,7 +86,12 @@ from vabench.sweep.results import (  # noqa: E402
     ledger_key,
     reopen_infrastructure_errors,
 )
-from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
+from vabench.sweep.rundir import (  # noqa: E402
+    RunDirMismatch,
+    check_run_dir,
+    disk_short,
+    run_dir_problem,
+)
 from vabench.sweep.runner import LocalSweep, SweepStopped  # noqa: E402
 
 log = logging.getLogger("vabench.sweep")
@@ -462,27 +466,6 @@ def _run_local(
     if sweep.stopped is not None:
         raise SweepStopped(sweep.stopped)
     return sweep.ledger.records
-
-
-DISK_RESERVE_BYTES = 200e6
-"""Free disk below which the sweep stops (every recorded episode whole): a few episodes'
-frames and the report fit in it."""
-
-
-def disk_short(run_dir: Path, reserve: float | None = None) -> str | None:
-    """Why the sweep must stop before its disk is full (None while there is room)."""
-    reserve = DISK_RESERVE_BYTES if reserve is None else reserve
-    try:
-        free = shutil.disk_usage(run_dir).free
-    except OSError:
-        return None
-    if free >= reserve:
-        return None
-    return (
-        f"disk: {free / 1e6:.0f} MB free where {run_dir} lies, below the {reserve / 1e6:.0f} MB "
-        "the sweep keeps; every recorded episode is kept: free space (or set records.frames: "
-        "failed), then run the same command to resume"
-    )
 
 
 def _conclude(

@@ -9,7 +9,9 @@ their statuses for the display, and at the end closes them and logs each one's t
 that dies, or whose GPU fails, costs only its unfinished episodes: those of its chunks without
 a record go back to the front of the queue and another engine takes its place, at most
 `MAX_ENGINE_RESTARTS` times. A chunk that raises is logged and listed while the others run
-on; one stopped by an endpoint or a spend cap ends the handing out (`SweepStopped`). Ctrl-C
+on; one stopped by an endpoint or a spend cap ends the handing out (`SweepStopped`), and so
+does a disk below the reserve (`rundir.disk_short`, checked each tick), ending every engine at
+once as Ctrl-C does (their unrecorded episodes run again on resume). Ctrl-C
 (`Interrupted`, raised in this thread) ends every engine at once and keeps every whole line
 they sent.
 
@@ -32,6 +34,7 @@ from typing import Any, Protocol
 from vabench.config import SweepConfig
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import DUPLICATES, RESULTS
+from vabench.sweep import rundir
 from vabench.sweep.cells import PROGRESS_EVERY_S, Cell, pending_cells
 from vabench.sweep.chunk_engine import DONE, LINE, BoardLink
 from vabench.sweep.display import Status, Tally, with_reports
@@ -106,6 +109,10 @@ def merged_status(status: Status, reports: list[dict], live: list[dict], unit: s
     return with_reports(status, reports, live, unit)
 
 
+class _DiskShort(Exception):
+    """The run directory's disk is below the reserve (`rundir.disk_short`)."""
+
+
 class Driver:
     """The driver's loop (see the module docstring) over the engines of `kind`."""
 
@@ -158,6 +165,8 @@ class Driver:
                         self._start_engine(slot)
                     self._loop()
                     finished = True
+                except _DiskShort:
+                    pass
                 finally:
                     self._end(gracefully=finished)
         if self.failures:
@@ -189,6 +198,7 @@ class Driver:
     def _loop(self) -> None:
         last_log = idle_since = time.monotonic()
         while self.queue or any(e.chunks for e in self.engines):
+            self._check_disk()
             self._hand_out()
             try:
                 event = self.events.get(timeout=TICK_S)
@@ -218,6 +228,15 @@ class Driver:
                     self.tally.status().total().done,
                     len(self.tally.planned),
                 )
+
+        self._check_disk()  # the last records found it short: the sweep ended, and says so
+
+    def _check_disk(self) -> None:
+        """Before a write fails: the engines are ended at once (`_DiskShort`), their
+        unrecorded episodes run again on resume."""
+        if (why := rundir.disk_short(self.run_dir)) is not None:
+            self.stopped.append(why)
+            raise _DiskShort
 
     def _handle(self, engine: EngineHandle, event: str, *payload: Any) -> None:
         if event == CLOSED:

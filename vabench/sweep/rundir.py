@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -167,4 +168,25 @@ def _refusal(run_dir: Path, diff: list[str]) -> str:
         f"of two sweeps in one table. Differing fields (run directory -> this config):\n"
         f"{lines}\n"
         "Restore the config that made it, or start a new run directory with --out DIR."
+    )
+
+
+DISK_RESERVE_BYTES = 200e6
+"""Free disk below which the sweep stops (every recorded episode whole): a few episodes'
+frames and the report fit in it."""
+
+
+def disk_short(run_dir: Path, reserve: float | None = None) -> str | None:
+    """Why the sweep must stop before its disk is full (None while there is room)."""
+    reserve = DISK_RESERVE_BYTES if reserve is None else reserve
+    try:
+        free = shutil.disk_usage(run_dir).free
+    except OSError:
+        return None
+    if free >= reserve:
+        return None
+    return (
+        f"disk: {free / 1e6:.0f} MB free where {run_dir} lies, below the {reserve / 1e6:.0f} MB "
+        "the sweep keeps; every recorded episode is kept: free space (or set records.frames: "
+        "failed), then run the same command to resume"
     )
