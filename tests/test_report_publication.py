@@ -283,7 +283,6 @@ def test_the_radar_numbers_are_the_diagnostics_tables(tmp_path):
     assert missing == 404 and 'id="radar-img"' in page
 
 
-@pytest.mark.slow
 def test_a_twelve_model_three_run_report_holds_the_figures_and_reference_rows(tmp_path):
     run = make_run(tmp_path / "s", 1300, models=12, runs=3, annotated=0.5, annotate_run=1)
     out = generate(run.run_dir).directory
