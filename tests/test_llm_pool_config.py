@@ -39,7 +39,7 @@ def _model(**fields):
 @pytest.mark.parametrize(
     "entry,field,words",
     [
-        (_model(limits={"rpm": -1}), "models[0].limits.rpm", "greater than 0"),
+        (_model(limits={"rpm": -1}), "models[0].limits.rpm", "must be more than 0.0, got -1"),
         (_model(limit={"rpm": 5}), "models[0].limit", "Extra inputs"),
         (_model(api="gemini"), "models[0].api", "openai_chat"),
         (_model(prices={"output": "cheap"}), "models[0].prices.output", "number"),

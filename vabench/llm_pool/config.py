@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from vabench.field_errors import dotted
+from vabench.field_errors import dotted, plain_message
 from vabench.llm_pool.apis import ApiName, get_adapter
 from vabench.llm_pool.settings import (
     ConfigError,
@@ -80,13 +80,13 @@ class ModelEndpoint(Strict):
 
 
 def _as_config_error(err: ValidationError, prefix: str) -> ConfigError:
+    """The first problem of an endpoint loaded on its own, worded as the sweep's config words
+    it (`field_errors.plain_message`: "must be at least 1, got 0")."""
     first = err.errors()[0]
-    message = first["msg"]
     ctx_error = first.get("ctx", {}).get("error")
     if isinstance(ctx_error, ConfigError):  # raised inside a validator: keep its field
         return ConfigError(dotted(ctx_error.field.split("."), prefix), ctx_error.message)
-    message = message.removeprefix("Value error, ")
-    return ConfigError(dotted(first["loc"], prefix), message)
+    return ConfigError(dotted(first["loc"], prefix), plain_message(first))
 
 
 def load_endpoint(data: Mapping[str, Any], *, where: str = "") -> ModelEndpoint:
