@@ -35,7 +35,12 @@ from vabench.demos.store import load_demo
 from vabench.llm_pool.apis import get_adapter
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.messages import ChatRequest, Image, Turn
-from vabench.llm_pool.tokens import estimate_input_tokens, image_size, text_tokens
+from vabench.llm_pool.tokens import (
+    CHARS_PER_TOKEN,
+    estimate_input_tokens,
+    image_size,
+    text_tokens,
+)
 from vabench.render.images import encode_jpeg
 from vabench.tasks import get_task
 
@@ -182,12 +187,13 @@ def probe(config: SweepConfig, model: str, tracks: list[str] | None = None) -> P
 def context_probe(least: int) -> tuple[ChatRequest, int]:
     """A text-only request that every tokenizer counts at `least` tokens or more, and that
     floor: numbered lines of plain prose, so that no cache or tokenizer shortcut shrinks it."""
+    chars = least / TEXT_SHARE_COUNTED * CHARS_PER_TOKEN  # what `text_tokens` counts as `least`
     lines: list[str] = []
     size = 0
-    while TEXT_SHARE_COUNTED * text_tokens("".join(lines)) < least:
-        line = f"Line {len(lines) + 1}: the gripper moves {size % 97 + 3} millimetres along x.\n"
-        lines.append(line)
-        size += len(line)
+    while size < chars:
+        n = len(lines) + 1
+        lines.append(f"Line {n}: the gripper moves {n % 97 + 3} millimetres along x.\n")
+        size += len(lines[-1])
     prompt = "".join(lines) + "Reply with the number of the last line only."
     options = GenerationOptions(max_output_tokens=16)
     request = ChatRequest(turns=(Turn.user(prompt),), options=options)
