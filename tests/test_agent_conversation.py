@@ -65,14 +65,23 @@ def test_only_the_last_four_images_are_sent_with_placeholders_in_order(n_steps):
     assert sum(len(e.turn.images) for e in conv.transcript) == n_steps + 1
 
 
-def test_a_repair_resending_the_current_image_does_not_send_it_twice():
-    conv, images = active_episode(5)
-    conv.add_repair("field 'distance_mm': must be <= 100", "observation 5", images[-1], step=5)
+def test_a_repair_turn_is_text_only_and_the_current_image_stays_with_its_observation():
+    conv = Conversation("system", protocol="active")  # one image a request, the paper's
+    images = [synthetic_image(seed=step) for step in range(1, 6)]
+    for step, image in enumerate(images, start=1):
+        conv.add_observation(f"observation {step}", image, step=step)
+        conv.add_reply('{"action": "gripper.move_world", "axis": "z", "distance_mm": 500}')
+    conv.add_repair("field 'distance_mm': must be <= 100", "observation 5", step=5)
     request = conv.request()
-    assert [id(im) for im in request.images] == [id(im) for im in images[-4:]]
-    assert placeholders(request) == [1, 5]  # step 5's first copy gave way to the repair's
-    assert request.turns[-1].text.startswith("Your previous reply was not accepted: field")
-    assert request.turns[-1].content[-1] is images[-1]
+    # the benchmark's repair turn carries no image: the request still holds the current image
+    # once, in the observation turn it came with (the paper's one current image a request)
+    assert [id(im) for im in request.images] == [id(im) for im in images[-1:]]
+    assert not request.turns[-1].images
+    assert request.turns[-2].role == "assistant"
+    assert request.turns[-3].content[-1] is images[-1]
+    text = request.turns[-1].text
+    assert text.startswith("observation 5\n\nYour previous reply was not accepted: field")
+    assert text.endswith("Reply with one corrected command: one valid JSON object.")
 
 
 def test_tool_images_count_toward_the_cap_and_the_newest_user_turn_is_sent_whole():

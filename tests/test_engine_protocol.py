@@ -109,15 +109,17 @@ def test_three_invalid_replies_end_the_episode_after_two_repairs(pool):
     assert [e["repair"] for e in rejections] == [1, 2, 3]
     assert rejections[1]["field"] == "axis"
     assert r.error == rejections[2]["message"]
-    # each repair turn: the error, then the current observation (with its image)
+    # each repair turn, text only: the current observation, then the error; the request
+    # still holds the current image once, in the observation's turn
     for i in (1, 2):
         body = body_json(run.bodies[i][1])
         last = user_texts(body)[-1]
         assert rejections[i - 1]["message"] in last
         assert "Observation step: 1" in last
         assert robot_state(last)["right"]["is_open"] in (True, False)
-        assert last.index(rejections[i - 1]["message"]) < last.index("Observation step: 1")
-        assert count_images(user_messages(body)[-1]) == 1
+        assert last.index("Observation step: 1") < last.index(rejections[i - 1]["message"])
+        assert count_images(user_messages(body)[-1]) == 0
+        assert count_images(body) == 1
     assert len(run.bodies) == 3
 
 

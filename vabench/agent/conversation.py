@@ -8,7 +8,7 @@ The engine appends to a `Conversation` and asks it for the next `ChatRequest`:
     event = await conv.compact_if_needed(summarize)              # None, or a record to log
     result = await pool.complete(model, conv.request())
     conv.add_reply(result.text)
-    conv.add_tool_result(text, image, step=k) | conv.add_repair(error, text, image, step) | ...
+    conv.add_tool_result(text, image, step=k) | conv.add_repair(error, text, step) | ...
 
 Image retention, applied when a request is built (the thread itself keeps every image):
 
@@ -16,8 +16,8 @@ Image retention, applied when a request is built (the thread itself keeps every 
   newest user turn (the observation or tool result the model is answering);
 - other images are kept newest first while the request holds at most `max_images` in all
   (1: the paper's active request holds only the current image); earlier passive bundles are
-  never kept; an image already kept (the same `Image` object re-sent by a repair turn) is not
-  sent twice;
+  never kept; an image already kept (the same `Image` object attached twice) is not sent
+  twice;
 - every dropped image becomes a text placeholder such as "[image from step 7 omitted]" (one
   per dropped bundle), so the thread keeps its order and its step references.
 
@@ -223,12 +223,11 @@ class Conversation:
         its five views by name (passive; sent in fixed order)."""
         self._append(self._observation_entry("observation", text, images, step))
 
-    def add_repair(
-        self, error: str, text: str, images: Image | Mapping[str, Image], step: int
-    ) -> None:
-        """A rejected reply: the error, then the current observation (pass the same `Image`
-        objects as the observation's, so that they are not sent twice)."""
-        self._append(self._observation_entry("repair", repair_text(error, text), images, step))
+    def add_repair(self, error: str, text: str, step: int) -> None:
+        """A rejected reply: the current observation's text, the error and a request for a
+        corrected command, as text only (the benchmark's repair turn: the observation's images
+        stay where they are, in the turn before, and are sent from there)."""
+        self._append(Entry("repair", Turn.user(repair_text(error, text)), step=step))
 
     def add_tool_result(
         self,

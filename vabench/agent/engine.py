@@ -43,7 +43,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -213,7 +213,7 @@ class Episode:
         step = self.counts.steps_used + 1
         text, images = await self._observe(step)
         self.conv.add_observation(text, images, step)
-        decision = await self._decide(step, text, images)
+        decision = await self._decide(step, text)
         label = P.decision_label(decision)
         self.rec.event(
             "decision",
@@ -349,9 +349,7 @@ class Episode:
         self._last_summary = result
         return result.text
 
-    async def _decide(
-        self, step: int, text: str, images: Image | Mapping[str, Image]
-    ) -> P.Decision:
+    async def _decide(self, step: int, text: str) -> P.Decision:
         repairs = 0
         for _ in range(P.MAX_TOOL_ROUND_TRIPS):
             reply = await self._call_model(step)
@@ -371,7 +369,7 @@ class Episode:
                 if repairs >= P.MAX_REPAIRS_PER_DECISION:
                     raise SessionEnd("failure", stop_reason_of(err.kind), str(err)) from None
                 repairs += 1
-                self.conv.add_repair(str(err), text, images, step)
+                self.conv.add_repair(str(err), text, step)
                 continue
             if isinstance(decision, P.ToolCall):
                 self._tool(step, decision)

@@ -255,9 +255,10 @@ def observation_turn(text: str, images: Image | Mapping[str, Image]) -> Turn:
 
 
 def repair_text(error: str, observation: str) -> str:
-    """The text of a repair turn: what was wrong, then the current observation again."""
+    """The text of a repair turn (PROTOCOL_FACTS 3.5): the current observation's text again,
+    what was wrong with the reply, and a request for one corrected command."""
     return (
+        f"{observation}\n\n"
         f"Your previous reply was not accepted: {error}\n"
-        "Reply again with one valid JSON object. The current observation follows.\n\n"
-        f"{observation}"
+        "Reply with one corrected command: one valid JSON object."
     )
