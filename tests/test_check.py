@@ -33,12 +33,15 @@ SERVERS = {
     "llama-cpp": ServerTraits(ignored_fields=["max_completion_tokens"]),
     "reasoning-max-tokens": ServerTraits(reasoning_model=True),
     "reasoning-temperature": ServerTraits(reasoning_model=True),
+    "no-reasoning": ServerTraits(no_reasoning=True),
     "healthy": ServerTraits(served_model_name="qwen-vl", max_model_len=300_000),
+    "no-reasoning-off": ServerTraits(no_reasoning=True, max_model_len=300_000),
 }
 """Model name -> the limits of the server behind it."""
 FIELDS = {
     "reasoning-max-tokens": ", max_tokens_field: max_tokens",
     "reasoning-temperature": ", generation: {temperature: 0.2}",
+    "no-reasoning-off": ", generation: {reasoning_effort: off}",  # YAML's false: read as off
 }
 """Model name -> what its config entry sets besides its name and address."""
 
@@ -73,7 +76,8 @@ def config(tmp_path_factory) -> Iterator[Path]:
         yield path
 
 
-FAULTY = [name for name in SERVERS if name != "healthy"]
+SOUND = ["healthy", "no-reasoning-off"]
+FAULTY = [name for name in SERVERS if name not in SOUND]
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +85,7 @@ def checked(config) -> dict[str, subprocess.CompletedProcess[str]]:
     """`python -m vabench.check CONFIG --model ...`: the faulty models in one run, the sound
     ones in another, side by side (a command's start takes seconds on a small machine)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    groups = {"faulty": FAULTY, "sound": ["healthy", "embedded"]}
+    groups = {"faulty": FAULTY, "sound": [*SOUND, "embedded"]}
     runs = {
         group: subprocess.Popen(
             [sys.executable, "-m", "vabench.check", str(config)]
@@ -155,6 +159,17 @@ def test_a_reasoning_models_refused_parameters_are_named(checked):
     (line,) = problem_lines(run, "reasoning-temperature")
     assert "'temperature' does not support 0.2" in line
     assert "remove models[5].generation.temperature" in line
+
+
+def test_a_refused_reasoning_option_is_named_with_the_value_that_switches_it_off(checked):
+    run = checked["faulty"]
+    assert run.returncode == 2, run.stderr
+    (line,) = problem_lines(run, "no-reasoning")
+    assert line.startswith("model 'no-reasoning': reasoning: the server refuses the benchmark's")
+    assert "'reasoning_effort' is not supported with this model" in line
+    assert "set models[6].generation.reasoning_effort: off" in line
+    # with the option switched off the same server passes (the sound run below)
+    assert "check: model 'no-reasoning-off'" in checked["sound"].stdout
 
 
 def test_a_server_without_those_limits_passes_every_item(checked):

@@ -13,6 +13,7 @@ import re
 from dataclasses import dataclass
 
 from vabench.agent.conversation import ContextLimits
+from vabench.llm_pool.apis import get_adapter
 from vabench.llm_pool.config import ModelEndpoint
 
 ITEMS = (
@@ -81,6 +82,11 @@ _NO_COMPLETION_FIELD = re.compile(
     r"max_completion_tokens.{0,40}(?:not supported|unrecognized|unknown|extra)"
     r"|(?:unrecognized|unknown|extra).{0,40}max_completion_tokens"
 )
+_REASONING = re.compile(
+    r"(?:reasoning_effort|reasoning\.effort|'reasoning'|thinking).{0,60}"
+    r"(?:not support|unsupported|unrecognized|unknown|not permitted|extra)"
+    r"|(?:unrecognized|unsupported|unknown|extra).{0,60}(?:reasoning_effort|reasoning|thinking)"
+)
 _TEMPERATURE = re.compile(r"'?temperature'?.{0,60}(?:not support|unsupported|only the default)")
 _KEY = re.compile(
     r"api[ _-]?key|unauthori[sz]ed|authenticat|invalid (?:access |auth |bearer )?token"
@@ -137,6 +143,15 @@ def rejection(where: Where, status: int, message: str, images: int, images_why: 
             "output limit",
             f"the server refuses max_completion_tokens ({quoted})",
             f"set {field}.max_tokens_field: max_tokens",
+        )
+    if _REASONING.search(low):
+        option = get_adapter(ep.api).reasoning_option
+        return Line(
+            where.name,
+            "reasoning",
+            f"the server refuses the benchmark's reasoning option ({quoted})",
+            f"set {field}.generation.{option}: off (the model is then run without it, and "
+            "the report says so)",
         )
     if _TEMPERATURE.search(low):
         return Line(

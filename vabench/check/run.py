@@ -19,11 +19,13 @@ The answers become `judge.Line`s, ten items a model, a fix on every problem.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import aiohttp
 
+from vabench.agent.generation import request_options
 from vabench.check import judge
 from vabench.check.inputs import CONTEXT_PROBE_TOKENS, Probe, context_probe, probe
 from vabench.check.judge import Line, Where
@@ -89,7 +91,10 @@ async def check_model(where: Where, request: Probe, environ: Mapping[str, str]) 
     card = await model_card(ep, environ.get(ep.api_key_env) if ep.api_key_env else None)
     async with LLMPool([_for_the_check(ep)], environ=environ) as pool:
         try:
-            result = await pool.complete(name, request.request)
+            # with the options an episode's requests carry (the benchmark's API defaults):
+            # a server that refuses one is found here, not in every episode
+            sent = dataclasses.replace(request.request, options=request_options(ep, None))
+            result = await pool.complete(name, sent)
         except EndpointUnreachable as err:
             fix = err.hint or f"start the server at {ep.resolved_base_url} ({where.field}.base_url)"
             return [Line(name, "reachable", f"no ({err.message})", fix)]

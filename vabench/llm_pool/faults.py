@@ -172,6 +172,20 @@ def vllm_error(status: int, message: str) -> web.Response:
     return error_response(status, body)
 
 
+def no_reasoning_refusal(body: dict[str, Any]) -> web.Response | None:
+    """OpenAI's 400 for `reasoning_effort` sent to a model that does not reason, or None."""
+    if body.get("reasoning_effort") is None and body.get("reasoning") is None:
+        return None
+    param = "reasoning_effort" if "reasoning_effort" in body else "reasoning.effort"
+    error = {
+        "message": f"Unsupported parameter: '{param}' is not supported with this model.",
+        "type": "invalid_request_error",
+        "param": param,
+        "code": "unsupported_parameter",
+    }
+    return error_response(400, {"error": error})
+
+
 def reasoning_refusal(body: dict[str, Any]) -> web.Response | None:
     """OpenAI's 400 for a parameter its reasoning models refuse (`max_tokens`, a `temperature`
     other than the default 1), or None."""

@@ -83,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="refuse max_tokens and a temperature other than 1, as OpenAI's reasoning models",
     )
+    traits.add_argument(
+        "--no-reasoning",
+        action="store_true",
+        default=None,
+        help="refuse reasoning_effort, as OpenAI's models that do not reason",
+    )
     p.add_argument(
         "--policy-processes",
         type=int,
@@ -125,6 +131,7 @@ def config_from_args(args: argparse.Namespace) -> ServerConfig:
         ("num_ctx", args.num_ctx),
         ("ignored_fields", args.ignore_field or None),
         ("reasoning_model", args.reasoning_model),
+        ("no_reasoning", args.no_reasoning),
     ):
         if value is not None:
             imitate[key] = value

@@ -55,6 +55,7 @@ from vabench.llm_pool.faults import (
     drop_connection,
     error_response,
     malformed_response,
+    no_reasoning_refusal,
     reasoning_refusal,
     retry_after_headers,
     status_of,
@@ -340,10 +341,13 @@ class LocalServer:
         options = incoming.chat.options
         max_output = options.resolved_max_output_tokens if options else DEFAULT_MAX_OUTPUT_TOKENS
         traits = self.config.imitate
-        if traits.ignored_fields or traits.reasoning_model:
+        if traits.ignored_fields or traits.reasoning_model or traits.no_reasoning:
             fields = json.loads(raw)
             if traits.reasoning_model and (rejected := reasoning_refusal(fields)) is not None:
                 record.error = "a parameter a reasoning model refuses"
+                return rejected
+            if traits.no_reasoning and (rejected := no_reasoning_refusal(fields)) is not None:
+                record.error = "a reasoning option a model without reasoning refuses"
                 return rejected
             if _limit_fields_ignored(fields, traits.ignored_fields):
                 max_output = UNREAD_OUTPUT_LIMIT

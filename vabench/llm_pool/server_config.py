@@ -57,6 +57,9 @@ class ServerTraits(BaseModel):
     reasoning_model: bool = False
     """An OpenAI reasoning model's parameter rules: `max_tokens` refused (it takes
     `max_completion_tokens` only), a `temperature` other than 1 refused, in OpenAI's words."""
+    no_reasoning: bool = False
+    """A model that does not reason (OpenAI's gpt-4o, say): `reasoning_effort` refused, in
+    OpenAI's words."""
 
 
 class ServerConfig(BaseModel):

@@ -8,11 +8,15 @@ together with a registered API into a `ModelEndpoint` (the `models:` entries of 
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 ReasoningEffort = Literal["none", "minimal", "low", "medium", "high"]
+OFF = "off"
+"""The value of a reasoning option that sends no such field at all (and so switches the
+benchmark's default for it off, `vabench.agent.generation`): for a model or server that refuses
+the field, or a comparison run without the default."""
 
 DEFAULT_MAX_OUTPUT_TOKENS = 4096  # the reference harness's max_tokens for every API
 
@@ -79,19 +83,39 @@ class GenerationOptions(Strict):
 
     max_output_tokens: int | None = Field(default=None, ge=1)
     temperature: float | None = Field(default=None, ge=0, le=2)
-    reasoning_effort: ReasoningEffort | None = None
-    """OpenAI reasoning models only (Chat Completions and Responses)."""
-    thinking_budget: int | None = Field(default=None, ge=1024)
-    """Anthropic extended thinking; must be below max_output_tokens."""
+    reasoning_effort: ReasoningEffort | Literal["off"] | None = None
+    """OpenAI reasoning models only (Chat Completions and Responses); `off`: the field is not
+    sent (unset: the benchmark's default, `medium`)."""
+    thinking_budget: Annotated[int, Field(ge=1024)] | Literal["off"] | None = None
+    """Anthropic extended thinking; must be below max_output_tokens; `off`: no thinking
+    (unset: the benchmark's default, 1,024 tokens)."""
     cache_prompt: bool | None = None
     """Anthropic: put cache_control markers on the stable prefix (default on). OpenAI caches
     prefixes automatically and ignores this."""
+
+    @field_validator("reasoning_effort", "thinking_budget", mode="before")
+    @classmethod
+    def _yaml_off(cls, value: object) -> object:
+        # YAML reads a bare `off` as false: the user wrote `off`
+        return OFF if value is False else value
 
     def merge(self, override: GenerationOptions | None) -> GenerationOptions:
         """These options with every field that `override` sets replaced."""
         if override is None:
             return self
         return self.model_copy(update=override.model_dump(exclude_none=True))
+
+    @property
+    def sent_reasoning_effort(self) -> ReasoningEffort | None:
+        """The `reasoning_effort` a request carries (None: no such field)."""
+        effort = self.reasoning_effort
+        return None if effort == "off" else effort
+
+    @property
+    def sent_thinking_budget(self) -> int | None:
+        """The thinking budget a request carries (None: thinking not enabled)."""
+        budget = self.thinking_budget
+        return budget if isinstance(budget, int) else None
 
     @property
     def resolved_max_output_tokens(self) -> int:

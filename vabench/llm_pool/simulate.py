@@ -157,10 +157,10 @@ def simulate_usage(
     options = request.chat.options
     reasoning_tokens: int | None = None
     reasoning_text: str | None = None
-    if options is not None and options.reasoning_effort is not None:
-        reasoning_tokens = REASONING_TOKENS[options.reasoning_effort]
-    if options is not None and options.thinking_budget is not None:
-        thinking = min(options.thinking_budget, THINKING_TOKENS)
+    if options is not None and options.sent_reasoning_effort is not None:
+        reasoning_tokens = REASONING_TOKENS[options.sent_reasoning_effort]
+    if options is not None and options.sent_thinking_budget is not None:
+        thinking = min(options.sent_thinking_budget, THINKING_TOKENS)
         reasoning_text = "thinking " * (thinking // 2)  # ~2 tokens per word of it
         reasoning_tokens = thinking
     output = text_tokens(reply_text) + (reasoning_tokens or 0)

@@ -147,6 +147,7 @@ def write_report(
         f"base families (vabench.tasks): {n_single} single-arm, {n_dual} dual-arm "
         "(dual-arm = the task uses more than one arm)",
         *stats.coverage_notes(cells, base),
+        *(results_file.api_setting_notes(run_dir) if one_dir else []),
     ]
     if results.truncated_tail:
         macro_notes.append(

@@ -27,6 +27,8 @@ from typing import Any
 import yaml
 
 import vabench
+from vabench.agent.generation import REASONING_EFFORT, THINKING_BUDGET
+from vabench.llm_pool.settings import OFF
 from vabench.protocol.version import PROTOCOL_VERSION
 from vabench.protocol.vocabulary import MAX_REPAIRS_PER_DECISION, MAX_TOOL_ROUND_TRIPS
 from vabench.report import published as P
@@ -94,6 +96,28 @@ def _plan_fields(run: RunDir) -> dict[str, Any]:
         return {}
     fields = plan.get("fields") if isinstance(plan, dict) else None
     return fields if isinstance(fields, dict) else {}
+
+
+def api_setting_notes(run_dir: Path) -> list[str]:
+    """A note for each model whose config changed one of the benchmark's API defaults
+    (`vabench.agent.generation`): its scores were made under other settings than the paper's
+    runs. Read from the plan's model entries (the generation options their configs name)."""
+    notes = []
+    defaults = {"reasoning_effort": REASONING_EFFORT, "thinking_budget": THINKING_BUDGET}
+    for model in _plan_fields(RunDir(run_dir)).get("models") or []:
+        generation = model.get("generation") if isinstance(model, dict) else None
+        if not isinstance(generation, dict):
+            continue
+        for option, default in defaults.items():
+            value = generation.get(option)
+            if value is None or value == default:
+                continue
+            sent = "not sent" if value == OFF else f"{value} sent"
+            notes.append(
+                f"{model.get('name')}: generation.{option} {value} ({sent}; the benchmark's "
+                f"default is {default}, where the model's API takes the option)"
+            )
+    return notes
 
 
 def provenance(run_dir: Path, records: Sequence[Record]) -> dict[str, Any]:

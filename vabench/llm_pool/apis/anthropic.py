@@ -216,11 +216,11 @@ class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
                 "the Anthropic Messages API (version 2026-10-21, the official SDK's) takes no "
                 "temperature; remove it (it applies to the OpenAI APIs only)",
             )
-        if options.reasoning_effort is not None:
+        if options.sent_reasoning_effort is not None:
             raise ConfigError(
                 "generation.reasoning_effort", "OpenAI only; use thinking_budget for anthropic"
             )
-        budget = options.thinking_budget
+        budget = options.sent_thinking_budget
         if budget is not None and budget >= options.resolved_max_output_tokens:
             raise ConfigError(
                 "generation.thinking_budget",
@@ -251,8 +251,8 @@ class Anthropic(base.ApiAdapter[MessagesRequest, MessagesResponse]):
                 if cache
                 else request.system
             )
-        if options.thinking_budget is not None:
-            body["thinking"] = {"type": "enabled", "budget_tokens": options.thinking_budget}
+        if options.sent_thinking_budget is not None:
+            body["thinking"] = {"type": "enabled", "budget_tokens": options.sent_thinking_budget}
         return body
 
     def part(self, part: Part) -> dict[str, Any]:

@@ -202,8 +202,8 @@ class OpenAIChat(common.OpenAIApi[ChatCompletionsRequest, ChatCompletionsRespons
         }
         if options.temperature is not None:
             body["temperature"] = options.temperature
-        if options.reasoning_effort is not None:
-            body["reasoning_effort"] = options.reasoning_effort
+        if options.sent_reasoning_effort is not None:
+            body["reasoning_effort"] = options.sent_reasoning_effort
         return body
 
     def part(self, part: Part) -> dict[str, Any]:

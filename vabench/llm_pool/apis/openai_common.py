@@ -95,7 +95,7 @@ class OpenAIApi(ApiAdapter[RequestT, ResponseT]):
         return openai_image_tokens(width, height)
 
     def check_options(self, options: GenerationOptions) -> None:
-        if options.thinking_budget is not None:
+        if options.sent_thinking_budget is not None:
             raise ConfigError(
                 "generation.thinking_budget", "anthropic only; use reasoning_effort for OpenAI"
             )

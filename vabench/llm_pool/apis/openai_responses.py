@@ -206,8 +206,8 @@ class OpenAIResponses(common.OpenAIApi[ResponsesRequest, ResponsesResponse]):
             body["instructions"] = request.system
         if options.temperature is not None:
             body["temperature"] = options.temperature
-        if options.reasoning_effort is not None:
-            body["reasoning"] = {"effort": options.reasoning_effort}
+        if options.sent_reasoning_effort is not None:
+            body["reasoning"] = {"effort": options.sent_reasoning_effort}
         return body
 
     def part(self, part: Part) -> dict[str, Any]:
