@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import itertools
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from tests.conftest import N_SLOTS
+from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx.cpu import CpuBatch
 
 BACKENDS = ["c", pytest.param("mjx", marks=pytest.mark.slow)]
@@ -126,6 +128,14 @@ def test_local_rotation(home_batch):
         assert np.sign(turned) == (1 if sign == "+" else -1)
         drift = np.linalg.norm(end.gc[slot, 0] - start.gc[slot, 0]) * 1000.0
         assert drift < 3.0, (axis, sign, angle, drift)
+
+
+def test_rotation_waypoints_are_the_reference_count():
+    """ceil(angle / 10 deg) waypoints for every whole angle, in the planner's float32: 30, 60
+    and 90 deg are not one more (90 deg's tenth waypoint, its end, would go unchecked)."""
+    for deg in range(1, 91):
+        rotvec = jnp.asarray([0.0, np.radians(deg), 0.0], jnp.float32)
+        assert int(ctl.turn_waypoints(rotvec)) == -(-deg // 10), deg
 
 
 def _home_single(sb, task, model):
