@@ -8,6 +8,8 @@ action changes no physics" is checked on the batch itself, bit for bit.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from engine_util import (
@@ -93,6 +95,41 @@ def test_each_decision_form_reaches_the_right_place(pool):
     assert [e["view"] for e in obs] == ["center_high", "side", "side (adjusted)", "side (adjusted)"]
     robot = robot_state(texts[5][-1])["right"]
     assert (robot["last_action_valid"], robot["last_planner_success"]) == (True, True)
+
+
+def _world_turn(axis: str, deg: float) -> np.ndarray:
+    """The right-hand rotation by deg about world axis x|y|z (Rodrigues)."""
+    k = np.eye(3)["xyz".index(axis)]
+    skew = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    t = np.radians(deg)
+    return np.eye(3) + np.sin(t) * skew + (1.0 - np.cos(t)) * skew @ skew
+
+
+def test_world_rotation_is_read_and_executed_never_offered(pool):
+    """The reference's unadvertised world rotation, in its compact and its JSON form: both
+    executed about the fixed world axis (the local axes the model sees turn by R(e, t)), GC
+    held; no request offers it."""
+    script = [
+        reply({"action": "gripper.rotate_rz_ccw.20deg"}),
+        reply({"action": "gripper.rotate_world", "axis": "x", "sign": "-", "angle_deg": 15}),
+        STOP,
+    ]
+    run = run_scripted(TASK, script, pool, seed=SEED, budget=4)
+    r = run.result
+    assert (r.status, r.stop_reason) == ("failure", "model_stop"), r.error
+    assert (r.robot_actions, r.invalid_outputs) == (2, 0)
+    labels = [e["label"] for e in run.of_type("decision")]
+    assert labels == ["rotate_world z+20deg", "rotate_world x-15deg", "stop"]
+    assert all(a["valid"] and a["planner_success"] for a in run.of_type("action"))
+    assert b"rotate_world" not in run.bodies[0][1]  # the system prompt and the first observation
+    texts = [user_texts(body_json(raw)) for _, raw in run.bodies]
+    axes = [robot_state(t[-1])["right"]["local_axes_world"] for t in texts]
+    frames = [np.array([a[k] for k in ("rx", "ry", "rz")]).T for a in axes]
+    for (axis, deg), r0, r1 in zip((("z", 20.0), ("x", -15.0)), frames, frames[1:], strict=False):
+        np.testing.assert_allclose(_world_turn(axis, deg) @ r0, r1, atol=2e-3)  # 4 decimals shown
+    assert len(run.probes) == 3
+    for before, after in itertools.pairwise(run.probes):
+        assert np.linalg.norm(after.gcs["right"] - before.gcs["right"]) < 5e-4
 
 
 def test_three_invalid_replies_end_the_episode_after_two_repairs(pool):

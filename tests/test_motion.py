@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import itertools
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from tests.conftest import N_SLOTS
+from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx.cpu import CpuBatch
 
 BACKENDS = ["c", pytest.param("mjx", marks=pytest.mark.slow)]
@@ -126,6 +128,101 @@ def test_local_rotation(home_batch):
         assert np.sign(turned) == (1 if sign == "+" else -1)
         drift = np.linalg.norm(end.gc[slot, 0] - start.gc[slot, 0]) * 1000.0
         assert drift < 3.0, (axis, sign, angle, drift)
+
+
+def test_rotation_waypoints_are_the_reference_count():
+    """ceil(angle / 10 deg) waypoints for every whole angle, in the planner's float32: 30, 60
+    and 90 deg are not one more (90 deg's tenth waypoint, its end, would go unchecked)."""
+    for deg in range(1, 91):
+        rotvec = jnp.asarray([0.0, np.radians(deg), 0.0], jnp.float32)
+        assert int(ctl.turn_waypoints(rotvec)) == -(-deg // 10), deg
+
+
+def _turn(axis, angle_deg):
+    """The right-hand rotation matrix by angle_deg about world axis x|y|z."""
+    k = np.eye(3)[AXES[axis]]
+    skew = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    t = np.radians(angle_deg)
+    return np.eye(3) + np.sin(t) * skew + (1.0 - np.cos(t)) * skew @ skew
+
+
+def test_world_rotation(home_batch):
+    """A turn about a fixed world axis of a gripper whose axes are aligned with none of the
+    world's: the orientation becomes R(e, t) R within 0.1 deg (the same turn about the local
+    axis e would miss it by more than 10 deg), GC drifts under 0.5 mm."""
+    cases = list(itertools.product("xyz", "+-", (10, 25, 45)))
+    for tilt in ({"axis": "ry", "angle_deg": 25}, {"axis": "rx", "angle_deg": 20}):
+        res = home_batch.step([{"action": "gripper.rotate_local", "sign": "+", **tilt}] * N_SLOTS)
+        assert all(r.planner_success for r in res)
+    start = home_batch.proprio()
+    r0 = np.asarray(start.rot[0, 0], float)
+    assert np.abs(r0).max(axis=0).max() < 0.97  # no local axis near a world axis
+    results = home_batch.step(
+        [
+            {"action": "gripper.rotate_world", "axis": a, "sign": s, "angle_deg": d}
+            for a, s, d in cases
+        ]
+    )
+    end = home_batch.proprio()
+    for slot, (axis, sign, angle) in enumerate(cases):
+        res = results[slot]
+        assert res.valid and res.planner_success and res.executed, (axis, sign, angle, res)
+        assert res.label == f"rotate_world {axis}{sign}{angle}deg"
+        r0, r1 = np.asarray(start.rot[slot, 0], float), np.asarray(end.rot[slot, 0], float)
+        turn = _turn(axis, angle if sign == "+" else -angle)
+        assert _rotation_angle_deg(turn @ r0, r1) < 0.1, (axis, sign, angle)
+        assert _rotation_angle_deg(r0 @ turn, r1) > 10.0, (axis, sign, angle)
+        drift = np.linalg.norm(end.gc[slot, 0] - start.gc[slot, 0]) * 1000.0
+        assert drift < 0.5, (axis, sign, angle, drift)
+
+
+def test_world_rotation_is_the_local_rotation_about_the_converted_axis(
+    backend, batches, probe_task
+):
+    """At home the gripper's ry is world -x: a world x turn and the local ry turn of the
+    opposite sign are one command, up to the float32 rounding of the converted axis (C MuJoCo:
+    bit-identical; MJX: joints within 1e-6 rad, the cube within 2e-5, where the contact
+    amplifies the rounding)."""
+    batch = batches[0]
+    q = probe_task.initial_qpos(batch.model, 0)
+    batch.reset(range(N_SLOTS), np.broadcast_to(q, (N_SLOTS, batch.model.nq)), settle_steps=25)
+    ry = np.asarray(batch.proprio().rot[0, 0], float)[:, 1]
+    np.testing.assert_allclose(ry, [-1.0, 0.0, 0.0], atol=1e-6)
+    pairs = [("+", "-", 30), ("-", "+", 20)]
+    actions = [None] * N_SLOTS
+    for i, (world_sign, local_sign, angle) in enumerate(pairs):
+        actions[2 * i] = {"action": "gripper.rotate_world", "axis": "x", "sign": world_sign,
+                          "angle_deg": angle}  # fmt: skip
+        actions[2 * i + 1] = {"action": "gripper.rotate_local", "axis": "ry", "sign": local_sign,
+                              "angle_deg": angle}  # fmt: skip
+    results = batch.step(actions)
+    assert all(r.planner_success for r in results if r is not None)
+    qpos, arm = batch.qpos(), batch.layout.qpos.ravel()
+    for i in range(len(pairs)):
+        world, local = qpos[2 * i], qpos[2 * i + 1]
+        np.testing.assert_allclose(world[arm], local[arm], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(world, local, rtol=0, atol=2e-5)
+        if backend == "c":
+            _assert_same_state(_state(batch, 2 * i), _state(batch, 2 * i + 1))
+    assert np.abs(qpos[0][arm] - q[arm]).max() > 0.1  # it did turn
+
+
+def test_world_rotation_out_of_bounds_is_refused_whole(single, probe_task, probe_model):
+    """The control point at the top bound, GC below and in front of it: a world x turn that
+    lifts the control point is refused at its first waypoint (valid, planner false, the slot
+    bit-identical); the opposite turn, which lowers it, runs."""
+    sb = _home_single(single, probe_task, probe_model)
+    up = {"action": "gripper.move_world", "axis": "z", "sign": "+", "distance_mm": 100}
+    for _ in range(4):
+        res = sb.step([up])[0]
+    assert res.clipped["right"] and sb.proprio().ee[0, 0][2] == pytest.approx(1.35, abs=2e-3)
+    before = _state(sb)
+    lift = {"action": "gripper.rotate_world", "axis": "x", "sign": "-", "angle_deg": 10}
+    res = sb.step([lift])[0]
+    assert res.valid and not res.planner_success and not res.executed
+    _assert_same_state(before, _state(sb))
+    res = sb.step([{**lift, "sign": "+"}])[0]
+    assert res.valid and res.planner_success and res.executed
 
 
 def _home_single(sb, task, model):
@@ -255,6 +352,11 @@ def test_determinism_across_batch_size_slot_and_neighbours(
         ),
         ({"action": "gripper.move_world", "axis": "w", "sign": "+", "distance_mm": 10}, "axis"),
         ({"action": "gripper.rotate_local", "axis": "x", "sign": "+", "angle_deg": 10}, "axis"),
+        ({"action": "gripper.rotate_world", "axis": "rz", "sign": "+", "angle_deg": 10}, "axis"),
+        (
+            {"action": "gripper.rotate_world", "axis": "z", "sign": "+", "angle_deg": 0.5},
+            "angle_deg",
+        ),
         (
             {"action": "gripper.rotate_local", "axis": "rx", "sign": "+", "angle_deg": 91},
             "angle_deg",

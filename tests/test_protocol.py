@@ -645,16 +645,57 @@ def test_reference_spellings_in_dual_arm_tasks():
     )
 
 
+def world(axis="z", sign="+", deg=15, **extra):
+    return {"action": "gripper.rotate_world", "axis": axis, "sign": sign, "angle_deg": deg, **extra}
+
+
 @pytest.mark.parametrize(
-    "obj",
+    "obj,ctx,label",
     [
-        {"action": "gripper.rotate_world", "axis": "z", "sign": "+", "angle_deg": 10},
-        {"action": "gripper.rotate_rz_ccw.30deg"},
+        (world(), ACTIVE_SINGLE, "rotate_world z+15deg"),
+        (world("X", "cw", 90), ACTIVE_SINGLE, "rotate_world x-90deg"),
+        (world("rz", "ccw", 1), ACTIVE_SINGLE, "rotate_world z+1deg"),
+        (world(" RY ", -1, "12.5"), ACTIVE_SINGLE, "rotate_world y-12.5deg"),
+        (world("y", arm="left"), ACTIVE_DUAL, "rotate_world left y+15deg"),
+        ({"action": "gripper.rotate_rz_ccw.30deg"}, ACTIVE_SINGLE, "rotate_world z+30deg"),
+        ({"action": "gripper.rotate_rx_cw.7.5deg"}, PASSIVE_SINGLE, "rotate_world x-7.5deg"),
+        ({"action": "left_gripper.rotate_ry_cw.45deg"}, ACTIVE_DUAL, "rotate_world left y-45deg"),
     ],
 )
-def test_world_rotations_are_refused_with_the_local_form(obj):
-    err = rejected(obj)
-    assert err.field == "action" and "gripper.rotate_local" in str(err)
+def test_world_rotations_are_accepted(obj, ctx, label):
+    """The reference's unadvertised world rotation, in its JSON and its legacy form: world
+    axes x|y|z, also spelled rx|ry|rz (the legacy name's spelling)."""
+    d = decide(obj, ctx)
+    assert isinstance(d, P.RotateWorld) and d.kind == "robot"
+    assert P.decision_label(d) == label
+    assert P.parse_robot_action(d.model_dump(exclude_none=True), ctx.arms) == d  # the sim's path
+
+
+@pytest.mark.parametrize(
+    "obj,ctx,field,words",
+    [
+        (world(deg=91), ACTIVE_SINGLE, "angle_deg", "90"),
+        (world(deg=0.5), ACTIVE_SINGLE, "angle_deg", "1"),
+        (world(axis="w"), ACTIVE_SINGLE, "axis", "'x'"),
+        (world(sign="up"), ACTIVE_SINGLE, "sign", "+"),
+        (world(), ACTIVE_DUAL, "arm", "required in dual-arm tasks"),
+        (world(arm="left"), ACTIVE_SINGLE, "arm", "not an arm of this task"),
+        ({"action": "gripper.rotate_rz_ccw.95deg"}, ACTIVE_SINGLE, "angle_deg", "90"),
+    ],
+)
+def test_world_rotations_are_validated_as_local_ones(obj, ctx, field, words):
+    err = rejected(obj, ctx)
+    assert err.field == field and words in str(err), str(err)
+
+
+@pytest.mark.parametrize("ctx", [ACTIVE_SINGLE, ACTIVE_DUAL, PASSIVE_SINGLE, PASSIVE_DUAL])
+def test_world_rotation_is_never_advertised(ctx):
+    """Accepted, never offered (as the reference): not in the vocabulary, not among the valid
+    names an unknown action's repair lists."""
+    listed = "\n".join(P.available_actions(ctx.arms, ctx.protocol, ctx.tools))
+    assert "rotate_world" not in listed
+    assert "gripper.rotate_world" not in P.action_names(ctx.arms, ctx.protocol)
+    assert "rotate_world" not in str(rejected({"action": "gripper.fly"}, ctx))
 
 
 @pytest.mark.parametrize(

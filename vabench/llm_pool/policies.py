@@ -179,6 +179,7 @@ class RandomActionPolicy:
 
     def action(self, dual: bool) -> dict[str, Any]:
         rng = self._rng
+        # The offered actions only: gripper.rotate_world is accepted, never offered.
         kinds = ["move", "rotate", "aperture"] + (["dual_move"] if dual else [])
         kind = rng.choice(kinds)
         arm = {"arm": rng.choice(("left", "right"))} if dual else {}

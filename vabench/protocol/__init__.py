@@ -53,6 +53,7 @@ from vabench.protocol.decision import (
 from vabench.protocol.errors import REPLY, ActionError, DecisionError
 from vabench.protocol.extract import extract_json_object, split_reasoning
 from vabench.protocol.robot import (
+    AnyRobotAction,
     Aperture,
     Arm,
     AxisMove,
@@ -61,6 +62,7 @@ from vabench.protocol.robot import (
     MoveWorld,
     RobotAction,
     RotateLocal,
+    RotateWorld,
     parse_robot_action,
     robot_action_names,
 )
@@ -105,6 +107,7 @@ __all__ = [
     "SIGN_ALIASES",
     "TOOL_NAMES",
     "ActionError",
+    "AnyRobotAction",
     "Aperture",
     "Arm",
     "AxisMove",
@@ -123,6 +126,7 @@ __all__ = [
     "ObservationProtocol",
     "RobotAction",
     "RotateLocal",
+    "RotateWorld",
     "Stop",
     "ToolCall",
     "ToolName",

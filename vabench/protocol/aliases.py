@@ -9,17 +9,16 @@ vabench's one form before dispatch (PROTOCOL_FACTS 3.3). Pure functions of the d
 - An `action` that names a tool is that tool call; its arguments are `args` (or `tool_args`),
   else the other fields of the object (what a model writes as `{"action": "camera.history",
   "step": 3}`).
-- Axes: any case and surrounding space; in a rotation `x`, `y`, `z` mean `rx`, `ry`, `rz`.
+- Axes: any case and surrounding space; in a local rotation `x`, `y`, `z` mean `rx`, `ry`,
+  `rz`; in a world rotation `rx`, `ry`, `rz` mean `x`, `y`, `z` (its axes are the world's,
+  named as in `gripper.move_world`; the reference's compact name spells them `rx|ry|rz`).
 - Signs: `+`, `pos`, `positive`, `ccw`, `+1`, `1` and `-`, `neg`, `negative`, `cw`, `-1`, in
   any case, also as the numbers 1 and -1; for moves and rotations alike.
 - Legacy compact action names: `[<arm>_]gripper.world_<x|y|z>_<pos|neg>.<N>mm` is a
   `gripper.move_world`, `[<arm>_]gripper.local_rotate_<rx|ry|rz>_<ccw|cw>.<N>deg` a
-  `gripper.rotate_local`; `gripper.rotate_<rx|ry|rz>_<ccw|cw>.<N>deg` is the reference's world
-  rotation `gripper.rotate_world`.
-- `gripper.rotate_world` (a rotation about a fixed world axis, accepted but not advertised by
-  the reference) has no counterpart in vabench's controller, which turns the gripper about its
-  own axes: it is refused with a repair that says how to write the same turn with
-  `gripper.rotate_local` (`local_axes_world` gives the gripper's axes in the world).
+  `gripper.rotate_local`, `[<arm>_]gripper.rotate_<rx|ry|rz>_<ccw|cw>.<N>deg` a
+  `gripper.rotate_world` (the reference's world rotation: a turn about the fixed world axis,
+  GC held, accepted but not advertised; vabench executes it, `robot.RotateWorld`).
 - `"stop": true` (the boolean only) stops; any other `stop` value is ignored, as in the
   reference (`{"action": ..., "stop": false}` is that action).
 """
@@ -29,7 +28,6 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from vabench.protocol.errors import DecisionError
 from vabench.protocol.vocabulary import TOOL_NAMES
 
 SIGN_ALIASES = {
@@ -51,13 +49,14 @@ TOOL_ALIASES = {
     "image.history": "camera.history",
     "robot.geometry": "geometry.verify",
 }
+ROTATE_LOCAL = "gripper.rotate_local"
 ROTATE_WORLD = "gripper.rotate_world"
 _MOVE = re.compile(r"^(?:(left|right)_)?gripper\.world_([xyz])_(pos|neg)\.(\d+(?:\.\d+)?)mm$")
 _LOCAL = re.compile(
     r"^(?:(left|right)_)?gripper\.local_rotate_(rx|ry|rz)_(ccw|cw)\.(\d+(?:\.\d+)?)deg$"
 )
 _WORLD = re.compile(r"^(?:(left|right)_)?gripper\.rotate_(rx|ry|rz)_(ccw|cw)\.(\d+(?:\.\d+)?)deg$")
-_ROTATIONS = ("gripper.rotate_local", ROTATE_WORLD)
+_AXIS_ACTIONS = ("gripper.move_world", ROTATE_LOCAL, ROTATE_WORLD)
 
 
 def sign(value: Any) -> Any:
@@ -71,13 +70,16 @@ def sign(value: Any) -> Any:
     return value
 
 
-def axis(value: Any, rotation: bool) -> Any:
-    """An axis in lower case; `x|y|z` of a rotation as `rx|ry|rz`."""
+def axis(value: Any, action: str | None = None) -> Any:
+    """An axis in lower case; `x|y|z` of a local rotation as `rx|ry|rz`, `rx|ry|rz` of a
+    world rotation as `x|y|z` (`action`: the action the axis belongs to)."""
     if not isinstance(value, str):
         return value
     name = value.strip().lower()
-    if rotation and name in ("x", "y", "z"):
+    if action == ROTATE_LOCAL and name in ("x", "y", "z"):
         return "r" + name
+    if action == ROTATE_WORLD and name in ("rx", "ry", "rz"):
+        return name[1:]
     return name
 
 
@@ -94,8 +96,9 @@ def _legacy(name: str) -> dict[str, Any] | None:
         fields["distance_mm"] = _number(n)
     elif (m := _LOCAL.match(name)) or (m := _WORLD.match(name)):
         arm, ax, sg, n = m.groups()
-        action = "gripper.rotate_local" if name.split(".")[1].startswith("local") else ROTATE_WORLD
-        fields = {"action": action, "axis": ax, "sign": sign(sg), "angle_deg": _number(n)}
+        action = ROTATE_LOCAL if name.split(".")[1].startswith("local") else ROTATE_WORLD
+        fields = {"action": action, "axis": axis(ax, action), "sign": sign(sg)}
+        fields["angle_deg"] = _number(n)
     else:
         return None
     if arm is not None:
@@ -108,7 +111,7 @@ def _side(value: Any) -> Any:
         return value
     side = {k: v for k, v in value.items() if v is not None}
     if "axis" in side:
-        side["axis"] = axis(side["axis"], rotation=False)
+        side["axis"] = axis(side["axis"])
     if "sign" in side:
         side["sign"] = sign(side["sign"])
     return side
@@ -138,18 +141,11 @@ def normalise(obj: dict[str, Any]) -> dict[str, Any]:
     if (legacy := _legacy(name)) is not None:
         out = {**{k: v for k, v in out.items() if k not in legacy}, **legacy}
         name = legacy["action"]
-    if name in ("gripper.move_world", *_ROTATIONS) and "axis" in out:
-        out["axis"] = axis(out["axis"], rotation=name in _ROTATIONS)
+    if name in _AXIS_ACTIONS and "axis" in out:
+        out["axis"] = axis(out["axis"], name)
     if "sign" in out:
         out["sign"] = sign(out["sign"])
     for side in ("left", "right"):
         if side in out:
             out[side] = _side(out[side])
-    if name == ROTATE_WORLD and "stop" not in out and "tool" not in out:
-        raise DecisionError(
-            "action",
-            "gripper.rotate_world (a turn about a fixed world axis) is not available here: "
-            "turn the gripper about its own axes with gripper.rotate_local (axis rx, ry or "
-            "rz; local_axes_world gives each of them in the world frame)",
-        )
     return out

@@ -33,6 +33,7 @@ from vabench.protocol.robot import (
     DualMove,
     MoveWorld,
     RotateLocal,
+    RotateWorld,
     parse_robot_action,
     robot_forms,
 )
@@ -50,7 +51,9 @@ class Stop(DecisionModel):
         return "stop"
 
 
-Decision = MoveWorld | RotateLocal | Aperture | DualMove | CameraAction | ToolCall | Stop
+Decision = (
+    MoveWorld | RotateLocal | RotateWorld | Aperture | DualMove | CameraAction | ToolCall | Stop
+)
 
 
 def decision_from_object(obj: Any, ctx: DecisionContext) -> Decision:

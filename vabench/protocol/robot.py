@@ -1,8 +1,11 @@
 """Robot actions: per-arm world translations, gripper-local rotations, aperture commands and
-the synchronized dual translation (FACTS.md, "Model-facing protocol").
+the synchronized dual translation (FACTS.md, "Model-facing protocol"), and the world rotation
+the benchmark's reference harness accepts without advertising it (PROTOCOL_FACTS 3.3).
 
 The simulator uses this part alone: `parse_robot_action(obj, arms)`. Single-arm tasks reject
 the `left_`/`right_`/`dual_` actions; dual-arm tasks require "arm" on `gripper.*` actions.
+`gripper.rotate_world` is parsed like every other action but named in no list, template or
+error message (`UNADVERTISED`), as in the reference.
 Signs accept the spellings models write (pos, positive, +1, 1, neg, negative, -1); a boolean
 is never a number.
 """
@@ -98,6 +101,25 @@ class RotateLocal(DecisionModel):
         )
 
 
+class RotateWorld(DecisionModel):
+    """A turn about the fixed world axis `axis` through GC, right-handed for "+": the
+    reference's unadvertised `gripper.rotate_world`. Executed as the local rotation about the
+    gripper-frame axis that points along the world axis at the start, so GC is held and the
+    <= 10 deg waypoints and the whole-path refusal are those of `RotateLocal`."""
+
+    kind: ClassVar[DecisionKind] = "robot"
+    action: Literal["gripper.rotate_world"]
+    axis: Literal["x", "y", "z"]
+    sign: Sign
+    angle_deg: AngleDeg
+    arm: Arm | None = None
+
+    def label(self) -> str:
+        return f"rotate_world {self.arm or ''} {self.axis}{self.sign}{self.angle_deg:g}deg".replace(
+            "  ", " "
+        )
+
+
 GripperName = Literal[
     "gripper.open",
     "gripper.close",
@@ -136,13 +158,13 @@ class DualMove(DecisionModel):
         return f"dual_move_world left {side(self.left)} right {side(self.right)}"
 
 
-RobotAction = Annotated[
-    MoveWorld | RotateLocal | Aperture | DualMove, Field(discriminator="action")
-]
+AnyRobotAction = MoveWorld | RotateLocal | RotateWorld | Aperture | DualMove
+RobotAction = Annotated[AnyRobotAction, Field(discriminator="action")]
 
 ROBOT_MODELS: dict[str, type[DecisionModel]] = {
     "gripper.move_world": MoveWorld,
     "gripper.rotate_local": RotateLocal,
+    "gripper.rotate_world": RotateWorld,
     "gripper.open": Aperture,
     "gripper.close": Aperture,
     "dual_gripper.move_world": DualMove,
@@ -153,6 +175,9 @@ ROBOT_MODELS: dict[str, type[DecisionModel]] = {
     },
 }
 """Every robot action name and the model that validates it."""
+UNADVERTISED = frozenset({"gripper.rotate_world"})
+"""Robot actions accepted but never offered: in no list of valid names and no template (the
+reference's world rotation is parsed and executed, never advertised)."""
 
 
 def dual_only(name: str) -> bool:
@@ -161,13 +186,14 @@ def dual_only(name: str) -> bool:
 
 
 def robot_action_names(arms: Sequence[str]) -> tuple[str, ...]:
-    """The robot action names valid in a scene whose controllable arms are `arms`."""
-    return tuple(n for n in ROBOT_MODELS if len(arms) > 1 or not dual_only(n))
+    """The robot action names offered in a scene whose controllable arms are `arms` (the
+    unadvertised ones left out)."""
+    return tuple(
+        n for n in ROBOT_MODELS if n not in UNADVERTISED and (len(arms) > 1 or not dual_only(n))
+    )
 
 
-def parse_robot_action(
-    obj: Any, arms: Sequence[str]
-) -> MoveWorld | RotateLocal | Aperture | DualMove:
+def parse_robot_action(obj: Any, arms: Sequence[str]) -> AnyRobotAction:
     """Validate one robot action (a dict as decoded from the model's JSON) for a scene whose
     controllable arms are `arms` (("right",) for single-arm tasks, ("left", "right") for dual).
 
@@ -187,7 +213,7 @@ def parse_robot_action(
         action = ROBOT_MODELS[name].model_validate(obj)
     except ValidationError as err:
         raise decision_error(err) from None
-    assert isinstance(action, MoveWorld | RotateLocal | Aperture | DualMove)
+    assert isinstance(action, AnyRobotAction)
     if isinstance(action, DualMove) or dual_only(name):
         if isinstance(action, Aperture) and action.arm is not None:
             raise DecisionError("arm", f"'{name}' already names its gripper; omit 'arm'")

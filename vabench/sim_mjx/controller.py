@@ -1,8 +1,9 @@
 """The fixed, model-agnostic executor: plan one metric action per slot, then a joint trajectory.
 
 Every action, whatever its kind, is a per-arm command (`ArmCommand`): a world translation of the
-end effector, a rotation vector about the current gripper-local axes (GC held fixed), and an
-aperture command. A slot's plan is
+end effector, a rotation vector about the current gripper-local axes (GC held fixed; a world
+rotation arrives as the local one about the same axis, `actions.encode`), and an aperture
+command. A slot's plan is
   1. the Cartesian target: translate, or rotate about GC (R' = R exp(rotvec), so the rotation is
      about the current local axis, right-handed); a translation's end-effector target is
      clipped to the workspace bounds of the reference and the clipping reported; a rotation
@@ -65,6 +66,12 @@ def idle_command(n_arms: int) -> ArmCommand:
     )
 
 
+def turn_waypoints(rotvec: jax.Array) -> jax.Array:
+    """How many waypoints of at most ROTATION_WAYPOINT_RAD a rotation is checked at (>= 1)."""
+    steps = jnp.linalg.norm(rotvec) / rc.ROTATION_WAYPOINT_RAD
+    return jnp.maximum(jnp.ceil(steps - rc.ROTATION_WAYPOINT_SLACK), 1.0)
+
+
 def _plan_arm(
     g: kin.ArmGeometry,
     q: jax.Array,
@@ -84,7 +91,7 @@ def _plan_arm(
     ee_clipped = jnp.where(turns, ee_end, jnp.clip(ee_end, lo, hi))
     shift = ee_clipped - ee_end
     clipped = jnp.any(jnp.abs(shift) > 1e-9)
-    n_turn = jnp.maximum(jnp.ceil(jnp.linalg.norm(rotvec) / rc.ROTATION_WAYPOINT_RAD - 1e-9), 1.0)
+    n_turn = turn_waypoints(rotvec)
 
     def turn_inside(k: jax.Array) -> jax.Array:
         ee_k = gc - rot @ kin.axis_angle(jnp.minimum(k / n_turn, 1.0) * rotvec) @ gc_local

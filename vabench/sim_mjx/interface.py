@@ -31,7 +31,7 @@ from vabench import protocol as P
 from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
 from vabench.sim_mjx import kinematics as kin
-from vabench.sim_mjx.actions import CommandRows, encode
+from vabench.sim_mjx.actions import CommandRows, encode, needs_orientation
 from vabench.sim_mjx.layout import ArmLayout, Proprio, proprio_slot
 from vabench.sim_mjx.pytree import PyTree, pytree_dataclass
 from vabench.sim_mjx.scene import free_objects
@@ -301,7 +301,9 @@ class BatchBase:
     def encode(self, actions: Sequence[Any]) -> tuple[CommandRows, list[ActionResult | None]]:
         """Validate and encode one action per slot (None = idle): the command arrays and a
         result per slot (invalid actions get theirs now, with a message naming the field).
-        Equal actions are parsed once (an episode sweep repeats few distinct actions)."""
+        Equal actions are parsed once (an episode sweep repeats few distinct actions). A world
+        rotation is encoded from the gripper orientations of the current state, the ones the
+        controller starts from (`actions` module docstring), read once per call."""
         if len(actions) < self.n_slots and len(actions) == getattr(self, "n_requested", -1):
             actions = [*actions, *([None] * (self.n_slots - len(actions)))]  # lane padding
         if len(actions) != self.n_slots:
@@ -310,6 +312,7 @@ class BatchBase:
             )
         rows = CommandRows.idle(self.n_slots, len(self.arms))
         results: list[ActionResult | None] = [None] * self.n_slots
+        rot: np.ndarray | None = None
         for slot, raw in enumerate(actions):
             if raw is None:
                 continue
@@ -326,13 +329,16 @@ class BatchBase:
             if isinstance(parsed, P.ActionError):
                 results[slot] = ActionResult(valid=False, error=str(parsed))
                 continue
-            encode(parsed, self.arms, rows, slot)
+            if rot is None and needs_orientation(parsed):
+                rot = np.asarray(self.proprio().rot)
+            encode(parsed, self.arms, rows, slot, None if rot is None else rot[slot])
             results[slot] = ActionResult(valid=True, label=parsed.label())
         return rows, results
 
     def step_rows(self, rows: CommandRows) -> StepInfo:
         """Execute already-encoded commands (the bulk path: one array per field for the whole
-        batch). Slots with `rows.active` false are idle and stay exactly as they were."""
+        batch). Slots with `rows.active` false are idle and stay exactly as they were. The
+        rows hold local rotation vectors: a world rotation goes through `encode`."""
         if rows.active.shape != (self.n_slots,):
             raise ValueError(f"rows must cover {self.n_slots} slots, got {rows.active.shape}")
         return self._execute(rows)

@@ -38,6 +38,10 @@ EE_BOUNDS_LO = (-0.55, -0.45, 0.74)
 EE_BOUNDS_HI = (0.55, 0.35, 1.35)
 ROTATION_WAYPOINT_RAD = math.radians(10.0)  # the reference's bounds check of a rotation
 MAX_ROTATION_WAYPOINTS = 9  # ceil(90 deg / 10 deg): the largest rotation's checked waypoints
+# A rotation has ceil(angle / 10 deg - slack) waypoints: the angle reaches the planner in float32,
+# where 30, 60 and 90 deg come out a hair above 3, 6 and 9 steps (without the slack 90 deg had
+# 10 waypoints, of which the checks reached 9, leaving its end pose unchecked).
+ROTATION_WAYPOINT_SLACK = 1e-4
 
 # Gripper collision boxes in the gripper frame (origin at the wrist centre, x = approach):
 # (centre, half-size). Fingers are given at zero opening; finger a is displaced by +q along y,

@@ -36,6 +36,7 @@ _EE_LO = wp.constant(wp.vec3(*rc.EE_BOUNDS_LO))
 _EE_HI = wp.constant(wp.vec3(*rc.EE_BOUNDS_HI))
 _TURN_STEP = wp.constant(rc.ROTATION_WAYPOINT_RAD)
 _TURN_CHECKS = wp.constant(rc.MAX_ROTATION_WAYPOINTS)
+_TURN_SLACK = wp.constant(rc.ROTATION_WAYPOINT_SLACK)
 _FINGER_OPEN = wp.constant(rc.FINGER_OPEN)
 _FINGER_CLOSED = wp.constant(rc.FINGER_CLOSED)
 
@@ -114,7 +115,7 @@ def plan_kernel(
     shift = ee_clipped - ee_end
     turn_ok = wp.bool(True)
     if turns:
-        n_turn = wp.max(wp.ceil(wp.length(rotvec) / _TURN_STEP - 1.0e-9), 1.0)
+        n_turn = wp.max(wp.ceil(wp.length(rotvec) / _TURN_STEP - _TURN_SLACK), 1.0)
         for k in range(_TURN_CHECKS):
             tk = wp.min(float(k + 1) / n_turn, 1.0)
             ee_k = gc - (rot @ axis_angle(tk * rotvec)) @ gc_local
