@@ -1,4 +1,5 @@
-"""Demonstration videos: seeds apart from evaluation, clean deterministic frames, a real cache."""
+"""Demonstration videos: seeds apart from evaluation, clean deterministic frames, the scene
+they start from, a real cache."""
 
 from __future__ import annotations
 
@@ -10,8 +11,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from vabench.agent.visibility import filter_proprio
 from vabench.demos import build, store
 from vabench.render.worker import ImageSettings
+from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks import BASE_FAMILIES, get_task
 from vabench.tasks.task_batch import TaskBatch, run_experts
 
@@ -58,6 +61,14 @@ def test_committed_demo_seeds_are_never_evaluation_seeds():
         assert not set(map(int, doc["rejected"])) & evaluation, task
         assert 15 <= doc["frames"] <= 110, (task, doc["frames"])  # FACTS 30-110; see build
         assert doc["frames"] == 1 + build.FRAMES_PER_ACTION * doc["expert_steps"], task
+        # the reference's video size (PROTOCOL_FACTS 6.5), the size the builder uses
+        assert (doc["width"], doc["height"]) == (1280, 960), task
+        settings = build.DEMO_SETTINGS
+        assert (doc["width"], doc["height"], doc["quality"]) == (
+            settings.width,
+            settings.height,
+            settings.quality,
+        ), task
 
 
 def test_candidates_skip_every_excluded_seed():
@@ -116,13 +127,34 @@ def test_stored_data_has_no_evaluator_numbers(built):
         assert all(isinstance(v, str) for v in meta["rejected"].values())
         names = sorted(p.name for p in (root / "frames").iterdir())
         assert names == [f"{k:04d}.jpg" for k in range(info.n_frames)]
+        assert sorted(p.name for p in root.iterdir()) == ["frames", "meta.json", "scene.json"]
         demo = store.load_demo(task, cache)
+        # the scene holds the robot's visible fields and nothing else (no object, no seed)
+        scene = json.loads((root / "scene.json").read_text())
+        assert set(scene) == {"robot"}
+        arms = get_task(task).arms
+        assert filter_proprio(scene["robot"], arms) == scene["robot"] == demo.robot
         for jpeg in demo.frames:
             # no comment (COM) or EXIF/XMP (APP1+) segments: pixels only
             assert not {0xFE, *range(0xE1, 0xF0)} & set(_markers(jpeg))
         n = demo.n_frames
         assert demo.frame_label(n - 1) == f"frame {n - 1} of {n}"
         assert str(info.seed) not in demo.frame_label(0)
+
+
+def test_the_scene_is_the_reset_of_the_demo_seed(built):
+    """The robot state stored with a demo is what a fresh reset at its seed shows (frame 0 is
+    that reset seen from the head camera: `test_learning_scene.py` compares both with an
+    evaluation episode's first observation)."""
+    cache, infos = built
+    for task, info in infos.items():
+        tb = TaskBatch(get_task(task), 1, backend="c")
+        assert tb.reset([0], [info.seed])[0].ok
+        fresh = proprio_fields(tb.observe()[1], 0, tb.batch.arms)
+        assert store.load_demo(task, cache).robot == fresh, task
+        # and not the robot at the end of the demonstration
+        run_experts(tb, [info.seed])
+        assert proprio_fields(tb.observe()[1], 0, tb.batch.arms) != fresh
 
 
 def test_load_demo_errors_name_the_fix(built, tmp_path):
@@ -138,6 +170,14 @@ def test_load_demo_errors_name_the_fix(built, tmp_path):
             store.load_demo(task, cache)
     finally:
         frame.write_bytes(good)
+    scene = store.task_dir(task, cache) / "scene.json"
+    kept = scene.read_bytes()
+    scene.unlink()
+    try:
+        with pytest.raises(ValueError, match=r"scene\.json: missing or unreadable; rebuild"):
+            store.load_demo(task, cache)
+    finally:
+        scene.write_bytes(kept)
     with pytest.raises(ValueError, match="unknown task 'no_such'"):
         build.build_demo("no_such", cache)
 

@@ -1,23 +1,25 @@
-"""The learning session: a model studies one demonstration video through the demonstration
-tools and writes the task's summary (spec FACTS.md, "Demonstration protocol"; paper, appendix
+"""The learning session: a model studies one demonstration through the demonstration tools
+and writes the task's summary (spec PROTOCOL_FACTS.md 6; paper, appendix
 "Demonstration-conditioned evaluation protocol").
 
-    result = await learn_summary(task, DemoFrames(jpegs, fps=3.0), llm, "model-a",
+    result = await learn_summary(task, DemoFrames(jpegs, fps=3.0, scene=scene), llm, "model-a",
                                  recorder=EpisodeRecorder(out_dir))
-    if result.summary is not None:
-        spec = EpisodeSpec(..., demonstration_summary=summary_text(result.summary))
+    if result.summary_text is not None:
+        spec = EpisodeSpec(..., demonstration_summary=result.summary_text)
 
 The session is one conversation (`Conversation`): the learning system prompt
-(`learning_prompt`), then the task instruction and the number of frames; then, per model call,
-the reply is parsed with `parse_decision` in a context offering only `DEMONSTRATION_TOOLS`
-and answered in the same thread:
+(`learning_prompt`), then the first message (`first_turn`: the scene the video starts from,
+its observation text and head-camera image, or for the basket's atomic videos the task and
+the list of videos); then, per model call, the reply is parsed with `parse_decision` in a
+context offering only `DEMONSTRATION_TOOLS` and answered in the same thread:
 
 - `expert.retrieve` and `expert.frame`: answered by `vabench.agent.demonstration` (the frame
   index with times; the frames asked for, or an error naming the valid range).
-- `expert.learn {"summary": {...}}`: accepted only when (a) at least `MIN_DISTINCT_FRAMES`
-  distinct frames have been shown by `expert.frame` (the learning gate; a frame shown twice
-  counts once) and (b) `parse_summary` accepts the summary. A refusal lists every reason at
-  once (gate and schema) and the session goes on.
+- `expert.learn {...the summary fields...}`: accepted only when (a) the learning gate is
+  passed (`gate_problems`: expert.retrieve called, at least `MIN_DISTINCT_FRAMES` distinct
+  frames shown, of every video when there are several; a frame shown twice counts once) and
+  (b) `parse_summary` accepts the fields. A refusal lists every reason at once (gate and
+  fields) as the tool's error and the session goes on.
 
 Budgets (`LearningLimits`): at most `max_model_calls` model calls in all (20 by default, the
 reference's one learning decision: a diligent model needs about 3-8), and at most
@@ -32,17 +34,19 @@ at the output limit, an empty or reasoning-only reply each get a repair that say
 repairs that run out end the session `refused`, `truncated` or `invalid_output`; a request
 beyond the model's context window ends it `context_exceeded` (the session does not compact).
 
-Expected failures come back as a `LearningResult` with `status="failed"` and a `stop_reason`;
+Expected failures come back as a `LearningResult` with `status="failed"` and a `stop_reason`
+(the sweep runs such a session again, up to three attempts: `vabench.sweep.summaries`);
 provider failures that outlast the pool's retries become `status="infrastructure_error"`
 (re-run, like evaluation episodes), a request the provider rejects `status="error"`.
 
-No compaction: the call budget bounds the thread (about 30 short turns), and at most
+No compaction: the call budget bounds the thread (about 40 short turns), and at most
 `LearningLimits.context.max_images` images (8) beyond the newest tool result's are sent.
 
 Records, when a recorder is given (events.jsonl of `EpisodeRecorder`): learning_start,
 request, reply, rejection, tool, learned, learning_end; and `learning.json` (the
-`LearningResult`, summary included) in the recorder's directory. The recorder's `finish` is
-not called: it writes an evaluation result; the caller closes the recorder.
+`LearningResult`, summary included, `LEARNING_VERSION`) in the recorder's directory. The
+recorder's `finish` is not called: it writes an evaluation result; the caller closes the
+recorder.
 """
 
 from __future__ import annotations
@@ -53,23 +57,23 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from vabench import protocol as P
 from vabench.agent.conversation import ContextLimits, Conversation
 from vabench.agent.demonstration import (
-    MIN_DISTINCT_FRAMES,
+    SCENE_IMAGE_NAME,
     DemoFrames,
     first_turn,
     frame_result,
-    gate_message,
+    gate_problems,
     learning_prompt,
     retrieve_result,
 )
-from vabench.agent.records import RECORD_VERSION, EpisodeRecorder, TokenTotals
+from vabench.agent.records import EpisodeRecorder, TokenTotals
 from vabench.agent.replies import ReplyRejected, history_text, read_decision, stop_reason_of
 from vabench.agent.session import SessionEnd, Spend, reply_fields
-from vabench.agent.summary import DemoSummary, parse_summary, summary_text
+from vabench.agent.summary import parse_summary, summary_text
 from vabench.agent.tools import ToolResult, tool_text
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.errors import InfrastructureError, RequestRejected
@@ -119,19 +123,31 @@ class LearningLimits:
             raise ValueError(f"max_repairs must be >= 0, got {self.max_repairs}")
 
 
+LEARNING_VERSION = 2
+"""The version of `LearningResult` records. 1: the summary under a fixed schema with length
+limits, shown as "- field: value" lines, one attempt; 2: the summary as the model's fields,
+shown as JSON, the scene flag and the attempts. Version 1 records still read."""
+READABLE_VERSIONS = (1, LEARNING_VERSION)
+
+
 class LearningResult(BaseModel):
-    """How one learning session ended (written as learning.json)."""
+    """How one learning session ended (written as learning.json), or, as the sweep stores it
+    per (model, family), how the last of its attempts ended with the earlier ones inside."""
 
     model_config = ConfigDict(extra="forbid")
-    v: int = RECORD_VERSION
+    v: int = LEARNING_VERSION
     task: str
     model: str
     label: str
     status: LearningStatus
     stop_reason: StopReason
     error: str | None = None
-    summary: DemoSummary | None = None
+    summary: dict[str, Any] | None = None
+    """The accepted summary's fields, as the model wrote them (`agent.summary`)."""
     summary_text: str | None = None
+    """The summary as every observation of the evaluation shows it."""
+    scene: bool = False
+    """Whether the first message showed the scene the video starts from."""
     n_frames: int
     frames_inspected: list[int] = Field(default_factory=list)
     """Distinct frames shown, in the order first shown."""
@@ -142,6 +158,32 @@ class LearningResult(BaseModel):
     tokens: TokenTotals = Field(default_factory=TokenTotals)
     cost_usd: float = 0.0
     wall_s: float = 0.0
+    attempt: int = Field(default=1, ge=1)
+    """Which attempt of the sweep's learning stage this session was (1-based)."""
+    earlier_attempts: list[LearningResult] = Field(default_factory=list)
+    """The sweep's earlier attempts of the same (model, family), each failed, in order (their
+    calls were billed too); empty in a session's own learning.json."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _upgrade(cls, data: Any) -> Any:
+        # A version-1 record wrote every optional summary field, null when unset.
+        if isinstance(data, dict) and data.get("v") == 1:
+            data = {**data, "v": LEARNING_VERSION}
+            if isinstance(data.get("summary"), dict):
+                data["summary"] = {k: v for k, v in data["summary"].items() if v is not None}
+        return data
+
+    @field_validator("v")
+    @classmethod
+    def _readable(cls, v: int) -> int:
+        if v not in READABLE_VERSIONS:
+            raise ValueError(
+                f"a learning record of version {v}; this vabench reads versions "
+                f"{', '.join(map(str, READABLE_VERSIONS))}: read it with the vabench that wrote "
+                "it, or remove it to learn the summary again"
+            )
+        return v
 
     @property
     def learned(self) -> bool:
@@ -162,7 +204,8 @@ class _Session:
     conv: Conversation = field(init=False)
     ctx: P.DecisionContext = field(init=False)
     inspected: dict[int, None] = field(default_factory=dict)  # ordered set
-    summary: DemoSummary | None = None
+    retrieved: bool = False
+    summary: dict[str, Any] | None = None
     tools: int = 0
     invalid: int = 0
     refusals: int = 0
@@ -171,7 +214,12 @@ class _Session:
     def __post_init__(self) -> None:
         arms = tuple(self.task.arms)
         self.conv = Conversation(
-            learning_prompt(arms, self.demo.fps, max(1, len(self.demo.videos))),
+            learning_prompt(
+                arms,
+                self.demo.fps,
+                max(1, len(self.demo.videos)),
+                scene=self.demo.scene is not None,
+            ),
             "active",
             limits=self.limits.context,
         )
@@ -182,7 +230,11 @@ class _Session:
             self.rec.event(type_, **fields)
 
     async def run(self) -> None:
-        self.conv.add_note(first_turn(self.task.instruction, self.demo))
+        text, images = first_turn(self.task.instruction, self.demo)
+        if images:  # a named image, so that its placeholder says which it was once dropped
+            self.conv.add_tool_result(text, images, image_names=(SCENE_IMAGE_NAME,))
+        else:
+            self.conv.add_note(text)
         repairs = 0
         while self.spend.calls < self.limits.max_model_calls:
             reply = await self._call()
@@ -252,6 +304,7 @@ class _Session:
         self.tools += 1
         if call.name == "expert.retrieve":
             result = retrieve_result(self.demo)
+            self.retrieved = True
         elif call.name == "expert.frame":
             assert isinstance(call.args, P.FrameArgs)
             result = frame_result(self.demo, call.args)
@@ -259,7 +312,7 @@ class _Session:
                 self.inspected.update(dict.fromkeys(call.args.frames))
         else:
             assert isinstance(call.args, P.LearnArgs)
-            result = self._learn(call.args.summary)
+            result = self._learn(call.args.fields)
         names = [f"demonstration frame {k}" for k in getattr(call.args, "frames", ())]
         self.event(
             "tool",
@@ -272,14 +325,12 @@ class _Session:
         )
         self.conv.add_tool_result(result.text, result.images, image_names=names)
 
-    def _learn(self, raw: str | dict[str, Any]) -> ToolResult:
+    def _learn(self, fields: dict[str, Any]) -> ToolResult:
         name = "expert.learn"
-        problems: list[str] = []
-        if len(self.inspected) < MIN_DISTINCT_FRAMES:
-            problems.append(gate_message(list(self.inspected)))
+        problems = gate_problems(self.demo, self.retrieved, list(self.inspected))
         summary = None
         try:
-            summary = parse_summary(raw)
+            summary = parse_summary(fields, composite=self.demo.composite)
         except P.DecisionError as err:
             problems.append(str(err))
         if problems:
@@ -288,7 +339,7 @@ class _Session:
             return ToolResult(name, tool_text(name, {"error": error}), ok=False)
         assert summary is not None
         self.summary = summary
-        self.event("learned", call=self.spend.calls, summary=summary.model_dump(exclude_none=True))
+        self.event("learned", call=self.spend.calls, summary=summary)
         return ToolResult(name, tool_text(name, {"result": "summary stored"}))
 
 
@@ -300,8 +351,10 @@ async def learn_summary(
     *,
     recorder: EpisodeRecorder | None = None,
     limits: LearningLimits | None = None,
+    attempt: int = 1,
 ) -> LearningResult:
-    """One learning session of `model` on `task`'s demonstration `frames` (module docstring).
+    """One learning session of `model` on `task`'s demonstration `frames` (module docstring);
+    `attempt`: which of the sweep's attempts it is, for the records.
 
     Returns a `LearningResult` in every case but a harness bug: `summary` set when learned."""
     limits = limits or LearningLimits()
@@ -314,8 +367,10 @@ async def learn_summary(
         label=frames.label,
         n_frames=len(frames),
         fps=frames.fps,
+        scene=frames.scene is not None,
         max_model_calls=limits.max_model_calls,
         max_repairs=limits.max_repairs,
+        attempt=attempt,
     )
     status: LearningStatus = "learned"
     reason: StopReason = "learned"
@@ -344,6 +399,7 @@ async def learn_summary(
         error=error,
         summary=s,
         summary_text=summary_text(s) if s is not None else None,
+        scene=frames.scene is not None,
         n_frames=len(frames),
         frames_inspected=list(session.inspected),
         model_calls=session.spend.calls,
@@ -353,6 +409,7 @@ async def learn_summary(
         tokens=session.spend.tokens(),
         cost_usd=round(session.spend.cost, 6),
         wall_s=round(time.time() - t0, 3),
+        attempt=attempt,
     )
     session.event("learning_end", status=status, stop_reason=reason, error=error)
     if recorder is not None and recorder.directory is not None:
@@ -369,6 +426,8 @@ def write_result(path: os.PathLike[str] | str, result: LearningResult) -> None:
 
 
 def read_result(path: os.PathLike[str] | str) -> LearningResult:
-    """A `learning.json` written by `write_result`."""
+    """A `learning.json` written by `write_result` (of any of `READABLE_VERSIONS`); raises
+    `json.JSONDecodeError` or pydantic's `ValidationError` (an unreadable version: field
+    "v") otherwise."""
     with open(path, encoding="utf-8") as f:
         return LearningResult.model_validate(json.load(f))

@@ -7,7 +7,7 @@ One decision carries what the model's requests carry at their largest:
 - the images at their real size: the passive five-view bundle (or the active view) at the
   configured resolution and JPEG quality, a synthetic scene of a rendered frame's detail (the
   check renders nothing), then, where a track reads summaries, the learning stage's
-  demonstration frames (the cached video's own, else 640x480 stand-ins), up to the most images
+  demonstration frames (the cached video's own, else 1280x960 stand-ins), up to the most images
   one request of the sweep holds: the passive bundle (5), the active protocol's retained images
   (4), a learning request's kept and newly shown frames (8 + 8).
 """
@@ -44,7 +44,7 @@ from vabench.llm_pool.tokens import (
 from vabench.render.images import encode_jpeg
 from vabench.tasks import get_task
 
-DEMO_SIZE = (640, 480)
+DEMO_SIZE = (1280, 960)
 """Demonstration frames' size (`vabench.demos.build.DEMO_SETTINGS`)."""
 DEMO_QUALITY = 90
 LEAST_IMAGE_TOKENS = 256

@@ -267,8 +267,9 @@ class TrackSpec(_Strict):
 class LearningOptions(_Strict):
     demo_cache: str = ".cache/demos"
     """Where demonstration videos are cached (built when missing; `python -m vabench.demos`)."""
-    max_model_calls: int = Field(default=30, ge=1)
-    """Model calls one learning session may use (`agent.learning.LearningLimits`)."""
+    max_model_calls: int = Field(default=20, ge=1)
+    """Model calls one learning session may use (`agent.learning.LearningLimits`; 20, the
+    reference's one learning decision)."""
 
 
 class RecordOptions(_Strict):

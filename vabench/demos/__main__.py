@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
             info = build.build_demo(
                 name, args.out, settings=settings, pool=pool, force=args.force, mp4=not args.no_mp4
             )
-            old = store.load_manifests(args.manifests).get(name)
+            old = store.read_manifest(name, args.manifests)
             doc = store.manifest_doc(info, build.CANDIDATES_RULE)
             if old and all(old[k] == doc[k] for k in _INPUTS) and old["sha256"] != doc["sha256"]:
                 print(f"{name}: frames differ from the committed manifest", file=sys.stderr)

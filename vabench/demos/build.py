@@ -15,8 +15,10 @@ follows the spec's "about 3 per second" and the shortest families have fewer fra
 
 Every frame is drawn from the head camera of the reset state (`camera.head_view`; it does not
 move) by the RenderPool's clean model path: RGB JPEG, no overlays, nothing else in the image.
-Frames are 640x480 q90 (half the model images' side: enough to see grasps, a quarter of the
-bytes per frame in a conversation that may attach 8 at once).
+Frames are 1280x960 q90, the reference's video size (and the sweep's default model image), so
+frame 0 is the head-camera image an evaluation episode at the demo seed starts from. The
+robot state of that reset, in the model-visible fields, is stored beside the frames: the
+learning stage shows the scene's first observation from it (`agent.demonstration`).
 
 Cache: `cache_key` hashes everything that decides the frames (format version, task, image
 settings, frame rule, MuJoCo version, the evaluation seeds the scan must avoid, and the source
@@ -33,6 +35,7 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -42,13 +45,14 @@ from vabench.render import camera as cam
 from vabench.render.worker import ImageSettings, RenderItem, RenderPool
 from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.cpu import CpuBatch
+from vabench.sim_mjx.layout import proprio_fields
 from vabench.tasks import REGISTRY
 from vabench.tasks import manifests as seed_manifests
 from vabench.tasks.task_batch import TaskBatch, run_experts
 
 log = logging.getLogger(__name__)
 
-DEMO_SETTINGS = ImageSettings(640, 480, 90)  # demo frames: half the model-image side (FACTS)
+DEMO_SETTINGS = ImageSettings(1280, 960, 90)  # the reference's demo videos (PROTOCOL_FACTS 6.5)
 FRAMES_PER_ACTION = 3
 FPS = FRAMES_PER_ACTION / rc.ACTION_SECONDS  # 3.75 frames per second of simulated time
 FIRST_CANDIDATE = 999  # scanned downwards: evaluation seeds start at 1000
@@ -109,6 +113,7 @@ class Rollout:
     variant: int
     states: list[np.ndarray]  # qpos: the reset state, then the captured ones in order
     camera: cam.CameraPose
+    robot: dict[str, dict[str, Any]]  # model-visible robot state at the reset
     steps: int
     rejected: dict[int, str]
 
@@ -130,6 +135,7 @@ def record(task_name: str, excluded: set[int], max_candidates: int = MAX_CANDIDA
             continue
         view = tb.views([0])[0]
         head = cam.head_view({arm: view.arms[arm].gc for arm in task.arms}, task.arms)
+        robot = proprio_fields(tb.observe()[1], 0, batch.arms)
         batch.capture_every = batch.n_substeps // FRAMES_PER_ACTION
         ep = run_experts(tb, [seed])[0]
         batch.capture_every = 0
@@ -137,7 +143,7 @@ def record(task_name: str, excluded: set[int], max_candidates: int = MAX_CANDIDA
             rejected[seed] = ep.end
             continue
         states = [np.array(tb.init_qpos[0]), *batch.captured.get(0, [])]
-        return Rollout(seed, int(batch.variant()[0]), states, head, ep.steps, rejected)
+        return Rollout(seed, int(batch.variant()[0]), states, head, robot, ep.steps, rejected)
     raise DemoError(f"{task_name}: no demo seed among {len(rejected)} candidates: {rejected}")
 
 
@@ -242,7 +248,7 @@ def _build(
         expert_steps=rollout.steps,
         rejected=rollout.rejected,
     )
-    root = store.write_demo(info, frames, cache_dir)
+    root = store.write_demo(info, frames, rollout.robot, cache_dir)
     video = root / "demo.mp4"
     video.unlink(missing_ok=True)
     if mp4 and not write_mp4(frames, video, FPS):

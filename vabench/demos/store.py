@@ -4,14 +4,17 @@ Cache (regenerated on demand, never committed; default `.cache/demos`, gitignore
 
     <cache_dir>/<task>/meta.json      DemoInfo (evaluator-side bookkeeping, seed included)
     <cache_dir>/<task>/frames/NNNN.jpg  the frames, in order (clean RGB JPEG, nothing else)
+    <cache_dir>/<task>/scene.json     {"robot": ...}: the robot state at the reset, in the
+                                      model-visible fields of every observation (`proprio_fields`)
     <cache_dir>/<task>/demo.mp4       the same frames as a video, when an encoder is installed
 
 Manifest (committed): `configs/demos/<task>.json`, the demo seed, how it was chosen, the frame
 count, rate, resolution and the frames' content hash. Demo seeds are kept apart from the
 evaluation manifests (`configs/seeds`): they are never in any family's retained list.
 
-What a model may see is the frames and "frame k of N"; `DemoInfo` (seed, hash, key) stays on the
-evaluator's side.
+What a model may see is the frames, "frame k of N" and the scene: frame 0 (the reset seen from
+the head camera) with the robot state an evaluation episode's first observation shows at that
+seed (`Demo.robot`); `DemoInfo` (seed, hash, key) stays on the evaluator's side.
 """
 
 from __future__ import annotations
@@ -27,7 +30,9 @@ from vabench.sim_mjx import robot_constants as rc
 REPO_ROOT = rc.ASSETS.parent
 MANIFEST_DIR = REPO_ROOT / "configs" / "demos"
 CACHE_DIR = REPO_ROOT / ".cache" / "demos"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""1: frames and meta.json; 2: scene.json too (the reset's visible robot state)."""
+SCENE_FILE = "scene.json"
 
 
 @dataclass(frozen=True)
@@ -65,10 +70,13 @@ class DemoInfo:
 
 @dataclass(frozen=True)
 class Demo:
-    """A demonstration as the tools serve it: the JPEG frames in order, and its info."""
+    """A demonstration as the tools serve it: the JPEG frames in order, the robot state at
+    the reset (model-visible: per arm the fields of `sim_mjx.layout.proprio_fields`), and its
+    info."""
 
     info: DemoInfo
     frames: list[bytes]
+    robot: dict[str, dict[str, Any]]
 
     @property
     def n_frames(self) -> int:
@@ -103,8 +111,11 @@ def read_info(task: str, cache_dir: Path) -> DemoInfo | None:
         return None
 
 
-def write_demo(info: DemoInfo, frames: list[bytes], cache_dir: Path) -> Path:
-    """Store the frames and then meta.json (last, so a crash leaves no current-looking cache)."""
+def write_demo(
+    info: DemoInfo, frames: list[bytes], robot: dict[str, dict[str, Any]], cache_dir: Path
+) -> Path:
+    """Store the frames, the scene and then meta.json (last, so a crash leaves no
+    current-looking cache)."""
     root = task_dir(info.task, cache_dir)
     (root / "meta.json").unlink(missing_ok=True)
     fdir = root / "frames"
@@ -113,13 +124,15 @@ def write_demo(info: DemoInfo, frames: list[bytes], cache_dir: Path) -> Path:
         old.unlink()
     for k, jpeg in enumerate(frames):
         (fdir / f"{k:04d}.jpg").write_bytes(jpeg)
+    (root / SCENE_FILE).write_text(json.dumps({"robot": robot}, indent=1) + "\n")
     (root / "meta.json").write_text(json.dumps(info.to_json(), indent=1) + "\n")
     return root
 
 
 def load_demo(task_name: str, cache_dir: Path = CACHE_DIR) -> Demo:
     """The cached demonstration of `task_name`; raises FileNotFoundError naming the command
-    that builds it, and ValueError when the frames do not match their recorded hash."""
+    that builds it, and ValueError when the frames do not match their recorded hash or the
+    scene is unreadable."""
     info = read_info(task_name, cache_dir)
     if info is None:
         raise FileNotFoundError(
@@ -130,7 +143,12 @@ def load_demo(task_name: str, cache_dir: Path = CACHE_DIR) -> Demo:
     frames = [(fdir / f"{k:04d}.jpg").read_bytes() for k in range(info.n_frames)]
     if frames_digest(frames) != info.sha256:
         raise ValueError(f"{fdir}: frames do not match meta.json sha256; rebuild {task_name}")
-    return Demo(info, frames)
+    scene = task_dir(task_name, cache_dir) / SCENE_FILE
+    try:
+        robot = json.loads(scene.read_text())["robot"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise ValueError(f"{scene}: missing or unreadable; rebuild {task_name}") from None
+    return Demo(info, frames, robot)
 
 
 def manifest_doc(info: DemoInfo, candidates: str) -> dict[str, Any]:
@@ -157,6 +175,16 @@ def write_manifest(doc: dict[str, Any], directory: Path = MANIFEST_DIR) -> Path:
     path = directory / f"{doc['task']}.json"
     path.write_text(json.dumps(doc, indent=1) + "\n")
     return path
+
+
+def read_manifest(task: str, directory: Path = MANIFEST_DIR) -> dict[str, Any] | None:
+    """The committed manifest of `task`, or None when there is none of this format version
+    (a build replaces a manifest of another version without comparing it)."""
+    try:
+        doc = json.loads((Path(directory) / f"{task}.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) and doc.get("version") == FORMAT_VERSION else None
 
 
 def load_manifests(directory: Path = MANIFEST_DIR) -> dict[str, dict[str, Any]]:

@@ -117,9 +117,10 @@ def learning_reply(request: IncomingRequest) -> str | None:
     """The stand-in models' side of a demonstration learning session (None outside one).
 
     Deterministic and stateless, from the conversation alone: list the frames, inspect the
-    first, middle and last, then submit a generic summary built from the instruction (a real
-    model writes what it saw). It passes the learning gate, so sweeps of the stand-ins run the
-    whole protocol: learning stage, summaries in observations, records."""
+    first, middle and last frame (of every video, when the first message lists several; at
+    most `MAX_EXPERT_FRAMES` a call), then submit a generic summary built from the instruction
+    (a real model writes what it saw). It passes the learning gate, so sweeps of the stand-ins
+    run the whole protocol: learning stage, summaries in observations, records."""
     chat = request.chat
     if protocol.LEARNING_STAGE_MARK not in (chat.system or ""):
         return None
@@ -127,13 +128,18 @@ def learning_reply(request: IncomingRequest) -> str | None:
     replied = sum(t.role == "assistant" for t in chat.turns)
     if replied == 0:
         return fenced_json({"tool": "expert.retrieve", "args": {}})
-    found = re.search(r"(\d+) frames", first)
-    n = int(found.group(1)) if found else 1
-    if replied == 1:
-        return fenced_json({"tool": "expert.frame", "args": {"steps": sorted({0, n // 2, n - 1})}})
+    videos = [(int(a), int(b)) for a, b in re.findall(r"- video \d+, frames (\d+) to (\d+)", first)]
+    if not videos:
+        found = re.search(r"(\d+) frames", first)
+        videos = [(0, int(found.group(1)) - 1 if found else 0)]
+    wanted = sorted({k for a, b in videos for k in (a, (a + b) // 2, b)})
+    per_call = protocol.MAX_EXPERT_FRAMES
+    calls = [wanted[i : i + per_call] for i in range(0, len(wanted), per_call)]
+    if replied <= len(calls):
+        return fenced_json({"tool": "expert.frame", "args": {"steps": calls[replied - 1]}})
     instruction = re.search(r"Task instruction: (.*)", first)
     task = instruction.group(1).strip() if instruction else "the task"
-    summary = {
+    summary: dict[str, Any] = {
         "grasp_object_part": f"the object named in the instruction ({task})",
         "grasp_region": "the middle of the object, where it is narrowest across the fingers",
         "grasp_height_or_depth": "fingers reach about half the object's height",
@@ -141,10 +147,16 @@ def learning_reply(request: IncomingRequest) -> str | None:
         "approach_strategy": "move above the object, align, then descend vertically",
         "posture_or_rotation": "gripper pointing down, rotated so the fingers straddle it",
         "pre_close_checks": ["the object is between the fingers", "the fingers are low enough"],
-        "test_lift_rule": "lift a few centimetres and check the object rises with the gripper",
+        "test_lift_rule": "lift well clear of the table right after closing; the object rises",
         "safety_notes": f"a stand-in summary written by {request.model}",  # tells learners apart
     }
-    return fenced_json({"tool": "expert.learn", "args": {"summary": summary}})
+    if len(videos) > 1:
+        summary["object_strategies"] = {
+            kind: "grasp as its video shows, carry above the basket, release inside"
+            for kind in ("cube", "horizontal bottle", "upright bottle", "pen")
+        }
+        summary["release_or_completion_rule"] = "done when all five objects rest in the basket"
+    return fenced_json({"tool": "expert.learn", "args": summary})
 
 
 @register_policy("random_action")

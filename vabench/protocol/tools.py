@@ -2,16 +2,25 @@
 
 `geometry.verify` and `camera.history` exist in every episode; the demonstration tools
 (`expert.retrieve`, `expert.frame`, `expert.learn`) only where a demonstration exists
-(`available_tools`). A missing "args" means {}. `expert.learn` accepts the summary as a
-non-empty string or a non-empty object; checking its fields belongs to the demonstration tools
-(`vabench.agent.summary`).
+(`available_tools`). A missing "args" means {}. `expert.learn` takes the summary fields as its
+args object, whatever they are: checking them belongs to the demonstration tools
+(`vabench.agent.summary`), so that a wrong field is the tool's error (a model call spent), not a
+repair, as in the benchmark's reference harness.
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any, ClassVar
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_serializer,
+    model_validator,
+)
 
 from vabench.protocol.context import DecisionContext
 from vabench.protocol.errors import DecisionError, decision_error, show
@@ -56,18 +65,20 @@ class FrameArgs(_Args):
         return (self.step,) if self.step is not None else tuple(self.steps or ())
 
 
-def _summary(value: Any) -> Any:
-    if isinstance(value, str) and value.strip():
-        return value
-    if isinstance(value, dict) and value:
-        return value
-    raise ValueError(f"must be a non-empty string or JSON object, got {show(value)}")
-
-
 class LearnArgs(_Args):
-    """`expert.learn`: the task summary; its fields are checked by the demonstration tools."""
+    """`expert.learn`: the summary fields as the model wrote them (the whole args object);
+    the demonstration tools check them. Dumped as that object again."""
 
-    summary: Annotated[str | dict[str, Any], BeforeValidator(_summary)]
+    fields: dict[str, Any]
+
+    @model_validator(mode="before")
+    @classmethod
+    def _whole(cls, data: Any) -> Any:
+        return {"fields": data} if isinstance(data, dict) else data
+
+    @model_serializer
+    def _dump(self) -> dict[str, Any]:
+        return dict(self.fields)
 
 
 _TOOL_ARGS: dict[str, type[_Args]] = {
@@ -85,7 +96,7 @@ TOOL_FORMS = {
         '{"tool": "expert.frame", "args": {"step": k} or {"steps": [k, ...]} '
         f'(at most {MAX_EXPERT_FRAMES}), optional "view"}}'
     ),
-    "expert.learn": '{"tool": "expert.learn", "args": {"summary": ...}}',
+    "expert.learn": '{"tool": "expert.learn", "args": {"grasp_object_part": ..., ...}}',
 }
 """The template of each tool call, as listed in every observation."""
 

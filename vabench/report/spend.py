@@ -10,7 +10,8 @@ each place a call leaves a trace in the run directory, per model:
   aside as `partial_N/` when run again; episodes an endpoint refusal stopped): the cost of its
   `reply` and `compaction` events;
 - duplicate records collapsed: results.duplicates.jsonl;
-- learning sessions: summaries/<model>/<family>.json, and interrupted sessions' events.
+- learning sessions: summaries/<model>/<family>.json (each attempt it holds), and interrupted
+  sessions' events.
 
 Attempts whose usage never came back (a timeout, a dropped or cut connection: the provider may
 still bill their input) are counted, not priced: `unknown_usage_attempts`.
@@ -156,7 +157,9 @@ def bill(run_dir: Path | str, *, unknown_usage: bool = True) -> Bill:
             learned = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError):
             continue
-        _add_record(row(str(learned.get("model") or path.parent.name), SOURCES[5]), learned)
+        learner = str(learned.get("model") or path.parent.name)
+        for attempt in [*(learned.get("earlier_attempts") or []), learned]:
+            _add_record(row(learner, SOURCES[5]), attempt)
     for events_file in sorted(_interrupted_logs(run_dir)):
         events = list(jsonl_objects(events_file))
         model = _model_of(run_dir, events_file, events)

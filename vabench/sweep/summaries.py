@@ -5,8 +5,10 @@ summary the track reads (`TrackSpec.summary_source`: the episode's own model for
 named one for `shared:<model>`) studies the family's demonstration in a learning session
 (`vabench.agent.learning`) and the outcome is stored:
 
-    RUN_DIR/summaries/<model>/<family>.json      the LearningResult (summary and its text)
-    RUN_DIR/summaries/<model>/<family>/          the session's events.jsonl
+    RUN_DIR/summaries/<model>/<family>.json      the LearningResult (summary and its text) of
+                                                 the last attempt, the earlier ones inside
+    RUN_DIR/summaries/<model>/<family>/          the last attempt's events.jsonl, learning.json
+    RUN_DIR/summaries/<model>/<family>/attempt_<n>/   an earlier attempt's, set aside
 
 Every later episode of that (model, family), on every seed, run and track, reads the stored
 summary: a family is learned once per sweep directory, also across processes (a file lock per
@@ -15,29 +17,40 @@ summary: a family is learned once per sweep directory, also across processes (a 
 Which family and which videos (FACTS, "Demonstration protocol"): a task reads the summary of
 `Task.summary_family` (held-out variants: their base family, without a video of their own),
 learned from the videos of `Task.demo_families` (the basket: the four atomic videos shown as
-one frame index). Videos come from `vabench.demos` (cached under `learning.demo_cache`,
-built when missing).
+one frame index, with no scene). Videos come from `vabench.demos` (cached under
+`learning.demo_cache`, built when missing); a single video comes with the scene it starts
+from (`DemoScene`: the first observation an evaluation episode at the demo seed shows, text
+and head-camera image, built from the demo's model-visible robot state and frame 0).
+
+Attempts (the reference's learning script retries a failed run twice): a session that ends
+`failed` is set aside (`attempt_<n>/`) and run again, up to `LEARNING_ATTEMPTS` sessions in
+all; the stored result is the last one's, holding the earlier ones (`earlier_attempts`,
+`attempt`). A sweep stopped between attempts goes on from the attempts set aside, so no
+attempt is lost or run twice; a stored result is never learned again.
 
 Outcomes: `learned` - the summary text goes into every observation of those episodes;
-`failed` (the model did not produce an accepted summary within the session's budgets) and
-`error` (the provider rejected one learning request) - stored and final: the episodes run
-without a summary and record `summary_status="failed"`; a refusal of the endpoint itself (a
-wrong key, an unknown model: `RequestRejected.fatal`) is not stored: it stops the sweep and the
-next invocation learns again; `infrastructure_error` (the provider failed
-beyond the pool's retries) - not stored: the episodes needing it end as infrastructure errors,
-are re-run in the next retry round, and the session is tried again then.
+`failed` (no accepted summary within the session's budgets, in every attempt) and `error`
+(the provider rejected one learning request) - stored and final: the episodes run without a
+summary and record `summary_status="failed"`; a refusal of the endpoint itself (a wrong key,
+an unknown model: `RequestRejected.fatal`) is not stored: it stops the sweep and the next
+invocation learns again; `infrastructure_error` (the provider failed beyond the pool's
+retries) - not stored, and not an attempt: the episodes needing it end as infrastructure
+errors, are re-run in the next retry round, and the session is tried again then.
 """
 
 from __future__ import annotations
 
 import asyncio
 import fcntl
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from vabench.agent.demonstration import DemoFrames
+from pydantic import ValidationError
+
+from vabench.agent.demonstration import DemoFrames, DemoScene, scene_observation
 from vabench.agent.learning import (
     LearningLimits,
     LearningResult,
@@ -48,11 +61,18 @@ from vabench.agent.learning import (
 from vabench.agent.records import EpisodeRecorder, SummaryStatus
 from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.pool import LLMPool
-from vabench.run_layout import RunDir
+from vabench.run_layout import ATTEMPT_PREFIX, EpisodeDir, RunDir
 from vabench.tasks import get_task
 from vabench.tasks.base import Task
 
 log = logging.getLogger(__name__)
+
+LEARNING_ATTEMPTS = 3
+"""Learning sessions per (model, family) while they end `failed` (PROTOCOL_FACTS 6.5)."""
+
+
+class SummaryRecordError(ValueError):
+    """A stored learning result that cannot be read (unknown version, damaged file)."""
 
 
 @dataclass(frozen=True)
@@ -79,10 +99,14 @@ def load_demo_frames(task: Task, cache_dir: Path) -> DemoFrames:
     for family in task.demo_families:
         build_demo(family, cache_dir, mp4=False)  # no ffmpeg subprocess forked from a sweep
         demo = load_demo(family, cache_dir)
-        parts.append((get_task(family).instruction, DemoFrames(demo.frames, demo.info.fps, family)))
+        parts.append((get_task(family), demo))
     if len(parts) == 1:
-        return parts[0][1]
-    return DemoFrames.concat(parts, label="+".join(task.demo_families))
+        ((family_task, demo),) = parts
+        text = scene_observation(family_task.instruction, family_task.arms, demo.robot)
+        scene = DemoScene(text, demo.frames[0])
+        return DemoFrames(demo.frames, demo.info.fps, family_task.name, scene=scene)
+    videos = [(t.instruction, DemoFrames(d.frames, d.info.fps, t.name)) for t, d in parts]
+    return DemoFrames.concat(videos, label="+".join(task.demo_families))
 
 
 class SummaryStage:
@@ -95,13 +119,18 @@ class SummaryStage:
         *,
         demo_cache: Path,
         limits: LearningLimits | None = None,
+        attempts: int = LEARNING_ATTEMPTS,
     ):
+        if attempts < 1:
+            raise ValueError(f"attempts must be >= 1, got {attempts}")
         self.run_dir = run_dir
         self.llm = llm
         self.demo_cache = demo_cache
         self.limits = limits or LearningLimits()
+        self.attempts = attempts
         self.sessions = 0
-        """Learning sessions run by this stage (not counting stored ones it reused)."""
+        """Learning sessions run by this stage (each attempt counts; stored ones reused do
+        not)."""
         self._results: dict[tuple[str, str], LearningResult] = {}
         self._locks: dict[tuple[str, str], asyncio.Lock] = {}
         self._refused: dict[str, RequestRejected] = {}
@@ -157,40 +186,113 @@ class SummaryStage:
         fd = await asyncio.to_thread(_acquire, lock)
         try:
             if path.exists():
-                stored = read_result(path)
+                stored = _read(path)
                 log.info(
                     "summary %s/%s: reusing the stored one (%s)", model, task.name, stored.status
                 )
                 return stored
-            demo = await asyncio.to_thread(load_demo_frames, task, self.demo_cache)
-            log.info(
-                "summary %s/%s: learning from %d frames of %s",
-                model,
-                task.name,
-                len(demo),
-                ", ".join(task.demo_families),
+            session = files.learning_session(model, task.name)
+            earlier = _set_aside_attempts(session)
+            result = _left_over(session)  # a sweep stopped before storing its last attempt
+            if result is not None and self._again(result, earlier):
+                _set_aside(session)
+                earlier.append(result)
+                result = None
+            if result is None:
+                demo = await asyncio.to_thread(load_demo_frames, task, self.demo_cache)
+                while True:
+                    result = await self._attempt(model, task, demo, session, len(earlier) + 1)
+                    if not self._again(result, earlier):
+                        break
+                    _set_aside(session)
+                    earlier.append(result)
+            result = result.model_copy(
+                update={"attempt": len(earlier) + 1, "earlier_attempts": earlier}
             )
-            recorder = EpisodeRecorder(files.learning_session(model, task.name).path)
-            try:
-                result = await learn_summary(
-                    task, demo, self.llm, model, recorder=recorder, limits=self.limits
-                )
-            finally:
-                recorder.close()
-            self.sessions += 1
             if result.status != "infrastructure_error":
                 write_result(path, result)
-            log.info(
-                "summary %s/%s: %s after %d calls (%s)",
-                model,
-                task.name,
-                result.status,
-                result.model_calls,
-                result.stop_reason,
-            )
             return result
         finally:
             _release(fd)
+
+    def _again(self, result: LearningResult, earlier: list[LearningResult]) -> bool:
+        """Whether a session that ended as `result` after `earlier` attempts is run again."""
+        return result.status == "failed" and len(earlier) + 1 < self.attempts
+
+    async def _attempt(
+        self, model: str, task: Task, demo: DemoFrames, session: EpisodeDir, attempt: int
+    ) -> LearningResult:
+        log.info(
+            "summary %s/%s: learning from %d frames of %s (attempt %d of %d)",
+            model,
+            task.name,
+            len(demo),
+            ", ".join(task.demo_families),
+            attempt,
+            self.attempts,
+        )
+        recorder = EpisodeRecorder(session.path)
+        try:
+            result = await learn_summary(
+                task, demo, self.llm, model, recorder=recorder, limits=self.limits, attempt=attempt
+            )
+        finally:
+            recorder.close()
+        self.sessions += 1
+        log.info(
+            "summary %s/%s: %s after %d calls (%s)",
+            model,
+            task.name,
+            result.status,
+            result.model_calls,
+            result.stop_reason,
+        )
+        return result
+
+
+def _read(path: Path) -> LearningResult:
+    try:
+        return read_result(path)
+    except (OSError, json.JSONDecodeError, ValidationError) as err:
+        why = err.errors()[0]["msg"] if isinstance(err, ValidationError) else str(err)
+        raise SummaryRecordError(f"{path}: not a learning result vabench reads: {why}") from None
+
+
+def _set_aside_attempts(session: EpisodeDir) -> list[LearningResult]:
+    """The attempts of this (model, family) set aside (`attempt_<n>/` holding a learning.json),
+    in order."""
+    if not session.path.is_dir():
+        return []
+    found = []
+    for d in sorted(session.path.glob(f"{ATTEMPT_PREFIX}*"), key=_attempt_number):
+        if EpisodeDir(d).learning_result.exists():
+            found.append(_read(EpisodeDir(d).learning_result))
+    return [r.model_copy(update={"attempt": i}) for i, r in enumerate(found, start=1)]
+
+
+def _left_over(session: EpisodeDir) -> LearningResult | None:
+    """The result of a session that ended but was neither stored nor set aside (the sweep
+    stopped in between); None when there is none, or it ended with an infrastructure error (no
+    attempt: the recorder sets its events aside as an interrupted log when the next starts)."""
+    if not session.learning_result.exists():
+        return None
+    result = _read(session.learning_result)
+    return None if result.status == "infrastructure_error" else result
+
+
+def _attempt_number(path: Path) -> int:
+    tail = path.name.removeprefix(ATTEMPT_PREFIX)
+    return int(tail) if tail.isdigit() else 0
+
+
+def _set_aside(session: EpisodeDir) -> None:
+    """Move a finished attempt's files into `attempt_<n>/`, its learning.json last (an attempt
+    folder without one is no attempt: see `_set_aside_attempts`)."""
+    aside = session.next_attempt()
+    aside.mkdir()
+    for name in (session.events, session.frames, session.learning_result):
+        if name.exists():
+            name.rename(aside / name.name)
 
 
 def _acquire(path: Path) -> Any:
