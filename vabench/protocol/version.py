@@ -6,4 +6,4 @@ version. Every run directory's plan and every report carry it, so that scores me
 different protocols are never pooled (docs/PROTOCOL.md lists what each point is and why).
 """
 
-PROTOCOL_VERSION = "vabench-2"
+PROTOCOL_VERSION = "vabench-3"
