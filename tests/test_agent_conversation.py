@@ -13,11 +13,12 @@ from vabench.agent.conversation import (
     SUMMARY_HEADER,
     ContextLimits,
     Conversation,
+    cut_middle,
 )
 from vabench.agent.observation import PASSIVE_VIEWS
 from vabench.llm_pool import ChatRequest
 from vabench.llm_pool.testing import synthetic_image
-from vabench.llm_pool.tokens import TOKENS_PER_TURN, openai_image_tokens
+from vabench.llm_pool.tokens import TOKENS_PER_TURN, openai_image_tokens, text_tokens
 
 PLACEHOLDER = re.compile(r"\[(?:image|five images) from step (\d+) omitted\]")
 
@@ -188,6 +189,32 @@ def test_compaction_triggers_above_the_threshold_and_keeps_the_last_six_user_tur
     # The transcript is append-only: all 21 messages, then the summary.
     kinds = [e.kind for e in conv.transcript]
     assert kinds == ["observation", "reply"] * 10 + ["observation", "summary"]
+
+
+def test_the_compaction_excerpt_cuts_long_messages_and_keeps_the_newest_within_its_budget():
+    # the budget is max(8,000, 0.6 x window) tokens: 9,831 at this small window
+    conv = Conversation("system", protocol="active", limits=limits_at(1))
+    budget = max(8_000, int(0.6 * conv.limits.window_tokens))
+    for step in range(1, 13):
+        text = f"observation {step} " + ("x" * 20_000 if step == 2 else "y" * 9_000)
+        conv.add_observation(text, synthetic_image(seed=step), step=step)
+        conv.add_reply(f'{{"action": "camera.view_side", "reason": "look {step}"}}')
+    conv.add_observation("observation 13", synthetic_image(seed=13), step=13)
+    summarize = Summarizer()
+    assert asyncio.run(conv.compact(summarize)) is not None
+    asked = summarize.requests[0].last_user_text
+    summarised = asked.split("--- End of the earlier messages.")[0]
+    assert budget - 2_500 < text_tokens(summarised) <= budget + 20  # + the note of what is left out
+    # newest first: the last summarised messages are in, the oldest are left out, in order
+    assert "observation 7 " in asked and "look 7" in asked
+    assert "observation 1 " not in asked and "older messages left out." in asked
+    assert asked.index("observation 6 ") < asked.index("observation 7 ")
+    # a message over 12,000 characters keeps its start and its end around a note of the cut
+    long = "observation 2 " + "x" * 20_000
+    cut = cut_middle(long, 12_000)
+    assert len(cut) < 12_100 and cut.startswith("observation 2 xxx") and cut.endswith("xxx")
+    assert "[... 8,014 characters left out ...]" in cut
+    assert cut_middle("short", 12_000) == "short"
 
 
 def test_compaction_needs_more_than_six_user_turns_and_a_non_empty_summary():

@@ -145,6 +145,17 @@ def test_records_frames_keeps_the_frames_asked_for(tmp_path, capsys, frames):
         assert jpegs == []
     else:  # the random actor fails: a failed episode keeps its frames
         assert len(jpegs) >= 2
+    # the viewer says which frames the run kept, and why an episode shows none
+    from vabench.diagnostics.episodes import RunIndex
+    from vabench.view.timeline import build_timeline, frames_kept
+
+    assert frames_kept(out) == frames
+    index = RunIndex.load(out)
+    timeline = build_timeline(index, next(iter(index.episodes)))
+    assert timeline["frames_kept"] == frames
+    note = timeline["frames_note"]
+    assert (note is not None and "records.frames: none" in note) == (frames == "none")
+    assert frames != "failed" or note is None  # a failed episode's frames are there
 
 
 def test_a_success_keeps_no_frames_under_failed(tmp_path):

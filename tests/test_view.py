@@ -50,11 +50,14 @@ def serve(run_dir, body):
 def test_run_episode_and_frames(run):
     async def body(s, http):
         r = await http.get("/api/run")
-        episodes = (await r.json())["episodes"]
+        listing = await r.json()
+        assert listing["frames_kept"] == "all"  # the run's records.frames (its default)
+        episodes = listing["episodes"]
         assert [e["id"] for e in episodes] == [ACTIVE, PASSIVE]
         assert {"success", "checkpoints_reached", "n_checkpoints"} <= set(episodes[0])
         r = await http.get("/api/episode", params={"id": PASSIVE})
         timeline = await r.json()
+        assert timeline["frames_note"] is None
         assert len(timeline["steps"]) == 4
         step = timeline["steps"][0]
         assert (

@@ -26,7 +26,8 @@ context with every image counted (those a request leaves out included), plus
 `output_reserve_tokens`, reach `compact_fraction * window_tokens`, the messages before the
 last `keep_user_turns` user turns are replaced by a handoff summary that the same model writes
 from a text-only request (`summarize`, injected so that the engine routes it through the
-pool). The transcript is never compacted.
+pool): each earlier message at most `EXCERPT_MESSAGE_CHARS` (its middle cut), the newest of
+them within max(8,000, 0.6 x window) tokens. The transcript is never compacted.
 """
 
 from __future__ import annotations
@@ -38,7 +39,12 @@ from typing import Any, Literal
 from vabench.agent.observation import observation_turn, repair_text
 from vabench.llm_pool.config import GenerationOptions
 from vabench.llm_pool.messages import ChatRequest, Image, Part, Turn
-from vabench.llm_pool.tokens import ImageTokenRule, estimate_input_tokens, openai_image_tokens
+from vabench.llm_pool.tokens import (
+    ImageTokenRule,
+    estimate_input_tokens,
+    openai_image_tokens,
+    text_tokens,
+)
 
 EntryKind = Literal["observation", "repair", "tool_result", "reply", "summary", "note"]
 Summarizer = Callable[[ChatRequest], Awaitable[str]]
@@ -155,6 +161,35 @@ class CompactionEvent:
             "user_turns_kept": self.user_turns_kept,
             "summary": self.summary,
         }
+
+
+EXCERPT_MESSAGE_CHARS = 12_000
+"""A message of the compaction excerpt longer than this keeps its start and its end."""
+EXCERPT_MIN_TOKENS = 8_000
+EXCERPT_WINDOW_SHARE = 0.6
+"""The excerpt holds the newest messages within max(8,000, 0.6 x window) tokens (the
+reference's budget: 157,286 tokens at 262,144)."""
+
+
+def cut_middle(text: str, limit: int) -> str:
+    """`text`, or its first and last `limit // 2` characters around a note of the cut."""
+    if len(text) <= limit:
+        return text
+    half = limit // 2
+    return f"{text[:half]}\n[... {len(text) - 2 * half:,} characters left out ...]\n{text[-half:]}"
+
+
+def newest_within(blocks: Sequence[str], budget: int) -> list[str]:
+    """The newest `blocks` whose estimated tokens fit `budget` (at least the newest one), in
+    their own order."""
+    kept: list[str] = []
+    total = 0
+    for block in reversed(blocks):
+        total += text_tokens(block)
+        if kept and total > budget:
+            break
+        kept.append(block)
+    return kept[::-1]
 
 
 def _join_text(parts: Sequence[Part]) -> tuple[Part, ...]:
@@ -352,11 +387,15 @@ class Conversation:
         """A text-only request asking the model to summarise `entries`: the episode's system
         prompt, then one user turn with the messages as text (images as placeholders) and
         `SUMMARY_INSTRUCTION`."""
-        lines = []
+        blocks = []
         for turn in self._turns(entries, kept=set()):
             who = "You" if turn.role == "assistant" else "Harness"
-            lines.append(f"--- {who}:\n{turn.text}")
-        body = "\n\n".join(lines) + "\n\n--- End of the earlier messages.\n\n"
+            blocks.append(f"--- {who}:\n{cut_middle(turn.text, EXCERPT_MESSAGE_CHARS)}")
+        budget = max(EXCERPT_MIN_TOKENS, int(EXCERPT_WINDOW_SHARE * self.limits.window_tokens))
+        kept = newest_within(blocks, budget)
+        left_out = len(blocks) - len(kept)
+        head = f"--- ({left_out} older messages left out.)\n\n" if left_out else ""
+        body = head + "\n\n".join(kept) + "\n\n--- End of the earlier messages.\n\n"
         return ChatRequest((Turn.user(body + SUMMARY_INSTRUCTION),), self.system)
 
     async def compact(self, summarize: Summarizer) -> CompactionEvent | None:

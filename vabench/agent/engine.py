@@ -150,6 +150,7 @@ class Episode:
             tools=list(self.ctx.tools),
             protocol_version=PROTOCOL_VERSION,
             request_options=self.options.model_dump(exclude_none=True),
+            frames=spec.frames,
         )
         slot = self.svc.sim.acquire()
         try:

@@ -52,7 +52,7 @@ from vabench.run_layout import EpisodeDir, RunDir
 from vabench.view.compare import Source, Trials
 from vabench.view.compare import page as compare_page
 from vabench.view.listing import Listing, LiveIndex, filters_of, paging_of
-from vabench.view.timeline import build_timeline
+from vabench.view.timeline import build_timeline, frames_kept
 
 STATIC = Path(__file__).parent / "static"
 IMAGE_TYPES = {".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".png": "image/png"}
@@ -168,7 +168,12 @@ class Viewer:
             for ref in page["episodes"]
         ]
         return web.json_response(
-            {"run_dir": str(index.run_dir), "name": index.run_dir.name, **page}
+            {
+                "run_dir": str(index.run_dir),
+                "name": index.run_dir.name,
+                "frames_kept": frames_kept(index.run_dir),
+                **page,
+            }
         )
 
     async def neighbours(self, request: web.Request) -> web.Response:

@@ -10,13 +10,46 @@ own prompt from model-visible fields: vabench.diagnostics.judge).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from vabench.diagnostics.episodes import RunIndex, task_instruction
 from vabench.diagnostics.hints import hints
+from vabench.run_layout import EpisodeDir, RunDir
 
 EVALUATOR_FIELDS = ("checks", "objects", "progress", "success")
 """Fields of an action event that belong to the evaluator-only panel."""
+
+
+FRAMES_POLICIES = ("all", "failed", "none")
+
+
+def frames_kept(run_dir: Path) -> str:
+    """The run's `records.frames` (which episodes keep the images the model saw), from its
+    resolved config; `all` where the config does not say (the default)."""
+    try:
+        doc = yaml.safe_load(RunDir(run_dir).config.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return "all"
+    records = doc.get("records") if isinstance(doc, dict) else None
+    value = records.get("frames") if isinstance(records, dict) else None
+    return value if value in FRAMES_POLICIES else "all"
+
+
+def frames_note(policy: str, success: bool | None, any_frames: bool) -> str | None:
+    """Why an episode's images are not shown, or None where they are (or should be)."""
+    if any_frames:
+        return None
+    if policy == "none":
+        return "images not kept: the run kept no frames (records.frames: none)"
+    if policy == "failed" and success:
+        return (
+            "images not kept: the run kept the frames of failed episodes only "
+            "(records.frames: failed)"
+        )
+    return None
 
 
 def _card(step: int) -> dict[str, Any]:
@@ -88,8 +121,13 @@ def build_timeline(index: RunIndex, episode: str) -> dict[str, Any]:
         elif kind == "compaction":
             card.setdefault("notes", []).append("history compacted before this call")
     r = ref.result
+    policy = start.get("frames") or frames_kept(index.run_dir)
+    frames = EpisodeDir(index.directory(episode)).frames
+    any_frames = frames.is_dir() and any(frames.iterdir())
     return {
         "id": ref.id,
+        "frames_kept": policy,
+        "frames_note": frames_note(policy, r.success, any_frames),
         "summary": ref.summary(),
         "instruction": task_instruction(r.task),
         "arms": start.get("arms"),

@@ -179,6 +179,7 @@ async function main() {
   document.title = `episode ${ep.id}`;
   document.getElementById("title").textContent = ep.id;
   document.getElementById("instruction").textContent = `instruction: ${ep.instruction}`;
+  document.getElementById("frames-note").textContent = ep.frames_note || "";
   document.getElementById("outcome").replaceChildren(
     el("span", { class: s.success ? "good" : "bad" }, s.scored ? (s.success ? "✓ success" : "✗ failure") : s.status),
     ` · stop: ${s.stop_reason} · steps ${s.steps_used}/${s.step_budget} · checkpoints ${checkpointsText(s)}` +

@@ -7,6 +7,8 @@ const PAGE_SIZE = 500;
 let OFFSET = 0;
 let LOADING = 0;
 
+const FRAMES_KEPT = { all: "every episode's", failed: "the failed episodes' only", none: "none" };
+
 function fillSelect(name, values) {
   const select = document.getElementById("f-" + name);
   const keep = select.value;
@@ -61,7 +63,7 @@ async function load() {
   if (mine !== LOADING) return; // a later filter or page was asked for meanwhile
   for (const name of FILTERS.slice(0, 3)) fillSelect(name, run.facets[name]);
   document.getElementById("title").textContent = `run ${run.name}`;
-  document.getElementById("run-dir").textContent = run.run_dir;
+  document.getElementById("run-dir").textContent = `${run.run_dir} · frames kept: ${FRAMES_KEPT[run.frames_kept] || run.frames_kept}`;
   render(run);
   showRadar(query.get("model"), query.get("track"));
   const params = new URLSearchParams();
