@@ -1,13 +1,11 @@
 """Where a sweep stands, on a clock: a live table on a terminal, plain lines otherwise.
 
-Every executor describes its state as one `Status` (per model and track: episodes done /
+The sweep's driver describes its state as one `Status` (per model and track: episodes done /
 planned, successes, unscored, retried, running; model calls, tokens and cost; the episodes in
-flight, their limit and why) and hands it to `Display.update` once a second:
-
-- the local executor from its own counters (`status_of`), which move as each episode ends;
-- the processes and Ray executors from the run directory's ledger, read as it grows (`Tally`:
-  each line is counted when it is appended, not when its cell ends), plus, for the processes
-  executor, what its workers report each second (running, in flight, calls, tokens, cost).
+flight, their limit and why) and hands it to `Display.update` once a second: the run
+directory's ledger, read as it grows (`Tally`: each line is counted when it is appended, not
+when its chunk ends), with what its engines report each second (running, in flight, calls,
+tokens, cost; `with_reports`).
 
 On a terminal a rich table is redrawn every second (a bar per model and track); without one
 (`--plain`, logs, CI) a line is printed every `every_s` seconds (default 15) with the same
@@ -24,7 +22,7 @@ bursts, and over one minute its ETA swung between 1 and 7 hours). A call count t
 backwards (a reporter's spend lost with its process) is a drop the rate leaves out, never a
 negative pace (such a line once read "calls -878.5/s").
 
-The last line, once the processes or engines have ended, is `Tally.ended`: the ledger's final
+The last line, once the engines have ended, is `Tally.ended`: the ledger's final
 counts with the spend of the last status shown (their reports). A fresh `Tally`'s status, which
 it was before, counts the records already there as spent before this invocation: the last line
 of a processes sweep read "0 tokens" after 1.5 billion.
@@ -118,25 +116,6 @@ def with_reports(status: Status, reports: list[dict], live: list[dict], unit: st
         status.reason = (
             live[0]["reason"] if len(live) == 1 else f"{len(live)} {unit}, e.g. {live[0]['reason']}"
         )
-    return status
-
-
-def status_of(progress: Any) -> Status:
-    """The status of a `runner.LocalSweep`'s `SweepProgress` (per-task counters, its LLM pool,
-    its in-flight gate)."""
-    tracks: dict[tuple[str, str], Counts] = collections.defaultdict(Counts)
-    for (model, track, _task), cell in list(progress.cells.items()):
-        tracks[(model, track)].add(cell)
-    status = Status(dict(tracks))
-    if progress.pool is not None:
-        stats = list(progress.pool.stats().values())
-        status.calls = sum(s.succeeded for s in stats)
-        status.tokens = sum(s.usage.total_tokens for s in stats)
-        status.cost = sum(s.cost_usd for s in stats)
-        status.calls_in_flight = sum(s.in_flight for s in stats)
-    gate = progress.gate
-    if gate is not None:
-        status.in_flight, status.limit, status.reason = gate.in_flight, gate.limit, gate.reason
     return status
 
 

@@ -48,20 +48,27 @@ from vabench.config import SweepConfig
 from vabench.llm_pool.spend import SpendCaps
 from vabench.sweep.cells import Cell, chunks, task_cost, task_groups
 from vabench.sweep.choices import Choices
-from vabench.sweep.chunk_engine import DONE, LINE, BoardLink, with_critical_path
-from vabench.sweep.display import Status
-from vabench.sweep.driver import (
-    CLOSE_TIMEOUT_S,
+from vabench.sweep.chunk_engine import (
     CLOSED,
+    DONE,
     FAILED,
+    LINE,
     LOST,
     STARTED,
     STATUS,
+    BoardLink,
+    with_critical_path,
+)
+from vabench.sweep.display import Status
+from vabench.sweep.driver import (
+    CLOSE_TIMEOUT_S,
+    MAX_ENGINE_RESTARTS,
     TICK_S,
     Driver,
     Emit,
     pending,
 )
+from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.limiter import LimiterActor, RayBoard
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
@@ -72,7 +79,7 @@ from vabench.sweep.ray_plan import (
     project_runtime_env,
     upload_failure,
 )
-from vabench.sweep.results import Key, Ledger
+from vabench.sweep.results import Key
 from vabench.sweep.runner import SweepStopped
 
 log = logging.getLogger(__name__)
@@ -167,6 +174,8 @@ class RayEngines:
     label = "ray"
     unit = "engines"
     log = log
+    max_restarts = MAX_ENGINE_RESTARTS
+    shares_board = True
 
     def __init__(
         self,
@@ -277,15 +286,17 @@ def run_ray(
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
     on_engines: Callable[[list[dict[str, Any]]], None] | None = None,
+    ctrl_c: CtrlC | None = None,
 ) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` on the engines of a Ray cluster, for a sweep whose
     command chose `choices`, and return the ledger's records afterwards (see the module
     docstring). `on_status` is called about once a second; `on_engines` once at the end with
-    `Driver.engine_report()` (each engine's time and GPU busy share)."""
+    `Driver.engine_report()` (each engine's time and GPU busy share); `ctrl_c`: the command's
+    handler (`driver.Driver`)."""
     run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
-    cells = pending(keys, run_dir, log, "ray")
+    ledger, cells = pending(keys, run_dir, log, "ray")
     if not cells:
-        return Ledger.open(run_dir).records
+        return ledger.records
 
     import ray  # the `ray` extra; only this executor needs it
 
@@ -299,7 +310,7 @@ def run_ray(
             raise SweepStopped(upload_failure(err)) from None
     try:
         kind = RayEngines(ray, config, choices, run_dir, cells)
-        driver = Driver(kind, config, keys, run_dir, kind.chunks, on_status)
+        driver = Driver(kind, config, keys, run_dir, kind.chunks, on_status, ctrl_c, ledger)
         try:
             return driver.run()
         finally:
