@@ -35,14 +35,15 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, TextIO
 
 from vabench.llm_pool.spend import Pricing, cost_text
 from vabench.run_layout import INFRASTRUCTURE, RESULTS
-from vabench.sweep.results import key_of
+from vabench.sweep.plan import EpisodeKey
+from vabench.sweep.results import Key, key_of
 
 PLAIN_EVERY_S = 15.0
 RATE_WINDOW_S = 60.0
@@ -123,7 +124,7 @@ class Tally:
     """A run directory's ledger and infrastructure log, counted as they grow (by whoever
     writes them: this process's ledger thread, or Ray workers on other machines)."""
 
-    def __init__(self, run_dir: Path, keys: Iterable[Any]):
+    def __init__(self, run_dir: Path, keys: Iterable[EpisodeKey]):
         self.run_dir = Path(run_dir)
         self.planned = {(k.model, k.track, k.task, int(k.seed), int(k.run)) for k in keys}
         self.tracks: dict[tuple[str, str], Counts] = collections.defaultdict(Counts)
@@ -131,7 +132,7 @@ class Tally:
             self.tracks[key[:2]].planned += 1
         self.calls = self.tokens = 0
         self.cost = 0.0
-        self._seen: set[tuple[Any, ...]] = set()
+        self._seen: set[Key] = set()
         self._offsets = {RESULTS: 0, INFRASTRUCTURE: 0}
         self.refresh()
         self.calls = self.tokens = 0  # this invocation's spend only, as the local display
@@ -205,7 +206,7 @@ class Display:
         live: bool | None = None,
         every_s: float = PLAIN_EVERY_S,
         out: TextIO | None = None,
-        clock: Any = time.monotonic,
+        clock: Callable[[], float] = time.monotonic,
         pricing: Mapping[str, Pricing] | None = None,
         verbose: bool = False,
         elapsed_before_s: float = 0.0,
