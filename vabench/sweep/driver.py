@@ -32,7 +32,7 @@ import queue
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from vabench.config import SweepConfig
 from vabench.llm_pool.spend import SpendCaps
@@ -71,44 +71,50 @@ Emit = Callable[..., None]
 """An engine's way to report an event (its items after the engine)."""
 
 
-class Engines(Protocol):
-    """An executor's kind of engine and its plan."""
+class Engines:
+    """An executor's kind of engine and its plan (each executor's subclass)."""
 
     label: str
     """Its name in the log ("local", "processes", "ray")."""
-    unit: str
+    unit = "engines"
     """What its engines are called in the display ("worker processes", "engines")."""
     log: logging.Logger
-    max_chunks: int
+    max_chunks = 1
     """Chunks at once in one engine."""
     engines_wanted: int
-    max_restarts: int
+    max_restarts = MAX_ENGINE_RESTARTS
     """Engines started in place of dead ones."""
-    shares_board: bool
+    shares_board = True
     """Its engines share one limit board (`serve_board`); else its one engine's pool keeps
     the limits and spend caps itself."""
 
     def fits(self) -> bool:
         """Whether its engines can start at all (else it says why)."""
+        return True
 
     def serve_board(
         self, stack: contextlib.ExitStack, limits: dict[str, dict[str, Any]], caps: SpendCaps | None
     ) -> BoardLink:
         """The sweep's one limit board, served to its engines until `stack` closes."""
+        raise NotImplementedError
 
     def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
         """What its engines need before they start (closed with `stack`, after them)."""
 
     def new_engine(self, index: int, slot: int, emit: Emit, board: BoardLink | None) -> Engine:
         """Engine `index`, filling plan slot `slot`."""
+        raise NotImplementedError
 
 
 def pending(
     keys: Sequence[EpisodeKey], run_dir: Path, log: logging.Logger, label: str
 ) -> tuple[Ledger, dict[Cell, list[EpisodeKey]]]:
-    """The run directory's ledger (for the driver) and the planned episodes without a record
-    in it, by cell; says so when there are none."""
+    """The run directory's ledger (for the driver: second records of an episode moved aside,
+    and said) and the planned episodes without a record in it, by cell; says so when there are
+    none."""
     ledger = Ledger.open(run_dir)
+    for line in ledger.collapsed:
+        log.warning("ledger: %s", line)
     cells = pending_cells(keys, ledger.records)
     if not cells:
         log.info("%s: every planned episode is already in %s; nothing to run", label, RESULTS)

@@ -2,19 +2,14 @@
 (`driver.Driver`).
 
 The engine is a `chunk_engine.ChunkEngine` served (`chunk_engine.serve`) in a thread of the
-driver's own process, on an event loop of its own: the driver's thread keeps its blocking wait
-on the events queue, its ticks (display, disk, Ctrl-C) and the ledger, and the engine's loop
-runs the episodes undisturbed. Its events go straight into the driver's queue: no process, no
-pipe. The sweep is one chunk, every pending episode in plan order, run on the command's
-`Choices` as they are (`ChunkEngine(dealt=False)`), so that its batches, critical path and
-records are those of one `runner.LocalSweep` over the plan. Its pool keeps the endpoints'
-limits and the spend caps itself (no limit board), and a dead engine is not replaced: another
-in the same process would meet the same fault.
-
-Ending it at once (Ctrl-C, the disk below its reserve) cancels its loop's work and waits for
-it to unwind: its episodes cut short at their next await, its renderer, embedded server and
-pool closed, as the work already queued on the simulator and renderer allows
-(`interrupt.STOP_NOTICE`).
+driver's process, on an event loop of its own: the driver's thread keeps its blocking wait on
+the events queue, its ticks (display, disk, Ctrl-C) and the ledger; the engine's events go
+straight into that queue (no process, no pipe). The sweep is one chunk, every pending episode
+in plan order, on the command's `Choices` as they are (`ChunkEngine(dealt=False)`): the
+batches, critical path and records of one `runner.LocalSweep` over the plan. Its pool keeps
+the endpoints' limits and spend caps itself, and a dead engine is not replaced (another in
+this process would meet the same fault). Ended at once (Ctrl-C, a disk below its reserve),
+its work is cancelled and the driver waits for it to unwind (`interrupt.STOP_NOTICE`).
 """
 
 from __future__ import annotations
@@ -30,12 +25,11 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
-from vabench.llm_pool.spend import SpendCaps
 from vabench.sweep.cells import task_cost
 from vabench.sweep.choices import Choices
 from vabench.sweep.chunk_engine import LOST, BoardLink, ChunkEngine, Command, serve
 from vabench.sweep.display import Status
-from vabench.sweep.driver import Driver, Emit, pending
+from vabench.sweep.driver import Driver, Emit, Engines, pending
 from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
@@ -104,13 +98,12 @@ class InProcessEngine:
             self.thread.join()
 
 
-class LocalEngines:
-    """`driver.Engines` of `executor: local`: one in-process engine, one chunk."""
+class LocalEngines(Engines):
+    """`driver.Engines` of `executor: local`: one in-process engine, one chunk (its kernels
+    compiled as it starts)."""
 
     label = "local"
-    unit = "engines"
     log = log
-    max_chunks = 1
     engines_wanted = 1
     max_restarts = 0
     shares_board = False
@@ -124,24 +117,12 @@ class LocalEngines:
         cost = max(task_cost(config, k.task) for k in keys)
         self.chunks = [Chunk("sweep", keys, cost)]
 
-    def fits(self) -> bool:
-        return True
-
-    def serve_board(
-        self, stack: contextlib.ExitStack, limits: dict[str, dict[str, Any]], caps: SpendCaps | None
-    ) -> BoardLink:
-        raise AssertionError("one engine: its pool keeps the limits (`shares_board`)")
-
-    def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
-        """Nothing: its chunk compiles the kernels it needs as it starts."""
-
     def new_engine(
         self, index: int, slot: int, emit: Emit, board: BoardLink | None
     ) -> InProcessEngine:
-        def make() -> ChunkEngine:
-            return ChunkEngine(self.config, self.choices, self.run_dir, dealt=False)
-
-        return InProcessEngine(emit, make)
+        return InProcessEngine(
+            emit, lambda: ChunkEngine(self.config, self.choices, self.run_dir, dealt=False)
+        )
 
 
 def run_local(

@@ -69,7 +69,7 @@ from vabench.sweep.chunk_engine import (
     with_critical_path,
 )
 from vabench.sweep.display import Status
-from vabench.sweep.driver import MAX_ENGINE_RESTARTS, Driver, Emit, pending
+from vabench.sweep.driver import Driver, Emit, Engines, pending
 from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.limiter import LimitBoard
 from vabench.sweep.placement import Chunk
@@ -289,15 +289,12 @@ def _death(code: int | None) -> str:
     )
 
 
-class ProcessEngines:
+class ProcessEngines(Engines):
     """`driver.Engines` of worker processes on this host, and their plan."""
 
     label = "processes"
     unit = "worker processes"
     log = log
-    max_chunks = 1
-    max_restarts = MAX_ENGINE_RESTARTS
-    shares_board = True
 
     def __init__(
         self,
@@ -329,9 +326,6 @@ class ProcessEngines:
             Chunk(name, part, task_cost(config, part[0].task), part[0].task in self.critical)
             for name, part in self.parts
         ]
-
-    def fits(self) -> bool:
-        return True
 
     def serve_board(
         self, stack: contextlib.ExitStack, limits: dict[str, dict[str, Any]], caps: SpendCaps | None

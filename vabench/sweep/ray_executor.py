@@ -62,10 +62,10 @@ from vabench.sweep.chunk_engine import (
 from vabench.sweep.display import Status
 from vabench.sweep.driver import (
     CLOSE_TIMEOUT_S,
-    MAX_ENGINE_RESTARTS,
     TICK_S,
     Driver,
     Emit,
+    Engines,
     pending,
 )
 from vabench.sweep.interrupt import CtrlC
@@ -168,14 +168,11 @@ class RayEngine:
                 thread.join(timeout=5)
 
 
-class RayEngines:
+class RayEngines(Engines):
     """`driver.Engines` of engine actors on a Ray cluster, and their plan."""
 
     label = "ray"
-    unit = "engines"
     log = log
-    max_restarts = MAX_ENGINE_RESTARTS
-    shares_board = True
 
     def __init__(
         self,
@@ -267,9 +264,6 @@ class RayEngines:
 
         stack.callback(end)
         return RayBoard(self.limiter, tuple(limits), caps is not None)
-
-    def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
-        """Nothing: each engine compiles the sweep's kernels as it starts."""
 
     def new_engine(self, index: int, slot: int, emit: Emit, board: BoardLink | None) -> RayEngine:
         holder = f"engine-{index}-{uuid.uuid4().hex[:8]}"
