@@ -228,7 +228,8 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     try:
         run = _executor(choices.executor.kind)
         records = run(config, keys, run_dir, choices, on_status=show, ctrl_c=ctrl_c)
-        last[0] = tally.ended(last[0])  # every record in, the engines' spend kept
+        # every record in, the engines' spend kept
+        last[0] = tally.ended(last[0], own_limit=choices.executor.kind == "local")
         display.close(last[0])
         return _conclude(records, keys, run_dir, args.no_report)
     except Interrupted:

@@ -187,6 +187,7 @@ class ChunkEngine:
         )
         self._sweeps[name] = sweep
         running = asyncio.create_task(sweep.run(self.engine))
+        line: asyncio.Future[tuple[str, dict[str, Any]]] | None = None
         try:
             while not running.done():
                 line = asyncio.ensure_future(lines.get())
@@ -201,8 +202,11 @@ class ChunkEngine:
             yield (DONE, self._summary(sweep, keys, progress.total().retried))
         finally:
             self._sweeps.pop(name, None)
-            if not running.done():
+            if line is not None:
+                line.cancel()
+            if not running.done():  # its episodes unwound before the engine may close
                 running.cancel()
+                await asyncio.wait({running})
 
     def _summary(
         self, sweep: LocalSweep, keys: Sequence[EpisodeKey], retried: int

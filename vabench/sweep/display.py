@@ -177,16 +177,19 @@ class Tally:
             cost=self.cost,
         )
 
-    def ended(self, last: Status) -> Status:
-        """The status once the sweep's processes have ended: the ledger's counts read now
+    def ended(self, last: Status, own_limit: bool = False) -> Status:
+        """The status once the sweep's engines have ended: the ledger's counts read now
         (every line in, nothing running) with the spend of `last`, the last status shown,
-        which holds the processes' reports; never below the ledger's records of this
-        invocation."""
+        which holds the engines' reports; never below the ledger's records of this
+        invocation. `own_limit`: the one engine was this process's (`executor: local`), and
+        the line keeps the episodes' limit it ran under (and why)."""
         self.refresh()
         status = self.status()
         status.calls = max(status.calls, last.calls)
         status.tokens = max(status.tokens, last.tokens)
         status.cost = max(status.cost, last.cost)
+        if own_limit:
+            status.limit, status.reason = last.limit, last.reason
         return status
 
 
