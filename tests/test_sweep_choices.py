@@ -303,6 +303,7 @@ def test_one_resolution_per_command_and_the_local_executor_runs_what_the_dry_run
     it again: a rule it received that the config alone would not give (3 episodes in flight
     where the config says auto) is the rule its gate holds."""
     import vabench.sweep.__main__ as command
+    from vabench.sweep import chunk_engine
     from vabench.sweep.inflight import InFlightRule
     from vabench.sweep.runner import LocalSweep
 
@@ -326,7 +327,7 @@ def test_one_resolution_per_command_and_the_local_executor_runs_what_the_dry_run
             sweeps.append(self)
 
     monkeypatch.setattr(command, "choose", choose_three)
-    monkeypatch.setattr(command, "LocalSweep", Recorded)
+    monkeypatch.setattr(chunk_engine, "LocalSweep", Recorded)  # the in-process engine's
     assert main([str(cfg), "--out", str(tmp_path / "out"), "--plain", "--no-report"]) == 0
     assert counts == {"physics": 2, "renderer": 2}  # the run's own choose, nothing after it
     ((choices,), (sweep,)) = chosen, sweeps

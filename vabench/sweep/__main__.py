@@ -59,7 +59,6 @@ if __name__ == "__main__":
         import mujoco  # noqa: F401
 
 import argparse  # noqa: E402  (after the handler above: these imports take seconds)
-import asyncio  # noqa: E402
 import contextlib  # noqa: E402
 import difflib  # noqa: E402
 import json  # noqa: E402
@@ -69,34 +68,29 @@ from pathlib import Path  # noqa: E402
 from typing import Any, NoReturn  # noqa: E402
 
 from vabench.children import process_age_s  # noqa: E402
-from vabench.config import SweepConfigError, load_config  # noqa: E402
+from vabench.config import SweepConfig, SweepConfigError, load_config  # noqa: E402
 from vabench.config.keys import KeySources, key_sources  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
-from vabench.sweep.choices import Choices, apply_switches, choose, configure_jax  # noqa: E402
-from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally, status_of  # noqa: E402
+from vabench.sweep.choices import apply_switches, choose, configure_jax  # noqa: E402
+from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
+from vabench.sweep.local_executor import run_local  # noqa: E402
 from vabench.sweep.overrides import OverrideError, Overrides  # noqa: E402
 from vabench.sweep.overrides import add_arguments as add_overrides  # noqa: E402
 from vabench.sweep.pace import estimate_lines, keep_pace, machine_paces  # noqa: E402
-from vabench.sweep.plan import estimate, format_estimate, plan  # noqa: E402
+from vabench.sweep.plan import EpisodeKey, estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import (  # noqa: E402
+    Key,
     Ledger,
     LedgerError,
     ledger_key,
     reopen_infrastructure_errors,
 )
-from vabench.sweep.rundir import (  # noqa: E402
-    RunDirMismatch,
-    check_run_dir,
-    disk_short,
-    run_dir_problem,
-)
-from vabench.sweep.runner import LocalSweep, SweepStopped  # noqa: E402
+from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
+from vabench.sweep.runner import SweepStopped  # noqa: E402
 
 log = logging.getLogger("vabench.sweep")
-
-TICK_S = 1.0
 
 
 def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
@@ -232,15 +226,10 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
         display.update(status)
 
     try:
-        if choices.executor.kind == "local":
-            records = _run_local(config, choices, keys, run_dir, show, ctrl_c)
-        else:
-            from vabench.sweep.process_executor import run_processes
-            from vabench.sweep.ray_executor import run_ray
-
-            run_cells = run_ray if choices.executor.kind == "ray" else run_processes
-            records = run_cells(config, keys, run_dir, choices, on_status=show)
-            last[0] = tally.ended(last[0])  # every record in, the workers' spend kept
+        run = _executor(choices.executor.kind)
+        records = run(config, keys, run_dir, choices, on_status=show, ctrl_c=ctrl_c)
+        # every record in, the engines' spend kept
+        last[0] = tally.ended(last[0], own_limit=choices.executor.kind == "local")
         display.close(last[0])
         return _conclude(records, keys, run_dir, args.no_report)
     except Interrupted:
@@ -336,7 +325,7 @@ def _start_line(configuring: float) -> str:
     )
 
 
-def _check_plan(config: Any, keys: Sequence[Any], skipped: bool) -> str:
+def _check_plan(config: SweepConfig, keys: Sequence[EpisodeKey], skipped: bool) -> str:
     """The dry run's line on the sweep's first step (`vabench.check`)."""
     if skipped:
         return "check:     skipped (--no-check)"
@@ -349,7 +338,7 @@ def _check_plan(config: Any, keys: Sequence[Any], skipped: bool) -> str:
     )
 
 
-def _check_endpoints(config: Any, keys: Sequence[Any]) -> int:
+def _check_endpoints(config: SweepConfig, keys: Sequence[EpisodeKey]) -> int:
     """The sweep's first step (`vabench.check`): 2, with one line per problem and its fix, when
     some model's endpoint cannot serve the sweep as configured."""
     planned = {k.model for k in keys}
@@ -371,7 +360,7 @@ def _check_endpoints(config: Any, keys: Sequence[Any]) -> int:
     return 2 if found else 0
 
 
-def _print_key_sources(config: Any, keys_from: KeySources) -> None:
+def _print_key_sources(config: SweepConfig, keys_from: KeySources) -> None:
     """The dry run's word on keys: which variables the `.env` file gave (names only) and, one
     line each, the models whose key is set nowhere (the real run refuses to start)."""
     if keys_from.from_file:
@@ -385,11 +374,13 @@ def _print_key_sources(config: Any, keys_from: KeySources) -> None:
         )
 
 
-def _print_where_and_how_long(config: Any, keys: Sequence[Any], run_dir: Path) -> None:
+def _print_where_and_how_long(
+    config: SweepConfig, keys: Sequence[EpisodeKey], run_dir: Path
+) -> None:
     """The dry run's last lines: the output directory (and what it holds), each track's
     summary mode, the wall time at this machine's measured pace of each model kind and the
     disk the run directory takes (`sweep.pace`)."""
-    done: dict[Any, Any] = {}
+    done: dict[Key, dict[str, Any]] = {}
     if RunDir(run_dir).results.exists():
         done = Ledger.open(run_dir).records
         print(f"\noutput: {run_dir}: {len(done)} of {len(keys)} episodes already finished")
@@ -411,65 +402,21 @@ def _print_where_and_how_long(config: Any, keys: Sequence[Any], run_dir: Path) -
         print(line, file=sys.stderr)
 
 
-def _run_local(
-    config: Any,
-    choices: Choices,
-    keys: Sequence[Any],
-    run_dir: Path,
-    show: Callable[[Status], None],
-    ctrl_c: CtrlC,
-) -> dict[Any, dict[str, Any]]:
-    """The local executor under the display's clock; Ctrl-C cancels it at the next await
-    (raises `Interrupted` once it has cleaned up)."""
-    full: list[str] = []
+def _executor(kind: str) -> Callable[..., dict[Key, dict[str, Any]]]:
+    """The `run_*` of executor `kind`: each runs the sweep's engines under the one driver."""
+    if kind == "ray":
+        from vabench.sweep.ray_executor import run_ray
 
-    def check_disk(_: Any = None) -> None:
-        """Before a write fails: on each record and start and on each tick. Once short, no
-        episode starts; the tick cuts the running ones short."""
-        if not full and (why := disk_short(run_dir)) is not None:
-            full.append(why)
-            sweep.stopped = sweep.stopped or why
+        return run_ray
+    if kind == "processes":
+        from vabench.sweep.process_executor import run_processes
 
-    sweep = LocalSweep(config, keys, run_dir, choices, on_change=check_disk)
-
-    async def run() -> None:
-        loop = asyncio.get_running_loop()
-        task = asyncio.current_task()
-        assert task is not None
-
-        async def tick() -> None:
-            while True:
-                show(status_of(sweep.progress))
-                check_disk()
-                if full:
-                    task.cancel()
-                    return
-                await asyncio.sleep(TICK_S)
-
-        with ctrl_c.on_first(lambda: loop.call_soon_threadsafe(task.cancel)):
-            ticker = asyncio.create_task(tick())
-            try:
-                await sweep.run()
-            except asyncio.CancelledError:
-                if full:  # the episodes cut short are run again on resume, as after Ctrl-C
-                    raise SweepStopped(full[0]) from None
-                if not ctrl_c.pressed:
-                    raise
-                raise Interrupted() from None
-            finally:
-                ticker.cancel()
-                show(status_of(sweep.progress))
-
-    asyncio.run(run())
-    if full:  # the last record found the disk short: the sweep ended, but it must say so
-        raise SweepStopped(full[0])
-    if sweep.stopped is not None:
-        raise SweepStopped(sweep.stopped)
-    return sweep.ledger.records
+        return run_processes
+    return run_local
 
 
 def _conclude(
-    records: dict[Any, dict[str, Any]], keys: Sequence[Any], run_dir: Path, no_report: bool
+    records: dict[Key, dict[str, Any]], keys: Sequence[EpisodeKey], run_dir: Path, no_report: bool
 ) -> int:
     missing = [k.as_id() for k in keys if ledger_key(k) not in records]
     unscored = [r for r in records.values() if r["status"] not in ("success", "failure")]

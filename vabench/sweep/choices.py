@@ -35,10 +35,10 @@ import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 from vabench import switches
 from vabench.children import usable_cores, visible_gpus
+from vabench.config import ExecutorOptions, SweepConfig
 from vabench.llm_pool.server_config import serving_description
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
@@ -120,9 +120,9 @@ class ExecutorChoice:
 
 
 def resolve_executor(
-    options: Any, machine: Machine, physics: Choice | None = None
+    options: ExecutorOptions, machine: Machine, physics: Choice | None = None
 ) -> ExecutorChoice:
-    """`options` is the config's `ExecutorOptions`; `physics` the resolved simulator. Spend
+    """`options`: the config's; `physics`: the resolved simulator. Spend
     caps do not matter here: the limit board keeps them for every process."""
     kind, max_tasks = options.kind, options.max_tasks
     warp = physics is not None and physics.is_warp
@@ -202,7 +202,7 @@ class Choices:
 
 
 def choose(
-    config: Any,
+    config: SweepConfig,
     machine: Machine | None = None,
     environ: Mapping[str, str] = os.environ,
     effective: Effective | None = None,
@@ -238,7 +238,7 @@ def choose(
     return Choices(machine, physics, renderer, executor, in_flight, server, effective)
 
 
-def apply_switches(config: Any) -> Effective:
+def apply_switches(config: SweepConfig) -> Effective:
     """The switches of `config` (a `SweepConfig`) against this process's environment, then
     set in it (where it sets none of its own: `vabench.switches.apply`), so that this process
     and every process it starts read the sweep's values. Called by the sweep's parent before
@@ -253,7 +253,7 @@ ENGINE_GPU = "each engine's GPU"
 """The device a Ray sweep's GPU engines are decided for (each claims one; CUDA numbers it 0)."""
 
 
-def for_engines(choices: Choices, config: Any, gpus: int) -> Choices:
+def for_engines(choices: Choices, config: SweepConfig, gpus: int) -> Choices:
     """The choices the engines of a Ray sweep run with, on a cluster of `gpus` GPUs (known once
     the driver has joined it). Where the physics asked for batches (`auto`, `warp`, `mjx`) and
     the cluster has GPUs, each engine claims one, and its physics, renderer and in-flight rule

@@ -1,5 +1,6 @@
-"""One engine that runs the chunks a driver hands it, in the process it lives in: the body of a
-worker process (`executor: processes`) and of a Ray engine actor (`ray_engine`).
+"""One engine that runs the chunks a driver hands it, in the process it lives in: the body of the
+in-process engine (`executor: local`, `local_executor`), of a worker process (`executor:
+processes`) and of a Ray engine actor (`ray_engine`).
 
 A `ChunkEngine` holds one `runner.Engine` for its whole life (the LLM pool, with the limits of
 the sweep's limit board; the embedded server when a model uses one; the renderer; the
@@ -8,6 +9,10 @@ the chunks at once share its pool, renderer and in-flight limit. It never writes
 `run_chunk` yields each ledger line as its episode ends, then the chunk's summary, and the
 driver appends the lines. It writes the episodes' own directories, so an episode it finished
 but never reported is adopted from its result.json where its chunk runs again.
+
+`serve` is an engine's life under the driver's commands, the same in a worker process and in
+the driver's own process: the events it sends are those the driver reads (`STARTED`, `LINE`,
+`DONE`, `FAILED`, `STATUS`, `LOST`, `CLOSED`; see `driver`).
 """
 
 from __future__ import annotations
@@ -18,7 +23,8 @@ import dataclasses
 import logging
 import os
 import socket
-from collections.abc import AsyncIterator, Collection, Mapping, Sequence
+import traceback
+from collections.abc import AsyncIterator, Callable, Collection, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
 from pathlib import Path
 from typing import Any, Protocol
@@ -44,6 +50,10 @@ LINE = "line"
 """A ledger line of `run_chunk`: (LINE, log name, record)."""
 DONE = "done"
 """The last item of `run_chunk`: (DONE, summary)."""
+STARTED, FAILED, STATUS, LOST, CLOSED = "started", "failed", "status", "lost", "closed"
+"""The other events an engine sends its driver (`serve`, `driver`)."""
+STATUS_EVERY_S = 1.0
+"""How often a served engine sends its status."""
 WORKER_ENVIRONMENT = (
     "JAX_PLATFORMS",
     "XLA_PYTHON_CLIENT_PREALLOCATE",
@@ -96,11 +106,15 @@ class ChunkEngine:
     """One engine serving chunks (see the module docstring); every method runs in one event
     loop. `start` first, `close` last."""
 
-    def __init__(self, config: SweepConfig, choices: Choices, run_dir: Path):
+    def __init__(self, config: SweepConfig, choices: Choices, run_dir: Path, dealt: bool = True):
+        """`dealt`: its chunks are parts of the sweep dealt over engines (`for_chunk`); False
+        for the one engine of `executor: local`, whose one chunk is the sweep, run on the
+        command's `choices` as they are."""
         check_run_dir_here(run_dir)
         self.config = config
         self.choices = choices
         self.run_dir = run_dir
+        self.dealt = dealt
         self.engine: Engine | None = None
         self._stack: contextlib.AsyncExitStack | None = None
         self._sweeps: dict[str, LocalSweep] = {}
@@ -168,11 +182,12 @@ class ChunkEngine:
             self.config,
             keys,
             self.run_dir,
-            for_chunk(self.choices, keys),
+            for_chunk(self.choices, keys) if self.dealt else self.choices,
             ledger_sink=lambda log, record: lines.put_nowait((log, record)),
         )
         self._sweeps[name] = sweep
         running = asyncio.create_task(sweep.run(self.engine))
+        line: asyncio.Future[tuple[str, dict[str, Any]]] | None = None
         try:
             while not running.done():
                 line = asyncio.ensure_future(lines.get())
@@ -187,8 +202,11 @@ class ChunkEngine:
             yield (DONE, self._summary(sweep, keys, progress.total().retried))
         finally:
             self._sweeps.pop(name, None)
-            if not running.done():
+            if line is not None:
+                line.cancel()
+            if not running.done():  # its episodes unwound before the engine may close
                 running.cancel()
+                await asyncio.wait({running})
 
     def _summary(
         self, sweep: LocalSweep, keys: Sequence[EpisodeKey], retried: int
@@ -248,3 +266,62 @@ class ChunkEngine:
             stack, self._stack = self._stack, None
             await stack.aclose()
         return figures
+
+
+Command = tuple[Any, ...]
+"""What a driver tells a served engine: ("run", name, keys) or ("close",)."""
+Send = Callable[[tuple[Any, ...]], None]
+
+
+async def serve(
+    make: Callable[[], ChunkEngine],
+    board: BoardLink | None,
+    commands: asyncio.Queue[Command | None],
+    send: Send,
+    on_chunk: Callable[[Sequence[EpisodeKey]], None] = lambda keys: None,
+) -> None:
+    """An engine's life under a driver: made (else LOST, not to be replaced: another would fail
+    the same way), started with the limits of `board` (STARTED, or LOST), its STATUS every
+    `STATUS_EVERY_S`, each ("run", name, keys) of `commands` run at once (its LINEs, then DONE
+    or FAILED), until ("close",) or None (the driver is gone); then its chunks still running
+    are cancelled (nothing of them would be recorded) and it is closed (CLOSED). Cancelled
+    itself (an in-process engine ended at once), it cancels its chunks and closes too."""
+    try:
+        engine = make()
+    except Exception:
+        send((LOST, f"it could not be made:\n{traceback.format_exc()}", False))
+        return
+    try:
+        send((STARTED, await engine.start((), board)))
+    except Exception:
+        send((LOST, f"it did not start:\n{traceback.format_exc()}", True))
+        return
+
+    async def report() -> None:
+        while True:
+            send((STATUS, engine.status()))
+            await asyncio.sleep(STATUS_EVERY_S)
+
+    async def run(name: str, keys: list[EpisodeKey]) -> None:
+        try:
+            async for item in engine.run_chunk(name, keys):
+                send(item if item[0] == LINE else (DONE, name, item[1]))
+        except Exception:
+            send((FAILED, name, traceback.format_exc()))
+
+    ticker = asyncio.create_task(report())
+    running: set[asyncio.Task[None]] = set()
+    try:
+        while (command := await commands.get()) is not None and command[0] == "run":
+            _, name, keys = command
+            on_chunk(keys)
+            task = asyncio.create_task(run(name, keys))
+            running.add(task)
+            task.add_done_callback(running.discard)
+    finally:
+        ticker.cancel()
+        for task in running:
+            task.cancel()
+        await asyncio.gather(*running, return_exceptions=True)
+        figures = await engine.close()
+    send((CLOSED, figures))

@@ -1,13 +1,11 @@
 """Where a sweep stands, on a clock: a live table on a terminal, plain lines otherwise.
 
-Every executor describes its state as one `Status` (per model and track: episodes done /
+The sweep's driver describes its state as one `Status` (per model and track: episodes done /
 planned, successes, unscored, retried, running; model calls, tokens and cost; the episodes in
-flight, their limit and why) and hands it to `Display.update` once a second:
-
-- the local executor from its own counters (`status_of`), which move as each episode ends;
-- the processes and Ray executors from the run directory's ledger, read as it grows (`Tally`:
-  each line is counted when it is appended, not when its cell ends), plus, for the processes
-  executor, what its workers report each second (running, in flight, calls, tokens, cost).
+flight, their limit and why) and hands it to `Display.update` once a second: the run
+directory's ledger, read as it grows (`Tally`: each line is counted when it is appended, not
+when its chunk ends), with what its engines report each second (running, in flight, calls,
+tokens, cost; `with_reports`).
 
 On a terminal a rich table is redrawn every second (a bar per model and track); without one
 (`--plain`, logs, CI) a line is printed every `every_s` seconds (default 15) with the same
@@ -24,7 +22,7 @@ bursts, and over one minute its ETA swung between 1 and 7 hours). A call count t
 backwards (a reporter's spend lost with its process) is a drop the rate leaves out, never a
 negative pace (such a line once read "calls -878.5/s").
 
-The last line, once the processes or engines have ended, is `Tally.ended`: the ledger's final
+The last line, once the engines have ended, is `Tally.ended`: the ledger's final
 counts with the spend of the last status shown (their reports). A fresh `Tally`'s status, which
 it was before, counts the records already there as spent before this invocation: the last line
 of a processes sweep read "0 tokens" after 1.5 billion.
@@ -37,14 +35,15 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, TextIO
 
 from vabench.llm_pool.spend import Pricing, cost_text
 from vabench.run_layout import INFRASTRUCTURE, RESULTS
-from vabench.sweep.results import key_of
+from vabench.sweep.plan import EpisodeKey
+from vabench.sweep.results import Key, key_of
 
 PLAIN_EVERY_S = 15.0
 RATE_WINDOW_S = 60.0
@@ -121,30 +120,11 @@ def with_reports(status: Status, reports: list[dict], live: list[dict], unit: st
     return status
 
 
-def status_of(progress: Any) -> Status:
-    """The status of a `runner.LocalSweep`'s `SweepProgress` (per-task counters, its LLM pool,
-    its in-flight gate)."""
-    tracks: dict[tuple[str, str], Counts] = collections.defaultdict(Counts)
-    for (model, track, _task), cell in list(progress.cells.items()):
-        tracks[(model, track)].add(cell)
-    status = Status(dict(tracks))
-    if progress.pool is not None:
-        stats = list(progress.pool.stats().values())
-        status.calls = sum(s.succeeded for s in stats)
-        status.tokens = sum(s.usage.total_tokens for s in stats)
-        status.cost = sum(s.cost_usd for s in stats)
-        status.calls_in_flight = sum(s.in_flight for s in stats)
-    gate = progress.gate
-    if gate is not None:
-        status.in_flight, status.limit, status.reason = gate.in_flight, gate.limit, gate.reason
-    return status
-
-
 class Tally:
     """A run directory's ledger and infrastructure log, counted as they grow (by whoever
     writes them: this process's ledger thread, or Ray workers on other machines)."""
 
-    def __init__(self, run_dir: Path, keys: Iterable[Any]):
+    def __init__(self, run_dir: Path, keys: Iterable[EpisodeKey]):
         self.run_dir = Path(run_dir)
         self.planned = {(k.model, k.track, k.task, int(k.seed), int(k.run)) for k in keys}
         self.tracks: dict[tuple[str, str], Counts] = collections.defaultdict(Counts)
@@ -152,7 +132,7 @@ class Tally:
             self.tracks[key[:2]].planned += 1
         self.calls = self.tokens = 0
         self.cost = 0.0
-        self._seen: set[tuple[Any, ...]] = set()
+        self._seen: set[Key] = set()
         self._offsets = {RESULTS: 0, INFRASTRUCTURE: 0}
         self.refresh()
         self.calls = self.tokens = 0  # this invocation's spend only, as the local display
@@ -197,16 +177,19 @@ class Tally:
             cost=self.cost,
         )
 
-    def ended(self, last: Status) -> Status:
-        """The status once the sweep's processes have ended: the ledger's counts read now
+    def ended(self, last: Status, own_limit: bool = False) -> Status:
+        """The status once the sweep's engines have ended: the ledger's counts read now
         (every line in, nothing running) with the spend of `last`, the last status shown,
-        which holds the processes' reports; never below the ledger's records of this
-        invocation."""
+        which holds the engines' reports; never below the ledger's records of this
+        invocation. `own_limit`: the one engine was this process's (`executor: local`), and
+        the line keeps the episodes' limit it ran under (and why)."""
         self.refresh()
         status = self.status()
         status.calls = max(status.calls, last.calls)
         status.tokens = max(status.tokens, last.tokens)
         status.cost = max(status.cost, last.cost)
+        if own_limit:
+            status.limit, status.reason = last.limit, last.reason
         return status
 
 
@@ -226,7 +209,7 @@ class Display:
         live: bool | None = None,
         every_s: float = PLAIN_EVERY_S,
         out: TextIO | None = None,
-        clock: Any = time.monotonic,
+        clock: Callable[[], float] = time.monotonic,
         pricing: Mapping[str, Pricing] | None = None,
         verbose: bool = False,
         elapsed_before_s: float = 0.0,

@@ -1,5 +1,6 @@
-"""The one driver of a sweep over engines: worker processes (`process_executor`) or Ray actors
-(`ray_executor`), each an `Engine` that runs the chunks it is handed (`chunk_engine`).
+"""The one driver of a sweep over engines: the in-process engine (`local_executor`), worker
+processes (`process_executor`) or Ray actors (`ray_executor`), each an `Engine` that runs the
+chunks it is handed (`chunk_engine`).
 
 The driver serves one limit board to every engine, starts the engines, hands out chunks as
 engines have room (`placement.next_placement`: the least loaded first, a critical chunk
@@ -8,12 +9,14 @@ infrastructure.jsonl; a second record of an episode goes to results.duplicates.j
 their statuses for the display, and at the end closes them and logs each one's time. An engine
 that dies, or whose GPU fails, costs only its unfinished episodes: those of its chunks without
 a record go back to the front of the queue and another engine takes its place, at most
-`MAX_ENGINE_RESTARTS` times. A chunk that raises is logged and listed while the others run
+`Engines.max_restarts` times (none for the in-process engine: another in the same process
+would meet the same fault). A chunk that raises is logged and listed while the others run
 on; one stopped by an endpoint or a spend cap ends the handing out (`SweepStopped`), and so
 does a disk below the reserve (`rundir.disk_short`, checked each tick), ending every engine at
-once as Ctrl-C does (their unrecorded episodes run again on resume). Ctrl-C
-(`Interrupted`, raised in this thread) ends every engine at once and keeps every whole line
-they sent.
+once as Ctrl-C does (their unrecorded episodes run again on resume). Ctrl-C (the command's
+`interrupt.CtrlC`: its first press noted and acted on at the next tick, so that no ledger line
+is cut; without one, `Interrupted` raised in this thread) ends every engine at once and keeps
+every whole line they sent.
 
 Engines report by events into one queue, in the order each sends them: (STARTED, info),
 (LINE, log, record), (DONE, chunk, summary), (FAILED, chunk, error), (STATUS, status),
@@ -29,28 +32,35 @@ import queue
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from vabench.config import SweepConfig
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import DUPLICATES, RESULTS
 from vabench.sweep import rundir
 from vabench.sweep.cells import PROGRESS_EVERY_S, Cell, pending_cells
-from vabench.sweep.chunk_engine import DONE, LINE, BoardLink
+from vabench.sweep.chunk_engine import (
+    CLOSED,
+    DONE,
+    FAILED,
+    LINE,
+    LOST,
+    STARTED,
+    STATUS,
+    BoardLink,
+)
 from vabench.sweep.display import Status, Tally, with_reports
+from vabench.sweep.interrupt import CtrlC, Interrupted
 from vabench.sweep.limiter import shared_endpoints
 from vabench.sweep.placement import Chunk, Engine, EngineHandle, next_placement
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, Ledger, LedgerError, key_of, ledger_key
 from vabench.sweep.runner import SweepStopped, spend_caps
 
-STARTED, FAILED, STATUS, LOST, CLOSED = "started", "failed", "status", "lost", "closed"
-__all__ = ["CLOSED", "DONE", "FAILED", "LINE", "LOST", "STARTED", "STATUS", "Driver"]
-
 TICK_S = 1.0
 """Seconds between display updates (and the longest the driver waits for an event)."""
 MAX_ENGINE_RESTARTS = 16
-"""Engines started in place of dead ones, in one invocation."""
+"""Engines started in place of dead ones, in one invocation (worker processes, Ray actors)."""
 ENGINE_START_TIMEOUT_S = 900.0
 """How long the driver waits for an engine while none runs (a node may download the project,
 compile, build demonstrations) before it gives up, listing what did not run."""
@@ -61,41 +71,54 @@ Emit = Callable[..., None]
 """An engine's way to report an event (its items after the engine)."""
 
 
-class Engines(Protocol):
-    """An executor's kind of engine and its plan."""
+class Engines:
+    """An executor's kind of engine and its plan (each executor's subclass)."""
 
     label: str
-    """Its name in the log ("processes", "ray")."""
-    unit: str
+    """Its name in the log ("local", "processes", "ray")."""
+    unit = "engines"
     """What its engines are called in the display ("worker processes", "engines")."""
     log: logging.Logger
-    max_chunks: int
+    max_chunks = 1
     """Chunks at once in one engine."""
     engines_wanted: int
+    max_restarts = MAX_ENGINE_RESTARTS
+    """Engines started in place of dead ones."""
+    shares_board = True
+    """Its engines share one limit board (`serve_board`); else its one engine's pool keeps
+    the limits and spend caps itself."""
 
     def fits(self) -> bool:
         """Whether its engines can start at all (else it says why)."""
+        return True
 
     def serve_board(
         self, stack: contextlib.ExitStack, limits: dict[str, dict[str, Any]], caps: SpendCaps | None
     ) -> BoardLink:
         """The sweep's one limit board, served to its engines until `stack` closes."""
+        raise NotImplementedError
 
     def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
         """What its engines need before they start (closed with `stack`, after them)."""
 
     def new_engine(self, index: int, slot: int, emit: Emit, board: BoardLink | None) -> Engine:
         """Engine `index`, filling plan slot `slot`."""
+        raise NotImplementedError
 
 
 def pending(
     keys: Sequence[EpisodeKey], run_dir: Path, log: logging.Logger, label: str
-) -> dict[Cell, list[EpisodeKey]]:
-    """The planned episodes without a record, by cell; says so when there are none."""
-    cells = pending_cells(keys, Ledger.open(run_dir).records)
+) -> tuple[Ledger, dict[Cell, list[EpisodeKey]]]:
+    """The run directory's ledger (for the driver: second records of an episode moved aside,
+    and said) and the planned episodes without a record in it, by cell; says so when there are
+    none."""
+    ledger = Ledger.open(run_dir)
+    for line in ledger.collapsed:
+        log.warning("ledger: %s", line)
+    cells = pending_cells(keys, ledger.records)
     if not cells:
         log.info("%s: every planned episode is already in %s; nothing to run", label, RESULTS)
-    return cells
+    return ledger, cells
 
 
 def merged_status(status: Status, reports: list[dict], live: list[dict], unit: str) -> Status:
@@ -124,13 +147,19 @@ class Driver:
         run_dir: Path,
         chunks: Sequence[Chunk],
         on_status: Callable[[Status], None] | None = None,
+        ctrl_c: CtrlC | None = None,
+        ledger: Ledger | None = None,
     ):
+        """`ledger`: the run directory's, where the caller has opened it (`pending`)."""
         self.kind = kind
         self.log = kind.log
         self.config = config
         self.run_dir = run_dir
         self.on_status = on_status
-        self.ledger = Ledger.open(run_dir)  # the only writer
+        self.ctrl_c = ctrl_c
+        self.pressed = False
+        """Ctrl-C was pressed (`ctrl_c`'s first press): the loop ends at its next tick."""
+        self.ledger = ledger if ledger is not None else Ledger.open(run_dir)  # the only writer
         self.tally = Tally(run_dir, keys)
         self.queue: collections.deque[Chunk] = collections.deque(chunks)
         self.total = len(self.queue)
@@ -163,7 +192,8 @@ class Driver:
                     self.kind.prepare(stack, list(self.queue))
                     for slot in range(self.kind.engines_wanted):
                         self._start_engine(slot)
-                    self._loop()
+                    with self._ctrl_c():
+                        self._loop()
                     finished = True
                 except _DiskShort:
                     pass
@@ -179,12 +209,24 @@ class Driver:
             )
         if self.stopped:
             raise SweepStopped(self.stopped[0])
-        return Ledger.open(self.run_dir).records
+        return self.ledger.records
+
+    def _ctrl_c(self) -> contextlib.AbstractContextManager[None]:
+        """Within the block, a first Ctrl-C is noted (`pressed`) for the loop's next tick."""
+        if self.ctrl_c is None:
+            return contextlib.nullcontext()
+
+        def press() -> None:  # in the signal handler: a flag, no lock (the queue's) taken
+            self.pressed = True
+
+        return self.ctrl_c.on_first(press)
 
     def _serve_board(self, stack: contextlib.ExitStack) -> BoardLink | None:
         """One limit board for every engine: the limits of each endpoint the embedded server
         does not serve (each engine's embedded server keeps its own), and the spend caps over
         what the run directory already spent. None when there is nothing to keep."""
+        if not self.kind.shares_board:
+            return None
         limits = shared_endpoints(self.config.models, self.config.embedded_models)
         caps = spend_caps(self.config, self.run_dir)
         if not limits and caps is None:
@@ -198,6 +240,8 @@ class Driver:
     def _loop(self) -> None:
         last_log = idle_since = time.monotonic()
         while self.queue or any(e.chunks for e in self.engines):
+            if self.pressed:
+                raise Interrupted()
             self._check_disk()
             self._hand_out()
             try:
@@ -297,7 +341,7 @@ class Driver:
             self.done += 1  # this try of the chunk has ended
         engine.chunks.clear()
         _engine(engine).kill()
-        restart = replace and self.restarts < MAX_ENGINE_RESTARTS
+        restart = replace and self.restarts < self.kind.max_restarts
         self._say(
             logging.WARNING,
             "engine %d (%s) is gone: %s; %d unfinished episodes go back to the queue%s",
@@ -416,22 +460,12 @@ class Driver:
         now = time.monotonic()
         for e in self.engines:
             e.clock.end(now)
-        if gracefully:
-            closing = {id(e) for e in live if e.ready}
+        try:
+            if gracefully:
+                self._close([e for e in live if e.ready], now + CLOSE_TIMEOUT_S)
+        finally:  # those still closing at the deadline (or when it was cut short) end at once
             for e in live:
-                if e.ready:
-                    _engine(e).close()
-            deadline = now + CLOSE_TIMEOUT_S
-            while closing and time.monotonic() < deadline:
-                with contextlib.suppress(queue.Empty):
-                    engine, event, *payload = self.events.get(timeout=TICK_S)
-                    if event == CLOSED:
-                        engine.final = payload[0] or {}
-                        closing.discard(id(engine))
-                    elif event == LINE and not engine.dead:
-                        self._append(*payload)
-        for e in live:
-            _engine(e).kill()
+                _engine(e).kill()
         with contextlib.suppress(queue.Empty):
             while True:
                 engine, event, *payload = self.events.get_nowait()
@@ -442,6 +476,21 @@ class Driver:
                 self._log_engine_time()
             except Exception:  # a report, never a reason to lose the sweep's own error
                 self.log.exception("%s: the engines' time could not be reported", self.kind.label)
+
+    def _close(self, ready: list[EngineHandle], deadline: float) -> None:
+        """Ask the `ready` engines to close; wait for them until `deadline`, keeping the lines
+        they send meanwhile."""
+        closing = {id(e) for e in ready}
+        for e in ready:
+            _engine(e).close()
+        while closing and time.monotonic() < deadline:
+            with contextlib.suppress(queue.Empty):
+                engine, event, *payload = self.events.get(timeout=TICK_S)
+                if event == CLOSED:
+                    engine.final = payload[0] or {}
+                    closing.discard(id(engine))
+                elif event == LINE and not engine.dead:
+                    self._append(*payload)
 
     def engine_report(self) -> list[dict[str, Any]]:
         """Per engine: where it ran (its host and GPU ids), its seconds of start-up, working (a

@@ -1,7 +1,7 @@
 """Ctrl-C in the sweep: the first press stops it cleanly, the second at once.
 
-First press: the running executor stops (the local one cancels its episodes at their next
-await, the processes one ends its worker processes, the Ray one its engine actors). What was
+First press: the sweep's driver ends its engines at its next tick (the in-process engine's
+episodes cancelled at their next await, worker processes and Ray actors ended). What was
 recorded stays whole: a ledger line is one write of a whole line, a result.json is renamed into
 place, and an episode cut short leaves only its partial events.jsonl, which the next run sets
 aside before running it again. The command prints one line and exits with status 130. A second

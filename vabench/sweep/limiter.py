@@ -40,7 +40,7 @@ from typing import Any
 
 from vabench.llm_pool.config import Limits, ModelEndpoint
 from vabench.llm_pool.limits import ConcurrencyLimiter, RateBudget
-from vabench.llm_pool.shared_limits import SharedLimits
+from vabench.llm_pool.shared_limits import LimitChannel, SharedLimits
 from vabench.llm_pool.spend import CapReached, Reservation, SpendCaps
 
 
@@ -322,13 +322,15 @@ class LocalChannel:
         getattr(self.board, method)(*args)
 
 
-def shared_endpoints(models: Any, embedded: Any) -> dict[str, dict[str, Any]]:
+def shared_endpoints(
+    models: Iterable[ModelEndpoint], embedded: Iterable[str]
+) -> dict[str, dict[str, Any]]:
     """The limits the board keeps: those of every model not served by the embedded server."""
     return {m.name: m.limits.model_dump() for m in models if m.name not in set(embedded)}
 
 
 class _BoardReservation:
-    def __init__(self, channel: Any, holder: str, number: int):
+    def __init__(self, channel: LimitChannel, holder: str, number: int):
         self.channel, self.holder, self.number = channel, holder, number
 
     def settle(self, cost: float) -> None:
@@ -339,7 +341,7 @@ class BoardSpend:
     """A process's `LLMPool(spend_caps=...)`: every call's upper bound reserved on the board
     (`llm_pool.spend.Caps`)."""
 
-    def __init__(self, channel: Any, holder: str):
+    def __init__(self, channel: LimitChannel, holder: str):
         self.channel = channel
         self.holder = holder
         self._numbers = 0
@@ -362,7 +364,9 @@ class BoardLimits:
     `shared` (names), the pool's own for the others; with `capped`, the board's spend caps
     (`spend`, for `LLMPool(spend_caps=...)`). `close()` after the pool."""
 
-    def __init__(self, channel: Any, holder: str, shared: Iterable[str], capped: bool = False):
+    def __init__(
+        self, channel: LimitChannel, holder: str, shared: Iterable[str], capped: bool = False
+    ):
         self.channel = channel
         self.holder = holder
         self.shared = set(shared)

@@ -19,6 +19,7 @@ from typing import Any
 
 from vabench.config import SweepConfigError
 from vabench.config.problems import Problem
+from vabench.sweep.plan import EpisodeKey
 
 
 class OverrideError(ValueError):
@@ -216,7 +217,7 @@ class Overrides:
             problems.append(Problem(p.path, message))
         return SweepConfigError(err.file, problems)
 
-    def limited(self, keys: Sequence[Any]) -> list[Any]:
+    def limited(self, keys: Sequence[EpisodeKey]) -> list[EpisodeKey]:
         """The first `--limit` episodes of the plan (all of them without one)."""
         return list(keys if self.limit is None else keys[: self.limit])
 

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from vabench.config import SweepConfig
 from vabench.run_layout import EPISODES, RESULTS
 
 
@@ -63,7 +64,7 @@ def pace_file() -> Path:
     )
 
 
-def model_kind(config: Any, model: str) -> str:
+def model_kind(config: SweepConfig, model: str) -> str:
     """What decides a model's pace and its records' size: the embedded server's policy, or
     the API and provider model (a random-action pace says nothing of a paid model), and the
     image size (rendering time, MB an episode)."""
@@ -105,7 +106,7 @@ def _tree_bytes(path: Path) -> int:
     return total
 
 
-def measure_kinds(run_dir: Path, config: Any) -> list[KindPace]:
+def measure_kinds(run_dir: Path, config: SweepConfig) -> list[KindPace]:
     """The pace and bytes an episode of each model kind of `config` in `run_dir`'s ledger."""
     records: dict[str, list[dict[str, Any]]] = {}
     with contextlib.suppress(OSError, UnicodeDecodeError):
@@ -145,7 +146,7 @@ def measure_kinds(run_dir: Path, config: Any) -> list[KindPace]:
     return out
 
 
-def keep_pace(run_dir: Path, config: Any, path: Path | None = None) -> None:
+def keep_pace(run_dir: Path, config: SweepConfig, path: Path | None = None) -> None:
     """Write `run_dir`'s measured kinds to this machine's entries of the pace file (the
     latest measurement of a kind replaces the one before). Never fails a sweep."""
     path = path or pace_file()
@@ -176,7 +177,7 @@ def machine_paces(path: Path | None = None) -> dict[str, KindPace]:
 
 
 def estimate_lines(
-    config: Any,
+    config: SweepConfig,
     left: Mapping[str, Sequence[int]],
     run_dir: Path,
     paces: Mapping[str, KindPace],

@@ -37,7 +37,6 @@ import multiprocessing
 import os
 import re
 import threading
-import traceback
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -61,26 +60,25 @@ from vabench.sweep.board_socket import BoardAddress, BoardServer
 from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups, worker_logging
 from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.chunk_engine import (
-    DONE,
-    LINE,
+    LOST,
     WORKER_ENVIRONMENT,
     BoardLink,
     ChunkEngine,
+    Command,
+    serve,
     with_critical_path,
 )
 from vabench.sweep.display import Status
-from vabench.sweep.driver import CLOSED, FAILED, LOST, STARTED, STATUS, Driver, Emit, pending
+from vabench.sweep.driver import Driver, Emit, Engines, pending
+from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.limiter import LimitBoard
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.results import Key, Ledger
+from vabench.sweep.results import Key
 from vabench.sweep.runner import critical_path_tasks
 from vabench.tuning import kernel_profile, mps, precompile
 
 log = logging.getLogger(__name__)
-
-STATUS_EVERY_S = 1.0
-"""How often an engine process sends its status."""
 
 
 def plan_chunks(
@@ -194,7 +192,7 @@ async def _serve(
     spec: WorkerSpec, commands: Connection, lines: Connection, first: list[EpisodeKey]
 ) -> None:
     loop = asyncio.get_running_loop()
-    inbox: asyncio.Queue[Any] = asyncio.Queue()
+    inbox: asyncio.Queue[Command | None] = asyncio.Queue()
 
     def receive() -> None:  # None once the driver's end of the pipe is gone
         with contextlib.suppress(EOFError, OSError):
@@ -208,47 +206,17 @@ async def _serve(
         with contextlib.suppress(OSError):  # the driver is gone: this process ends with it
             lines.send(item)
 
-    try:
-        engine = ChunkEngine(spec.config, spec.choices, spec.run_dir)
-    except Exception:  # would fail the same way in another process
-        send((LOST, f"it could not be made:\n{traceback.format_exc()}", False))
-        return
-    try:
-        send((STARTED, await engine.start((), spec.board)))
-    except Exception:
-        send((LOST, f"it did not start:\n{traceback.format_exc()}", True))
-        return
-
-    async def report() -> None:
-        while True:
-            send((STATUS, engine.status()))
-            await asyncio.sleep(STATUS_EVERY_S)
-
-    async def run(name: str, keys: list[EpisodeKey]) -> None:
-        try:
-            async for item in engine.run_chunk(name, keys):
-                send(item if item[0] == LINE else (DONE, name, item[1]))
-        except Exception:
-            send((FAILED, name, traceback.format_exc()))
-
-    ticker = asyncio.create_task(report())
-    running: set[asyncio.Task[None]] = set()
-    while (command := await inbox.get()) is not None and command[0] == "run":
-        _, name, keys = command
+    def on_chunk(keys: Sequence[EpisodeKey]) -> None:
         if not first:
             first.append(keys[0])
             age = process_age_s()
             if age is not None:  # the spawn's start: its interpreter, imports and engine
                 log.info("engine process: its first chunk %.1f s after the process started", age)
-        task = asyncio.create_task(run(name, keys))
-        running.add(task)
-        task.add_done_callback(running.discard)
-    ticker.cancel()
-    for task in running:  # the driver is gone: nothing of them would be recorded
-        task.cancel()
-    await asyncio.gather(*running, return_exceptions=True)
-    figures = await engine.close()
-    send((CLOSED, figures))
+
+    def make() -> ChunkEngine:
+        return ChunkEngine(spec.config, spec.choices, spec.run_dir)
+
+    await serve(make, spec.board, inbox, send, on_chunk)
 
 
 class ProcessEngine:
@@ -321,13 +289,12 @@ def _death(code: int | None) -> str:
     )
 
 
-class ProcessEngines:
+class ProcessEngines(Engines):
     """`driver.Engines` of worker processes on this host, and their plan."""
 
     label = "processes"
     unit = "worker processes"
     log = log
-    max_chunks = 1
 
     def __init__(
         self,
@@ -359,9 +326,6 @@ class ProcessEngines:
             Chunk(name, part, task_cost(config, part[0].task), part[0].task in self.critical)
             for name, part in self.parts
         ]
-
-    def fits(self) -> bool:
-        return True
 
     def serve_board(
         self, stack: contextlib.ExitStack, limits: dict[str, dict[str, Any]], caps: SpendCaps | None
@@ -467,12 +431,14 @@ def run_processes(
     run_dir: Path,
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
+    ctrl_c: CtrlC | None = None,
 ) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` in engine processes on `choices`; return the
-    ledger's records afterwards. `on_status(Status)` is called about once a second."""
+    ledger's records afterwards. `on_status(Status)` is called about once a second; `ctrl_c`:
+    the command's handler (`driver.Driver`)."""
     run_dir = Path(run_dir).resolve()
-    cells = pending(keys, run_dir, log, "processes")
+    ledger, cells = pending(keys, run_dir, log, "processes")
     if not cells:
-        return Ledger.open(run_dir).records
+        return ledger.records
     kind = ProcessEngines(config, choices, run_dir, cells)
-    return Driver(kind, config, keys, run_dir, kind.chunks, on_status).run()
+    return Driver(kind, config, keys, run_dir, kind.chunks, on_status, ctrl_c, ledger).run()

@@ -48,20 +48,27 @@ from vabench.config import SweepConfig
 from vabench.llm_pool.spend import SpendCaps
 from vabench.sweep.cells import Cell, chunks, task_cost, task_groups
 from vabench.sweep.choices import Choices
-from vabench.sweep.chunk_engine import DONE, LINE, BoardLink, with_critical_path
-from vabench.sweep.display import Status
-from vabench.sweep.driver import (
-    CLOSE_TIMEOUT_S,
+from vabench.sweep.chunk_engine import (
     CLOSED,
+    DONE,
     FAILED,
+    LINE,
     LOST,
     STARTED,
     STATUS,
+    BoardLink,
+    with_critical_path,
+)
+from vabench.sweep.display import Status
+from vabench.sweep.driver import (
+    CLOSE_TIMEOUT_S,
     TICK_S,
     Driver,
     Emit,
+    Engines,
     pending,
 )
+from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.limiter import LimiterActor, RayBoard
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
@@ -72,7 +79,7 @@ from vabench.sweep.ray_plan import (
     project_runtime_env,
     upload_failure,
 )
-from vabench.sweep.results import Key, Ledger
+from vabench.sweep.results import Key
 from vabench.sweep.runner import SweepStopped
 
 log = logging.getLogger(__name__)
@@ -161,11 +168,10 @@ class RayEngine:
                 thread.join(timeout=5)
 
 
-class RayEngines:
+class RayEngines(Engines):
     """`driver.Engines` of engine actors on a Ray cluster, and their plan."""
 
     label = "ray"
-    unit = "engines"
     log = log
 
     def __init__(
@@ -259,9 +265,6 @@ class RayEngines:
         stack.callback(end)
         return RayBoard(self.limiter, tuple(limits), caps is not None)
 
-    def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
-        """Nothing: each engine compiles the sweep's kernels as it starts."""
-
     def new_engine(self, index: int, slot: int, emit: Emit, board: BoardLink | None) -> RayEngine:
         holder = f"engine-{index}-{uuid.uuid4().hex[:8]}"
         actor = self.remote.options(
@@ -277,15 +280,17 @@ def run_ray(
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
     on_engines: Callable[[list[dict[str, Any]]], None] | None = None,
+    ctrl_c: CtrlC | None = None,
 ) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` on the engines of a Ray cluster, for a sweep whose
     command chose `choices`, and return the ledger's records afterwards (see the module
     docstring). `on_status` is called about once a second; `on_engines` once at the end with
-    `Driver.engine_report()` (each engine's time and GPU busy share)."""
+    `Driver.engine_report()` (each engine's time and GPU busy share); `ctrl_c`: the command's
+    handler (`driver.Driver`)."""
     run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
-    cells = pending(keys, run_dir, log, "ray")
+    ledger, cells = pending(keys, run_dir, log, "ray")
     if not cells:
-        return Ledger.open(run_dir).records
+        return ledger.records
 
     import ray  # the `ray` extra; only this executor needs it
 
@@ -299,7 +304,7 @@ def run_ray(
             raise SweepStopped(upload_failure(err)) from None
     try:
         kind = RayEngines(ray, config, choices, run_dir, cells)
-        driver = Driver(kind, config, keys, run_dir, kind.chunks, on_status)
+        driver = Driver(kind, config, keys, run_dir, kind.chunks, on_status, ctrl_c, ledger)
         try:
             return driver.run()
         finally:

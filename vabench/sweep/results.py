@@ -59,6 +59,7 @@ from typing_extensions import TypedDict
 
 from vabench.agent.records import RECORD_VERSION, EpisodeResult, read_result
 from vabench.run_layout import DUPLICATES, INFRASTRUCTURE, RESULT, RESULTS, EpisodeDir, RunDir
+from vabench.sweep.plan import EpisodeKey
 
 Key = tuple[str, str, str, int, int]
 Sink = Callable[[str, dict[str, Any]], None]
@@ -76,7 +77,7 @@ def key_of(record: dict[str, Any]) -> Key:
     )
 
 
-def ledger_key(k: Any) -> Key:
+def ledger_key(k: EpisodeKey) -> Key:
     """The ledger key of a planned `EpisodeKey` (the same tuple `key_of` reads from a line)."""
     return (k.model, k.track, k.task, int(k.seed), int(k.run))
 

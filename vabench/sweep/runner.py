@@ -46,16 +46,18 @@ from collections import defaultdict
 from collections.abc import AsyncIterator, Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from vabench.agent.engine import EpisodeSpec, run_episode
 from vabench.agent.learning import LearningLimits
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
 from vabench.agent.services import task_services
+from vabench.config import SweepConfig
+from vabench.llm_pool.config import ModelEndpoint
 from vabench.llm_pool.errors import RequestRejected, SpendCapReached
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer
-from vabench.llm_pool.spend import SpendCaps
+from vabench.llm_pool.shared_limits import SharedLimits
+from vabench.llm_pool.spend import Caps, SpendCaps
 from vabench.render.backends import Renderer, make_renderer
 from vabench.render.images import ImageSettings
 from vabench.report.spend import recorded_spend
@@ -65,6 +67,7 @@ from vabench.sim_mjx.warp.device import warp_device
 from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
 from vabench.sweep.inflight import InFlight
+from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
@@ -82,12 +85,10 @@ class SweepStopped(Exception):
 
 @dataclass
 class SweepProgress:
-    """Live counters for the display, per (model, track, task)."""
+    """Live counters per (model, track, task): the episodes running and those re-run after an
+    infrastructure error (the engine's status and its chunk's summary)."""
 
     cells: dict[tuple[str, str, str], Counts] = field(default_factory=lambda: defaultdict(Counts))
-    pool: LLMPool | None = None
-    gate: InFlight | None = None
-    """The in-flight limit of this process (its limit and why)."""
 
     def total(self) -> Counts:
         return Counts.total(self.cells.values())
@@ -109,12 +110,12 @@ class Engine:
 
 @contextlib.asynccontextmanager
 async def open_engine(
-    config: Any,
+    config: SweepConfig,
     choices: Choices,
     run_dir: Path,
     *,
-    shared_limits: Callable[[Any], Any] | None = None,
-    spend_caps: Any = None,
+    shared_limits: Callable[[ModelEndpoint], SharedLimits | None] | None = None,
+    spend_caps: Caps | None = None,
 ) -> AsyncIterator[Engine]:
     """The engine of `config` on `choices` for episodes of `run_dir`, open for the block.
     `shared_limits`, `spend_caps`: `LLMPool(shared_limits=..., spend_caps=...)` (limits and
@@ -183,11 +184,10 @@ class LocalSweep:
 
     def __init__(
         self,
-        config: Any,
-        keys: Sequence[Any],
+        config: SweepConfig,
+        keys: Sequence[EpisodeKey],
         run_dir: Path,
         choices: Choices,
-        on_change: Callable[[SweepProgress], None] | None = None,
         ledger_sink: Sink | None = None,
     ):
         self.config = config
@@ -198,11 +198,8 @@ class LocalSweep:
         for line in self.ledger.collapsed:
             log.warning("ledger: %s", line)
         self.progress = SweepProgress()
-        self.on_change = on_change or (lambda p: None)
         self.stopped: str | None = None
         """Why the sweep stopped early (an endpoint refused it), naming model and fix."""
-        self.refused = 0
-        """Episodes ended without a record by that refusal (or by a spend cap)."""
         self.device_failed = False
         """`stopped` because this process's GPU context failed (a new process may go on)."""
         self.capped: dict[str, str] = {}
@@ -213,14 +210,6 @@ class LocalSweep:
         self.physics: Choice | None = None
         self.compiling: Compiling | None = None
         """This sweep's families' kernels compiling in the background (Warp on a GPU)."""
-        for k in self.keys:
-            self.progress.cells[(k.model, k.track, k.task)].planned += 1
-        for key in self.ledger.records:
-            cell = self.progress.cells[key[:3]]
-            record = self.ledger.records[key]
-            cell.done += 1
-            cell.success += bool(record["success"])
-            cell.unscored += record["status"] not in ("success", "failure")
 
     # -- bookkeeping ---------------------------------------------------------------------------
     def _adopt_orphans(self) -> None:
@@ -235,15 +224,7 @@ class LocalSweep:
                 self.ledger.add_infrastructure_failure(k.track, k.rel_dir, result)
                 set_aside(self.run_dir / k.rel_dir)
             else:
-                self._record(k, result)
-
-    def _record(self, k: Any, result: EpisodeResult) -> None:
-        self.ledger.add(k.track, k.rel_dir, result)
-        cell = self.progress.cells[(k.model, k.track, k.task)]
-        cell.done += 1
-        cell.success += result.success
-        cell.unscored += not result.scored
-        self.on_change(self.progress)
+                self.ledger.add(k.track, k.rel_dir, result)
 
     async def _precompile(self, engine: Engine) -> None:
         tasks = {k.task for k in self._pending()}
@@ -251,7 +232,7 @@ class LocalSweep:
         first = sweep_critical_path(self.choices.executor.critical_path, budgets)
         self.compiling = await start_compiling(engine, self.choices, tasks, first)
 
-    def _pending(self) -> list[Any]:
+    def _pending(self) -> list[EpisodeKey]:
         rounds = self.config.retries.infrastructure_rounds
         return [
             k
@@ -276,7 +257,6 @@ class LocalSweep:
 
     async def _run_in(self, engine: Engine) -> None:
         self.physics, self.gate, self.summaries = engine.physics, engine.gate, engine.summaries
-        self.progress.pool, self.progress.gate = engine.llm, engine.gate
         if not engine.llm.shared_spend:  # else the limit board keeps them for every process
             engine.llm.set_spend_caps(spend_caps(self.config, self.run_dir))
         await self._precompile(engine)
@@ -301,14 +281,14 @@ class LocalSweep:
             log.error("stopped: %s", self.stopped)
 
     async def _run_round(
-        self, keys: list[Any], llm: LLMPool, pool: Renderer, image: ImageSettings
+        self, keys: list[EpisodeKey], llm: LLMPool, pool: Renderer, image: ImageSettings
     ) -> None:
-        by_task: dict[str, list[Any]] = defaultdict(list)
+        by_task: dict[str, list[EpisodeKey]] = defaultdict(list)
         for k in keys:
             by_task[k.task].append(k)
         task_gate = asyncio.Semaphore(self.choices.executor.max_tasks)
 
-        async def one_task(name: str, task_keys: list[Any], critical: bool) -> None:
+        async def one_task(name: str, task_keys: list[EpisodeKey], critical: bool) -> None:
             if self.compiling is not None:  # its kernels, not every family's
                 await self.compiling.wait(name)
             async with task_gate:
@@ -332,7 +312,7 @@ class LocalSweep:
     async def _run_task(
         self,
         name: str,
-        keys: list[Any],
+        keys: list[EpisodeKey],
         llm: LLMPool,
         pool: Renderer,
         image: ImageSettings,
@@ -359,7 +339,7 @@ class LocalSweep:
         ) as svc:
             slots = asyncio.Semaphore(n_slots)
 
-            async def one(k: Any) -> None:
+            async def one(k: EpisodeKey) -> None:
                 try:
                     await run_one(k)
                 except SpendCapReached as err:
@@ -369,7 +349,7 @@ class LocalSweep:
                 except DeviceFailure as err:
                     self._stop_device(err)
 
-            async def run_one(k: Any) -> None:
+            async def run_one(k: EpisodeKey) -> None:
                 if self.stopped is not None or k.model in self.capped:
                     return
                 track = cfg.track(k.track)
@@ -401,7 +381,6 @@ class LocalSweep:
                         return
                     cell = self.progress.cells[(k.model, k.track, k.task)]
                     cell.running += 1
-                    self.on_change(self.progress)
                     try:
                         result = await run_episode(spec, svc)
                     finally:
@@ -411,7 +390,6 @@ class LocalSweep:
             await asyncio.gather(*(one(k) for k in keys))
 
     def _stop(self, err: RequestRejected) -> None:
-        self.refused += 1
         if self.stopped is None:
             self.stopped = (
                 f"model {err.endpoint!r}: {err.verdict} ({err.message}); {err.hint}. "
@@ -422,7 +400,6 @@ class LocalSweep:
 
     def _cap(self, err: SpendCapReached) -> None:
         """A spend cap refused a call: the model's stops that model, the sweep's every one."""
-        self.refused += 1
         reached = err.reached
         if reached.model is None:
             if self.stopped is None:
@@ -444,18 +421,15 @@ class LocalSweep:
             )
             log.error("stopping the sweep: %s", self.stopped)
 
-    def _finish(self, k: Any, result: EpisodeResult) -> None:
-        if result.status != "infrastructure_error":
-            self._record(k, result)
-            return
+    def _finish(self, k: EpisodeKey, result: EpisodeResult) -> None:
         rounds = self.config.retries.infrastructure_rounds
-        if self.ledger.infra_attempts[ledger_key(k)] >= rounds:  # the last allowed attempt failed
-            self._record(k, result)
+        again = self.ledger.infra_attempts[ledger_key(k)] < rounds
+        if result.status != "infrastructure_error" or not again:  # or its last attempt failed
+            self.ledger.add(k.track, k.rel_dir, result)
             return
         self.ledger.add_infrastructure_failure(k.track, k.rel_dir, result)
         set_aside(self.run_dir / k.rel_dir)
         self.progress.cells[(k.model, k.track, k.task)].retried += 1
-        self.on_change(self.progress)
 
 
 def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
@@ -484,7 +458,7 @@ def sweep_critical_path(decided: Sequence[str] | None, budgets: dict[str, int]) 
     return set(decided) & set(budgets)
 
 
-def spend_caps(config: Any, run_dir: Path) -> SpendCaps | None:
+def spend_caps(config: SweepConfig, run_dir: Path) -> SpendCaps | None:
     """The `limits.max_cost_usd` caps of `config` over what `run_dir` already spent; None when
     no cap is set (the run directory is then not read)."""
     per_model = {

@@ -144,10 +144,15 @@ def thread_group(name: str) -> str:
     return head or name
 
 
-def thread_ticks() -> dict[str, int]:
+def thread_ticks(loop_thread: int | None = None) -> dict[str, int]:
     """CPU ticks of this process's threads, by group; threads Python did not start (CUDA's,
-    nvImageCodec's, the allocator's) are 'native'."""
+    nvImageCodec's, the allocator's) are 'native'. `loop_thread`: the native id of the event
+    loop's thread where it is not the main thread (a sweep's in-process engine, a Ray actor's
+    loop); the main thread is then 'main'."""
     names = {t.native_id: t.name for t in threading.enumerate() if t.native_id is not None}
+    if loop_thread is not None and names.get(loop_thread) != "MainThread":
+        names = {tid: "main" if n == "MainThread" else n for tid, n in names.items()}
+        names[loop_thread] = "MainThread"
     out: dict[str, int] = defaultdict(int)
     for task in (_PROC / "self" / "task").iterdir():
         line = _read(task / "stat")
@@ -330,6 +335,8 @@ class HostLoad:
     pauses: GcPauses | None = None
     """The garbage collector's pauses since the last sample, where `watching` hooks it in."""
     all_pauses: GcPauses = field(default_factory=GcPauses)
+    loop_thread: int | None = None
+    """The native id of the event loop's thread (`watching` sets it)."""
 
     @staticmethod
     def available() -> bool:
@@ -337,7 +344,8 @@ class HostLoad:
 
     def sample(self) -> Sample:
         gpu = self.gpus.totals() if self.gpus is not None else None
-        return Sample(time.monotonic(), thread_ticks(), children_ticks(), device_locks(), gpu)
+        ticks = thread_ticks(self.loop_thread)
+        return Sample(time.monotonic(), ticks, children_ticks(), device_locks(), gpu)
 
     def tick(self) -> Window | None:
         """A sample; the window since the one before (None for the first)."""
@@ -404,6 +412,7 @@ async def watching(load: HostLoad | None = None) -> AsyncIterator[HostLoad | Non
     if load.every_s <= 0 or not load.available():
         yield None
         return
+    load.loop_thread = threading.get_native_id()  # this block runs in the loop's thread
     gpus = contextlib.ExitStack()
     if load.gpus is None:
         load.gpus = gpus.enter_context(gpu_busy.sampling())

@@ -1,0 +1,144 @@
+"""`executor: local`: the sweep in one process, one engine under the one driver
+(`driver.Driver`).
+
+The engine is a `chunk_engine.ChunkEngine` served (`chunk_engine.serve`) in a thread of the
+driver's process, on an event loop of its own: the driver's thread keeps its blocking wait on
+the events queue, its ticks (display, disk, Ctrl-C) and the ledger; the engine's events go
+straight into that queue (no process, no pipe). The sweep is one chunk, every pending episode
+in plan order, on the command's `Choices` as they are (`ChunkEngine(dealt=False)`): the
+batches, critical path and records of one `runner.LocalSweep` over the plan. Its pool keeps
+the endpoints' limits and spend caps itself, and a dead engine is not replaced (another in
+this process would meet the same fault). Ended at once (Ctrl-C, a disk below its reserve),
+its work is cancelled and the driver waits for it to unwind (`interrupt.STOP_NOTICE`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import threading
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from vabench.config import SweepConfig
+from vabench.sweep.cells import task_cost
+from vabench.sweep.choices import Choices
+from vabench.sweep.chunk_engine import LOST, BoardLink, ChunkEngine, Command, serve
+from vabench.sweep.display import Status
+from vabench.sweep.driver import Driver, Emit, Engines, pending
+from vabench.sweep.interrupt import CtrlC
+from vabench.sweep.placement import Chunk
+from vabench.sweep.plan import EpisodeKey
+from vabench.sweep.results import Key, ledger_key
+
+log = logging.getLogger(__name__)
+
+
+class InProcessEngine:
+    """The driver's handle on the in-process engine (`placement.Engine`; see the module
+    docstring)."""
+
+    def __init__(self, emit: Emit, make: Callable[[], ChunkEngine]):
+        self.emit = emit
+        self.make = make
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.inbox: asyncio.Queue[Command | None] = asyncio.Queue()
+        self.task: asyncio.Task[None] | None = None
+        self.ready = threading.Event()
+        """Set once its loop runs (or its thread has ended)."""
+        self.thread = threading.Thread(target=self._main, name="engine", daemon=True)
+
+    def start(self, tasks: Sequence[str]) -> None:
+        """Start its thread (the kernels of `tasks` compile as its chunk starts)."""
+        self.thread.start()
+
+    def _main(self) -> None:
+        # a press reaches the driver's thread; processes started here begin with it blocked
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            asyncio.run(self._serve())
+        except asyncio.CancelledError:  # ended at once (`kill`)
+            pass
+        except Exception:  # its close failed: nothing more will come from it
+            self.emit(LOST, f"it failed:\n{traceback.format_exc()}", False)
+        finally:
+            self.ready.set()
+
+    async def _serve(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.task = asyncio.current_task()
+        self.ready.set()
+        await serve(self.make, None, self.inbox, lambda event: self.emit(*event))
+
+    def _command(self, command: Command) -> None:
+        self.ready.wait()
+        if self.loop is not None:
+            with contextlib.suppress(RuntimeError):  # its loop has ended: nothing to tell
+                self.loop.call_soon_threadsafe(self.inbox.put_nowait, command)
+
+    def run_chunk(self, chunk: Chunk) -> None:
+        self._command(("run", chunk.name, chunk.keys))
+
+    def close(self) -> None:
+        self._command(("close",))
+
+    def kill(self) -> None:
+        """Cancel its work and wait for its loop to unwind (see the module docstring)."""
+        if self.thread.ident is None:  # never started
+            return
+        self.ready.wait()
+        if self.loop is not None and self.task is not None:
+            with contextlib.suppress(RuntimeError):  # its loop has ended already
+                self.loop.call_soon_threadsafe(self.task.cancel)
+        if self.thread is not threading.current_thread():
+            self.thread.join()
+
+
+class LocalEngines(Engines):
+    """`driver.Engines` of `executor: local`: one in-process engine, one chunk (its kernels
+    compiled as it starts)."""
+
+    label = "local"
+    log = log
+    engines_wanted = 1
+    max_restarts = 0
+    shares_board = False
+
+    def __init__(
+        self, config: SweepConfig, choices: Choices, run_dir: Path, keys: list[EpisodeKey]
+    ):
+        self.config = config
+        self.choices = choices
+        self.run_dir = run_dir
+        cost = max(task_cost(config, k.task) for k in keys)
+        self.chunks = [Chunk("sweep", keys, cost)]
+
+    def new_engine(
+        self, index: int, slot: int, emit: Emit, board: BoardLink | None
+    ) -> InProcessEngine:
+        return InProcessEngine(
+            emit, lambda: ChunkEngine(self.config, self.choices, self.run_dir, dealt=False)
+        )
+
+
+def run_local(
+    config: SweepConfig,
+    keys: Sequence[EpisodeKey],
+    run_dir: Path,
+    choices: Choices,
+    on_status: Callable[[Status], None] | None = None,
+    ctrl_c: CtrlC | None = None,
+) -> dict[Key, dict[str, Any]]:
+    """Run the pending episodes of `keys` in this process on `choices`; return the ledger's
+    records afterwards. `on_status(Status)` is called about once a second; `ctrl_c`: the
+    command's handler (`driver.Driver`)."""
+    ledger, cells = pending(keys, run_dir, log, "local")
+    if not cells:
+        return ledger.records
+    left = [k for k in keys if ledger_key(k) not in ledger.records]  # in plan order
+    kind = LocalEngines(config, choices, run_dir, left)
+    return Driver(kind, config, keys, run_dir, kind.chunks, on_status, ctrl_c, ledger).run()
