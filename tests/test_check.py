@@ -84,7 +84,7 @@ FAULTY = [name for name in SERVERS if name not in SOUND]
 def checked(config) -> dict[str, subprocess.CompletedProcess[str]]:
     """`python -m vabench.check CONFIG --model ...`: the faulty models in one run, the sound
     ones in another, side by side (a command's start takes seconds on a small machine)."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "XDG_CACHE_HOME": str(config.parent / "cache")}
     groups = {"faulty": FAULTY, "sound": [*SOUND, "embedded"]}
     runs = {
         group: subprocess.Popen(
@@ -181,6 +181,31 @@ def test_a_server_without_those_limits_passes_every_item(checked):
     assert [row.split()[0] for row in rows[1 : 1 + items]] == [i.split()[0] for i in judge.ITEMS]
     assert "PROBLEM" not in run.stdout
     assert "300,000 tokens (max_model_len) hold the" in run.stdout
+
+
+def test_a_checked_models_latency_times_the_dry_run(checked, config, capsys, monkeypatch):
+    """The check keeps each sound API model's latency on this machine; a dry run of a model
+    no sweep has measured here gives the longest wall time at it, within its limits."""
+    from vabench.check.latency import api_kind, measured
+    from vabench.sweep.__main__ import main
+
+    cache = config.parent / "cache"
+    times = measured(cache / "vabench" / "check_latency.json")
+    cfg = load_config(config, require_keys=False)
+    assert set(times) == {api_kind(cfg, "healthy")}  # every model here is one kind
+    assert 0 < times[api_kind(cfg, "healthy")].latency_s < 60
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    out = config.parent / "dry"
+    assert main([str(config), "--out", str(out), "--model", "healthy", "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    line = next(x for x in printed.splitlines() if x.startswith("wall time (openai_chat"))
+    assert "at the endpoint check's" in line and "decisions a second" in line
+    assert "no expected time" in line
+    # on a machine whose check never timed it, the dry run says that nothing is measured
+    monkeypatch.setenv("XDG_CACHE_HOME", str(config.parent / "empty-cache"))
+    assert main([str(config), "--out", str(out), "--model", "healthy", "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert "at the endpoint check's" not in printed and "no measured pace" in printed
 
 
 def test_the_embedded_server_needs_no_call(checked):
@@ -330,3 +355,25 @@ def test_a_context_cut_above_the_first_steps_floor_is_caught_by_the_long_probe(t
     assert not problems, problems
     (whole,) = [line for line in reports["roomy"] if line.item == "context"]
     assert "was counted whole" in whole.text, whole
+
+
+def test_the_check_latency_bound_keeps_to_the_models_rpm_and_concurrency(config):
+    from vabench.check.latency import CheckLatency
+    from vabench.sweep.pace import latency_line
+
+    cfg = load_config(config, require_keys=False)
+    check = CheckLatency(latency_s=2.0, checked_at=0.0)
+    limits = cfg.model("healthy").limits  # max_concurrency 64: 32 decisions a second at 2 s
+    assert limits.max_concurrency == 64 and limits.rpm is None
+    line = latency_line(cfg, "k", ["healthy"], [100] * 192, check)  # 19,200 decisions
+    assert "at most 10 min" in line and "32 decisions a second" in line and "concurrency" in line
+    capped = cfg.model_copy(
+        update={
+            "models": tuple(
+                m.model_copy(update={"limits": m.limits.model_copy(update={"rpm": 600})})
+                for m in cfg.models
+            )
+        }
+    )
+    line = latency_line(capped, "k", ["healthy"], [100] * 192, check)  # 10 a second: 32 min
+    assert "at most 32 min" in line and "(the models' limits: rpm)" in line

@@ -42,6 +42,8 @@ class Line:
     item: str
     text: str
     fix: str | None = None
+    value: float | None = None
+    """The item's measured number where it has one (the latency's seconds)."""
 
     @property
     def problem(self) -> bool:

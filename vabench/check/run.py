@@ -26,7 +26,7 @@ from typing import Any
 import aiohttp
 
 from vabench.agent.generation import request_options
-from vabench.check import judge
+from vabench.check import judge, latency
 from vabench.check.inputs import CONTEXT_PROBE_TOKENS, Probe, context_probe, probe
 from vabench.check.judge import Line, Where
 from vabench.config import SweepConfig
@@ -145,7 +145,7 @@ def _decision_lines(
             where, result.usage.prompt_tokens, request.estimate(ep.api), request.least_tokens
         ),
         judge.reasoning_line(where, result.reasoning, result.text),
-        Line(name, "latency", f"{result.latency_s:.2f} s for one decision"),
+        Line(name, "latency", f"{result.latency_s:.2f} s for one decision", value=result.latency_s),
     ]
 
 
@@ -214,7 +214,11 @@ async def check_config(
         if where.name in embedded:
             return [Line(where.name, "reachable", "the embedded server: nothing to check")]
         request = await asyncio.to_thread(probe, config, where.name)
-        return await check_model(where, request, environ)
+        lines = await check_model(where, request, environ)
+        timed = [line.value for line in lines if line.item == "latency" and line.value]
+        if timed and not any(line.problem for line in lines):
+            latency.keep(latency.api_kind(config, where.name), timed[0])  # the dry run's pace
+        return lines
 
     reports = await asyncio.gather(*(one(w) for w in wheres))
     return {w.name: lines for w, lines in zip(wheres, reports, strict=True)}

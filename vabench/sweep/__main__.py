@@ -67,6 +67,7 @@ from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, NoReturn  # noqa: E402
 
+from vabench.check.latency import measured as check_latencies  # noqa: E402
 from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfig, SweepConfigError, load_config  # noqa: E402
 from vabench.config.keys import KeySources, key_sources  # noqa: E402
@@ -395,7 +396,7 @@ def _print_where_and_how_long(
     if not left:
         print("wall time: nothing left to run")
         return
-    lines, warnings = estimate_lines(config, left, run_dir, machine_paces())
+    lines, warnings = estimate_lines(config, left, run_dir, machine_paces(), check_latencies())
     for line in lines:
         print(line)
     for line in warnings:

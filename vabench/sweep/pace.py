@@ -7,7 +7,9 @@ kind of model on this machine wherever `--out` points; a random-action pace is n
 to a paid model. The dry run shows an expected time (the episodes left at the decisions an
 episode measured for that kind) beside the upper bound (each at its whole budget), and the
 disk the run directory will take (MB an episode measured for that kind) against the free
-disk; where this machine has measured no such kind it says so.
+disk; where this machine has measured no such kind it says so, and for an API model that
+the endpoint check has timed here (`vabench.check.latency`) gives the longest wall time at the
+check's latency within the models' concurrency and rpm.
 
 A pace is decisions (steps) per second of episode time: the steps of the recorded episodes
 over the union of their `[started_at, started_at + wall_s]` intervals, so the pauses between a
@@ -28,6 +30,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from vabench.check.latency import CheckLatency, api_kind
 from vabench.config import SweepConfig
 from vabench.run_layout import EPISODES, RESULTS
 
@@ -68,11 +71,10 @@ def model_kind(config: SweepConfig, model: str) -> str:
     """What decides a model's pace and its records' size: the embedded server's policy, or
     the API and provider model (a random-action pace says nothing of a paid model), and the
     image size (rendering time, MB an episode)."""
-    m = config.model(model)
-    size = f"{config.render.width}x{config.render.height}"
     if model in config.embedded_models:
+        size = f"{config.render.width}x{config.render.height}"
         return f"embedded {config.embedded_server.policy} at {size}"
-    return f"{m.api} {m.provider_model} at {size}"
+    return api_kind(config, model)
 
 
 @dataclass(frozen=True)
@@ -176,25 +178,60 @@ def machine_paces(path: Path | None = None) -> dict[str, KindPace]:
         return {}
 
 
+def latency_line(
+    config: SweepConfig,
+    kind: str,
+    models: Sequence[str],
+    budgets: Sequence[int],
+    check: CheckLatency,
+) -> str:
+    """The longest wall time of a kind no sweep has measured here, from the endpoint check's
+    latency: every decision at that latency, as many calls at once as the models' concurrency
+    and the episodes in flight allow, no more a second than their rpm."""
+    per_s = 0.0
+    for name in models:
+        limits = config.model(name).limits
+        at_once = min(limits.max_concurrency, config.executor.max_episodes)
+        rate = at_once / max(check.latency_s, 1e-3)
+        per_s += rate if limits.rpm is None else min(rate, limits.rpm / 60)
+    bound = "rpm" if any(config.model(n).limits.rpm for n in models) else "concurrency"
+    return (
+        f"wall time ({kind}): at most {_duration(sum(budgets) / per_s)} if every episode uses "
+        f"its whole budget, at the endpoint check's {check.latency_s:.1f} s a decision "
+        f"({check.when}) and {per_s:.2g} decisions a second (the models' limits: {bound}); "
+        "no measured pace of this model kind on this machine yet, so no expected time (a "
+        "short run of it measures one, e.g. --limit 4)"
+    )
+
+
 def estimate_lines(
     config: SweepConfig,
     left: Mapping[str, Sequence[int]],
     run_dir: Path,
     paces: Mapping[str, KindPace],
+    checked: Mapping[str, CheckLatency] | None = None,
 ) -> tuple[list[str], list[str]]:
     """(lines, warnings) of the dry run: per model kind with episodes `left` (their step
     budgets, by model), the expected and longest wall time at this machine's pace of that
-    kind, and the disk the run directory takes against the free disk where it lies."""
+    kind (or, for an API model without one, the longest at the endpoint check's latency,
+    `checked`), and the disk the run directory takes against the free disk where it lies."""
     lines, warnings = [], []
     kinds: dict[str, list[int]] = {}
+    kind_models: dict[str, list[str]] = {}
     for model, budgets in left.items():
         kinds.setdefault(model_kind(config, model), []).extend(budgets)
+        kind_models.setdefault(model_kind(config, model), []).append(model)
     need_bytes = 0.0
     unmeasured_disk = []
     for kind, budgets in sorted(kinds.items()):
         if not budgets:
             continue
         pace = paces.get(kind)
+        check = (checked or {}).get(kind)
+        if (pace is None or pace.decisions_per_s <= 0) and check is not None:
+            lines.append(latency_line(config, kind, kind_models[kind], budgets, check))
+            unmeasured_disk.append(kind)
+            continue
         if pace is None or pace.decisions_per_s <= 0:
             lines.append(
                 f"wall time ({kind}): no measured pace of this model kind on this machine yet "
