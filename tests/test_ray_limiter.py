@@ -56,12 +56,13 @@ def actors():
         """A process of the sweep: its own pool, the board's limits."""
 
         async def run(
-            self, endpoint: dict, calls: int, holder: str, limiter, delay: float = 0.0
+            self, endpoint: dict, calls: int, holder: str, limiter, after_pause: bool = False
         ) -> list[int]:
             from vabench.llm_pool import ChatRequest, LLMPool, Turn
             from vabench.sweep.limiter import BoardLimits, RayChannel
 
-            await asyncio.sleep(delay)
+            while after_pause and (await limiter.stats.remote())["m"]["paused_s"] <= 0:
+                await asyncio.sleep(0.01)  # until another actor's Retry-After paused the board
             limits = BoardLimits(RayChannel(limiter), holder, ["m"])
             request = ChatRequest([Turn.user("ping")])
             async with LLMPool([endpoint], shared_limits=limits) as pool:
@@ -97,7 +98,8 @@ def test_four_actors_sharing_the_board_never_exceed_the_servers_limit(actors):
 
 def test_a_retry_after_seen_by_one_actor_holds_the_others(actors):
     """The server answers the first request with a 429 and Retry-After: 1 s. The actor that
-    gets it pauses the board; another actor, whose call comes 0.2 s later, waits it out."""
+    gets it pauses the board; another actor, whose call comes once the board is paused, waits
+    it out (however the two actors' starts fall on a loaded machine)."""
     Server, Caller = actors
     server = Server.remote()
     config = SERVER | {"faults": {"retry_after_s": 1.0}}
@@ -107,7 +109,7 @@ def test_a_retry_after_seen_by_one_actor_holds_the_others(actors):
     attempts = ray.get(
         [
             first.run.remote(endpoint, 1, "first", limiter),
-            second.run.remote(endpoint, 1, "second", limiter, 0.2),
+            second.run.remote(endpoint, 1, "second", limiter, True),
         ]
     )
     log = sorted(ray.get(server.log.remote()))

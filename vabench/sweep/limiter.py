@@ -226,7 +226,12 @@ class LimitBoard:
                 self.spend.settle(model, bound, bound)
 
     def stats(self) -> dict[str, dict[str, Any]]:
-        """Per endpoint: slots in use and by whom, the bound, admissions and slots granted."""
+        """Per endpoint: slots in use and by whom, the bound, admissions, slots granted and
+        the seconds its pause has left (0 outside the board's event loop)."""
+        try:
+            now: float | None = asyncio.get_running_loop().time()
+        except RuntimeError:
+            now = None
         return {
             name: {
                 "in_flight": ep.concurrency.in_flight,
@@ -234,6 +239,7 @@ class LimitBoard:
                 "held": {h: n for h, n in ep.held.items() if n},
                 "admitted": ep.admitted,
                 "slots_granted": ep.granted,
+                "paused_s": 0.0 if now is None else max(0.0, ep.paused_until - now),
             }
             for name, ep in self._endpoints.items()
         }
