@@ -100,7 +100,14 @@ def test_2000_calls_with_20_percent_faults_end_exactly_once():
     assert all(r.text == f"answer to call {i}" for i, r in results)
     # 4 attempts at 20 % faults: about 0.2**4 * 2000 = 3 calls fail; allow a wide margin.
     assert len(results) >= CALLS - 30
-    assert all(f.attempts == 4 or "deadline" in str(f) for f in failures)
+    # 429/529 answers are waits, not failures (`pool._Call.rate_waits`): a call gives up after
+    # 4 attempts besides them, or at its deadline
+    waits = re.compile(r"HTTP (?:429|529)\b")
+    assert all(
+        len([x for x in f.failures if not waits.match(x)]) == 4 or "deadline" in str(f)
+        for f in failures
+    )
+    assert all(f.attempts == len(f.failures) for f in failures)
     # The pool's books agree with the outcomes: each call counted once, usage once.
     assert stats.started == CALLS and stats.succeeded == len(results)
     assert stats.failed == len(failures) and stats.rejected == stats.cancelled == 0
