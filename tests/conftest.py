@@ -113,12 +113,15 @@ def _endpoint_check_only_where_tested(request, monkeypatch):
 
 @pytest.fixture(autouse=True)
 def _own_pace_file(tmp_path, monkeypatch):
-    """Each test's sweeps keep their measured pace in a file of their own, never the user's
-    (`vabench.sweep.pace.pace_file`), so a dry run's estimate depends on the test alone."""
+    """Each test's sweeps and checks keep their measured pace and latencies in files of their
+    own, never the user's (`vabench.sweep.pace.pace_file`, `vabench.check.latency.latency_file`),
+    so a dry run's estimate depends on the test alone."""
+    from vabench.check import latency
     from vabench.sweep import pace
 
     path = tmp_path / "pace_cache" / "pace.json"
     monkeypatch.setattr(pace, "pace_file", lambda: path)
+    monkeypatch.setattr(latency, "latency_file", lambda: path.with_name("check_latency.json"))
 
 
 @pytest.fixture(autouse=True)

@@ -186,15 +186,16 @@ def test_a_server_without_those_limits_passes_every_item(checked):
 def test_a_checked_models_latency_times_the_dry_run(checked, config, capsys, monkeypatch):
     """The check keeps each sound API model's latency on this machine; a dry run of a model
     no sweep has measured here gives the longest wall time at it, within its limits."""
+    from vabench.check import latency
     from vabench.check.latency import api_kind, measured
     from vabench.sweep.__main__ import main
 
-    cache = config.parent / "cache"
-    times = measured(cache / "vabench" / "check_latency.json")
+    written = config.parent / "cache" / "vabench" / "check_latency.json"  # the subprocesses'
+    times = measured(written)
     cfg = load_config(config, require_keys=False)
     assert set(times) == {api_kind(cfg, "healthy")}  # every model here is one kind
     assert 0 < times[api_kind(cfg, "healthy")].latency_s < 60
-    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    monkeypatch.setattr(latency, "latency_file", lambda: written)
     out = config.parent / "dry"
     assert main([str(config), "--out", str(out), "--model", "healthy", "--dry-run"]) == 0
     printed = capsys.readouterr().out
@@ -202,7 +203,7 @@ def test_a_checked_models_latency_times_the_dry_run(checked, config, capsys, mon
     assert "at the endpoint check's" in line and "decisions a second" in line
     assert "no expected time" in line
     # on a machine whose check never timed it, the dry run says that nothing is measured
-    monkeypatch.setenv("XDG_CACHE_HOME", str(config.parent / "empty-cache"))
+    monkeypatch.setattr(latency, "latency_file", lambda: config.parent / "none" / "x.json")
     assert main([str(config), "--out", str(out), "--model", "healthy", "--dry-run"]) == 0
     printed = capsys.readouterr().out
     assert "at the endpoint check's" not in printed and "no measured pace" in printed

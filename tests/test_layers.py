@@ -22,7 +22,7 @@ LAYERS: tuple[frozenset[str], ...] = tuple(
     frozenset(layer.split())
     for layer in (
         "switches",  # the VABENCH_* environment variables: no vabench imports
-        "field_errors children tables run_layout",  # none but switches
+        "field_errors children tables run_layout machine_cache",  # none but switches
         "protocol",  # the model-facing decisions
         "sim_mjx",  # physics backends and the executor
         "tasks",  # task families over the simulator

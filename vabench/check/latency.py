@@ -11,21 +11,17 @@ Writing never fails a check.
 
 from __future__ import annotations
 
-import contextlib
-import json
-import os
-import socket
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from vabench.config import SweepConfig
+from vabench.machine_cache import cache_dir, read_host, write_host
 
 
 def latency_file() -> Path:
     """Where this user's check latencies live (every host's, keyed by host name)."""
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return cache / "vabench" / "check_latency.json"
+    return cache_dir() / "check_latency.json"
 
 
 def api_kind(config: SweepConfig, model: str) -> str:
@@ -48,25 +44,13 @@ class CheckLatency:
 
 def keep(kind: str, latency_s: float, path: Path | None = None) -> None:
     """Write one check's latency of `kind` to this machine's entries (never raises)."""
-    path = path or latency_file()
-    with contextlib.suppress(OSError, ValueError, TypeError):
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            doc = {}
-        host = doc.setdefault(socket.gethostname(), {})
-        host[kind] = asdict(CheckLatency(round(latency_s, 3), time.time()))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        part = path.with_name(f"{path.name}.{os.getpid()}.part")
-        part.write_text(json.dumps(doc, indent=1), encoding="utf-8")
-        part.replace(path)
+    entry = asdict(CheckLatency(round(latency_s, 3), time.time()))
+    write_host(path or latency_file(), {kind: entry})
 
 
 def measured(path: Path | None = None) -> dict[str, CheckLatency]:
     """This machine's check latencies by kind (empty where none)."""
     try:
-        doc = json.loads((path or latency_file()).read_text(encoding="utf-8"))
-        entries = doc.get(socket.gethostname(), {})
-        return {kind: CheckLatency(**v) for kind, v in entries.items()}
-    except (OSError, ValueError, TypeError, AttributeError):
+        return {kind: CheckLatency(**v) for kind, v in read_host(path or latency_file()).items()}
+    except TypeError:  # an entry of another version's fields
         return {}

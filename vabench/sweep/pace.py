@@ -23,7 +23,6 @@ import contextlib
 import json
 import os
 import shutil
-import socket
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -32,6 +31,7 @@ from typing import Any
 
 from vabench.check.latency import CheckLatency, api_kind
 from vabench.config import SweepConfig
+from vabench.machine_cache import cache_dir, read_host, write_host
 from vabench.run_layout import EPISODES, RESULTS
 
 
@@ -62,9 +62,7 @@ DISK_MARGIN = 1.2
 
 def pace_file() -> Path:
     """Where this user's measured paces live (every host's, keyed by host name)."""
-    return (
-        Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vabench" / ("pace.json")
-    )
+    return cache_dir() / "pace.json"
 
 
 def model_kind(config: SweepConfig, model: str) -> str:
@@ -155,26 +153,14 @@ def keep_pace(run_dir: Path, config: SweepConfig, path: Path | None = None) -> N
     measured = measure_kinds(Path(run_dir), config)
     if not measured:
         return
-    with contextlib.suppress(OSError, ValueError, TypeError):
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            doc = {}
-        host = doc.setdefault(socket.gethostname(), {})
-        for k in measured:
-            host[k.kind] = asdict(k)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        part = path.with_name(f"{path.name}.{os.getpid()}.part")
-        part.write_text(json.dumps(doc, indent=1), encoding="utf-8")
-        part.replace(path)
+    write_host(path, {k.kind: asdict(k) for k in measured})
 
 
 def machine_paces(path: Path | None = None) -> dict[str, KindPace]:
     """This machine's measured kinds (empty where none)."""
     try:
-        doc = json.loads((path or pace_file()).read_text(encoding="utf-8"))
-        return {kind: KindPace(**v) for kind, v in doc.get(socket.gethostname(), {}).items()}
-    except (OSError, ValueError, TypeError, AttributeError):
+        return {kind: KindPace(**v) for kind, v in read_host(path or pace_file()).items()}
+    except TypeError:  # an entry of another version's fields
         return {}
 
 
