@@ -14,7 +14,8 @@ the slots' mean, seconds a substep, the solver's iterations at the action's last
 action time to the first variant's at the same size, all measured in one run.
 
 Variants (`VARIANTS`): `fixed` (every action 0.8 s of substeps: today's), `at_rest` (an action
-ends at its rest substep, `sim_mjx.controller.ACTION_ENDS`). Warp's kernels are compiled in
+ends at its rest substep), `paced` (a move's time follows its length, then ends at rest;
+`sim_mjx.controller.ACTION_ENDS`). Warp's kernels are compiled in
 threads before anything is timed (`tuning.warp_ahead`), and a warm-up action of each batch is
 left out of the figures; each row is printed and written to `--json` as soon as it is measured,
 so a run stopped by a time limit keeps the rows it made. The basket's decision split (images,
@@ -42,6 +43,7 @@ TASK = "put_everything_in_basket"
 VARIANTS: dict[str, dict[str, Any]] = {
     "fixed": {},
     "at_rest": {"action_end": "at_rest"},
+    "paced": {"action_end": "paced"},
 }
 
 

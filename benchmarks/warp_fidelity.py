@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vabench.sim_mjx.controller import ACTION_ENDS
 from vabench.sim_mjx.reset_cache import SettledCache
 from vabench.sim_mjx.warp.device import warp_device
 from vabench.tasks import benchmark_tasks, get_task
@@ -147,7 +148,7 @@ def main() -> int:
     p.add_argument("--md", default=None)
     p.add_argument("--budget-s", type=float, default=1e9, help="stop starting new families")
     p.add_argument(
-        "--action-end", default="fixed", choices=("fixed", "at_rest"), help="simulator.action_end"
+        "--action-end", default="fixed", choices=ACTION_ENDS, help="simulator.action_end"
     )
     args = p.parse_args()
     names = [t.name for t in benchmark_tasks()] if args.tasks == "all" else args.tasks.split(",")

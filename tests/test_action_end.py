@@ -1,8 +1,9 @@
-"""An action that ends at rest (`action_end: at_rest`): the rule on C MuJoCo and on Warp.
+"""An action that ends at rest (`action_end: at_rest`, `paced`): the rule on C MuJoCo and Warp.
 
 A slot's action ends at the first substep, once its references are final, where every dof is
 slower than REST_SPEED, ACTION_SECONDS at the latest; its state is that substep's, whatever the
-other slots do and however long the batch's loop ran for them.
+other slots do and however long the batch's loop ran for them. Paced, a move's time follows its
+length: a short move ends sooner, at the same place.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import pytest
 
 from vabench.config.schema import SimulatorOptions
 from vabench.sim_mjx import controller as ctl
+from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.backends import Physics
 from vabench.sim_mjx.cpu import CpuBatch
 from vabench.sim_mjx.interface import STATE_FIELDS
@@ -22,6 +24,8 @@ DOWN = {"action": "gripper.move_world", "axis": "z", "sign": "-", "distance_mm":
 RIGHT = {"action": "gripper.move_world", "axis": "x", "sign": "+", "distance_mm": 30}
 CLOSE = {"action": "gripper.close"}
 FAR = {"action": "gripper.move_world", "axis": "y", "sign": "+", "distance_mm": 100}
+NUDGE = {"action": "gripper.move_world", "axis": "x", "sign": "-", "distance_mm": 8}
+TURN = {"action": "gripper.rotate_local", "axis": "rz", "sign": "+", "angle_deg": 15}
 
 
 @pytest.fixture(scope="module")
@@ -68,25 +72,51 @@ def test_c_threads_take_the_same_rule(cube):
     assert np.all((k >= ctl.rest_from(batch.n_substeps)) & (k <= batch.n_substeps))
 
 
+def test_c_paced_short_moves_end_sooner_at_the_same_place(cube):
+    """Paced, a short move or turn ends well before the fixed timing's rest substep, the
+    gripper within a millimetre of where the at_rest action leaves it; a long move and a grip
+    keep their time."""
+    model, q0 = cube
+    paced, rest = CpuBatch(model, 1, action_end="paced"), CpuBatch(model, 1, action_end="at_rest")
+    for b in (paced, rest):
+        _reset(b, q0)
+    for action, short in ((NUDGE, True), (TURN, True), (DOWN, True), (CLOSE, False)):
+        rest.set_state([0], paced.get_state([0]), paced.variant()[[0]])
+        paced.step([action])
+        rest.step([action])
+        k, k_rest = int(paced.last_substeps[0]), int(rest.last_substeps[0])
+        if short:
+            assert k < ctl.rest_from(paced.n_substeps) <= k_rest, (action, k, k_rest)
+        else:
+            assert k >= ctl.rest_from(paced.n_substeps) * rc.GRIP_FRACTION / max(
+                rc.MOVE_FRACTION, rc.GRIP_FRACTION
+            ), (action, k)
+        gc_paced, gc_rest = paced.proprio().gc[0], rest.proprio().gc[0]
+        assert np.linalg.norm(gc_paced - gc_rest) < 1e-3, (action, gc_paced, gc_rest)
+
+
 def test_the_setting_reaches_c_and_warp_only():
+    for end in ("at_rest", "paced"):
+        opts = SimulatorOptions(action_end=end)
+        assert opts.batch_kwargs(Physics.C)["action_end"] == end
+        assert opts.batch_kwargs(Physics.WARP)["action_end"] == end
     opts = SimulatorOptions(action_end="at_rest")
-    assert opts.batch_kwargs(Physics.C)["action_end"] == "at_rest"
-    assert opts.batch_kwargs(Physics.WARP)["action_end"] == "at_rest"
     assert "action_end" not in opts.batch_kwargs(Physics.MJX_JAX)
     assert "action_end" not in SimulatorOptions().batch_kwargs(Physics.WARP)
     with pytest.raises(ValueError, match="action_end must be one of"):
         CpuBatch(get_task("grasp_single_cube").build_model(), 1, action_end="soon")
 
 
-def test_warp_slot_ends_at_its_own_rest_whatever_its_neighbours(cube):
+@pytest.mark.parametrize("end", ["at_rest", "paced"])
+def test_warp_slot_ends_at_its_own_rest_whatever_its_neighbours(cube, end):
     """On Warp (its CPU device) a slot's action ends at its own rest substep: alone, or beside
     neighbours whose moves keep the batch's loop running longer, it moves bit for bit alike."""
     pytest.importorskip("mujoco_warp", reason="the Warp backend needs mujoco-warp")
     from vabench.sim_mjx.warp.batch import WarpBatch
 
     model, q0 = cube
-    alone = WarpBatch(model, 1, device="cpu", action_end="at_rest")
-    crowd = WarpBatch(model, 3, device="cpu", action_end="at_rest")
+    alone = WarpBatch(model, 1, device="cpu", action_end=end)
+    crowd = WarpBatch(model, 3, device="cpu", action_end=end)
     for b in (alone, crowd):
         _reset(b, q0)
     for ours, theirs in ((DOWN, FAR), (CLOSE, RIGHT)):
@@ -95,4 +125,6 @@ def test_warp_slot_ends_at_its_own_rest_whatever_its_neighbours(cube):
         a, c = alone.get_state([0]), crowd.get_state([2])
         assert all(np.array_equal(a[f], c[f]) for f in STATE_FIELDS)
         assert alone.last_substeps[0] == crowd.last_substeps[2]
-        assert ctl.rest_from(alone.n_substeps) <= alone.last_substeps[0] <= alone.n_substeps
+        assert alone.last_substeps[0] <= alone.n_substeps
+        if end == "at_rest":
+            assert ctl.rest_from(alone.n_substeps) <= alone.last_substeps[0]

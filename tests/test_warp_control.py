@@ -275,7 +275,8 @@ def _states(rng: np.random.Generator, n: int, m, layout, geoms):
 
 @pytest.fixture(scope="module")
 def plans(dual):
-    """A few hundred random (state, command) slots, planned by JAX and by the Warp kernels."""
+    """A few hundred random (state, command) slots, planned by JAX and by the Warp kernels
+    (paced timing: `test_fixed_timing` covers the other)."""
     m, layout, geoms, wgeoms, idx = dual
     rng = np.random.default_rng(6)
     n = 300
@@ -285,7 +286,7 @@ def plans(dual):
 
     def plan_one(qp, c, d, rv, g):
         cmd = ctl.ArmCommand(active=jnp.array(True), delta=d, rotvec=rv, grip=g)
-        return lay.plan_from(layout, geoms, qp, c, cmd)
+        return lay.plan_from(layout, geoms, qp, c, cmd, N_SUBSTEPS, paced=True)
 
     jax_plan = jax.jit(jax.vmap(plan_one))
     want = jax_plan(qpos, ctrl, delta, rotvec, grip)
@@ -304,6 +305,9 @@ def plans(dual):
         plan,
         ok,
         go,
+        N_SUBSTEPS,
+        ctl.rest_from(N_SUBSTEPS),
+        paced=True,
     )
     got = {k: getattr(plan, k).numpy() for k in vars(plan)}
     got.update(ok=ok.numpy(), go=go.numpy(), active=active)
@@ -356,6 +360,60 @@ def test_plan_waypoints_match(plans):
     np.testing.assert_array_equal(got["executed_m"][still], 0.0)
 
 
+def test_plan_timing_matches(plans):
+    """Paced timing: each arm's move and ramp substeps, and the slot's final substep, as JAX's;
+    short moves faster, none slower than the fixed timing's."""
+    _, want, got, stable = plans
+    ok = stable & want.arm_ok
+    np.testing.assert_allclose(got["move_steps"][ok], want.move_steps[ok], rtol=1e-5)
+    np.testing.assert_array_equal(got["grip_steps"], want.grip_steps)
+    slot = stable.all(1)
+    assert np.abs(got["rest_from"][slot] - want.rest_from[slot]).max() <= 1
+    assert (got["rest_from"][slot] == want.rest_from[slot]).mean() > 0.99
+    full = rc.MOVE_FRACTION * N_SUBSTEPS
+    moving = want.moves & ok
+    assert (want.move_steps[moving] < full - 1).sum() >= 10
+    assert (want.move_steps <= full + 1e-4).all()
+    assert (want.move_steps >= rc.PACE_MIN * full - 1e-4).all()
+    assert (want.rest_from >= 1).all() and (want.rest_from <= ctl.rest_from(N_SUBSTEPS)).all()
+
+
+def test_fixed_timing(dual):
+    """Fixed timing: every action's move, ramp and final substep those of ACTION_SECONDS."""
+    m, layout, geoms, wgeoms, idx = dual
+    rng = np.random.default_rng(8)
+    n = 20
+    qpos, ctrl = _states(rng, n, m, layout, geoms)
+    delta, rotvec, grip = _commands(rng, n)
+    plan = wc.PlanBuffers.allocate(n, 2, "cpu")
+    ok, go = wp.zeros(n, dtype=int), wp.zeros(n, dtype=int)
+    wc.launch_plan(
+        wgeoms,
+        wp.array(qpos, dtype=float),
+        wp.array(ctrl, dtype=float),
+        idx,
+        wp.ones(n, dtype=int),
+        wp.array(delta, dtype=wp.vec3),
+        wp.array(rotvec, dtype=wp.vec3),
+        wp.array(grip, dtype=int),
+        plan,
+        ok,
+        go,
+        N_SUBSTEPS,
+        ctl.rest_from(N_SUBSTEPS),
+    )
+    cmd = ctl.ArmCommand(active=jnp.array(True), delta=delta[0], rotvec=rotvec[0], grip=grip[0])
+    want = lay.plan_from(layout, geoms, qpos[0], ctrl[0], cmd, N_SUBSTEPS)
+    for got, expected in (
+        (plan.move_steps.numpy(), rc.MOVE_FRACTION * N_SUBSTEPS),
+        (plan.grip_steps.numpy(), rc.GRIP_FRACTION * N_SUBSTEPS),
+        (plan.rest_from.numpy(), ctl.rest_from(N_SUBSTEPS)),
+    ):
+        np.testing.assert_array_equal(got, np.float32(expected))
+    np.testing.assert_array_equal(want.move_steps, np.float32(rc.MOVE_FRACTION * N_SUBSTEPS))
+    assert int(want.rest_from) == ctl.rest_from(N_SUBSTEPS)
+
+
 def test_plan_cases_cover_every_outcome(plans, dual):
     """The random cases include plans that succeed, clip, leave the reach and hit the table
     (the flags test compares the port on all of them)."""
@@ -399,16 +457,16 @@ def test_ctrl_matches_ctrl_at(plans, dual, k):
     case, want, _, _ = plans
     n = len(case["ctrl"])
     plan = wc.PlanBuffers.allocate(n, 2, "cpu")
-    for name in ("waypoints", "hold", "finger_start", "finger_target"):
+    for name in ("waypoints", "hold", "finger_start", "finger_target", "move_steps", "grip_steps"):
         getattr(plan, name).assign(np.asarray(getattr(want, name), np.float32))
     plan.moves.assign(want.moves.astype(np.int32))
     extra = np.random.default_rng(k).normal(0.0, 1.0, (n, 3)).astype(np.float32)
     base = np.concatenate([case["ctrl"] + np.float32(7.0), extra], axis=1)
     ctrl = wp.array(base, dtype=float)
-    wc.launch_ctrl(wp.array([k], dtype=int), N_SUBSTEPS, plan, idx, ctrl)  # a device counter
+    wc.launch_ctrl(wp.array([k], dtype=int), plan, idx, ctrl)  # a device counter
 
     def refs(p, c):
-        return lay.with_refs(layout, c, *ctl.ctrl_at(p, jnp.asarray(k), N_SUBSTEPS))
+        return lay.with_refs(layout, c, *ctl.ctrl_at(p, jnp.asarray(k)))
 
     expected = jax.vmap(refs)(jax.tree.map(jnp.asarray, want), base)
     np.testing.assert_allclose(ctrl.numpy(), expected, atol=2e-6)

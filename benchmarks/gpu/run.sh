@@ -87,7 +87,7 @@ PY
       --json "$out/render.json" 2>&1 | tee "$out/render.log"
     ;;
   fidelity)
-    # FIDELITY_ACTION_END=at_rest: the guard of simulator.action_end at_rest
+    # FIDELITY_ACTION_END=at_rest|paced: the guard of simulator.action_end at_rest or paced
     timeout "${FIDELITY_TIMEOUT_S:-570}" python3 benchmarks/warp_fidelity.py --tasks "${FIDELITY_TASKS:-all}" --n 20 --budget-s "${FIDELITY_BUDGET_S:-420}" \
       --action-end "${FIDELITY_ACTION_END:-fixed}" \
       --json "$out/fidelity.json" --md "$out/fidelity.md" 2>&1 | tee "$out/fidelity.log"
@@ -138,7 +138,7 @@ PY
     # run directory per layout (MAIN_RUN_DIR names another). Another commit's tree (`git
     # archive COMMIT vabench benchmarks configs assets pyproject.toml` into an ignored folder,
     # carried) runs from that folder: `cd FOLDER && bash ../benchmarks/gpu/run.sh main`.
-    # MAIN_ACTION_END=at_rest: the same plan with simulator.action_end at_rest
+    # MAIN_ACTION_END=at_rest|paced: the same plan with that simulator.action_end
     layout=${MAIN_EXECUTOR:-}${MAIN_MAX_EPISODES:+_$MAIN_MAX_EPISODES}${MAIN_ACTION_END:+_$MAIN_ACTION_END}
     run=${MAIN_RUN_DIR:-/tmp/run_all${layout:+_$layout}}
     config=configs/all.yaml

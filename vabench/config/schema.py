@@ -85,11 +85,12 @@ class SimulatorOptions(_Strict):
     (bit-reproducible runs on a GPU, slower)."""
     window_s: float = Field(default=0.01, ge=0)
     """How long the simulator batch waits to gather actions before stepping."""
-    action_end: Literal["fixed", "at_rest"] = "fixed"
+    action_end: Literal["fixed", "at_rest", "paced"] = "fixed"
     """How long an action's physics runs (backends c and warp; mjx always fixed): fixed, 0.8 s
     of substeps for every action; at_rest, each slot's action ends at the first substep after
-    its references are final where every joint is at rest, 0.8 s at the latest
-    (`sim_mjx.controller.ACTION_ENDS`)."""
+    its references are final where every joint is at rest, 0.8 s at the latest; paced, as
+    at_rest with each move's time following its length (minimum-jerk at the longest move's
+    peak acceleration; `sim_mjx.controller.ACTION_ENDS`)."""
     warp_device: str = Field(default="cuda:0", pattern=DEVICE.pattern)
     """The Warp device of the physics and the Warp renderer: "cuda" or "cuda:N" (a worker
     process given one of several GPUs sees it as cuda:0), or "cpu", Warp's CPU device (slow;

@@ -13,7 +13,8 @@ command. A slot's plan is
      closed form (kinematics.ik) and checked: reachable, within joint limits, no wrist flip
      between neighbours, and every gripper collision box above the table;
   3. a joint reference over the action's physics substeps: minimum-jerk timing along the
-     waypoints, held for the settle part; finger references ramp to open or closed.
+     waypoints, held for the settle part; finger references ramp to open or closed. The
+     timing is the same for every action, or paced by the move's length (`pace`).
 If any commanded arm's plan fails, the slot's planner_success is false and the batch leaves the
 slot untouched. The references are open-loop functions of time, so the same `ctrl_at` drives
 MJX (inside a scan) and C MuJoCo (as a precomputed control sequence).
@@ -55,6 +56,9 @@ class Plan(PyTree):
     ok: jax.Array  # () bool: every arm's plan succeeded
     clipped: jax.Array  # (A,) bool: the end-effector target was clipped to the bounds
     executed_m: jax.Array  # (A,) planned GC displacement after clipping, m
+    move_steps: jax.Array  # (A,) substeps of the arm's minimum-jerk move
+    grip_steps: jax.Array  # (A,) substeps of the fingers' ramp
+    rest_from: jax.Array  # () int32: substeps after which every reference is final
 
 
 def idle_command(n_arms: int) -> ArmCommand:
@@ -120,6 +124,33 @@ def _plan_arm(
     return wps, jnp.where(moves, ok, True), moves, clipped & moves, jnp.where(moves, executed, 0.0)
 
 
+def pace(
+    n_substeps: int,
+    paced: bool,
+    executed_m: jax.Array,
+    rotvec: jax.Array,
+    moves: jax.Array,
+    finger_start: jax.Array,
+    finger_target: jax.Array,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(move_steps (A,), grip_steps (A,), rest_from ()) of one slot's action. Fixed timing
+    (`paced` false): every move MOVE_FRACTION and every ramp GRIP_FRACTION of the substeps, final
+    after `rest_from(n_substeps)`. Paced: a move's time follows its length (robot_constants,
+    PACE_*), final once the slowest moving part is (1 substep at least)."""
+    full_move = jnp.float32(rc.MOVE_FRACTION * n_substeps)
+    full_grip = jnp.float32(rc.GRIP_FRACTION * n_substeps)
+    grip_steps = jnp.full(moves.shape, full_grip)
+    if not paced:
+        return jnp.full(moves.shape, full_move), grip_steps, jnp.int32(rest_from(n_substeps))
+    length = jnp.maximum(
+        executed_m / rc.PACE_FULL_MOVE_M, jnp.linalg.norm(rotvec, axis=-1) / rc.PACE_FULL_TURN_RAD
+    )
+    move_steps = full_move * jnp.clip(jnp.sqrt(length), rc.PACE_MIN, 1.0)
+    grips = jnp.any(finger_target != finger_start, axis=-1)
+    final = jnp.maximum(jnp.where(moves, move_steps, 0.0), jnp.where(grips, grip_steps, 0.0))
+    return move_steps, grip_steps, jnp.maximum(jnp.ceil(jnp.max(final)), 1.0).astype(jnp.int32)
+
+
 def plan_slot(
     geoms: kin.ArmGeometry,
     q: jax.Array,
@@ -127,9 +158,12 @@ def plan_slot(
     arm_ctrl: jax.Array,
     finger_ctrl: jax.Array,
     cmd: ArmCommand,
+    n_substeps: int,
+    paced: bool = False,
 ) -> Plan:
     """Plan one slot. geoms is stacked over arms; q (A, 6), fingers (A, 2) measured;
-    arm_ctrl (A, 6) and finger_ctrl (A, 2) the references currently held."""
+    arm_ctrl (A, 6) and finger_ctrl (A, 2) the references currently held; `n_substeps` of the
+    action, `paced` its timing (`pace`)."""
     wps, arm_ok, moves, clipped, executed = jax.vmap(_plan_arm)(
         geoms, q, fingers, cmd.delta, cmd.rotvec
     )
@@ -137,6 +171,9 @@ def plan_slot(
         cmd.grip[:, None] == GRIP_OPEN,
         rc.FINGER_OPEN,
         jnp.where(cmd.grip[:, None] == GRIP_CLOSE, rc.FINGER_CLOSED, finger_ctrl),
+    )
+    move_steps, grip_steps, final = pace(
+        n_substeps, paced, executed, cmd.rotvec, moves, finger_ctrl, target
     )
     return Plan(
         waypoints=wps,
@@ -148,6 +185,9 @@ def plan_slot(
         ok=jnp.all(arm_ok),
         clipped=clipped,
         executed_m=executed,
+        move_steps=move_steps,
+        grip_steps=grip_steps,
+        rest_from=final,
     )
 
 
@@ -156,11 +196,16 @@ def substeps(timestep: float) -> int:
     return int(round(rc.ACTION_SECONDS / timestep))
 
 
-ACTION_ENDS = ("fixed", "at_rest")
+ACTION_ENDS = ("fixed", "at_rest", "paced")
 """How long an action's physics runs. fixed: every action ACTION_SECONDS of substeps. at_rest:
-a slot's action ends at the first substep, once its references are final (`rest_from`), where
-every dof is slower than REST_SPEED; its state is the one of that substep, whatever the other
-slots of the batch do, and ACTION_SECONDS bounds it."""
+a slot's action ends at the first substep, once its references are final (`Plan.rest_from`),
+where every dof is slower than REST_SPEED; its state is the one of that substep, whatever the
+other slots of the batch do, and ACTION_SECONDS bounds it. paced: as at_rest, the move's time
+following its length (`pace`)."""
+
+
+def ends_at_rest(action_end: str) -> bool:
+    return action_end != "fixed"
 
 
 def check_action_end(action_end: str) -> str:
@@ -180,16 +225,15 @@ def _min_jerk(s: jax.Array) -> jax.Array:
     return s * s * s * (10.0 + s * (-15.0 + 6.0 * s))
 
 
-def ctrl_at(plan: Plan, k: jax.Array, n_substeps: int) -> tuple[jax.Array, jax.Array]:
+def ctrl_at(plan: Plan, k: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Arm (A, 6) and finger (A, 2) references at substep k (0-based) of the action."""
-    move_steps = rc.MOVE_FRACTION * n_substeps
-    grip_steps = rc.GRIP_FRACTION * n_substeps
-    u = _min_jerk((k + 1.0) / move_steps) * (rc.N_WAYPOINTS - 1)
+    u = _min_jerk((k + 1.0) / plan.move_steps) * (rc.N_WAYPOINTS - 1)
     i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, rc.N_WAYPOINTS - 2)
-    frac = u - i
+    frac = (u - i)[:, None]
+    arms = jnp.arange(plan.waypoints.shape[0])
     wp = plan.waypoints
-    arm = wp[:, i] + frac * (wp[:, i + 1] - wp[:, i])
+    arm = wp[arms, i] + frac * (wp[arms, i + 1] - wp[arms, i])
     arm = jnp.where(plan.moves[:, None], arm, plan.hold)
-    s = jnp.clip((k + 1.0) / grip_steps, 0.0, 1.0)
+    s = jnp.clip((k + 1.0) / plan.grip_steps, 0.0, 1.0)[:, None]
     fingers = plan.finger_start + s * (plan.finger_target - plan.finger_start)
     return arm, fingers

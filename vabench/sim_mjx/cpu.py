@@ -78,7 +78,13 @@ class CpuBatch(BatchBase):
         # Slot by slot (in_lanes, 1 lane): a plain vmap's float32 results depend on the batch
         # size on XLA CPU, and an episode must not move differently because others share it.
         self._sequence = jax.jit(
-            in_lanes(functools.partial(ctrl_sequence_slot, self.layout, self.n_substeps), 3, 1)
+            in_lanes(
+                functools.partial(
+                    ctrl_sequence_slot, self.layout, self.n_substeps, action_end == "paced"
+                ),
+                3,
+                1,
+            )
         )
         self._pool = rollout.Rollout(nthread=threads) if threads > 0 else None
         self._thread_data = [mujoco.MjData(model) for _ in range(threads)]
@@ -137,15 +143,20 @@ class CpuBatch(BatchBase):
         self._run(slots, controls)
 
     def _run(
-        self, slots: list[int], controls: np.ndarray, capture: int = 0, rest_from: int = 0
+        self,
+        slots: list[int],
+        controls: np.ndarray,
+        capture: int = 0,
+        rest_from: np.ndarray | int = 0,
     ) -> None:
         """Advance `slots` through the control sequences (len(slots), n_steps, nu); with
         `capture` = k > 0, append qpos to `captured[slot]` after every k-th step; with
-        `rest_from` = r > 0 (an action ending at rest), a slot stops after the first step
-        k >= r at which every dof is slower than REST_SPEED (the threads' path computes every
-        step and takes the state of that one)."""
+        `rest_from` = r > 0 (an action ending at rest; one a slot), a slot stops after the first
+        step k >= r at which every dof is slower than REST_SPEED (the threads' path computes
+        every step and takes the state of that one)."""
         if not slots:
             return
+        rests = np.broadcast_to(np.asarray(rest_from, np.int64), (len(slots),))
         if capture > 0 and self._pool is not None:
             raise ValueError("capture_every needs the serial path (threads=0)")
         if self._pool is None:
@@ -160,7 +171,7 @@ class CpuBatch(BatchBase):
                     mujoco.mj_step(m, d)
                     if capture > 0 and steps % capture == 0:
                         self.captured.setdefault(slot, []).append(d.qpos.copy())
-                    if 0 < rest_from <= steps and np.max(np.abs(d.qvel)) < rc.REST_SPEED:
+                    if 0 < rests[row] <= steps and np.max(np.abs(d.qvel)) < rc.REST_SPEED:
                         break
                 self.last_substeps[slot] = steps
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
@@ -178,10 +189,11 @@ class CpuBatch(BatchBase):
                 initial_warmstart=np.zeros((len(slots), self.model.nv)),
             )
             last = np.full(len(slots), controls.shape[1] - 1)
-            if rest_from > 0:  # the same rule as the serial path, on the recorded states
+            if rests.any():  # the same rule as the serial path, on the recorded states
                 nq, nv = self.model.nq, self.model.nv
                 still = np.max(np.abs(states[:, :, 1 + nq : 1 + nq + nv]), axis=2) < rc.REST_SPEED
-                still[:, : rest_from - 1] = False
+                still &= np.arange(controls.shape[1])[None, :] >= rests[:, None] - 1
+                still &= rests[:, None] > 0
                 last = np.where(still.any(axis=1), np.argmax(still, axis=1), last)
             self._state[slots] = states[np.arange(len(slots)), last]
             self.last_substeps[slots] = last + 1
@@ -200,7 +212,7 @@ class CpuBatch(BatchBase):
         slots = [int(s) for s in np.flatnonzero(go)]
         self._unstable[slots] = False  # each action judged by its own physics
         self.last_substeps[:] = 0
-        rest = ctl.rest_from(self.n_substeps) if self.action_end == "at_rest" else 0
+        rest = np.asarray(plan.rest_from)[slots] if ctl.ends_at_rest(self.action_end) else 0
         self._run(slots, np.asarray(seq[slots], float), self.capture_every, rest)
         opens = rows.grip == 1
         keep = rows.grip < 0

@@ -111,8 +111,11 @@ def plan_from(
     qpos: jax.Array,
     ctrl: jax.Array,
     cmd: ctl.ArmCommand,
+    n_substeps: int,
+    paced: bool = False,
 ) -> ctl.Plan:
-    """The plan of one slot from its measured joints and the references it holds."""
+    """The plan of one slot from its measured joints and the references it holds, its timing
+    over `n_substeps` fixed or `paced` (`controller.pace`)."""
     return ctl.plan_slot(
         geoms,
         qpos[layout.qpos],
@@ -120,12 +123,15 @@ def plan_from(
         ctrl[layout.arm_act],
         ctrl[layout.finger_act],
         cmd,
+        n_substeps,
+        paced,
     )
 
 
 def ctrl_sequence_slot(
     layout: ArmLayout,
     n_substeps: int,
+    paced: bool,
     geoms: kin.ArmGeometry,
     qpos: jax.Array,
     ctrl: jax.Array,
@@ -134,10 +140,10 @@ def ctrl_sequence_slot(
     """The whole control sequence (n_substeps, nu) of one slot's action, for simulators that
     take open-loop controls (C MuJoCo, mujoco.rollout). Same plan and references as the MJX
     step."""
-    plan = plan_from(layout, geoms, qpos, ctrl, cmd)
+    plan = plan_from(layout, geoms, qpos, ctrl, cmd, n_substeps, paced)
 
     def at(k: jax.Array) -> jax.Array:
-        arm, fingers = ctl.ctrl_at(plan, k, n_substeps)
+        arm, fingers = ctl.ctrl_at(plan, k)
         return with_refs(layout, ctrl, arm, fingers)
 
     return jax.vmap(at)(jnp.arange(n_substeps)), plan

@@ -61,10 +61,10 @@ def step_slot(
     """One action for one slot (the batch vmaps this)."""
     mx = variants.select(mx, stacked, state.variant)
     d0 = state.data
-    plan = plan_from(layout, geoms, d0.qpos, d0.ctrl, cmd)
+    plan = plan_from(layout, geoms, d0.qpos, d0.ctrl, cmd, n_substeps)
 
     def substep(d: mjx.Data, k: jax.Array) -> tuple[mjx.Data, None]:
-        arm, fingers = ctl.ctrl_at(plan, k, n_substeps)
+        arm, fingers = ctl.ctrl_at(plan, k)
         return mjx.step(mx, d.replace(ctrl=with_refs(layout, d.ctrl, arm, fingers))), None
 
     d1, _ = jax.lax.scan(substep, d0, jnp.arange(n_substeps))

@@ -64,6 +64,15 @@ GRIP_FRACTION = 0.6  # finger targets ramp over the first 60 % of the action
 # action ends at the first substep where every dof moves slower than this (rad/s or m/s), and
 # at ACTION_SECONDS at the latest.
 REST_SPEED = 1.0e-2
+# An action paced by its length (`action_end: paced`): the move's minimum-jerk time is
+# sqrt(length / the longest move), of MOVE_FRACTION x ACTION_SECONDS, PACE_MIN of it at least,
+# with length the executed translation over PACE_FULL_MOVE_M or the turn over PACE_FULL_TURN_RAD
+# (the larger). Minimum-jerk's peak acceleration is 5.77 L / T^2: constant in L at this T, so
+# no move accelerates harder than the longest move of the fixed timing does. The fingers keep
+# their ramp (GRIP_FRACTION) when they move; the action then ends at rest.
+PACE_FULL_MOVE_M = 0.1  # MOVE_MM_RANGE's top
+PACE_FULL_TURN_RAD = math.pi / 2  # ROTATE_DEG_RANGE's top
+PACE_MIN = 0.2
 
 # Action ranges of the model interface.
 MOVE_MM_RANGE = (1.0, 100.0)

@@ -96,9 +96,9 @@ class WarpBatch(BatchBase):
     `graphs.LOOPS`. `critical_path`: this batch's episodes bound the sweep's wall time (the
     longest task's): its stream, and those of the render passes that read it, get the GPU's
     highest priority; other batches' streams the middle one, ahead of the render passes' ray
-    tracing (`streams.PRIORITIES`). `action_end`: `controller.ACTION_ENDS` (at_rest: each
-    slot's action ends at its own rest substep; the device loop ends when every acting slot
-    has).
+    tracing (`streams.PRIORITIES`). `action_end`: `controller.ACTION_ENDS` (at_rest and paced:
+    each slot's action ends at its own rest substep; the device loop ends when every acting
+    slot has).
     """
 
     def __init__(
@@ -219,7 +219,7 @@ class WarpBatch(BatchBase):
         self._graphs.run_loop(name, pre, substep, post, n, counter=self._k, condition=condition)
 
     def _at_rest(self) -> bool:
-        return self.action_end == "at_rest"
+        return ctl.ends_at_rest(self.action_end)
 
     def _rest_condition(self, go_on: wp.array) -> None:
         wp.launch(
@@ -256,7 +256,7 @@ class WarpBatch(BatchBase):
     def _step_physics(self, with_ctrl: bool) -> Callable[[], None]:
         def substep() -> None:
             if with_ctrl:
-                wc.launch_ctrl(self._k, self.n_substeps, self._plan, self._idx, self._d.ctrl)
+                wc.launch_ctrl(self._k, self._plan, self._idx, self._d.ctrl)
             mjw.step(self._m, self._d)
             wp.launch(wr.count_substep, dim=1, inputs=[self._k])
             if with_ctrl and self._at_rest():
@@ -265,7 +265,7 @@ class WarpBatch(BatchBase):
                     dim=self.n_slots,
                     inputs=[
                         self._k,
-                        ctl.rest_from(self.n_substeps),
+                        self._plan.rest_from,
                         rc.REST_SPEED,
                         self._go,
                         self._d.qvel,
@@ -292,6 +292,9 @@ class WarpBatch(BatchBase):
             self._plan,
             self._ok,
             self._go,
+            self.n_substeps,
+            ctl.rest_from(self.n_substeps),
+            self.action_end == "paced",
         )
         self._snapshot.save()
         self._start_loop()

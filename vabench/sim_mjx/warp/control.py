@@ -39,6 +39,9 @@ _TURN_CHECKS = wp.constant(rc.MAX_ROTATION_WAYPOINTS)
 _TURN_SLACK = wp.constant(rc.ROTATION_WAYPOINT_SLACK)
 _FINGER_OPEN = wp.constant(rc.FINGER_OPEN)
 _FINGER_CLOSED = wp.constant(rc.FINGER_CLOSED)
+_PACE_MOVE = wp.constant(rc.PACE_FULL_MOVE_M)
+_PACE_TURN = wp.constant(rc.PACE_FULL_TURN_RAD)
+_PACE_MIN = wp.constant(rc.PACE_MIN)
 
 
 @dataclass
@@ -53,6 +56,9 @@ class PlanBuffers:
     arm_ok: wp.array  # (N, A) int
     clipped: wp.array  # (N, A) int
     executed_m: wp.array  # (N, A) float
+    move_steps: wp.array  # (N, A) float
+    grip_steps: wp.array  # (N, A) float
+    rest_from: wp.array  # (N,) int
 
     @staticmethod
     def allocate(n: int, n_arms: int, device: wp.context.Device | str) -> PlanBuffers:
@@ -68,6 +74,9 @@ class PlanBuffers:
             arm_ok=z(int),
             clipped=z(int),
             executed_m=z(float),
+            move_steps=z(float),
+            grip_steps=z(float),
+            rest_from=z(int, n),
         )
 
 
@@ -175,6 +184,41 @@ def slot_ok_kernel(
     go[n] = wp.where(active[n] != 0 and all_ok != 0, 1, 0)
 
 
+@wp.kernel
+def pace_kernel(
+    paced: int,
+    full_move: float,
+    full_grip: float,
+    fixed_rest: int,
+    executed_m: wp.array2d(dtype=float),
+    cmd_rotvec: wp.array2d(dtype=wp.vec3),
+    moves: wp.array2d(dtype=int),
+    finger_start: wp.array2d(dtype=wp.vec2),
+    finger_target: wp.array2d(dtype=wp.vec2),
+    move_steps: wp.array2d(dtype=float),
+    grip_steps: wp.array2d(dtype=float),
+    rest_from: wp.array(dtype=int),
+):
+    """The timing of slot n's action (controller.pace): fixed, or paced by each move's length."""
+    n = wp.tid()
+    final = wp.float32(0.0)
+    for a in range(moves.shape[1]):
+        steps = full_move
+        if paced != 0:
+            length = wp.max(executed_m[n, a] / _PACE_MOVE, wp.length(cmd_rotvec[n, a]) / _PACE_TURN)
+            steps = full_move * wp.clamp(wp.sqrt(length), _PACE_MIN, 1.0)
+            if moves[n, a] != 0:
+                final = wp.max(final, steps)
+            f0, f1 = finger_start[n, a], finger_target[n, a]
+            if f0[0] != f1[0] or f0[1] != f1[1]:
+                final = wp.max(final, full_grip)
+        move_steps[n, a] = steps
+        grip_steps[n, a] = full_grip
+    rest_from[n] = fixed_rest
+    if paced != 0:
+        rest_from[n] = wp.max(int(wp.ceil(final)), 1)
+
+
 @wp.func
 def min_jerk(s: float) -> float:
     s = wp.clamp(s, 0.0, 1.0)
@@ -184,8 +228,8 @@ def min_jerk(s: float) -> float:
 @wp.kernel
 def ctrl_kernel(
     step: wp.array(dtype=int),
-    move_steps: float,
-    grip_steps: float,
+    move_steps: wp.array2d(dtype=float),
+    grip_steps: wp.array2d(dtype=float),
     waypoints: wp.array3d(dtype=vec6),
     hold: wp.array2d(dtype=vec6),
     moves: wp.array2d(dtype=int),
@@ -200,14 +244,14 @@ def ctrl_kernel(
     serves every substep of a graph's loop."""
     n, a = wp.tid()
     kk = float(step[0]) + 1.0
-    u = min_jerk(kk / move_steps) * float(_N_WAYPOINTS - 1)
+    u = min_jerk(kk / move_steps[n, a]) * float(_N_WAYPOINTS - 1)
     i = wp.clamp(int(wp.floor(u)), 0, _N_WAYPOINTS - 2)
     frac = u - float(i)
     w0 = waypoints[n, a, i]
     arm = w0 + frac * (waypoints[n, a, i + 1] - w0)
     if moves[n, a] == 0:
         arm = hold[n, a]
-    s = wp.clamp(kk / grip_steps, 0.0, 1.0)
+    s = wp.clamp(kk / grip_steps[n, a], 0.0, 1.0)
     f0 = finger_start[n, a]
     fingers = f0 + s * (finger_target[n, a] - f0)
     for j in range(6):
@@ -228,8 +272,12 @@ def launch_plan(
     plan: PlanBuffers,
     ok: wp.array,
     go: wp.array,
+    n_substeps: int,
+    fixed_rest: int,
+    paced: bool = False,
 ) -> None:
-    """Plan every slot's command; ok / go per slot (see slot_ok_kernel)."""
+    """Plan every slot's command over `n_substeps`, its timing fixed (final after
+    `fixed_rest`) or `paced`; ok / go per slot (see slot_ok_kernel)."""
     n, arms = delta.shape
     wp.launch(
         plan_kernel,
@@ -248,19 +296,33 @@ def launch_plan(
         ],
     )
     wp.launch(slot_ok_kernel, dim=n, inputs=[plan.arm_ok, active], outputs=[ok, go])
+    wp.launch(
+        pace_kernel,
+        dim=n,
+        inputs=[
+            int(paced),
+            float(rc.MOVE_FRACTION * n_substeps),
+            float(rc.GRIP_FRACTION * n_substeps),
+            fixed_rest,
+            plan.executed_m,
+            rotvec,
+            plan.moves,
+            plan.finger_start,
+            plan.finger_target,
+        ],
+        outputs=[plan.move_steps, plan.grip_steps, plan.rest_from],
+    )
 
 
-def launch_ctrl(
-    step: wp.array, n_substeps: int, plan: PlanBuffers, idx: Indices, ctrl: wp.array
-) -> None:
+def launch_ctrl(step: wp.array, plan: PlanBuffers, idx: Indices, ctrl: wp.array) -> None:
     """Write the references of substep step[0] (a device counter) into ctrl."""
     wp.launch(
         ctrl_kernel,
         dim=plan.moves.shape,
         inputs=[
             step,
-            float(rc.MOVE_FRACTION * n_substeps),
-            float(rc.GRIP_FRACTION * n_substeps),
+            plan.move_steps,
+            plan.grip_steps,
             plan.waypoints,
             plan.hold,
             plan.moves,

@@ -65,7 +65,7 @@ class Snapshot:
 @wp.kernel
 def mark_rest(
     k: wp.array(dtype=int),
-    rest_from: int,
+    rest_from: wp.array(dtype=int),
     rest_speed: float,
     go: wp.array(dtype=int),
     qvel: wp.array2d(dtype=float),
@@ -74,7 +74,7 @@ def mark_rest(
     substeps: wp.array(dtype=int),
 ):
     """An action ending at rest (controller.ACTION_ENDS), after substep k[0]: a slot that acts
-    and has not ended ends now when its references are final (k[0] >= rest_from) and every dof
+    and has not ended ends now when its references are final (k[0] >= rest_from[w]) and every dof
     is slower than rest_speed. newly[w]: it ended at this substep (its rows are saved now);
     substeps[w]: the substeps its action ran."""
     w = wp.tid()
@@ -82,7 +82,7 @@ def mark_rest(
     if go[w] == 0 or done[w] != 0:
         return
     substeps[w] = k[0]
-    if k[0] < rest_from:
+    if k[0] < rest_from[w]:
         return
     for j in range(qvel.shape[1]):
         if wp.abs(qvel[w, j]) >= rest_speed:
