@@ -20,6 +20,7 @@ from engine_util import FAST_RETRY, reply, tool
 from vabench import protocol as P
 from vabench.agent.learning import LearningResult, read_result, write_result
 from vabench.config import load_config
+from vabench.config.choices import choose
 from vabench.demos.store import CACHE_DIR
 from vabench.llm_pool.apis.base import IncomingRequest
 from vabench.llm_pool.policies import PolicyError
@@ -28,7 +29,6 @@ from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.report import make_report
 from vabench.report.spend import bill
 from vabench.run_layout import RunDir
-from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.runner import LocalSweep
 from vabench.sweep.summaries import LEARNING_ATTEMPTS, SummaryRecordError, SummaryStage

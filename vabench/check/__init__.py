@@ -8,7 +8,9 @@ What came back is reported one line an item (`judge`): reachable; key accepted; 
 known; images per request accepted; context length where the server says it, against the
 plan's need; the prompt tokens the server counted against our estimate; the output-limit
 field read; a reasoning field; latency; the decision's cost. A problem carries its fix, and
-the command exits 2 with one line per problem (`run`: how each model is called).
+the command exits 2 with one line per problem (`run`: how each model is called). Each check's
+latency is kept per machine (`latency`); with the paces earlier sweeps measured here (`pace`)
+it gives the dry run its expected wall time and disk.
 
     reports = asyncio.run(check_config(config, os.environ))
     print(report_text(reports))

@@ -47,7 +47,9 @@ The result, `SweepConfig`, is resolved: explicit tracks, task names and the seed
 to RUN_DIR/sweep.yaml) which `load_config` reads back to an equal config.
 
 Modules: `schema` (the sections and `SweepConfig`), `load` (reading the file), `resolve` (the
-checks pydantic cannot make; tracks, tasks and seeds), `problems` (errors naming the field).
+checks pydantic cannot make; tracks, tasks and seeds), `problems` (errors naming the field),
+`overrides` (the command line's quick-trial flags, applied to the document before it is
+checked), `choices` (every `auto` of a config resolved for this machine, once, as `Choices`).
 """
 
 from vabench.config.load import load_config

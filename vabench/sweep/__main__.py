@@ -4,7 +4,7 @@
 Quick trials need no YAML edit: `--model`, `--tasks`, `--tracks`, `--seeds`, `--runs`,
 `--limit`, `--max-episodes`, `--max-connections` override the config for this invocation, and
 `--model NAME --model-base-url URL` evaluates an OpenAI-compatible endpoint instead of the
-config's models (`vabench.sweep.overrides`). The run directory records the overridden plan:
+config's models (`vabench.config.overrides`). The run directory records the overridden plan:
 resuming it with other overrides is refused like a changed config.
 
 The defaults pick the fastest path this machine offers (`simulator.backend`, `render.backend`
@@ -68,18 +68,18 @@ from pathlib import Path  # noqa: E402
 from typing import Any, NoReturn  # noqa: E402
 
 from vabench.check.latency import measured as check_latencies  # noqa: E402
+from vabench.check.pace import estimate_lines, keep_pace, machine_paces  # noqa: E402
 from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfig, SweepConfigError, load_config  # noqa: E402
+from vabench.config.choices import apply_switches, choose  # noqa: E402
 from vabench.config.keys import KeySources, key_sources  # noqa: E402
+from vabench.config.overrides import OverrideError, Overrides  # noqa: E402
+from vabench.config.overrides import add_arguments as add_overrides  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
-from vabench.sweep.choices import apply_switches, choose, configure_jax  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
 from vabench.sweep.local_executor import run_local  # noqa: E402
-from vabench.sweep.overrides import OverrideError, Overrides  # noqa: E402
-from vabench.sweep.overrides import add_arguments as add_overrides  # noqa: E402
-from vabench.sweep.pace import estimate_lines, keep_pace, machine_paces  # noqa: E402
 from vabench.sweep.plan import EpisodeKey, estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import (  # noqa: E402
     Key,
@@ -90,6 +90,7 @@ from vabench.sweep.results import (  # noqa: E402
 )
 from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
 from vabench.sweep.runner import SweepStopped  # noqa: E402
+from vabench.tuning.engine_env import configure_jax  # noqa: E402
 
 log = logging.getLogger("vabench.sweep")
 
@@ -380,7 +381,7 @@ def _print_where_and_how_long(
 ) -> None:
     """The dry run's last lines: the output directory (and what it holds), each track's
     summary mode, the wall time at this machine's measured pace of each model kind and the
-    disk the run directory takes (`sweep.pace`)."""
+    disk the run directory takes (`check.pace`)."""
     done: dict[Key, dict[str, Any]] = {}
     if RunDir(run_dir).results.exists():
         done = Ledger.open(run_dir).records

@@ -30,9 +30,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
+from vabench.llm_pool.limit_board import BoardLimits
 from vabench.run_layout import PLAN, RunDir
-from vabench.sweep.choices import Choices, configure_jax
-from vabench.sweep.limiter import BoardLimits
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import ledger_key
 from vabench.sweep.runner import (
@@ -43,6 +43,7 @@ from vabench.sweep.runner import (
     start_compiling,
 )
 from vabench.tuning import gpu_busy
+from vabench.tuning.engine_env import configure_jax
 
 log = logging.getLogger(__name__)
 
@@ -62,12 +63,12 @@ WORKER_ENVIRONMENT = (
     "CUDA_MPS_CLIENT_PRIORITY",
 )
 """What an engine reports of its environment (the choices made for processes started on a GPU
-host, `sweep.choices`)."""
+host, `config.choices`)."""
 
 
 class BoardLink(Protocol):
-    """How an engine reaches the sweep's limit board (`board_socket.BoardAddress`,
-    `limiter.RayBoard`)."""
+    """How an engine reaches the sweep's limit board (`llm_pool.board_socket.BoardAddress`,
+    `llm_pool.limit_board.RayBoard`)."""
 
     def joined(self, holder: str) -> AbstractAsyncContextManager[BoardLimits]: ...
 

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.llm_pool.limit_board import shared_endpoints
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import DUPLICATES, RESULTS
 from vabench.sweep import rundir
@@ -51,7 +52,6 @@ from vabench.sweep.chunk_engine import (
 )
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.interrupt import CtrlC, Interrupted
-from vabench.sweep.limiter import shared_endpoints
 from vabench.sweep.placement import Chunk, Engine, EngineHandle, next_placement
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, Ledger, LedgerError, key_of, ledger_key

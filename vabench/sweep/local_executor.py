@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.sweep.cells import task_cost
-from vabench.sweep.choices import Choices
 from vabench.sweep.chunk_engine import LOST, BoardLink, ChunkEngine, Command, serve
 from vabench.sweep.display import Status
 from vabench.sweep.driver import Driver, Emit, Engines, pending

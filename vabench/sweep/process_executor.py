@@ -19,11 +19,9 @@ chunk's unfinished episodes. It watches its parent and exits at once when the pa
 (`children.exit_with_parent`), so a SIGKILL of the sweep leaves no process calling a model;
 it ignores Ctrl-C, which the driver handles.
 
-The engines' environment (`choices.child_environment`): JAX never preallocates GPU memory and
-stays on the CPU unless the physics is MJX on JAX; with several GPUs each engine gets one; each
-engine's `VABENCH_CORES` is its share of the host's cores (`worker_shares`). Under MPS a task on
-the critical path gets an engine process of its own at the normal MPS priority, the others
-below it (`critical_environment`; docs/PERFORMANCE.md).
+The engines' environment is `tuning.engine_env`'s: JAX off the GPU's memory, each engine's
+share of the host's cores and its GPU, and under MPS the critical path's engine at the normal
+priority, the others below it (`critical_environment`; docs/PERFORMANCE.md).
 """
 
 from __future__ import annotations
@@ -32,7 +30,6 @@ import asyncio
 import contextlib
 import cProfile
 import logging
-import math
 import multiprocessing
 import os
 import re
@@ -53,12 +50,13 @@ from vabench.children import (
     started_with,
 )
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
+from vabench.llm_pool.board_socket import BoardAddress, BoardServer
+from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import RunDir
-from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
-from vabench.sweep.board_socket import BoardAddress, BoardServer
+from vabench.sim_mjx.warp.device import warp_device
 from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups, worker_logging
-from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
 from vabench.sweep.chunk_engine import (
     LOST,
     WORKER_ENVIRONMENT,
@@ -71,12 +69,12 @@ from vabench.sweep.chunk_engine import (
 from vabench.sweep.display import Status
 from vabench.sweep.driver import Driver, Emit, Engines, pending
 from vabench.sweep.interrupt import CtrlC
-from vabench.sweep.limiter import LimitBoard
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key
 from vabench.sweep.runner import critical_path_tasks
-from vabench.tuning import kernel_profile, mps, precompile
+from vabench.tuning import engine_env, kernel_profile, mps, precompile
+from vabench.tuning.engine_env import child_environment, gpu_for_worker
 
 log = logging.getLogger(__name__)
 
@@ -125,31 +123,25 @@ def critical_tasks(
 
 
 def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
-    """The variables that size each of `workers` engine processes to its share: of its GPU
-    (`GPU_SHARE`: render passes) and of the host's cores (`CORES_VARIABLE`: the embedded
-    server's processes, JPEG threads). The critical path's process of its own is not counted:
-    its few episodes need a fraction of the others' share, and counting it would leave the
-    others' embedded servers below the cores from which they have processes of their own."""
-    sharing = max(1, min(workers, choices.executor.max_tasks))
-    gpus = max(1, len(choices.machine.gpus))
-    return {
-        GPU_SHARE: str(math.ceil(sharing / gpus)),
-        CORES_VARIABLE: str(max(1, choices.machine.cores // sharing)),
-    }
+    """Each of `workers` engine processes' share of its GPU and of the host's cores
+    (`engine_env.worker_shares`). The critical path's process of its own is not counted: its
+    few episodes need a fraction of the others' share, and counting it would leave the others'
+    embedded servers below the cores from which they have processes of their own."""
+    sharing = min(workers, choices.executor.max_tasks)
+    return engine_env.worker_shares(choices.machine.cores, len(choices.machine.gpus), sharing)
 
 
 def critical_environment(
     choices: Choices, shared: Mapping[str, str], part: Sequence[EpisodeKey], critical: set[str]
 ) -> dict[str, str]:
     """What the engine of `part` starts with beyond the environment `shared` by all engines:
-    for the critical path's process (a chunk of `critical` tasks), the MPS priority of a normal
-    client while every other engine's is below normal (`mps.PRIORITY_VARIABLE`), and half the
-    host's cores (`CORES_VARIABLE`: its embedded server's replies are on the critical path;
-    docs/PERFORMANCE.md). Nothing for the other engines."""
+    for the critical path's process (a chunk of `critical` tasks), a normal MPS client while
+    every other engine is below normal (`engine_env.critical_path_environment`); nothing for
+    the other engines."""
     if not critical or not {k.task for k in part} <= critical:
         return {}
-    cores = max(int(shared.get(CORES_VARIABLE, "1")), choices.machine.cores // 2)
-    return {mps.PRIORITY_VARIABLE: mps.NORMAL, CORES_VARIABLE: str(cores)}
+    shared_cores = int(shared.get(CORES_VARIABLE, "1"))
+    return engine_env.critical_path_environment(shared_cores, choices.machine.cores)
 
 
 # -- the engine process ----------------------------------------------------------------------
@@ -347,7 +339,8 @@ class ProcessEngines(Engines):
                 compiling.join(timeout=0 if failed else precompile.CHILD_TIMEOUT_S)
 
             stack.push(join)
-        clients = _gpu_sharing(stack, self.choices)
+        executor = self.choices.executor
+        clients = engine_env.shared_gpu_clients(stack, executor.max_tasks) if executor.mps else {}
         self.env.update(clients)
         if clients:  # the sweep's own daemon numbers the GPUs it sees 0..n-1
             devices, self.gpus = mps.client_devices(self.choices.machine.gpus)
@@ -379,25 +372,6 @@ class ProcessEngines(Engines):
         assert board is None or isinstance(board, BoardAddress)
         spec = WorkerSpec(self.config, self.sent, self.run_dir, board, os.getpid())
         return ProcessEngine(index, emit, spec, env)
-
-
-def _gpu_sharing(stack: contextlib.ExitStack, choices: Choices) -> dict[str, str]:
-    """Where engine processes share a GPU: an MPS daemon of the sweep's own for them (closed
-    with `stack`), and the variables that make them its clients. Without it they still run,
-    their contexts taking turns on the GPU (logged)."""
-    if not choices.executor.mps:
-        return {}
-    try:
-        return stack.enter_context(mps.private_daemon())
-    except mps.MpsUnavailable as err:
-        log.warning(
-            "CUDA MPS could not start (%s): the %d engine processes' CUDA contexts take turns "
-            "on the GPU, slower than under MPS (executor.mps: off runs one engine process per "
-            "GPU)",
-            err,
-            choices.executor.max_tasks,
-        )
-        return {}
 
 
 def _precompile(

@@ -8,8 +8,8 @@ own directories it writes in the run directory every node sees at the same path.
 
 The process starts with the variables the driver sends it (`environ`): the API keys named by
 the config's `api_key_env` (in the actor's creation arguments, in memory, and put in this
-process's environment only) and the environment `sweep.choices` picks for engine processes.
-What it runs on is the driver's decision (`choices.for_engines`); the actor only checks that
+process's environment only) and the environment `config.choices` picks for engine processes.
+What it runs on is the driver's decision (`config.choices.for_engines`); the actor only checks that
 the physics and renderer it was given can run here, and refuses to be created when not (the
 message names what is missing), so that a node that cannot run them is given no other engine.
 """
@@ -26,11 +26,11 @@ from typing import Any
 
 from vabench import switches
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.render.backends import check_renderer
 from vabench.run_layout import RunDir
 from vabench.sim_mjx.backends import check
 from vabench.sweep.cells import worker_logging
-from vabench.sweep.choices import Choices
 from vabench.sweep.chunk_engine import BoardLink, ChunkEngine
 from vabench.tuning import mps, precompile
 

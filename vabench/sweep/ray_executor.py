@@ -16,8 +16,8 @@
    `ray_plan.engine_plan`): where the physics runs on GPUs, by default 4 per GPU where they can
    share it under CUDA MPS (each joining its node's MPS daemon of the sweep's), else one;
    otherwise one per `1 + render.workers` CPUs of the cluster (C MuJoCo and the GL render
-   workers). `executor.actors` sets the number. The limit board is a `limiter.LimiterActor`
-   on the driver's node;
+   workers). `executor.actors` sets the number. The limit board is a
+   `llm_pool.limit_board.LimiterActor` on the driver's node;
 4. the driver hands out chunks, streams their ledger lines back, replaces dead engines and
    logs each engine's time (`driver`), up to `executor.max_tasks` chunks at once in an engine;
 5. the ledger's records are returned, `{(model, track, task, seed, run): record}`.
@@ -45,9 +45,10 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
+from vabench.llm_pool.limit_board import LimiterActor, RayBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.sweep.cells import Cell, chunks, task_cost, task_groups
-from vabench.sweep.choices import Choices
 from vabench.sweep.chunk_engine import (
     CLOSED,
     DONE,
@@ -69,7 +70,6 @@ from vabench.sweep.driver import (
     pending,
 )
 from vabench.sweep.interrupt import CtrlC
-from vabench.sweep.limiter import LimiterActor, RayBoard
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_plan import (

@@ -3,12 +3,12 @@
 One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
 it, one render pool (together, with the in-flight gate below: the `Engine` that `open_engine`
 opens, which an engine of the driver keeps open for every chunk it runs), and up to
-`executor.max_tasks` task batches at once; each batch serves
-every model and track of its task (the simulator does not care who decides). Episodes in
-flight are bounded per batch by its slots and overall by the `inflight.InFlight` gate: a limit
-that adapts to what the simulator, renderer and endpoints sustain (`executor.in_flight: auto`),
-at most `executor.max_episodes`. Physics, renderer, task batches at once and the in-flight rule
-are the sweep's `choices.Choices`, made once by the command and received here.
+`executor.max_tasks` task batches at once; each batch serves every model and track of its task
+(the simulator does not care who decides). Episodes in flight are bounded per batch by its
+slots and overall by the `tuning.inflight.InFlight` gate: a limit that adapts to what the
+simulator, renderer and endpoints sustain (`executor.in_flight: auto`), at most
+`executor.max_episodes`. Physics, renderer, task batches at once and the in-flight rule
+are the sweep's `config.choices.Choices`, made once by the command and received here.
 
 Resume (see `results.Ledger`): episodes already in results.jsonl are never run again; an
 episode whose result.json exists but never reached the ledger (killed in between) is adopted;
@@ -52,6 +52,7 @@ from vabench.agent.learning import LearningLimits
 from vabench.agent.records import EpisodeRecorder, EpisodeResult
 from vabench.agent.services import task_services
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.llm_pool.config import ModelEndpoint
 from vabench.llm_pool.errors import RequestRejected, SpendCapReached
 from vabench.llm_pool.pool import LLMPool
@@ -64,14 +65,13 @@ from vabench.report.spend import recorded_spend
 from vabench.sim_mjx.backends import Choice
 from vabench.sim_mjx.interface import DeviceFailure, device_failure
 from vabench.sim_mjx.warp.device import warp_device
-from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
-from vabench.sweep.inflight import InFlight
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
 from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
 from vabench.tuning import hostload
+from vabench.tuning.inflight import InFlight
 from vabench.tuning.precompile import Compiling
 
 log = logging.getLogger(__name__)
