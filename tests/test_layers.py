@@ -28,8 +28,9 @@ LAYERS: tuple[frozenset[str], ...] = tuple(
         "tasks",  # task families over the simulator
         "render llm_pool reference_agent",  # images, model calls and their limit board, the
         # non-LLM agent
-        "agent seeds demos tuning",  # episodes, learning sessions; seed screening; demonstrations;
-        # the GPU and host tuning beneath the sweep
+        "seeds demos tuning",  # seed screening; demonstrations; the GPU and host tuning
+        # beneath the sweep
+        "agent",  # episodes, learning sessions and the learning stage of a run directory
         "run_records",  # a sweep's results.jsonl read back
         "diagnostics",  # annotations and agreement statistics of recorded episodes
         "report config",  # tables of a run; the sweep's config and its machine choices

@@ -37,7 +37,7 @@ embedded-server policies. Every problem found becomes one line of a single `Swee
 Tracks: a track is a camera protocol, a task suite and a summary mode. `active` and `passive`
 run the selected `tasks`; `transfer` runs the held-out variants (`<base>_heldout`) of the
 selected base families; `long_horizon` runs the basket task. Every track reads summaries learned
-from demonstrations (vabench.sweep.summaries): `own` (the model's own, learned once per family
+from demonstrations (vabench.agent.learning_stage): `own` (the model's own, learned once per family
 in a learning stage), `shared:<model>` (another model's) or `none`. A custom track such as
 `{name: active_none, protocol: active, summaries: none}` runs a summary-source ablation next to
 `active` in the same sweep.

@@ -262,7 +262,7 @@ class _ResearcherLines(logging.Filter):
     the engine's statistics (host load, stages, render workers, GPU waits) go to the run
     directory's log only."""
 
-    SHOWN = ("vabench.sweep", "vabench.sweep.summaries")
+    SHOWN = ("vabench.sweep", "vabench.agent.learning_stage")
 
     def __init__(self) -> None:
         super().__init__()
