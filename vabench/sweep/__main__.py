@@ -67,12 +67,13 @@ from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, NoReturn  # noqa: E402
 
+from vabench.check import plan_line, sweep_models  # noqa: E402
 from vabench.check.latency import measured as check_latencies  # noqa: E402
 from vabench.check.pace import estimate_lines, keep_pace, machine_paces  # noqa: E402
 from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfig, SweepConfigError, load_config  # noqa: E402
 from vabench.config.choices import apply_switches, choose  # noqa: E402
-from vabench.config.keys import KeySources, key_sources  # noqa: E402
+from vabench.config.keys import key_sources  # noqa: E402
 from vabench.config.overrides import OverrideError, Overrides  # noqa: E402
 from vabench.config.overrides import add_arguments as add_overrides  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
@@ -169,10 +170,10 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     if given.line() is not None:
         print(given.line())
     if args.dry_run:
-        _print_key_sources(config, keys_from)
+        _print_lines(*keys_from.dry_run_lines(config.models))
         print(format_estimate(estimate(config, keys)))
         print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
-        print(f"  {_check_plan(config, keys, args.no_check)}")
+        print(f"  {plan_line(config, {k.model for k in keys}, args.no_check)}")
         problem = run_dir_problem(run_dir, config, keys)  # what the run would refuse
         if problem is not None:
             print(f"error: {problem}", file=sys.stderr)
@@ -327,28 +328,15 @@ def _start_line(configuring: float) -> str:
     )
 
 
-def _check_plan(config: SweepConfig, keys: Sequence[EpisodeKey], skipped: bool) -> str:
-    """The dry run's line on the sweep's first step (`vabench.check`)."""
-    if skipped:
-        return "check:     skipped (--no-check)"
-    models = {k.model for k in keys} - set(config.embedded_models)
-    if not models:
-        return "check:     none needed (every model is the embedded server's)"
-    return (
-        f"check:     first, one decision for each of {len(models)} model(s) with the sweep's "
-        "inputs (python -m vabench.check; --no-check skips it)"
-    )
-
-
 def _check_endpoints(config: SweepConfig, keys: Sequence[EpisodeKey]) -> int:
     """The sweep's first step (`vabench.check`): 2, with one line per problem and its fix, when
     some model's endpoint cannot serve the sweep as configured."""
-    planned = {k.model for k in keys}
-    if not planned - set(config.embedded_models):
-        return 0  # the embedded server has none of the limits the check looks for
+    models = sweep_models(config, {k.model for k in keys})
+    if not models:
+        return 0
     from vabench.check import check_sync, problems, report_text
 
-    reports = check_sync(config, os.environ, [m.name for m in config.models if m.name in planned])
+    reports = check_sync(config, os.environ, models)
     for row in report_text(reports).splitlines():
         log.info(row)
     found = problems(reports)
@@ -360,20 +348,6 @@ def _check_endpoints(config: SweepConfig, keys: Sequence[EpisodeKey]) -> int:
             file=sys.stderr,
         )
     return 2 if found else 0
-
-
-def _print_key_sources(config: SweepConfig, keys_from: KeySources) -> None:
-    """The dry run's word on keys: which variables the `.env` file gave (names only) and, one
-    line each, the models whose key is set nowhere (the real run refuses to start)."""
-    if keys_from.from_file:
-        print(f"keys from {keys_from.file}: {', '.join(keys_from.from_file)}")
-    for model, variable in keys_from.unset(config.models):
-        print(
-            f"warning: model {model!r}: environment variable {variable} is not set (its "
-            f"api_key_env): the run will refuse to start until it is exported or put in "
-            f"{keys_from.file}",
-            file=sys.stderr,
-        )
 
 
 def _print_where_and_how_long(
@@ -397,7 +371,10 @@ def _print_where_and_how_long(
     if not left:
         print("wall time: nothing left to run")
         return
-    lines, warnings = estimate_lines(config, left, run_dir, machine_paces(), check_latencies())
+    _print_lines(*estimate_lines(config, left, run_dir, machine_paces(), check_latencies()))
+
+
+def _print_lines(lines: Sequence[str], warnings: Sequence[str]) -> None:
     for line in lines:
         print(line)
     for line in warnings:

@@ -43,6 +43,7 @@ from typing import Any
 from vabench import switches
 from vabench.children import (
     CORES_VARIABLE,
+    child_logging,
     children_ignore_sigint,
     exit_with_parent,
     ignore_sigint,
@@ -56,7 +57,7 @@ from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import RunDir
 from vabench.sim_mjx.warp.device import warp_device
-from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups, worker_logging
+from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups
 from vabench.sweep.chunk_engine import (
     LOST,
     WORKER_ENVIRONMENT,
@@ -160,7 +161,7 @@ def _worker(spec: WorkerSpec, commands: Connection, lines: Connection) -> None:
     """An engine process's main: serve chunks until told to close or the parent is gone."""
     ignore_sigint()  # the driver ends this process
     exit_with_parent(spec.parent)  # its own children (render workers) see their pipes close
-    worker_logging(RunDir(spec.run_dir))
+    child_logging(RunDir(spec.run_dir).worker_log(os.getpid()))
     kernel_profile.record_in_background()  # where VABENCH_KERNEL_PROFILE asks for it
     # `profiling.cprofile_dir`: a cProfile of this process's event loop thread over its life
     # (`<pid>-<first episode>.prof`): the engine, the model client, an embedded server in its
