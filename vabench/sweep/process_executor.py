@@ -1,27 +1,21 @@
 """`executor: processes`: the sweep's engines as spawned worker processes of one host, under the
 one driver (`driver.Driver`).
 
-For hosts where one sweep process is CPU-bound: C MuJoCo rollouts (one core per process), a
-CPU-heavy embedded policy, the learning stage's demonstration builds; and, with batched physics
-(Warp, MJX), engine processes sharing a GPU, for a process bound by Python's interpreter lock
-(with CUDA MPS; without it their contexts take turns on the GPU). The cells are cut into chunks
-so that the last processes to finish do not leave the others' cores idle (`cells.chunks`); with
-batched physics whole tasks are dealt over the engines instead, each stepping one batch per
-task of its chunk, all at once (`cells.bins`, `plan_chunks`). Each engine process holds one
-`chunk_engine.ChunkEngine` (its own LLM pool, embedded server, render workers) for its life
-and runs one chunk at a time, on the sweep's `Choices`, sent to it with the validated config,
-so the records equal those of the local executor.
+For hosts where one sweep process is CPU-bound (C MuJoCo rollouts, a CPU-heavy embedded policy,
+demonstration builds) and, with batched physics, for engine processes sharing a GPU under CUDA
+MPS. Cells are cut into chunks so that the last processes to finish do not leave the others'
+cores idle (`cells.chunks`); with batched physics whole tasks are dealt over the engines, each
+stepping one batch per task of its chunk (`cells.bins`, `plan_chunks`). Each process holds one
+`chunk_engine.ChunkEngine` for its life and runs its chunks on the sweep's `Choices`, so the
+records equal those of the local executor.
 
 Each process is spawned (never forked: the parent holds JAX and thread pools) and talks to the
 driver over two pipes: it receives chunks and sends each ledger line, chunk summary and a
-status every second. Its death (out of memory, a crash in native code) costs only its own
-chunk's unfinished episodes. It watches its parent and exits at once when the parent is gone
-(`children.exit_with_parent`), so a SIGKILL of the sweep leaves no process calling a model;
-it ignores Ctrl-C, which the driver handles.
-
-The engines' environment is `tuning.engine_env`'s: JAX off the GPU's memory, each engine's
-share of the host's cores and its GPU, and under MPS the critical path's engine at the normal
-priority, the others below it (`critical_environment`; docs/PERFORMANCE.md).
+status every second. Its death costs only its chunk's unfinished episodes. It exits when its
+parent is gone (`children.exit_with_parent`) and ignores Ctrl-C, which the driver handles. Its
+environment is `tuning.engine_env`'s: each engine's share of the cores and its GPU, and under
+MPS the critical path's engine at the normal priority, the others below it
+(`critical_environment`).
 """
 
 from __future__ import annotations
@@ -60,7 +54,6 @@ from vabench.sim_mjx.warp.device import warp_device
 from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups
 from vabench.sweep.chunk_engine import (
     LOST,
-    WORKER_ENVIRONMENT,
     BoardLink,
     ChunkEngine,
     Command,
@@ -348,7 +341,7 @@ class ProcessEngines(Engines):
             self.env.update(devices)
         seen = {
             k: v
-            for k in WORKER_ENVIRONMENT
+            for k in engine_env.REPORTED
             if (v := self.env.get(k, os.environ.get(k))) is not None
         }
         log.info(

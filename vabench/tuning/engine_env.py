@@ -29,6 +29,15 @@ from vabench.tuning import mps
 
 log = logging.getLogger(__name__)
 
+REPORTED = (
+    "JAX_PLATFORMS",
+    "XLA_PYTHON_CLIENT_PREALLOCATE",
+    "CUDA_VISIBLE_DEVICES",
+    CORES_VARIABLE,
+    mps.PRIORITY_VARIABLE,
+)
+"""What an engine reports of its environment (its start line, the driver's log)."""
+
 
 def child_environment(physics: Choice, environ: Mapping[str, str] = os.environ) -> dict[str, str]:
     """The JAX variables (see the module docstring) not already set in `environ`, and the
