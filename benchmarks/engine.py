@@ -83,8 +83,8 @@ def gpu_clients(args, processes):
     import contextlib
 
     from vabench.children import CORES_VARIABLE
+    from vabench.config.choices import this_machine
     from vabench.sim_mjx.warp.device import GPU_SHARE
-    from vabench.sweep.choices import this_machine
     from vabench.tuning import mps
 
     stack = contextlib.ExitStack()

@@ -6,7 +6,7 @@ For 1, 2 and 4 worker processes (spawned, each with its own LLM pool, as the pro
 executor's workers), every process sends `--calls` calls at once to one embedded server on
 loopback that enforces `--rpm` requests per `--period` seconds (its `rpm`, `rate_period_s`).
 The pools' limits are the same `rpm` and period, taken either from the sweep's limit board in
-this process (`sweep.board_socket`, what the processes executor does) or, the baseline, kept
+this process (`llm_pool.board_socket`, what the processes executor does) or, the baseline, kept
 by each process alone. Prints per row the busiest window of the period the server saw
 (requests), the limit, and the 429s it sent. With the board the busiest window stays at or
 under the limit and the server sends none, whatever the number of processes.
@@ -20,10 +20,10 @@ import multiprocessing
 import time
 
 from vabench.llm_pool import ChatRequest, LLMPool, Turn
+from vabench.llm_pool.board_socket import BoardAddress, BoardServer, joined
+from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.server import ServerConfig
 from vabench.llm_pool.testing import max_in_window, server_in_thread
-from vabench.sweep.board_socket import BoardAddress, BoardServer, joined
-from vabench.sweep.limiter import LimitBoard
 
 
 def _worker(endpoint: dict, board: BoardAddress | None, calls: int, done) -> None:

@@ -116,8 +116,8 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     """Run the plan on `engines` engines (GPUs, with `--per-gpu`: that many engines each);
     returns its figures and outcomes."""
     from vabench.config import load_config
+    from vabench.config.choices import choose
     from vabench.run_layout import RunDir
-    from vabench.sweep.choices import choose
     from vabench.sweep.plan import plan
     from vabench.sweep.ray_executor import run_ray
     from vabench.sweep.rundir import check_run_dir
@@ -223,7 +223,7 @@ def main() -> None:
         type=int,
         default=None,
         help="engine processes a GPU (MPS); default: the sweep's own (4 where NVIDIA's MPS "
-        "control program is installed, else 1: `ray_plan.engines_per_gpu`)",
+        "control program is installed, else 1: `tuning.engine_env.engines_per_gpu`)",
     )
     p.add_argument("--json", type=Path)
     p.add_argument(
@@ -244,7 +244,7 @@ def main() -> None:
     import ray
 
     from vabench.sim_mjx.backends import resolve
-    from vabench.sweep.ray_plan import engines_per_gpu
+    from vabench.tuning.engine_env import engines_per_gpu
 
     counts = [int(n) for n in args.engines.split(",")]
     on_gpus = resolve(args.backend).batched

@@ -94,7 +94,7 @@ def synthetic(root: Path, size: int) -> SyntheticRun:
 
 def op_resume(run: SyntheticRun) -> Callable[[], dict[str, Any]]:
     from vabench.config import load_config
-    from vabench.sweep.choices import choose
+    from vabench.config.choices import choose
     from vabench.sweep.display import Tally
     from vabench.sweep.plan import plan
     from vabench.sweep.rundir import check_run_dir

@@ -18,7 +18,7 @@ os.environ.setdefault(
 os.environ.setdefault(
     "VABENCH_STATE_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "settled")
 )
-# `executor: auto` sizes itself from the cores (vabench.sweep.choices): the suite's sweeps run
+# `executor: auto` sizes itself from the cores (vabench.config.choices): the suite's sweeps run
 # as on the 2-core CI machine wherever it runs; tests of the other choices set their own.
 os.environ.setdefault("VABENCH_CORES", "2")
 
@@ -114,10 +114,9 @@ def _endpoint_check_only_where_tested(request, monkeypatch):
 @pytest.fixture(autouse=True)
 def _own_pace_file(tmp_path, monkeypatch):
     """Each test's sweeps and checks keep their measured pace and latencies in files of their
-    own, never the user's (`vabench.sweep.pace.pace_file`, `vabench.check.latency.latency_file`),
+    own, never the user's (`vabench.check.pace.pace_file`, `vabench.check.latency.latency_file`),
     so a dry run's estimate depends on the test alone."""
-    from vabench.check import latency
-    from vabench.sweep import pace
+    from vabench.check import latency, pace
 
     path = tmp_path / "pace_cache" / "pace.json"
     monkeypatch.setattr(pace, "pace_file", lambda: path)

@@ -1,4 +1,4 @@
-"""The limit board of worker processes (`sweep.board_socket`): real processes, each with its own
+"""The limit board of worker processes (`llm_pool.board_socket`): real processes, each with its own
 LLM pool, take their admissions and spend reservations from one board in this process, over
 its socket, and call one embedded server that enforces its rate limit. Together they never
 exceed it (the server refuses nothing); a spend cap holds exactly across them; a process that
@@ -17,12 +17,12 @@ import time
 import pytest
 
 from vabench.llm_pool import ChatRequest, LLMPool, Turn
+from vabench.llm_pool.board_socket import BoardAddress, BoardServer, joined
 from vabench.llm_pool.errors import SpendCapReached
+from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.server import ServerConfig
 from vabench.llm_pool.spend import SpendCaps
 from vabench.llm_pool.testing import max_in_window, server_in_thread
-from vabench.sweep.board_socket import BoardAddress, BoardServer, joined
-from vabench.sweep.limiter import LimitBoard
 
 R = 6
 LIMITS = {"rpm": R, "period_s": 1.0, "burst_s": 0.2, "max_concurrency": 8}
@@ -175,7 +175,7 @@ def test_a_dead_workers_slots_come_back_to_the_board():
 
 @pytest.mark.parametrize("method", ["admit", "nonexistent"])
 def test_a_bad_request_answers_an_error_and_the_board_lives_on(method):
-    from vabench.sweep.board_socket import SocketChannel
+    from vabench.llm_pool.board_socket import SocketChannel
 
     board = BoardServer(LimitBoard({"m": LIMITS}))
     address = board.start()

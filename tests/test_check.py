@@ -360,7 +360,7 @@ def test_a_context_cut_above_the_first_steps_floor_is_caught_by_the_long_probe(t
 
 def test_the_check_latency_bound_keeps_to_the_models_rpm_and_concurrency(config):
     from vabench.check.latency import CheckLatency
-    from vabench.sweep.pace import latency_line
+    from vabench.check.pace import latency_line
 
     cfg = load_config(config, require_keys=False)
     check = CheckLatency(latency_s=2.0, checked_at=0.0)

@@ -10,8 +10,8 @@ import threading
 from pathlib import Path
 
 from vabench.config import load_config
+from vabench.config.choices import choose
 from vabench.sweep import chunk_engine
-from vabench.sweep.choices import choose
 from vabench.sweep.local_executor import run_local
 from vabench.sweep.plan import plan
 from vabench.sweep.rundir import check_run_dir

@@ -26,13 +26,15 @@ LAYERS: tuple[frozenset[str], ...] = tuple(
         "protocol",  # the model-facing decisions
         "sim_mjx",  # physics backends and the executor
         "tasks",  # task families over the simulator
-        "render llm_pool reference_agent",  # images, model calls, the non-LLM agent
-        "agent seeds demos tuning",  # episodes, learning sessions; seed screening; demonstrations;
-        # the GPU and host tuning beneath the sweep
+        "render llm_pool reference_agent",  # images, model calls and their limit board, the
+        # non-LLM agent
+        "seeds demos tuning",  # seed screening; demonstrations; the GPU and host tuning
+        # beneath the sweep
+        "agent",  # episodes, learning sessions and the learning stage of a run directory
         "run_records",  # a sweep's results.jsonl read back
         "diagnostics",  # annotations and agreement statistics of recorded episodes
-        "report config",  # tables of a run; the sweep's config
-        "check",  # each model's endpoint tried once with the sweep's inputs
+        "report config",  # tables of a run; the sweep's config and its machine choices
+        "check",  # each model's endpoint tried once with the sweep's inputs; the dry run's pace
         "sweep view episode replay",  # the commands
     )
 )

@@ -11,13 +11,13 @@ import json
 
 from vabench.agent.demonstration import DemoFrames
 from vabench.agent.learning import learn_summary
+from vabench.agent.learning_stage import load_demo_frames
 from vabench.agent.visibility import Secret, episode_secrets, find_leaks
 from vabench.demos import build_demo, load_demo
 from vabench.demos.store import CACHE_DIR
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.camera import head_view
-from vabench.sweep.summaries import load_demo_frames
 from vabench.tasks import get_task
 from vabench.tasks.base import Task
 from vabench.tasks.task_batch import TaskBatch

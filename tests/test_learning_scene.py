@@ -17,13 +17,13 @@ from typing import Any
 from engine_util import STOP, count_images, run_scripted, user_texts
 
 from vabench.agent.learning import learn_summary
+from vabench.agent.learning_stage import load_demo_frames
 from vabench.demos import build_demo, load_demo
 from vabench.demos.build import DEMO_SETTINGS
 from vabench.demos.store import CACHE_DIR
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.worker import RenderPool
-from vabench.sweep.summaries import load_demo_frames
 from vabench.tasks import get_task
 
 TASK = "grasp_single_cube"

@@ -15,6 +15,7 @@ from typing import get_args
 import pytest
 
 import vabench
+from vabench.agent.usage import Assumptions, episode_usage
 from vabench.llm_pool import ChatRequest, GenerationOptions, LLMPool, Turn
 from vabench.llm_pool.apis import ADAPTERS, get_adapter
 from vabench.llm_pool.apis.base import ApiAdapter
@@ -23,7 +24,6 @@ from vabench.llm_pool.config import ApiName, ConfigError, ModelEndpoint, load_en
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.llm_pool.testing import synthetic_image
 from vabench.llm_pool.tokens import openai_image_tokens
-from vabench.sweep.plan import Assumptions, episode_usage
 
 ROOT = Path(vabench.__file__).parent
 REGISTRY_DIR = ROOT / "llm_pool" / "apis"

@@ -12,15 +12,12 @@ from pathlib import Path
 import pytest
 import yaml
 
+from vabench.agent.usage import Assumptions, Usage, cost, episode_usage
 from vabench.config import SweepConfig, load_config
 from vabench.llm_pool.config import Prices
 from vabench.sweep.plan import (
     FIRST_RUN,
-    Assumptions,
     EpisodeKey,
-    Usage,
-    cost,
-    episode_usage,
     estimate,
     format_estimate,
     learning_sessions,

@@ -1,5 +1,5 @@
-"""The limit board of a Ray sweep (`sweep.limiter.LimiterActor`): four actors, each with its own
-LLM pool, against one embedded server that enforces its rate limit and counts what it gets.
+"""The limit board of a Ray sweep (`llm_pool.limit_board.LimiterActor`): four actors, each with its
+own LLM pool, against one embedded server that enforces its rate limit and counts what it gets.
 Together they never exceed it (the server refuses nothing) and all finish; a Retry-After one
 of them is told holds the others too. Windows are 1 s instead of a minute: the code is the
 same. The same board in one process, with the control (four pools with limits of their own
@@ -13,8 +13,8 @@ import asyncio
 import pytest
 import ray
 
+from vabench.llm_pool.limit_board import LimiterActor
 from vabench.llm_pool.testing import max_in_window
-from vabench.sweep.limiter import LimiterActor
 
 # The client is set 10 % under what the server enforces (as in test_llm_pool_limits.py).
 LIMITS = {"rpm": 18, "tpm": 3600, "period_s": 1.0, "burst_s": 0.1, "max_concurrency": 20}
@@ -59,7 +59,7 @@ def actors():
             self, endpoint: dict, calls: int, holder: str, limiter, after_pause: bool = False
         ) -> list[int]:
             from vabench.llm_pool import ChatRequest, LLMPool, Turn
-            from vabench.sweep.limiter import BoardLimits, RayChannel
+            from vabench.llm_pool.limit_board import BoardLimits, RayChannel
 
             while after_pause and (await limiter.stats.remote())["m"]["paused_s"] <= 0:
                 await asyncio.sleep(0.01)  # until another actor's Retry-After paused the board

@@ -37,7 +37,7 @@ from vabench.llm_pool.apis.anthropic import ANTHROPIC_VERSION
 from vabench.llm_pool.apis.base import encode_body
 from vabench.llm_pool.config import GenerationOptions, ModelEndpoint
 from vabench.llm_pool.server import LocalServer, ServerConfig
-from vabench.sweep.plan import stand_in_jpeg
+from vabench.llm_pool.tokens import stand_in_jpeg
 
 KEY = "sk-conformance"
 PARAMS = {

@@ -1,6 +1,6 @@
-"""Limits shared by several processes (`llm_pool.shared_limits.SharedLimits` against the board of
-`sweep.limiter`), here in one loop with the board reached through `LocalChannel`: what crosses
-a process boundary in a Ray sweep is the same calls. The Ray version is
+"""Limits shared by several processes (`llm_pool.shared_limits.SharedLimits` against the board
+of `llm_pool.limit_board`), here in one loop with the board reached through `LocalChannel`: what
+crosses a process boundary in a Ray sweep is the same calls. The Ray version is
 tests/test_ray_limiter.py. Windows are 1 s instead of a minute: the code is the same."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ from __future__ import annotations
 import asyncio
 
 from vabench.llm_pool import ChatRequest, LLMPool, Turn
+from vabench.llm_pool.limit_board import BoardLimits, LimitBoard, LocalChannel
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.llm_pool.testing import max_in_window
-from vabench.sweep.limiter import BoardLimits, LimitBoard, LocalChannel
 
 REQUEST = ChatRequest([Turn.user("ping")])
 # The client is set 10 % under what the server enforces, its burst scaled to the 1 s period,

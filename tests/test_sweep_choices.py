@@ -1,4 +1,4 @@
-"""The fastest path by default (vabench.sweep.choices): what `auto` picks for physics, renderer
+"""The fastest path by default (vabench.config.choices): what `auto` picks for physics, renderer
 and executor on which machine, said by `--dry-run` with the reasons; the environment worker
 processes get on a GPU host; and the processes executor on a CUDA-like host (a fake
 CUDA_VISIBLE_DEVICES listing two GPUs) losing nothing."""
@@ -13,18 +13,17 @@ from dataclasses import replace
 import pytest
 
 from vabench.config import ExecutorOptions
-from vabench.sim_mjx.backends import Choice, Physics
-from vabench.sweep.__main__ import main
-from vabench.sweep.choices import (
+from vabench.config.choices import (
     Choices,
     Machine,
-    child_environment,
     choose,
-    gpu_for_worker,
     resolve_executor,
     this_machine,
     visible_gpus,
 )
+from vabench.sim_mjx.backends import Choice, Physics
+from vabench.sweep.__main__ import main
+from vabench.tuning.engine_env import child_environment, gpu_for_worker
 
 
 @pytest.mark.parametrize(
@@ -107,8 +106,8 @@ def test_engine_processes_share_a_gpu_under_mps_where_it_is_installed(
 def test_the_episodes_in_flight_on_a_gpu_are_shared_by_its_engine_processes(monkeypatch):
     """`executor.max_episodes` (1,024 in configs/all.yaml) stays the GPU's: 4 engine processes
     sharing it keep 256 each in flight, the layout measured."""
+    from vabench.config import choices as choices_module
     from vabench.config import load_config
-    from vabench.sweep import choices as choices_module
 
     monkeypatch.setattr(choices_module, "resolve", lambda *a, **k: Choice(Physics.WARP, ""))
     config = load_config("configs/all.yaml")
@@ -220,7 +219,7 @@ def test_auto_runs_worker_processes_on_a_cuda_like_host_and_loses_nothing(
 def test_batched_physics_fills_its_batch_instead_of_adapting(tmp_path, capsys):
     """MJX (and MuJoCo Warp) step every slot of a batch for the price of one: `in_flight: auto`
     holds the ceiling there and says why; C MuJoCo adapts."""
-    from vabench.sweep.inflight import BATCHED, InFlight
+    from vabench.tuning.inflight import BATCHED, InFlight
 
     cfg = tmp_path / "mjx.yaml"
     cfg.write_text(CONFIG.format(extra="simulator: {backend: mjx}"))
@@ -261,7 +260,7 @@ def test_the_embedded_server_is_sized_to_the_engine_process_share(tmp_path, core
     """configs/all.yaml's server: a sweep process sizes its embedded server to its cores; a
     worker process of `processes` to its share (16 workers on 16 cores serve in-process)."""
     from vabench.config import load_config
-    from vabench.sweep.choices import choose
+    from vabench.config.choices import choose
 
     cfg = tmp_path / "sweep.yaml"
     cfg.write_text(
@@ -304,8 +303,8 @@ def test_one_resolution_per_command_and_the_local_executor_runs_what_the_dry_run
     where the config says auto) is the rule its gate holds."""
     import vabench.sweep.__main__ as command
     from vabench.sweep import chunk_engine
-    from vabench.sweep.inflight import InFlightRule
     from vabench.sweep.runner import LocalSweep
+    from vabench.tuning.inflight import InFlightRule
 
     cfg = tmp_path / "sweep.yaml"
     cfg.write_text(CONFIG.format(extra="executor: {kind: local}"))
@@ -342,9 +341,9 @@ def test_worker_processes_run_on_the_choices_they_are_sent(tmp_path, monkeypatch
     `Choices` they are sent: the in-flight rule they report is the one sent, not one derived
     from the config again."""
     from vabench.config import load_config
-    from vabench.sweep.inflight import InFlightRule
     from vabench.sweep.plan import plan
     from vabench.sweep.process_executor import run_processes
+    from vabench.tuning.inflight import InFlightRule
 
     cfg = tmp_path / "sweep.yaml"
     cfg.write_text(CONFIG.format(extra="executor: {kind: processes, max_tasks: 1}"))

@@ -22,8 +22,8 @@ import ray
 from ray.cluster_utils import Cluster
 
 from vabench.config import load_config
+from vabench.config.choices import choose
 from vabench.run_layout import RESULTS
-from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.ray_executor import run_ray
 

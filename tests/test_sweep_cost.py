@@ -220,7 +220,7 @@ def test_a_cap_holds_across_two_worker_processes(tmp_path, capsys):
 
 def test_auto_keeps_its_layout_with_a_cap(tmp_path):
     from vabench.config import load_config
-    from vabench.sweep.choices import Machine, choose
+    from vabench.config.choices import Machine, choose
 
     cfg = write(tmp_path / "c.yaml", paid("priced", cap=5))
     chosen = choose(load_config(cfg, environ={}), Machine(32, ()))

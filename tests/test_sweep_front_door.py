@@ -193,7 +193,7 @@ def test_dry_run_names_the_output_the_summary_modes_and_a_measured_wall_time(tmp
 
 
 def test_the_pace_leaves_out_the_time_between_a_stop_and_its_resumption():
-    from vabench.sweep.pace import _union_length
+    from vabench.check.pace import _union_length
 
     assert _union_length([(100.0, 110.0), (0.0, 10.0), (5.0, 15.0), (6.0, 7.0)]) == 25.0
 

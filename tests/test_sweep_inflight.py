@@ -1,4 +1,4 @@
-"""The adaptive in-flight limit (vabench.sweep.inflight).
+"""The adaptive in-flight limit (vabench.tuning.inflight).
 
 The controller is driven by a closed-loop model of a sweep, where the answer is known: N
 episodes in flight share a stage of K parallel servers taking `s` seconds per decision, after
@@ -20,7 +20,7 @@ import random
 import pytest
 
 from vabench.sweep.__main__ import main
-from vabench.sweep.inflight import InFlight, LimitController
+from vabench.tuning.inflight import InFlight, LimitController
 
 
 def decision_time(n: int, latency: float, service: float, servers: int) -> float:

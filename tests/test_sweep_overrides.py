@@ -1,4 +1,4 @@
-"""The sweep's quick-trial flags (`vabench.sweep.overrides`), each through the command: they
+"""The sweep's quick-trial flags (`vabench.config.overrides`), each through the command: they
 edit the config before it is checked, the dry run lists them with the resulting plan, a real
 run records exactly the overridden plan (and refuses a resume under other overrides), a bad
 name or value is one line naming it and the flag, and `--model NAME --model-base-url URL`

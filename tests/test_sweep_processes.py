@@ -12,8 +12,8 @@ import re
 
 from vabench import switches
 from vabench.config import load_config
+from vabench.config.choices import choose
 from vabench.sweep.__main__ import main
-from vabench.sweep.choices import choose
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.process_executor import run_processes
 

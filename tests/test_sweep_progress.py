@@ -10,8 +10,8 @@ import json
 import re
 
 from vabench.config import load_config
+from vabench.config.choices import choose
 from vabench.sweep.__main__ import main
-from vabench.sweep.choices import choose
 from vabench.sweep.display import Counts, Display, Status, Tally
 from vabench.sweep.driver import merged_status
 from vabench.sweep.plan import EpisodeKey, plan

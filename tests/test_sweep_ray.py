@@ -23,9 +23,9 @@ import pytest
 import ray
 
 from vabench.config import SweepConfigError, load_config
+from vabench.config.choices import choose
 from vabench.run_layout import WORKER_LOG_PREFIX
 from vabench.sweep.__main__ import main
-from vabench.sweep.choices import choose
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.ray_executor import engine_plan, run_ray
 from vabench.sweep.ray_plan import engine_environment

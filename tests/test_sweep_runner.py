@@ -10,9 +10,9 @@ import json
 from pathlib import Path
 
 from vabench.config import load_config
+from vabench.config.choices import choose
 from vabench.run_layout import DUPLICATES, INFRASTRUCTURE, RESULTS
 from vabench.sweep.__main__ import main
-from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.results import Ledger, key_of
 from vabench.sweep.runner import LocalSweep

@@ -19,7 +19,9 @@ from engine_util import FAST_RETRY, reply, tool
 
 from vabench import protocol as P
 from vabench.agent.learning import LearningResult, read_result, write_result
+from vabench.agent.learning_stage import LEARNING_ATTEMPTS, SummaryRecordError, SummaryStage
 from vabench.config import load_config
+from vabench.config.choices import choose
 from vabench.demos.store import CACHE_DIR
 from vabench.llm_pool.apis.base import IncomingRequest
 from vabench.llm_pool.policies import PolicyError
@@ -28,10 +30,8 @@ from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.report import make_report
 from vabench.report.spend import bill
 from vabench.run_layout import RunDir
-from vabench.sweep.choices import choose
 from vabench.sweep.plan import plan
 from vabench.sweep.runner import LocalSweep
-from vabench.sweep.summaries import LEARNING_ATTEMPTS, SummaryRecordError, SummaryStage
 from vabench.tasks import get_task
 
 TASK = "grasp_single_cube"
@@ -243,9 +243,9 @@ def test_a_task_with_atomic_demonstrations_learns_from_all_of_them_in_one_index(
     frame index; a held-out variant gets its base family's video."""
     from dataclasses import replace
 
+    from vabench.agent.learning_stage import load_demo_frames
     from vabench.demos import load_demo
     from vabench.demos.store import CACHE_DIR
-    from vabench.sweep.summaries import load_demo_frames
     from vabench.tasks import BASKET_DEMONSTRATIONS, get_task
 
     composite = replace(get_task(TASK), name="composite", demonstrations=BASKET_DEMONSTRATIONS)

@@ -18,9 +18,10 @@ import yaml
 
 from vabench import switches
 from vabench.config import SweepConfig, SweepConfigError, load_config
+from vabench.config.choices import choose
 from vabench.sim_mjx.backends import resolve
-from vabench.sweep.choices import child_environment, choose
 from vabench.switches import SWITCHES, Cache, Folder, SwitchError, Text
+from vabench.tuning.engine_env import child_environment
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = {"name": "m", "api": "openai_chat", "base_url": "http://127.0.0.1:9/v1"}
@@ -205,7 +206,7 @@ def test_jax_is_set_again_from_switches_that_arrive_after_its_import(tmp_path):
         "import os, jax\n"
         "from vabench.sim_mjx import jax_setup\n"
         "from vabench.sim_mjx.backends import resolve\n"
-        "from vabench.sweep.choices import configure_jax\n"
+        "from vabench.tuning.engine_env import configure_jax\n"
         "def now():\n"
         "    return jax.config.jax_default_matmul_precision, jax.config.jax_compilation_cache_dir\n"
         "before = now()\n"

@@ -15,16 +15,19 @@ each of its worker processes to that worker's share of the host (`executor: proc
 that 16 workers on 16 cores do not each start pools sized for all 16 (16 cell workers each
 starting 8 policy processes of the embedded server would be 128 processes on 16 cores); the
 test suite pins it so that its sweeps run the same way on any machine.
+
+Logs: a child logs to a file of its own, warnings also to the console (`child_logging`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import signal
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 from vabench import switches
@@ -120,3 +123,32 @@ def visible_gpus(environ: Mapping[str, str] = os.environ) -> tuple[str, ...]:
     driver = Path("/proc/driver/nvidia/gpus")
     n = len(list(driver.iterdir())) if driver.is_dir() else 0
     return tuple(str(i) for i in range(n))
+
+
+def child_logging(path: Path, console: Sequence[str] = ()) -> None:
+    """Logging for a process the sweep started (a processes worker, a Ray engine): it starts
+    with none, and its INFO lines (stage lines, "host:" lines, what the engine chose, the
+    kernels' compilation) go to its own file `path` (in the run directory), its warnings to
+    the console, and so do the INFO lines of the loggers named in `console` (a Ray engine's
+    console is the driver's, prefixed with the actor)."""
+    root = logging.getLogger()
+    if any(getattr(h, "baseFilename", None) == os.path.abspath(path) for h in root.handlers):
+        return  # set up already (an initializer run twice in one process)
+    with contextlib.suppress(OSError):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        to_file = logging.FileHandler(path, encoding="utf-8")
+        to_file.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+        root.addHandler(to_file)
+    if any(type(h) is logging.StreamHandler for h in root.handlers):
+        root.setLevel(logging.INFO)
+        return  # a console set up already (e.g. Ray's `logging_config`): lines once, not twice
+    shown = tuple(console)
+
+    def on_console(record: logging.LogRecord) -> bool:
+        return record.levelno >= logging.WARNING or record.name.startswith(shown or "\0")
+
+    to_console = logging.StreamHandler()
+    to_console.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+    to_console.addFilter(on_console)
+    root.addHandler(to_console)
+    root.setLevel(logging.INFO)

@@ -8,6 +8,8 @@
 - `conversation`: `Conversation`, the episode thread: image retention, repair and tool turns,
   compaction through an injected summarizer, the append-only transcript.
 - `tools`: `geometry.verify` and `camera.history` results.
+- `learning_stage`: the learning sessions a run directory needs, each learned once and stored.
+- `usage`: an episode's model calls and tokens estimated before it runs (the dry run's bound).
 
 The episode loop (`engine`) is built on these; importing this package loads neither JAX nor
 the simulator.

@@ -35,7 +35,7 @@ repairs that run out end the session `refused`, `truncated` or `invalid_output`;
 beyond the model's context window ends it `context_exceeded` (the session does not compact).
 
 Expected failures come back as a `LearningResult` with `status="failed"` and a `stop_reason`
-(the sweep runs such a session again, up to three attempts: `vabench.sweep.summaries`);
+(the sweep runs such a session again, up to three attempts: `vabench.agent.learning_stage`);
 provider failures that outlast the pool's retries become `status="infrastructure_error"`
 (re-run, like evaluation episodes), a request the provider rejects `status="error"`.
 

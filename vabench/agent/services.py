@@ -40,7 +40,7 @@ class TaskServices:
     settings: EngineSettings = field(default_factory=EngineSettings)
     on_decision: Callable[[EpisodeSpec, float], None] | None = None
     """Told the wall time of every decision an episode completes (observation, model calls,
-    action): the sweep sizes the episodes it keeps in flight from it (`sweep.inflight`)."""
+    action): the sweep sizes the episodes it keeps in flight from it (`tuning.inflight`)."""
 
 
 @contextlib.asynccontextmanager

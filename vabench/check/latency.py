@@ -3,7 +3,7 @@ dry run can time a real model no sweep has measured on this machine yet.
 
 Each check of an API model that answers without a problem writes its latency to
 `latency_file()` (the user's cache, keyed by host name, the latest check of a kind replacing
-the one before); `sweep.pace` reads it where it has no measured pace of that kind. A kind is
+the one before); `check.pace` reads it where it has no measured pace of that kind. A kind is
 `api_kind`: the API, the provider's model and the image size, as the sweep's pace keys it
 (the check's request carries the sweep's heaviest images, so another size is another kind).
 Writing never fails a check.

@@ -37,7 +37,7 @@ embedded-server policies. Every problem found becomes one line of a single `Swee
 Tracks: a track is a camera protocol, a task suite and a summary mode. `active` and `passive`
 run the selected `tasks`; `transfer` runs the held-out variants (`<base>_heldout`) of the
 selected base families; `long_horizon` runs the basket task. Every track reads summaries learned
-from demonstrations (vabench.sweep.summaries): `own` (the model's own, learned once per family
+from demonstrations (vabench.agent.learning_stage): `own` (the model's own, learned once per family
 in a learning stage), `shared:<model>` (another model's) or `none`. A custom track such as
 `{name: active_none, protocol: active, summaries: none}` runs a summary-source ablation next to
 `active` in the same sweep.
@@ -47,7 +47,9 @@ The result, `SweepConfig`, is resolved: explicit tracks, task names and the seed
 to RUN_DIR/sweep.yaml) which `load_config` reads back to an equal config.
 
 Modules: `schema` (the sections and `SweepConfig`), `load` (reading the file), `resolve` (the
-checks pydantic cannot make; tracks, tasks and seeds), `problems` (errors naming the field).
+checks pydantic cannot make; tracks, tasks and seeds), `problems` (errors naming the field),
+`overrides` (the command line's quick-trial flags, applied to the document before it is
+checked), `choices` (every `auto` of a config resolved for this machine, once, as `Choices`).
 """
 
 from vabench.config.load import load_config

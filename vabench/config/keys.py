@@ -44,6 +44,18 @@ class KeySources:
             if m.api_key_env is not None and not self.environ.get(m.api_key_env)
         ]
 
+    def dry_run_lines(self, models: Sequence[ModelEndpoint]) -> tuple[list[str], list[str]]:
+        """(lines, warnings) of the dry run on keys: which variables the `.env` file gave
+        (names only), and each model whose key is set nowhere (the real run refuses to start)."""
+        lines = [f"keys from {self.file}: {', '.join(self.from_file)}"] if self.from_file else []
+        warnings = [
+            f"warning: model {model!r}: environment variable {variable} is not set (its "
+            f"api_key_env): the run will refuse to start until it is exported or put in "
+            f"{self.file}"
+            for model, variable in self.unset(models)
+        ]
+        return lines, warnings
+
     def added(self) -> dict[str, str]:
         """The variables the run adds to its own environment (from the file)."""
         return {name: self.environ[name] for name in self.from_file}

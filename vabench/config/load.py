@@ -58,7 +58,7 @@ def load_config(
     (`--dry-run`, which warns of them instead: `keys.KeySources.unset`), and where the
     `VABENCH_*` variables that override config fields are read (`vabench.switches`). `edit`
     rewrites the document after the overrides, before it is checked (the command line's
-    quick-trial flags, `sweep.overrides`, which edit lists such as `models:`).
+    quick-trial flags, `config.overrides`, which edit lists such as `models:`).
 
     Raises `SweepConfigError` listing every problem found (see the module docstring).
     """

@@ -169,7 +169,7 @@ class ExecutorOptions(_Strict):
     """auto: with MuJoCo Warp, `processes` of 4 engine processes per GPU under CUDA MPS
     (`mps`), or without MPS `local` on one GPU (every task batch in one process) and one
     engine process per GPU on several; else `processes` on a host of 4 or more cores, else
-    `local` (`sweep.choices`;
+    `local` (`config.choices`;
     `--dry-run` says which and why); local: one process; processes: cells of the plan as
     worker processes of this host, `max_tasks` at once (many cores: C rollouts, CPU-heavy
     embedded policies);
@@ -199,7 +199,7 @@ class ExecutorOptions(_Strict):
     in_flight: Literal["auto"] | int = "auto"
     """Episodes in flight in one process: "auto" adapts between 1 and `max_episodes` so that
     the simulator, renderer and model endpoints stay busy without queueing (Little's law,
-    `sweep.inflight`); a number holds that many (at most `max_episodes`)."""
+    `tuning.inflight`); a number holds that many (at most `max_episodes`)."""
     slots_per_task: int | None = Field(default=None, ge=1)
     """Simulator slots of one task batch; default: the task's planned episodes, at most
     `max_episodes`."""

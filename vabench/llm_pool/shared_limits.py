@@ -1,7 +1,7 @@
 """Limits shared by several processes.
 
 `SharedLimits` puts one endpoint's limits in one place for several processes (the engines of
-a Ray cluster, `vabench.sweep.limiter`): a limit board holds the endpoint's `ConcurrencyLimiter`,
+a Ray cluster, `limit_board`): a limit board holds the endpoint's `ConcurrencyLimiter`,
 `RateLimiter` windows and Retry-After pause, and each process's pool asks it for concurrency
 slots and rate admissions through a `LimitChannel`, so N processes never send N times the
 allowed rate. The calls of one process that wait at the same moment share one request to the
@@ -24,7 +24,7 @@ from vabench.llm_pool.limits import Admission, Slots, check_fits
 
 
 class LimitChannel(Protocol):
-    """How a process reaches the limit board (`vabench.sweep.limiter`): `call` awaits the
+    """How a process reaches the limit board (`limit_board`): `call` awaits the
     board's answer, `send` does not wait (the board applies sends in the order they were
     sent)."""
 

@@ -14,7 +14,7 @@ is refused before it is sent (`SpendCapReached`), so a cap is never passed by th
 
 A pool reaches its caps through `Caps.reserve`, which hands back a `Reservation` to settle
 when the call ends: `LocalCaps` keeps them in this process; the sweep's limit board keeps them
-for several processes at once (`sweep.limiter.BoardSpend`), so worker processes and Ray engines
+for several processes at once (`limit_board.BoardSpend`), so worker processes and Ray engines
 spend against one count, exact to the reservation.
 """
 
@@ -143,7 +143,7 @@ class Reservation(Protocol):
 
 class Caps(Protocol):
     """Where a pool reserves a call's upper bound before sending it (`LocalCaps`, or the limit
-    board's `sweep.limiter.BoardSpend`)."""
+    board's `limit_board.BoardSpend`)."""
 
     async def reserve(self, model: str, upper_bound: float) -> Reservation | CapReached: ...
 

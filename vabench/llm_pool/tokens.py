@@ -87,3 +87,10 @@ def block_tokens(request: ChatRequest, image_rule: ImageTokenRule) -> list[int]:
 def estimate_input_tokens(request: ChatRequest, image_rule: ImageTokenRule) -> int:
     """Estimated prompt tokens of a request under an API's image rule."""
     return sum(block_tokens(request, image_rule))
+
+
+def stand_in_jpeg(width: int, height: int) -> bytes:
+    """The header of a baseline JPEG of this size: all the token estimators read of an image."""
+    sof = b"\xff\xc0\x00\x11\x08" + height.to_bytes(2, "big") + width.to_bytes(2, "big")
+    sof += b"\x03" + b"\x01\x22\x00\x02\x11\x01\x03\x11\x01"  # three components
+    return b"\xff\xd8" + sof + b"\xff\xd9"

@@ -4,7 +4,7 @@
 Quick trials need no YAML edit: `--model`, `--tasks`, `--tracks`, `--seeds`, `--runs`,
 `--limit`, `--max-episodes`, `--max-connections` override the config for this invocation, and
 `--model NAME --model-base-url URL` evaluates an OpenAI-compatible endpoint instead of the
-config's models (`vabench.sweep.overrides`). The run directory records the overridden plan:
+config's models (`vabench.config.overrides`). The run directory records the overridden plan:
 resuming it with other overrides is refused like a changed config.
 
 The defaults pick the fastest path this machine offers (`simulator.backend`, `render.backend`
@@ -67,19 +67,20 @@ from collections.abc import Callable, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, NoReturn  # noqa: E402
 
+from vabench.check import plan_line, sweep_models  # noqa: E402
 from vabench.check.latency import measured as check_latencies  # noqa: E402
+from vabench.check.pace import estimate_lines, keep_pace, machine_paces  # noqa: E402
 from vabench.children import process_age_s  # noqa: E402
 from vabench.config import SweepConfig, SweepConfigError, load_config  # noqa: E402
-from vabench.config.keys import KeySources, key_sources  # noqa: E402
+from vabench.config.choices import apply_switches, choose  # noqa: E402
+from vabench.config.keys import key_sources  # noqa: E402
+from vabench.config.overrides import OverrideError, Overrides  # noqa: E402
+from vabench.config.overrides import add_arguments as add_overrides  # noqa: E402
 from vabench.run_layout import RunDir  # noqa: E402
 from vabench.sim_mjx.backends import BackendUnavailable  # noqa: E402
-from vabench.sweep.choices import apply_switches, choose, configure_jax  # noqa: E402
 from vabench.sweep.display import PLAIN_EVERY_S, Display, Status, Tally  # noqa: E402
 from vabench.sweep.interrupt import EXIT_INTERRUPTED, CtrlC, Interrupted  # noqa: E402
 from vabench.sweep.local_executor import run_local  # noqa: E402
-from vabench.sweep.overrides import OverrideError, Overrides  # noqa: E402
-from vabench.sweep.overrides import add_arguments as add_overrides  # noqa: E402
-from vabench.sweep.pace import estimate_lines, keep_pace, machine_paces  # noqa: E402
 from vabench.sweep.plan import EpisodeKey, estimate, format_estimate, plan  # noqa: E402
 from vabench.sweep.results import (  # noqa: E402
     Key,
@@ -90,6 +91,7 @@ from vabench.sweep.results import (  # noqa: E402
 )
 from vabench.sweep.rundir import RunDirMismatch, check_run_dir, run_dir_problem  # noqa: E402
 from vabench.sweep.runner import SweepStopped  # noqa: E402
+from vabench.tuning.engine_env import configure_jax  # noqa: E402
 
 log = logging.getLogger("vabench.sweep")
 
@@ -168,10 +170,10 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
     if given.line() is not None:
         print(given.line())
     if args.dry_run:
-        _print_key_sources(config, keys_from)
+        _print_lines(*keys_from.dry_run_lines(config.models))
         print(format_estimate(estimate(config, keys)))
         print("\nRuns with:\n" + "\n".join(f"  {line}" for line in choices.lines()))
-        print(f"  {_check_plan(config, keys, args.no_check)}")
+        print(f"  {plan_line(config, {k.model for k in keys}, args.no_check)}")
         problem = run_dir_problem(run_dir, config, keys)  # what the run would refuse
         if problem is not None:
             print(f"error: {problem}", file=sys.stderr)
@@ -261,7 +263,7 @@ class _ResearcherLines(logging.Filter):
     the engine's statistics (host load, stages, render workers, GPU waits) go to the run
     directory's log only."""
 
-    SHOWN = ("vabench.sweep", "vabench.sweep.summaries")
+    SHOWN = ("vabench.sweep", "vabench.agent.learning_stage")
 
     def __init__(self) -> None:
         super().__init__()
@@ -326,28 +328,15 @@ def _start_line(configuring: float) -> str:
     )
 
 
-def _check_plan(config: SweepConfig, keys: Sequence[EpisodeKey], skipped: bool) -> str:
-    """The dry run's line on the sweep's first step (`vabench.check`)."""
-    if skipped:
-        return "check:     skipped (--no-check)"
-    models = {k.model for k in keys} - set(config.embedded_models)
-    if not models:
-        return "check:     none needed (every model is the embedded server's)"
-    return (
-        f"check:     first, one decision for each of {len(models)} model(s) with the sweep's "
-        "inputs (python -m vabench.check; --no-check skips it)"
-    )
-
-
 def _check_endpoints(config: SweepConfig, keys: Sequence[EpisodeKey]) -> int:
     """The sweep's first step (`vabench.check`): 2, with one line per problem and its fix, when
     some model's endpoint cannot serve the sweep as configured."""
-    planned = {k.model for k in keys}
-    if not planned - set(config.embedded_models):
-        return 0  # the embedded server has none of the limits the check looks for
+    models = sweep_models(config, {k.model for k in keys})
+    if not models:
+        return 0
     from vabench.check import check_sync, problems, report_text
 
-    reports = check_sync(config, os.environ, [m.name for m in config.models if m.name in planned])
+    reports = check_sync(config, os.environ, models)
     for row in report_text(reports).splitlines():
         log.info(row)
     found = problems(reports)
@@ -361,26 +350,12 @@ def _check_endpoints(config: SweepConfig, keys: Sequence[EpisodeKey]) -> int:
     return 2 if found else 0
 
 
-def _print_key_sources(config: SweepConfig, keys_from: KeySources) -> None:
-    """The dry run's word on keys: which variables the `.env` file gave (names only) and, one
-    line each, the models whose key is set nowhere (the real run refuses to start)."""
-    if keys_from.from_file:
-        print(f"keys from {keys_from.file}: {', '.join(keys_from.from_file)}")
-    for model, variable in keys_from.unset(config.models):
-        print(
-            f"warning: model {model!r}: environment variable {variable} is not set (its "
-            f"api_key_env): the run will refuse to start until it is exported or put in "
-            f"{keys_from.file}",
-            file=sys.stderr,
-        )
-
-
 def _print_where_and_how_long(
     config: SweepConfig, keys: Sequence[EpisodeKey], run_dir: Path
 ) -> None:
     """The dry run's last lines: the output directory (and what it holds), each track's
     summary mode, the wall time at this machine's measured pace of each model kind and the
-    disk the run directory takes (`sweep.pace`)."""
+    disk the run directory takes (`check.pace`)."""
     done: dict[Key, dict[str, Any]] = {}
     if RunDir(run_dir).results.exists():
         done = Ledger.open(run_dir).records
@@ -396,7 +371,10 @@ def _print_where_and_how_long(
     if not left:
         print("wall time: nothing left to run")
         return
-    lines, warnings = estimate_lines(config, left, run_dir, machine_paces(), check_latencies())
+    _print_lines(*estimate_lines(config, left, run_dir, machine_paces(), check_latencies()))
+
+
+def _print_lines(lines: Sequence[str], warnings: Sequence[str]) -> None:
     for line in lines:
         print(line)
     for line in warnings:

@@ -1,4 +1,4 @@
-"""The sweep's plan cut into cells and chunks, and the logging of a process the sweep starts.
+"""The sweep's plan cut into cells and chunks.
 
 A cell is the planned episodes of one (model, track, task) not yet in the ledger
 (`pending_cells`); `chunks` cuts cells into pieces of nearly equal size so that the last
@@ -8,14 +8,10 @@ sharing a GPU. The driver (`driver.Driver`) hands the chunks to its engines.
 
 from __future__ import annotations
 
-import contextlib
-import logging
 import math
-import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
 
 from vabench.config import SweepConfig
-from vabench.run_layout import RunDir
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, ledger_key
 from vabench.tasks import REGISTRY
@@ -113,33 +109,3 @@ def bins(
         key=lambda c: -c[0],
     )
     return [(name, keys) for _, name, keys in dealt]
-
-
-def worker_logging(run: RunDir, name: int | str | None = None, console: Sequence[str] = ()) -> None:
-    """Logging for a process the sweep started (a processes worker, a Ray engine): it starts
-    with none, and its tasks' INFO lines (stage lines, "host:" lines, what the engine chose,
-    the kernels' compilation) go to its own file in the run directory (`name`: its pid by
-    default), its warnings to the console, and so do the INFO lines of the loggers named in
-    `console` (a Ray engine's console is the driver's, prefixed with the actor)."""
-    root = logging.getLogger()
-    path = run.worker_log(os.getpid() if name is None else name)
-    if any(getattr(h, "baseFilename", None) == os.path.abspath(path) for h in root.handlers):
-        return  # set up already (an initializer run twice in one process)
-    with contextlib.suppress(OSError):
-        run.logs.mkdir(parents=True, exist_ok=True)
-        to_file = logging.FileHandler(path, encoding="utf-8")
-        to_file.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
-        root.addHandler(to_file)
-    if any(type(h) is logging.StreamHandler for h in root.handlers):
-        root.setLevel(logging.INFO)
-        return  # a console set up already (e.g. Ray's `logging_config`): lines once, not twice
-    shown = tuple(console)
-
-    def on_console(record: logging.LogRecord) -> bool:
-        return record.levelno >= logging.WARNING or record.name.startswith(shown or "\0")
-
-    to_console = logging.StreamHandler()
-    to_console.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
-    to_console.addFilter(on_console)
-    root.addHandler(to_console)
-    root.setLevel(logging.INFO)

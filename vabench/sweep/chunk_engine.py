@@ -1,18 +1,15 @@
 """One engine that runs the chunks a driver hands it, in the process it lives in: the body of the
-in-process engine (`executor: local`, `local_executor`), of a worker process (`executor:
-processes`) and of a Ray engine actor (`ray_engine`).
+in-process engine (`local_executor`), of a worker process (`process_executor`) and of a Ray
+engine actor (`ray_engine`).
 
 A `ChunkEngine` holds one `runner.Engine` for its whole life (the LLM pool, with the limits of
-the sweep's limit board; the embedded server when a model uses one; the renderer; the
-in-flight gate). Each chunk runs as a `LocalSweep` restricted to it inside that engine, so
-the chunks at once share its pool, renderer and in-flight limit. It never writes the ledger:
-`run_chunk` yields each ledger line as its episode ends, then the chunk's summary, and the
-driver appends the lines. It writes the episodes' own directories, so an episode it finished
-but never reported is adopted from its result.json where its chunk runs again.
+the sweep's limit board; the embedded server; the renderer; the in-flight gate). Each chunk
+runs as a `LocalSweep` restricted to it inside that engine, so the chunks at once share its
+pool, renderer and in-flight limit. It never writes the ledger: `run_chunk` yields each ledger
+line as its episode ends, then the chunk's summary, and the driver appends the lines.
 
 `serve` is an engine's life under the driver's commands, the same in a worker process and in
-the driver's own process: the events it sends are those the driver reads (`STARTED`, `LINE`,
-`DONE`, `FAILED`, `STATUS`, `LOST`, `CLOSED`; see `driver`).
+the driver's own process; it sends the events the driver reads (see `driver`).
 """
 
 from __future__ import annotations
@@ -30,9 +27,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
+from vabench.llm_pool.limit_board import BoardLimits
 from vabench.run_layout import PLAN, RunDir
-from vabench.sweep.choices import Choices, configure_jax
-from vabench.sweep.limiter import BoardLimits
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import ledger_key
 from vabench.sweep.runner import (
@@ -42,7 +39,8 @@ from vabench.sweep.runner import (
     open_engine,
     start_compiling,
 )
-from vabench.tuning import gpu_busy
+from vabench.tuning import engine_env, gpu_busy
+from vabench.tuning.engine_env import configure_jax
 
 log = logging.getLogger(__name__)
 
@@ -54,20 +52,11 @@ STARTED, FAILED, STATUS, LOST, CLOSED = "started", "failed", "status", "lost", "
 """The other events an engine sends its driver (`serve`, `driver`)."""
 STATUS_EVERY_S = 1.0
 """How often a served engine sends its status."""
-WORKER_ENVIRONMENT = (
-    "JAX_PLATFORMS",
-    "XLA_PYTHON_CLIENT_PREALLOCATE",
-    "CUDA_VISIBLE_DEVICES",
-    "VABENCH_CORES",
-    "CUDA_MPS_CLIENT_PRIORITY",
-)
-"""What an engine reports of its environment (the choices made for processes started on a GPU
-host, `sweep.choices`)."""
 
 
 class BoardLink(Protocol):
-    """How an engine reaches the sweep's limit board (`board_socket.BoardAddress`,
-    `limiter.RayBoard`)."""
+    """How an engine reaches the sweep's limit board (`llm_pool.board_socket.BoardAddress`,
+    `llm_pool.limit_board.RayBoard`)."""
 
     def joined(self, holder: str) -> AbstractAsyncContextManager[BoardLimits]: ...
 
@@ -167,7 +156,7 @@ class ChunkEngine:
             "physics": self.engine.physics.label,
             "jax": jax.default_backend(),
             "limit": self.engine.gate.limit,
-            "environment": {k: os.environ.get(k) for k in WORKER_ENVIRONMENT},
+            "environment": {k: os.environ.get(k) for k in engine_env.REPORTED},
         }
 
     async def run_chunk(

@@ -1,31 +1,22 @@
 """Where a sweep stands, on a clock: a live table on a terminal, plain lines otherwise.
 
-The sweep's driver describes its state as one `Status` (per model and track: episodes done /
+The driver describes the sweep's state as one `Status` (per model and track: episodes done /
 planned, successes, unscored, retried, running; model calls, tokens and cost; the episodes in
 flight, their limit and why) and hands it to `Display.update` once a second: the run
-directory's ledger, read as it grows (`Tally`: each line is counted when it is appended, not
-when its chunk ends), with what its engines report each second (running, in flight, calls,
-tokens, cost; `with_reports`).
+directory's ledger read as it grows (`Tally`: a line counts when it is appended, not when its
+chunk ends), with what the engines report (`with_reports`).
 
-On a terminal a rich table is redrawn every second (a bar per model and track); without one
-(`--plain`, logs, CI) a line is printed every `every_s` seconds (default 15) with the same
-counts, and once more at the end (unless that line is the one just printed). While the table
-is up, log lines print above it: rich swaps `sys.stdout`/`sys.stderr` for proxies that do
-that, and the handlers `logging.basicConfig` made before the table still hold the old streams,
-so `Display` points them at the proxies until it closes (a log line written past the table
-left a copy of the table on screen: the first status block showed twice).
+On a terminal a rich table is redrawn every second; without one (`--plain`, logs, CI) a line is
+printed every `every_s` seconds and once more at the end. While the table is up, the log
+handlers made before it write through rich's stream proxies (`_route_logs`), so log lines print
+above the table instead of leaving copies of it on screen.
 
-Rates follow the sweep's current pace: calls per second over the last minute; the ETA's
-episodes per second over the last minute too, widened back to the last `ETA_MIN_EPISODES`
-finished episodes where the minute holds fewer (a small machine finishes a few per minute, in
-bursts, and over one minute its ETA swung between 1 and 7 hours). A call count that goes
-backwards (a reporter's spend lost with its process) is a drop the rate leaves out, never a
-negative pace (such a line once read "calls -878.5/s").
-
-The last line, once the engines have ended, is `Tally.ended`: the ledger's final
-counts with the spend of the last status shown (their reports). A fresh `Tally`'s status, which
-it was before, counts the records already there as spent before this invocation: the last line
-of a processes sweep read "0 tokens" after 1.5 billion.
+Rates follow the sweep's current pace: calls per second over the last minute, and the ETA's
+episodes per second over the last minute, widened back to the last `ETA_MIN_EPISODES` finished
+episodes where the minute holds fewer (a small machine finishes a few a minute, in bursts). A
+call count that goes backwards (a reporter's spend lost with its process) is left out of the
+rate. The last line is `Tally.ended`: the ledger's final counts with the engines' last reported
+spend.
 """
 
 from __future__ import annotations

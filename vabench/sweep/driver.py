@@ -3,22 +3,16 @@ processes (`process_executor`) or Ray actors (`ray_executor`), each an `Engine` 
 chunks it is handed (`chunk_engine`).
 
 The driver serves one limit board to every engine, starts the engines, hands out chunks as
-engines have room (`placement.next_placement`: the least loaded first, a critical chunk
-alone), appends the ledger lines they report (the only writer of results.jsonl and
-infrastructure.jsonl; a second record of an episode goes to results.duplicates.jsonl), merges
-their statuses for the display, and at the end closes them and logs each one's time. An engine
-that dies, or whose GPU fails, costs only its unfinished episodes: those of its chunks without
-a record go back to the front of the queue and another engine takes its place, at most
-`Engines.max_restarts` times (none for the in-process engine: another in the same process
-would meet the same fault). A chunk that raises is logged and listed while the others run
-on; one stopped by an endpoint or a spend cap ends the handing out (`SweepStopped`), and so
-does a disk below the reserve (`rundir.disk_short`, checked each tick), ending every engine at
-once as Ctrl-C does (their unrecorded episodes run again on resume). Ctrl-C (the command's
-`interrupt.CtrlC`: its first press noted and acted on at the next tick, so that no ledger line
-is cut; without one, `Interrupted` raised in this thread) ends every engine at once and keeps
-every whole line they sent.
+engines have room (`placement.next_placement`), appends the ledger lines they report (the only
+writer of the ledger), merges their statuses for the display, and at the end closes them and
+logs each one's time. An engine that dies, or whose GPU fails, costs only its unfinished
+episodes: they go back to the front of the queue and another engine takes its place, at most
+`Engines.max_restarts` times. A chunk that raises is logged while the others run on; an
+endpoint or a spend cap that stops the sweep ends the handing out (`SweepStopped`). A disk below
+the reserve (`rundir.disk_short`) and Ctrl-C (`interrupt.CtrlC`, acted on at the next tick so
+that no ledger line is cut) end every engine at once, keeping every whole line they sent.
 
-Engines report by events into one queue, in the order each sends them: (STARTED, info),
+Engines report events into one queue, in the order each sends them: (STARTED, info),
 (LINE, log, record), (DONE, chunk, summary), (FAILED, chunk, error), (STATUS, status),
 (LOST, why, replace) and (CLOSED, figures).
 """
@@ -35,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.llm_pool.limit_board import shared_endpoints
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import DUPLICATES, RESULTS
 from vabench.sweep import rundir
@@ -51,7 +46,6 @@ from vabench.sweep.chunk_engine import (
 )
 from vabench.sweep.display import Status, Tally, with_reports
 from vabench.sweep.interrupt import CtrlC, Interrupted
-from vabench.sweep.limiter import shared_endpoints
 from vabench.sweep.placement import Chunk, Engine, EngineHandle, next_placement
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, Ledger, LedgerError, key_of, ledger_key

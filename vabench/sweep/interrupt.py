@@ -1,20 +1,16 @@
 """Ctrl-C in the sweep: the first press stops it cleanly, the second at once.
 
-First press: the sweep's driver ends its engines at its next tick (the in-process engine's
-episodes cancelled at their next await, worker processes and Ray actors ended). What was
-recorded stays whole: a ledger line is one write of a whole line, a result.json is renamed into
-place, and an episode cut short leaves only its partial events.jsonl, which the next run sets
-aside before running it again. The command prints one line and exits with status 130. A second
-press exits at once, with the same status and the same guarantees (nothing the sweep writes is
-ever half a record).
+First press: the driver ends its engines at its next tick (the in-process engine's episodes
+cancelled at their next await, worker processes and Ray actors ended). What was recorded stays
+whole: a ledger line is one write of a whole line, a result.json is renamed into place, and an
+episode cut short leaves only its partial events.jsonl, which the next run sets aside. The
+command prints one line and exits with status 130. A second press exits at once, with the same
+status and the same guarantees.
 
-Work already queued on the simulator or the renderer cannot be cancelled, only waited for:
-short on a GPU (one batch action takes ~90 ms), minutes where a slow device renders
-a large request (Warp on the CPU: 10.5 minutes for configs/all.yaml's first images, during which
-the display went on printing as if nothing had been pressed). A stop still under way after
-`STOP_NOTICE_S` says so, once, with what a second press does.
-
-The processes the sweep starts never see SIGINT (`vabench.children`); the sweep ends them.
+Work already queued on the simulator or the renderer can only be waited for (minutes where a
+slow device renders a large request): a stop still under way after `STOP_NOTICE_S` says so,
+once, with what a second press does. The processes the sweep starts never see SIGINT
+(`vabench.children`); the sweep ends them.
 """
 
 from __future__ import annotations

@@ -1,15 +1,13 @@
 """`executor: local`: the sweep in one process, one engine under the one driver
 (`driver.Driver`).
 
-The engine is a `chunk_engine.ChunkEngine` served (`chunk_engine.serve`) in a thread of the
-driver's process, on an event loop of its own: the driver's thread keeps its blocking wait on
-the events queue, its ticks (display, disk, Ctrl-C) and the ledger; the engine's events go
-straight into that queue (no process, no pipe). The sweep is one chunk, every pending episode
-in plan order, on the command's `Choices` as they are (`ChunkEngine(dealt=False)`): the
-batches, critical path and records of one `runner.LocalSweep` over the plan. Its pool keeps
-the endpoints' limits and spend caps itself, and a dead engine is not replaced (another in
-this process would meet the same fault). Ended at once (Ctrl-C, a disk below its reserve),
-its work is cancelled and the driver waits for it to unwind (`interrupt.STOP_NOTICE`).
+The engine is a `chunk_engine.ChunkEngine` served in a thread of the driver's process, on an
+event loop of its own; its events go straight into the driver's queue. The sweep is one chunk,
+every pending episode in plan order, on the command's `Choices` as they are
+(`ChunkEngine(dealt=False)`). Its pool keeps the endpoints' limits and spend caps itself, and
+a dead engine is not replaced (another in this process would meet the same fault). Ended at
+once (Ctrl-C, a disk below its reserve), its work is cancelled and the driver waits for it to
+unwind.
 """
 
 from __future__ import annotations
@@ -25,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.sweep.cells import task_cost
-from vabench.sweep.choices import Choices
 from vabench.sweep.chunk_engine import LOST, BoardLink, ChunkEngine, Command, serve
 from vabench.sweep.display import Status
 from vabench.sweep.driver import Driver, Emit, Engines, pending

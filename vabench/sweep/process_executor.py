@@ -1,29 +1,21 @@
 """`executor: processes`: the sweep's engines as spawned worker processes of one host, under the
 one driver (`driver.Driver`).
 
-For hosts where one sweep process is CPU-bound: C MuJoCo rollouts (one core per process), a
-CPU-heavy embedded policy, the learning stage's demonstration builds; and, with batched physics
-(Warp, MJX), engine processes sharing a GPU, for a process bound by Python's interpreter lock
-(with CUDA MPS; without it their contexts take turns on the GPU). The cells are cut into chunks
-so that the last processes to finish do not leave the others' cores idle (`cells.chunks`); with
-batched physics whole tasks are dealt over the engines instead, each stepping one batch per
-task of its chunk, all at once (`cells.bins`, `plan_chunks`). Each engine process holds one
-`chunk_engine.ChunkEngine` (its own LLM pool, embedded server, render workers) for its life
-and runs one chunk at a time, on the sweep's `Choices`, sent to it with the validated config,
-so the records equal those of the local executor.
+For hosts where one sweep process is CPU-bound (C MuJoCo rollouts, a CPU-heavy embedded policy,
+demonstration builds) and, with batched physics, for engine processes sharing a GPU under CUDA
+MPS. Cells are cut into chunks so that the last processes to finish do not leave the others'
+cores idle (`cells.chunks`); with batched physics whole tasks are dealt over the engines, each
+stepping one batch per task of its chunk (`cells.bins`, `plan_chunks`). Each process holds one
+`chunk_engine.ChunkEngine` for its life and runs its chunks on the sweep's `Choices`, so the
+records equal those of the local executor.
 
 Each process is spawned (never forked: the parent holds JAX and thread pools) and talks to the
 driver over two pipes: it receives chunks and sends each ledger line, chunk summary and a
-status every second. Its death (out of memory, a crash in native code) costs only its own
-chunk's unfinished episodes. It watches its parent and exits at once when the parent is gone
-(`children.exit_with_parent`), so a SIGKILL of the sweep leaves no process calling a model;
-it ignores Ctrl-C, which the driver handles.
-
-The engines' environment (`choices.child_environment`): JAX never preallocates GPU memory and
-stays on the CPU unless the physics is MJX on JAX; with several GPUs each engine gets one; each
-engine's `VABENCH_CORES` is its share of the host's cores (`worker_shares`). Under MPS a task on
-the critical path gets an engine process of its own at the normal MPS priority, the others
-below it (`critical_environment`; docs/PERFORMANCE.md).
+status every second. Its death costs only its chunk's unfinished episodes. It exits when its
+parent is gone (`children.exit_with_parent`) and ignores Ctrl-C, which the driver handles. Its
+environment is `tuning.engine_env`'s: each engine's share of the cores and its GPU, and under
+MPS the critical path's engine at the normal priority, the others below it
+(`critical_environment`).
 """
 
 from __future__ import annotations
@@ -32,7 +24,6 @@ import asyncio
 import contextlib
 import cProfile
 import logging
-import math
 import multiprocessing
 import os
 import re
@@ -46,6 +37,7 @@ from typing import Any
 from vabench import switches
 from vabench.children import (
     CORES_VARIABLE,
+    child_logging,
     children_ignore_sigint,
     exit_with_parent,
     ignore_sigint,
@@ -53,15 +45,15 @@ from vabench.children import (
     started_with,
 )
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
+from vabench.llm_pool.board_socket import BoardAddress, BoardServer
+from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import RunDir
-from vabench.sim_mjx.warp.device import GPU_SHARE, warp_device
-from vabench.sweep.board_socket import BoardAddress, BoardServer
-from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups, worker_logging
-from vabench.sweep.choices import Choices, child_environment, gpu_for_worker
+from vabench.sim_mjx.warp.device import warp_device
+from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups
 from vabench.sweep.chunk_engine import (
     LOST,
-    WORKER_ENVIRONMENT,
     BoardLink,
     ChunkEngine,
     Command,
@@ -71,12 +63,12 @@ from vabench.sweep.chunk_engine import (
 from vabench.sweep.display import Status
 from vabench.sweep.driver import Driver, Emit, Engines, pending
 from vabench.sweep.interrupt import CtrlC
-from vabench.sweep.limiter import LimitBoard
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key
 from vabench.sweep.runner import critical_path_tasks
-from vabench.tuning import kernel_profile, mps, precompile
+from vabench.tuning import engine_env, kernel_profile, mps, precompile
+from vabench.tuning.engine_env import child_environment, gpu_for_worker
 
 log = logging.getLogger(__name__)
 
@@ -125,31 +117,25 @@ def critical_tasks(
 
 
 def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
-    """The variables that size each of `workers` engine processes to its share: of its GPU
-    (`GPU_SHARE`: render passes) and of the host's cores (`CORES_VARIABLE`: the embedded
-    server's processes, JPEG threads). The critical path's process of its own is not counted:
-    its few episodes need a fraction of the others' share, and counting it would leave the
-    others' embedded servers below the cores from which they have processes of their own."""
-    sharing = max(1, min(workers, choices.executor.max_tasks))
-    gpus = max(1, len(choices.machine.gpus))
-    return {
-        GPU_SHARE: str(math.ceil(sharing / gpus)),
-        CORES_VARIABLE: str(max(1, choices.machine.cores // sharing)),
-    }
+    """Each of `workers` engine processes' share of its GPU and of the host's cores
+    (`engine_env.worker_shares`). The critical path's process of its own is not counted: its
+    few episodes need a fraction of the others' share, and counting it would leave the others'
+    embedded servers below the cores from which they have processes of their own."""
+    sharing = min(workers, choices.executor.max_tasks)
+    return engine_env.worker_shares(choices.machine.cores, len(choices.machine.gpus), sharing)
 
 
 def critical_environment(
     choices: Choices, shared: Mapping[str, str], part: Sequence[EpisodeKey], critical: set[str]
 ) -> dict[str, str]:
     """What the engine of `part` starts with beyond the environment `shared` by all engines:
-    for the critical path's process (a chunk of `critical` tasks), the MPS priority of a normal
-    client while every other engine's is below normal (`mps.PRIORITY_VARIABLE`), and half the
-    host's cores (`CORES_VARIABLE`: its embedded server's replies are on the critical path;
-    docs/PERFORMANCE.md). Nothing for the other engines."""
+    for the critical path's process (a chunk of `critical` tasks), a normal MPS client while
+    every other engine is below normal (`engine_env.critical_path_environment`); nothing for
+    the other engines."""
     if not critical or not {k.task for k in part} <= critical:
         return {}
-    cores = max(int(shared.get(CORES_VARIABLE, "1")), choices.machine.cores // 2)
-    return {mps.PRIORITY_VARIABLE: mps.NORMAL, CORES_VARIABLE: str(cores)}
+    shared_cores = int(shared.get(CORES_VARIABLE, "1"))
+    return engine_env.critical_path_environment(shared_cores, choices.machine.cores)
 
 
 # -- the engine process ----------------------------------------------------------------------
@@ -168,7 +154,7 @@ def _worker(spec: WorkerSpec, commands: Connection, lines: Connection) -> None:
     """An engine process's main: serve chunks until told to close or the parent is gone."""
     ignore_sigint()  # the driver ends this process
     exit_with_parent(spec.parent)  # its own children (render workers) see their pipes close
-    worker_logging(RunDir(spec.run_dir))
+    child_logging(RunDir(spec.run_dir).worker_log(os.getpid()))
     kernel_profile.record_in_background()  # where VABENCH_KERNEL_PROFILE asks for it
     # `profiling.cprofile_dir`: a cProfile of this process's event loop thread over its life
     # (`<pid>-<first episode>.prof`): the engine, the model client, an embedded server in its
@@ -347,14 +333,15 @@ class ProcessEngines(Engines):
                 compiling.join(timeout=0 if failed else precompile.CHILD_TIMEOUT_S)
 
             stack.push(join)
-        clients = _gpu_sharing(stack, self.choices)
+        executor = self.choices.executor
+        clients = engine_env.shared_gpu_clients(stack, executor.max_tasks) if executor.mps else {}
         self.env.update(clients)
         if clients:  # the sweep's own daemon numbers the GPUs it sees 0..n-1
             devices, self.gpus = mps.client_devices(self.choices.machine.gpus)
             self.env.update(devices)
         seen = {
             k: v
-            for k in WORKER_ENVIRONMENT
+            for k in engine_env.REPORTED
             if (v := self.env.get(k, os.environ.get(k))) is not None
         }
         log.info(
@@ -379,25 +366,6 @@ class ProcessEngines(Engines):
         assert board is None or isinstance(board, BoardAddress)
         spec = WorkerSpec(self.config, self.sent, self.run_dir, board, os.getpid())
         return ProcessEngine(index, emit, spec, env)
-
-
-def _gpu_sharing(stack: contextlib.ExitStack, choices: Choices) -> dict[str, str]:
-    """Where engine processes share a GPU: an MPS daemon of the sweep's own for them (closed
-    with `stack`), and the variables that make them its clients. Without it they still run,
-    their contexts taking turns on the GPU (logged)."""
-    if not choices.executor.mps:
-        return {}
-    try:
-        return stack.enter_context(mps.private_daemon())
-    except mps.MpsUnavailable as err:
-        log.warning(
-            "CUDA MPS could not start (%s): the %d engine processes' CUDA contexts take turns "
-            "on the GPU, slower than under MPS (executor.mps: off runs one engine process per "
-            "GPU)",
-            err,
-            choices.executor.max_tasks,
-        )
-        return {}
 
 
 def _precompile(

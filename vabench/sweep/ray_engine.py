@@ -8,8 +8,8 @@ own directories it writes in the run directory every node sees at the same path.
 
 The process starts with the variables the driver sends it (`environ`): the API keys named by
 the config's `api_key_env` (in the actor's creation arguments, in memory, and put in this
-process's environment only) and the environment `sweep.choices` picks for engine processes.
-What it runs on is the driver's decision (`choices.for_engines`); the actor only checks that
+process's environment only) and the environment `config.choices` picks for engine processes.
+What it runs on is the driver's decision (`config.choices.for_engines`); the actor only checks that
 the physics and renderer it was given can run here, and refuses to be created when not (the
 message names what is missing), so that a node that cannot run them is given no other engine.
 """
@@ -25,12 +25,12 @@ from pathlib import Path
 from typing import Any
 
 from vabench import switches
+from vabench.children import child_logging
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.render.backends import check_renderer
 from vabench.run_layout import RunDir
 from vabench.sim_mjx.backends import check
-from vabench.sweep.cells import worker_logging
-from vabench.sweep.choices import Choices
 from vabench.sweep.chunk_engine import BoardLink, ChunkEngine
 from vabench.tuning import mps, precompile
 
@@ -54,7 +54,7 @@ class EngineActor(ChunkEngine):
         # its lines to its own log in the run directory, and on the driver's console (Ray
         # forwards an actor's output) its warnings and the kernels' compilation
         member = f"{socket.gethostname()}-{os.getpid()}"
-        worker_logging(RunDir(Path(run_dir)), member, console=(precompile.__name__,))
+        child_logging(RunDir(Path(run_dir)).worker_log(member), console=(precompile.__name__,))
         self._mps_member = member
         self._mps_sweep = self._join_mps()  # before this process makes its CUDA context
         try:  # in creation, so that a node that cannot run them is not given another engine

@@ -1,37 +1,24 @@
 """`executor: ray`: a sweep over a Ray cluster, engine actors under the one driver
 (`driver.Driver`, the only writer of the ledger).
 
-`run_ray(config, keys, run_dir, choices)` is what `python -m vabench.sweep` calls for
-`kind: ray`:
+`run_ray(config, keys, run_dir, choices)` groups the planned episodes not yet in the ledger
+into cells (one per (model, track, task); with batched physics one per task, every track and
+model of it in one simulator batch, `cells.task_groups`) and cuts them into about
+`CHUNKS_PER_ENGINE` chunks per engine, costliest first. It joins the cluster
+(`ray.init(address=executor.address)`: None, the running local one or a new one; "auto", the
+running one; "HOST:PORT", that head node; a caller's own `ray.init` is kept) and starts the
+engines (`ray_engine.EngineActor`, `ray_plan.engine_plan`): on GPUs by default
+`mps.ENGINES_PER_GPU` per GPU where they can share it under CUDA MPS, else one; otherwise one
+per `1 + render.workers` CPUs; `executor.actors` sets the number. The limit board is a
+`llm_pool.limit_board.LimiterActor` on the driver's node. The driver hands out chunks, streams
+their ledger lines back and replaces dead engines; the ledger's records are returned.
 
-1. the planned episodes not yet in results.jsonl are grouped into cells, one per (model, track,
-   task), or, where engines batch their physics (Warp or MJX), one per task (`cells.task_groups`:
-   every track and model of a task in one simulator batch), and cut into chunks (`cells.chunks`,
-   about `CHUNKS_PER_ENGINE` per engine, costliest first); when none is left nothing starts;
-2. `ray.init(address=executor.address)` joins the cluster (`None`: the running local one if
-   there is one, else a new local one; `"auto"`: the running one; `"HOST:PORT"`: that head
-   node; Ray Client's `ray://` is refused by the config, as it cannot carry streaming actor
-   calls); a driver that already called `ray.init` keeps its connection;
-3. the engines (`ray_engine.EngineActor`, long-lived actors spread over the nodes,
-   `ray_plan.engine_plan`): where the physics runs on GPUs, by default 4 per GPU where they can
-   share it under CUDA MPS (each joining its node's MPS daemon of the sweep's), else one;
-   otherwise one per `1 + render.workers` CPUs of the cluster (C MuJoCo and the GL render
-   workers). `executor.actors` sets the number. The limit board is a `limiter.LimiterActor`
-   on the driver's node;
-4. the driver hands out chunks, streams their ledger lines back, replaces dead engines and
-   logs each engine's time (`driver`), up to `executor.max_tasks` chunks at once in an engine;
-5. the ledger's records are returned, `{(model, track, task, seed, run): record}`.
-
-A killed driver takes its engines with it (Ray ends the actors a driver owns when the driver
-exits): nothing writes the ledger after it, and the same command resumes from results.jsonl,
-adopting the result.json of episodes that finished in the instant before.
-
-The run directory must be one that every node sees at the same absolute path (a shared mount):
-engines write the episodes' directories and the learning stage's summaries there, and refuse
-to start where they cannot see the plan. The project is shipped from the driver's checkout
-when `run_ray` connects to the cluster itself (`project_runtime_env`: vabench, assets and
-configs, without run directories or caches); the nodes need the same Python packages. API keys
-travel from the driver's environment to the engines' in memory (`ray_engine`), never in a file.
+A killed driver takes its engines with it (Ray ends the actors a driver owns), and the same
+command resumes from the ledger. The run directory must be at the same absolute path on every
+node (a shared mount): engines write the episodes' directories and summaries there, and refuse
+to start where they cannot see the plan. The driver's checkout is shipped to the cluster when
+`run_ray` connects itself (`ray_plan.project_runtime_env`); API keys travel to the engines in
+memory (`ray_engine`), never in a file.
 """
 
 from __future__ import annotations
@@ -45,9 +32,10 @@ from pathlib import Path
 from typing import Any
 
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
+from vabench.llm_pool.limit_board import LimiterActor, RayBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.sweep.cells import Cell, chunks, task_cost, task_groups
-from vabench.sweep.choices import Choices
 from vabench.sweep.chunk_engine import (
     CLOSED,
     DONE,
@@ -69,7 +57,6 @@ from vabench.sweep.driver import (
     pending,
 )
 from vabench.sweep.interrupt import CtrlC
-from vabench.sweep.limiter import LimiterActor, RayBoard
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_plan import (

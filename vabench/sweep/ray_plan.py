@@ -6,18 +6,14 @@ each claims from Ray's scheduler (`engine_plan`), what an engine's process is st
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import vabench
-from vabench import switches
-from vabench.children import CORES_VARIABLE
 from vabench.config import SweepConfig
-from vabench.sim_mjx.warp.device import GPU_SHARE
-from vabench.sweep.choices import Choices, for_engines
-from vabench.tuning import mps
+from vabench.config.choices import Choices, for_engines
+from vabench.tuning.engine_env import engines_per_gpu, ray_environment
 
 CHUNKS_PER_ENGINE = 8
 """Chunks per engine the plan is cut into: enough that engines finish close together."""
@@ -62,7 +58,7 @@ def engine_plan(
 ) -> tuple[int, dict[str, float], Choices]:
     """(how many engines, what each claims from Ray's scheduler, the choices they run with) on
     a cluster of `cluster` resources, for a sweep whose command chose `choices` (see
-    `ray_executor`'s docstring and `choices.for_engines`)."""
+    `ray_executor`'s docstring and `config.choices.for_engines`)."""
     asked = config.executor.actors
     gpus = int(cluster.get("GPU", 0))
     engines = for_engines(choices, config, gpus)
@@ -77,39 +73,11 @@ def engine_plan(
     return asked or max(1, int(cluster.get("CPU", 1)) // cpus), resources, engines
 
 
-def engines_per_gpu(mps_setting: str = "auto") -> int:
-    """Engines a GPU when `executor.actors` is unset: `mps.ENGINES_PER_GPU` where they can share
-    it under CUDA MPS (`mps_setting`, the config's `executor.mps`, is auto and NVIDIA's control
-    program is on this node, which stands for the cluster's: nodes of one image; an engine on a
-    node without it warns and its GPU's engines take turns), else one (measured:
-    docs/PERFORMANCE.md, Ray)."""
-    if mps_setting == "auto" and mps.control_program() is not None:
-        return mps.ENGINES_PER_GPU
-    return 1
-
-
 def engine_environment(
     config: SweepConfig, cores: int, gpu_share: int = 1, sweep: str = "", ranked: bool = False
 ) -> dict[str, str]:
-    """What an engine's process is started with: the config's API keys from this process's
-    environment, `VABENCH_CORES` (the engine's share of its node, which sizes the embedded
-    server's policy processes) and, where engines share a GPU, `VABENCH_GPU_SHARE` (how many:
-    GPU buffers sized from the memory free take that share of it) and, unless `executor.mps` is
-    off, the sweep's id `sweep` as `mps.NODE_SWEEP`: the engines of a node join one CUDA MPS
-    daemon of the sweep's, so that their kernels run side by side instead of their contexts
-    taking turns (one engine process is paced by its host side, docs/PERFORMANCE.md). `ranked`
-    (the sweep has critical chunks): `mps.NODE_RANKED` too, so that one engine a GPU is a
-    normal MPS client for them and the others below normal."""
-    # the sweep's switches as this process reads them (config and environment: `switches`)
-    env = switches.environment(switches.current()) | {CORES_VARIABLE: str(max(1, cores))}
-    if gpu_share > 1:
-        env[GPU_SHARE] = str(gpu_share)
-        if config.executor.mps == "auto" and sweep:
-            env[mps.NODE_SWEEP] = sweep
-            if ranked:
-                env[mps.NODE_RANKED] = "1"
-    for model in config.models:
-        name = model.api_key_env
-        if name and os.environ.get(name):
-            env[name] = os.environ[name]
-    return env
+    """What an engine's process is started with (`engine_env.ray_environment`): the node's
+    MPS daemon of the sweep `sweep` unless `executor.mps` is off, the config's API keys."""
+    keys = [m.api_key_env for m in config.models if m.api_key_env]
+    sweep = sweep if config.executor.mps == "auto" else ""
+    return ray_environment(cores, gpu_share, sweep, ranked, keys)

@@ -3,42 +3,28 @@
 A line is `{"v": 1, "track": ..., "episode_dir": ..., **EpisodeResult}`. "Finished" means
 scored (success or failure), an `error` that re-running cannot fix, or an
 `infrastructure_error` after its last retry round. Infrastructure failures before that go to
-RUN_DIR/infrastructure.jsonl (append-only, for the record and for counting rounds across
-resumes) and the episode is run again.
+RUN_DIR/infrastructure.jsonl (append-only, counting rounds across resumes) and the episode runs
+again.
 
-Crash safety, in the order the sweep writes:
-1. the episode writes its result.json atomically (vabench.agent.records);
-2. the ledger appends one line and fsyncs.
-A kill between 1 and 2 leaves a result.json that the ledger does not know: `recover()` adopts
-it on resume instead of running the episode again. A kill during 2 leaves a truncated last
-line: `open()` cuts it off (and the result.json adopts it again). So every planned episode ends
-with exactly one line, never zero, never two.
+Crash safety: the episode writes its result.json atomically (vabench.agent.records), then the
+ledger appends one line and fsyncs. A kill in between leaves a result.json the ledger does not
+know, which `recover()` adopts on resume; a kill during the append leaves a truncated last
+line, which `open()` cuts off. So every planned episode ends with exactly one line. Each
+append is one `write()` of the whole line on an `O_APPEND` descriptor under an exclusive POSIX
+record lock (fcntl, which NFS honours across clients), and `open()` reads and cuts under the
+same lock. With worker processes and Ray the engines hand their lines to the driver through
+`Ledger(sink=...)`, the one writer, so a worker that outlives a killed parent adds no line.
 
-Several processes may append to the same logs: each append
-is one `write()` of the whole line on an `O_APPEND` descriptor, under an exclusive POSIX record
-lock on the file (fcntl, which NFS honours across clients, unlike `O_APPEND` alone), and
-`open()` reads and cuts under the same lock, so a line another process is writing is never
-taken for a cut one. With `executor: processes` and `executor: ray` there is one writer: the
-cell workers (engine actors) hand their lines to the parent (the driver) through
-`Ledger(sink=...)`, which appends them (`append_line`), so a worker that outlives a killed
-parent cannot add a line.
-
-An `infrastructure_error` line is final for the invocation that wrote it, not for the next:
 `reopen_infrastructure_errors` (the sweep command, unless `--no-retry-infrastructure`) moves
-such lines back to RUN_DIR/infrastructure.jsonl, marked `reopened` (an episode's attempts are
-counted from its last reopened line on, so it gets its retry rounds again), and sets their
-attempts' files aside in the episode's directory: the same command re-runs them, every earlier
-attempt kept in the record, none counted in the results.
+final `infrastructure_error` lines back to RUN_DIR/infrastructure.jsonl, marked `reopened` (the
+episode's attempts count afresh), and sets their attempts' files aside: the same command runs
+them again, every earlier attempt kept. A second line for an episode (two writers raced) is
+not fatal: `open()` keeps the first, moves the others to RUN_DIR/results.duplicates.jsonl
+(their spend still counts in the report) and reports them in `Ledger.collapsed`.
 
-A second line for an episode already in the ledger (two writers raced: a worker of a killed
-sweep and its resumption) is not fatal: `open()` keeps the first, moves the others to
-RUN_DIR/results.duplicates.jsonl (their spend still counts in the report) and reports them in
-`Ledger.collapsed`.
-
-In memory the ledger keeps what the sweep decides on, each line's `OUTCOME` fields, not the
-whole line: a sweep of 200,000 episodes holds ~0.2 GB of lines that decoded to ~0.8 GB of
-dicts; the report and the viewer read the file (`vabench.run_records`). Pydantic reads those
-fields straight from each line's JSON (`_OUTCOME`), skipping the rest.
+In memory the ledger keeps each line's `OUTCOME` fields only (what the sweep decides on),
+validated straight from the line's JSON; the report and the viewer read the file
+(`vabench.run_records`).
 """
 
 from __future__ import annotations

@@ -1,39 +1,26 @@
 """Running a planned sweep in one process: every task batch of the plan concurrently, resumable.
 
 One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
-it, one render pool (together, with the in-flight gate below: the `Engine` that `open_engine`
-opens, which an engine of the driver keeps open for every chunk it runs), and up to
-`executor.max_tasks` task batches at once; each batch serves
-every model and track of its task (the simulator does not care who decides). Episodes in
-flight are bounded per batch by its slots and overall by the `inflight.InFlight` gate: a limit
-that adapts to what the simulator, renderer and endpoints sustain (`executor.in_flight: auto`),
-at most `executor.max_episodes`. Physics, renderer, task batches at once and the in-flight rule
-are the sweep's `choices.Choices`, made once by the command and received here.
+it, one renderer and the in-flight gate (the `Engine` that `open_engine` opens, which an engine
+of the driver keeps open for every chunk it runs), and up to `executor.max_tasks` task batches
+at once; each batch serves every model and track of its task. Episodes in flight are bounded
+per batch by its slots and overall by the `tuning.inflight.InFlight` gate, at most
+`executor.max_episodes`. What it runs on is the command's `config.choices.Choices`.
 
-Resume (see `results.Ledger`): episodes already in results.jsonl are never run again; an
-episode whose result.json exists but never reached the ledger (killed in between) is adopted;
-an interrupted one (events, no result) restarts in a clean log (its partial log is kept).
-Summaries (`summaries.SummaryStage`): the first episode of a (model, family) on a track that
-reads summaries waits for the learning session of the model whose summary the track reads; it
-runs once per sweep directory and every later episode reuses it.
-
-Infrastructure failures are retried in later rounds, up to `retries.infrastructure_rounds`
-re-runs each, logged in infrastructure.jsonl, and after the last round recorded as
-`infrastructure_error`: listed, never scored.
+Resume (`results.Ledger`): episodes already in results.jsonl never run again; an episode whose
+result.json never reached the ledger is adopted; an interrupted one restarts in a clean log.
+The first episode of a (model, family) on a track that reads summaries waits for its learning
+session (`agent.learning_stage.SummaryStage`), run once per run directory. Infrastructure
+failures are retried in later rounds, up to `retries.infrastructure_rounds` re-runs each, then
+recorded as `infrastructure_error`: listed, never scored.
 
 An endpoint that refuses the sweep's requests themselves (`RequestRejected.fatal`: a wrong key,
-an unknown model, parameters it does not take, or nothing answering at its `base_url` before it
-ever answered) stops the sweep: no episode starts after it,
-the episodes it ended get no record (their partial logs are set aside when they run again), and
-`stopped` says which model and what to check. The same command runs them once it is fixed. A
-failed GPU (`DeviceFailure`: the process's CUDA context is dead) stops it the same way.
-
-Spend caps (`limits.max_cost_usd` of the sweep and of each model, `llm_pool.spend.SpendCaps`):
-the pool sends no call that could cross one, counting what the run directory's records already
-hold (`report.spend.recorded_spend`, read when the sweep starts or resumes). A call refused by
-a model's cap ends its episode like a fatal refusal (no record) and no episode of that model
-starts after it, while the other models go on; the sweep's cap stops every model. `stopped`
-then names the cap and the spend; the same command with a higher cap resumes.
+an unknown model, nothing answering at its `base_url`) or a failed GPU (`DeviceFailure`) stops
+the sweep: no episode starts after it, the episodes it ended get no record, and `stopped` says
+what to check; the same command runs them once it is fixed. Spend caps (`limits.max_cost_usd`
+of the sweep and of each model, `llm_pool.spend.SpendCaps`, over what the run directory's
+records already spent): the pool sends no call that could cross one; a model's cap ends that
+model's episodes without a record, the sweep's every model's, and `stopped` names the cap.
 """
 
 from __future__ import annotations
@@ -49,9 +36,11 @@ from pathlib import Path
 
 from vabench.agent.engine import EpisodeSpec, run_episode
 from vabench.agent.learning import LearningLimits
-from vabench.agent.records import EpisodeRecorder, EpisodeResult
+from vabench.agent.learning_stage import SummaryStage, unavailable_result
+from vabench.agent.records import EpisodeResult
 from vabench.agent.services import task_services
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.llm_pool.config import ModelEndpoint
 from vabench.llm_pool.errors import RequestRejected, SpendCapReached
 from vabench.llm_pool.pool import LLMPool
@@ -64,14 +53,12 @@ from vabench.report.spend import recorded_spend
 from vabench.sim_mjx.backends import Choice
 from vabench.sim_mjx.interface import DeviceFailure, device_failure
 from vabench.sim_mjx.warp.device import warp_device
-from vabench.sweep.choices import Choices
 from vabench.sweep.display import Counts
-from vabench.sweep.inflight import InFlight
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
-from vabench.sweep.summaries import SummaryStage
 from vabench.tasks import get_task
 from vabench.tuning import hostload
+from vabench.tuning.inflight import InFlight
 from vabench.tuning.precompile import Compiling
 
 log = logging.getLogger(__name__)
@@ -373,7 +360,7 @@ class LocalSweep:
                     frames=cfg.records.frames,
                 )
                 if use.unavailable is not None:
-                    self._finish(k, _unavailable(spec, cfg.budget(name), use.unavailable))
+                    self._finish(k, unavailable_result(spec, cfg.budget(name), use.unavailable))
                     return
                 async with slots, gate.slot():
                     # stopped (or capped) while this one waited for a slot
@@ -468,27 +455,3 @@ def spend_caps(config: SweepConfig, run_dir: Path) -> SpendCaps | None:
     if not per_model and total is None:
         return None
     return SpendCaps(per_model, total, recorded_spend(run_dir))
-
-
-def _unavailable(spec: EpisodeSpec, budget: int, why: str) -> EpisodeResult:
-    """The record of an episode not run because its summary could not be learned for an
-    infrastructure reason (unscored; re-run in the next round)."""
-    recorder = EpisodeRecorder(spec.out_dir)
-    recorder.event("summary_unavailable", error=why)
-    result = EpisodeResult(
-        task=spec.task,
-        seed=spec.seed,
-        model=spec.model,
-        protocol=spec.protocol,
-        run=spec.run,
-        status="infrastructure_error",
-        success=False,
-        stop_reason="infrastructure_error",
-        error=why,
-        step_budget=budget,
-        n_checkpoints=len(get_task(spec.task).checkpoints),
-        summary_mode=spec.summary_mode,
-        summary_from=spec.summary_from,
-        summary_status=spec.summary_status,
-    )
-    return recorder.finish(result)  # closes the recorder

@@ -58,7 +58,7 @@ PRIORITY_VARIABLE = "CUDA_MPS_CLIENT_PRIORITY"
 default), "1" below normal (NVIDIA's MPS documentation, "CUDA_MPS_CLIENT_PRIORITY"): the GPU
 runs a normal client's kernels ahead of those waiting from below-normal ones. The processes
 executor puts every engine process below normal but the critical path's
-(`process_executor.critical_environment`): alone in their process at the default priority,
+(`engine_env.critical_path_environment`): alone in their process at the default priority,
 the basket's decisions waited behind the other processes' kernels (docs/PERFORMANCE.md,
 "Critical path: the basket")."""
 NORMAL, BELOW_NORMAL = "0", "1"

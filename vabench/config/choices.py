@@ -11,7 +11,7 @@
                process per GPU on several; else `processes` (one cell per core at once) on
                a host of `PROCESSES_FROM_CORES` cores or more, else `local`
     in flight  executor.in_flight auto: adapts to what the machine and endpoints sustain
-               (`sweep.inflight`)
+               (`tuning.inflight`)
 
 `choose` makes them once per sweep command, into one `Choices`: `--dry-run` prints its lines,
 the sweep logs them when it starts, and every executor receives it (the local one, the worker
@@ -20,13 +20,7 @@ choices `for_engines` makes for the cluster's GPUs): nothing downstream resolves
 again. `VABENCH_CORES` tells the choices how many cores to size for (default: the CPUs this
 process may run on); the test suite pins it so that its sweeps run the same way on any machine.
 
-Processes the sweep starts get an environment chosen here (`child_environment`, also applied
-to the sweep's own process by `configure_jax`): JAX never preallocates GPU memory
-(XLA_PYTHON_CLIENT_PREALLOCATE=false: 16 worker processes that each took 75 % of one GPU lost
-most of their episodes), and JAX stays on the CPU unless the physics is
-MJX on JAX (JAX_PLATFORMS=cpu: C MuJoCo and Warp use JAX only for small host-side functions).
-With several GPUs, each worker process is given one of them (`gpu_for_worker`). Values the user
-set in the environment are kept.
+The environment of the processes the sweep starts is `tuning.engine_env`'s.
 """
 
 from __future__ import annotations
@@ -38,13 +32,13 @@ from dataclasses import dataclass, field, replace
 
 from vabench import switches
 from vabench.children import usable_cores, visible_gpus
-from vabench.config import ExecutorOptions, SweepConfig
+from vabench.config.schema import ExecutorOptions, SweepConfig
 from vabench.llm_pool.server_config import serving_description
 from vabench.render.backends import RenderChoice, resolve_renderer
 from vabench.sim_mjx.backends import Choice, resolve
-from vabench.sweep.inflight import InFlightRule, in_flight_rule
 from vabench.switches import Effective
 from vabench.tuning import mps
+from vabench.tuning.inflight import InFlightRule, in_flight_rule
 
 PROCESSES_FROM_CORES = 4
 """From this many cores on, `executor: auto` runs cells in worker processes: below it the
@@ -110,7 +104,7 @@ class ExecutorChoice:
     critical_path: tuple[str, ...] | None = None
     """The tasks on the whole sweep's critical path, decided by the processes executor for its
     workers and by the Ray driver for its engines (each sees only its chunk's tasks); None: a
-    `LocalSweep` decides from the budgets of its own tasks (`runner.critical_path_tasks`)."""
+    `LocalSweep` decides from the budgets of its own tasks (`sweep.runner.critical_path_tasks`)."""
 
     @property
     def label(self) -> str:
@@ -272,37 +266,3 @@ def for_engines(choices: Choices, config: SweepConfig, gpus: int) -> Choices:
         renderer=resolve_renderer(config.render.backend, ENGINE_GPU, probe=False),
         in_flight=in_flight_rule(ex.in_flight, ex.max_episodes, physics.batched),
     )
-
-
-def child_environment(physics: Choice, environ: Mapping[str, str] = os.environ) -> dict[str, str]:
-    """The variables to add to the environment of processes the sweep starts (see the module
-    docstring); variables already set in `environ` are left as they are. With them the
-    switches' variables as this process reads them (`vabench.switches.environment`: those of
-    a value other than the default), so that its children read the same."""
-    wanted = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-    if not physics.jax_simulates:
-        wanted["JAX_PLATFORMS"] = "cpu"
-    own = switches.environment(switches.current(environ))
-    return {k: v for k, v in wanted.items() if k not in environ} | own
-
-
-def configure_jax(physics: Choice) -> None:
-    """Apply `child_environment` to this process; JAX reads these when it first creates a
-    backend, which nothing in the sweep has done before its choices are made. JAX's cache and
-    matmul precision are set again from the switches (`sim_mjx.jax_setup`, imported before
-    the config's switches were in the environment)."""
-    env = child_environment(physics)
-    os.environ.update(env)
-    from vabench.sim_mjx import jax_setup
-
-    jax_setup.configure()
-    if "JAX_PLATFORMS" in env:
-        import jax
-
-        jax.config.update("jax_platforms", env["JAX_PLATFORMS"])
-
-
-def gpu_for_worker(index: int, gpus: tuple[str, ...]) -> str | None:
-    """The GPU worker process `index` uses when several are visible (round robin); None when
-    there are fewer than two (nothing to spread)."""
-    return gpus[index % len(gpus)] if len(gpus) > 1 else None

@@ -4,9 +4,9 @@ Each flag edits the loaded YAML document before it is checked (`load_config(edit
 bad value gets the schema's one-line error naming the field, to which `name_flags` adds the
 flag that set it. The overridden config is the sweep's config: its run directory's plan.json
 and sweep.yaml record it, and resuming with other overrides is refused like a changed file
-(`sweep.rundir`). `--limit` is the one flag that is no config field: it keeps the first N
-episodes of the plan's order (task > model > track > run > seed, `sweep.plan`), and plan.json
-records exactly those episodes, so a resume with another limit is refused too.
+(`vabench.sweep.rundir`). `--limit` is the one flag that is no config field: it keeps the first
+N episodes of the plan's order (task > model > track > run > seed, `vabench.sweep.plan`), and
+plan.json records exactly those episodes, so a resume with another limit is refused too.
 """
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ import argparse
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
-from vabench.config import SweepConfigError
-from vabench.config.problems import Problem
-from vabench.sweep.plan import EpisodeKey
+from vabench.config.problems import Problem, SweepConfigError
+
+T = TypeVar("T")
 
 
 class OverrideError(ValueError):
@@ -217,7 +217,7 @@ class Overrides:
             problems.append(Problem(p.path, message))
         return SweepConfigError(err.file, problems)
 
-    def limited(self, keys: Sequence[EpisodeKey]) -> list[EpisodeKey]:
+    def limited(self, keys: Sequence[T]) -> list[T]:
         """The first `--limit` episodes of the plan (all of them without one)."""
         return list(keys if self.limit is None else keys[: self.limit])
 

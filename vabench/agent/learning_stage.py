@@ -58,7 +58,8 @@ from vabench.agent.learning import (
     read_result,
     write_result,
 )
-from vabench.agent.records import EpisodeRecorder, SummaryStatus
+from vabench.agent.records import EpisodeRecorder, EpisodeResult, SummaryStatus
+from vabench.agent.spec import EpisodeSpec
 from vabench.llm_pool.errors import RequestRejected
 from vabench.llm_pool.pool import LLMPool
 from vabench.run_layout import ATTEMPT_PREFIX, EpisodeDir, RunDir
@@ -305,3 +306,27 @@ def _acquire(path: Path) -> Any:
 def _release(f: Any) -> None:
     fcntl.flock(f, fcntl.LOCK_UN)
     f.close()
+
+
+def unavailable_result(spec: EpisodeSpec, budget: int, why: str) -> EpisodeResult:
+    """The record of an episode not run because its summary could not be learned for an
+    infrastructure reason (unscored; re-run in the next round)."""
+    recorder = EpisodeRecorder(spec.out_dir)
+    recorder.event("summary_unavailable", error=why)
+    result = EpisodeResult(
+        task=spec.task,
+        seed=spec.seed,
+        model=spec.model,
+        protocol=spec.protocol,
+        run=spec.run,
+        status="infrastructure_error",
+        success=False,
+        stop_reason="infrastructure_error",
+        error=why,
+        step_budget=budget,
+        n_checkpoints=len(get_task(spec.task).checkpoints),
+        summary_mode=spec.summary_mode,
+        summary_from=spec.summary_from,
+        summary_status=spec.summary_status,
+    )
+    return recorder.finish(result)  # closes the recorder

@@ -1,7 +1,7 @@
 """One place for each endpoint's limits across a sweep's processes: the limit board.
 
-Every worker process (`process_executor`) and engine actor of a Ray sweep
-(`ray_engine.EngineActor`) has its own LLM pool; without this, N of them would each keep an
+Every worker process (`vabench.sweep.process_executor`) and engine actor of a Ray sweep
+(`vabench.sweep.ray_engine`) has its own LLM pool; without this, N of them would each keep an
 endpoint's RPM, TPM and concurrency, and send N times what the provider allows. The
 `LimitBoard` holds, per endpoint of the sweep that is not served by the embedded server (each
 process runs its own embedded server, whose limits are its own):

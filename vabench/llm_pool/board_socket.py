@@ -2,7 +2,7 @@
 
 `executor: processes` runs its cells in worker processes of one host; each has its own LLM
 pool, and all of them take their admissions, concurrency slots and spend reservations from one
-`limiter.LimitBoard` in the parent. `BoardServer` runs that board in a thread of the parent, in
+`limit_board.LimitBoard` in the parent. `BoardServer` runs that board in a thread of the parent, in
 its own event loop, on a Unix socket in a private folder; a worker reaches it through a
 `SocketChannel` (`shared_limits.LimitChannel`): `call` waits for the board's answer, `send`
 does not. Messages are length-prefixed pickles between processes of the same user (the folder
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from vabench.sweep.limiter import BoardLimits, LimitBoard
+from vabench.llm_pool.limit_board import BoardLimits, LimitBoard
 
 log = logging.getLogger(__name__)
 
