@@ -209,6 +209,21 @@ def test_a_mismatched_pair_is_refused_in_one_line_or_marked(tmp_path, capsys):
     assert {m["model"]: m["mismatch"] for m in models} == {"m": "", "n": "image"}
 
 
+def test_sweeps_of_another_action_timing_are_not_comparable(tmp_path, capsys):
+    """Runs whose actions end differently (`simulator.action_end`) never share a table
+    silently; a sweep.yaml without the field (written before it existed) ran fixed actions."""
+    old = config_doc(["m"])
+    paced = config_doc(["n"]) | {"simulator": {"backend": "c", "action_end": "paced"}}
+    fixed = config_doc(["o"]) | {"simulator": {"backend": "c", "action_end": "fixed"}}
+    a = write(tmp_path / "a", sweep("m", M_RUNS), old)
+    b = write(tmp_path / "b", sweep("n", N_RUNS), paced)
+    c = write(tmp_path / "c", sweep("o", N_RUNS), fixed)
+    assert main([str(a), str(b), "--out", str(tmp_path / "board")]) == 2
+    err = capsys.readouterr().err
+    assert "action_end differs" in err and '"fixed" vs "paced"' in err
+    assert main([str(a), str(c), "--out", str(tmp_path / "board")]) == 0
+
+
 def test_the_same_model_in_two_sweeps_pools_disjoint_runs_only(tmp_path, capsys):
     whole = generate(write(tmp_path / "whole", sweep("m", M_RUNS), config_doc(["m"]))).directory
     first = write(tmp_path / "r1", sweep("m", {1: M_RUNS[1]}), config_doc(["m"]))

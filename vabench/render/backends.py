@@ -103,7 +103,7 @@ def make_renderer(
     device: str | None = None,
 ) -> tuple[Renderer, RenderChoice]:
     """A renderer (not started) of the chosen backend, and why it was chosen: `backend` is a
-    name to resolve, or a choice made already (a sweep's, `sweep.choices`), taken as it is.
+    name to resolve, or a choice made already (a sweep's, `config.choices`), taken as it is.
     `workers` and `platform` are the GL pool's."""
     choice = backend if isinstance(backend, RenderChoice) else resolve_renderer(backend, device)
     if choice.backend == "warp":

@@ -3,9 +3,9 @@ one sweep's (`build.write_report` over the merged records).
 
 Scores share a table only when what decides them matches (`results_file.COMPARABLE`: the
 model-facing protocol's version, tracks, tasks, seeds, budgets, image settings, physics
-backend); each run directory is compared with the first, and a difference is refused in one
-line naming the field, or, with `allow_mismatch`, merged with every model of the differing
-sweep marked (its rows and results.json's `models[].mismatch` name the fields).
+backend and action timing); each run directory is compared with the first, and a difference
+is refused in one line naming the field, or, with `allow_mismatch`, merged with every model of
+the differing sweep marked (its rows and results.json's `models[].mismatch` name the fields).
 
 A model may appear in several directories only with disjoint runs (run indices): then its
 runs are pooled, as if one sweep had run them all; the same run of a model twice is refused,

@@ -5,9 +5,9 @@ results.json holds every scored and unscored episode (model, track, task, run, s
 stop reason, reply counters), the aggregates with the formulas that made them, per-model
 counts, the published reference rows when shown, and the provenance that decides whether two
 runs' numbers may be compared: vabench's version and commit, the model-facing protocol's
-version, physics backend, renderer and image settings, the protocol's budgets, tracks, tasks,
-seeds and the config's hash. `comparability` is the part of the provenance a leaderboard
-checks (`leaderboard`).
+version, physics backend and action timing, renderer and image settings, the protocol's
+budgets, tracks, tasks, seeds and the config's hash. `comparability` is the part of the
+provenance a leaderboard checks (`leaderboard`).
 
 The run's files are read as YAML and JSON, not as a `SweepConfig`: the report sits below the
 config package, and a run directory made by hand (results.jsonl alone) still gets a file,
@@ -43,7 +43,16 @@ EPISODES_CSV = "episode_outcomes"
 SCHEMA_FILE = Path(__file__).with_name("results.schema.json")
 COUNTERS = ("invalid_outputs", "refusals", "truncations", "empty_replies")
 """Per-episode reply counters; a result written before a counter existed reads as 0."""
-COMPARABLE = ("protocol_version", "tracks", "tasks", "seeds", "budgets", "image", "physics")
+COMPARABLE = (
+    "protocol_version",
+    "tracks",
+    "tasks",
+    "seeds",
+    "budgets",
+    "image",
+    "physics",
+    "action_end",
+)
 """What must match for two runs' scores to share a table (the leaderboard refuses otherwise)."""
 FORMULAS = {
     "task_rate": "S(m,t,r,task) = successes / scored episodes of that model, track, run, task "
@@ -162,6 +171,9 @@ def provenance(run_dir: Path, records: Sequence[Record]) -> dict[str, Any]:
             "jpeg_subsampling": render.get("subsampling"),
         },
         "physics": simulator.get("backend"),
+        # How long an action's physics runs decides where objects are when a model looks; a
+        # sweep.yaml written before the field existed ran every action for the fixed time.
+        "action_end": simulator.get("action_end") or "fixed",
     }
     return {
         "vabench_version": vabench.__version__,

@@ -58,7 +58,7 @@ class Physics(enum.Enum):
     @property
     def batched(self) -> bool:
         """One batch steps every slot of a task on a device, for about the price of one slot
-        (Warp, MJX on JAX): fill it rather than adapt (`sweep.inflight`), chunk by task."""
+        (Warp, MJX on JAX): fill it rather than adapt (`tuning.inflight`), chunk by task."""
         return self is not Physics.C
 
     @property

@@ -39,7 +39,7 @@ _USERS_CACHE = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined
 def configure() -> None:
     """Set the cache and the precision from the switches (`vabench.switches`): on import, and
     again in the sweep's process once its config's switches are in its environment
-    (`sweep.choices.configure_jax`), before its first compilation."""
+    (`tuning.engine_env.configure_jax`), before its first compilation."""
     _enable_compilation_cache()
     _full_precision_matmuls()
 

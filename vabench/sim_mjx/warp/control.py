@@ -201,7 +201,7 @@ def pace_kernel(
 ):
     """The timing of slot n's action (controller.pace): fixed, or paced by each move's length."""
     n = wp.tid()
-    final = wp.float32(0.0)
+    final = full_move * 0.0  # a variable (not a constant) the loop may raise
     for a in range(moves.shape[1]):
         steps = full_move
         if paced != 0:
