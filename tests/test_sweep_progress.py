@@ -314,6 +314,7 @@ def test_the_spend_shown_never_drops_below_the_ledgers_when_reporters_go_quiet()
     """A Ray engine closed at the end of a sweep reports no spend: the last line read "0
     tokens" after 4 episodes had recorded 4,593 (seen walking docs/RAY.md's steps, 2026-11-26).
     The ledger's records of this invocation are the floor; live reports above it win."""
+
     def ledger() -> Status:
         return Status({}, calls=12, tokens=4593, cost=0.5)
 
