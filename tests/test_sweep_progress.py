@@ -12,8 +12,7 @@ import re
 from vabench.config import load_config
 from vabench.config.choices import choose
 from vabench.sweep.__main__ import main
-from vabench.sweep.display import Counts, Display, Status, Tally
-from vabench.sweep.driver import merged_status
+from vabench.sweep.display import Counts, Display, Status, Tally, with_reports
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.process_executor import run_processes
 from vabench.sweep.rundir import check_run_dir
@@ -306,7 +305,7 @@ def test_chunks_of_one_cell_running_at_once_are_all_counted(tmp_path):
         status = {"running": {"m/active": running}, "in_flight": running, "limit": 4}
         status |= {"reason": "r", "calls": calls, "tokens": 5, "cost": 0.0, "calls_in_flight": 1}
         reports.append(status)
-    shown = merged_status(Tally(tmp_path, keys).status(), reports, reports, "worker processes")
+    shown = with_reports(Tally(tmp_path, keys).status(), reports, reports, "worker processes")
     assert shown.total().running == 3 and shown.in_flight == 3 and shown.limit == 8
     assert shown.calls == 17 and shown.tokens == 10 and shown.calls_in_flight == 2
 
@@ -315,7 +314,6 @@ def test_the_spend_shown_never_drops_below_the_ledgers_when_reporters_go_quiet()
     """A Ray engine closed at the end of a sweep reports no spend: the last line read "0
     tokens" after 4 episodes had recorded 4,593 (seen walking docs/RAY.md's steps, 2026-11-26).
     The ledger's records of this invocation are the floor; live reports above it win."""
-    from vabench.sweep.display import with_reports
 
     def ledger() -> Status:
         return Status({}, calls=12, tokens=4593, cost=0.5)

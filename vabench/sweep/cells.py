@@ -32,6 +32,11 @@ def task_cost(config: SweepConfig, task: str) -> int:
     return config.budget(task) if task in REGISTRY else 1
 
 
+def task_budgets(config: SweepConfig, cells: Iterable[Cell]) -> dict[str, int]:
+    """The `task_cost` of every task of `cells` (what the critical path is found from)."""
+    return {task: task_cost(config, task) for _, _, task in cells}
+
+
 def pending_cells(
     keys: Iterable[EpisodeKey], finished: Iterable[Key]
 ) -> dict[Cell, list[EpisodeKey]]:

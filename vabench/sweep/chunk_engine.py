@@ -81,16 +81,6 @@ def for_chunk(choices: Choices, part: Sequence[EpisodeKey]) -> Choices:
     return dataclasses.replace(choices, executor=dataclasses.replace(ex, max_tasks=tasks))
 
 
-def check_run_dir_here(run_dir: Path) -> None:
-    """Raise, naming this host, unless `run_dir` holds the driver's plan (a run directory every
-    node of a cluster sees at the same path)."""
-    if not RunDir(run_dir).plan.exists():
-        raise RuntimeError(
-            f"{run_dir}: no {PLAN} here on {socket.gethostname()}: the engines need a run "
-            "directory that every node sees at the same path (a shared mount)"
-        )
-
-
 class ChunkEngine:
     """One engine serving chunks (see the module docstring); every method runs in one event
     loop. `start` first, `close` last."""
@@ -99,7 +89,11 @@ class ChunkEngine:
         """`dealt`: its chunks are parts of the sweep dealt over engines (`for_chunk`); False
         for the one engine of `executor: local`, whose one chunk is the sweep, run on the
         command's `choices` as they are."""
-        check_run_dir_here(run_dir)
+        if not RunDir(run_dir).plan.exists():  # absent where the run directory is not shared
+            raise RuntimeError(
+                f"{run_dir}: no {PLAN} here on {socket.gethostname()}: the engines need a run "
+                "directory that every node sees at the same path (a shared mount)"
+            )
         self.config = config
         self.choices = choices
         self.run_dir = run_dir
@@ -259,14 +253,13 @@ class ChunkEngine:
 
 Command = tuple[Any, ...]
 """What a driver tells a served engine: ("run", name, keys) or ("close",)."""
-Send = Callable[[tuple[Any, ...]], None]
 
 
 async def serve(
     make: Callable[[], ChunkEngine],
     board: BoardLink | None,
     commands: asyncio.Queue[Command | None],
-    send: Send,
+    send: Callable[[tuple[Any, ...]], None],
     on_chunk: Callable[[Sequence[EpisodeKey]], None] = lambda keys: None,
 ) -> None:
     """An engine's life under a driver: made (else LOST, not to be replaced: another would fail

@@ -92,12 +92,16 @@ class Status:
 
 
 def with_reports(status: Status, reports: list[dict], live: list[dict], unit: str) -> Status:
-    """`status` (the ledger's counts) with what the sweep's processes report (each a
-    `cells.cell_status`-shaped dict): the spend of every report, finished ones included, and
-    the in-flight counts, limits and reason of the `live` ones. `unit` names the reporters in
-    the reason ("worker processes", "engines"). Their running episodes are the caller's.
-    The spend never reads below what the ledger's records of this invocation hold (`status`):
-    a Ray engine closed at the end reports no spend, and the last line read "0 tokens"."""
+    """`status` (the ledger's counts) with what the engines report (`ChunkEngine.status`): the
+    spend of every report, finished ones included, never below what the ledger's records of
+    this invocation hold (an engine closed at the end reports none), and the running episodes
+    per model/track, in-flight counts, limits and reason of the `live` ones. `unit` names the
+    reporters in the reason ("worker processes", "engines")."""
+    for r in live:
+        for name, n in r.get("running", {}).items():
+            model, track = name.split("/")
+            if (model, track) in status.tracks:
+                status.tracks[(model, track)].running += n
     status.calls = max(status.calls, sum(r["calls"] for r in reports))
     status.tokens = max(status.tokens, sum(r["tokens"] for r in reports))
     status.cost = max(status.cost, sum(r["cost"] for r in reports))

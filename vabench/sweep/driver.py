@@ -1,16 +1,15 @@
-"""The one driver of a sweep over engines: the in-process engine (`local_executor`), worker
-processes (`process_executor`) or Ray actors (`ray_executor`), each an `Engine` that runs the
-chunks it is handed (`chunk_engine`).
+"""The one driver of a sweep over engines (`Engines`: in-process, worker processes or Ray
+actors, each running the chunks it is handed with a `chunk_engine.ChunkEngine`).
 
-The driver serves one limit board to every engine, starts the engines, hands out chunks as
-engines have room (`placement.next_placement`), appends the ledger lines they report (the only
-writer of the ledger), merges their statuses for the display, and at the end closes them and
-logs each one's time. An engine that dies, or whose GPU fails, costs only its unfinished
-episodes: they go back to the front of the queue and another engine takes its place, at most
-`Engines.max_restarts` times. A chunk that raises is logged while the others run on; an
-endpoint or a spend cap that stops the sweep ends the handing out (`SweepStopped`). A disk below
-the reserve (`rundir.disk_short`) and Ctrl-C (`interrupt.CtrlC`, acted on at the next tick so
-that no ledger line is cut) end every engine at once, keeping every whole line they sent.
+The driver serves one limit board to every engine, hands out chunks as engines have room
+(`placement.next_placement`), is the only writer of the ledger, merges the engines' statuses for
+the display, and closes them at the end, logging each one's time. A dead engine (or one whose GPU
+failed) costs only its unrecorded episodes: they go back to the front of the queue and another
+engine takes its place, at most `Engines.max_restarts` times. A chunk that raises is logged
+while the others run on; an endpoint or a spend cap that stops the sweep ends the handing out
+(`SweepStopped`). A disk below the reserve (`rundir.disk_short`) and Ctrl-C (acted on at the
+next tick, so that no ledger line is cut) end every engine at once, keeping every whole line
+they sent.
 
 Engines report events into one queue, in the order each sends them: (STARTED, info),
 (LINE, log, record), (DONE, chunk, summary), (FAILED, chunk, error), (STATUS, status),
@@ -76,6 +75,8 @@ class Engines:
     max_chunks = 1
     """Chunks at once in one engine."""
     engines_wanted: int
+    chunks: list[Chunk]
+    """The plan, costliest first."""
     max_restarts = MAX_ENGINE_RESTARTS
     """Engines started in place of dead ones."""
     shares_board = True
@@ -115,17 +116,6 @@ def pending(
     return ledger, cells
 
 
-def merged_status(status: Status, reports: list[dict], live: list[dict], unit: str) -> Status:
-    """The ledger's counts (`status`) with what the engines report: the episodes running
-    per model/track and in-flight counts of the `live` ones, the spend of all."""
-    for r in live:
-        for name, n in r.get("running", {}).items():
-            model, track = name.split("/")
-            if (model, track) in status.tracks:
-                status.tracks[(model, track)].running += n
-    return with_reports(status, reports, live, unit)
-
-
 class _DiskShort(Exception):
     """The run directory's disk is below the reserve (`rundir.disk_short`)."""
 
@@ -139,7 +129,6 @@ class Driver:
         config: SweepConfig,
         keys: Sequence[EpisodeKey],
         run_dir: Path,
-        chunks: Sequence[Chunk],
         on_status: Callable[[Status], None] | None = None,
         ctrl_c: CtrlC | None = None,
         ledger: Ledger | None = None,
@@ -155,7 +144,7 @@ class Driver:
         """Ctrl-C was pressed (`ctrl_c`'s first press): the loop ends at its next tick."""
         self.ledger = ledger if ledger is not None else Ledger.open(run_dir)  # the only writer
         self.tally = Tally(run_dir, keys)
-        self.queue: collections.deque[Chunk] = collections.deque(chunks)
+        self.queue: collections.deque[Chunk] = collections.deque(kind.chunks)
         self.total = len(self.queue)
         self.done = 0
         self.failures: list[Chunk] = []
@@ -444,7 +433,7 @@ class Driver:
         """The ledger's counts with what the engines report (running, in flight, spend)."""
         reports = [e.status for e in self.engines if "calls" in e.status]
         live = [e.status for e in self.engines if e.ready and "calls" in e.status]
-        return merged_status(self.tally.status(), reports, live, self.kind.unit)
+        return with_reports(self.tally.status(), reports, live, self.kind.unit)
 
     # -- the end -------------------------------------------------------------------------------
     def _end(self, gracefully: bool) -> None:

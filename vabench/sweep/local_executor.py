@@ -139,4 +139,4 @@ def run_local(
         return ledger.records
     left = [k for k in keys if ledger_key(k) not in ledger.records]  # in plan order
     kind = LocalEngines(config, choices, run_dir, left)
-    return Driver(kind, config, keys, run_dir, kind.chunks, on_status, ctrl_c, ledger).run()
+    return Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger).run()

@@ -1,21 +1,15 @@
 """`executor: processes`: the sweep's engines as spawned worker processes of one host, under the
-one driver (`driver.Driver`).
+one driver (`driver.Driver`): for hosts where one sweep process is CPU-bound (C MuJoCo rollouts,
+a CPU-heavy embedded policy, demonstration builds) and, with batched physics, for engine
+processes sharing a GPU under CUDA MPS.
 
-For hosts where one sweep process is CPU-bound (C MuJoCo rollouts, a CPU-heavy embedded policy,
-demonstration builds) and, with batched physics, for engine processes sharing a GPU under CUDA
-MPS. Cells are cut into chunks so that the last processes to finish do not leave the others'
-cores idle (`cells.chunks`); with batched physics whole tasks are dealt over the engines, each
-stepping one batch per task of its chunk (`cells.bins`, `plan_chunks`). Each process holds one
-`chunk_engine.ChunkEngine` for its life and runs its chunks on the sweep's `Choices`, so the
-records equal those of the local executor.
-
-Each process is spawned (never forked: the parent holds JAX and thread pools) and talks to the
-driver over two pipes: it receives chunks and sends each ledger line, chunk summary and a
-status every second. Its death costs only its chunk's unfinished episodes. It exits when its
-parent is gone (`children.exit_with_parent`) and ignores Ctrl-C, which the driver handles. Its
-environment is `tuning.engine_env`'s: each engine's share of the cores and its GPU, and under
-MPS the critical path's engine at the normal priority, the others below it
-(`critical_environment`).
+Each process holds one `chunk_engine.ChunkEngine` for its life and runs the chunks of
+`plan_chunks` on the sweep's `Choices`, so the records equal those of the local executor. It is
+spawned (never forked: the parent holds JAX and thread pools), talks to the driver over two
+pipes (chunks in; each ledger line, chunk summary and a status every second out), exits when
+its parent is gone (`children.exit_with_parent`) and ignores Ctrl-C, which the driver handles.
+Its environment (`tuning.engine_env`) holds its share of the cores and its GPU, and under MPS
+its priority (`critical_environment`). Its death costs only its chunks' unfinished episodes.
 """
 
 from __future__ import annotations
@@ -51,7 +45,7 @@ from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import RunDir
 from vabench.sim_mjx.warp.device import warp_device
-from vabench.sweep.cells import Cell, bins, chunks, task_cost, task_groups
+from vabench.sweep.cells import Cell, bins, chunks, task_budgets, task_cost, task_groups
 from vabench.sweep.chunk_engine import (
     LOST,
     BoardLink,
@@ -101,7 +95,7 @@ def plan_critical_path(
     where physics is batched (every engine is told it); none otherwise."""
     if not choices.physics.batched:
         return set()
-    return critical_path_tasks({k[0]: task_cost(config, k[0]) for k in task_groups(cells)})
+    return critical_path_tasks(task_budgets(config, cells))
 
 
 def critical_tasks(
@@ -230,8 +224,7 @@ class ProcessEngine:
             self.process.start()
         commands.close()  # the child's ends: its death then reads as the end of the pipe
         lines.close()
-        self.reader = threading.Thread(target=self._read, name=f"engine-{self.index}")
-        self.reader.daemon = True
+        self.reader = threading.Thread(target=self._read, name=f"engine-{self.index}", daemon=True)
         self.reader.start()
 
     def _read(self) -> None:
@@ -301,7 +294,7 @@ class ProcessEngines(Engines):
         )
         self.critical = critical_tasks(config, cells, choices)
         self.choices = choices
-        budgets = {task: task_cost(config, task) for (task,) in task_groups(cells)}
+        budgets = task_budgets(config, cells)
         self.sent = with_critical_path(choices, budgets) if batched else choices
         """What the engines run on: with batched physics, the whole sweep's critical path."""
         self.env = child_environment(choices.physics) | worker_shares(choices, self.engines_wanted)
@@ -326,7 +319,7 @@ class ProcessEngines(Engines):
         The kernels compile in the background (each engine's families wait for their own); the
         engine processes share the GPU through the sweep's own MPS daemon, closed with `stack`
         once its clients are gone."""
-        compiling = _precompile(self.config, self.parts, self.choices)
+        compiling = _precompile(self.config, self.cells, self.choices)
         if compiling is not None:  # long over unless the sweep was: its children end theirs
 
             def join(failed: type[BaseException] | None, *_: Any) -> None:
@@ -369,7 +362,7 @@ class ProcessEngines(Engines):
 
 
 def _precompile(
-    config: SweepConfig, parts: Sequence[tuple[str, Sequence[EpisodeKey]]], choices: Choices
+    config: SweepConfig, cells: dict[Cell, list[EpisodeKey]], choices: Choices
 ) -> precompile.Compiling | None:
     """Warp physics on a GPU: every family's kernels compiled once, here, in the background
     (`precompile.Compiling`), before the engines start: each engine's families wait for their
@@ -378,13 +371,9 @@ def _precompile(
     with `VABENCH_WARP_PRECOMPILE=first`, once it has ended."""
     if not choices.physics.is_warp or not warp_device().startswith("cuda"):
         return None
-    tasks = sorted({k.task for _, part in parts for k in part})
+    tasks = sorted({task for _, _, task in cells})
     render = config.render
-    first = (
-        critical_path_tasks({t: task_cost(config, t) for t in tasks})
-        if choices.physics.batched
-        else set()
-    )
+    first = plan_critical_path(config, cells, choices)
     compiling = precompile.Compiling.start(
         tasks, render.width, render.height, warp_device(), choices.renderer.is_warp, first
     )
@@ -409,4 +398,4 @@ def run_processes(
     if not cells:
         return ledger.records
     kind = ProcessEngines(config, choices, run_dir, cells)
-    return Driver(kind, config, keys, run_dir, kind.chunks, on_status, ctrl_c, ledger).run()
+    return Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger).run()

@@ -1,24 +1,17 @@
-"""`executor: ray`: a sweep over a Ray cluster, engine actors under the one driver
-(`driver.Driver`, the only writer of the ledger).
+"""`executor: ray`: a sweep over a Ray cluster, engine actors (`ray_engine.EngineActor`) under
+the one driver (`driver.Driver`, the only writer of the ledger).
 
-`run_ray(config, keys, run_dir, choices)` groups the planned episodes not yet in the ledger
-into cells (one per (model, track, task); with batched physics one per task, every track and
-model of it in one simulator batch, `cells.task_groups`) and cuts them into about
-`CHUNKS_PER_ENGINE` chunks per engine, costliest first. It joins the cluster
+`run_ray` cuts the pending cells (with batched physics, whole tasks: `cells.task_groups`) into
+about `CHUNKS_PER_ENGINE` chunks per engine, costliest first, joins the cluster
 (`ray.init(address=executor.address)`: None, the running local one or a new one; "auto", the
 running one; "HOST:PORT", that head node; a caller's own `ray.init` is kept) and starts the
-engines (`ray_engine.EngineActor`, `ray_plan.engine_plan`): on GPUs by default
-`mps.ENGINES_PER_GPU` per GPU where they can share it under CUDA MPS, else one; otherwise one
-per `1 + render.workers` CPUs; `executor.actors` sets the number. The limit board is a
-`llm_pool.limit_board.LimiterActor` on the driver's node. The driver hands out chunks, streams
-their ledger lines back and replaces dead engines; the ledger's records are returned.
+engines `ray_plan.engine_plan` plans. The limit board is a `llm_pool.limit_board.LimiterActor`
+on the driver's node.
 
-A killed driver takes its engines with it (Ray ends the actors a driver owns), and the same
-command resumes from the ledger. The run directory must be at the same absolute path on every
-node (a shared mount): engines write the episodes' directories and summaries there, and refuse
-to start where they cannot see the plan. The driver's checkout is shipped to the cluster when
-`run_ray` connects itself (`ray_plan.project_runtime_env`); API keys travel to the engines in
-memory (`ray_engine`), never in a file.
+A killed driver takes its engines with it (Ray ends the actors a driver owns); the same command
+resumes from the ledger. The run directory must be at the same absolute path on every node (a
+shared mount). The driver's checkout is shipped to the cluster when `run_ray` connects itself
+(`ray_plan.project_runtime_env`); API keys travel to the engines in memory, never in a file.
 """
 
 from __future__ import annotations
@@ -35,7 +28,7 @@ from vabench.config import SweepConfig
 from vabench.config.choices import Choices
 from vabench.llm_pool.limit_board import LimiterActor, RayBoard
 from vabench.llm_pool.spend import SpendCaps
-from vabench.sweep.cells import Cell, chunks, task_cost, task_groups
+from vabench.sweep.cells import Cell, chunks, task_budgets, task_cost, task_groups
 from vabench.sweep.chunk_engine import (
     CLOSED,
     DONE,
@@ -188,7 +181,7 @@ class RayEngines(Engines):
         batched = self.choices.physics.batched
         units = task_groups(cells) if batched else cells
         if batched:  # where batches have stream priorities
-            self.choices = with_critical_path(self.choices, {k[0]: cost(k[0]) for k in units})
+            self.choices = with_critical_path(self.choices, task_budgets(config, cells))
         parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
         # where engines share GPUs, a chunk of the critical path's task runs alone in its
         # engine (`placement.choose_engine`); with one engine a GPU that would give the
@@ -291,7 +284,7 @@ def run_ray(
             raise SweepStopped(upload_failure(err)) from None
     try:
         kind = RayEngines(ray, config, choices, run_dir, cells)
-        driver = Driver(kind, config, keys, run_dir, kind.chunks, on_status, ctrl_c, ledger)
+        driver = Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger)
         try:
             return driver.run()
         finally:

@@ -57,8 +57,10 @@ def engine_plan(
     config: SweepConfig, choices: Choices, cluster: Mapping[str, float]
 ) -> tuple[int, dict[str, float], Choices]:
     """(how many engines, what each claims from Ray's scheduler, the choices they run with) on
-    a cluster of `cluster` resources, for a sweep whose command chose `choices` (see
-    `ray_executor`'s docstring and `config.choices.for_engines`)."""
+    a cluster of `cluster` resources, for a sweep whose command chose `choices`
+    (`config.choices.for_engines`): with batched physics on GPUs `engines_per_gpu` a GPU, each
+    claiming its share; else one per `1 + render.workers` CPUs; `executor.actors` sets the
+    number."""
     asked = config.executor.actors
     gpus = int(cluster.get("GPU", 0))
     engines = for_engines(choices, config, gpus)

@@ -191,30 +191,18 @@ class Ledger:
         self._append(DUPLICATES, record)
 
     def add(self, track: str, episode_dir: str, result: EpisodeResult) -> dict[str, Any]:
-        record = {
-            "v": RECORD_VERSION,
-            "track": track,
-            "episode_dir": episode_dir,
-            **result.model_dump(),
-        }
-        key = key_of(record)
-        if key in self.records:
-            raise LedgerError(f"refusing a second record for {key}")
-        self._append(RESULTS, record)
-        self.records[key] = outcome(record)
+        record = _record(track, episode_dir, result)
+        self.append_line(RESULTS, record)
         return record
 
     def add_infrastructure_failure(
         self, track: str, episode_dir: str, result: EpisodeResult
     ) -> None:
-        record = {
-            "v": RECORD_VERSION,
-            "track": track,
-            "episode_dir": episode_dir,
-            **result.model_dump(),
-        }
-        self._append(INFRASTRUCTURE, record)
-        self.infra_attempts[key_of(record)] += 1
+        self.append_line(INFRASTRUCTURE, _record(track, episode_dir, result))
+
+
+def _record(track: str, episode_dir: str, result: EpisodeResult) -> dict[str, Any]:
+    return {"v": RECORD_VERSION, "track": track, "episode_dir": episode_dir, **result.model_dump()}
 
 
 def _load_collapsing(
@@ -251,16 +239,8 @@ def _load_collapsing(
                 f.writelines(line + b"\n" for line in moved.values() if line not in known)
                 f.flush()
                 os.fsync(f.fileno())
-            data = b"".join(
-                line
-                for n, line in enumerate(io.BytesIO(data), 1)
-                if n not in moved and line.strip()
-            )
-            os.lseek(fd, 0, os.SEEK_SET)
-            os.ftruncate(fd, 0)
-            while data:
-                data = data[os.write(fd, data) :]
-            os.fsync(fd)
+            kept = (line for n, line in enumerate(io.BytesIO(data), 1) if n not in moved)
+            _rewrite(fd, b"".join(line for line in kept if line.strip()))
     return records, notes
 
 
@@ -309,6 +289,15 @@ def _whole_data(fd: int) -> bytes:
         data = data[: data.rfind(b"\n") + 1]
         os.ftruncate(fd, len(data))
     return data
+
+
+def _rewrite(fd: int, data: bytes) -> None:
+    """Replace a log's contents with `data`, on a descriptor whose lock the caller holds."""
+    os.lseek(fd, 0, os.SEEK_SET)
+    os.ftruncate(fd, 0)
+    while data:
+        data = data[os.write(fd, data) :]
+    os.fsync(fd)
 
 
 def set_aside(episode_dir: Path) -> None:
@@ -362,12 +351,7 @@ def reopen_infrastructure_errors(run_dir: Path, planned: set[Key] | None = None)
             episode = run_dir / record["episode_dir"]
             if (episode / RESULT).exists():
                 set_aside(episode)
-        data = b"".join(keep)
-        os.lseek(fd, 0, os.SEEK_SET)
-        os.ftruncate(fd, 0)
-        while data:
-            data = data[os.write(fd, data) :]
-        os.fsync(fd)
+        _rewrite(fd, b"".join(keep))
     return [key for key, _, _ in reopen]
 
 

@@ -146,12 +146,11 @@ def check_run_dir(
                     before["switches"],
                 ]
             _write_plan(path, record)
-        files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
-        return
-    run_dir.mkdir(parents=True, exist_ok=True)
-    ids = [k.as_id() for k in keys]
-    fields = plan_identity(config)
-    _write_plan(path, {"v": PLAN_VERSION, "fields": fields, "episodes": ids, "switches": now})
+    else:  # a new run directory, or a plan.json of version 1 upgraded in place
+        run_dir.mkdir(parents=True, exist_ok=True)
+        ids = [k.as_id() for k in keys]
+        fields = plan_identity(config)
+        _write_plan(path, {"v": PLAN_VERSION, "fields": fields, "episodes": ids, "switches": now})
     files.config.write_text(yaml.safe_dump(config_dump, sort_keys=False), encoding="utf-8")
 
 

@@ -65,9 +65,8 @@ log = logging.getLogger(__name__)
 
 
 class SweepStopped(Exception):
-    """An endpoint refused the sweep's requests, or the GPU failed (`LocalSweep.stopped` says
-    which and why);
-    raised by the cell executors once every cell in flight has ended."""
+    """An endpoint, a spend cap or the GPU stopped the sweep (`LocalSweep.stopped` says which
+    and why); raised by the executors once every chunk in flight has ended."""
 
 
 @dataclass
@@ -107,12 +106,11 @@ async def open_engine(
     """The engine of `config` on `choices` for episodes of `run_dir`, open for the block.
     `shared_limits`, `spend_caps`: `LLMPool(shared_limits=..., spend_caps=...)` (limits and
     spend caps kept for several processes, by the limit board)."""
-    cfg = config
     gate = choices.in_flight.gate()
     async with contextlib.AsyncExitStack() as stack:
         # The renderer starts (its device, its modules, GL's processes) while the embedded
         # server's processes start: each takes seconds of an engine's start-up.
-        render = cfg.render
+        render = config.render
         renderer, _choice = make_renderer(
             choices.renderer,
             workers=render.workers,
@@ -128,10 +126,10 @@ async def open_engine(
             renderer.close()
 
         stack.push_async_callback(close_renderer)
-        endpoints = list(cfg.models)
-        if cfg.embedded_models:
-            server = await stack.enter_async_context(LocalServer(cfg.embedded_server))
-            endpoints = cfg.endpoints(server.base_url)
+        endpoints = list(config.models)
+        if config.embedded_models:
+            server = await stack.enter_async_context(LocalServer(config.embedded_server))
+            endpoints = config.endpoints(server.base_url)
             log.info(
                 "embedded server on %s, served %s",
                 server.url,
@@ -142,8 +140,8 @@ async def open_engine(
         summaries = SummaryStage(
             run_dir,
             llm,
-            demo_cache=Path(cfg.learning.demo_cache),
-            limits=LearningLimits(max_model_calls=cfg.learning.max_model_calls),
+            demo_cache=Path(config.learning.demo_cache),
+            limits=LearningLimits(max_model_calls=config.learning.max_model_calls),
         )
         info = await starting
         log.info("renderer started: %s", info)  # the choice and its reason: a start line
@@ -213,12 +211,6 @@ class LocalSweep:
             else:
                 self.ledger.add(k.track, k.rel_dir, result)
 
-    async def _precompile(self, engine: Engine) -> None:
-        tasks = {k.task for k in self._pending()}
-        budgets = {name: self.config.budget(name) for name in tasks}
-        first = sweep_critical_path(self.choices.executor.critical_path, budgets)
-        self.compiling = await start_compiling(engine, self.choices, tasks, first)
-
     def _pending(self) -> list[EpisodeKey]:
         rounds = self.config.retries.infrastructure_rounds
         return [
@@ -246,7 +238,10 @@ class LocalSweep:
         self.physics, self.gate, self.summaries = engine.physics, engine.gate, engine.summaries
         if not engine.llm.shared_spend:  # else the limit board keeps them for every process
             engine.llm.set_spend_caps(spend_caps(self.config, self.run_dir))
-        await self._precompile(engine)
+        tasks = {k.task for k in self._pending()}  # their kernels compiled in the background
+        budgets = {name: self.config.budget(name) for name in tasks}
+        first = sweep_critical_path(self.choices.executor.critical_path, budgets)
+        self.compiling = await start_compiling(engine, self.choices, tasks, first)
         round_no = 0
         while (pending := self._pending()) and self.stopped is None:
             if round_no:
