@@ -273,11 +273,36 @@ def _states(rng: np.random.Generator, n: int, m, layout, geoms):
     return qpos, ctrl.astype(np.float32)
 
 
+def _warp_plan(dual, qpos, ctrl, active, delta, rotvec, grip, paced=False):
+    """The Warp kernels' plan of these slots: (PlanBuffers, ok, go)."""
+    _, _, _, wgeoms, idx = dual
+    n = len(qpos)
+    plan = wc.PlanBuffers.allocate(n, 2, "cpu")
+    ok, go = wp.zeros(n, dtype=int), wp.zeros(n, dtype=int)
+    wc.launch_plan(
+        wgeoms,
+        wp.array(qpos, dtype=float),
+        wp.array(ctrl, dtype=float),
+        idx,
+        wp.array(active, dtype=int),
+        wp.array(delta, dtype=wp.vec3),
+        wp.array(rotvec, dtype=wp.vec3),
+        wp.array(grip, dtype=int),
+        plan,
+        ok,
+        go,
+        N_SUBSTEPS,
+        ctl.rest_from(N_SUBSTEPS),
+        paced=paced,
+    )
+    return plan, ok, go
+
+
 @pytest.fixture(scope="module")
 def plans(dual):
     """A few hundred random (state, command) slots, planned by JAX and by the Warp kernels
     (paced timing: `test_fixed_timing` covers the other)."""
-    m, layout, geoms, wgeoms, idx = dual
+    m, layout, geoms, _, _ = dual
     rng = np.random.default_rng(6)
     n = 300
     qpos, ctrl = _states(rng, n, m, layout, geoms)
@@ -291,24 +316,7 @@ def plans(dual):
     jax_plan = jax.jit(jax.vmap(plan_one))
     want = jax_plan(qpos, ctrl, delta, rotvec, grip)
 
-    plan = wc.PlanBuffers.allocate(n, 2, "cpu")
-    ok, go = wp.zeros(n, dtype=int), wp.zeros(n, dtype=int)
-    cmd = [wp.array(x, dtype=wp.vec3) for x in (delta, rotvec)]
-    wc.launch_plan(
-        wgeoms,
-        wp.array(qpos, dtype=float),
-        wp.array(ctrl, dtype=float),
-        idx,
-        wp.array(active, dtype=int),
-        *cmd,
-        wp.array(grip, dtype=int),
-        plan,
-        ok,
-        go,
-        N_SUBSTEPS,
-        ctl.rest_from(N_SUBSTEPS),
-        paced=True,
-    )
+    plan, ok, go = _warp_plan(dual, qpos, ctrl, active, delta, rotvec, grip, paced=True)
     got = {k: getattr(plan, k).numpy() for k in vars(plan)}
     got.update(ok=ok.numpy(), go=go.numpy(), active=active)
     stable = _plan_stable(jax_plan, want, rng, qpos, ctrl, delta, rotvec, grip, layout)
@@ -380,28 +388,12 @@ def test_plan_timing_matches(plans):
 
 def test_fixed_timing(dual):
     """Fixed timing: every action's move, ramp and final substep those of ACTION_SECONDS."""
-    m, layout, geoms, wgeoms, idx = dual
+    m, layout, geoms, _, _ = dual
     rng = np.random.default_rng(8)
     n = 20
     qpos, ctrl = _states(rng, n, m, layout, geoms)
     delta, rotvec, grip = _commands(rng, n)
-    plan = wc.PlanBuffers.allocate(n, 2, "cpu")
-    ok, go = wp.zeros(n, dtype=int), wp.zeros(n, dtype=int)
-    wc.launch_plan(
-        wgeoms,
-        wp.array(qpos, dtype=float),
-        wp.array(ctrl, dtype=float),
-        idx,
-        wp.ones(n, dtype=int),
-        wp.array(delta, dtype=wp.vec3),
-        wp.array(rotvec, dtype=wp.vec3),
-        wp.array(grip, dtype=int),
-        plan,
-        ok,
-        go,
-        N_SUBSTEPS,
-        ctl.rest_from(N_SUBSTEPS),
-    )
+    plan, _, _ = _warp_plan(dual, qpos, ctrl, np.ones(n, np.int32), delta, rotvec, grip)
     cmd = ctl.ArmCommand(active=jnp.array(True), delta=delta[0], rotvec=rotvec[0], grip=grip[0])
     want = lay.plan_from(layout, geoms, qpos[0], ctrl[0], cmd, N_SUBSTEPS)
     for got, expected in (
