@@ -1,13 +1,14 @@
 """An action that ends at rest (`action_end: at_rest`, `paced`): the rule on C MuJoCo and Warp.
 
-A slot's action ends at the first substep, once its references are final, where every dof is
-slower than REST_SPEED, ACTION_SECONDS at the latest; its state is that substep's, whatever the
-other slots do and however long the batch's loop ran for them. Paced, a move's time follows its
-length: a short move ends sooner, at the same place.
+A slot's action ends at the first substep, once its references are final, where every dof is slower
+than its rest speed (scene.rest_speeds), ACTION_SECONDS at the latest; its state is that substep's,
+whatever the other slots do and however long the batch's loop ran for them. Paced, a move's time
+follows its length: a short move ends sooner, at the same place.
 """
 
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -17,6 +18,7 @@ from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.backends import Physics
 from vabench.sim_mjx.cpu import CpuBatch
 from vabench.sim_mjx.interface import STATE_FIELDS
+from vabench.sim_mjx.scene import free_objects, rest_speeds
 from vabench.tasks import get_task
 from vabench.tasks.manifests import verified_seeds
 
@@ -128,3 +130,54 @@ def test_warp_slot_ends_at_its_own_rest_whatever_its_neighbours(cube, end):
         assert alone.last_substeps[0] <= alone.n_substeps
         if end == "at_rest":
             assert ctl.rest_from(alone.n_substeps) <= alone.last_substeps[0]
+
+
+def test_rest_speeds_hold_free_turns_at_the_rest_radius(cube):
+    """A free body's three turning dofs rest below REST_SPIN (REST_SPEED at REST_RADIUS), every
+    other dof below REST_SPEED."""
+    model, _ = cube
+    speeds = rest_speeds(model)
+    spin = np.zeros(model.nv, bool)
+    for jid in np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
+        spin[model.jnt_dofadr[jid] + 3 : model.jnt_dofadr[jid] + 6] = True
+    assert spin.sum() == 3 * len(free_objects(model)) > 0
+    assert np.all(speeds[spin] == pytest.approx(rc.REST_SPEED / rc.REST_RADIUS))
+    assert np.all(speeds[~spin] == rc.REST_SPEED)
+    assert rc.REST_SPIN > 0.019  # above a standing object's float32 jitter on Warp
+
+
+def test_warp_rest_rule_is_the_c_rule(cube):
+    """Warp's mark_rest ends exactly the slots whose every dof is below its rest speed (the C
+    path's rule), once their references are final."""
+    wp = pytest.importorskip("warp", reason="the Warp backend needs warp")
+    from vabench.sim_mjx.warp import rows as wr
+
+    model, _ = cube
+    speeds = rest_speeds(model)
+    rng = np.random.default_rng(0)
+    n = 64
+    qvel = speeds * rng.uniform(-0.99, 0.99, (n, model.nv))
+    moving = rng.random(n) < 0.5  # one dof of these rows just above its rest speed
+    hot = rng.integers(0, model.nv, n)[moving]
+    qvel[moving, hot] = (
+        speeds[hot] * rng.choice([-1.0, 1.0], hot.size) * rng.uniform(1.01, 2, hot.size)
+    )
+    rest_from = rng.integers(0, 3, n)
+    k = 1
+    go = np.ones(n, int)
+    go[::7] = 0
+
+    def arr(x, dtype=int):
+        return wp.array(np.asarray(x), dtype=dtype, device="cpu")
+
+    done, newly, steps = arr(np.zeros(n)), arr(np.zeros(n)), arr(np.zeros(n))
+    wp.launch(
+        wr.mark_rest,
+        dim=n,
+        inputs=[arr([k]), arr(rest_from), arr(speeds, float), arr(go), arr(qvel, float)],
+        outputs=[done, newly, steps],
+        device="cpu",
+    )
+    expect = (go != 0) & (k >= rest_from) & np.all(np.abs(qvel) < speeds, axis=1)
+    np.testing.assert_array_equal(done.numpy() != 0, expect)
+    assert 0 < expect.sum() < n

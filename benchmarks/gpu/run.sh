@@ -94,9 +94,11 @@ PY
     ;;
   critical_path)
     # The basket's decision physics at 15/30/60 worlds, today's action length against
-    # simulator.action_end at_rest (its Warp modules compiled in threads first)
+    # simulator.action_end at_rest and paced (CRITICAL_VARIANTS picks; its Warp modules
+    # compiled in threads first)
     timeout "${CRITICAL_TIMEOUT_S:-300}" python3 benchmarks/critical_path.py \
       --sizes "${CRITICAL_SIZES:-15,30,60}" --actions "${CRITICAL_ACTIONS:-12}" \
+      --variants "${CRITICAL_VARIANTS:-fixed,at_rest,paced}" \
       --json "$out/critical_path.json" 2>&1 | tee "$out/critical_path.log"
     ;;
   tests)
@@ -106,7 +108,7 @@ PY
       | tee "$out/checks.log"
     ;;
   engine)
-    # Issue 20's engine and server targets: episodes in flight against the ideal C/L (Warp
+    # The engine's and the server's figures: episodes in flight against the ideal C/L (Warp
     # physics + Warp images, the model served by 4 processes of its own, then C MuJoCo + GL as
     # the CPU path's figure on the same host), and the embedded server's calls/s against its
     # policy worker processes and its serving processes.
@@ -260,7 +262,7 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
       && [ -n "$extra" ] && tar czf main_extra.tgz $extra && rm -rf $extra)
     ;;
   streams)
-    # Issue 33: what a CUDA stream (and a host thread) per task batch gains over one stream per
+    # What a CUDA stream (and a host thread) per task batch gains over one stream per
     # device, with graphs of 1, 10, 50 and 200 substeps (STREAMS_ARGS replaces the defaults).
     timeout "${STREAMS_TIMEOUT_S:-500}" python3 benchmarks/warp_streams.py \
       ${STREAMS_ARGS:---worlds 120 --counts 1,14 --chunks 1,10,50,200} --json "$out/streams.json" \
@@ -310,13 +312,13 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
       --json "$out/render.json" 2>&1 | grep --line-buffered -av "^Module " | tee "$out/render.log"
     ;;
   jpeg)
-    # Issue 33: what a device JPEG call waits for in a busy process (benchmarks/jpeg_contention.py;
+    # What a device JPEG call waits for in a busy process (benchmarks/jpeg_contention.py;
     # JPEG_ARGS replaces its defaults).
     timeout 560 python3 benchmarks/jpeg_contention.py ${JPEG_ARGS:-} --json "$out/jpeg.json" \
       2>&1 | grep --line-buffered -av "^Module " | tee "$out/jpeg.log"
     ;;
   ray)
-    # Issue 25: the same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local
+    # The same plan on 1 and 2 (up to RAY_ENGINES) engines, one per GPU, one local
     # Ray instance; RAY_RUNS shrinks the plan (configs/all.yaml has 3 runs).
     # Each count's run directory kept in /tmp/rayruns (removed first: a count of configs/all.yaml
     # writes ~2,160 episodes' frames), then where its decisions spent their time (physics,

@@ -198,10 +198,10 @@ def substeps(timestep: float) -> int:
 
 ACTION_ENDS = ("fixed", "at_rest", "paced")
 """How long an action's physics runs. fixed: every action ACTION_SECONDS of substeps. at_rest:
-a slot's action ends at the first substep, once its references are final (`Plan.rest_from`),
-where every dof is slower than REST_SPEED; its state is the one of that substep, whatever the
-other slots of the batch do, and ACTION_SECONDS bounds it. paced: as at_rest, the move's time
-following its length (`pace`)."""
+a slot's action ends at the first substep, once its references are final (`Plan.rest_from`), where
+every dof is slower than its rest speed (scene.rest_speeds); its state is the one of that substep,
+whatever the other slots of the batch do, and ACTION_SECONDS bounds it. paced: as at_rest, the
+move's time following its length (`pace`)."""
 
 
 def ends_at_rest(action_end: str) -> bool:

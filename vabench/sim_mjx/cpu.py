@@ -19,11 +19,10 @@ from mujoco import rollout
 
 from vabench.sim_mjx import controller as ctl
 from vabench.sim_mjx import jax_setup  # noqa: F401  (JAX configured before it compiles)
-from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import STATE_FIELDS, BatchBase, StepInfo, in_lanes
 from vabench.sim_mjx.layout import ctrl_sequence_slot
-from vabench.sim_mjx.scene import home_qpos
+from vabench.sim_mjx.scene import home_qpos, rest_speeds
 from vabench.sim_mjx.variants import check_same_structure
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -72,6 +71,7 @@ class CpuBatch(BatchBase):
         # which episodes share the batch.
         self._warm = np.zeros((n_slots, model.nv))
         self._ctrl = np.zeros((n_slots, model.nu))
+        self._rest_speeds = rest_speeds(model)
         self._grip_open = np.ones((n_slots, len(self.arms)), bool)
         self._init_qpos = np.zeros((n_slots, model.nq))
         self._variant = np.zeros(n_slots, np.int32)
@@ -152,7 +152,7 @@ class CpuBatch(BatchBase):
         """Advance `slots` through the control sequences (len(slots), n_steps, nu); with
         `capture` = k > 0, append qpos to `captured[slot]` after every k-th step; with
         `rest_from` = r > 0 (an action ending at rest; one a slot), a slot stops after the first
-        step k >= r at which every dof is slower than REST_SPEED (the threads' path computes
+        step k >= r at which every dof is slower than its rest speed (the threads' path computes
         every step and takes the state of that one)."""
         if not slots:
             return
@@ -171,7 +171,7 @@ class CpuBatch(BatchBase):
                     mujoco.mj_step(m, d)
                     if capture > 0 and steps % capture == 0:
                         self.captured.setdefault(slot, []).append(d.qpos.copy())
-                    if 0 < rests[row] <= steps and np.max(np.abs(d.qvel)) < rc.REST_SPEED:
+                    if 0 < rests[row] <= steps and np.all(np.abs(d.qvel) < self._rest_speeds):
                         break
                 self.last_substeps[slot] = steps
                 mujoco.mj_getState(m, d, self._state[slot], _STATE)
@@ -191,7 +191,8 @@ class CpuBatch(BatchBase):
             last = np.full(len(slots), controls.shape[1] - 1)
             if rests.any():  # the same rule as the serial path, on the recorded states
                 nq, nv = self.model.nq, self.model.nv
-                still = np.max(np.abs(states[:, :, 1 + nq : 1 + nq + nv]), axis=2) < rc.REST_SPEED
+                qvel = np.abs(states[:, :, 1 + nq : 1 + nq + nv])
+                still = np.all(qvel < self._rest_speeds, axis=2)
                 still &= np.arange(controls.shape[1])[None, :] >= rests[:, None] - 1
                 still &= rests[:, None] > 0
                 last = np.where(still.any(axis=1), np.argmax(still, axis=1), last)

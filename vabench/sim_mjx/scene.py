@@ -90,6 +90,17 @@ def add_free_box(
     return body
 
 
+def rest_speeds(model: mujoco.MjModel) -> np.ndarray:
+    """Each dof's rest speed (robot_constants.REST_SPEED): a free joint's three turning dofs
+    REST_SPIN, every other dof REST_SPEED."""
+    speeds = np.full(model.nv, rc.REST_SPEED)
+    for jid in range(model.njnt):
+        if model.jnt_type[jid] == mujoco.mjtJoint.mjJNT_FREE:
+            adr = int(model.jnt_dofadr[jid])
+            speeds[adr + 3 : adr + 6] = rc.REST_SPIN
+    return speeds
+
+
 def free_objects(model: mujoco.MjModel) -> list[tuple[str, int]]:
     """(name, qpos address) of every body with a free joint, in model order."""
     out = []

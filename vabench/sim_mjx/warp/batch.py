@@ -46,11 +46,10 @@ import warp as wp
 
 from vabench import switches
 from vabench.sim_mjx import controller as ctl
-from vabench.sim_mjx import robot_constants as rc
 from vabench.sim_mjx.actions import CommandRows
 from vabench.sim_mjx.interface import BatchBase, StepInfo, hold_chunks
 from vabench.sim_mjx.layout import Proprio
-from vabench.sim_mjx.scene import home_qpos
+from vabench.sim_mjx.scene import home_qpos, rest_speeds
 from vabench.sim_mjx.variants import check_same_structure
 from vabench.sim_mjx.warp import arm_indices as wl
 from vabench.sim_mjx.warp import control as wc
@@ -161,6 +160,7 @@ class WarpBatch(BatchBase):
         self._mask = wp.zeros(n, dtype=int)
         self._failed = wp.zeros(n, dtype=int)
         self._k = wp.zeros(1, dtype=int)  # substeps done in the current loop
+        self._rest_speeds = wp.array(rest_speeds(m0), dtype=float, device=self.device)
         self._grip_open = wp.ones((n, arms), dtype=int)
         self._obs = wl.ProprioBuffers.allocate(n, arms, self.device)
         self._flags: wp.array | None = None
@@ -266,7 +266,7 @@ class WarpBatch(BatchBase):
                     inputs=[
                         self._k,
                         self._plan.rest_from,
-                        rc.REST_SPEED,
+                        self._rest_speeds,
                         self._go,
                         self._d.qvel,
                         self._done,

@@ -66,7 +66,7 @@ class Snapshot:
 def mark_rest(
     k: wp.array(dtype=int),
     rest_from: wp.array(dtype=int),
-    rest_speed: float,
+    rest_speed: wp.array(dtype=float),
     go: wp.array(dtype=int),
     qvel: wp.array2d(dtype=float),
     done: wp.array(dtype=int),
@@ -74,9 +74,9 @@ def mark_rest(
     substeps: wp.array(dtype=int),
 ):
     """An action ending at rest (controller.ACTION_ENDS), after substep k[0]: a slot that acts
-    and has not ended ends now when its references are final (k[0] >= rest_from[w]) and every dof
-    is slower than rest_speed. newly[w]: it ended at this substep (its rows are saved now);
-    substeps[w]: the substeps its action ran."""
+    and has not ended ends now when its references are final (k[0] >= rest_from[w]) and every
+    dof j is slower than rest_speed[j] (scene.rest_speeds). newly[w]: it ended at this substep
+    (its rows are saved now); substeps[w]: the substeps its action ran."""
     w = wp.tid()
     newly[w] = 0
     if go[w] == 0 or done[w] != 0:
@@ -85,7 +85,7 @@ def mark_rest(
     if k[0] < rest_from[w]:
         return
     for j in range(qvel.shape[1]):
-        if wp.abs(qvel[w, j]) >= rest_speed:
+        if wp.abs(qvel[w, j]) >= rest_speed[j]:
             return
     done[w] = 1
     newly[w] = 1
