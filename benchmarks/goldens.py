@@ -38,8 +38,9 @@ VABENCH_CORES=2, CUDA_VISIBLE_DEVICES="" (no GPU: C MuJoCo and GL rendering), TZ
 C.UTF-8 locale, PYTHONHASHSEED=0, PYTHONUNBUFFERED=1 (stdout and stderr interleave in
 write order), dummy API keys (OPENAI_API_KEY=sk-golden, ANTHROPIC_API_KEY=golden), no
 inherited VABENCH_/JAX_/XLA_/MUJOCO_/PYOPENGL_/WARP_/RAY_ variables, and fresh caches in the
-temp directory (settled states, JAX compilations, matplotlib): nothing a run before (the
-BEFORE capture included) computed is reused, so a cache cannot hide a change.
+temp directory (settled states, JAX compilations, matplotlib, `XDG_CACHE_HOME`: the measured
+pace): nothing a run before (the BEFORE capture included) computed is reused, so a cache cannot
+hide a change.
 
 What still varies from run to run, found by running the smoke sweep twice and diffing, is
 replaced by a placeholder: the JSON keys `t` (event time), `started_at`, `wall_s`,
@@ -174,6 +175,9 @@ def pinned_environment(repo: Path, tmp: Path) -> dict[str, str]:
             "VABENCH_STATE_CACHE": str(tmp / "cache" / "settled"),
             "VABENCH_JAX_CACHE": str(tmp / "cache" / "jax"),
             "MPLCONFIGDIR": str(tmp / "cache" / "matplotlib"),
+            # the pace a machine measured (~/.cache/vabench/pace.json) changes the dry-run's
+            # estimate: every cache of vabench's starts empty
+            "XDG_CACHE_HOME": str(tmp / "cache" / "xdg"),
         }
     )
     return env

@@ -1,15 +1,9 @@
-"""One engine that runs the chunks a driver hands it, in the process it lives in: the body of the
-in-process engine (`local_executor`), of a worker process (`process_executor`) and of a Ray
-engine actor (`ray_engine`).
-
-A `ChunkEngine` holds one `runner.Engine` for its whole life (the LLM pool, with the limits of
-the sweep's limit board; the embedded server; the renderer; the in-flight gate). Each chunk
-runs as a `LocalSweep` restricted to it inside that engine, so the chunks at once share its
-pool, renderer and in-flight limit. It never writes the ledger: `run_chunk` yields each ledger
-line as its episode ends, then the chunk's summary, and the driver appends the lines.
-
-`serve` is an engine's life under the driver's commands, the same in a worker process and in
-the driver's own process; it sends the events the driver reads (see `driver`).
+"""One engine that runs the chunks a driver hands it, in the process it lives in (the body of
+the in-process engine, of a worker process and of a Ray engine actor). A `ChunkEngine` holds one
+`runner.Engine` for its life; each chunk runs as a `LocalSweep` restricted to it, sharing the
+engine's pool, renderer and in-flight limit. It never writes the ledger: `run_chunk` yields each
+ledger line as its episode ends, then the chunk's summary; `serve` is its life under the
+driver's commands, sending the events the driver reads.
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
-"""The one driver of a sweep over engines (`Engines`: in-process, worker processes or Ray
-actors, each running the chunks it is handed with a `chunk_engine.ChunkEngine`).
-
-The driver serves one limit board to every engine, hands out chunks as engines have room
-(`placement.next_placement`), is the only writer of the ledger, merges the engines' statuses for
-the display, and closes them at the end, logging each one's time. A dead engine (or one whose GPU
-failed) costs only its unrecorded episodes: they go back to the front of the queue and another
-engine takes its place, at most `Engines.max_restarts` times. A chunk that raises is logged
-while the others run on; an endpoint or a spend cap that stops the sweep ends the handing out
-(`SweepStopped`). A disk below the reserve (`rundir.disk_short`) and Ctrl-C (acted on at the
-next tick, so that no ledger line is cut) end every engine at once, keeping every whole line
-they sent.
+"""The one driver of a sweep over engines (in-process, worker processes or Ray actors, each
+running its chunks with a `chunk_engine.ChunkEngine`): it serves one limit board to all of them,
+hands out chunks as engines have room (`placement.next_placement`), is the only writer of the
+ledger and merges the engines' statuses for the display. A dead engine costs only its unrecorded
+episodes: they go back to the front of the queue and another engine takes its place, at most
+`Engines.max_restarts` times. A stopped endpoint or spend cap ends the handing out
+(`SweepStopped`); a disk below its reserve and Ctrl-C end every engine at the next tick, every
+whole ledger line they sent kept.
 
 Engines report events into one queue, in the order each sends them: (STARTED, info),
 (LINE, log, record), (DONE, chunk, summary), (FAILED, chunk, error), (STATUS, status),
@@ -101,19 +97,44 @@ class Engines:
         raise NotImplementedError
 
 
-def pending(
-    keys: Sequence[EpisodeKey], run_dir: Path, log: logging.Logger, label: str
-) -> tuple[Ledger, dict[Cell, list[EpisodeKey]]]:
-    """The run directory's ledger (for the driver: second records of an episode moved aside,
-    and said) and the planned episodes without a record in it, by cell; says so when there are
-    none."""
-    ledger = Ledger.open(run_dir)
+Cells = dict[Cell, list[EpisodeKey]]
+"""The planned episodes without a record, by cell."""
+OnEngines = Callable[[list[dict[str, Any]]], None]
+"""Called once at the end with `Driver.engine_report()`."""
+
+
+def run_engines(
+    open_engines: Callable[[Cells], contextlib.AbstractContextManager[Engines]],
+    log: logging.Logger,
+    label: str,
+    config: SweepConfig,
+    keys: Sequence[EpisodeKey],
+    run_dir: Path,
+    on_status: Callable[[Status], None] | None = None,
+    on_engines: OnEngines | None = None,
+    ctrl_c: CtrlC | None = None,
+) -> dict[Key, dict[str, Any]]:
+    """Run the pending episodes of `keys` on the engines `open_engines(cells)` opens, under one
+    `Driver`; return the ledger's records afterwards (each executor's `run_*`). `on_status` is
+    called about once a second; `on_engines` once at the end (each engine's time and GPU busy
+    share); `ctrl_c`: the command's handler, else Ctrl-C is not the driver's."""
+    ledger = Ledger.open(run_dir)  # second records of an episode moved aside, and said
     for line in ledger.collapsed:
         log.warning("ledger: %s", line)
     cells = pending_cells(keys, ledger.records)
     if not cells:
         log.info("%s: every planned episode is already in %s; nothing to run", label, RESULTS)
-    return ledger, cells
+        return ledger.records
+    with open_engines(cells) as kind:
+        driver = Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger)
+        try:
+            return driver.run()
+        finally:
+            if on_engines is not None:
+                try:
+                    on_engines(driver.engine_report())
+                except Exception:  # the caller's report must not hide the sweep's own error
+                    log.exception("%s: on_engines failed", label)
 
 
 class _DiskShort(Exception):
@@ -133,7 +154,7 @@ class Driver:
         ctrl_c: CtrlC | None = None,
         ledger: Ledger | None = None,
     ):
-        """`ledger`: the run directory's, where the caller has opened it (`pending`)."""
+        """`ledger`: the run directory's, where the caller has opened it (`run_engines`)."""
         self.kind = kind
         self.log = kind.log
         self.config = config

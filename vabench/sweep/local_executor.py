@@ -1,13 +1,8 @@
-"""`executor: local`: the sweep in one process, one engine under the one driver
-(`driver.Driver`).
-
-The engine is a `chunk_engine.ChunkEngine` served in a thread of the driver's process, on an
-event loop of its own; its events go straight into the driver's queue. The sweep is one chunk,
-every pending episode in plan order, on the command's `Choices` as they are
-(`ChunkEngine(dealt=False)`). Its pool keeps the endpoints' limits and spend caps itself, and
-a dead engine is not replaced (another in this process would meet the same fault). Ended at
-once (Ctrl-C, a disk below its reserve), its work is cancelled and the driver waits for it to
-unwind.
+"""`executor: local`: the sweep as one chunk (every pending episode in plan order, on the
+command's `Choices` as they are) for one `chunk_engine.ChunkEngine` served in a thread of the
+driver's process, its events straight into the driver's queue. Its pool keeps the limits and
+spend caps itself; a dead engine is not replaced (another in this process would meet the same
+fault); ended at once, its work is cancelled and the driver waits for it to unwind.
 """
 
 from __future__ import annotations
@@ -27,11 +22,11 @@ from vabench.config.choices import Choices
 from vabench.sweep.cells import task_cost
 from vabench.sweep.chunk_engine import LOST, BoardLink, ChunkEngine, Command, serve
 from vabench.sweep.display import Status
-from vabench.sweep.driver import Driver, Emit, Engines, pending
+from vabench.sweep.driver import Cells, Emit, Engines, OnEngines, run_engines
 from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
-from vabench.sweep.results import Key, ledger_key
+from vabench.sweep.results import Key
 
 log = logging.getLogger(__name__)
 
@@ -129,14 +124,14 @@ def run_local(
     run_dir: Path,
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
+    on_engines: OnEngines | None = None,
     ctrl_c: CtrlC | None = None,
 ) -> dict[Key, dict[str, Any]]:
-    """Run the pending episodes of `keys` in this process on `choices`; return the ledger's
-    records afterwards. `on_status(Status)` is called about once a second; `ctrl_c`: the
-    command's handler (`driver.Driver`)."""
-    ledger, cells = pending(keys, run_dir, log, "local")
-    if not cells:
-        return ledger.records
-    left = [k for k in keys if ledger_key(k) not in ledger.records]  # in plan order
-    kind = LocalEngines(config, choices, run_dir, left)
-    return Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger).run()
+    """Run the pending episodes of `keys` in this process on `choices` (`driver.run_engines`)."""
+
+    def engines(cells: Cells) -> contextlib.nullcontext[Engines]:
+        pending = {k for part in cells.values() for k in part}
+        left = [k for k in keys if k in pending]  # in plan order
+        return contextlib.nullcontext(LocalEngines(config, choices, run_dir, left))
+
+    return run_engines(engines, log, "local", config, keys, run_dir, on_status, on_engines, ctrl_c)

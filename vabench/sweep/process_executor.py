@@ -1,15 +1,10 @@
-"""`executor: processes`: the sweep's engines as spawned worker processes of one host, under the
-one driver (`driver.Driver`): for hosts where one sweep process is CPU-bound (C MuJoCo rollouts,
-a CPU-heavy embedded policy, demonstration builds) and, with batched physics, for engine
-processes sharing a GPU under CUDA MPS.
-
-Each process holds one `chunk_engine.ChunkEngine` for its life and runs the chunks of
-`plan_chunks` on the sweep's `Choices`, so the records equal those of the local executor. It is
-spawned (never forked: the parent holds JAX and thread pools), talks to the driver over two
-pipes (chunks in; each ledger line, chunk summary and a status every second out), exits when
-its parent is gone (`children.exit_with_parent`) and ignores Ctrl-C, which the driver handles.
-Its environment (`tuning.engine_env`) holds its share of the cores and its GPU, and under MPS
-its priority (`critical_environment`). Its death costs only its chunks' unfinished episodes.
+"""`executor: processes`: the sweep's engines as spawned worker processes of one host, for hosts
+where one process is CPU-bound (C MuJoCo, a CPU-heavy embedded policy) and, with batched
+physics, for engine processes sharing a GPU under CUDA MPS. Each holds one
+`chunk_engine.ChunkEngine` for its life and runs the chunks of `plan_chunks` on the sweep's
+`Choices` (the records equal the local executor's); spawned, never forked (the parent holds JAX
+and thread pools), it talks to the driver over two pipes, exits with its parent, leaves Ctrl-C
+to the driver, and starts with its share of the cores, its GPU and its MPS priority.
 """
 
 from __future__ import annotations
@@ -44,7 +39,6 @@ from vabench.llm_pool.board_socket import BoardAddress, BoardServer
 from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import RunDir
-from vabench.sim_mjx.warp.device import warp_device
 from vabench.sweep.cells import Cell, bins, chunks, task_budgets, task_cost, task_groups
 from vabench.sweep.chunk_engine import (
     LOST,
@@ -55,12 +49,12 @@ from vabench.sweep.chunk_engine import (
     with_critical_path,
 )
 from vabench.sweep.display import Status
-from vabench.sweep.driver import Driver, Emit, Engines, pending
+from vabench.sweep.driver import Cells, Emit, Engines, OnEngines, run_engines
 from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key
-from vabench.sweep.runner import critical_path_tasks
+from vabench.sweep.runner import compile_ahead, critical_path_tasks
 from vabench.tuning import engine_env, kernel_profile, mps, precompile
 from vabench.tuning.engine_env import child_environment, gpu_for_worker
 
@@ -364,20 +358,14 @@ class ProcessEngines(Engines):
 def _precompile(
     config: SweepConfig, cells: dict[Cell, list[EpisodeKey]], choices: Choices
 ) -> precompile.Compiling | None:
-    """Warp physics on a GPU: every family's kernels compiled once, here, in the background
-    (`precompile.Compiling`), before the engines start: each engine's families wait for their
-    own kernels (engines compiling them would compile, one after another under the machine's
-    lock, the modules the families share). Returns once the compile holds the machine's lock;
-    with `VABENCH_WARP_PRECOMPILE=first`, once it has ended."""
-    if not choices.physics.is_warp or not warp_device().startswith("cuda"):
-        return None
-    tasks = sorted({task for _, _, task in cells})
-    render = config.render
+    """Every family's Warp kernels compiled once, here, in the background (`compile_ahead`),
+    before the engines start: each engine's families wait for their own kernels (engines
+    compiling them would compile, one after another under the machine's lock, the modules the
+    families share). With `VABENCH_WARP_PRECOMPILE=first`, returns once it has ended."""
+    size = (config.render.width, config.render.height)
     first = plan_critical_path(config, cells, choices)
-    compiling = precompile.Compiling.start(
-        tasks, render.width, render.height, warp_device(), choices.renderer.is_warp, first
-    )
-    if switches.get("warp_precompile") == "first":
+    compiling = compile_ahead({task for _, _, task in cells}, choices, size, first)
+    if compiling is not None and switches.get("warp_precompile") == "first":
         compiling.join()
     return compiling
 
@@ -388,14 +376,16 @@ def run_processes(
     run_dir: Path,
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
+    on_engines: OnEngines | None = None,
     ctrl_c: CtrlC | None = None,
 ) -> dict[Key, dict[str, Any]]:
-    """Run the pending episodes of `keys` in engine processes on `choices`; return the
-    ledger's records afterwards. `on_status(Status)` is called about once a second; `ctrl_c`:
-    the command's handler (`driver.Driver`)."""
+    """Run the pending episodes of `keys` in engine processes on `choices`
+    (`driver.run_engines`)."""
     run_dir = Path(run_dir).resolve()
-    ledger, cells = pending(keys, run_dir, log, "processes")
-    if not cells:
-        return ledger.records
-    kind = ProcessEngines(config, choices, run_dir, cells)
-    return Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger).run()
+
+    def engines(cells: Cells) -> contextlib.nullcontext[Engines]:
+        return contextlib.nullcontext(ProcessEngines(config, choices, run_dir, cells))
+
+    return run_engines(
+        engines, log, "processes", config, keys, run_dir, on_status, on_engines, ctrl_c
+    )

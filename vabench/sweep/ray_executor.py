@@ -1,17 +1,12 @@
 """`executor: ray`: a sweep over a Ray cluster, engine actors (`ray_engine.EngineActor`) under
-the one driver (`driver.Driver`, the only writer of the ledger).
-
-`run_ray` cuts the pending cells (with batched physics, whole tasks: `cells.task_groups`) into
-about `CHUNKS_PER_ENGINE` chunks per engine, costliest first, joins the cluster
-(`ray.init(address=executor.address)`: None, the running local one or a new one; "auto", the
-running one; "HOST:PORT", that head node; a caller's own `ray.init` is kept) and starts the
-engines `ray_plan.engine_plan` plans. The limit board is a `llm_pool.limit_board.LimiterActor`
-on the driver's node.
-
-A killed driver takes its engines with it (Ray ends the actors a driver owns); the same command
-resumes from the ledger. The run directory must be at the same absolute path on every node (a
-shared mount). The driver's checkout is shipped to the cluster when `run_ray` connects itself
-(`ray_plan.project_runtime_env`); API keys travel to the engines in memory, never in a file.
+the one driver. `run_ray` joins the cluster (`ray.init(address=executor.address)`: None, the
+running local one or a new one; "auto", the running one; "HOST:PORT", that head node; a
+caller's own `ray.init` is kept, else the checkout ships with `ray_plan.project_runtime_env`),
+cuts the pending cells into about `CHUNKS_PER_ENGINE` chunks an engine (whole tasks with batched
+physics) and starts the engines `ray_plan.engine_plan` plans; the limit board is a
+`LimiterActor` on the driver's node. The run directory must be at the same absolute path on
+every node; API keys travel to the engines in memory, never in a file. A killed driver takes its
+engines with it (Ray ends the actors a driver owns); the same command resumes from the ledger.
 """
 
 from __future__ import annotations
@@ -20,7 +15,7 @@ import contextlib
 import logging
 import threading
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,10 +39,11 @@ from vabench.sweep.display import Status
 from vabench.sweep.driver import (
     CLOSE_TIMEOUT_S,
     TICK_S,
-    Driver,
+    Cells,
     Emit,
     Engines,
-    pending,
+    OnEngines,
+    run_engines,
 )
 from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.placement import Chunk
@@ -259,43 +255,32 @@ def run_ray(
     run_dir: Path,
     choices: Choices,
     on_status: Callable[[Status], None] | None = None,
-    on_engines: Callable[[list[dict[str, Any]]], None] | None = None,
+    on_engines: OnEngines | None = None,
     ctrl_c: CtrlC | None = None,
 ) -> dict[Key, dict[str, Any]]:
-    """Run the pending episodes of `keys` on the engines of a Ray cluster, for a sweep whose
-    command chose `choices`, and return the ledger's records afterwards (see the module
-    docstring). `on_status` is called about once a second; `on_engines` once at the end with
-    `Driver.engine_report()` (each engine's time and GPU busy share); `ctrl_c`: the command's
-    handler (`driver.Driver`)."""
+    """Run the pending episodes of `keys` on the engines of a Ray cluster (see the module
+    docstring; `driver.run_engines`)."""
     run_dir = Path(run_dir).resolve()  # engines start elsewhere: send an absolute path
-    ledger, cells = pending(keys, run_dir, log, "ray")
-    if not cells:
-        return ledger.records
 
-    import ray  # the `ray` extra; only this executor needs it
+    @contextlib.contextmanager
+    def engines(cells: Cells) -> Iterator[Engines]:
+        import ray  # the `ray` extra; only this executor needs it
 
-    started_here = not ray.is_initialized()
-    if started_here:  # (a connection made by the caller keeps its own runtime environment)
+        started_here = not ray.is_initialized()
+        if started_here:  # (a connection made by the caller keeps its own runtime environment)
+            try:
+                ray.init(address=config.executor.address, runtime_env=project_runtime_env() or None)
+            except Exception as err:  # Ray's own traceback says the size, not what to do
+                if "working_dir" not in str(err) and "Package size" not in str(err):
+                    raise
+                raise SweepStopped(upload_failure(err)) from None
         try:
-            ray.init(address=config.executor.address, runtime_env=project_runtime_env() or None)
-        except Exception as err:  # Ray's own traceback says the size, not what to do
-            if "working_dir" not in str(err) and "Package size" not in str(err):
-                raise
-            raise SweepStopped(upload_failure(err)) from None
-    try:
-        kind = RayEngines(ray, config, choices, run_dir, cells)
-        driver = Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger)
-        try:
-            return driver.run()
+            yield RayEngines(ray, config, choices, run_dir, cells)
         finally:
-            if on_engines is not None:
-                try:
-                    on_engines(driver.engine_report())
-                except Exception:  # the caller's report must not hide the sweep's own error
-                    log.exception("ray: on_engines failed")
-    finally:
-        if started_here:
-            ray.shutdown()
+            if started_here:
+                ray.shutdown()
+
+    return run_engines(engines, log, "ray", config, keys, run_dir, on_status, on_engines, ctrl_c)
 
 
 def _in_creation(err: BaseException) -> bool:

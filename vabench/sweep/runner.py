@@ -1,26 +1,12 @@
 """Running a planned sweep in one process: every task batch of the plan concurrently, resumable.
 
-One asyncio loop holds the LLM pool (every model), the embedded server when a model asks for
-it, one renderer and the in-flight gate (the `Engine` that `open_engine` opens, which an engine
-of the driver keeps open for every chunk it runs), and up to `executor.max_tasks` task batches
-at once; each batch serves every model and track of its task. Episodes in flight are bounded
-per batch by its slots and overall by the `tuning.inflight.InFlight` gate, at most
-`executor.max_episodes`. What it runs on is the command's `config.choices.Choices`.
-
-Resume (`results.Ledger`): episodes already in results.jsonl never run again; an episode whose
-result.json never reached the ledger is adopted; an interrupted one restarts in a clean log.
-The first episode of a (model, family) on a track that reads summaries waits for its learning
-session (`agent.learning_stage.SummaryStage`), run once per run directory. Infrastructure
-failures are retried in later rounds, up to `retries.infrastructure_rounds` re-runs each, then
-recorded as `infrastructure_error`: listed, never scored.
-
-An endpoint that refuses the sweep's requests themselves (`RequestRejected.fatal`: a wrong key,
-an unknown model, nothing answering at its `base_url`) or a failed GPU (`DeviceFailure`) stops
-the sweep: no episode starts after it, the episodes it ended get no record, and `stopped` says
-what to check; the same command runs them once it is fixed. Spend caps (`limits.max_cost_usd`
-of the sweep and of each model, `llm_pool.spend.SpendCaps`, over what the run directory's
-records already spent): the pool sends no call that could cross one; a model's cap ends that
-model's episodes without a record, the sweep's every model's, and `stopped` names the cap.
+One asyncio loop holds the `Engine` (`open_engine`: the LLM pool, the embedded server, one
+renderer, the in-flight gate) and up to `executor.max_tasks` task batches at once, each serving
+every model and track of its task. `LocalSweep` resumes from the ledger (a recorded episode never
+runs again, an orphaned result.json is adopted), waits for each family's learning session,
+re-runs infrastructure failures for `retries.infrastructure_rounds` rounds, and stops at a fatal
+endpoint refusal, a spend cap or a failed GPU, recording nothing of what that stopped
+(docs/RELIABILITY.md lists each promise and its test).
 """
 
 from __future__ import annotations
@@ -148,20 +134,26 @@ async def open_engine(
         yield Engine(choices.physics, llm, summaries, renderer, render.image_settings(), gate)
 
 
+def compile_ahead(
+    tasks: Iterable[str], choices: Choices, size: tuple[int, int], first: Collection[str] = ()
+) -> Compiling | None:
+    """Warp physics on a GPU: the kernels of every family of `tasks` (images of `size`)
+    compiled side by side in the background (`precompile.Compiling`; nothing to do once they
+    are; engines of one machine wait for each other's compiling through its lock), each
+    family's episodes waiting only for its own kernels, those of `first` (the sweep's critical
+    path) ahead of the others; None where nothing compiles."""
+    tasks = sorted(set(tasks))
+    if not tasks or not choices.physics.is_warp or not warp_device().startswith("cuda"):
+        return None
+    return Compiling.start(tasks, *size, warp_device(), choices.renderer.is_warp, first)
+
+
 async def start_compiling(
     engine: Engine, choices: Choices, tasks: Iterable[str], first: Collection[str] = ()
 ) -> Compiling | None:
-    """Warp physics on a GPU: the kernels of every family of `tasks` compiled side by side in
-    the background (`precompile.Compiling`; nothing to do once they are; engines of one machine
-    wait for each other's compiling through its lock), each family's episodes waiting only for
-    its own kernels, those of `first` (the sweep's critical path) ahead of the others; None
-    where nothing compiles."""
-    tasks = sorted(set(tasks))
-    if not tasks or not engine.physics.kind.is_warp or not warp_device().startswith("cuda"):
-        return None
+    """`compile_ahead` for `engine`'s images, in a thread."""
     size = (engine.image.width, engine.image.height)
-    images = choices.renderer.is_warp
-    return await asyncio.to_thread(Compiling.start, tasks, *size, warp_device(), images, first)
+    return await asyncio.to_thread(compile_ahead, tasks, choices, size, first)
 
 
 class LocalSweep:
