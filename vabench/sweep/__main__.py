@@ -1,33 +1,14 @@
 """`python -m vabench.sweep CONFIG [--dry-run] [--out DIR] [--no-report] [--plain]`
-(see vabench.sweep).
 
-Quick trials need no YAML edit: `--model`, `--tasks`, `--tracks`, `--seeds`, `--runs`,
-`--limit`, `--max-episodes`, `--max-connections` override the config for this invocation, and
-`--model NAME --model-base-url URL` evaluates an OpenAI-compatible endpoint instead of the
-config's models (`vabench.config.overrides`). The run directory records the overridden plan:
-resuming it with other overrides is refused like a changed config.
-
-The defaults pick the fastest path this machine offers (`simulator.backend`, `render.backend`
-and `executor.kind` are `auto`; `--dry-run` prints what was picked and why, the output
-directory, each track's summary mode and a wall time at the pace of an earlier sweep on this
-machine, and warns of a missing key instead of refusing). Keys come from the environment, or
-from a `.env` file beside the config for the variables the environment does not set. Progress
-shows on a clock: a live table on a terminal, a line every 15 s otherwise (`--plain`,
-`--progress-every`).
-
-Before the first episode, each model's endpoint gets one decision with the sweep's real inputs
-(`vabench.check`: images per request, context, truncation, the output-limit field, ...); a
-problem stops the sweep with exit code 2 and its fix, before anything is recorded. The embedded
-server's models need none; `--no-check` skips it.
-
-Running the same command again resumes: finished episodes are never re-run, interrupted ones
-start again, infrastructure failures get their retry rounds, and episodes that ended as
-infrastructure errors are run again (`--no-retry-infrastructure` keeps them). Ctrl-C stops the
-sweep cleanly (a second press at once) and says how to resume. Exit code 0 when every planned
-episode is in results.jsonl, 1 when some ended unscored (listed), 2 for a bad config, a run
-directory of another plan, or an endpoint that refused the sweep's requests (a wrong key, an
-unknown model, no server at its base_url: the sweep stops at once, naming the model and what to
-check), 130 after Ctrl-C.
+Runs the sweep CONFIG plans; the flags below override the config for this invocation (`--model
+NAME --model-base-url URL`: an OpenAI-compatible endpoint). `--dry-run` prints the plan, its
+cost, what this machine runs it on and why, and a wall-time estimate. Each model's endpoint is
+checked before the first episode (`vabench.check`). The same command again resumes, never
+re-running a finished episode; a run directory of another plan (other overrides included) is
+refused. Ctrl-C stops cleanly, a second press at once. Exit code 0 when every planned episode
+is recorded, 1 when some ended unscored (listed), 2 for a bad config, a run directory of
+another plan or an endpoint that refused the sweep's requests, 130 after Ctrl-C. More:
+docs/SETUP.md, "The main job".
 """
 
 from __future__ import annotations
@@ -51,10 +32,8 @@ if __name__ == "__main__":
     signal.signal(signal.SIGINT, _stopped_while_loading)
     from vabench.children import children_ignore_sigint
 
-    # Importing mujoco starts a Python child (the glfw package asks its library's version in a
-    # `python -c` subprocess); a press reaching that child while it starts prints "Fatal Python
-    # error" beside our one line. It starts with SIGINT blocked; a press meanwhile lands here
-    # once the import is done (~0.2 s).
+    # importing mujoco starts a `python -c` child (glfw asks its library's version): a press
+    # reaching it mid-start prints "Fatal Python error"; blocked, the press lands here after
     with children_ignore_sigint():
         import mujoco  # noqa: F401
 
@@ -97,9 +76,8 @@ log = logging.getLogger("vabench.sweep")
 
 
 def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
-    """The command. `ctrl_c`: a handler already installed for the life of the process (the
-    command line's, so a press after `main` returns still exits at once); without one, `main`
-    installs its own for the run and restores the previous handler on return."""
+    """The command. `ctrl_c`: a handler installed for the process's life (so a press after `main`
+    returns still exits at once); without one, `main` installs its own for the run and restores."""
     p = _Parser(
         prog="python -m vabench.sweep",
         description=__doc__,
@@ -258,10 +236,8 @@ def main(argv: Sequence[str] | None = None, ctrl_c: CtrlC | None = None) -> int:
 
 
 class _ResearcherLines(logging.Filter):
-    """What the terminal shows of the log without --verbose: warnings and errors, and this
-    command's own lines (the choices, the output directory) and the demonstration summaries';
-    the engine's statistics (host load, stages, render workers, GPU waits) go to the run
-    directory's log only."""
+    """The log lines a terminal shows without --verbose: warnings, errors, this command's own and
+    the demonstration summaries'; the engine's statistics go to the run directory's log only."""
 
     SHOWN = ("vabench.sweep", "vabench.agent.learning_stage")
 
@@ -317,8 +293,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _start_line(configuring: float) -> str:
-    """How long the command took to get here: the process's start to this module's imports,
-    the imports, then the config, the choices (probing the GPU) and the plan."""
+    """How long the command took to get here: starting Python, importing, configuring, planning."""
     now = time.monotonic()
     age = process_age_s()
     before = f"{age - (now - _LOADING):.1f} s starting Python, " if age is not None else ""
@@ -353,9 +328,8 @@ def _check_endpoints(config: SweepConfig, keys: Sequence[EpisodeKey]) -> int:
 def _print_where_and_how_long(
     config: SweepConfig, keys: Sequence[EpisodeKey], run_dir: Path
 ) -> None:
-    """The dry run's last lines: the output directory (and what it holds), each track's
-    summary mode, the wall time at this machine's measured pace of each model kind and the
-    disk the run directory takes (`check.pace`)."""
+    """The dry run's last lines: the output directory (and what it holds), each track's summary
+    mode, the wall time at this machine's pace and the disk it takes (`check.pace`)."""
     done: dict[Key, dict[str, Any]] = {}
     if RunDir(run_dir).results.exists():
         done = Ledger.open(run_dir).records

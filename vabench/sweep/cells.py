@@ -1,9 +1,8 @@
-"""The sweep's plan cut into cells and chunks.
+"""The sweep's plan cut into cells and chunks, which the driver (`driver.Driver`) hands out.
 
 A cell is the planned episodes of one (model, track, task) not yet in the ledger
-(`pending_cells`); `chunks` cuts cells into pieces of nearly equal size so that the last
-engines to finish do not leave the others idle, and `bins` deals whole tasks over engines
-sharing a GPU. The driver (`driver.Driver`) hands the chunks to its engines.
+(`pending_cells`); `chunks` cuts cells into nearly equal pieces so that the last engines to
+finish leave none idle; `bins` deals whole tasks over engines sharing one GPU.
 """
 
 from __future__ import annotations
@@ -27,8 +26,7 @@ CHUNKS_PER_WORKER = 3
 
 
 def task_cost(config: SweepConfig, task: str) -> int:
-    """A task's cost for dealing the plan: its step budget (a task the registry lacks fails in
-    its chunk)."""
+    """A task's cost for dealing the plan: its step budget (1 for an unknown task: it fails)."""
     return config.budget(task) if task in REGISTRY else 1
 
 
@@ -40,8 +38,7 @@ def task_budgets(config: SweepConfig, cells: Iterable[Cell]) -> dict[str, int]:
 def pending_cells(
     keys: Iterable[EpisodeKey], finished: Iterable[Key]
 ) -> dict[Cell, list[EpisodeKey]]:
-    """The planned episodes without a ledger record, grouped by (model, track, task), cells
-    and episodes in plan order. Cells with nothing left are absent."""
+    """The planned episodes without a ledger record by (model, track, task), in plan order."""
     done = set(finished)
     cells: dict[Cell, list[EpisodeKey]] = {}
     for k in keys:
@@ -51,10 +48,9 @@ def pending_cells(
 
 
 def task_groups(cells: Mapping[Cell, list[EpisodeKey]]) -> dict[tuple[str], list[EpisodeKey]]:
-    """The cells of each task merged, every model and track, in plan order, keyed (task,).
-    With batched physics a chunk runs as one simulator batch per task (`LocalSweep` groups its
-    episodes by task), so chunks of whole tasks keep the batches large: on a GPU an action
-    costs the same for 10 slots as for 200."""
+    """The cells of each task merged, every model and track, in plan order, keyed (task,): with
+    batched physics a chunk runs one simulator batch per task, and a GPU steps a large batch
+    about as fast as a small one."""
     groups: dict[tuple[str], list[EpisodeKey]] = {}
     for (_, _, task), keys in cells.items():
         groups.setdefault((task,), []).extend(keys)
@@ -67,11 +63,10 @@ def chunks(
     cost: Callable[[str], int],
     per_worker: int = CHUNKS_PER_WORKER,
 ) -> list[tuple[str, list[EpisodeKey]]]:
-    """The cells (or `task_groups`) cut into named chunks of nearly equal size, at least
-    `per_worker` per worker where the cells are large enough (never below `MIN_CHUNK`
-    episodes), costliest first (`cost(task)`: the task's step budget), so the workers finish
-    close together. A chunk is named after its cell ("model/track/task", or "task" for a
-    group; "... part i/n" when cut)."""
+    """The cells (or `task_groups`) cut into chunks of nearly equal size, at least `per_worker`
+    per worker where the cells allow (never below `MIN_CHUNK` episodes), costliest first
+    (`cost(task)`), so the workers finish close together; named after the cell (model/track/task
+    or task), "... part i/n" when cut."""
     total = sum(len(v) for v in cells.values())
     size = max(MIN_CHUNK, math.ceil(total / (workers * per_worker)))
     out = []
@@ -90,13 +85,9 @@ def bins(
     cost: Callable[[str], int],
 ) -> list[tuple[str, list[EpisodeKey]]]:
     """The `task_groups` dealt whole into at most `workers` chunks of nearly equal cost
-    (longest first, each to the cheapest chunk so far; cost = episodes x `cost(task)`), for
-    engine processes sharing one GPU (`executor: processes` with batched physics): each
-    process then steps one batch per task of its chunk, all of them at once, as the local
-    executor does for every task in one process. Several such processes on one GPU only pay
-    where one process cannot keep the GPU busy (Python's interpreter lock: the sweep's "host:"
-    lines) and with CUDA's multi-process service (else their contexts take turns). A chunk is
-    named after its tasks, joined by '+'."""
+    (longest first, each to the cheapest chunk so far; cost = episodes x `cost(task)`), named
+    after their tasks joined by '+': for engine processes sharing one GPU under CUDA MPS
+    (`executor: processes`, batched physics), each stepping one batch per task of its chunk."""
     ranked = sorted(groups.items(), key=lambda kv: -len(kv[1]) * cost(kv[0][0]))
     n = max(1, min(workers, len(ranked)))
     loads = [0] * n

@@ -1,22 +1,9 @@
 """Where a sweep stands, on a clock: a live table on a terminal, plain lines otherwise.
 
-The driver describes the sweep's state as one `Status` (per model and track: episodes done /
-planned, successes, unscored, retried, running; model calls, tokens and cost; the episodes in
-flight, their limit and why) and hands it to `Display.update` once a second: the run
-directory's ledger read as it grows (`Tally`: a line counts when it is appended, not when its
-chunk ends), with what the engines report (`with_reports`).
-
-On a terminal a rich table is redrawn every second; without one (`--plain`, logs, CI) a line is
-printed every `every_s` seconds and once more at the end. While the table is up, the log
-handlers made before it write through rich's stream proxies (`_route_logs`), so log lines print
-above the table instead of leaving copies of it on screen.
-
-Rates follow the sweep's current pace: calls per second over the last minute, and the ETA's
-episodes per second over the last minute, widened back to the last `ETA_MIN_EPISODES` finished
-episodes where the minute holds fewer (a small machine finishes a few a minute, in bursts). A
-call count that goes backwards (a reporter's spend lost with its process) is left out of the
-rate. The last line is `Tally.ended`: the ledger's final counts with the engines' last reported
-spend.
+The driver hands `Display.update` one `Status` a second: the ledger's counts per model and track
+as it grows (`Tally`), with the engines' reports (spend, episodes running and in flight, their
+limit and why: `with_reports`). While rich's table is up, log lines print above it
+(`_route_logs`); plain lines (`--plain`, logs, CI) come every `every_s` seconds and at the end.
 """
 
 from __future__ import annotations
@@ -41,8 +28,7 @@ RATE_WINDOW_S = 60.0
 ETA_MIN_EPISODES = 30
 ETA_SHOWN_AFTER = 5
 """Episodes this invocation finishes before an ETA shows (fewer where a quarter of what is
-left is fewer): the first ones come in bursts, and a small machine's first ETAs read 33 h, 18
-h, 9 h before settling near 5 h."""
+left is fewer): the first ones come in bursts, and the ETAs they give overshoot many times."""
 
 
 def plural(n: int, word: str, many: str | None = None) -> str:
@@ -76,7 +62,8 @@ class Counts:
 
 @dataclass
 class Status:
-    """Where the sweep stands (see the module docstring)."""
+    """Where the sweep stands: `Counts` per (model, track), this invocation's spend, and the
+    engines' calls and episodes in flight, the episodes' limit and why."""
 
     tracks: dict[tuple[str, str], Counts] = field(default_factory=dict)
     calls: int = 0
@@ -92,11 +79,9 @@ class Status:
 
 
 def with_reports(status: Status, reports: list[dict], live: list[dict], unit: str) -> Status:
-    """`status` (the ledger's counts) with what the engines report (`ChunkEngine.status`): the
-    spend of every report, finished ones included, never below what the ledger's records of
-    this invocation hold (an engine closed at the end reports none), and the running episodes
-    per model/track, in-flight counts, limits and reason of the `live` ones. `unit` names the
-    reporters in the reason ("worker processes", "engines")."""
+    """`status` (the ledger's counts) with the engines' reports (`ChunkEngine.status`): their
+    spend, never below the ledger's (an engine closed at the end reports none), and the `live`
+    ones' running episodes, in-flight counts, limits and reason (`unit` names them: "engines")."""
     for r in live:
         for name, n in r.get("running", {}).items():
             model, track = name.split("/")
@@ -116,8 +101,7 @@ def with_reports(status: Status, reports: list[dict], live: list[dict], unit: st
 
 
 class Tally:
-    """A run directory's ledger and infrastructure log, counted as they grow (by whoever
-    writes them: this process's ledger thread, or Ray workers on other machines)."""
+    """A run directory's ledger and infrastructure log, counted as they grow (whoever writes)."""
 
     def __init__(self, run_dir: Path, keys: Iterable[EpisodeKey]):
         self.run_dir = Path(run_dir)
@@ -173,11 +157,9 @@ class Tally:
         )
 
     def ended(self, last: Status, own_limit: bool = False) -> Status:
-        """The status once the sweep's engines have ended: the ledger's counts read now
-        (every line in, nothing running) with the spend of `last`, the last status shown,
-        which holds the engines' reports; never below the ledger's records of this
-        invocation. `own_limit`: the one engine was this process's (`executor: local`), and
-        the line keeps the episodes' limit it ran under (and why)."""
+        """The status once the engines have ended: the ledger's counts read now, with the spend of
+        `last` (the last status shown: the engines' reports) where higher. `own_limit`: the one
+        engine was this process's (`executor: local`): keep the episodes' limit and why."""
         self.refresh()
         status = self.status()
         status.calls = max(status.calls, last.calls)
@@ -209,10 +191,9 @@ class Display:
         verbose: bool = False,
         elapsed_before_s: float = 0.0,
     ):
-        """`pricing`: how each model's cost is shown (`SweepConfig.pricing`); without it the
-        cost shows as dollars. `verbose`: say why the episodes' limit is what it is.
-        `elapsed_before_s`: the time earlier invocations of this run directory ran (a resumed
-        sweep's clock continues)."""
+        """`pricing`: how each model's cost shows (`SweepConfig.pricing`; without it, dollars).
+        `verbose`: say why the episodes' limit is what it is. `elapsed_before_s`: the time
+        earlier invocations of this run directory ran (a resumed sweep's clock continues)."""
         self.title = title
         self.verbose = verbose
         self.elapsed_before_s = elapsed_before_s
@@ -245,12 +226,11 @@ class Display:
     # -- rates -----------------------------------------------------------------------------
     def _rates(self, done: int, calls: int) -> tuple[float, float]:
         """(episodes per second, calls per second) over the last `RATE_WINDOW_S`; the episodes'
-        window reaches back to the last `ETA_MIN_EPISODES` episodes where it holds fewer. Where
-        `calls` fell below the last count, the window's earlier counts fall by as much: the
-        rate is the calls counted either side of the drop, never negative."""
+        window reaches back to the last `ETA_MIN_EPISODES` where it holds fewer (a small machine
+        finishes a few a minute, in bursts). A call count gone backwards (a reporter's spend
+        lost with its process) lowers the window's earlier counts by as much: never negative."""
         now = self.clock()
         if self._history and calls < self._history[-1][2]:
-            # a count gone backwards: the window keeps what it counted, without the drop
             drop = self._history[-1][2] - calls
             self._history = collections.deque((t, d, c - drop) for t, d, c in self._history)
         self._history.append((now, done, calls))
@@ -270,8 +250,7 @@ class Display:
         return episodes_per_s, (calls - calls0) / span if span > 0 else 0.0
 
     def _eta(self, total: Counts, episodes_per_s: float) -> str:
-        """The time the remaining episodes take at the current pace, once this invocation has
-        finished enough episodes for the pace to mean something (`ETA_SHOWN_AFTER`)."""
+        """The remaining episodes' time at the current pace, once `ETA_SHOWN_AFTER` are done."""
         left = total.planned - total.done
         if left <= 0:
             return "done"
@@ -363,8 +342,7 @@ class Display:
         return Group(head, table)
 
     def close(self, status: Status, show: bool = True) -> None:
-        """The last line (not the one just printed again); `show=False`: none, the caller
-        says how it ended (Ctrl-C's one line)."""
+        """The last line (unless just printed); `show=False`: none, the caller says how it ended."""
         if show and (self.live_mode or self.line(status) != self._last_line):
             self.update(status, force=True)
         if self._live is not None:

@@ -1,16 +1,9 @@
-"""Ctrl-C in the sweep: the first press stops it cleanly, the second at once.
+"""Ctrl-C in the sweep: the first press stops it cleanly, the second at once (both exit 130).
 
-First press: the driver ends its engines at its next tick (the in-process engine's episodes
-cancelled at their next await, worker processes and Ray actors ended). What was recorded stays
-whole: a ledger line is one write of a whole line, a result.json is renamed into place, and an
-episode cut short leaves only its partial events.jsonl, which the next run sets aside. The
-command prints one line and exits with status 130. A second press exits at once, with the same
-status and the same guarantees.
-
-Work already queued on the simulator or the renderer can only be waited for (minutes where a
-slow device renders a large request): a stop still under way after `STOP_NOTICE_S` says so,
-once, with what a second press does. The processes the sweep starts never see SIGINT
-(`vabench.children`); the sweep ends them.
+The first press has the driver end its engines at its next tick (work already queued on the
+simulator or renderer is waited for: `STOP_NOTICE`); what was recorded stays whole (one write per
+ledger line, result.json renamed into place, a cut episode's partial events.jsonl set aside on
+resume). The processes the sweep starts never see SIGINT (`vabench.children`): the sweep ends them.
 """
 
 from __future__ import annotations

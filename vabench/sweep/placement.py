@@ -44,20 +44,17 @@ class Engine(Protocol):
 
 START_GRACE_S = 300.0
 """How long an engine still starting holds a fair share of the plan (`choose_engine`): one that
-never starts (its resources held elsewhere, a node that never comes) must not keep the ready
-engines below their share for the whole sweep."""
+never starts (a node that never comes) must not keep the ready engines below their share."""
 CRITICAL_WAIT_S = 60.0
-"""How long after the sweep's first engine was asked for a critical chunk may wait for engines
-still starting (they may sit on a GPU without a critical chunk) before it takes an idle engine
-on a GPU that has one (`choose_engine`)."""
+"""How long from the sweep's first engine request a critical chunk may wait for engines still
+starting (maybe on a GPU without one) before it takes an idle engine on a GPU that has one."""
 
 
 @dataclass
 class EngineClock:
-    """An engine's time as the driver sees it (monotonic seconds): asked for, started, ended
-    (died, or the sweep closed it), and the seconds it had at least one chunk ("working"); the
-    rest of its started life it waited for work. The split tells a scaling run where lost
-    engine-time went: start-up, waiting for work (placement, the tail), or working slower."""
+    """An engine's time as the driver sees it (monotonic seconds): asked for, started, ended, and
+    the seconds it held a chunk ("working"), the rest waiting: a scaling run's split of where
+    lost engine-time went (start-up, placement and the tail, or working slower)."""
 
     asked_at: float = field(default_factory=time.monotonic)
     started_at: float | None = None
@@ -125,8 +122,7 @@ class EngineHandle:
     @property
     def lead(self) -> bool:
         """Whether its MPS priority is normal: its GPU's first engine of a ranked sweep
-        (`mps.NODE_RANKED`), or any engine where priorities are not ranked (or before it has
-        started)."""
+        (`mps.NODE_RANKED`), or any engine where priorities are not ranked or not yet known."""
         environment = self.info.get("environment") or {}
         return environment.get(mps.PRIORITY_VARIABLE) != mps.BELOW_NORMAL
 
@@ -156,24 +152,18 @@ def choose_engine(
 ) -> EngineHandle | None:
     """The engine the queue's next `chunk` goes to, or None for none now.
 
-    A chunk off the critical path (`queued_cost`: the cost of the queue's other such chunks)
-    goes to the least loaded (cost of its episodes given and not yet recorded) of the ready
-    engines with room that hold no critical chunk (where some live engine holds none). Room:
-    an engine without chunks always has some. One with chunks takes another only while (1) it
-    holds fewer than `max_chunks` chunks and fewer episodes than twice its in-flight limit, and
-    (2) its load with the chunk stays within its fair share, the unfinished cost off the
-    critical path (`queued_cost` plus those engines' loads) over the live engines holding no
-    critical chunk, those still starting included for their first `START_GRACE_S` (monotonic
-    `now`). Without (2) the first engine ready takes every chunk up to its limit while engines
-    that start later get none; with it a chunk left over waits in the queue for whichever
-    engine's load falls first.
+    A chunk off the critical path goes to the least loaded (cost given and not yet recorded) of
+    the ready engines with room that hold no critical chunk (where some live engine holds none).
+    An engine without chunks has room; one with chunks only while it holds fewer than
+    `max_chunks` chunks and fewer episodes than twice its in-flight limit, and its load with the
+    chunk stays within a fair share: the unfinished cost off the critical path (`queued_cost`,
+    the queue's other such chunks, plus those engines' loads) over those engines, the ones still
+    starting counted for their first `START_GRACE_S` (monotonic `now`). Without the share the
+    first engine ready takes every chunk; with it a leftover waits for the first load to fall.
 
-    A critical chunk (`Chunk.critical`, the basket's) goes to an idle engine, where there is
-    one and another live engine for the rest of the plan, on the GPU with the fewest critical
-    chunks; while none is idle on a GPU without one and engines are still starting (in the
-    sweep's first `CRITICAL_WAIT_S`), it waits for them; with no idle engine it is placed like
-    any other. Its engine then takes nothing else until it is done: the critical chunk's chain
-    of decisions is the sweep's, and it must not wait behind other batches."""
+    A critical chunk (`Chunk.critical`) goes where `_critical_engine` says, else like any other;
+    its engine then takes nothing else until it is done: its chain of decisions is the sweep's
+    and must not wait behind other batches."""
     now = time.monotonic() if now is None else now
     live = [
         e for e in engines if not e.dead and (e.ready or now - e.clock.asked_at < START_GRACE_S)
@@ -209,13 +199,11 @@ WAIT = object()
 def _critical_engine(
     live: list[EngineHandle], holding: set[int], now: float, since: float
 ) -> EngineHandle | object | None:
-    """For a critical chunk: an idle ready engine on the GPU with the fewest critical chunks,
-    its GPU's lead (`EngineHandle.lead`: the normal MPS priority) before the others; `WAIT`
-    while engines are still starting in the sweep's first `CRITICAL_WAIT_S` (from `since`, its
-    first engine's request: a replacement engine later is not waited for) and may offer a GPU
-    without one, or its lead (a lead ready and busy is not waited for); or None (no idle
-    engine: the ordinary rule places it). A chunk placed on a below-normal engine after the
-    wait runs behind its GPU's lead (the driver's log says so)."""
+    """For a critical chunk, where another live engine is left for the rest of the plan: an idle
+    ready engine on the GPU with the fewest critical chunks, its GPU's lead (`EngineHandle.lead`)
+    first; `WAIT` while engines still starting in the sweep's first `CRITICAL_WAIT_S` (from
+    `since`: a later replacement is not waited for) may offer a GPU without one, or its lead (a
+    lead ready and busy is not waited for); None with no idle engine (the ordinary rule)."""
     if len(live) - len(holding) < 2:  # none would be left for the rest of the plan
         return None
     on_gpu: dict[Any, int] = {}
@@ -243,10 +231,9 @@ def next_placement(
     max_chunks: int,
     now: float | None = None,
 ) -> tuple[int, EngineHandle] | None:
-    """The driver's next hand-out: (the chunk's position in `queue`, its engine), or None for
-    none now. The queue's chunks in order (costliest first): a critical chunk waiting for
-    engines still starting (`choose_engine`) is passed over, so that the ready engines take
-    the chunks behind it meanwhile; the first other chunk without an engine ends the hand-out."""
+    """The driver's next hand-out: (the chunk's position in `queue`, its engine), or None. A
+    critical chunk waiting for engines still starting is passed over, so that the ready engines
+    take the chunks behind it meanwhile; the first other chunk without an engine ends it."""
     queued = sum(len(c.keys) * c.cost for c in queue if not c.critical)
     for i, chunk in enumerate(queue):
         best = choose_engine(engines, chunk, records, queued, max_chunks, now)

@@ -1,18 +1,9 @@
-"""The plan of a sweep: every episode it must run, and what running them may cost.
-
-`plan(config)` lists one `EpisodeKey` per (model, track, task, seed, run): models x tracks x
-the track's tasks x seeds of the task x runs, each exactly once. The order is fixed (the same
-config always gives the same list) and groups by task first, so that the episodes one simulator
-batch serves come together:
+"""The plan of a sweep: every episode it must run (`plan`), once each, and what running them
+may cost (`estimate`, what `--dry-run` prints: an upper bound, every episode at its whole step
+budget). The order is fixed (the same config, the same list) and groups by task first, so that
+the episodes one simulator batch serves come together:
 
     task (config order) > model (config order) > track (config order) > run > seed (config order)
-
-Runs are numbered from `FIRST_RUN` (1), as the paper numbers them.
-
-`estimate(config, keys)` is what `--dry-run` prints: episodes per model, track and task, and an
-upper bound of model calls, tokens and cost, every episode at its whole step budget
-(`agent.usage.episode_usage`, whose `Assumptions` it prints). A model without `prices` shows
-"price not set", one of the embedded server "no cost" (`llm_pool.spend.cost_text`).
 """
 
 from __future__ import annotations
@@ -27,7 +18,7 @@ from vabench.llm_pool.spend import Pricing, cost_text
 from vabench.run_layout import episode_rel
 from vabench.tasks import get_task
 
-FIRST_RUN = 1
+FIRST_RUN = 1  # as the paper numbers runs
 
 
 @dataclass(frozen=True, order=True)
@@ -64,9 +55,8 @@ def plan(config: SweepConfig) -> list[EpisodeKey]:
 
 
 def learning_sessions(config: SweepConfig, keys: list[EpisodeKey]) -> list[tuple[str, str]]:
-    """The (model, summary family) learning sessions `keys` need, each once, in plan order:
-    the model whose summary the episode's track reads (its own, or the shared source) and the
-    family whose summary the task reads (a held-out variant: its base family)."""
+    """The (model, summary family) learning sessions `keys` need, once each, in plan order: the
+    model whose summary the track reads (own or shared) and the task's (a variant's base) family."""
     out: dict[tuple[str, str], None] = {}
     for key in keys:
         source = config.track(key.track).summary_source(key.model)
@@ -154,8 +144,7 @@ def _ordered(counts: Counter[str], order: tuple[str, ...]) -> dict[str, int]:
 
 
 def format_estimate(est: Estimate) -> str:
-    """The dry-run report: episodes per model, track and task, then calls, tokens and cost per
-    model with a total, then the assumptions."""
+    """The dry-run report: episodes per model, track and task; calls, tokens, cost; assumptions."""
     lines = [f"Planned episodes: {est.episodes}"]
     for title, counts in (("model", est.by_model), ("track", est.by_track), ("task", est.by_task)):
         lines += [

@@ -1,17 +1,10 @@
 """The engine actor of a Ray sweep: a `chunk_engine.ChunkEngine` as a long-lived Ray actor, one
-per GPU (or per share of one, or per CPU share).
-
-On a GPU node it claims its GPU (Ray sets CUDA_VISIBLE_DEVICES to it) and runs MuJoCo Warp
-physics and Warp's renderer for its chunks; on a CPU node C MuJoCo and the GL render workers.
-Its `run_chunk` is a streaming generator whose ledger lines the driver appends; the episodes'
-own directories it writes in the run directory every node sees at the same path.
-
-The process starts with the variables the driver sends it (`environ`): the API keys named by
-the config's `api_key_env` (in the actor's creation arguments, in memory, and put in this
-process's environment only) and the environment `config.choices` picks for engine processes.
-What it runs on is the driver's decision (`config.choices.for_engines`); the actor only checks that
-the physics and renderer it was given can run here, and refuses to be created when not (the
-message names what is missing), so that a node that cannot run them is given no other engine.
+per GPU (or share of one, or of the CPUs). Its `run_chunk` streams ledger lines to the driver,
+the one writer; episode directories go to the run directory every node mounts at one path. It
+starts with the variables the driver sends (`environ`: the API keys, kept in memory and this
+process's environment, and the engine environment), runs what the driver chose for it
+(`config.choices.for_engines`), and refuses to be created where that cannot run (naming what is
+missing), so that a node that cannot run it is given no other engine.
 """
 
 from __future__ import annotations
@@ -86,8 +79,7 @@ class EngineActor(ChunkEngine):
         return self.status()
 
     async def close(self) -> dict[str, Any]:
-        """Close the engine; its GPU's figures over its life. The last engine of the sweep on
-        its node tells the node's MPS daemon to quit."""
+        """Close the engine: its GPU's figures; the node's last engine quits the MPS daemon."""
         figures = await super().close()
         if self._mps_sweep:  # (a `quit` may take a moment: off the event loop)
             sweep, self._mps_sweep = self._mps_sweep, ""
@@ -96,10 +88,8 @@ class EngineActor(ChunkEngine):
 
     def _join_mps(self) -> str:
         """With `mps.NODE_SWEEP` set (engines sharing GPUs): this process made a client of its
-        node's daemon of the sweep (with `mps.NODE_RANKED`, at its GPU's normal priority if it
-        is the GPU's first engine, else below: its start reply's environment says which); the
-        sweep's id, or "" where MPS cannot run here (then the engines sharing a GPU take turns
-        on it, said once in the log)."""
+        node's MPS daemon of the sweep (`mps.NODE_RANKED`: normal priority for its GPU's first
+        engine, else below); the sweep's id, or "" where MPS cannot run (the engines take turns)."""
         sweep = switches.get("ray_mps") or ""
         if not sweep:
             return ""

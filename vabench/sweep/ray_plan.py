@@ -18,9 +18,8 @@ from vabench.tuning.engine_env import engines_per_gpu, ray_environment
 CHUNKS_PER_ENGINE = 8
 """Chunks per engine the plan is cut into: enough that engines finish close together."""
 SHIPPED = ("vabench", "configs", "assets", "pyproject.toml")
-"""What an engine needs of the checkout; every other top-level entry stays home (a second
-virtual environment, run directories, caches: they can pass Ray's 512 MiB limit on the package
-it uploads)."""
+"""What an engine needs of the checkout; the rest stays home (another virtual environment, run
+directories, caches: they can pass Ray's 512 MiB limit on the package it uploads)."""
 SHIP_EXCLUDES = ["__pycache__", "*.pyc", "*.egg-info", ".cache", ".*_cache"]
 """Left out inside what ships."""
 
@@ -42,8 +41,7 @@ def project_runtime_env() -> dict[str, Any]:
 
 
 def upload_failure(err: BaseException) -> str:
-    """One line for Ray's failure to upload the checkout: its cause (Ray's last line) and the
-    fix."""
+    """One line for Ray's failure to upload the checkout: its cause (Ray's last line), the fix."""
     lines = [line.strip() for line in str(err).splitlines() if line.strip()]
     cause = next((x for x in reversed(lines) if "size" in x.lower()), lines[-1] if lines else "")
     return (
@@ -56,11 +54,9 @@ def upload_failure(err: BaseException) -> str:
 def engine_plan(
     config: SweepConfig, choices: Choices, cluster: Mapping[str, float]
 ) -> tuple[int, dict[str, float], Choices]:
-    """(how many engines, what each claims from Ray's scheduler, the choices they run with) on
-    a cluster of `cluster` resources, for a sweep whose command chose `choices`
-    (`config.choices.for_engines`): with batched physics on GPUs `engines_per_gpu` a GPU, each
-    claiming its share; else one per `1 + render.workers` CPUs; `executor.actors` sets the
-    number."""
+    """(how many engines, what each claims from Ray's scheduler, the choices they run with
+    (`config.choices.for_engines`)) on a cluster of `cluster` resources: with batched physics on
+    GPUs `engines_per_gpu` a GPU, else one per `1 + render.workers` CPUs, or `executor.actors`."""
     asked = config.executor.actors
     gpus = int(cluster.get("GPU", 0))
     engines = for_engines(choices, config, gpus)

@@ -1,30 +1,12 @@
 """The sweep's ledger: RUN_DIR/results.jsonl, one line per finished planned episode.
 
-A line is `{"v": 1, "track": ..., "episode_dir": ..., **EpisodeResult}`. "Finished" means
-scored (success or failure), an `error` that re-running cannot fix, or an
-`infrastructure_error` after its last retry round. Infrastructure failures before that go to
-RUN_DIR/infrastructure.jsonl (append-only, counting rounds across resumes) and the episode runs
-again.
-
-Crash safety: the episode writes its result.json atomically (vabench.agent.records), then the
-ledger appends one line and fsyncs. A kill in between leaves a result.json the ledger does not
-know, which `recover()` adopts on resume; a kill during the append leaves a truncated last
-line, which `open()` cuts off. So every planned episode ends with exactly one line. Each
-append is one `write()` of the whole line on an `O_APPEND` descriptor under an exclusive POSIX
-record lock (fcntl, which NFS honours across clients), and `open()` reads and cuts under the
-same lock. With worker processes and Ray the engines hand their lines to the driver through
-`Ledger(sink=...)`, the one writer, so a worker that outlives a killed parent adds no line.
-
-`reopen_infrastructure_errors` (the sweep command, unless `--no-retry-infrastructure`) moves
-final `infrastructure_error` lines back to RUN_DIR/infrastructure.jsonl, marked `reopened` (the
-episode's attempts count afresh), and sets their attempts' files aside: the same command runs
-them again, every earlier attempt kept. A second line for an episode (two writers raced) is
-not fatal: `open()` keeps the first, moves the others to RUN_DIR/results.duplicates.jsonl
-(their spend still counts in the report) and reports them in `Ledger.collapsed`.
-
-In memory the ledger keeps each line's `OUTCOME` fields only (what the sweep decides on),
-validated straight from the line's JSON; the report and the viewer read the file
-(`vabench.run_records`).
+Finished: scored, an `error` re-running cannot fix, or an `infrastructure_error` after its last
+retry round; earlier infrastructure failures go to RUN_DIR/infrastructure.jsonl (rounds counted
+across resumes) and the episode runs again. Appends are whole, fsynced and locked (`_locked`),
+`open()` and `recover()` repair what a kill leaves, and with worker processes or Ray the driver
+is the one writer (`Ledger(sink=...)`): every planned episode ends with exactly one line
+(docs/RELIABILITY.md). In memory a line keeps its `OUTCOME` fields; the report and the viewer
+read the file (`vabench.run_records`).
 """
 
 from __future__ import annotations
@@ -49,8 +31,7 @@ from vabench.sweep.plan import EpisodeKey
 
 Key = tuple[str, str, str, int, int]
 Sink = Callable[[str, dict[str, Any]], None]
-"""Where a ledger's appends go instead of its files: (log name, record); the log names are
-`run_layout.RESULTS` and `run_layout.INFRASTRUCTURE`."""
+"""Where a ledger's appends go instead of its files: (`RESULTS` or `INFRASTRUCTURE`, record)."""
 
 
 def key_of(record: dict[str, Any]) -> Key:
@@ -73,9 +54,8 @@ class LedgerError(ValueError):
 
 
 class Outcome(TypedDict, total=False):
-    """What `Ledger.records` keeps of a line: the episode's key, where it ran and how it
-    ended (what resuming, the progress counts and the closing list of unscored episodes
-    read). The key's fields are required; a line without them is not a record."""
+    """What `Ledger.records` keeps of a line (what resuming, progress and the closing list of
+    unscored episodes read); a line without the key's fields is not a record."""
 
     model: str
     track: str
@@ -255,9 +235,9 @@ def _why(err: Exception) -> str:
 
 @contextlib.contextmanager
 def _locked(path: Path, flags: int) -> Iterator[int]:
-    """A descriptor of `path` holding an exclusive lock on it until the block ends. Everything
-    done under the lock uses this descriptor: closing any other descriptor of the file would
-    release the process's POSIX lock."""
+    """A descriptor of `path` holding an exclusive POSIX lock (NFS honours it across clients)
+    until the block ends. Everything under the lock uses this descriptor: closing any other
+    descriptor of the file would release the process's lock."""
     fd = os.open(path, flags, 0o644)
     try:
         try:
@@ -277,9 +257,8 @@ def _read_whole_lines(path: Path) -> list[bytes]:
 
 
 def _whole_data(fd: int) -> bytes:
-    """A log's bytes up to its last newline, the rest (a line cut short) cut off the file;
-    on a descriptor whose lock the caller holds. Bytes, not text: the lines go to pydantic's
-    JSON reader undecoded."""
+    """A log's bytes up to its last newline, a line cut short cut off the file (the caller
+    holds the lock). Bytes: the lines go to pydantic's JSON reader undecoded."""
     os.lseek(fd, 0, os.SEEK_SET)
     chunks = []
     while chunk := os.read(fd, 1 << 20):
@@ -313,10 +292,9 @@ def set_aside(episode_dir: Path) -> None:
 
 def reopen_infrastructure_errors(run_dir: Path, planned: set[Key] | None = None) -> list[Key]:
     """Move the ledger's `infrastructure_error` lines (of `planned` keys; None: all) back to
-    the attempts log, marked `reopened`, and set each one's files aside, so the sweep runs them
-    again with their retry rounds (see the module docstring). Returns their keys. Crash-safe in
-    this order: the attempts log gets the line (once, however often a crash repeats this), the
-    files go aside, then the ledger drops it."""
+    the attempts log, marked `reopened`, and set their files aside, so the sweep runs them again
+    with fresh retry rounds; returns their keys. Crash-safe in this order: the attempts log gets
+    the line (once, however often a crash repeats this), the files go aside, the ledger drops it."""
     files = RunDir(run_dir)
     if not files.results.exists():
         return []
@@ -356,9 +334,8 @@ def reopen_infrastructure_errors(run_dir: Path, planned: set[Key] | None = None)
 
 
 def recover(run_dir: Path, episode_dir: str) -> EpisodeResult | None:
-    """The result.json of an episode that finished but never reached the ledger, if any.
-    A resume asks this of every unfinished episode, nearly always of one without a result:
-    that answer is one `stat`, without building paths."""
+    """The result.json of an episode that finished but never reached the ledger, if any
+    (asked of every unfinished episode on resume: a missing one costs one `stat`)."""
     if not os.path.exists(os.path.join(run_dir, episode_dir, RESULT)):
         return None
     return read_result(run_dir / episode_dir)

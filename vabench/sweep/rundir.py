@@ -1,25 +1,10 @@
 """Which sweep a run directory belongs to: RUN_DIR/plan.json, written once, checked on resume.
 
-A run directory holds the episodes of one plan. Resuming it with a config whose plan differs
-would put episodes of two sweeps in one table (a changed `step_budget` keeps every episode id
-and silently mixes budgets), so the first run stores the plan's identity and every later run
-compares field by field:
-
-    {"v": 2, "fields": {PLAN_FIELD: value, ...}, "episodes": ["model/track/task/seed/run", ...],
-     "switches": {name: value, ...}}
-
-`PLAN_FIELDS` are what decide the episodes and their outcomes. Of each model only what changes
-its answers counts (name, API, provider model id, generation options); its limits, retries,
-prices, headers and key variable do not, so a run may resume with a new key or a higher rate
-limit. For models served by the embedded server its policy counts too (the policy is the
-model). The protocol's version (`vabench.protocol.version`) counts as well: episodes a model
-played under another protocol are not the same measurement. Everything else (executor, render
-workers, retries) may change between invocations, and so may the `VABENCH_*` switches
-(`vabench.switches`): "switches" holds those of the latest invocation, each earlier setting
-kept in "earlier_switches", so the run directory says how its episodes were run.
-
-A plan.json of version 1 (a bare list of episode ids, before the fields were stored) is
-compared by ids and then upgraded in place.
+Resumed with a config whose plan differs, a run directory would mix two sweeps in one table (a
+changed `step_budget` keeps every episode id), so the first run stores the plan's identity
+(`plan_identity`, the episode ids) and every later run compares it, naming the differing fields.
+The rest (executor, limits, keys, `VABENCH_*` switches) may change; plan.json keeps each
+invocation's switches, so the run directory says how its episodes were run.
 """
 
 from __future__ import annotations
@@ -40,7 +25,9 @@ from vabench.sweep.plan import EpisodeKey
 
 PLAN_VERSION = 2
 PLAN_FIELDS = ("models", "tracks", "tasks", "seeds", "runs", "step_budget", "protocol_version")
-"""The config fields that decide the plan (see the module docstring)."""
+"""The config fields that decide the episodes and their outcomes. Of a model only what changes
+its answers (`_MODEL_FIELDS`; of an embedded server's model its policy too), so a run resumes
+with a new key or limits; the protocol's version too: another protocol, another measurement."""
 _MODEL_FIELDS = ("name", "api", "model", "generation")
 
 
@@ -101,9 +88,8 @@ def differing_fields(before: dict[str, Any], now: dict[str, Any]) -> list[str]:
 
 
 def run_dir_problem(run_dir: Path, config: SweepConfig, keys: list[EpisodeKey]) -> str | None:
-    """Why `run_dir` cannot hold this plan (None: it can), reading only: `--dry-run` says what
-    the run would refuse. A path that is a file, a directory that cannot be created or written,
-    or one made by another plan (the differing fields named)."""
+    """Why `run_dir` cannot hold this plan (None: it can), reading only (`--dry-run` too): it is
+    a file, cannot be made or written, or another plan made it (the differing fields named)."""
     if run_dir.exists() and not run_dir.is_dir():
         return f"the run directory {run_dir} is a file; name a directory with --out DIR"
     existing = next(p for p in (run_dir, *run_dir.parents) if p.exists())
