@@ -371,11 +371,10 @@ def test_a_sweep_starts_compiling_in_the_background_on_a_gpu(monkeypatch):
     monkeypatch.setattr(
         runner.Compiling, "start", classmethod(lambda cls, *a: started.append(a) or "handle")
     )
-    engine = SimpleNamespace(
-        physics=SimpleNamespace(kind=SimpleNamespace(is_warp=True)),
-        image=SimpleNamespace(width=640, height=480),
+    engine = SimpleNamespace(image=SimpleNamespace(width=640, height=480))
+    choices = SimpleNamespace(
+        physics=SimpleNamespace(is_warp=True), renderer=SimpleNamespace(is_warp=True)
     )
-    choices = SimpleNamespace(renderer=SimpleNamespace(is_warp=True))
     monkeypatch.setattr(runner, "warp_device", lambda: "cuda:0")
     assert asyncio.run(runner.start_compiling(engine, choices, ["b", "a", "b"])) == "handle"
     assert started == [(["a", "b"], 640, 480, "cuda:0", True, ())]
