@@ -25,7 +25,7 @@ import os
 import shutil
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -87,6 +87,9 @@ class KindPace:
     bytes_per_episode: float
     frames: str
     finished_at: float
+    task_seconds: dict[str, float] = field(default_factory=dict)
+    """The mean seconds an episode of each task took (`wall_s`): what the sweep's driver deals
+    its chunks by (`sweep.cells.episode_costs`)."""
 
     @property
     def decisions_per_s(self) -> float:
@@ -121,11 +124,13 @@ def measure_kinds(run_dir: Path, config: SweepConfig) -> list[KindPace]:
     out = []
     for kind, pairs in by_kind.items():
         intervals, decisions = [], 0
+        walls: dict[str, list[float]] = {}
         for _, r in pairs:
             start, wall = r.get("started_at"), r.get("wall_s")
             if isinstance(start, int | float) and isinstance(wall, int | float) and wall > 0:
                 intervals.append((float(start), float(start) + float(wall)))
                 decisions += int(r.get("steps_used") or 0)
+                walls.setdefault(str(r.get("task")), []).append(float(wall))
         busy = _union_length(intervals)
         if not intervals or decisions == 0 or busy <= 0:
             continue
@@ -141,6 +146,7 @@ def measure_kinds(run_dir: Path, config: SweepConfig) -> list[KindPace]:
                 size / len(pairs),
                 config.records.frames,
                 max(e for _, e in intervals),
+                {task: sum(w) / len(w) for task, w in sorted(walls.items())},
             )
         )
     return out
@@ -162,6 +168,22 @@ def machine_paces(path: Path | None = None) -> dict[str, KindPace]:
         return {kind: KindPace(**v) for kind, v in read_host(path or pace_file()).items()}
     except TypeError:  # an entry of another version's fields
         return {}
+
+
+def measured_seconds(
+    config: SweepConfig, tasks: Iterable[str], paces: Mapping[str, KindPace]
+) -> dict[str, float]:
+    """The seconds an episode of each of `tasks` took in this machine's latest sweep of the
+    config's model kinds (`paces`, `KindPace.task_seconds`; the mean over kinds), where one
+    measured it."""
+    kinds = {model_kind(config, m.name) for m in config.models}
+    mine = [p.task_seconds for kind, p in paces.items() if kind in kinds]
+    measured = {}
+    for task in sorted(set(tasks)):
+        seen = [seconds[task] for seconds in mine if task in seconds]
+        if seen:
+            measured[task] = sum(seen) / len(seen)
+    return measured
 
 
 def latency_line(

@@ -2,7 +2,9 @@
 
 A cell is the planned episodes of one (model, track, task) not yet in the ledger
 (`pending_cells`); `chunks` cuts cells into nearly equal pieces so that the last engines to
-finish leave none idle; `bins` deals whole tasks over engines sharing one GPU.
+finish leave none idle; `bins` deals whole tasks over engines sharing one GPU. Both weigh an
+episode by `episode_costs`: the seconds this machine measured an episode of its task, where it
+has, since a step budget bounds an episode and says little of how long one takes.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping
 
+from vabench.check.pace import KindPace, measured_seconds
 from vabench.config import SweepConfig
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, ledger_key
@@ -33,6 +36,33 @@ def task_cost(config: SweepConfig, task: str) -> int:
 def task_budgets(config: SweepConfig, cells: Iterable[Cell]) -> dict[str, int]:
     """The `task_cost` of every task of `cells` (what the critical path is found from)."""
     return {task: task_cost(config, task) for _, _, task in cells}
+
+
+def episode_costs(
+    config: SweepConfig, tasks: Iterable[str], paces: Mapping[str, KindPace]
+) -> dict[str, float]:
+    """Each of `tasks`' cost of an episode for dealing the plan: its `measured_seconds`; a task
+    none measured costs its step budget at the seconds a budget step the measured ones took;
+    with none measured, every cost is the step budget (`task_cost`): one plan never mixes
+    seconds and steps."""
+    tasks = sorted(set(tasks))
+    measured = measured_seconds(config, tasks, paces)
+    if not measured:
+        return {task: float(task_cost(config, task)) for task in tasks}
+    per_step = sum(measured.values()) / sum(task_cost(config, t) for t in measured)
+    return {task: measured.get(task, task_cost(config, task) * per_step) for task in tasks}
+
+
+def dealing_line(config: SweepConfig, tasks: Iterable[str], paces: Mapping[str, KindPace]) -> str:
+    """What the plan's chunks are weighed by, for the sweep's log."""
+    tasks = set(tasks)
+    measured = measured_seconds(config, tasks, paces)
+    if not measured:
+        return "chunks weighed by step budgets (no sweep of these model kinds measured here)"
+    return (
+        f"chunks weighed by the seconds an episode took in this machine's latest sweep "
+        f"({len(measured)} of {len(tasks)} tasks measured; the rest at their step budget's share)"
+    )
 
 
 def pending_cells(
@@ -60,7 +90,7 @@ def task_groups(cells: Mapping[Cell, list[EpisodeKey]]) -> dict[tuple[str], list
 def chunks(
     cells: Mapping[Cell, list[EpisodeKey]] | Mapping[tuple[str], list[EpisodeKey]],
     workers: int,
-    cost: Callable[[str], int],
+    cost: Callable[[str], float],
     per_worker: int = CHUNKS_PER_WORKER,
 ) -> list[tuple[str, list[EpisodeKey]]]:
     """The cells (or `task_groups`) cut into chunks of nearly equal size, at least `per_worker`
@@ -82,7 +112,7 @@ def chunks(
 def bins(
     groups: Mapping[tuple[str], list[EpisodeKey]],
     workers: int,
-    cost: Callable[[str], int],
+    cost: Callable[[str], float],
 ) -> list[tuple[str, list[EpisodeKey]]]:
     """The `task_groups` dealt whole into at most `workers` chunks of nearly equal cost
     (longest first, each to the cheapest chunk so far; cost = episodes x `cost(task)`), named
@@ -90,7 +120,7 @@ def bins(
     (`executor: processes`, batched physics), each stepping one batch per task of its chunk."""
     ranked = sorted(groups.items(), key=lambda kv: -len(kv[1]) * cost(kv[0][0]))
     n = max(1, min(workers, len(ranked)))
-    loads = [0] * n
+    loads = [0.0] * n
     members: list[list[tuple[tuple[str], list[EpisodeKey]]]] = [[] for _ in range(n)]
     for group, keys in ranked:
         i = loads.index(min(loads))

@@ -19,8 +19,8 @@ from vabench.tuning import mps
 class Chunk:
     name: str
     keys: list[EpisodeKey]
-    cost: int
-    """Of one episode (the task's step budget)."""
+    cost: float
+    """Of one episode (`cells.episode_costs`: measured seconds, else the step budget)."""
     critical: bool = False
     """Of a task on the sweep's critical path (`runner.critical_path_tasks`: the basket): it
     runs alone in its engine, one such chunk a GPU where the engines allow (`choose_engine`)."""
@@ -132,9 +132,9 @@ class EngineHandle:
         gpus = self.info.get("gpus")
         return (self.info.get("node"), tuple(gpus)) if gpus else ("engine", self.index)
 
-    def unfinished(self, records: Mapping[Key, Any]) -> tuple[int, int]:
+    def unfinished(self, records: Mapping[Key, Any]) -> tuple[int, float]:
         """(episodes given and not recorded, their cost)."""
-        n = cost = 0
+        n, cost = 0, 0.0
         for chunk in self.chunks.values():
             left = sum(ledger_key(k) not in records for k in chunk.keys)
             n += left
@@ -146,7 +146,7 @@ def choose_engine(
     engines: list[EngineHandle],
     chunk: Chunk,
     records: Mapping[Key, Any],
-    queued_cost: int,
+    queued_cost: float,
     max_chunks: int,
     now: float | None = None,
 ) -> EngineHandle | None:
@@ -176,7 +176,7 @@ def choose_engine(
             return placed if isinstance(placed, EngineHandle) else None
     sharing = [e for e in live if id(e) not in holding] or live
     loads = {id(e): e.unfinished(records) for e in live}
-    own = len(chunk.keys) * chunk.cost if chunk.critical else 0  # not in `queued_cost`
+    own = len(chunk.keys) * chunk.cost if chunk.critical else 0.0  # not in `queued_cost`
     share = (queued_cost + own + sum(loads[id(e)][1] for e in sharing)) / max(1, len(sharing))
     best: EngineHandle | None = None
     for e in sharing:

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from vabench import switches
+from vabench.check.pace import machine_paces
 from vabench.children import (
     CORES_VARIABLE,
     child_logging,
@@ -39,7 +40,15 @@ from vabench.llm_pool.board_socket import BoardAddress, BoardServer
 from vabench.llm_pool.limit_board import LimitBoard
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import RunDir
-from vabench.sweep.cells import Cell, bins, chunks, task_budgets, task_cost, task_groups
+from vabench.sweep.cells import (
+    Cell,
+    bins,
+    chunks,
+    dealing_line,
+    episode_costs,
+    task_budgets,
+    task_groups,
+)
 from vabench.sweep.chunk_engine import (
     LOST,
     BoardLink,
@@ -62,7 +71,10 @@ log = logging.getLogger(__name__)
 
 
 def plan_chunks(
-    config: SweepConfig, cells: dict[Cell, list[EpisodeKey]], choices: Choices
+    config: SweepConfig,
+    cells: dict[Cell, list[EpisodeKey]],
+    choices: Choices,
+    costs: Mapping[str, float] | None = None,
 ) -> list[tuple[str, list[EpisodeKey]]]:
     """The chunks the engines take. With batched physics (Warp, MJX: an action costs the same
     for 10 slots as for 200) whole tasks, every track and model, dealt over the engines, each
@@ -70,9 +82,11 @@ def plan_chunks(
     to the end (`cells.chunks`). Where engines share GPUs under MPS, a task on the sweep's
     critical path (`critical_tasks`) is a chunk of its own, first, for an engine of its own:
     its episodes take several times the others' decisions, and each decision would wait for
-    the process's other batches (docs/PERFORMANCE.md)."""
+    the process's other batches (docs/PERFORMANCE.md). An episode weighs `costs` (by task;
+    `cells.episode_costs`), step budgets where none are given."""
     workers = choices.executor.max_tasks
-    cost = lambda task: task_cost(config, task)  # noqa: E731
+    costs = costs or episode_costs(config, (t for _, _, t in cells), {})
+    cost = costs.__getitem__
     if not choices.physics.batched:
         return chunks(cells, min(workers, len(cells)), cost)
     groups = task_groups(cells)
@@ -279,7 +293,10 @@ class ProcessEngines(Engines):
         self.config = config
         self.run_dir = run_dir
         self.cells = cells
-        self.parts = plan_chunks(config, cells, choices)
+        tasks, paces = {t for _, _, t in cells}, machine_paces()
+        log.info("processes: %s", dealing_line(config, tasks, paces))
+        costs = episode_costs(config, tasks, paces)
+        self.parts = plan_chunks(config, cells, choices, costs)
         batched = choices.physics.batched
         # batched physics: every chunk at once (`plan_chunks` makes at most `max_tasks`, plus
         # the critical path's own)
@@ -296,7 +313,7 @@ class ProcessEngines(Engines):
             self.env[mps.PRIORITY_VARIABLE] = mps.BELOW_NORMAL
         self.gpus = choices.machine.gpus
         self.chunks = [
-            Chunk(name, part, task_cost(config, part[0].task), part[0].task in self.critical)
+            Chunk(name, part, costs[part[0].task], part[0].task in self.critical)
             for name, part in self.parts
         ]
 
