@@ -15,17 +15,16 @@
   is captured as `all+models.example` and `smoke+models.example` (those configs with the
   example's models in place of theirs): the estimate for real APIs and prices.
 - `smoke/`: the records of the smoke sweep (`configs/smoke.yaml`, `--plain`, run from a temp
-  directory so that its demonstration cache lands there), normalised: `run/` holds every text
-  file of the run directory (results.jsonl, plan.json, sweep.yaml, each episode's
+  directory, its caches in the temp directory, the demonstrations among them), normalised: `run/`
+  holds every text file of the run directory (results.jsonl, plan.json, sweep.yaml, each episode's
   events.jsonl and result.json, the summaries, the report's md/csv/html), `demo_cache/` the
-  demonstrations it built, `files.tsv` (in each) name, size and sha256 of every other file
-  (JPEG frames, report PNGs, lock files; on this CPU path the images are byte-identical run to
-  run), and `log.txt` its exit status and output without the progress and stage lines. The shipped
-  smoke config's `random_action` policy is unseeded and draws in arrival order, so no two runs
-  agree; the goldens run the config with `embedded_server.policy: conversation_hash` (the
-  same random action, drawn from a hash of the conversation's text: the decisions follow the
-  prompts, the observations and the physics, whatever the order of arrival), written to
-  `smoke/config.yaml`.
+  demonstrations it built, `files.tsv` (in each) name, size and sha256 of every other file (JPEG
+  frames, report PNGs, lock files; on this CPU path the images are byte-identical run to run), and
+  `log.txt` its exit status and output without the progress and stage lines. The shipped smoke
+  config's `random_action` policy is unseeded and draws in arrival order, so no two runs agree; the
+  goldens run the config with `embedded_server.policy: conversation_hash` (the same random action,
+  drawn from a hash of the conversation's text: the decisions follow the prompts, the observations
+  and the physics, whatever the order of arrival), written to `smoke/config.yaml`.
 - `wire/<api>/<case>.body.json`: the request body the LLM pool sends (pretty JSON) for each
   API (openai_chat, openai_responses, anthropic) and each kind of option, captured by a local
   HTTP server on loopback from a real `LLMPool.complete` (a system prompt, a user turn with
@@ -275,7 +274,8 @@ def capture_smoke(
     if not run_dir.is_dir():
         raise SystemExit(f"the smoke sweep wrote no run directory (exit {code}):\n{output[-3000:]}")
     texts, listed = copy_tree(run_dir, dst / "run", norm)
-    demos = work / ".cache" / "demos"
+    demos = Path(env["XDG_CACHE_HOME"]) / "vabench" / "demos"
+    demos = demos if demos.is_dir() else work / ".cache" / "demos"  # a commit before
     if demos.is_dir():
         copy_tree(demos, dst / "demo_cache", norm)
     note = f"smoke: exit {code}, {wall:.1f} s, {texts} text files, {listed} other files listed"

@@ -14,7 +14,7 @@ from vabench.agent.learning import learn_summary
 from vabench.agent.learning_stage import load_demo_frames
 from vabench.agent.visibility import Secret, episode_secrets, find_leaks
 from vabench.demos import build_demo, load_demo
-from vabench.demos.store import CACHE_DIR
+from vabench.demos.store import default_cache
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.camera import head_view
@@ -54,7 +54,7 @@ def run_session(demo: DemoFrames, task: Task) -> tuple[list[bytes], dict]:
 def test_a_learning_session_sees_no_evaluator_only_state():
     secrets = [s for name in FAMILIES for s in demo_secrets(get_task(name))]
     task = get_task(FAMILIES[0])
-    single = load_demo_frames(task, CACHE_DIR)
+    single = load_demo_frames(task, default_cache())
     parts = [
         (get_task(n).instruction, DemoFrames(load_demo(n).frames, load_demo(n).info.fps, n))
         for n in FAMILIES

@@ -20,7 +20,7 @@ from vabench.agent.learning import learn_summary
 from vabench.agent.learning_stage import load_demo_frames
 from vabench.demos import build_demo, load_demo
 from vabench.demos.build import DEMO_SETTINGS
-from vabench.demos.store import CACHE_DIR
+from vabench.demos.store import default_cache
 from vabench.llm_pool.pool import LLMPool
 from vabench.llm_pool.server import LocalServer, ServerConfig
 from vabench.render.worker import RenderPool
@@ -42,7 +42,7 @@ def images(body: dict[str, Any]) -> list[bytes]:
 def test_the_scene_is_the_first_observation_of_an_episode_at_the_demo_seed():
     info = build_demo(TASK, mp4=False)
     task = get_task(TASK)
-    demo = load_demo_frames(task, CACHE_DIR)
+    demo = load_demo_frames(task, default_cache())
     assert demo.scene is not None
     assert demo.scene.image == load_demo(TASK).frames[0] == demo.frames[0]
     size = (DEMO_SETTINGS.width, DEMO_SETTINGS.height)
@@ -73,7 +73,7 @@ def test_the_scene_is_the_first_observation_of_an_episode_at_the_demo_seed():
 
 def test_the_basket_learns_from_its_atomic_videos_without_a_scene():
     basket = get_task("put_everything_in_basket")
-    demo = load_demo_frames(basket, CACHE_DIR)
+    demo = load_demo_frames(basket, default_cache())
     assert demo.scene is None and demo.composite
 
     async def learn() -> tuple[Any, list[bytes]]:

@@ -22,7 +22,7 @@ from vabench.agent.learning import LearningResult, read_result, write_result
 from vabench.agent.learning_stage import LEARNING_ATTEMPTS, SummaryRecordError, SummaryStage
 from vabench.config import load_config
 from vabench.config.choices import choose
-from vabench.demos.store import CACHE_DIR
+from vabench.demos.store import default_cache
 from vabench.llm_pool.apis.base import IncomingRequest
 from vabench.llm_pool.policies import PolicyError
 from vabench.llm_pool.pool import LLMPool
@@ -245,11 +245,11 @@ def test_a_task_with_atomic_demonstrations_learns_from_all_of_them_in_one_index(
 
     from vabench.agent.learning_stage import load_demo_frames
     from vabench.demos import load_demo
-    from vabench.demos.store import CACHE_DIR
+    from vabench.demos.store import default_cache
     from vabench.tasks import BASKET_DEMONSTRATIONS, get_task
 
     composite = replace(get_task(TASK), name="composite", demonstrations=BASKET_DEMONSTRATIONS)
-    demo = load_demo_frames(composite, CACHE_DIR)
+    demo = load_demo_frames(composite, default_cache())
     assert demo.composite and demo.scene is None  # single skills: no scene of the task
     videos = [load_demo(n) for n in BASKET_DEMONSTRATIONS]
     assert len(demo) == sum(v.n_frames for v in videos)
@@ -261,7 +261,7 @@ def test_a_task_with_atomic_demonstrations_learns_from_all_of_them_in_one_index(
     assert demo.frames[starts[2]] == videos[2].frames[0]
     assert demo.index_entry(starts[3] + 1)["video"] == 4
     variant = replace(get_task(TASK), name="variant", base_family=TASK)
-    base = load_demo_frames(variant, CACHE_DIR)
+    base = load_demo_frames(variant, default_cache())
     assert base.frames == tuple(load_demo(TASK).frames)
     assert base.scene is not None and base.scene.image == base.frames[0]
     assert f"Task instruction: {get_task(TASK).instruction}" in base.scene.text
@@ -340,7 +340,7 @@ def test_attempts_survive_a_stopped_sweep_and_nothing_learned_is_learned_again(t
             async with LLMPool([endpoint]) as llm:
 
                 def stage() -> SummaryStage:
-                    return SummaryStage(run_dir, llm, demo_cache=CACHE_DIR)
+                    return SummaryStage(run_dir, llm, demo_cache=default_cache())
 
                 # attempt 1 fails, then the provider fails: not stored, no attempt spent
                 first = stage()
@@ -378,7 +378,7 @@ def test_a_stored_record_of_an_unknown_version_stops_with_one_message(tmp_path):
             LocalServer(policy=Steps([])) as server,
             LLMPool([server.endpoint_config("m1", "openai_chat")]) as llm,
         ):
-            stage = SummaryStage(tmp_path, llm, demo_cache=CACHE_DIR)
+            stage = SummaryStage(tmp_path, llm, demo_cache=default_cache())
             with pytest.raises(SummaryRecordError) as err:
                 await stage.result("m1", get_task(TASK))
             return str(err.value)

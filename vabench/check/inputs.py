@@ -15,7 +15,6 @@ One decision carries what the model's requests carry at their largest:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import cast
 
 import numpy as np
@@ -131,7 +130,7 @@ def scene_jpeg(
 
 def demo_frames(config: SweepConfig, tasks: list[str], n: int) -> list[bytes]:
     """`n` demonstration frames: the first cached video's of `tasks`, else stand-ins."""
-    cache = Path(config.learning.demo_cache)
+    cache = config.learning.cache_path()
     for name in tasks:
         try:
             frames = load_demo(get_task(name).summary_family, cache).frames

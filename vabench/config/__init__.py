@@ -11,7 +11,7 @@
                                    # variants of the selected tasks), long_horizon (the basket);
                                    # or {name, protocol, suite, summaries} for an ablation track
     summaries: own                 # every track's default: own | none | shared:<model>
-    learning: {demo_cache: .cache/demos, max_model_calls: 20}
+    learning: {demo_cache: null, max_model_calls: 20}  # null: ~/.cache/vabench/demos
     tasks: base                    # the 14 base families, or a list of registered task names
     seeds: verified                # each task's manifest; {verified: N}: its first N; [1000, 1001]:
                                    # these seeds for every task; {task: [seeds]}: per task

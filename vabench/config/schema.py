@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 import typing
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -266,11 +267,19 @@ class TrackSpec(_Strict):
 
 
 class LearningOptions(_Strict):
-    demo_cache: str = ".cache/demos"
-    """Where demonstration videos are cached (built when missing; `python -m vabench.demos`)."""
+    demo_cache: str | None = None
+    """Where demonstration videos are cached (built when missing; `python -m vabench.demos`):
+    a folder, or none for the user's cache (`~/.cache/vabench/demos`, under `XDG_CACHE_HOME`
+    where set), which every sweep and Ray engine of the machine shares."""
     max_model_calls: int = Field(default=20, ge=1)
     """Model calls one learning session may use (`agent.learning.LearningLimits`; 20, the
     reference's one learning decision)."""
+
+    def cache_path(self) -> Path:
+        """The folder `demo_cache` names (`demos.store.default_cache` for none)."""
+        from vabench.demos.store import default_cache  # the simulator's constants: lazily
+
+        return Path(self.demo_cache) if self.demo_cache else default_cache()
 
 
 class RecordOptions(_Strict):

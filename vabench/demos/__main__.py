@@ -21,7 +21,9 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     b = sub.add_parser("build", help="build (or find current) the demonstration videos")
     b.add_argument("--task", action="append", help="a family (repeatable); default: all base")
-    b.add_argument("--out", type=Path, default=store.CACHE_DIR, help="cache directory")
+    b.add_argument(
+        "--out", type=Path, default=None, help="cache directory (default: ~/.cache/vabench/demos)"
+    )
     b.add_argument("--manifests", type=Path, default=store.MANIFEST_DIR)
     b.add_argument("--width", type=int, default=build.DEMO_SETTINGS.width)
     b.add_argument("--height", type=int, default=build.DEMO_SETTINGS.height)

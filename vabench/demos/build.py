@@ -188,7 +188,7 @@ def _current(task_name: str, cache_dir: Path, key: str) -> store.DemoInfo | None
 
 def build_demo(
     task_name: str,
-    cache_dir: Path = store.CACHE_DIR,
+    cache_dir: Path | None = None,
     *,
     settings: ImageSettings = DEMO_SETTINGS,
     pool: RenderPool | None = None,
@@ -200,8 +200,10 @@ def build_demo(
 
     Returns the cached info without simulating or rendering when the cache key matches and the
     frames check out, unless `force`. `pool` renders when given (a CLI building many families
-    shares one); otherwise a one-worker pool is started for this call.
+    shares one); otherwise a one-worker pool is started for this call. `cache_dir`: the
+    user's cache (`store.default_cache`) unless given.
     """
+    cache_dir = cache_dir or store.default_cache()
     if task_name not in REGISTRY:
         raise ValueError(f"task: unknown task {task_name!r}; valid tasks: {sorted(REGISTRY)}")
     excluded = evaluation_seeds(seeds_dir)

@@ -25,14 +25,21 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from vabench import machine_cache
 from vabench.sim_mjx import robot_constants as rc
 
 REPO_ROOT = rc.ASSETS.parent
 MANIFEST_DIR = REPO_ROOT / "configs" / "demos"
-CACHE_DIR = REPO_ROOT / ".cache" / "demos"
 FORMAT_VERSION = 2
 """1: frames and meta.json; 2: scene.json too (the reset's visible robot state)."""
 SCENE_FILE = "scene.json"
+
+
+def default_cache() -> Path:
+    """Where demonstrations are cached unless a config says otherwise: the user's cache
+    (`XDG_CACHE_HOME`, else ~/.cache), shared by every sweep, checkout and Ray engine of the
+    machine; an entry is current only for the code and settings that built it."""
+    return machine_cache.cache_dir() / "demos"
 
 
 @dataclass(frozen=True)
@@ -129,10 +136,11 @@ def write_demo(
     return root
 
 
-def load_demo(task_name: str, cache_dir: Path = CACHE_DIR) -> Demo:
+def load_demo(task_name: str, cache_dir: Path | None = None) -> Demo:
     """The cached demonstration of `task_name`; raises FileNotFoundError naming the command
     that builds it, and ValueError when the frames do not match their recorded hash or the
     scene is unreadable."""
+    cache_dir = cache_dir or default_cache()
     info = read_info(task_name, cache_dir)
     if info is None:
         raise FileNotFoundError(

@@ -126,7 +126,7 @@ async def open_engine(
         summaries = SummaryStage(
             run_dir,
             llm,
-            demo_cache=Path(config.learning.demo_cache),
+            demo_cache=config.learning.cache_path(),
             limits=LearningLimits(max_model_calls=config.learning.max_model_calls),
         )
         info = await starting
