@@ -25,7 +25,7 @@ models:
     base_url: embedded
 embedded_server: {policy: random_action}
 tracks: [active, passive]
-tasks: [grasp_single_cube, lift_pot]
+tasks: [grasp_single_cube, place_single_cube]
 seeds: {verified: 1}
 runs: 1
 step_budget: 2
@@ -101,6 +101,6 @@ def test_engine_processes_sharing_the_device_each_take_whole_tasks(
     assert all(r["error"] is None and r["status"] in ("success", "failure") for r in records)
     # 4 cells (2 tasks x 2 tracks) in 2 chunks of whole tasks, not one chunk per cell
     (parts,) = planned
-    assert sorted(name for name, _ in parts) == ["grasp_single_cube", "lift_pot"]
+    assert sorted(name for name, _ in parts) == ["grasp_single_cube", "place_single_cube"]
     for name, part in parts:
         assert {(k.task, k.track) for k in part} == {(name, "active"), (name, "passive")}
