@@ -11,9 +11,11 @@ import logging
 
 import pytest
 
+from vabench.check import pace
 from vabench.check.pace import keep_pace, machine_paces, measure_kinds, model_kind
 from vabench.config import load_config
 from vabench.config.choices import choose
+from vabench.machine_cache import write_host
 from vabench.sweep.cells import dealing_line, episode_costs, pending_cells
 from vabench.sweep.plan import plan
 from vabench.sweep.process_executor import ProcessEngines, plan_chunks
@@ -66,11 +68,7 @@ def test_a_pace_kept_before_tasks_were_measured_still_reads(config, tmp_path):
     ledger(tmp_path / "run", {"lift_pot": [4.0]})
     (measured,) = measure_kinds(tmp_path / "run", config)
     old = {k: v for k, v in dataclasses.asdict(measured).items() if k != "task_seconds"}
-    from vabench.check import pace
-
     pace.pace_file().parent.mkdir(parents=True, exist_ok=True)
-    from vabench.machine_cache import write_host
-
     write_host(pace.pace_file(), {measured.kind: old})
     (read,) = machine_paces().values()
     assert read.task_seconds == {} and read.decisions == measured.decisions

@@ -9,14 +9,17 @@ has, since a step budget bounds an episode and says little of how long one takes
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Iterable, Mapping
 
-from vabench.check.pace import KindPace, measured_seconds
+from vabench.check.pace import KindPace, machine_paces, measured_seconds
 from vabench.config import SweepConfig
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, ledger_key
 from vabench.tasks import REGISTRY
+
+log = logging.getLogger(__name__)
 
 Cell = tuple[str, str, str]
 """(model, track, task)."""
@@ -63,6 +66,14 @@ def dealing_line(config: SweepConfig, tasks: Iterable[str], paces: Mapping[str, 
         f"chunks weighed by the seconds an episode took in this machine's latest sweep "
         f"({len(measured)} of {len(tasks)} tasks measured; the rest at their step budget's share)"
     )
+
+
+def dealing_costs(config: SweepConfig, cells: Iterable[Cell], label: str) -> dict[str, float]:
+    """The `episode_costs` of the tasks of `cells` at this machine's paces (`machine_paces`),
+    what they are weighed by logged once (`label: chunks weighed by ...`)."""
+    tasks, paces = {task for _, _, task in cells}, machine_paces()
+    log.info("%s: %s", label, dealing_line(config, tasks, paces))
+    return episode_costs(config, tasks, paces)
 
 
 def pending_cells(

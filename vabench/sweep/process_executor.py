@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 from vabench import switches
-from vabench.check.pace import machine_paces
 from vabench.children import (
     CORES_VARIABLE,
     child_logging,
@@ -44,7 +43,7 @@ from vabench.sweep.cells import (
     Cell,
     bins,
     chunks,
-    dealing_line,
+    dealing_costs,
     episode_costs,
     task_budgets,
     task_groups,
@@ -293,9 +292,7 @@ class ProcessEngines(Engines):
         self.config = config
         self.run_dir = run_dir
         self.cells = cells
-        tasks, paces = {t for _, _, t in cells}, machine_paces()
-        log.info("processes: %s", dealing_line(config, tasks, paces))
-        costs = episode_costs(config, tasks, paces)
+        costs = dealing_costs(config, cells, "processes")
         self.parts = plan_chunks(config, cells, choices, costs)
         batched = choices.physics.batched
         # batched physics: every chunk at once (`plan_chunks` makes at most `max_tasks`, plus

@@ -19,7 +19,6 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from vabench.check.pace import machine_paces
 from vabench.config import SweepConfig
 from vabench.config.choices import Choices
 from vabench.llm_pool.limit_board import LimiterActor, RayBoard
@@ -27,8 +26,7 @@ from vabench.llm_pool.spend import SpendCaps
 from vabench.sweep.cells import (
     Cell,
     chunks,
-    dealing_line,
-    episode_costs,
+    dealing_costs,
     task_budgets,
     task_groups,
 )
@@ -179,9 +177,7 @@ class RayEngines(Engines):
             share = round(1 / self.resources["num_gpus"])  # engines sharing a GPU
             gpus = max(1, int(cluster.get("GPU", 1)))
             cores = max(1, int(cluster.get("CPU", 1)) // (gpus * share))
-        tasks, paces = {t for _, _, t in cells}, machine_paces()
-        log.info("ray: %s", dealing_line(config, tasks, paces))
-        cost = episode_costs(config, tasks, paces).__getitem__
+        cost = dealing_costs(config, cells, "ray").__getitem__
         # engines on GPUs batch their physics: a chunk per task (every track and model of it)
         # is one batch per action instead of one per cell
         batched = self.choices.physics.batched
