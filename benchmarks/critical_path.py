@@ -15,20 +15,26 @@ action time to the first variant's at the same size, all measured in one run.
 
 Variants (`VARIANTS`): `fixed` (every action 0.8 s of substeps: today's), `at_rest` (an action
 ends at its rest substep), `paced` (a move's time follows its length, then ends at rest;
-`sim_mjx.controller.ACTION_ENDS`). Warp's kernels are compiled in
-threads before anything is timed (`tuning.warp_ahead`), and a warm-up action of each batch is
-left out of the figures; each row is printed and written to `--json` as soon as it is measured,
-so a run stopped by a time limit keeps the rows it made. The basket's decision split (images,
-model, engine) comes from the main job's timeline, not from here.
+`sim_mjx.controller.ACTION_ENDS`), and `paced_sleep` / `fixed_sleep`, a probe of MuJoCo Warp's
+sleeping (`mjENBL_SLEEP` on the scene: trees at rest leave the solve until touched): the
+engine does not offer it, since a slot's sleep state is not part of the batch's merge and
+reset, so of these rows only the time and the share of trees awake (`awake`) count. Warp's
+kernels are compiled in threads before anything is timed (`tuning.warp_ahead`), and a warm-up
+action of each batch is left out of the figures; each row is printed and written to `--json`
+as soon as it is measured, so a run stopped by a time limit keeps the rows it made. The
+basket's decision split (images, model, engine) comes from the main job's timeline, not from
+here.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +50,40 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "fixed": {},
     "at_rest": {"action_end": "at_rest"},
     "paced": {"action_end": "paced"},
+    "fixed_sleep": {"sleep": True},
+    "paced_sleep": {"action_end": "paced", "sleep": True},
 }
+
+
+@contextlib.contextmanager
+def sleeping(on: bool) -> Iterator[None]:
+    """MuJoCo Warp's sleeping enabled on every model the batch puts on the device (the probe
+    variants): `put_model` and `put_data` read the flag from the MuJoCo model they are given."""
+    if not on:
+        yield
+        return
+    import mujoco
+    import mujoco_warp as mjw
+
+    originals = mjw.put_model, mjw.put_data
+    bit = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+
+    def flagged(put: Any) -> Any:
+        def call(mjm: Any, *args: Any, **kwargs: Any) -> Any:
+            before = int(mjm.opt.enableflags)
+            mjm.opt.enableflags = before | bit
+            try:
+                return put(mjm, *args, **kwargs)
+            finally:
+                mjm.opt.enableflags = before
+
+        return call
+
+    mjw.put_model, mjw.put_data = (flagged(f) for f in originals)
+    try:
+        yield
+    finally:
+        mjw.put_model, mjw.put_data = originals
 
 
 class Timed:
@@ -67,6 +106,9 @@ class Timed:
         if niter is not None and acted.any():
             it = niter.numpy()[acted]
             row |= {"niter_mean": float(it.mean()), "niter_max": float(it.max())}
+        awake = getattr(getattr(self.batch, "_d", None), "tree_awake", None)
+        if awake is not None and awake.shape[-1] and acted.any():
+            row["awake"] = float(awake.numpy()[acted].mean())
         self.rows.append(row)
         return info
 
@@ -76,10 +118,12 @@ def measure(
 ) -> dict[str, Any]:
     task = get_task(TASK)
     kwargs = dict(VARIANTS[variant])
+    sleep = bool(kwargs.pop("sleep", False))
     if backend == "c":
         kwargs["threads"] = min(size, os.cpu_count() or 1)
     t0 = time.perf_counter()
-    tb = TaskBatch(task, size, backend=backend, cache=cache, **kwargs)
+    with sleeping(sleep and backend == "warp"):
+        tb = TaskBatch(task, size, backend=backend, cache=cache, **kwargs)
     seeds = verified_seeds(TASK)
     slot_seeds = [seeds[i % len(seeds)] for i in range(size)]
     timed = Timed(tb.batch)
@@ -104,6 +148,8 @@ def measure(
     if "niter_mean" in rows[0]:
         out["niter_mean"] = float(np.mean([r["niter_mean"] for r in rows]))
         out["niter_max"] = float(np.max([r["niter_max"] for r in rows]))
+    if "awake" in rows[0]:
+        out["awake"] = float(np.mean([r["awake"] for r in rows]))
     return out
 
 
@@ -142,7 +188,10 @@ def main() -> int:
     for size in (int(s) for s in args.sizes.split(",")):
         base: float | None = None
         for variant in variants:
-            row = measure(size, variant, args.backend, args.actions, cache)
+            try:
+                row = measure(size, variant, args.backend, args.actions, cache)
+            except Exception as exc:  # a probe that MuJoCo Warp refuses ends its row, not the run
+                row = {"size": size, "variant": variant, "error": f"{type(exc).__name__}: {exc}"}
             rows.append(row)
             if "error" in row:
                 print(f"{size:4d}  {variant:8s}  {row['error']}", flush=True)
@@ -157,7 +206,8 @@ def main() -> int:
             print(
                 f"{size:4d}  {variant:8s}  {row['action_s']:8.4f}  {row['max_substeps']:6.1f} / "
                 f"{row['mean_substeps']:6.1f}       {row['substep_ms']:7.3f}     {niter}"
-                f"      {row['ratio']:.2f}",
+                f"      {row['ratio']:.2f}"
+                + (f"  awake {row['awake']:.2f}" if "awake" in row else ""),
                 flush=True,
             )
             if args.json:
