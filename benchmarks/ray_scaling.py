@@ -4,7 +4,7 @@ host, episodes per second and the ratio to perfect scaling, side by side.
     python benchmarks/ray_scaling.py [--engines 1,2,4,8] [--backend auto|c|warp|mjx] [--seeds 20]
         [--runs 3] [--tracks active,passive,transfer,long_horizon] [--tasks base]
         [--steps N] [--size 1280x960] [--policy reference_servo] [--latency S] [--warmup]
-        [--per-gpu K] [--json FILE] [--keep DIR]
+        [--per-gpu K] [--dealing machine|budgets,measured] [--json FILE] [--keep DIR]
 
 The defaults are `configs/all.yaml` as shipped (2,160 episodes of the reference-servo agent
 on every track); the options shrink it (the test of this script runs it at a tiny size on CPU
@@ -23,6 +23,12 @@ GPUs) under one CUDA MPS daemon of the sweep's on the host (`tuning.mps.join_nod
 the local sweep runs 4 a GPU; with K > 1 Ray is restarted for each count with only that many
 GPUs. `--per-gpu 1` is one engine a GPU (the A/B: on 2 x H200, 2026-11-29, four a GPU were
 1.42-1.45x one).
+
+`--dealing budgets,measured` runs each count twice, side by side: first with this machine's
+paces hidden, so the driver deals chunks by step budgets (a new machine's first sweep), then
+with the paces that run measured, so it deals by each task's measured seconds an episode
+(`sweep.cells.episode_costs`); the pace file is put back as it was at the end. The default,
+`machine`, deals by whatever this machine's pace file holds, once.
 
 `--warmup` first runs every planned (task, seed) for one step on the most engines, untimed:
 on a fresh GPU machine that compiles Warp's kernels and fills the settled-state cache
@@ -59,6 +65,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import yaml
@@ -91,6 +98,41 @@ def device() -> str:
     return f"{gpu_text}; {cpu}, {cores} cores"
 
 
+@contextlib.contextmanager
+def paces_as(entries: dict | None) -> Iterator[None]:
+    """This machine's entries of the pace file (`check.pace.pace_file`) replaced by `entries`
+    (None: none at all) for the block, the file's bytes put back after it: the driver deals by
+    what the file holds when a sweep starts (`sweep.cells.dealing_costs`)."""
+    import socket
+
+    from vabench.check.pace import pace_file
+
+    path = pace_file()
+    before = path.read_bytes() if path.exists() else None
+    doc = json.loads(before) if before else {}
+    doc[socket.gethostname()] = entries or {}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    try:
+        yield
+    finally:
+        if before is None:
+            path.unlink(missing_ok=True)
+        else:
+            path.write_bytes(before)
+
+
+def measured_entries(run_dir: Path, config_path: Path) -> dict:
+    """The pace entries a sweep's end would keep for `run_dir` (`check.pace.keep_pace`)."""
+    from dataclasses import asdict
+
+    from vabench.check.pace import measure_kinds
+    from vabench.config import load_config
+
+    config = load_config(config_path, overrides={"out": str(run_dir)})
+    return {k.kind: asdict(k) for k in measure_kinds(run_dir, config)}
+
+
 def make_config(args: argparse.Namespace, engines: int, out: Path) -> Path:
     """`configs/all.yaml` shrunk by the options, on `engines` engine actors."""
     doc = yaml.safe_load((ROOT / "configs/all.yaml").read_text())
@@ -112,21 +154,24 @@ def make_config(args: argparse.Namespace, engines: int, out: Path) -> Path:
     return path
 
 
-def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
+def one_count(args: argparse.Namespace, engines: int, tmp: Path, dealing: str = "") -> dict:
     """Run the plan on `engines` engines (GPUs, with `--per-gpu`: that many engines each);
-    returns its figures and outcomes."""
+    returns its figures and outcomes (`dealing`: a suffix of the run directory's name)."""
+    from vabench.check.pace import machine_paces
     from vabench.config import load_config
     from vabench.config.choices import choose
     from vabench.run_layout import RunDir
+    from vabench.sweep.cells import dealing_line
     from vabench.sweep.plan import plan
     from vabench.sweep.ray_executor import run_ray
     from vabench.sweep.rundir import check_run_dir
 
-    out = tmp / f"engines_{engines}"
+    out = tmp / f"engines_{engines}{'_' + dealing if dealing else ''}"
     processes = engines * args.per_gpu
     config = load_config(make_config(args, processes, out), overrides={"out": str(out)})
     keys = plan(config)
     check_run_dir(out, config, keys, config.document())
+    weighed = dealing_line(config, {k.task for k in keys}, machine_paces())  # as the driver's
     report: list[dict] = []
     t0 = time.perf_counter()
     records = run_ray(config, keys, out, choose(config), on_engines=report.extend)
@@ -137,6 +182,10 @@ def one_count(args: argparse.Namespace, engines: int, tmp: Path) -> dict:
     last = max(r["started_at"] + r["wall_s"] for r in recs)
     return {
         "engines": engines,
+        "dealing": dealing or "machine",
+        "weighed": weighed,
+        "run_dir": str(out),
+        "config": str(out.with_suffix(".yaml")),
         "episodes": len(keys),
         "recorded_once": len(recs) == len(records) == len(keys),
         "wall_s": wall,
@@ -204,6 +253,40 @@ def print_engines(result: dict) -> None:
         )
 
 
+def summarise(results: list[dict], first: dict) -> None:
+    """The counts of one dealing: rates, the ratio to perfect scaling against its first count,
+    whether each recorded every episode once with the outcomes of the benchmark's first run,
+    and where the lost time went."""
+    base = results[0]
+    print(f"\ndealt by {base['dealing']}:")
+    print(
+        f"{'engines':>7} {'episodes/s':>11} {'ratio':>6} {'steady/s':>9} {'ratio':>6} "
+        f"{'once':>5} {'outcomes':>9}"
+    )
+    for r in results:
+        n = r["engines"] / base["engines"]
+        r["ratio"] = r["episodes_per_s"] / (n * base["episodes_per_s"])
+        r["steady_ratio"] = r["steady_episodes_per_s"] / (n * base["steady_episodes_per_s"])
+        r["same_outcomes"] = r["outcomes"] == first["outcomes"]
+        print(
+            f"{r['engines']:>7} {r['episodes_per_s']:>11.3f} {r['ratio']:>6.2f} "
+            f"{r['steady_episodes_per_s']:>9.3f} {r['steady_ratio']:>6.2f} "
+            f"{'yes' if r['recorded_once'] else 'NO':>5} "
+            f"{'same' if r['same_outcomes'] else 'differ':>9}"
+        )
+    print("where the lost time goes (engine-seconds beyond the first count's, share of N x wall):")
+    print(
+        f"{'engines':>7} {'1-ratio':>8} {'start-up':>9} {'working':>8} {'waiting':>8} {'other':>7}"
+    )
+    for r in results:
+        r["lost"] = lost_time(r, base)
+        lost = r["lost"]
+        print(
+            f"{r['engines']:>7} {1 - r['ratio']:>8.3f} {lost['start_up_s']:>9.3f} "
+            f"{lost['working_s']:>8.3f} {lost['waiting_s']:>8.3f} {lost['other_s']:>7.3f}"
+        )
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--engines", default="1,2,4,8")
@@ -224,6 +307,14 @@ def main() -> None:
         default=None,
         help="engine processes a GPU (MPS); default: the sweep's own (4 where NVIDIA's MPS "
         "control program is installed, else 1: `tuning.engine_env.engines_per_gpu`)",
+    )
+    p.add_argument(
+        "--dealing",
+        default="machine",
+        choices=("machine", "budgets", "budgets,measured"),
+        help="what the driver deals chunks by: this machine's pace file as it is (machine), "
+        "step budgets (budgets), or each count by budgets and then by the seconds that run "
+        "measured (budgets,measured), side by side",
     )
     p.add_argument("--json", type=Path)
     p.add_argument(
@@ -288,48 +379,37 @@ def main() -> None:
             print(f"warm-up (untimed): {time.perf_counter() - t0:.1f} s", flush=True)
         for n in counts:
             gpus_for(n)
-            result = one_count(args, n, Path(tmp))
-            if args.keep is not None:
-                drop_frames(Path(tmp))
-            results.append(result)
-            what = f"{n} GPUs x {args.per_gpu} engines" if args.per_gpu > 1 else f"{n} engines"
-            print(
-                f"{what}: {result['episodes']} episodes in {result['wall_s']:.1f} s "
-                f"({result['episodes_per_s']:.3f}/s; steady {result['steady_episodes_per_s']:.3f}"
-                f"/s over {result['span_s']:.1f} s)",
-                flush=True,
-            )
-            print_engines(result)
+            measured: dict | None = None
+            for dealing in args.dealing.split(","):
+                paces = {"machine": None, "budgets": {}, "measured": measured}[dealing]
+                with contextlib.nullcontext() if paces is None else paces_as(paces):
+                    result = one_count(args, n, Path(tmp), "" if dealing == "machine" else dealing)
+                if dealing == "budgets":
+                    measured = measured_entries(Path(result["run_dir"]), Path(result["config"]))
+                if args.keep is not None:
+                    drop_frames(Path(tmp))
+                results.append(result)
+                what = f"{n} GPUs x {args.per_gpu} engines" if args.per_gpu > 1 else f"{n} engines"
+                print(
+                    f"{what}, dealt by {result['dealing']}: {result['episodes']} episodes in "
+                    f"{result['wall_s']:.1f} s ({result['episodes_per_s']:.3f}/s; steady "
+                    f"{result['steady_episodes_per_s']:.3f}/s over {result['span_s']:.1f} s)",
+                    flush=True,
+                )
+                print(f"    {result['weighed']}", flush=True)
+                print_engines(result)
     ray.shutdown()
-    base = results[0]
-    print(
-        f"\n{'engines':>7} {'episodes/s':>11} {'ratio':>6} {'steady/s':>9} {'ratio':>6} "
-        f"{'once':>5} {'outcomes':>9}"
-    )
-    for r in results:
-        n = r["engines"] / base["engines"]
-        r["ratio"] = r["episodes_per_s"] / (n * base["episodes_per_s"])
-        r["steady_ratio"] = r["steady_episodes_per_s"] / (n * base["steady_episodes_per_s"])
-        r["same_outcomes"] = r["outcomes"] == base["outcomes"]
-        print(
-            f"{r['engines']:>7} {r['episodes_per_s']:>11.3f} {r['ratio']:>6.2f} "
-            f"{r['steady_episodes_per_s']:>9.3f} {r['steady_ratio']:>6.2f} "
-            f"{'yes' if r['recorded_once'] else 'NO':>5} "
-            f"{'same' if r['same_outcomes'] else 'differ':>9}"
-        )
-    print(
-        "\nwhere the lost time goes (engine-seconds beyond the first count's, share of N x wall):"
-    )
-    print(
-        f"{'engines':>7} {'1-ratio':>8} {'start-up':>9} {'working':>8} {'waiting':>8} {'other':>7}"
-    )
-    for r in results:
-        r["lost"] = lost_time(r, base)
-        lost = r["lost"]
-        print(
-            f"{r['engines']:>7} {1 - r['ratio']:>8.3f} {lost['start_up_s']:>9.3f} "
-            f"{lost['working_s']:>8.3f} {lost['waiting_s']:>8.3f} {lost['other_s']:>7.3f}"
-        )
+    dealings = args.dealing.split(",")
+    for dealing in dealings:
+        summarise([r for r in results if r["dealing"] == dealing], results[0])
+    if dealings == ["budgets", "measured"]:
+        print("\ndealt by measured seconds against by budgets, the same count (wall time):")
+        for b, m in zip(results[::2], results[1::2], strict=True):
+            m["vs_budgets"] = m["wall_s"] / b["wall_s"]
+            print(
+                f"{m['engines']:>7} {b['wall_s']:>8.1f} s {m['wall_s']:>8.1f} s "
+                f"{m['vs_budgets']:>6.2f}x"
+            )
     if args.json:
         summary = {
             "device": host,

@@ -79,3 +79,33 @@ def test_the_lost_time_parts_sum_to_the_shortfall_from_perfect_scaling():
     assert lost["working_s"] == pytest.approx((61 - 85) / 120)  # fewer working seconds here
     assert lost["waiting_s"] == pytest.approx((12.5 - 3) / 120)
     assert ray_scaling.lost_time(one, one) == dict.fromkeys(ray_scaling.PARTS, 0.0)
+
+
+def test_the_dealing_ab_hides_and_sets_this_machines_paces_and_puts_the_file_back():
+    """`ray_scaling.py --dealing budgets,measured`: the driver reads this machine's paces when
+    a sweep starts; the benchmark shows it none (budgets), then the budgets run's own, and
+    leaves the user's pace file byte for byte as it found it."""
+    import json
+    import socket
+    from dataclasses import asdict
+
+    from vabench.check.pace import KindPace, machine_paces, pace_file
+
+    mine = KindPace("embedded:reference_servo", "/runs/a", 4, 40, 8.0, 1e6, "all", 1.0)
+    path = pace_file()  # each test's own (conftest)
+    with ray_scaling.paces_as({}):
+        assert machine_paces() == {}
+    assert not path.exists()  # none before, none after
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(
+        json.dumps({socket.gethostname(): {mine.kind: asdict(mine)}, "other-host": {"k": {}}})
+    )
+    before = path.read_bytes()
+    with ray_scaling.paces_as({}):
+        assert machine_paces() == {}
+        assert "other-host" in json.loads(path.read_text())  # another machine's stay
+    measured = KindPace(mine.kind, "/runs/b", 4, 40, 4.0, 1e6, "all", 2.0, {"lift_pot": 3.5})
+    with ray_scaling.paces_as({measured.kind: asdict(measured)}):
+        assert machine_paces() == {measured.kind: measured}
+    assert path.read_bytes() == before

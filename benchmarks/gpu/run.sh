@@ -324,6 +324,9 @@ s.sort_stats('tottime').print_stats(40); s.sort_stats('cumtime').print_stats(40)
     # writes ~2,160 episodes' frames), then where its decisions spent their time (physics,
     # images, model, per task) into ray_timeline.txt: the chain of the slowest task bounds a
     # count on several GPUs (4 x H200, 2026-11-28). RAY_TIMEOUT_S leaves the timelines time.
+    # RAY_ARGS="--per-gpu 4 --dealing budgets,measured": each count dealt by step budgets, then
+    # by the seconds an episode of each task took in that run, side by side (RAY_ENGINES=2
+    # alone fits one call with configs/all.yaml).
     rm -rf /tmp/rayruns
     timeout "${RAY_TIMEOUT_S:-480}" python3 benchmarks/ray_scaling.py --engines "${RAY_ENGINES:-1,2}" \
       --runs "${RAY_RUNS:-3}" ${RAY_ARGS:-} --json "$out/ray.json" --keep /tmp/rayruns 2>&1 \
