@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from vabench.config.schema import SimulatorOptions
 from vabench.sim_mjx.backends import Physics
-from vabench.sweep.runner import critical_path_tasks
+from vabench.sweep.cells import critical_path_tasks, sweep_critical_path
 
 
 def test_the_longest_budget_is_the_critical_path_only_when_it_stands_out():
@@ -50,8 +50,6 @@ def test_a_worker_keeps_the_critical_path_its_parent_decided_for_the_whole_sweep
     """A processes worker sees only its chunk's tasks: among place_cube_on_cube's 200 steps and
     others' 50 it would find a critical path of its own. The parent's decision stands, and
     only for the tasks the worker has."""
-    from vabench.sweep.runner import sweep_critical_path
-
     chunk = {"place_cube_on_cube": 200, "grasp_single_cube": 50, "lift_pot": 50}
     assert sweep_critical_path(None, chunk) == {"place_cube_on_cube"}  # on its own
     assert sweep_critical_path((), chunk) == set()  # the parent found the basket elsewhere

@@ -121,14 +121,13 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
 
     from vabench.children import CORES_VARIABLE
     from vabench.sim_mjx.warp.device import GPU_SHARE
-    from vabench.sweep.cells import pending_cells
+    from vabench.sweep.cells import dealt_choices, pending_cells
     from vabench.sweep.chunk_engine import for_chunk
     from vabench.sweep.process_executor import (
         ProcessEngines,
         critical_environment,
         critical_tasks,
         plan_chunks,
-        plan_critical_path,
         worker_shares,
     )
     from vabench.sweep.results import ledger_key
@@ -203,10 +202,12 @@ def test_batched_physics_deals_whole_tasks_over_the_workers_each_running_all_of_
     no_mps = dataclasses.replace(batched, executor=dataclasses.replace(batched.executor, mps=False))
     assert critical_tasks(config, cells, no_mps) == set()  # one engine process per GPU
     # ... but every engine of batched physics is told the sweep's critical path
-    assert plan_critical_path(config, cells, no_mps) == {"put_everything_in_basket"}
+    assert dealt_choices(config, cells, no_mps).executor.critical_path == (
+        "put_everything_in_basket",
+    )
     told = ProcessEngines(config, no_mps, tmp_path, cells).sent
     assert for_chunk(told, parts[1][1]).executor.critical_path == ("put_everything_in_basket",)
-    assert plan_critical_path(config, cells, choices) == set()  # C MuJoCo: no batches
+    assert dealt_choices(config, cells, choices) is choices  # C MuJoCo: no batches
 
     # C MuJoCo: cells cut as before, one (model, track, task) each at most
     cut = plan_chunks(config, cells, choices)

@@ -26,6 +26,7 @@ from vabench.config import SweepConfigError, load_config
 from vabench.config.choices import choose
 from vabench.run_layout import WORKER_LOG_PREFIX
 from vabench.sweep.__main__ import main
+from vabench.sweep.cells import sweep_critical_path, with_critical_path
 from vabench.sweep.plan import EpisodeKey, plan
 from vabench.sweep.ray_executor import engine_plan, run_ray
 from vabench.sweep.ray_plan import engine_environment
@@ -383,9 +384,6 @@ def test_each_engines_time_is_accounted_and_logged(cluster, tmp_path, caplog):
 def test_engines_are_told_the_whole_sweeps_critical_path(tmp_path):
     """Each chunk runs in a LocalSweep of its own tasks: the basket's chunks, alone, would
     find nothing to stand out from, and its batches never got the GPU's first priority."""
-    from vabench.sweep.chunk_engine import with_critical_path
-    from vabench.sweep.runner import sweep_critical_path
-
     choices = choose(load_config(write(tmp_path / "ray.yaml", "{kind: ray}")))
     budgets = {"put_everything_in_basket": 250, "place_cube_on_cube": 200, "a": 50, "b": 50}
     told = with_critical_path(choices, budgets)

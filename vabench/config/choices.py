@@ -104,7 +104,7 @@ class ExecutorChoice:
     critical_path: tuple[str, ...] | None = None
     """The tasks on the whole sweep's critical path, decided by the processes executor for its
     workers and by the Ray driver for its engines (each sees only its chunk's tasks); None: a
-    `LocalSweep` decides from the budgets of its own tasks (`sweep.runner.critical_path_tasks`)."""
+    `LocalSweep` decides from the budgets of its own tasks (`sweep.cells.critical_path_tasks`)."""
 
     @property
     def label(self) -> str:

@@ -4,17 +4,23 @@ A cell is the planned episodes of one (model, track, task) not yet in the ledger
 (`pending_cells`); `chunks` cuts cells into nearly equal pieces so that the last engines to
 finish leave none idle; `bins` deals whole tasks over engines sharing one GPU. Both weigh an
 episode by `episode_costs`: the seconds this machine measured an episode of its task, where it
-has, since a step budget bounds an episode and says little of how long one takes.
+has, since a step budget bounds an episode and says little of how long one takes. The sweep's
+critical path (`critical_path_tasks`: the tasks whose episodes bound its wall time) is found
+here too: by the driver for every engine of a dealt sweep (`dealt_choices`), else by each
+`runner.LocalSweep` among its own tasks (`sweep_critical_path`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
-from collections.abc import Callable, Iterable, Mapping
+import statistics
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 from vabench.check.pace import KindPace, machine_paces, measured_seconds
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key, ledger_key
 from vabench.tasks import REGISTRY
@@ -34,11 +40,6 @@ CHUNKS_PER_WORKER = 3
 def task_cost(config: SweepConfig, task: str) -> int:
     """A task's cost for dealing the plan: its step budget (1 for an unknown task: it fails)."""
     return config.budget(task) if task in REGISTRY else 1
-
-
-def task_budgets(config: SweepConfig, cells: Iterable[Cell]) -> dict[str, int]:
-    """The `task_cost` of every task of `cells` (what the critical path is found from)."""
-    return {task: task_cost(config, task) for _, _, task in cells}
 
 
 def episode_costs(
@@ -146,3 +147,49 @@ def bins(
         key=lambda c: -c[0],
     )
     return [(name, keys) for _, name, keys in dealt]
+
+
+# -- the critical path ------------------------------------------------------------------------
+def critical_path_tasks(budgets: Mapping[str, int]) -> set[str]:
+    """The tasks whose episodes bound a round's wall time: those of the largest step budget,
+    when it is at least twice the median of the other tasks' (the basket's 250 steps against
+    50: its episodes take several times the others' decisions and would finish last,
+    docs/PERFORMANCE.md). The median, not the largest other: `configs/all.yaml` also gives
+    place_cube_on_cube 200 steps, whose episodes still end in as few decisions as the base
+    families'. Where budgets are alike, none: a priority for everyone is a priority for no
+    one."""
+    if not budgets:
+        return set()
+    top = max(budgets.values())
+    others = [b for b in budgets.values() if b != top]
+    if not others or top < 2 * statistics.median(others):
+        return set()
+    return {name for name, b in budgets.items() if b == top}
+
+
+def sweep_critical_path(decided: Sequence[str] | None, budgets: Mapping[str, int]) -> set[str]:
+    """The tasks of `budgets` (this process's) on the critical path: those the driver decided
+    for the whole sweep (`ExecutorChoice.critical_path`, `dealt_choices`), else those
+    `critical_path_tasks` finds among them."""
+    if decided is None:
+        return critical_path_tasks(budgets)
+    return set(decided) & set(budgets)
+
+
+def with_critical_path(choices: Choices, budgets: Mapping[str, int]) -> Choices:
+    """`choices` with the whole sweep's critical path (`critical_path_tasks` over every task's
+    step budget, `budgets`), for every engine: each chunk runs in a `LocalSweep` of its own
+    tasks, and the basket's chunk, alone, would find nothing to stand out from."""
+    critical = tuple(sorted(critical_path_tasks(budgets)))
+    return dataclasses.replace(
+        choices, executor=dataclasses.replace(choices.executor, critical_path=critical)
+    )
+
+
+def dealt_choices(config: SweepConfig, cells: Iterable[Cell], choices: Choices) -> Choices:
+    """What the engines of a sweep dealt over several run on: with batched physics, `choices`
+    with the critical path of every task of `cells` (`with_critical_path` of their
+    `task_cost`); else `choices` as they are (each `LocalSweep` finds its own)."""
+    if not choices.physics.batched:
+        return choices
+    return with_critical_path(choices, {task: task_cost(config, task) for _, _, task in cells})

@@ -15,7 +15,7 @@ import logging
 import os
 import socket
 import traceback
-from collections.abc import AsyncIterator, Callable, Collection, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Collection, Sequence
 from contextlib import AbstractAsyncContextManager
 from pathlib import Path
 from typing import Any, Protocol
@@ -26,13 +26,7 @@ from vabench.llm_pool.limit_board import BoardLimits
 from vabench.run_layout import PLAN, RunDir
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import ledger_key
-from vabench.sweep.runner import (
-    Engine,
-    LocalSweep,
-    critical_path_tasks,
-    open_engine,
-    start_compiling,
-)
+from vabench.sweep.runner import Engine, LocalSweep, open_engine, start_compiling
 from vabench.tuning import engine_env, gpu_busy
 from vabench.tuning.engine_env import configure_jax
 
@@ -53,16 +47,6 @@ class BoardLink(Protocol):
     `llm_pool.limit_board.RayBoard`)."""
 
     def joined(self, holder: str) -> AbstractAsyncContextManager[BoardLimits]: ...
-
-
-def with_critical_path(choices: Choices, budgets: Mapping[str, int]) -> Choices:
-    """`choices` with the whole sweep's critical path (`runner.critical_path_tasks` over every
-    task's step budget, `budgets`), for every engine: each chunk runs in a `LocalSweep` of its
-    own tasks, and the basket's chunk, alone, would find nothing to stand out from."""
-    critical = tuple(sorted(critical_path_tasks(dict(budgets))))
-    return dataclasses.replace(
-        choices, executor=dataclasses.replace(choices.executor, critical_path=critical)
-    )
 
 
 def for_chunk(choices: Choices, part: Sequence[EpisodeKey]) -> Choices:

@@ -23,7 +23,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from typing_extensions import TypedDict, Unpack
+
 from vabench.config import SweepConfig
+from vabench.config.choices import Choices
 from vabench.llm_pool.limit_board import shared_endpoints
 from vabench.llm_pool.spend import SpendCaps
 from vabench.run_layout import DUPLICATES, RESULTS
@@ -61,7 +64,8 @@ Emit = Callable[..., None]
 
 
 class Engines:
-    """An executor's kind of engine and its plan (each executor's subclass)."""
+    """An executor's kind of engine and its plan (each executor's subclass), for the sweep of
+    `config` into `run_dir` on `choices`."""
 
     label: str
     """Its name in the log ("local", "processes", "ray")."""
@@ -79,6 +83,11 @@ class Engines:
     """Its engines share one limit board (`serve_board`); else its one engine's pool keeps
     the limits and spend caps itself."""
 
+    def __init__(self, config: SweepConfig, choices: Choices, run_dir: Path):
+        self.config = config
+        self.choices = choices
+        self.run_dir = run_dir
+
     def fits(self) -> bool:
         """Whether its engines can start at all (else it says why)."""
         return True
@@ -89,7 +98,7 @@ class Engines:
         """The sweep's one limit board, served to its engines until `stack` closes."""
         raise NotImplementedError
 
-    def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
+    def prepare(self, stack: contextlib.ExitStack) -> None:
         """What its engines need before they start (closed with `stack`, after them)."""
 
     def new_engine(self, index: int, slot: int, emit: Emit, board: BoardLink | None) -> Engine:
@@ -99,25 +108,30 @@ class Engines:
 
 Cells = dict[Cell, list[EpisodeKey]]
 """The planned episodes without a record, by cell."""
-OnEngines = Callable[[list[dict[str, Any]]], None]
-"""Called once at the end with `Driver.engine_report()`."""
+
+
+class Hooks(TypedDict, total=False):
+    """What the command hands each executor's `run_*` for the driver."""
+
+    on_status: Callable[[Status], None] | None
+    """Called about once a second."""
+    on_engines: Callable[[list[dict[str, Any]]], None] | None
+    """Called once at the end with `Driver.engine_report()` (each engine's time and GPU busy
+    share)."""
+    ctrl_c: CtrlC | None
+    """The command's handler, else Ctrl-C is not the driver's."""
 
 
 def run_engines(
     open_engines: Callable[[Cells], contextlib.AbstractContextManager[Engines]],
     log: logging.Logger,
     label: str,
-    config: SweepConfig,
     keys: Sequence[EpisodeKey],
     run_dir: Path,
-    on_status: Callable[[Status], None] | None = None,
-    on_engines: OnEngines | None = None,
-    ctrl_c: CtrlC | None = None,
+    **hooks: Unpack[Hooks],
 ) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` on the engines `open_engines(cells)` opens, under one
-    `Driver`; return the ledger's records afterwards (each executor's `run_*`). `on_status` is
-    called about once a second; `on_engines` once at the end (each engine's time and GPU busy
-    share); `ctrl_c`: the command's handler, else Ctrl-C is not the driver's."""
+    `Driver`; return the ledger's records afterwards (each executor's `run_*`)."""
     ledger = Ledger.open(run_dir)  # second records of an episode moved aside, and said
     for line in ledger.collapsed:
         log.warning("ledger: %s", line)
@@ -126,11 +140,11 @@ def run_engines(
         log.info("%s: every planned episode is already in %s; nothing to run", label, RESULTS)
         return ledger.records
     with open_engines(cells) as kind:
-        driver = Driver(kind, config, keys, run_dir, on_status, ctrl_c, ledger)
+        driver = Driver(kind, keys, ledger, hooks.get("on_status"), hooks.get("ctrl_c"))
         try:
             return driver.run()
         finally:
-            if on_engines is not None:
+            if (on_engines := hooks.get("on_engines")) is not None:
                 try:
                     on_engines(driver.engine_report())
                 except Exception:  # the caller's report must not hide the sweep's own error
@@ -147,24 +161,23 @@ class Driver:
     def __init__(
         self,
         kind: Engines,
-        config: SweepConfig,
         keys: Sequence[EpisodeKey],
-        run_dir: Path,
+        ledger: Ledger,
         on_status: Callable[[Status], None] | None = None,
         ctrl_c: CtrlC | None = None,
-        ledger: Ledger | None = None,
     ):
-        """`ledger`: the run directory's, where the caller has opened it (`run_engines`)."""
+        """`ledger`: the run directory's (`run_engines` opened it), of which it is the only
+        writer."""
         self.kind = kind
         self.log = kind.log
-        self.config = config
-        self.run_dir = run_dir
+        self.config = kind.config
+        self.run_dir = kind.run_dir
         self.on_status = on_status
         self.ctrl_c = ctrl_c
         self.pressed = False
         """Ctrl-C was pressed (`ctrl_c`'s first press): the loop ends at its next tick."""
-        self.ledger = ledger if ledger is not None else Ledger.open(run_dir)  # the only writer
-        self.tally = Tally(run_dir, keys)
+        self.ledger = ledger
+        self.tally = Tally(self.run_dir, keys)
         self.queue: collections.deque[Chunk] = collections.deque(kind.chunks)
         self.total = len(self.queue)
         self.done = 0
@@ -193,7 +206,7 @@ class Driver:
                 finished = False
                 try:
                     self.board = self._serve_board(stack)
-                    self.kind.prepare(stack, list(self.queue))
+                    self.kind.prepare(stack)
                     for slot in range(self.kind.engines_wanted):
                         self._start_engine(slot)
                     with self._ctrl_c():

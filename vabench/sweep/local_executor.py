@@ -17,13 +17,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from typing_extensions import Unpack
+
 from vabench.config import SweepConfig
 from vabench.config.choices import Choices
 from vabench.sweep.cells import task_cost
 from vabench.sweep.chunk_engine import LOST, BoardLink, ChunkEngine, Command, serve
-from vabench.sweep.display import Status
-from vabench.sweep.driver import Cells, Emit, Engines, OnEngines, run_engines
-from vabench.sweep.interrupt import CtrlC
+from vabench.sweep.driver import Cells, Emit, Engines, Hooks, run_engines
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key
@@ -104,9 +104,7 @@ class LocalEngines(Engines):
     def __init__(
         self, config: SweepConfig, choices: Choices, run_dir: Path, keys: list[EpisodeKey]
     ):
-        self.config = config
-        self.choices = choices
-        self.run_dir = run_dir
+        super().__init__(config, choices, run_dir)
         cost = max(task_cost(config, k.task) for k in keys)
         self.chunks = [Chunk("sweep", keys, cost)]
 
@@ -123,9 +121,7 @@ def run_local(
     keys: Sequence[EpisodeKey],
     run_dir: Path,
     choices: Choices,
-    on_status: Callable[[Status], None] | None = None,
-    on_engines: OnEngines | None = None,
-    ctrl_c: CtrlC | None = None,
+    **hooks: Unpack[Hooks],
 ) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` in this process on `choices` (`driver.run_engines`)."""
 
@@ -134,4 +130,4 @@ def run_local(
         left = [k for k in keys if k in pending]  # in plan order
         return contextlib.nullcontext(LocalEngines(config, choices, run_dir, left))
 
-    return run_engines(engines, log, "local", config, keys, run_dir, on_status, on_engines, ctrl_c)
+    return run_engines(engines, log, "local", keys, run_dir, **hooks)

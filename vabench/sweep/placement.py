@@ -22,7 +22,7 @@ class Chunk:
     cost: float
     """Of one episode (`cells.episode_costs`: measured seconds, else the step budget)."""
     critical: bool = False
-    """Of a task on the sweep's critical path (`runner.critical_path_tasks`: the basket): it
+    """Of a task on the sweep's critical path (`cells.critical_path_tasks`: the basket): it
     runs alone in its engine, one such chunk a GPU where the engines allow (`choose_engine`)."""
 
 

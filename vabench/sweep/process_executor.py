@@ -17,11 +17,13 @@ import multiprocessing
 import os
 import re
 import threading
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
+
+from typing_extensions import Unpack
 
 from vabench import switches
 from vabench.children import (
@@ -44,8 +46,8 @@ from vabench.sweep.cells import (
     bins,
     chunks,
     dealing_costs,
+    dealt_choices,
     episode_costs,
-    task_budgets,
     task_groups,
 )
 from vabench.sweep.chunk_engine import (
@@ -54,15 +56,12 @@ from vabench.sweep.chunk_engine import (
     ChunkEngine,
     Command,
     serve,
-    with_critical_path,
 )
-from vabench.sweep.display import Status
-from vabench.sweep.driver import Cells, Emit, Engines, OnEngines, run_engines
-from vabench.sweep.interrupt import CtrlC
+from vabench.sweep.driver import Cells, Emit, Engines, Hooks, run_engines
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Key
-from vabench.sweep.runner import compile_ahead, critical_path_tasks
+from vabench.sweep.runner import compile_ahead
 from vabench.tuning import engine_env, kernel_profile, mps, precompile
 from vabench.tuning.engine_env import child_environment, gpu_for_worker
 
@@ -95,16 +94,6 @@ def plan_chunks(
     return alone + (bins(rest, workers, cost) if rest else [])
 
 
-def plan_critical_path(
-    config: SweepConfig, cells: dict[Cell, list[EpisodeKey]], choices: Choices
-) -> set[str]:
-    """The tasks of `cells` on the whole sweep's critical path (`runner.critical_path_tasks`)
-    where physics is batched (every engine is told it); none otherwise."""
-    if not choices.physics.batched:
-        return set()
-    return critical_path_tasks(task_budgets(config, cells))
-
-
 def critical_tasks(
     config: SweepConfig, cells: dict[Cell, list[EpisodeKey]], choices: Choices
 ) -> set[str]:
@@ -114,7 +103,7 @@ def critical_tasks(
     ex = choices.executor
     if not (ex.mps and ex.max_tasks > 1):
         return set()
-    return plan_critical_path(config, cells, choices)
+    return set(dealt_choices(config, cells, choices).executor.critical_path or ())
 
 
 def worker_shares(choices: Choices, workers: int) -> dict[str, str]:
@@ -289,30 +278,26 @@ class ProcessEngines(Engines):
         run_dir: Path,
         cells: dict[Cell, list[EpisodeKey]],
     ):
-        self.config = config
-        self.run_dir = run_dir
+        super().__init__(config, choices, run_dir)
         self.cells = cells
-        costs = dealing_costs(config, cells, "processes")
-        self.parts = plan_chunks(config, cells, choices, costs)
-        batched = choices.physics.batched
+        costs = dealing_costs(config, cells, self.label)
+        self.critical = critical_tasks(config, cells, choices)
+        self.chunks = [
+            Chunk(name, part, costs[part[0].task], part[0].task in self.critical)
+            for name, part in plan_chunks(config, cells, choices, costs)
+        ]
         # batched physics: every chunk at once (`plan_chunks` makes at most `max_tasks`, plus
         # the critical path's own)
+        batched = choices.physics.batched
         self.engines_wanted = (
-            len(self.parts) if batched else min(choices.executor.max_tasks, len(self.parts))
+            len(self.chunks) if batched else min(choices.executor.max_tasks, len(self.chunks))
         )
-        self.critical = critical_tasks(config, cells, choices)
-        self.choices = choices
-        budgets = task_budgets(config, cells)
-        self.sent = with_critical_path(choices, budgets) if batched else choices
+        self.sent = dealt_choices(config, cells, choices)
         """What the engines run on: with batched physics, the whole sweep's critical path."""
         self.env = child_environment(choices.physics) | worker_shares(choices, self.engines_wanted)
         if self.critical:  # every engine process below the critical path's on the GPU
             self.env[mps.PRIORITY_VARIABLE] = mps.BELOW_NORMAL
         self.gpus = choices.machine.gpus
-        self.chunks = [
-            Chunk(name, part, costs[part[0].task], part[0].task in self.critical)
-            for name, part in self.parts
-        ]
 
     def serve_board(
         self, stack: contextlib.ExitStack, limits: dict[str, dict[str, Any]], caps: SpendCaps | None
@@ -322,12 +307,12 @@ class ProcessEngines(Engines):
         stack.callback(server.close)
         return BoardAddress(address, tuple(limits), caps is not None)
 
-    def prepare(self, stack: contextlib.ExitStack, chunks: Sequence[Chunk]) -> None:
+    def prepare(self, stack: contextlib.ExitStack) -> None:
         """Before the MPS daemon: this process is no client (its CUDA context is made first).
         The kernels compile in the background (each engine's families wait for their own); the
         engine processes share the GPU through the sweep's own MPS daemon, closed with `stack`
         once its clients are gone."""
-        compiling = _precompile(self.config, self.cells, self.choices)
+        compiling = self._precompile()
         if compiling is not None:  # long over unless the sweep was: its children end theirs
 
             def join(failed: type[BaseException] | None, *_: Any) -> None:
@@ -349,11 +334,24 @@ class ProcessEngines(Engines):
             "processes: %d cells (%d episodes) in %d chunks, %d at once; engines run with %s%s",
             len(self.cells),
             sum(len(v) for v in self.cells.values()),
-            len(chunks),
+            len(self.chunks),
             self.engines_wanted,
             " ".join(f"{k}={v}" for k, v in seen.items()) or "this environment",
             f", one of GPUs {','.join(self.gpus)} each" if len(self.gpus) > 1 else "",
         )
+
+    def _precompile(self) -> precompile.Compiling | None:
+        """Every family's Warp kernels compiled once, here, in the background (`compile_ahead`),
+        before the engines start: each engine's families wait for their own kernels (engines
+        compiling them would compile, one after another under the machine's lock, the modules
+        the families share). With `VABENCH_WARP_PRECOMPILE=first`, returns once it has ended."""
+        size = (self.config.render.width, self.config.render.height)
+        first = self.sent.executor.critical_path or ()
+        tasks = {task for _, _, task in self.cells}
+        compiling = compile_ahead(tasks, self.choices, size, first)
+        if compiling is not None and switches.get("warp_precompile") == "first":
+            compiling.join()
+        return compiling
 
     def new_engine(
         self, index: int, slot: int, emit: Emit, board: BoardLink | None
@@ -362,26 +360,12 @@ class ProcessEngines(Engines):
         gpu = gpu_for_worker(slot, self.gpus)
         if gpu is not None:  # before anything there initialises CUDA
             env["CUDA_VISIBLE_DEVICES"] = gpu
-        if slot < len(self.parts):  # a slot a chunk each: the critical path's ahead
-            env |= critical_environment(self.choices, self.env, self.parts[slot][1], self.critical)
+        if slot < len(self.chunks):  # a slot a chunk each: the critical path's ahead
+            part = self.chunks[slot].keys
+            env |= critical_environment(self.choices, self.env, part, self.critical)
         assert board is None or isinstance(board, BoardAddress)
         spec = WorkerSpec(self.config, self.sent, self.run_dir, board, os.getpid())
         return ProcessEngine(index, emit, spec, env)
-
-
-def _precompile(
-    config: SweepConfig, cells: dict[Cell, list[EpisodeKey]], choices: Choices
-) -> precompile.Compiling | None:
-    """Every family's Warp kernels compiled once, here, in the background (`compile_ahead`),
-    before the engines start: each engine's families wait for their own kernels (engines
-    compiling them would compile, one after another under the machine's lock, the modules the
-    families share). With `VABENCH_WARP_PRECOMPILE=first`, returns once it has ended."""
-    size = (config.render.width, config.render.height)
-    first = plan_critical_path(config, cells, choices)
-    compiling = compile_ahead({task for _, _, task in cells}, choices, size, first)
-    if compiling is not None and switches.get("warp_precompile") == "first":
-        compiling.join()
-    return compiling
 
 
 def run_processes(
@@ -389,9 +373,7 @@ def run_processes(
     keys: Sequence[EpisodeKey],
     run_dir: Path,
     choices: Choices,
-    on_status: Callable[[Status], None] | None = None,
-    on_engines: OnEngines | None = None,
-    ctrl_c: CtrlC | None = None,
+    **hooks: Unpack[Hooks],
 ) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` in engine processes on `choices`
     (`driver.run_engines`)."""
@@ -400,6 +382,4 @@ def run_processes(
     def engines(cells: Cells) -> contextlib.nullcontext[Engines]:
         return contextlib.nullcontext(ProcessEngines(config, choices, run_dir, cells))
 
-    return run_engines(
-        engines, log, "processes", config, keys, run_dir, on_status, on_engines, ctrl_c
-    )
+    return run_engines(engines, log, "processes", keys, run_dir, **hooks)

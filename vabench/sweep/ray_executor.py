@@ -19,17 +19,13 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from typing_extensions import Unpack
+
 from vabench.config import SweepConfig
 from vabench.config.choices import Choices
 from vabench.llm_pool.limit_board import LimiterActor, RayBoard
 from vabench.llm_pool.spend import SpendCaps
-from vabench.sweep.cells import (
-    Cell,
-    chunks,
-    dealing_costs,
-    task_budgets,
-    task_groups,
-)
+from vabench.sweep.cells import Cell, chunks, dealing_costs, dealt_choices, task_groups
 from vabench.sweep.chunk_engine import (
     CLOSED,
     DONE,
@@ -39,19 +35,16 @@ from vabench.sweep.chunk_engine import (
     STARTED,
     STATUS,
     BoardLink,
-    with_critical_path,
 )
-from vabench.sweep.display import Status
 from vabench.sweep.driver import (
     CLOSE_TIMEOUT_S,
     TICK_S,
     Cells,
     Emit,
     Engines,
-    OnEngines,
+    Hooks,
     run_engines,
 )
-from vabench.sweep.interrupt import CtrlC
 from vabench.sweep.placement import Chunk
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.ray_plan import (
@@ -166,9 +159,8 @@ class RayEngines(Engines):
     ):
         from vabench.sweep.ray_engine import EngineActor
 
+        super().__init__(config, choices, run_dir)
         self.ray = ray
-        self.config = config
-        self.run_dir = run_dir
         self.max_chunks = choices.executor.max_tasks
         cluster = ray.cluster_resources()
         self.engines_wanted, self.resources, self.choices = engine_plan(config, choices, cluster)
@@ -182,8 +174,7 @@ class RayEngines(Engines):
         # is one batch per action instead of one per cell
         batched = self.choices.physics.batched
         units = task_groups(cells) if batched else cells
-        if batched:  # where batches have stream priorities
-            self.choices = with_critical_path(self.choices, task_budgets(config, cells))
+        self.choices = dealt_choices(config, cells, self.choices)  # batches' stream priorities
         parts = chunks(units, self.engines_wanted, cost, per_worker=CHUNKS_PER_ENGINE)
         # where engines share GPUs, a chunk of the critical path's task runs alone in its
         # engine (`placement.choose_engine`); with one engine a GPU that would give the
@@ -260,9 +251,7 @@ def run_ray(
     keys: Sequence[EpisodeKey],
     run_dir: Path,
     choices: Choices,
-    on_status: Callable[[Status], None] | None = None,
-    on_engines: OnEngines | None = None,
-    ctrl_c: CtrlC | None = None,
+    **hooks: Unpack[Hooks],
 ) -> dict[Key, dict[str, Any]]:
     """Run the pending episodes of `keys` on the engines of a Ray cluster (see the module
     docstring; `driver.run_engines`)."""
@@ -286,7 +275,7 @@ def run_ray(
             if started_here:
                 ray.shutdown()
 
-    return run_engines(engines, log, "ray", config, keys, run_dir, on_status, on_engines, ctrl_c)
+    return run_engines(engines, log, "ray", keys, run_dir, **hooks)
 
 
 def _in_creation(err: BaseException) -> bool:

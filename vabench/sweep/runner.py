@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import statistics
 from collections import defaultdict
 from collections.abc import AsyncIterator, Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -39,6 +38,7 @@ from vabench.report.spend import recorded_spend
 from vabench.sim_mjx.backends import Choice
 from vabench.sim_mjx.interface import DeviceFailure, device_failure
 from vabench.sim_mjx.warp.device import warp_device
+from vabench.sweep.cells import sweep_critical_path
 from vabench.sweep.display import Counts
 from vabench.sweep.plan import EpisodeKey
 from vabench.sweep.results import Ledger, Sink, ledger_key, recover, set_aside
@@ -243,7 +243,7 @@ class LocalSweep:
                     round_no,
                     len(pending),
                 )
-            await self._run_round(pending, engine.llm, engine.renderer, engine.image)
+            await self._run_round(pending, engine)
             round_no += 1
         if self.capped and self.stopped is None:
             self.stopped = (
@@ -254,9 +254,7 @@ class LocalSweep:
             )
             log.error("stopped: %s", self.stopped)
 
-    async def _run_round(
-        self, keys: list[EpisodeKey], llm: LLMPool, pool: Renderer, image: ImageSettings
-    ) -> None:
+    async def _run_round(self, keys: list[EpisodeKey], engine: Engine) -> None:
         by_task: dict[str, list[EpisodeKey]] = defaultdict(list)
         for k in keys:
             by_task[k.task].append(k)
@@ -269,7 +267,7 @@ class LocalSweep:
                 if self.stopped is not None:
                     return
                 try:
-                    await self._run_task(name, task_keys, llm, pool, image, critical)
+                    await self._run_task(name, task_keys, engine, critical)
                 except Exception as err:  # e.g. a task's batch built on a failed GPU context
                     failure = device_failure(err)
                     if failure is None:
@@ -284,19 +282,12 @@ class LocalSweep:
         await asyncio.gather(*(one_task(n, ks, n in critical) for n, ks in longest_first))
 
     async def _run_task(
-        self,
-        name: str,
-        keys: list[EpisodeKey],
-        llm: LLMPool,
-        pool: Renderer,
-        image: ImageSettings,
-        critical: bool = False,
+        self, name: str, keys: list[EpisodeKey], engine: Engine, critical: bool
     ) -> None:
         cfg, ex, sim = self.config, self.config.executor, self.config.simulator
         task = get_task(name)
         n_slots = ex.slots(len(keys))
-        assert self.physics is not None and self.gate is not None
-        gate = self.gate
+        gate = engine.gate
 
         def on_decision(spec: EpisodeSpec, seconds: float) -> None:
             gate.observe((spec.model, spec.protocol, spec.task), seconds)
@@ -304,12 +295,12 @@ class LocalSweep:
         async with task_services(
             task,
             n_slots,
-            llm,
-            pool,
-            image=image,
+            engine.llm,
+            engine.renderer,
+            image=engine.image,
             sim_window_s=sim.window_s,
             on_decision=on_decision,
-            **sim.batch_kwargs(self.physics.kind, critical_path=critical),
+            **sim.batch_kwargs(engine.physics.kind, critical_path=critical),
         ) as svc:
             slots = asyncio.Semaphore(n_slots)
 
@@ -329,7 +320,7 @@ class LocalSweep:
                 track = cfg.track(k.track)
                 # Before taking a slot: the first episodes of a family wait here for its
                 # learning session without holding simulator slots.
-                use = await self.summaries.for_episode(
+                use = await engine.summaries.for_episode(
                     track.summaries, track.summary_source(k.model), name
                 )
                 spec = EpisodeSpec(
@@ -404,32 +395,6 @@ class LocalSweep:
         self.ledger.add_infrastructure_failure(k.track, k.rel_dir, result)
         set_aside(self.run_dir / k.rel_dir)
         self.progress.cells[(k.model, k.track, k.task)].retried += 1
-
-
-def critical_path_tasks(budgets: dict[str, int]) -> set[str]:
-    """The tasks whose episodes bound a round's wall time: those of the largest step budget,
-    when it is at least twice the median of the other tasks' (the basket's 250 steps against
-    50: its episodes take several times the others' decisions and would finish last,
-    docs/PERFORMANCE.md). The median, not the largest other: `configs/all.yaml` also gives
-    place_cube_on_cube 200 steps, whose episodes still end in as few decisions as the base
-    families'. Where budgets are alike, none: a priority for everyone is a priority for no
-    one."""
-    if not budgets:
-        return set()
-    top = max(budgets.values())
-    others = [b for b in budgets.values() if b != top]
-    if not others or top < 2 * statistics.median(others):
-        return set()
-    return {name for name, b in budgets.items() if b == top}
-
-
-def sweep_critical_path(decided: Sequence[str] | None, budgets: dict[str, int]) -> set[str]:
-    """The tasks of `budgets` (this process's) on the critical path: those the driver decided
-    for the whole sweep (`ExecutorChoice.critical_path`, `chunk_engine.with_critical_path`),
-    else those `critical_path_tasks` finds among them."""
-    if decided is None:
-        return critical_path_tasks(budgets)
-    return set(decided) & set(budgets)
 
 
 def spend_caps(config: SweepConfig, run_dir: Path) -> SpendCaps | None:
